@@ -1,0 +1,60 @@
+# perfros-bag: every target sets itself up (venv, Debian packages) on a fresh machine.
+SHELL := /bin/bash
+PYTHON ?= python3
+VENV ?= .venv
+PY := $(VENV)/bin/python
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed-stamp
+# Debian packages the tests and pipelines use: ROS 1 (roscore, rospy, rosbag) and a
+# headless browser for the report check.
+DEBS ?= ros-core python3-rospy python3-rosbag chromium
+PYTEST_ARGS ?=
+OUT ?= out
+
+.PHONY: help setup setup-debs test lint bench demo clean
+help:
+	@echo "make demo   - run the pipeline on the bundled fixtures (sets everything up)"
+	@echo "make test   - run the test suite (sets everything up)"
+	@echo "make lint   - ruff + mypy"
+	@echo "make bench  - benchmarks (results: docs/benchmarks.md)"
+	@echo "make paper  - the paper's Table II instances with every solver"
+	@echo "make casestudy - the case study on real ROS 1 nodes (long)"
+
+setup: $(STAMP)
+
+$(STAMP): pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q -e '.[dev]'
+	@touch $@
+
+# Installs the Debian packages when one is missing (needs root, as on CI); otherwise says what to do.
+setup-debs:
+	@missing=""; for p in $(DEBS); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
+	if [ -n "$$missing" ]; then \
+	  if [ "$$(id -u)" = 0 ]; then \
+	    echo "installing Debian packages:$$missing"; \
+	    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $$missing >/dev/null; \
+	  else echo "warning: Debian packages missing:$$missing (run: sudo apt-get install$$missing); tests that need them will fail" >&2; fi; \
+	fi
+
+test: setup setup-debs
+	$(PY) -m pytest -q $(PYTEST_ARGS)
+
+lint: setup
+	$(BIN)/ruff check perfros_bag tests
+	$(BIN)/mypy perfros_bag
+
+bench: setup setup-debs
+	$(PY) tests/bench/run.py
+
+clean:
+	rm -rf $(OUT) .pytest_cache .mypy_cache .ruff_cache
+
+# Pipelines (characterise, fit, solve, validate, report, paper, casestudy) and the
+# demo's steps live in pipelines/*.mk; each adds its final artefacts to DEMO_OUTPUTS.
+DEMO_OUTPUTS :=
+include $(sort $(wildcard pipelines/*.mk))
+
+demo: setup $(DEMO_OUTPUTS)
+	@echo "demo outputs in $(OUT)/demo/"

@@ -1,0 +1,3 @@
+from perfros_bag.cli import main
+
+main()

@@ -1,0 +1,69 @@
+"""The typer app, the shared consoles and the error handling every verb goes through."""
+
+from __future__ import annotations
+
+import functools
+import warnings
+from collections.abc import Callable
+from typing import Any, TypeVar
+
+import typer
+from rich.console import Console
+from rich.markup import escape
+
+from perfros_bag.errors import PerfrosError
+
+app = typer.Typer(
+    name="perfros-bag",
+    help="Characterise ROS recordings, fit regressions, solve placement and settings, validate runs.",
+    no_args_is_help=True,
+    pretty_exceptions_enable=False,
+    add_completion=False,
+)
+
+#: stdout carries only the JSON document with --json; tables go to stdout otherwise.
+out = Console()
+#: progress bars, warnings and errors go to stderr.
+err = Console(stderr=True)
+
+F = TypeVar("F", bound=Callable[..., Any])
+
+
+def _show_warning(message: Warning | str, category: type[Warning], filename: str, lineno: int,
+                  file: Any = None, line: str | None = None) -> None:
+    err.print(f"[yellow]warning:[/] {escape(str(message))}", highlight=False, markup=True, soft_wrap=True)
+
+
+def command(*args: Any, **kwargs: Any) -> Callable[[F], F]:
+    """``@app.command`` plus: PerfrosError -> one line on stderr and its exit code (2)."""
+
+    def decorate(func: F) -> F:
+        @functools.wraps(func)
+        def wrapper(*a: Any, **kw: Any) -> Any:
+            warnings.showwarning = _show_warning
+            try:
+                return func(*a, **kw)
+            except PerfrosError as exc:
+                err.print(f"[red]error:[/] {escape(str(exc))}", highlight=False, soft_wrap=True, markup=True)
+                raise typer.Exit(exc.exit_code) from None
+            except KeyboardInterrupt:
+                err.print("[red]interrupted[/]")
+                raise typer.Exit(130) from None
+
+        app.command(*args, **kwargs)(wrapper)
+        return func
+
+    return decorate
+
+
+@app.command("version")
+def version() -> None:
+    """Print perfros-bag's version."""
+    from perfros_bag import __version__
+
+    out.print(__version__)
+
+
+def main() -> None:
+    """Console-script entry point."""
+    app(prog_name="perfros-bag")

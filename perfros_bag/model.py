@@ -1,0 +1,338 @@
+"""The system model of the paper (section II) as plain dataclasses.
+
+A :class:`System` has computers (robots and servers with a CPU capacity), network links
+(with a bandwidth, optionally on a shared medium such as one wifi channel), nodes (each
+with a weight, optional residence and coresidence constraints, and one or more settings
+or a CPU -> performance :class:`Curve`) and edges (publisher -> subscriber traffic).
+
+CPU is in normalised units (the paper: 100 = one robot's on-board computer).
+Loading and validating ``system.yaml`` lives in :mod:`perfros_bag.spec`.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass, field
+from functools import cached_property
+from typing import Literal
+
+ComputerKind = Literal["robot", "server"]
+CurveForm = Literal["linear", "log", "quadratic", "power"]
+CURVE_FORMS: tuple[str, ...] = ("linear", "log", "quadratic", "power")
+CURVE_NCOEF: dict[str, int] = {"linear": 2, "log": 2, "quadratic": 3, "power": 2}
+
+
+@dataclass(frozen=True)
+class Curve:
+    """One of a fixed set of forms, evaluated at ``x = input / scale``.
+
+    - ``linear``:    a*x + b            (coef = [a, b])
+    - ``log``:       a*ln(x) + b        (coef = [a, b])
+    - ``quadratic``: a*x**2 + b*x + c   (coef = [a, b, c])
+    - ``power``:     a*x**b             (coef = [a, b])
+
+    ``domain`` is the valid input range (e.g. CPU units ``[80, 200]``). Curves from input
+    files are data: only these forms exist, nothing is ever evaluated as code.
+    """
+
+    form: str
+    coef: tuple[float, ...]
+    domain: tuple[float, float]
+    scale: float = 1.0
+
+    def __post_init__(self) -> None:
+        if self.form not in CURVE_NCOEF:
+            raise ValueError(f"unknown curve form {self.form!r} (one of {', '.join(CURVE_FORMS)})")
+        if len(self.coef) != CURVE_NCOEF[self.form]:
+            raise ValueError(f"curve form {self.form!r} takes {CURVE_NCOEF[self.form]} coefficients, got {len(self.coef)}")
+        lo, hi = self.domain
+        if not (math.isfinite(lo) and math.isfinite(hi)) or lo > hi:
+            raise ValueError(f"curve domain [{lo}, {hi}] is not a finite range")
+        if self.scale <= 0:
+            raise ValueError("curve scale must be > 0")
+        if self.form in ("log", "power") and lo <= 0:
+            raise ValueError(f"curve form {self.form!r} needs a domain above 0, got [{lo}, {hi}]")
+
+    def __call__(self, value: float) -> float:
+        x = value / self.scale
+        c = self.coef
+        if self.form == "linear":
+            return c[0] * x + c[1]
+        if self.form == "log":
+            return c[0] * math.log(x) + c[1]
+        if self.form == "quadratic":
+            return c[0] * x * x + c[1] * x + c[2]
+        return c[0] * x ** c[1]  # power
+
+    def inverse(self, y: float, tol: float = 1e-9) -> float:
+        """The input in ``domain`` whose output is ``y`` (bisection; the curve must be monotone
+        on the domain). Outputs beyond the domain's ends clamp to the ends."""
+        lo, hi = self.domain
+        flo, fhi = self(lo), self(hi)
+        increasing = fhi >= flo
+        if (y <= flo) == increasing and y != flo:
+            return lo
+        if (y >= fhi) == increasing and y != fhi:
+            return hi
+        for _ in range(200):
+            mid = (lo + hi) / 2
+            if (self(mid) < y) == increasing:
+                lo = mid
+            else:
+                hi = mid
+            if hi - lo <= tol * max(1.0, abs(hi)):
+                break
+        return (lo + hi) / 2
+
+    def to_dict(self) -> dict[str, object]:
+        return {"form": self.form, "coef": list(self.coef), "domain": list(self.domain), "scale": self.scale}
+
+
+@dataclass(frozen=True)
+class TopicRate:
+    """Expected traffic of one topic: frequency and bandwidth."""
+
+    frequency_hz: float | None = None
+    bandwidth_kBps: float | None = None
+
+
+@dataclass(frozen=True)
+class Setting:
+    """One parameter value of a node with its CPU cost and performance (a row of Table I)."""
+
+    cpu: float
+    performance: float
+    value: float | None = None
+    frequency_hz: float | None = None
+    bandwidth_kBps: float | None = None
+    topics: dict[str, TopicRate] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Choice:
+    """What a solver picks for a node: a CPU level and what it yields.
+
+    ``index`` is the position in :meth:`Node.choices` (stable for a given resolution).
+    """
+
+    index: int
+    cpu: float
+    performance: float
+    value: float | None = None
+    frequency_hz: float | None = None
+    bandwidth_kBps: float | None = None
+    topics: dict[str, TopicRate] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Parameter:
+    name: str
+    unit: str | None = None
+    type: Literal["int", "float"] = "float"
+
+
+@dataclass(frozen=True)
+class Computer:
+    name: str
+    kind: ComputerKind
+    capacity: float | None = None  # None: to be sized (Problem 2 servers)
+    max_capacity: float | None = None  # Problem 2: upper bound on a server's size
+
+
+@dataclass(frozen=True)
+class Link:
+    between: tuple[str, str]
+    bandwidth_kBps: float
+    medium: str | None = None
+
+
+@dataclass(frozen=True)
+class Medium:
+    """A shared channel (one wifi): the sum of the loads of its links is capped."""
+
+    name: str
+    bandwidth_kBps: float
+
+
+@dataclass(frozen=True)
+class Edge:
+    """Traffic from ``src`` (publisher) to ``dst``.
+
+    Its bandwidth is ``bandwidth_kBps`` when given, else the publisher's bandwidth at its
+    chosen setting (the topic's when ``topic`` is set and the setting has per-topic rates).
+    """
+
+    src: str
+    dst: str
+    topic: str | None = None
+    bandwidth_kBps: float | None = None
+
+
+@dataclass(frozen=True)
+class Node:
+    name: str
+    weight: float
+    settings: tuple[Setting, ...] = ()
+    curve: Curve | None = None  # CPU -> performance over a continuum (solver's choices)
+    residence: tuple[str, ...] | None = None
+    coresidence: tuple[str, ...] = ()
+    parameter: Parameter | None = None
+    topics: tuple[str, ...] = ()
+    process: str | None = None
+    launch: dict[str, str] = field(default_factory=dict)
+    # Fitted relations from model.json, keyed "parameter->cpu", "parameter->performance",
+    # "cpu->performance", "parameter->frequency", "parameter->bandwidth".
+    relations: dict[str, Curve] = field(default_factory=dict)
+
+    @property
+    def configurable(self) -> bool:
+        return self.curve is not None or len(self.settings) > 1
+
+    def choices(self, resolution: float = 1.0) -> list[Choice]:
+        """The node's options for a solver, sorted by CPU.
+
+        With a curve: every ``resolution`` CPU units of its domain (ends included), with
+        performance from the curve, the parameter value from the inverse of
+        ``parameter->cpu`` when fitted, and frequency/bandwidth from the fitted relations
+        or, failing those, interpolated between the settings by CPU.
+        Without a curve: the discrete settings.
+        """
+        if self.curve is None:
+            ordered = sorted(self.settings, key=lambda s: (s.cpu, s.performance))
+            return [
+                Choice(i, s.cpu, s.performance, s.value, s.frequency_hz, s.bandwidth_kBps, s.topics)
+                for i, s in enumerate(ordered)
+            ]
+        if resolution <= 0:
+            raise ValueError("resolution must be > 0")
+        lo, hi = self.curve.domain
+        count = int(math.floor((hi - lo) / resolution + 1e-9))
+        levels = [lo + k * resolution for k in range(count + 1)]
+        if hi > levels[-1] + 1e-9:
+            levels.append(hi)
+        return [self._choice_at(i, c) for i, c in enumerate(levels)]
+
+    def _choice_at(self, index: int, cpu: float) -> Choice:
+        assert self.curve is not None
+        value: float | None = None
+        p2c = self.relations.get("parameter->cpu")
+        if p2c is not None:
+            value = p2c.inverse(cpu)
+            if self.parameter is not None and self.parameter.type == "int":
+                value = float(round(value))
+        freq = self._relation_or_interp("parameter->frequency", value, cpu, "frequency_hz")
+        bw = self._relation_or_interp("parameter->bandwidth", value, cpu, "bandwidth_kBps")
+        return Choice(index, cpu, self.curve(cpu), value, freq, bw)
+
+    def _relation_or_interp(self, key: str, value: float | None, cpu: float, attr: str) -> float | None:
+        rel = self.relations.get(key)
+        if rel is not None and value is not None:
+            return rel(min(max(value, rel.domain[0]), rel.domain[1]))
+        points = sorted((s.cpu, getattr(s, attr)) for s in self.settings if getattr(s, attr) is not None)
+        if not points:
+            return None
+        if cpu <= points[0][0]:
+            return float(points[0][1])
+        for (c0, y0), (c1, y1) in zip(points, points[1:], strict=False):
+            if cpu <= c1:
+                return float(y0 + (y1 - y0) * (cpu - c0) / (c1 - c0)) if c1 > c0 else float(y1)
+        return float(points[-1][1])
+
+
+@dataclass(frozen=True)
+class System:
+    computers: tuple[Computer, ...]
+    nodes: tuple[Node, ...]
+    links: tuple[Link, ...] = ()
+    media: tuple[Medium, ...] = ()
+    edges: tuple[Edge, ...] = ()
+    cpu_unit: str | None = None
+    machines: dict[str, dict[str, str]] = field(default_factory=dict)
+    source: str | None = None  # the file it was loaded from, for messages
+
+    @cached_property
+    def computer(self) -> dict[str, Computer]:
+        return {c.name: c for c in self.computers}
+
+    @cached_property
+    def node(self) -> dict[str, Node]:
+        return {n.name: n for n in self.nodes}
+
+    @cached_property
+    def medium(self) -> dict[str, Medium]:
+        return {m.name: m for m in self.media}
+
+    def allowed(self, node: str) -> tuple[str, ...]:
+        """Computers a node may sit on: its residence, or every computer."""
+        res = self.node[node].residence
+        return res if res is not None else tuple(c.name for c in self.computers)
+
+    @cached_property
+    def coresidence_groups(self) -> list[tuple[str, ...]]:
+        """Nodes that must share a computer (the transitive closure of coresidence), in node
+        order; singletons included."""
+        parent = {n.name: n.name for n in self.nodes}
+
+        def find(x: str) -> str:
+            while parent[x] != x:
+                parent[x] = parent[parent[x]]
+                x = parent[x]
+            return x
+
+        for n in self.nodes:
+            for m in n.coresidence:
+                ra, rb = find(n.name), find(m)
+                if ra != rb:
+                    parent[rb] = ra
+        groups: dict[str, list[str]] = {}
+        for n in self.nodes:
+            groups.setdefault(find(n.name), []).append(n.name)
+        return [tuple(g) for g in groups.values()]
+
+    @cached_property
+    def _adjacency(self) -> dict[str, list[tuple[str, int]]]:
+        adj: dict[str, list[tuple[str, int]]] = {c.name: [] for c in self.computers}
+        for i, link in enumerate(self.links):
+            a, b = link.between
+            adj[a].append((b, i))
+            adj[b].append((a, i))
+        return adj
+
+    def route(self, a: str, b: str) -> tuple[int, ...] | None:
+        """Indices of the links traffic from computer ``a`` to ``b`` crosses: the shortest
+        path by hops (ties broken by link order). ``()`` for ``a == b``; ``None`` when no
+        path exists. A system without links puts no network constraint: ``()``."""
+        return self._routes.get((a, b), None if self.links else ())
+
+    @cached_property
+    def _routes(self) -> dict[tuple[str, str], tuple[int, ...]]:
+        routes: dict[tuple[str, str], tuple[int, ...]] = {}
+        adj = self._adjacency
+        for src in adj:
+            prev: dict[str, tuple[str, int] | None] = {src: None}
+            queue = deque([src])
+            while queue:
+                cur = queue.popleft()
+                for nxt, li in adj[cur]:
+                    if nxt not in prev:
+                        prev[nxt] = (cur, li)
+                        queue.append(nxt)
+            for dst in prev:
+                path: list[int] = []
+                at = dst
+                while (step := prev[at]) is not None:
+                    at, li = step
+                    path.append(li)
+                routes[(src, dst)] = tuple(reversed(path))
+        return routes
+
+    def edge_bandwidth(self, edge: Edge, publisher_choice: Choice) -> float:
+        """kB/s an edge carries when its publisher runs at ``publisher_choice``."""
+        if edge.bandwidth_kBps is not None:
+            return edge.bandwidth_kBps
+        if edge.topic is not None and edge.topic in publisher_choice.topics:
+            bw = publisher_choice.topics[edge.topic].bandwidth_kBps
+            if bw is not None:
+                return bw
+        return publisher_choice.bandwidth_kBps or 0.0

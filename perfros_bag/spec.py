@@ -1,0 +1,376 @@
+"""Load and validate ``system.yaml`` (and the system part of ``model.json``).
+
+Every problem is an :class:`~perfros_bag.errors.InputError` naming the file, the node
+(or computer, link, edge) and the field: ``system.yaml: node 'tracker1': settings[1].cpu
+must be > 0``. Unknown keys are errors (a typo must not silently drop a constraint).
+Weights that do not sum to 1 are normalised with a warning (eq 6).
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from perfros_bag.errors import InputError, PerfrosWarning
+from perfros_bag.fileio import read_json, read_yaml
+from perfros_bag.model import (
+    CURVE_FORMS,
+    Computer,
+    Curve,
+    Edge,
+    Link,
+    Medium,
+    Node,
+    Parameter,
+    Setting,
+    System,
+    TopicRate,
+)
+
+TOP_KEYS = {"cpu_unit", "computers", "links", "media", "nodes", "edges", "machines"}
+COMPUTER_KEYS = {"name", "kind", "capacity", "max_capacity"}
+LINK_KEYS = {"between", "bandwidth_kBps", "medium"}
+MEDIUM_KEYS = {"name", "bandwidth_kBps"}
+NODE_KEYS = {
+    "name", "weight", "residence", "coresidence", "parameter", "topics", "process",
+    "settings", "curve", "launch", "relations",
+}
+SETTING_KEYS = {"value", "cpu", "performance", "frequency_hz", "bandwidth_kBps", "topics"}
+TOPIC_RATE_KEYS = {"frequency_hz", "bandwidth_kBps"}
+PARAMETER_KEYS = {"name", "unit", "type"}
+CURVE_KEYS = {"form", "coef", "cpu", "domain", "scale"}
+EDGE_KEYS = {"from", "to", "topic", "bandwidth_kBps"}
+LAUNCH_KEYS = {"package", "type", "param", "name", "namespace"}
+RELATION_KEYS = {"parameter->cpu", "parameter->performance", "cpu->performance",
+                 "parameter->frequency", "parameter->bandwidth"}
+
+
+class _Ctx:
+    """Where we are in the file, for error messages."""
+
+    def __init__(self, path: str) -> None:
+        self.path = path
+
+    def fail(self, where: str, problem: str) -> InputError:
+        return InputError(self.path, f"{where}: {problem}" if where else problem)
+
+    def mapping(self, obj: Any, where: str, allowed: set[str], required: set[str] = frozenset()) -> Mapping[str, Any]:  # type: ignore[assignment]
+        if not isinstance(obj, Mapping):
+            raise self.fail(where, f"expected a mapping, got {_kind(obj)}")
+        unknown = sorted(str(k) for k in obj if k not in allowed)
+        if unknown:
+            raise self.fail(where, f"unknown key(s) {', '.join(repr(k) for k in unknown)} (allowed: {', '.join(sorted(allowed))})")
+        missing = sorted(k for k in required if k not in obj)
+        if missing:
+            raise self.fail(where, f"missing required field(s) {', '.join(repr(k) for k in missing)}")
+        return obj
+
+    def number(self, obj: Any, where: str, *, positive: bool = False, nonneg: bool = False) -> float:
+        if isinstance(obj, bool) or not isinstance(obj, int | float) or not math.isfinite(float(obj)):
+            raise self.fail(where, f"must be a finite number, got {obj!r}")
+        value = float(obj)
+        if positive and value <= 0:
+            raise self.fail(where, f"must be > 0, got {obj!r}")
+        if nonneg and value < 0:
+            raise self.fail(where, f"must be >= 0, got {obj!r}")
+        return value
+
+    def opt_number(self, obj: Any, where: str, **kw: bool) -> float | None:
+        return None if obj is None else self.number(obj, where, **kw)
+
+    def string(self, obj: Any, where: str) -> str:
+        if not isinstance(obj, str) or not obj.strip():
+            raise self.fail(where, f"must be a non-empty string, got {obj!r}")
+        return obj
+
+    def str_list(self, obj: Any, where: str) -> tuple[str, ...]:
+        if isinstance(obj, str):
+            obj = [obj]
+        if not isinstance(obj, list):
+            raise self.fail(where, f"must be a list of names, got {_kind(obj)}")
+        return tuple(self.string(x, f"{where}[{i}]") for i, x in enumerate(obj))
+
+    def seq(self, obj: Any, where: str) -> list[Any]:
+        if obj is None:
+            return []
+        if not isinstance(obj, list):
+            raise self.fail(where, f"must be a list, got {_kind(obj)}")
+        return obj
+
+
+def _kind(obj: Any) -> str:
+    return "nothing" if obj is None else type(obj).__name__
+
+
+def load_system(path: str | Path) -> System:
+    """Read and validate a ``system.yaml`` (or a ``model.json``, whose ``system`` part has
+    the same shape)."""
+    p = Path(path)
+    if p.suffix.lower() == ".json":
+        data = read_json(p)
+        if isinstance(data, Mapping) and "system" in data:
+            data = data["system"]
+    else:
+        data = read_yaml(p)
+    return parse_system(data, str(p))
+
+
+def parse_system(data: Any, source: str = "system.yaml") -> System:
+    ctx = _Ctx(source)
+    if data is None:
+        raise ctx.fail("", "the file is empty")
+    top = ctx.mapping(data, "", TOP_KEYS, {"computers", "nodes"})
+
+    computers = _computers(ctx, top["computers"])
+    names = {c.name for c in computers}
+    media = _media(ctx, top.get("media"))
+    links = _links(ctx, top.get("links"), names, {m.name for m in media})
+    nodes = _nodes(ctx, top["nodes"], names)
+    node_names = {n.name for n in nodes}
+    edges = _edges(ctx, top.get("edges"), node_names)
+    machines = _machines(ctx, top.get("machines"), names)
+    cpu_unit = top.get("cpu_unit")
+    if cpu_unit is not None and not isinstance(cpu_unit, str):
+        cpu_unit = str(cpu_unit)
+
+    for n in nodes:
+        for m in n.coresidence:
+            if m not in node_names:
+                raise ctx.fail(f"node {n.name!r}: coresidence", f"unknown node {m!r}")
+            if m == n.name:
+                raise ctx.fail(f"node {n.name!r}: coresidence", "a node cannot list itself")
+
+    total = sum(n.weight for n in nodes)
+    if abs(total - 1.0) > 1e-6:
+        warnings.warn(f"{source}: node weights sum to {total:g}, not 1; normalised (eq 6)", PerfrosWarning, stacklevel=2)
+        nodes = [_reweight(n, n.weight / total) for n in nodes]
+
+    system = System(tuple(computers), tuple(nodes), tuple(links), tuple(media), tuple(edges),
+                    cpu_unit, machines, source)
+    _check_groups(ctx, system)
+    return system
+
+
+def _reweight(n: Node, weight: float) -> Node:
+    from dataclasses import replace
+
+    return replace(n, weight=weight)
+
+
+def _computers(ctx: _Ctx, raw: Any) -> list[Computer]:
+    items = ctx.seq(raw, "computers")
+    if not items:
+        raise ctx.fail("computers", "at least one computer is needed")
+    out: list[Computer] = []
+    seen: set[str] = set()
+    for i, item in enumerate(items):
+        where = f"computers[{i}]"
+        m = ctx.mapping(item, where, COMPUTER_KEYS, {"name", "kind"})
+        name = ctx.string(m["name"], f"{where}.name")
+        where = f"computer {name!r}"
+        if name in seen:
+            raise ctx.fail(where, "defined twice")
+        seen.add(name)
+        kind = m["kind"]
+        if kind not in ("robot", "server"):
+            raise ctx.fail(f"{where}: kind", f"must be 'robot' or 'server', got {kind!r}")
+        capacity = ctx.opt_number(m.get("capacity"), f"{where}: capacity", nonneg=True)
+        if capacity is None and kind == "robot":
+            raise ctx.fail(f"{where}: capacity", "a robot needs a capacity (only servers are sized by Problem 2)")
+        max_cap = ctx.opt_number(m.get("max_capacity"), f"{where}: max_capacity", nonneg=True)
+        out.append(Computer(name, kind, capacity, max_cap))
+    return out
+
+
+def _media(ctx: _Ctx, raw: Any) -> list[Medium]:
+    out: list[Medium] = []
+    for i, item in enumerate(ctx.seq(raw, "media")):
+        m = ctx.mapping(item, f"media[{i}]", MEDIUM_KEYS, {"name", "bandwidth_kBps"})
+        name = ctx.string(m["name"], f"media[{i}].name")
+        if any(x.name == name for x in out):
+            raise ctx.fail(f"medium {name!r}", "defined twice")
+        out.append(Medium(name, ctx.number(m["bandwidth_kBps"], f"medium {name!r}: bandwidth_kBps", nonneg=True)))
+    return out
+
+
+def _links(ctx: _Ctx, raw: Any, computers: set[str], media: set[str]) -> list[Link]:
+    out: list[Link] = []
+    pairs: set[frozenset[str]] = set()
+    for i, item in enumerate(ctx.seq(raw, "links")):
+        where = f"links[{i}]"
+        m = ctx.mapping(item, where, LINK_KEYS, {"between", "bandwidth_kBps"})
+        between = ctx.str_list(m["between"], f"{where}.between")
+        if len(between) != 2 or between[0] == between[1]:
+            raise ctx.fail(f"{where}.between", f"must name two different computers, got {list(between)}")
+        for c in between:
+            if c not in computers:
+                raise ctx.fail(f"{where}.between", f"unknown computer {c!r}")
+        key = frozenset(between)
+        if key in pairs:
+            raise ctx.fail(where, f"a second link between {between[0]!r} and {between[1]!r}")
+        pairs.add(key)
+        medium = m.get("medium")
+        if medium is not None and medium not in media:
+            raise ctx.fail(f"{where}.medium", f"unknown medium {medium!r} (declare it under media:)")
+        bw = ctx.number(m["bandwidth_kBps"], f"{where}.bandwidth_kBps", nonneg=True)
+        out.append(Link((between[0], between[1]), bw, medium))
+    return out
+
+
+def parse_curve(ctx_path: str, raw: Any, where: str, *, default_scale: float = 1.0) -> Curve:
+    ctx = _Ctx(ctx_path)
+    m = ctx.mapping(raw, where, CURVE_KEYS, {"form", "coef"})
+    form = m["form"]
+    if form not in CURVE_FORMS:
+        raise ctx.fail(f"{where}.form", f"unknown form {form!r} (one of {', '.join(CURVE_FORMS)})")
+    coef_raw = m["coef"]
+    if not isinstance(coef_raw, list):
+        raise ctx.fail(f"{where}.coef", "must be a list of numbers")
+    coef = tuple(ctx.number(c, f"{where}.coef[{i}]") for i, c in enumerate(coef_raw))
+    dom_raw = m.get("domain", m.get("cpu"))
+    if dom_raw is None:
+        raise ctx.fail(where, "needs its domain: cpu: [min, max]")
+    if not isinstance(dom_raw, list) or len(dom_raw) != 2:
+        raise ctx.fail(f"{where}.cpu", "must be [min, max]")
+    lo = ctx.number(dom_raw[0], f"{where}.cpu[0]")
+    hi = ctx.number(dom_raw[1], f"{where}.cpu[1]")
+    scale = ctx.number(m.get("scale", default_scale), f"{where}.scale", positive=True)
+    try:
+        return Curve(form, coef, (lo, hi), scale)
+    except ValueError as exc:
+        raise ctx.fail(where, str(exc)) from None
+
+
+def _nodes(ctx: _Ctx, raw: Any, computers: set[str]) -> list[Node]:
+    items = ctx.seq(raw, "nodes")
+    if not items:
+        raise ctx.fail("nodes", "at least one node is needed")
+    out: list[Node] = []
+    seen: set[str] = set()
+    for i, item in enumerate(items):
+        m = ctx.mapping(item, f"nodes[{i}]", NODE_KEYS, {"name", "weight"})
+        name = ctx.string(m["name"], f"nodes[{i}].name")
+        where = f"node {name!r}"
+        if name in seen:
+            raise ctx.fail(where, "defined twice")
+        seen.add(name)
+        weight = ctx.number(m["weight"], f"{where}: weight", positive=True)
+
+        residence: tuple[str, ...] | None = None
+        if m.get("residence") is not None:
+            residence = ctx.str_list(m["residence"], f"{where}: residence")
+            if not residence:
+                raise ctx.fail(f"{where}: residence", "is empty: the node could sit on no computer")
+            for c in residence:
+                if c not in computers:
+                    raise ctx.fail(f"{where}: residence", f"unknown computer {c!r}")
+        coresidence = ctx.str_list(m["coresidence"], f"{where}: coresidence") if m.get("coresidence") else ()
+
+        parameter = None
+        if m.get("parameter") is not None:
+            pm = ctx.mapping(m["parameter"], f"{where}: parameter", PARAMETER_KEYS, {"name"})
+            ptype = pm.get("type", "float")
+            if ptype not in ("int", "float"):
+                raise ctx.fail(f"{where}: parameter.type", f"must be 'int' or 'float', got {ptype!r}")
+            unit = pm.get("unit")
+            parameter = Parameter(ctx.string(pm["name"], f"{where}: parameter.name"),
+                                  None if unit is None else str(unit), ptype)
+
+        topics = ctx.str_list(m["topics"], f"{where}: topics") if m.get("topics") else ()
+        process = m.get("process")
+        if process is not None:
+            process = ctx.string(process, f"{where}: process")
+            import re
+
+            try:
+                re.compile(process)
+            except re.error as exc:
+                raise ctx.fail(f"{where}: process", f"not a valid regular expression: {exc}") from None
+
+        settings = tuple(_setting(ctx, s, f"{where}: settings[{j}]") for j, s in enumerate(ctx.seq(m.get("settings"), f"{where}: settings")))
+        curve = None
+        if m.get("curve") is not None:
+            curve = parse_curve(ctx.path, m["curve"], f"{where}: curve", default_scale=100.0)
+            if curve.domain[0] <= 0:
+                raise ctx.fail(f"{where}: curve.cpu", "the CPU range must be above 0")
+        if not settings and curve is None:
+            raise ctx.fail(where, "needs settings (at least one) or a curve")
+        if parameter is None and len(settings) > 1:
+            raise ctx.fail(where, "has several settings but no parameter: name the parameter they set")
+
+        relations: dict[str, Curve] = {}
+        if m.get("relations") is not None:
+            rm = ctx.mapping(m["relations"], f"{where}: relations", RELATION_KEYS)
+            for key, rv in rm.items():
+                relations[key] = parse_curve(ctx.path, rv, f"{where}: relations.{key}")
+
+        launch: dict[str, str] = {}
+        if m.get("launch") is not None:
+            lm = ctx.mapping(m["launch"], f"{where}: launch", LAUNCH_KEYS)
+            launch = {k: ctx.string(v, f"{where}: launch.{k}") for k, v in lm.items()}
+
+        out.append(Node(name, weight, settings, curve, residence, coresidence, parameter,
+                        topics, process, launch, relations))
+    return out
+
+
+def _setting(ctx: _Ctx, raw: Any, where: str) -> Setting:
+    m = ctx.mapping(raw, where, SETTING_KEYS, {"cpu", "performance"})
+    topics: dict[str, TopicRate] = {}
+    if m.get("topics") is not None:
+        tm = ctx.mapping(m["topics"], f"{where}.topics", set(m["topics"]) if isinstance(m["topics"], Mapping) else set())
+        for topic, rate in tm.items():
+            rm = ctx.mapping(rate, f"{where}.topics.{topic}", TOPIC_RATE_KEYS)
+            topics[str(topic)] = TopicRate(
+                ctx.opt_number(rm.get("frequency_hz"), f"{where}.topics.{topic}.frequency_hz", nonneg=True),
+                ctx.opt_number(rm.get("bandwidth_kBps"), f"{where}.topics.{topic}.bandwidth_kBps", nonneg=True),
+            )
+    return Setting(
+        cpu=ctx.number(m["cpu"], f"{where}.cpu", positive=True),
+        performance=ctx.number(m["performance"], f"{where}.performance", nonneg=True),
+        value=ctx.opt_number(m.get("value"), f"{where}.value"),
+        frequency_hz=ctx.opt_number(m.get("frequency_hz"), f"{where}.frequency_hz", nonneg=True),
+        bandwidth_kBps=ctx.opt_number(m.get("bandwidth_kBps"), f"{where}.bandwidth_kBps", nonneg=True),
+        topics=topics,
+    )
+
+
+def _edges(ctx: _Ctx, raw: Any, nodes: set[str]) -> list[Edge]:
+    out: list[Edge] = []
+    for i, item in enumerate(ctx.seq(raw, "edges")):
+        where = f"edges[{i}]"
+        m = ctx.mapping(item, where, EDGE_KEYS, {"from", "to"})
+        src = ctx.string(m["from"], f"{where}.from")
+        dst = ctx.string(m["to"], f"{where}.to")
+        for end in (src, dst):
+            if end not in nodes:
+                raise ctx.fail(where, f"unknown node {end!r}")
+        topic = m.get("topic")
+        out.append(Edge(src, dst, None if topic is None else ctx.string(topic, f"{where}.topic"),
+                        ctx.opt_number(m.get("bandwidth_kBps"), f"{where}.bandwidth_kBps", nonneg=True)))
+    return out
+
+
+def _machines(ctx: _Ctx, raw: Any, computers: set[str]) -> dict[str, dict[str, str]]:
+    if raw is None:
+        return {}
+    m = ctx.mapping(raw, "machines", computers)
+    out: dict[str, dict[str, str]] = {}
+    for name, attrs in m.items():
+        am = ctx.mapping(attrs, f"machines.{name}", {"address", "user", "env_loader", "ssh_port", "password", "default"})
+        out[str(name)] = {str(k): str(v) for k, v in am.items()}
+    return out
+
+
+def _check_groups(ctx: _Ctx, system: System) -> None:
+    """Every coresidence group must have a computer allowed for all its members."""
+    for group in system.coresidence_groups:
+        allowed = set(system.allowed(group[0]))
+        for n in group[1:]:
+            allowed &= set(system.allowed(n))
+        if not allowed:
+            who = ", ".join(repr(n) for n in group)
+            raise ctx.fail(f"node {group[0]!r}: residence", f"coresident nodes {who} have no computer allowed for all of them")
