@@ -1,0 +1,40 @@
+"""``perfros-bag record-cpu``: a psutil CPU trace of the matching processes."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from perfros_bag.cli._app import command, err
+
+
+@command("record-cpu")
+def record_cpu_cmd(
+    command_args: list[str] | None = typer.Argument(  # noqa: B008
+        None, metavar="[-- COMMAND ...]", help="Run COMMAND, trace it and its children, stop when it exits."),
+    match: list[str] | None = typer.Option(  # noqa: B008
+        None, "--match", "-m", help="Regex on a process's ROS node name, process name or command line (repeatable)."),
+    interval: float = typer.Option(0.5, "--interval", "-i", min=0.01, help="Seconds between samples."),
+    out_path: Path = typer.Option(..., "--out", "-o", help="The CPU trace to write (<stem>.cpu.csv)."),  # noqa: B008
+    duration: float | None = typer.Option(None, "--duration", "-d", min=0.0, help="Stop after S seconds."),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="No live status on stderr."),
+) -> None:
+    """Sample CPU % and RSS of matching processes until the duration ends, Ctrl-C, or COMMAND exits."""
+    from perfros_bag.ingest.cputrace import record_cpu
+
+    seen = [0]
+
+    def status(rnd: int, rows: int) -> None:
+        seen[0] += rows
+        if not quiet and err.is_terminal:
+            err.print(f"\rround {rnd + 1}: {rows} processes, {seen[0]} rows", end="", highlight=False)
+
+    rc = record_cpu(out_path, list(match or []), interval, duration=duration,
+                    command=list(command_args or []) or None, on_round=status)
+    if not quiet:
+        if err.is_terminal:
+            err.print()
+        err.print(f"wrote {out_path} ({seen[0]} samples)", highlight=False)
+    if rc:
+        raise typer.Exit(rc)
