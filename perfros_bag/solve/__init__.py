@@ -1,0 +1,156 @@
+"""Solvers for the paper's two problems (section II), one entry point: :func:`solve`.
+
+- Problem 1 (eq 1): choose a setting and a computer for every node to maximise
+  Σ w·P under eq 3-9.
+- Problem 2 (eq 2): settings are fixed (``settings``, default each node's maximum-CPU
+  choice); choose a computer per node to minimise the total server capacity (robots keep
+  their capacity; a server's size is its load, bounded by ``max_capacity`` when set).
+
+Every solver receives the same candidates from :func:`fixed_choices` and has the
+signature ``(system, problem, choices) -> Plan`` (the exact solver also takes
+``time_limit``):
+
+- ``greedy``      :func:`perfros_bag.solve.greedy.solve_greedy` (the paper's Algorithms 1-3)
+- ``greedy+``     :func:`perfros_bag.solve.local.solve_greedy_plus` (greedy + local search)
+- ``exact``       ``perfros_bag.solve.exact.solve_exact(system, problem, choices, *, time_limit=None)``
+- ``bruteforce``  :func:`perfros_bag.solve.bruteforce.solve_bruteforce` (tiny instances)
+
+``settings`` (Problem 2) maps node -> **CPU level** (units of the system's CPU scale).
+:func:`settings_from_values` converts node -> parameter value to CPU levels, and
+:func:`settings_from_plan` takes them from a plan.json.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Mapping
+
+from perfros_bag.errors import InputError
+from perfros_bag.model import Choice, Node, System
+from perfros_bag.plan import Plan, infeasible_plan
+
+METHODS: tuple[str, ...] = ("greedy", "greedy+", "exact", "bruteforce")
+
+__all__ = ["METHODS", "fixed_choices", "settings_from_plan", "settings_from_values", "solve"]
+
+
+def _where(system: System) -> str | None:
+    return system.source
+
+
+def _match_cpu(system: System, node: Node, cpu: float, resolution: float) -> Choice:
+    """The node's choice at CPU level ``cpu`` (a curve node off the grid gets a choice at
+    exactly that level)."""
+    choices = node.choices(resolution)
+    for ch in choices:
+        if math.isclose(ch.cpu, cpu, rel_tol=1e-9, abs_tol=1e-6):
+            return ch
+    if node.curve is not None:
+        lo, hi = node.curve.domain
+        if lo - 1e-6 <= cpu <= hi + 1e-6:
+            return node._choice_at(0, min(max(cpu, lo), hi))
+        raise InputError(_where(system), f"node {node.name!r}: setting CPU {cpu:g} is outside its curve's range [{lo:g}, {hi:g}]")
+    have = ", ".join(f"{c.cpu:g}" for c in choices)
+    raise InputError(_where(system), f"node {node.name!r}: no setting with CPU {cpu:g} (its settings' CPU: {have})")
+
+
+def fixed_choices(system: System, problem: int, settings: Mapping[str, float] | None = None,
+                  resolution: float = 1.0) -> dict[str, list[Choice]]:
+    """Each node's candidate choices, sorted by CPU: all of them for Problem 1; for Problem 2
+    the single fixed one (``settings[node]`` as a CPU level, default the maximum-CPU choice)."""
+    if resolution <= 0 or not math.isfinite(resolution):
+        raise InputError(_where(system), f"resolution must be > 0, got {resolution!r}")
+    if settings:
+        unknown = sorted(set(settings) - set(system.node))
+        if unknown:
+            raise InputError(_where(system), f"settings: unknown node(s) {', '.join(map(repr, unknown))}")
+    out: dict[str, list[Choice]] = {}
+    for node in system.nodes:
+        if problem == 1:
+            out[node.name] = node.choices(resolution)
+        elif settings and node.name in settings:
+            out[node.name] = [_match_cpu(system, node, float(settings[node.name]), resolution)]
+        else:
+            out[node.name] = [node.choices(resolution)[-1]]
+    return out
+
+
+def settings_from_values(system: System, values: Mapping[str, float], resolution: float = 1.0) -> dict[str, float]:
+    """node -> parameter value  ==>  node -> CPU level (the choice with that value; a curve
+    node with a fitted ``parameter->cpu`` relation is evaluated on it)."""
+    out: dict[str, float] = {}
+    for name, v in values.items():
+        node = system.node.get(name)
+        if node is None:
+            raise InputError(_where(system), f"settings: unknown node {name!r}")
+        rel = node.relations.get("parameter->cpu")
+        match = [c for c in node.choices(resolution) if c.value is not None and math.isclose(c.value, v, rel_tol=1e-9, abs_tol=1e-9)]
+        if match:
+            out[name] = match[0].cpu
+        elif rel is not None and node.curve is not None:
+            lo, hi = node.curve.domain
+            out[name] = min(max(rel(v), lo), hi)
+        else:
+            have = sorted({c.value for c in node.choices(resolution) if c.value is not None})
+            hint = f"its values: {', '.join(f'{x:g}' for x in have)}" if have else "it has no parameter values; give a CPU level as cpu:U"
+            raise InputError(_where(system), f"settings: node {name!r} has no setting with value {v:g} ({hint})")
+    return out
+
+
+def settings_from_plan(plan: Plan) -> dict[str, float]:
+    """node -> CPU level from a plan (e.g. Problem 1's answer fed to Problem 2)."""
+    return {name: n.cpu for name, n in plan.nodes.items()}
+
+
+def solve(system: System, problem: int, method: str, *, resolution: float = 1.0,
+          settings: Mapping[str, float] | None = None, time_limit: float | None = None) -> Plan:
+    """Solve Problem ``problem`` with ``method``; the returned plan carries ``solve_s``.
+
+    An infeasible instance gives a plan with status ``infeasible`` and a ``reason`` (not an
+    exception); bad input (unknown method, a Problem 1 server without capacity) raises
+    :class:`~perfros_bag.errors.InputError`.
+    """
+    if problem not in (1, 2):
+        raise InputError(_where(system), f"problem must be 1 or 2, got {problem!r}")
+    if method not in METHODS:
+        raise InputError(None, f"unknown method {method!r} (one of {', '.join(METHODS)})")
+    if problem == 1:
+        unsized = [c.name for c in system.computers if c.capacity is None]
+        if unsized:
+            raise InputError(_where(system), f"computer(s) {', '.join(map(repr, unsized))} have no capacity: "
+                                             "Problem 1 needs every capacity (only Problem 2 sizes servers)")
+    start = time.perf_counter()
+    choices = fixed_choices(system, problem, settings, resolution)
+    plan = _dispatch(system, problem, method, choices, time_limit)
+    plan.solve_s = time.perf_counter() - start
+    plan.method = method
+    if plan.system is None:
+        plan.system = system.source
+    return plan
+
+
+def _dispatch(system: System, problem: int, method: str, choices: dict[str, list[Choice]],
+              time_limit: float | None) -> Plan:
+    if method == "greedy":
+        from perfros_bag.solve.greedy import solve_greedy
+
+        return solve_greedy(system, problem, choices)
+    if method == "greedy+":
+        from perfros_bag.solve.local import solve_greedy_plus
+
+        return solve_greedy_plus(system, problem, choices)
+    if method == "bruteforce":
+        from perfros_bag.solve.bruteforce import solve_bruteforce
+
+        return solve_bruteforce(system, problem, choices)
+    try:
+        from perfros_bag.solve.exact import solve_exact
+    except ImportError as exc:
+        raise InputError(None, f"the exact solver is not available ({exc})") from None
+    return solve_exact(system, problem, choices, time_limit=time_limit)
+
+
+def unsolved(problem: int, method: str, reason: str, system: System) -> Plan:
+    """An infeasible plan naming ``reason`` (helper for the solvers)."""
+    return infeasible_plan(problem, method, reason, system=system.source)

@@ -1,0 +1,144 @@
+"""An independent feasibility checker of a plan against its system (eq 1-9).
+
+It recomputes everything from the system and the plan's per-node answer (computer, CPU,
+performance), sharing no code with the solvers or with :func:`perfros_bag.plan.build_plan`:
+the model's own definitions (a setting's bandwidth, the route between two computers) are
+the only things it takes from :mod:`perfros_bag.model`.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import defaultdict
+
+from perfros_bag.model import Choice, Node, System
+from perfros_bag.plan import Plan
+
+
+def _close(a: float, b: float, tol: float) -> bool:
+    return abs(a - b) <= tol * max(1.0, abs(a), abs(b))
+
+
+def _over(load: float, cap: float, tol: float) -> bool:
+    return load > cap + tol * max(1.0, abs(cap))
+
+
+def _node_choice(node: Node, cpu: float, performance: float, tol: float) -> Choice | None:
+    """The node's setting the plan claims (matched on CPU and performance), or None."""
+    if node.curve is None:
+        for i, s in enumerate(node.settings):
+            if _close(s.cpu, cpu, tol) and _close(s.performance, performance, tol):
+                return Choice(i, s.cpu, s.performance, s.value, s.frequency_hz, s.bandwidth_kBps, s.topics)
+    else:
+        lo, hi = node.curve.domain
+        if lo - tol * max(1.0, abs(lo)) <= cpu <= hi + tol * max(1.0, abs(hi)):
+            if _close(node.curve(min(max(cpu, lo), hi)), performance, tol):
+                return node._choice_at(0, min(max(cpu, lo), hi))
+    return None
+
+
+def plan_objective(system: System, plan: Plan, problem: int) -> float:
+    """Eq 1 (Σ w·P with the system's normalised weights) or eq 2 (Σ server capacity)."""
+    if problem == 1:
+        return sum(system.node[n].weight * pn.performance for n, pn in plan.nodes.items() if n in system.node)
+    total = 0.0
+    for c in system.computers:
+        if c.kind == "server":
+            pc = plan.computers.get(c.name)
+            total += (pc.capacity if pc is not None and pc.capacity is not None else 0.0)
+    return total
+
+
+def check_plan(system: System, plan: Plan, *, tol: float = 1e-6) -> list[str]:
+    """The violated constraints of ``plan`` (an empty list: feasible and consistent)."""
+    if plan.status == "infeasible":
+        return [f"plan is infeasible: {plan.reason}"]
+    problem = plan.problem
+    bad: list[str] = []
+    comps = system.computer
+
+    # eq 5: every node placed exactly once, on an existing computer
+    for extra in sorted(set(plan.nodes) - set(system.node)):
+        bad.append(f"node {extra}: not in the system")
+    chosen: dict[str, Choice] = {}
+    where: dict[str, str] = {}
+    for node in system.nodes:
+        pn = plan.nodes.get(node.name)
+        if pn is None:
+            bad.append(f"node {node.name}: not placed")
+            continue
+        if pn.computer not in comps:
+            bad.append(f"node {node.name}: on unknown computer {pn.computer}")
+            continue
+        where[node.name] = pn.computer
+        # eq 8: residence
+        if node.residence is not None and pn.computer not in node.residence:
+            bad.append(f"node {node.name}: residence: on {pn.computer}, allowed {', '.join(node.residence)}")
+        ch = _node_choice(node, pn.cpu, pn.performance, tol)
+        if ch is None:
+            bad.append(f"node {node.name}: cpu {pn.cpu:g} / performance {pn.performance:g} is none of its settings")
+        else:
+            chosen[node.name] = ch
+        if not _close(pn.weight, node.weight, 1e-6):
+            bad.append(f"node {node.name}: weight {pn.weight:g}, the system says {node.weight:g}")
+
+    # eq 9: coresidence
+    for node in system.nodes:
+        for other in node.coresidence:
+            if node.name in where and other in where and where[node.name] != where[other]:
+                bad.append(f"coresidence: {node.name} on {where[node.name]} but {other} on {where[other]}")
+
+    # eq 3: CPU per computer
+    load: dict[str, float] = defaultdict(float)
+    for n, comp in where.items():
+        load[comp] += plan.nodes[n].cpu
+    for c in system.computers:
+        pc = plan.computers.get(c.name)
+        if problem == 2 and c.kind == "server":
+            cap = pc.capacity if pc is not None else None
+            if cap is None:
+                bad.append(f"computer {c.name}: Problem 2 plan gives the server no capacity")
+                cap = 0.0
+            if c.max_capacity is not None and _over(cap, c.max_capacity, tol):
+                bad.append(f"computer {c.name}: sized {cap:g} > max_capacity {c.max_capacity:g}")
+        else:
+            cap = c.capacity if c.capacity is not None else 0.0
+        if _over(load[c.name], cap, tol):
+            bad.append(f"computer {c.name}: cpu {load[c.name]:g} > capacity {cap:g}")
+        if pc is not None and not _close(pc.cpu, load[c.name], tol):
+            bad.append(f"computer {c.name}: plan reports cpu {pc.cpu:g}, its nodes sum to {load[c.name]:g}")
+
+    # eq 4: links and shared media
+    link_load = [0.0] * len(system.links)
+    for e in system.edges:
+        if e.src not in where or e.dst not in where or e.src not in chosen:
+            continue
+        a, b = where[e.src], where[e.dst]
+        if a == b:
+            continue
+        route = system.route(a, b)
+        if route is None:
+            bad.append(f"edge {e.src}->{e.dst}: no network path between {a} and {b}")
+            continue
+        bw = system.edge_bandwidth(e, chosen[e.src])
+        for li in route:
+            link_load[li] += bw
+    for i, link in enumerate(system.links):
+        if _over(link_load[i], link.bandwidth_kBps, tol):
+            bad.append(f"link {link.between[0]}-{link.between[1]}: load {link_load[i]:g} > bandwidth {link.bandwidth_kBps:g} kB/s")
+    for m in system.media:
+        total = sum(link_load[i] for i, link in enumerate(system.links) if link.medium == m.name)
+        if _over(total, m.bandwidth_kBps, tol):
+            bad.append(f"medium {m.name}: load {total:g} > bandwidth {m.bandwidth_kBps:g} kB/s")
+    reported = {tuple(pl.between): pl.load_kBps for pl in plan.links}
+    for i, link in enumerate(system.links):
+        got = reported.get(tuple(link.between))
+        if got is not None and not _close(got, link_load[i], tol):
+            bad.append(f"link {link.between[0]}-{link.between[1]}: plan reports load {got:g}, edges sum to {link_load[i]:g}")
+
+    # eq 1 / eq 2: the objective
+    if not bad or plan.objective is not None:
+        want = plan_objective(system, plan, problem)
+        if plan.objective is None or not math.isfinite(plan.objective) or not _close(plan.objective, want, tol):
+            bad.append(f"objective: plan says {plan.objective}, eq {problem} gives {want:g}")
+    return bad

@@ -1,0 +1,208 @@
+"""Instances as ``system.yaml``-shaped data: the paper's case study and random ones.
+
+- :func:`casestudy_system`: the case study of the paper (Table I nodes, one server, robots
+  on a shared wifi channel, the reference curves of Fig. 4 with x = CPU/100).
+- :func:`table2_instance`: Table II instances 1-6.
+- :func:`random_instance`: case-study-like with varied capacities, weights and network.
+- :func:`random_tiny`: at most 5 nodes on at most 3 computers, small enough for brute
+  force, with links, a shared medium, edges, residence and coresidence that can bind.
+
+Everything returned is plain data (lists, dicts, numbers) that
+:func:`perfros_bag.spec.parse_system` accepts and ``yaml.safe_dump`` writes.
+"""
+
+from __future__ import annotations
+
+import random
+from typing import Any
+
+WIFI_kBps = 37500.0  # 802.11ac, 300 Mbit/s
+
+# Table I: name -> (weight, parameter (name, unit), settings [(value, cpu, perf, freq, kB/s)])
+TABLE_I: dict[str, tuple[float, tuple[str, str] | None, list[tuple[float | None, float, float, float, float]]]] = {
+    "experiment": (0.05, None, [(None, 1, 100, 10, 1.0)]),
+    "tracker": (0.2, ("output_freq", "Hz"), [(10, 80, 40, 10, 1.0), (15, 120, 70, 15, 1.5),
+                                             (20, 160, 90, 20, 2.0), (25, 200, 100, 25, 2.5)]),
+    "environment": (0.05, None, [(None, 1, 100, 10, 0.5)]),
+    "model": (0.2, ("goals", ""), [(4, 17, 20, 10, 5.0), (3500, 40, 70, 10, 5.0), (10000, 60, 100, 10, 5.0)]),
+    "planner": (0.05, None, [(None, 1, 100, 10, 0.5)]),
+    "amcl": (0.2, ("particles", ""), [(200, 19, 20, 2.5, 1.0), (500, 41, 50, 2.5, 1.0), (3000, 66, 100, 2.5, 1.0)]),
+    "navigation": (0.2, ("controller_freq", "Hz"), [(2, 25, 10, 2, 0.1), (10, 39, 65, 10, 0.5), (20, 50, 100, 20, 1.0)]),
+    "youbot_core": (0.05, None, [(None, 16, 100, 10, 0.5)]),
+}
+
+# The reference implementation's regressions (Fig. 4), x = CPU units / 100, and CPU ranges.
+CURVES: dict[str, dict[str, Any]] = {
+    "tracker": {"form": "log", "coef": [66.62, 56.308], "cpu": [80, 200]},
+    "model": {"form": "log", "coef": [63.707, 132.16], "cpu": [17, 59]},
+    "amcl": {"form": "quadratic", "coef": [135.4, 55.126, 4.6383], "cpu": [19, 66]},
+    "navigation": {"form": "log", "coef": [129.12, 188.36], "cpu": [25, 50]},
+}
+
+# Table II: instance -> (robots, cameras)
+TABLE_II: dict[int, tuple[int, int]] = {1: (1, 1), 2: (1, 2), 3: (1, 3), 4: (2, 1), 5: (2, 2), 6: (2, 3)}
+
+ROBOT_NODES = ("environment", "model", "planner", "amcl", "navigation", "youbot_core")
+
+
+def _node(kind: str, name: str, weight: float, *, continuous: bool, residence: list[str] | None = None,
+          coresidence: list[str] | None = None) -> dict[str, Any]:
+    _, param, settings = TABLE_I[kind]
+    node: dict[str, Any] = {"name": name, "weight": weight}
+    if residence:
+        node["residence"] = residence
+    if coresidence:
+        node["coresidence"] = coresidence
+    if param is not None:
+        node["parameter"] = {"name": param[0], "unit": param[1]} if param[1] else {"name": param[0]}
+    node["topics"] = [f"/{name}/out"]
+    rows = []
+    for value, cpu, perf, freq, bw in settings:
+        row: dict[str, Any] = {"cpu": cpu, "performance": perf, "frequency_hz": freq, "bandwidth_kBps": bw}
+        if value is not None:
+            row["value"] = value
+        rows.append(row)
+    node["settings"] = rows
+    if continuous and kind in CURVES:
+        node["curve"] = dict(CURVES[kind])
+    return node
+
+
+def casestudy_system(robots: int, cameras: int, *, robot_capacity: float = 100, server_capacity: float = 400,
+                     continuous: bool = True, weights: dict[str, float] | None = None,
+                     wifi_kBps: float = WIFI_kBps) -> dict[str, Any]:
+    """The paper's case study with ``robots`` robots and ``cameras`` cameras.
+
+    Nodes: one ``experiment`` (on the server), a ``tracker<k>`` per camera (on the server)
+    and per robot ``environment<r> model<r> planner<r> amcl<r> navigation<r> youbot_core<r>``
+    (``youbot_core<r>`` on ``robot<r>``, ``planner<r>`` with ``navigation<r>``). With
+    ``continuous`` the four configurable nodes carry the reference curves (every CPU unit
+    of their range is a choice); otherwise Table I's discrete settings. Table I's
+    weights (or ``weights``: kind -> weight) are renormalised to sum 1 (eq 6).
+    """
+    if robots < 1 or cameras < 0:
+        raise ValueError("need at least one robot and no negative number of cameras")
+    base = {k: v[0] for k, v in TABLE_I.items()}
+    if weights:
+        base.update(weights)
+    nodes: list[tuple[str, str, dict[str, Any]]] = [("experiment", "experiment", {"residence": ["server"]})]
+    for k in range(1, cameras + 1):
+        nodes.append(("tracker", f"tracker{k}", {"residence": ["server"]}))
+    for r in range(1, robots + 1):
+        for kind in ROBOT_NODES:
+            extra: dict[str, Any] = {}
+            if kind == "youbot_core":
+                extra["residence"] = [f"robot{r}"]
+            if kind == "planner":
+                extra["coresidence"] = [f"navigation{r}"]
+            nodes.append((kind, f"{kind}{r}", extra))
+    total = sum(base[kind] for kind, _, _ in nodes)
+    out_nodes = [_node(kind, name, base[kind] / total, continuous=continuous, **extra) for kind, name, extra in nodes]
+
+    edges: list[dict[str, Any]] = []
+    for r in range(1, robots + 1):
+        for k in range(1, cameras + 1):
+            edges.append({"from": f"tracker{k}", "to": f"environment{r}"})
+        edges += [
+            {"from": f"environment{r}", "to": f"model{r}"},
+            {"from": f"model{r}", "to": f"planner{r}"},
+            {"from": f"planner{r}", "to": f"navigation{r}"},
+            {"from": f"amcl{r}", "to": f"environment{r}"},
+            {"from": f"amcl{r}", "to": f"navigation{r}"},
+            {"from": f"navigation{r}", "to": f"youbot_core{r}"},
+            {"from": f"youbot_core{r}", "to": f"amcl{r}"},
+            {"from": "experiment", "to": f"model{r}"},
+        ]
+    computers = [{"name": f"robot{r}", "kind": "robot", "capacity": robot_capacity} for r in range(1, robots + 1)]
+    computers.append({"name": "server", "kind": "server", "capacity": server_capacity})
+    return {
+        "cpu_unit": "100 = one robot on-board computer (1.6 GHz dual-core Atom)",
+        "computers": computers,
+        "links": [{"between": [f"robot{r}", "server"], "bandwidth_kBps": wifi_kBps, "medium": "wifi"}
+                  for r in range(1, robots + 1)],
+        "media": [{"name": "wifi", "bandwidth_kBps": wifi_kBps}],
+        "nodes": out_nodes,
+        "edges": edges,
+    }
+
+
+def table2_instance(i: int, *, continuous: bool = True) -> dict[str, Any]:
+    """Table II instance ``i`` (1-6): 1-2 robots, 1-3 cameras, one server."""
+    if i not in TABLE_II:
+        raise ValueError(f"Table II has instances 1-6, not {i}")
+    robots, cameras = TABLE_II[i]
+    return casestudy_system(robots, cameras, continuous=continuous)
+
+
+def random_instance(rng: random.Random, *, robots: tuple[int, int] = (1, 4), cameras: tuple[int, int] = (1, 4),
+                    robot_capacity: tuple[float, float] = (60, 160), server_capacity: tuple[float, float] = (150, 700),
+                    weight_spread: float = 2.0, tight_network: bool = False) -> dict[str, Any]:
+    """A case-study-like instance: a random number of robots and cameras, random integer
+    capacities and weights (Table I's times a factor in [1/spread, spread]). With
+    ``tight_network`` the wifi carries only a few kB/s, so bandwidth binds."""
+    nr = rng.randint(*robots)
+    nc = rng.randint(*cameras)
+    weights = {k: v[0] * rng.uniform(1 / weight_spread, weight_spread) for k, v in TABLE_I.items()}
+    wifi = rng.uniform(8.0, 30.0) * nr if tight_network else WIFI_kBps
+    data = casestudy_system(nr, nc, robot_capacity=100, server_capacity=rng.randint(*map(int, server_capacity)),
+                            weights=weights, wifi_kBps=wifi)
+    for comp in data["computers"]:
+        if comp["kind"] == "robot":
+            comp["capacity"] = rng.randint(*map(int, robot_capacity))
+    return data
+
+
+def random_tiny(rng: random.Random, n_nodes: int | None = None, n_computers: int | None = None) -> dict[str, Any]:
+    """At most 5 nodes on at most 3 computers with 1-3 discrete settings each, random links
+    (a chain or a star, some on one shared medium), edges whose bandwidth depends on the
+    publisher's setting, residence and coresidence; capacities and bandwidths are drawn so
+    that every constraint sometimes binds (and the instance is sometimes infeasible)."""
+    nn = n_nodes if n_nodes is not None else rng.randint(2, 5)
+    nc = n_computers if n_computers is not None else rng.randint(1, 3)
+    names = [f"c{i}" for i in range(nc)]
+    computers = []
+    for i, name in enumerate(names):
+        kind = "robot" if i < nc - 1 and rng.random() < 0.6 else "server"
+        computers.append({"name": name, "kind": kind, "capacity": rng.randint(15, 80)})
+    links: list[dict[str, Any]] = []
+    use_medium = nc >= 3 and rng.random() < 0.5
+    for i in range(1, nc):
+        other = names[i - 1] if rng.random() < 0.5 else names[0]
+        link: dict[str, Any] = {"between": [other, names[i]], "bandwidth_kBps": rng.choice([2, 5, 10, 50])}
+        if use_medium:
+            link["medium"] = "air"
+        links.append(link)
+    nodes: list[dict[str, Any]] = []
+    for j in range(nn):
+        k = rng.randint(1, 3)
+        cpus = sorted(rng.sample(range(2, 35), k))
+        perf = sorted(rng.sample(range(0, 101), k))
+        node: dict[str, Any] = {"name": f"n{j}", "weight": rng.randint(1, 10)}
+        if k > 1:
+            node["parameter"] = {"name": "p"}
+        node["settings"] = [{"value": idx + 1, "cpu": c, "performance": p, "bandwidth_kBps": rng.choice([1, 2, 3, 4, 6])}
+                            for idx, (c, p) in enumerate(zip(cpus, perf, strict=True))]
+        if nc > 1 and rng.random() < 0.3:
+            node["residence"] = rng.sample(names, rng.randint(1, nc - 1))
+        nodes.append(node)
+    if nn >= 2 and rng.random() < 0.4:
+        a, b = rng.sample(range(nn), 2)
+        nodes[a]["coresidence"] = [nodes[b]["name"]]
+        # keep the group placeable: share residence
+        ra, rb = nodes[a].get("residence"), nodes[b].get("residence")
+        if ra is not None and rb is not None and not set(ra) & set(rb):
+            del nodes[b]["residence"]
+    total = sum(n["weight"] for n in nodes)
+    for n in nodes:
+        n["weight"] = n["weight"] / total
+    edges = []
+    for _ in range(rng.randint(0, nn + 1)):
+        a, b = rng.sample(range(nn), 2) if nn >= 2 else (0, 0)
+        if a != b:
+            edges.append({"from": f"n{a}", "to": f"n{b}"})
+    data: dict[str, Any] = {"computers": computers, "nodes": nodes, "edges": edges}
+    if links:
+        data["links"] = links
+    if use_medium:
+        data["media"] = [{"name": "air", "bandwidth_kBps": rng.choice([3, 6, 20])}]
+    return data
