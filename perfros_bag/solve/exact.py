@@ -1,0 +1,608 @@
+"""The exact solver: both problems as one mixed-integer linear program, solved by HiGHS.
+
+Formulation (eq 1-9 of the paper; see docs/solvers.md for the measurements behind it):
+
+- ``x[n,k,c]`` binary: node ``n`` runs choice ``k`` on computer ``c`` (the tight
+  multiple-choice form: its LP relaxation is the concave envelope of each node's curve).
+  Only allowed computers (residence, eq 8) and usable, non-dominated choices get a column.
+- ``z[g,c]`` binary for a coresidence group ``g`` of two or more nodes (eq 9):
+  ``Σ_k x[n,k,c] = z[g,c]`` for every member ``n``, ``Σ_c z[g,c] = 1``; a lone node has
+  ``Σ_{k,c} x[n,k,c] = 1`` (eq 5).
+- CPU (eq 3): ``Σ U·x[·,·,c] <= R_c``. Problem 2 makes ``R_c`` of every server a
+  continuous variable in ``[0, max_capacity]`` and minimises ``Σ R_c`` (eq 2); robots keep
+  their capacity.
+- Bandwidth (eq 4): the traffic of edge ``e = s -> d`` is ``b_e(k)`` when ``s`` runs choice
+  ``k``; it loads every link of ``system.route(c_s, c_d)``. For a link whose removal cuts the
+  computers into ``S`` and the rest, and whose routes are exactly the pairs split by that
+  cut (always true on a tree), one continuous ``t[e,l] >= |A_s(S) - A_d(S)|·b_e`` is exact
+  (the cut form). Any other link gets the pair form: ``f[e,a,b] >= b_e·[s on a] - M·(1 -
+  [d on b])`` for every pair of computers whose route crosses it. A shared medium caps the
+  sum of its links' loads.
+
+An infeasible instance gets a reason naming the constraint: cheap checks first (a node or
+coresidence group larger than every allowed computer, residence sums, totals, edges that
+always cross a link), then, when the MILP itself is infeasible, an elastic copy of it
+(capacity and bandwidth may overflow at a cost) names the constraints that overflow.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from perfros_bag.errors import InputError
+from perfros_bag.model import Choice, Edge, System
+from perfros_bag.plan import Assignment, Plan, build_plan, infeasible_plan
+from perfros_bag.plan import objective as plan_objective
+
+__all__ = ["solve_exact"]
+
+EPS = 1e-9
+_INF = math.inf
+
+
+# ---------------------------------------------------------------------------------------------
+# A tiny sparse model builder (rows kept row-wise, passed to HiGHS in one call)
+
+
+@dataclass
+class _Milp:
+    cost: list[float] = field(default_factory=list)
+    lower: list[float] = field(default_factory=list)
+    upper: list[float] = field(default_factory=list)
+    integer: list[int] = field(default_factory=list)
+    row_lo: list[float] = field(default_factory=list)
+    row_hi: list[float] = field(default_factory=list)
+    start: list[int] = field(default_factory=lambda: [0])
+    index: list[int] = field(default_factory=list)
+    value: list[float] = field(default_factory=list)
+
+    def var(self, lo: float, hi: float, cost: float = 0.0, integer: bool = False) -> int:
+        self.cost.append(cost)
+        self.lower.append(lo)
+        self.upper.append(hi)
+        self.integer.append(1 if integer else 0)
+        return len(self.cost) - 1
+
+    def row(self, terms: Iterable[tuple[int, float]], lo: float, hi: float) -> int:
+        merged: dict[int, float] = {}
+        for j, a in terms:
+            merged[j] = merged.get(j, 0.0) + a
+        for j, a in merged.items():
+            if a != 0.0:
+                self.index.append(j)
+                self.value.append(a)
+        self.row_lo.append(lo)
+        self.row_hi.append(hi)
+        self.start.append(len(self.index))
+        return len(self.row_lo) - 1
+
+    def solve(self, maximise: bool, *, time_limit: float | None, mip_gap: float,
+              start: dict[int, float] | None = None) -> Any:
+        import highspy  # lazy: keeps the CLI's start-up fast
+
+        h = highspy.Highs()
+        h.setOptionValue("output_flag", False)
+        h.setOptionValue("mip_rel_gap", float(mip_gap))
+        h.setOptionValue("mip_abs_gap", 1e-7)
+        h.setOptionValue("random_seed", 0)
+        if time_limit is not None:
+            h.setOptionValue("time_limit", float(max(time_limit, 0.01)))
+        inf = highspy.kHighsInf
+        fix = np.vectorize(lambda v: inf if v == _INF else (-inf if v == -_INF else v), otypes=[float])
+        n_col, n_row = len(self.cost), len(self.row_lo)
+        h.passModel(
+            n_col, n_row, len(self.index), int(highspy.MatrixFormat.kRowwise),
+            int(highspy.ObjSense.kMaximize if maximise else highspy.ObjSense.kMinimize), 0.0,
+            np.asarray(self.cost, dtype=np.float64),
+            fix(np.asarray(self.lower, dtype=np.float64)) if n_col else np.zeros(0),
+            fix(np.asarray(self.upper, dtype=np.float64)) if n_col else np.zeros(0),
+            fix(np.asarray(self.row_lo, dtype=np.float64)) if n_row else np.zeros(0),
+            fix(np.asarray(self.row_hi, dtype=np.float64)) if n_row else np.zeros(0),
+            np.asarray(self.start[:-1] if n_row else [], dtype=np.int32),
+            np.asarray(self.index, dtype=np.int32), np.asarray(self.value, dtype=np.float64),
+            np.asarray(self.integer, dtype=np.int32),
+        )
+        if start:
+            idx = np.fromiter(start.keys(), dtype=np.int32, count=len(start))
+            val = np.fromiter(start.values(), dtype=np.float64, count=len(start))
+            h.setSolution(len(start), idx, val)
+        h.run()
+        return h
+
+
+# ---------------------------------------------------------------------------------------------
+# The instance after pruning
+
+
+@dataclass
+class _Group:
+    members: tuple[str, ...]
+    allowed: tuple[str, ...]  # computers every member may use (eq 8) and that can hold it
+    z: dict[str, int] = field(default_factory=dict)  # computer -> column (groups of >= 2)
+
+
+@dataclass
+class _Instance:
+    system: System
+    problem: int
+    original: dict[str, list[Choice]]  # the candidates as given
+    choices: dict[str, list[Choice]]  # kept choices (usable, non-dominated)
+    replace: dict[str, dict[int, int]]  # node -> original position -> kept position
+    groups: list[_Group]
+    group_of: dict[str, _Group]
+    cap: dict[str, float]  # the most CPU a computer can ever hold (inf: unbounded server)
+    min_cpu: dict[str, float]
+    cut: dict[int, frozenset[str]]  # link -> one side, for links in the cut form
+    pairs: dict[int, list[tuple[str, str]]]  # link -> ordered computer pairs routed over it
+
+
+def _capacities(system: System, problem: int) -> dict[str, float]:
+    cap: dict[str, float] = {}
+    for c in system.computers:
+        if problem == 2 and c.kind == "server":
+            cap[c.name] = c.max_capacity if c.max_capacity is not None else _INF
+        elif c.capacity is None:
+            raise InputError(system.source, f"computer {c.name!r} has no capacity: Problem 1 needs "
+                                            "every capacity (only Problem 2 sizes servers)")
+        else:
+            cap[c.name] = c.capacity
+    return cap
+
+
+def _bw_vector(system: System, node: str, choice: Choice) -> tuple[float, ...]:
+    return tuple(system.edge_bandwidth(e, choice) for e in system.edges if e.src == node)
+
+
+def _prune_choices(system: System, problem: int, node: str, options: Sequence[Choice],
+                   cpu_room: float) -> tuple[list[Choice], dict[int, int]]:
+    """Drop choices that can never fit (``cpu > cpu_room``) and, for Problem 1, choices
+    dominated by another (no more CPU, no less performance, no more traffic on any edge).
+    Returns the kept choices and, for every original position, the kept position that can
+    replace it (for MIP starts); unusable positions are absent."""
+    usable = [i for i, ch in enumerate(options) if ch.cpu <= cpu_room + EPS]
+    if problem != 1 or len(usable) <= 1:
+        kept = usable
+        return [options[i] for i in kept], {i: p for p, i in enumerate(kept)}
+    bws = {i: _bw_vector(system, node, options[i]) for i in usable}
+    order = sorted(usable, key=lambda i: (options[i].cpu, -options[i].performance, bws[i]))
+    kept: list[int] = []  # type: ignore[no-redef]
+    best_of: dict[int, int] = {}
+    uniform = len({bws[i] for i in usable}) == 1
+    best_perf = -_INF
+    for i in order:
+        ch = options[i]
+        if uniform:
+            if ch.performance > best_perf + EPS:
+                kept.append(i)
+                best_perf = ch.performance
+            best_of[i] = kept[-1] if kept and options[kept[-1]].performance >= ch.performance - EPS else i
+            continue
+        dom = next((j for j in kept
+                    if options[j].cpu <= ch.cpu + EPS and options[j].performance >= ch.performance - EPS
+                    and all(a <= b + EPS for a, b in zip(bws[j], bws[i], strict=True))), None)
+        if dom is None:
+            kept.append(i)
+            best_of[i] = i
+        else:
+            best_of[i] = dom
+    kept.sort(key=lambda i: (options[i].cpu, -options[i].performance))
+    pos = {i: p for p, i in enumerate(kept)}
+    return [options[i] for i in kept], {i: pos[best_of[i]] for i in usable}
+
+
+def _classify_links(system: System) -> tuple[dict[int, frozenset[str]], dict[int, list[tuple[str, str]]]]:
+    names = [c.name for c in system.computers]
+    crossing: dict[int, set[tuple[str, str]]] = {li: set() for li in range(len(system.links))}
+    for a in names:
+        for b in names:
+            route = system.route(a, b) if a != b else ()
+            for li in route or ():
+                crossing[li].add((a, b))
+    cut: dict[int, frozenset[str]] = {}
+    pairs: dict[int, list[tuple[str, str]]] = {}
+    for li, link in enumerate(system.links):
+        # the side of link.between[0] when the link is removed
+        side = {link.between[0]}
+        frontier = [link.between[0]]
+        while frontier:
+            cur = frontier.pop()
+            for lj, other in enumerate(system.links):
+                if lj == li or cur not in other.between:
+                    continue
+                nxt = other.between[1] if other.between[0] == cur else other.between[0]
+                if nxt not in side:
+                    side.add(nxt)
+                    frontier.append(nxt)
+        split = {(a, b) for a in names for b in names if (a in side) != (b in side)}
+        if link.between[1] not in side and split == crossing[li]:
+            cut[li] = frozenset(side)
+        else:
+            pairs[li] = sorted(crossing[li])
+    return cut, pairs
+
+
+def _prepare(system: System, problem: int, choices: dict[str, list[Choice]]) -> _Instance | str:
+    """Prune the instance; returns a reason string when it is infeasible on its face."""
+    cap = _capacities(system, problem)
+    missing = [n.name for n in system.nodes if not choices.get(n.name)]
+    if missing:
+        raise InputError(system.source, f"node(s) {', '.join(map(repr, missing))} have no choice to solve with")
+    min_cpu = {n: min(ch.cpu for ch in opts) for n, opts in choices.items()}
+    groups: list[_Group] = []
+    for members in system.coresidence_groups:
+        allowed = [c.name for c in system.computers if all(c.name in system.allowed(n) for n in members)]
+        who = ", ".join(members)
+        if not allowed:
+            return f"coresidence: nodes {who} have no computer allowed for all of them"
+        need = sum(min_cpu[n] for n in members)
+        fits = [c for c in allowed if need <= cap[c] + EPS]
+        if not fits:
+            biggest = max(allowed, key=lambda c: cap[c])
+            if len(members) > 1:
+                return (f"coresidence: nodes {who} need {need:g} CPU together at their minimum settings "
+                        f"but the largest computer allowed for them, {biggest}, has {cap[biggest]:g}")
+            if len(allowed) == 1:
+                return f"{who} needs {need:g} CPU on {biggest} (residence) but {biggest} has {cap[biggest]:g}"
+            return (f"{who} needs {need:g} CPU at its minimum setting but the largest computer allowed "
+                    f"for it, {biggest}, has {cap[biggest]:g}")
+        groups.append(_Group(tuple(members), tuple(fits)))
+    group_of = {n: g for g in groups for n in g.members}
+
+    # residence: nodes (groups) that can only go to one computer must fit on it together
+    forced: dict[str, list[_Group]] = {}
+    for g in groups:
+        if len(g.allowed) == 1:
+            forced.setdefault(g.allowed[0], []).append(g)
+    for comp, gs in forced.items():
+        need = sum(min_cpu[n] for g in gs for n in g.members)
+        if need > cap[comp] + EPS:
+            names = [n for g in gs for n in g.members]
+            verb = "needs" if len(names) == 1 else "need"
+            return (f"{', '.join(names)} {verb} {need:g} CPU on {comp} (residence) but {comp} has {cap[comp]:g}")
+    total_cap = sum(cap.values())
+    total_need = sum(min_cpu.values())
+    if total_need > total_cap + EPS:
+        return (f"CPU: the nodes need {total_need:g} CPU in total at their minimum settings but the "
+                f"computers have {total_cap:g}")
+
+    kept: dict[str, list[Choice]] = {}
+    replace: dict[str, dict[int, int]] = {}
+    for g in groups:
+        room = max(cap[c] for c in g.allowed)
+        for n in g.members:
+            others = sum(min_cpu[m] for m in g.members if m != n)
+            kept[n], replace[n] = _prune_choices(system, problem, n, choices[n], room - others)
+    cut, pairs = _classify_links(system)
+    inst = _Instance(system, problem, choices, kept, replace, groups, group_of, cap, min_cpu, cut, pairs)
+    return _network_precheck(inst) or inst
+
+
+def _crossing_always(inst: _Instance, edge: Edge, li: int) -> bool | None:
+    """True when the edge crosses link ``li`` wherever its ends go, False when it never
+    can, None otherwise."""
+    a_s = inst.group_of[edge.src].allowed
+    a_d = inst.group_of[edge.dst].allowed
+    if inst.group_of[edge.src] is inst.group_of[edge.dst]:
+        return False
+    if li in inst.cut:
+        side = inst.cut[li]
+        split = [(a in side) != (b in side) for a in a_s for b in a_d]
+    else:
+        pairs = set(inst.pairs[li])
+        split = [(a, b) in pairs for a in a_s for b in a_d]
+    if all(split):
+        return True
+    if not any(split):
+        return False
+    return None
+
+
+def _link_name(system: System, li: int) -> str:
+    a, b = system.links[li].between
+    return f"link {a}-{b}"
+
+
+def _network_precheck(inst: _Instance) -> str | None:
+    system = inst.system
+    for e in system.edges:
+        gs, gd = inst.group_of[e.src], inst.group_of[e.dst]
+        if gs is gd or not system.links:
+            continue
+        if all(system.route(a, b) is None for a in gs.allowed for b in gd.allowed):
+            return (f"network: edge {e.src} -> {e.dst} joins computers with no network path between them "
+                    f"({e.src} on {'/'.join(gs.allowed)}, {e.dst} on {'/'.join(gd.allowed)})")
+    forced_load = [0.0] * len(system.links)
+    forced_edges: list[list[str]] = [[] for _ in system.links]
+    for e in system.edges:
+        low = min(system.edge_bandwidth(e, ch) for ch in inst.choices[e.src])
+        if low <= 0:
+            continue
+        for li in range(len(system.links)):
+            if _crossing_always(inst, e, li):
+                forced_load[li] += low
+                forced_edges[li].append(f"{e.src}->{e.dst}")
+    for li, link in enumerate(system.links):
+        if forced_load[li] > link.bandwidth_kBps + EPS:
+            return (f"bandwidth: {_link_name(system, li)} carries at least {forced_load[li]:g} kB/s "
+                    f"(edges {', '.join(forced_edges[li])} must cross it) but has {link.bandwidth_kBps:g}")
+    for m in system.media:
+        lis = [li for li, link in enumerate(system.links) if link.medium == m.name]
+        load = sum(forced_load[li] for li in lis)
+        if load > m.bandwidth_kBps + EPS:
+            return (f"bandwidth: medium {m.name} carries at least {load:g} kB/s on its links "
+                    f"(edges that must cross them) but has {m.bandwidth_kBps:g}")
+    return None
+
+
+# ---------------------------------------------------------------------------------------------
+# The MILP
+
+
+@dataclass
+class _Built:
+    milp: _Milp
+    x: dict[tuple[str, int, str], int]  # (node, kept position, computer) -> column
+    server_cap: dict[str, int]  # Problem 2: server -> capacity column
+    slack: dict[str, int]  # elastic copy: constraint label -> overflow column
+
+
+def _build(inst: _Instance, *, elastic: bool = False) -> _Built:
+    system, problem = inst.system, inst.problem
+    milp = _Milp()
+    x: dict[tuple[str, int, str], int] = {}
+    slack: dict[str, int] = {}
+    by_node_comp: dict[tuple[str, str], list[tuple[int, Choice]]] = {}
+    for g in inst.groups:
+        for n in g.members:
+            w = system.node[n].weight
+            for k, ch in enumerate(inst.choices[n]):
+                for c in g.allowed:
+                    cost = 0.0 if elastic or problem != 1 else w * ch.performance
+                    col = milp.var(0.0, 1.0, cost, integer=True)
+                    x[(n, k, c)] = col
+                    by_node_comp.setdefault((n, c), []).append((col, ch))
+        if len(g.members) == 1:
+            n = g.members[0]
+            milp.row(((x[(n, k, c)], 1.0) for k in range(len(inst.choices[n])) for c in g.allowed), 1.0, 1.0)
+        else:
+            g.z = {c: milp.var(0.0, 1.0, 0.0, integer=True) for c in g.allowed}
+            milp.row(((col, 1.0) for col in g.z.values()), 1.0, 1.0)
+            for n in g.members:
+                for c in g.allowed:
+                    milp.row([(col, 1.0) for col, _ in by_node_comp[(n, c)]] + [(g.z[c], -1.0)], 0.0, 0.0)
+
+    def placed(node: str, comp: str) -> list[tuple[int, float]]:
+        """Terms of the 0/1 expression 'node sits on comp' (empty when it cannot)."""
+        g = inst.group_of[node]
+        if comp not in g.allowed:
+            return []
+        if g.z:
+            return [(g.z[comp], 1.0)]
+        return [(col, 1.0) for col, _ in by_node_comp[(node, comp)]]
+
+    # CPU per computer (eq 3)
+    server_cap: dict[str, int] = {}
+    for comp in system.computers:
+        terms = [(col, ch.cpu) for g in inst.groups if comp.name in g.allowed
+                 for n in g.members for col, ch in by_node_comp[(n, comp.name)]]
+        if problem == 2 and comp.kind == "server":
+            cost = 0.0 if elastic else 1.0
+            server_cap[comp.name] = milp.var(0.0, inst.cap[comp.name], cost)
+            terms.append((server_cap[comp.name], -1.0))
+            milp.row(terms, -_INF, 0.0)
+            continue
+        if not terms:
+            continue
+        if elastic:
+            s = milp.var(0.0, _INF, 1.0 / max(inst.cap[comp.name], 1.0))
+            slack[f"computer {comp.name}"] = s
+            terms.append((s, -1.0))
+        milp.row(terms, -_INF, inst.cap[comp.name])
+
+    # bandwidth per link (eq 4) and per shared medium
+    if system.links and system.edges:
+        load_terms: list[list[tuple[int, float]]] = [[] for _ in system.links]
+        pair_cols: dict[tuple[int, str, str], int] = {}
+        for ei, e in enumerate(system.edges):
+            gs, gd = inst.group_of[e.src], inst.group_of[e.dst]
+            if gs is gd:
+                continue
+            bw = [system.edge_bandwidth(e, ch) for ch in inst.choices[e.src]]
+            big = max(bw)
+            # computers joined by no path: the two ends cannot sit there together
+            for a in gs.allowed:
+                for b in gd.allowed:
+                    if a != b and system.route(a, b) is None:
+                        milp.row(placed(e.src, a) + placed(e.dst, b), -_INF, 1.0)
+            if big <= 0:
+                continue
+
+            def traffic(comps: Iterable[str], src: str = e.src, allowed: tuple[str, ...] = gs.allowed,
+                        bw: list[float] = bw) -> list[tuple[int, float]]:
+                """b_e · [src on one of comps]"""
+                return [(x[(src, k, c)], bw[k]) for c in comps if c in allowed
+                        for k in range(len(bw)) if bw[k] != 0.0]
+
+            for li in range(len(system.links)):
+                always = _crossing_always(inst, e, li)
+                if always is False:
+                    continue
+                if always:
+                    load_terms[li].extend(traffic(gs.allowed))
+                    continue
+                if li in inst.cut:
+                    side = inst.cut[li]
+                    t = milp.var(0.0, _INF)
+                    for part in (side, frozenset(system.computer) - side):
+                        src_in = [c for c in gs.allowed if c in part]
+                        if not src_in:
+                            continue
+                        dst_in = [term for c in gd.allowed if c in part for term in placed(e.dst, c)]
+                        # t >= b_e [s in part] - M [d in part]
+                        milp.row([(t, 1.0)] + [(j, -a) for j, a in traffic(src_in)]
+                                 + [(j, big) for j, _ in dst_in], 0.0, _INF)
+                    load_terms[li].append((t, 1.0))
+                    continue
+                for a, b in inst.pairs[li]:
+                    if a not in gs.allowed or b not in gd.allowed:
+                        continue
+                    key = (ei, a, b)
+                    if key not in pair_cols:
+                        f = milp.var(0.0, _INF)
+                        pair_cols[key] = f
+                        # f >= b_e [s on a] - M (1 - [d on b])
+                        milp.row([(f, 1.0)] + [(j, -w) for j, w in traffic([a])]
+                                 + [(j, -big) for j, _ in placed(e.dst, b)], -big, _INF)
+                    load_terms[li].append((pair_cols[key], 1.0))
+        load_cols: dict[int, int] = {}
+        for li, link in enumerate(system.links):
+            if not load_terms[li]:
+                continue
+            load = milp.var(0.0, _INF)
+            load_cols[li] = load
+            milp.row(load_terms[li] + [(load, -1.0)], 0.0, 0.0)
+            terms = [(load, 1.0)]
+            if elastic:
+                s = milp.var(0.0, _INF, 1.0 / max(link.bandwidth_kBps, 1e-6))
+                slack[_link_name(system, li)] = s
+                terms.append((s, -1.0))
+            milp.row(terms, -_INF, link.bandwidth_kBps)
+        for m in system.media:
+            cols = [load_cols[li] for li, link in enumerate(system.links)
+                    if link.medium == m.name and li in load_cols]
+            if not cols:
+                continue
+            terms = [(col, 1.0) for col in cols]
+            if elastic:
+                s = milp.var(0.0, _INF, 1.0 / max(m.bandwidth_kBps, 1e-6))
+                slack[f"medium {m.name}"] = s
+                terms.append((s, -1.0))
+            milp.row(terms, -_INF, m.bandwidth_kBps)
+    return _Built(milp, x, server_cap, slack)
+
+
+def _start_values(inst: _Instance, built: _Built, start: Assignment) -> dict[int, float] | None:
+    """The binaries of a MIP start (HiGHS completes the continuous columns); None when the
+    start does not map onto the pruned model."""
+    values = {col: 0.0 for col in built.x.values()}
+    for g in inst.groups:
+        for n in g.members:
+            comp = start.placement.get(n)
+            ch = start.choice.get(n)
+            if comp is None or ch is None or comp not in g.allowed:
+                return None
+            original = next((i for i, o in enumerate(inst.original[n]) if o == ch), None)
+            pos = None if original is None else inst.replace[n].get(original)
+            if pos is None:
+                return None
+            values[built.x[(n, pos, comp)]] = 1.0
+        if g.z:
+            comp = start.placement[g.members[0]]
+            for c, col in g.z.items():
+                values[col] = 1.0 if c == comp else 0.0
+    return values
+
+
+def _extract(inst: _Instance, built: _Built, values: Sequence[float]) -> Assignment:
+    placement: dict[str, str] = {}
+    choice: dict[str, Choice] = {}
+    for (n, k, c), col in built.x.items():
+        if values[col] > 0.5:
+            placement[n] = c
+            choice[n] = inst.choices[n][k]
+    capacities: dict[str, float] = {}
+    if inst.problem == 2:
+        load = {c.name: 0.0 for c in inst.system.computers}
+        for n, c in placement.items():
+            load[c] += choice[n].cpu
+        capacities = {c.name: round(load[c.name], 9) for c in inst.system.computers if c.kind == "server"}
+    return Assignment(placement, choice, capacities)
+
+
+def _diagnose(inst: _Instance, time_limit: float | None) -> str:
+    """Why the MILP is infeasible: solve an elastic copy where capacities and bandwidths may
+    overflow at a cost, and name what overflows in its best placement."""
+    import highspy
+
+    built = _build(inst, elastic=True)
+    h = built.milp.solve(False, time_limit=time_limit, mip_gap=0.0)
+    if h.getModelStatus() not in (highspy.HighsModelStatus.kOptimal,) and h.getInfo().primal_solution_status != 2:
+        return ("no placement satisfies residence, coresidence, CPU and bandwidth together "
+                "(the diagnosis did not finish)")
+    values = h.getSolution().col_value
+    over = [(label, values[col]) for label, col in built.slack.items() if values[col] > 1e-6]
+    if not over:
+        return "no placement satisfies residence, coresidence, CPU and bandwidth together"
+    system = inst.system
+    parts: list[str] = []
+    for label, amount in over:
+        if label.startswith("computer "):
+            comp = label.split(" ", 1)[1]
+            parts.append(f"{comp} would need {inst.cap[comp] + amount:g} CPU but has {inst.cap[comp]:g}")
+        elif label.startswith("medium "):
+            m = system.medium[label.split(" ", 1)[1]]
+            parts.append(f"{label} would carry {m.bandwidth_kBps + amount:g} kB/s but has {m.bandwidth_kBps:g}")
+        else:
+            li = next(i for i in range(len(system.links)) if _link_name(system, i) == label)
+            bw = system.links[li].bandwidth_kBps
+            parts.append(f"{label} would carry {bw + amount:g} kB/s but has {bw:g}")
+    kinds = sorted({"CPU" if label.startswith("computer ") else "bandwidth" for label, _ in over})
+    return (f"{' and '.join(kinds)}: even the placement that overflows least breaks a limit: "
+            + "; ".join(parts))
+
+
+def solve_exact(system: System, problem: int, choices: dict[str, list[Choice]], *,
+                time_limit: float | None = None, mip_gap: float = 0.0,
+                start: Assignment | None = None) -> Plan:
+    """Solve Problem 1 (max Σ w·P) or Problem 2 (min Σ server capacity) exactly with HiGHS.
+
+    ``choices`` are each node's candidates (:func:`perfros_bag.solve.fixed_choices`).
+    The plan's status is ``optimal`` when proven (relative gap <= ``mip_gap``, exact by
+    default), ``feasible`` with the solver's ``bound`` when ``time_limit`` stopped it first,
+    or ``infeasible`` with a reason naming the constraint.
+    """
+    import highspy
+
+    t0 = time.perf_counter()
+    if problem not in (1, 2):
+        raise InputError(system.source, f"problem must be 1 or 2, got {problem!r}")
+    if mip_gap < 0 or not math.isfinite(mip_gap):
+        raise InputError(None, f"mip_gap must be >= 0, got {mip_gap!r}")
+    prepared = _prepare(system, problem, choices)
+    if isinstance(prepared, str):
+        return infeasible_plan(problem, "exact", prepared, solve_s=time.perf_counter() - t0, system=system.source)
+    inst = prepared
+    built = _build(inst)
+    start_values = _start_values(inst, built, start) if start is not None else None
+    remaining = None if time_limit is None else max(time_limit - (time.perf_counter() - t0), 0.01)
+    h = built.milp.solve(problem == 1, time_limit=remaining, mip_gap=mip_gap, start=start_values)
+    status = h.getModelStatus()
+    info = h.getInfo()
+    has_solution = info.primal_solution_status == 2  # kSolutionStatusFeasible
+    if status == highspy.HighsModelStatus.kInfeasible or (not has_solution and status in (
+            highspy.HighsModelStatus.kUnboundedOrInfeasible,)):
+        reason = _diagnose(inst, remaining)
+        return infeasible_plan(problem, "exact", reason, solve_s=time.perf_counter() - t0, system=system.source)
+    if not has_solution:
+        limit = f"{time_limit:g} s" if time_limit is not None else "the solver's limits"
+        return infeasible_plan(problem, "exact",
+                               f"no feasible plan found within {limit} (HiGHS: {h.modelStatusToString(status)}); "
+                               "infeasibility was not proven: raise --time-limit",
+                               solve_s=time.perf_counter() - t0, system=system.source)
+    assignment = _extract(inst, built, h.getSolution().col_value)
+    value = plan_objective(system, assignment, problem)
+    bound = float(info.mip_dual_bound)
+    bound = max(bound, value) if problem == 1 else min(bound, value)
+    proven = status == highspy.HighsModelStatus.kOptimal and (
+        abs(bound - value) <= max(mip_gap * abs(value), 1e-6 * max(1.0, abs(value))))
+    if proven:
+        bound = value
+    return build_plan(system, assignment, problem=problem, method="exact",
+                      status="optimal" if proven else "feasible", bound=bound,
+                      solve_s=time.perf_counter() - t0)
