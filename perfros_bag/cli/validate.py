@@ -1,0 +1,111 @@
+"""``perfros-bag validate RUN PLAN``: eq 10 per node, overall, CPU and link loads."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.console import Console
+from rich.markup import escape
+from rich.table import Table
+
+from perfros_bag.cli._app import command, err, out
+from perfros_bag.validate import DEFAULT_TOLERANCE, TopicCheck, Validation
+
+
+def _f(x: float | None, fmt: str = ".3g") -> str:
+    return "-" if x is None else format(x, fmt)
+
+
+def render(v: Validation, console: Console) -> None:
+    """The validation as rich tables."""
+    t = Table(title="eq 10 per node: P_measured = P_expected x F_measured / F_expected")
+    for col in ("node", "computer", "topic", "F exp (Hz)", "F meas (Hz)", "ratio", "P exp", "P meas", "dev %"):
+        t.add_column(col, justify="left" if col in ("node", "computer", "topic") else "right")
+    for n in v.nodes:
+        first = True
+        rows: list[TopicCheck | None] = list(n.topics) or [None]
+        for tc in rows:
+            topic = "-" if tc is None else escape(tc.topic)
+            if tc is not None and tc.status == "missing":
+                topic = f"[red]{topic} (missing)[/]"
+            elif tc is not None and tc.status == "no-expectation":
+                topic = f"[yellow]{topic} (no F expected)[/]"
+            dev = f"{n.deviation_pct:.1f}" if n.counted else "[dim]not counted[/]"
+            t.add_row(
+                escape(n.node) if first else "", escape(n.computer) if first else "", topic,
+                _f(None if tc is None else tc.f_expected), _f(None if tc is None else tc.f_measured),
+                _f(None if tc is None else tc.ratio, ".4f"),
+                _f(n.p_expected) if first else "", _f(n.p_measured) if first else "",
+                dev if first else "",
+            )
+            first = False
+    console.print(t)
+    style = "green" if v.passed else "red"
+    console.print(
+        f"overall  Σ w·P expected {v.overall_expected:.4g}   measured {v.overall_measured:.4g}   "
+        f"deviation [{style}]{v.deviation_pct:.2f} %[/] (tolerance {v.tolerance_pct:g} %)"
+        + ("  [dim](capped)[/]" if v.cap else "")
+    )
+    if v.computers:
+        ct = Table(title="CPU per computer (normalised units)")
+        for col in ("computer", "capacity", "planned", "measured", "status"):
+            ct.add_column(col, justify="left" if col in ("computer", "status") else "right")
+        for c in v.computers:
+            status = ("[red]overloaded[/]" if c.overloaded else "ok" if c.overloaded is False
+                      else "[dim]not in trace[/]")
+            if c.unmatched_nodes and c.cpu_measured is not None:
+                status += f" [dim](not traced: {escape(', '.join(c.unmatched_nodes))})[/]"
+            ct.add_row(escape(c.name), _f(c.capacity), _f(c.cpu_expected), _f(c.cpu_measured), status)
+        console.print(ct)
+    if v.links or v.media:
+        lt = Table(title="bandwidth per link (kB/s)")
+        for col in ("link", "capacity", "planned", "measured", "status"):
+            lt.add_column(col, justify="left" if col in ("link", "status") else "right")
+        for lc in v.links:
+            lt.add_row(escape(" - ".join(lc.between)), _f(lc.capacity_kBps), _f(lc.expected_kBps),
+                       _f(lc.measured_kBps), "[red]overloaded[/]" if lc.overloaded else "ok")
+        for m in v.media:
+            lt.add_row(f"medium {escape(m.between[0])}", _f(m.capacity_kBps), _f(m.expected_kBps),
+                       _f(m.measured_kBps), "[red]overloaded[/]" if m.overloaded else "ok")
+        console.print(lt)
+    if v.unplanned_topics:
+        console.print("topics not in the plan (not counted): "
+                      + ", ".join(f"{escape(u.topic)} ({u.f_measured:.3g} Hz)" for u in v.unplanned_topics))
+    for note in v.notes:
+        console.print(f"[dim]note: {escape(note)}[/]")
+
+
+@command("validate")
+def validate(
+    run: Annotated[Path, typer.Argument(help="The run's recording: .mcap, .bag, rosbag2 directory or .db3.")],
+    plan: Annotated[Path, typer.Argument(help="The plan.json the run was configured from.")],
+    cpu: Annotated[list[Path] | None, typer.Option(
+        "--cpu", help="CPU trace(s) of the run (repeatable); default <stem>.cpu.csv beside RUN.")] = None,
+    system: Annotated[Path | None, typer.Option(
+        "--system", help="system.yaml (process patterns, edges for link loads); default: the plan's.")] = None,
+    tolerance: Annotated[float, typer.Option(
+        "--tolerance", help="Largest overall deviation in % that still passes (exit 0).")] = DEFAULT_TOLERANCE,
+    cap: Annotated[bool, typer.Option("--cap", help="Cap P_measured at P_expected.")] = False,
+    as_json: Annotated[bool, typer.Option("--json", help="Print the validation as JSON on stdout.")] = False,
+    save: Annotated[Path | None, typer.Option(
+        "--out", help="Also write the JSON document to this file (atomic).")] = None,
+) -> None:
+    """Compare a run with its plan (the paper's eq 10); exit 1 when the overall deviation
+    exceeds --tolerance."""
+    from perfros_bag.fileio import atomic_write_json
+    from perfros_bag.validate import validate_files
+
+    result = validate_files(run, plan, cpu=cpu, system_path=system, tolerance=tolerance, cap=cap)
+    doc = result.to_dict()
+    if save is not None:
+        atomic_write_json(save, doc)
+    if as_json:
+        render(result, err)
+        print(json.dumps(doc, indent=2))
+    else:
+        render(result, out)
+    if not result.passed:
+        raise typer.Exit(1)

@@ -1,0 +1,481 @@
+"""Validate a run against its plan: the paper's eq 10 plus CPU and bandwidth checks.
+
+For every node of the plan and each of its planned topics, the measured frequency
+``F_measured`` (``(n - 1) / span`` of the recording) is compared with the plan's
+``F_expected``. A node's ratio is the mean of its topics' ``F_measured / F_expected``
+and its measured performance is (eq 10)::
+
+    P_measured = P_expected * ratio          (capped at P_expected with cap=True)
+
+Choices documented in ``docs/formats.md`` ("validate --json"):
+
+- a planned topic absent from the recording counts ``F_measured = 0`` (status ``missing``);
+- a topic whose ``F_expected`` is 0 or unknown has no expectation (status
+  ``no-expectation``) and is left out of the node's mean; a node with no topic that has an
+  expectation keeps ``P_measured = P_expected`` (``counted: false``): it cannot deviate;
+- recorded topics that are in no node of the plan are listed (``unplanned_topics``), not
+  counted;
+- deviations are absolute, in %: ``100 * |measured - expected| / expected``.
+
+With CPU traces (``<stem>.cpu.csv``), each computer's measured load is the sum of its
+nodes' mean CPU in normalised units (``cpu_percent / (100 * logical_cpus) * capacity``)
+and ``overloaded`` where it exceeds the capacity. With the system (``--system`` or the
+plan's ``system`` path), each link's measured load is the measured bandwidth of the
+publisher topics of the edges crossing it.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from perfros_bag.errors import InputError, PerfrosWarning
+from perfros_bag.ingest.stats import RecordingStats, TopicStats
+from perfros_bag.model import System
+from perfros_bag.plan import Plan
+
+VALIDATION_FORMAT = "perfros-bag/validation@1"
+DEFAULT_TOLERANCE = 5.0
+
+
+# ---------------------------------------------------------------------------------------
+# results
+
+
+@dataclass
+class TopicCheck:
+    topic: str
+    f_expected: float | None
+    f_measured: float
+    ratio: float | None  # F_measured / F_expected; None without an expectation
+    deviation_pct: float | None
+    bandwidth_kBps: float  # measured
+    messages: int
+    status: str  # "ok" | "missing" | "no-expectation"
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "topic": self.topic, "status": self.status, "f_expected": self.f_expected,
+            "f_measured": self.f_measured, "ratio": self.ratio, "deviation_pct": self.deviation_pct,
+            "bandwidth_kBps": self.bandwidth_kBps, "messages": self.messages,
+        }
+
+
+@dataclass
+class NodeCheck:
+    node: str
+    computer: str
+    weight: float
+    p_expected: float
+    p_measured: float
+    ratio: float  # mean of the topics' ratios (1 when not counted), before the cap
+    deviation_pct: float
+    counted: bool  # False: no topic with an expected frequency; P_measured = P_expected
+    topics: list[TopicCheck] = field(default_factory=list)
+    parameter: str | None = None
+    value: float | None = None
+    cpu_expected: float | None = None
+    cpu_measured: float | None = None  # normalised units, from the CPU trace
+    note: str | None = None
+
+    @property
+    def flagged(self) -> bool:
+        return any(t.status == "missing" for t in self.topics)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "node": self.node, "computer": self.computer, "weight": self.weight,
+            "parameter": self.parameter, "value": self.value,
+            "p_expected": self.p_expected, "p_measured": self.p_measured, "ratio": self.ratio,
+            "deviation_pct": self.deviation_pct, "counted": self.counted, "flagged": self.flagged,
+            "cpu_expected": self.cpu_expected, "cpu_measured": self.cpu_measured, "note": self.note,
+            "topics": [t.to_dict() for t in self.topics],
+        }
+
+
+@dataclass
+class ComputerCheck:
+    name: str
+    capacity: float | None
+    cpu_expected: float
+    cpu_measured: float | None  # None: no CPU trace covers any of its nodes
+    overloaded: bool | None
+    unmatched_nodes: list[str] = field(default_factory=list)  # its nodes not found in the trace
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "computer": self.name, "capacity": self.capacity, "cpu_expected": self.cpu_expected,
+            "cpu_measured": self.cpu_measured, "overloaded": self.overloaded,
+            "unmatched_nodes": self.unmatched_nodes,
+        }
+
+
+@dataclass
+class LinkCheck:
+    between: tuple[str, str]
+    capacity_kBps: float
+    expected_kBps: float | None
+    measured_kBps: float
+    overloaded: bool
+    medium: str | None = None
+    edges: list[str] = field(default_factory=list)  # "src->dst" crossing it
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "between": list(self.between), "medium": self.medium, "capacity_kBps": self.capacity_kBps,
+            "expected_kBps": self.expected_kBps, "measured_kBps": self.measured_kBps,
+            "overloaded": self.overloaded, "edges": self.edges,
+        }
+
+
+@dataclass
+class UnplannedTopic:
+    topic: str
+    msgtype: str
+    messages: int
+    f_measured: float
+    bandwidth_kBps: float
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"topic": self.topic, "msgtype": self.msgtype, "messages": self.messages,
+                "f_measured": self.f_measured, "bandwidth_kBps": self.bandwidth_kBps}
+
+
+@dataclass
+class Validation:
+    recording: str
+    recording_format: str
+    plan: str | None
+    tolerance_pct: float
+    cap: bool
+    overall_expected: float
+    overall_measured: float
+    deviation_pct: float
+    nodes: list[NodeCheck]
+    computers: list[ComputerCheck] = field(default_factory=list)
+    links: list[LinkCheck] = field(default_factory=list)
+    media: list[LinkCheck] = field(default_factory=list)
+    unplanned_topics: list[UnplannedTopic] = field(default_factory=list)
+    cpu_traces: list[str] = field(default_factory=list)
+    system: str | None = None
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def passed(self) -> bool:
+        return self.deviation_pct <= self.tolerance_pct
+
+    @property
+    def missing_topics(self) -> list[str]:
+        return [t.topic for n in self.nodes for t in n.topics if t.status == "missing"]
+
+    @property
+    def overloaded_computers(self) -> list[str]:
+        return [c.name for c in self.computers if c.overloaded]
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "format": VALIDATION_FORMAT,
+            "recording": self.recording, "recording_format": self.recording_format,
+            "plan": self.plan, "system": self.system, "cpu_traces": self.cpu_traces,
+            "tolerance_pct": self.tolerance_pct, "cap": self.cap,
+            "overall": {
+                "expected": self.overall_expected, "measured": self.overall_measured,
+                "ratio": _ratio(self.overall_measured, self.overall_expected),
+                "deviation_pct": self.deviation_pct, "passed": self.passed,
+            },
+            "nodes": [n.to_dict() for n in self.nodes],
+            "missing_topics": self.missing_topics,
+            "unplanned_topics": [t.to_dict() for t in self.unplanned_topics],
+            "computers": [c.to_dict() for c in self.computers],
+            "overloaded": self.overloaded_computers,
+            "links": [link.to_dict() for link in self.links],
+            "media": [m.to_dict() for m in self.media],
+            "notes": self.notes,
+        }
+
+
+def _ratio(measured: float, expected: float) -> float | None:
+    return measured / expected if expected else None
+
+
+def _deviation(measured: float, expected: float) -> float:
+    """100 * |measured - expected| / expected; 0 when both are 0, and 100 (the most a
+    vanished quantity can deviate) when only the expectation is 0."""
+    if expected == 0:
+        return 0.0 if measured == 0 else 100.0
+    return 100.0 * abs(measured - expected) / abs(expected)
+
+
+# ---------------------------------------------------------------------------------------
+# CPU traces
+
+
+@dataclass
+class TracedCpu:
+    """Mean CPU of one node from one trace: cpu_percent (100 = one core) and the trace's
+    number of logical CPUs, to convert into its computer's units."""
+
+    percent: float
+    logical_cpus: int
+    trace: str
+
+
+def node_cpu_from_trace(path: str | Path, plan: Plan, system: System | None,
+                        start_ns: int | None = None, end_ns: int | None = None) -> dict[str, TracedCpu]:
+    """Mean CPU per plan node in one trace, over the samples inside the recording's window
+    (the whole trace, with a warning, when none is inside it). Rows are matched to plan
+    nodes by name, else by the system's ``process`` regex
+    (:func:`perfros_bag.ingest.cputrace.assign_nodes`)."""
+    from perfros_bag.ingest import cputrace
+
+    trace = cputrace.read_cpu_trace(path)
+    patterns: dict[str, str | None] = {
+        n: (system.node[n].process if system is not None and n in system.node else None) for n in plan.nodes
+    }
+    full = 100.0 * trace.logical_cpus  # the capacity at which units == cpu_percent
+    found = cputrace.node_cpu(trace, full, start_ns=start_ns, end_ns=end_ns, nodes=patterns)
+    if not found and len(trace) and start_ns is not None:
+        everything = cputrace.node_cpu(trace, full, nodes=patterns)
+        if everything:
+            warnings.warn(f"{path}: no CPU sample inside the recording's time window; using the whole trace",
+                          PerfrosWarning, stacklevel=2)
+            found = everything
+    return {n: TracedCpu(c.mean, trace.logical_cpus, str(path)) for n, c in found.items()}
+
+
+# ---------------------------------------------------------------------------------------
+# the check
+
+
+def _topic_key(stats: RecordingStats, topic: str) -> str | None:
+    """The recording's name for a planned topic (a leading ``/`` may differ)."""
+    if topic in stats.topics:
+        return topic
+    alt = topic.lstrip("/") if topic.startswith("/") else "/" + topic
+    return alt if alt in stats.topics else None
+
+
+def _find_topic(stats: RecordingStats, topic: str) -> TopicStats | None:
+    key = _topic_key(stats, topic)
+    return None if key is None else stats.topics[key]
+
+
+def _check_topic(stats: RecordingStats, topic: str, f_expected: float | None) -> TopicCheck:
+    ts = _find_topic(stats, topic)
+    f_meas = ts.frequency_hz if ts is not None else 0.0
+    bw = ts.bandwidth_kBps if ts is not None else 0.0
+    msgs = ts.messages if ts is not None else 0
+    if not f_expected:  # 0 or None: nothing to compare with
+        status = "missing" if ts is None else "no-expectation"
+        return TopicCheck(topic, f_expected, f_meas, None, None, bw, msgs, status)
+    ratio = f_meas / f_expected
+    status = "missing" if ts is None else "ok"
+    return TopicCheck(topic, f_expected, f_meas, ratio, 100.0 * abs(ratio - 1.0), bw, msgs, status)
+
+
+def check_run(stats: RecordingStats, plan: Plan, *, cap: bool = False,
+              tolerance: float = DEFAULT_TOLERANCE, system: System | None = None,
+              node_cpu: dict[str, TracedCpu] | None = None, cpu_traces: Iterable[str] = (),
+              plan_path: str | None = None) -> Validation:
+    """Eq 10 for every node of ``plan`` against the recording's statistics."""
+    if plan.status == "infeasible":
+        raise InputError(plan_path, f"the plan is infeasible ({plan.reason or 'no reason given'}): nothing to validate")
+    notes: list[str] = []
+    nodes: list[NodeCheck] = []
+    planned: set[str] = set()
+    for name, pn in plan.nodes.items():
+        topics = [_check_topic(stats, t, r.frequency_hz) for t, r in pn.topics.items()]
+        planned.update(k for t in topics if (k := _topic_key(stats, t.topic)) is not None)
+        ratios = [t.ratio for t in topics if t.ratio is not None]
+        note = None
+        if ratios:
+            ratio = sum(ratios) / len(ratios)
+            p_meas = pn.performance * ratio
+            if cap:
+                p_meas = min(p_meas, pn.performance)
+            counted = True
+            skipped = [t.topic for t in topics if t.ratio is None]
+            if skipped:
+                note = f"no expected frequency for {', '.join(skipped)}: left out of the mean"
+        else:
+            ratio, p_meas, counted = 1.0, pn.performance, False
+            note = ("no planned topic: P_measured = P_expected" if not topics
+                    else "no expected frequency on any topic: P_measured = P_expected")
+            notes.append(f"node {name!r}: {note}")
+        missing = [t.topic for t in topics if t.status == "missing"]
+        if missing:
+            notes.append(f"node {name!r}: planned topic(s) not in the recording (F = 0): {', '.join(missing)}")
+        nodes.append(NodeCheck(
+            node=name, computer=pn.computer, weight=pn.weight, p_expected=pn.performance,
+            p_measured=p_meas, ratio=ratio, deviation_pct=_deviation(p_meas, pn.performance),
+            counted=counted, topics=topics, parameter=pn.parameter, value=pn.value,
+            cpu_expected=pn.cpu, note=note,
+        ))
+
+    overall_e = sum(n.weight * n.p_expected for n in nodes)
+    overall_m = sum(n.weight * n.p_measured for n in nodes)
+    unplanned = [UnplannedTopic(t, ts.msgtype, ts.messages, ts.frequency_hz, ts.bandwidth_kBps)
+                 for t, ts in sorted(stats.topics.items()) if t not in planned]
+
+    computers = _check_computers(plan, nodes, node_cpu) if node_cpu is not None else []
+    links, media = _check_links(plan, stats, system, notes) if system is not None else ([], [])
+    return Validation(
+        recording=str(stats.path), recording_format=stats.format, plan=plan_path,
+        tolerance_pct=tolerance, cap=cap, overall_expected=overall_e, overall_measured=overall_m,
+        deviation_pct=_deviation(overall_m, overall_e), nodes=nodes, computers=computers,
+        links=links, media=media, unplanned_topics=unplanned, cpu_traces=list(cpu_traces),
+        system=system.source if system is not None else None, notes=notes,
+    )
+
+
+def _check_computers(plan: Plan, nodes: list[NodeCheck], node_cpu: dict[str, TracedCpu]) -> list[ComputerCheck]:
+    out: list[ComputerCheck] = []
+    for cname, pc in plan.computers.items():
+        members = [n for n in nodes if n.computer == cname]
+        total: float | None = None
+        unmatched: list[str] = []
+        for n in members:
+            nc = node_cpu.get(n.node)
+            if nc is None:
+                unmatched.append(n.node)
+                continue
+            if pc.capacity is None or nc.logical_cpus <= 0:
+                continue
+            n.cpu_measured = nc.percent / (100.0 * nc.logical_cpus) * pc.capacity
+            total = (total or 0.0) + n.cpu_measured
+        overloaded = None if total is None or pc.capacity is None else total > pc.capacity
+        out.append(ComputerCheck(cname, pc.capacity, pc.cpu, total, overloaded, unmatched))
+    return out
+
+
+def _measured_publisher_bw(stats: RecordingStats, plan: Plan, system: System, src: str, topic: str | None) -> float:
+    """kB/s an edge carries in the run: its topic's, else all the publisher's topics'."""
+    if topic is not None:
+        ts = _find_topic(stats, topic)
+        return ts.bandwidth_kBps if ts is not None else 0.0
+    topics: Iterable[str] = plan.nodes[src].topics if plan.nodes[src].topics else system.node[src].topics
+    total = 0.0
+    for t in topics:
+        ts = _find_topic(stats, t)
+        total += ts.bandwidth_kBps if ts is not None else 0.0
+    return total
+
+
+def _check_links(plan: Plan, stats: RecordingStats, system: System,
+                 notes: list[str]) -> tuple[list[LinkCheck], list[LinkCheck]]:
+    loads = [0.0] * len(system.links)
+    crossing: list[list[str]] = [[] for _ in system.links]
+    for edge in system.edges:
+        if edge.src not in plan.nodes or edge.dst not in plan.nodes:
+            notes.append(f"edge {edge.src}->{edge.dst}: a node is not in the plan, edge skipped")
+            continue
+        a, b = plan.nodes[edge.src].computer, plan.nodes[edge.dst].computer
+        if a == b or a not in system.computer or b not in system.computer:
+            continue
+        route = system.route(a, b)
+        if route is None:
+            notes.append(f"edge {edge.src}->{edge.dst}: no network route between {a!r} and {b!r}")
+            continue
+        bw = _measured_publisher_bw(stats, plan, system, edge.src, edge.topic)
+        for li in route:
+            loads[li] += bw
+            crossing[li].append(f"{edge.src}->{edge.dst}")
+    planned = {frozenset(pl.between): pl.load_kBps for pl in plan.links}
+    links = [
+        LinkCheck(link.between, link.bandwidth_kBps, planned.get(frozenset(link.between)), load,
+                  load > link.bandwidth_kBps, link.medium, crossing[i])
+        for i, (link, load) in enumerate(zip(system.links, loads, strict=True))
+    ]
+    media: list[LinkCheck] = []
+    for m in system.media:
+        members = [lc for lc in links if lc.medium == m.name]
+        load = sum(lc.measured_kBps for lc in members)
+        exp = [lc.expected_kBps for lc in members]
+        expected = None if any(e is None for e in exp) else sum(e for e in exp if e is not None)
+        media.append(LinkCheck((m.name, m.name), m.bandwidth_kBps, expected, load,
+                               load > m.bandwidth_kBps, m.name, [e for lc in members for e in lc.edges]))
+    return links, media
+
+
+# ---------------------------------------------------------------------------------------
+# files
+
+
+def default_cpu_trace(run: str | Path) -> Path | None:
+    """``<stem>.cpu.csv`` beside the recording (for a rosbag2 directory: ``<dir>.cpu.csv``
+    beside it or inside it; for a ``.db3``/``.mcap`` inside a rosbag2 directory also the
+    directory's trace)."""
+    p = Path(run)
+    candidates: list[Path] = []
+    if p.is_dir():
+        candidates += [p.parent / f"{p.name}.cpu.csv", p / f"{p.name}.cpu.csv"]
+    else:
+        candidates.append(p.with_name(f"{p.stem}.cpu.csv"))
+        if (p.parent / "metadata.yaml").exists():
+            d = p.parent
+            candidates += [d.parent / f"{d.name}.cpu.csv", d / f"{d.name}.cpu.csv"]
+    return next((c for c in candidates if c.is_file()), None)
+
+
+def _plan_system(plan: Plan, plan_path: Path) -> System | None:
+    """The system the plan was solved from, when its path still exists (relative paths:
+    beside the plan first, then from the working directory)."""
+    if not plan.system:
+        return None
+    from perfros_bag.spec import load_system
+
+    raw = Path(plan.system)
+    for cand in ([raw] if raw.is_absolute() else [plan_path.parent / raw, raw]):
+        if cand.is_file():
+            try:
+                return load_system(cand)
+            except InputError as exc:
+                warnings.warn(f"the plan's system could not be read ({exc}); no link check",
+                              PerfrosWarning, stacklevel=2)
+                return None
+    return None
+
+
+def validate_files(run: str | Path, plan_path: str | Path, *, cpu: Sequence[str | Path] | None = None,
+                   system_path: str | Path | None = None, tolerance: float = DEFAULT_TOLERANCE,
+                   cap: bool = False) -> Validation:
+    """Read the recording, the plan, the CPU trace(s) and the system, then :func:`check_run`."""
+    from perfros_bag.ingest import read_recording
+    from perfros_bag.plan import load_plan
+    from perfros_bag.spec import load_system
+
+    if not math.isfinite(tolerance) or tolerance < 0:
+        raise InputError(None, f"--tolerance must be a number >= 0, got {tolerance}")
+    run_p, plan_p = Path(run), Path(plan_path)
+    plan = load_plan(plan_p)
+    if plan.status == "infeasible":
+        raise InputError(plan_p, f"the plan is infeasible ({plan.reason or 'no reason given'}): nothing to validate")
+    if not run_p.exists():
+        raise InputError(run_p, "recording not found")
+    system = load_system(system_path) if system_path is not None else _plan_system(plan, plan_p)
+    stats = read_recording(run_p)
+    if not stats.topics or stats.messages == 0:
+        raise InputError(run_p, "the recording has no messages")
+
+    traces: list[Path] = [Path(c) for c in cpu] if cpu else []
+    for t in traces:
+        if not t.is_file():
+            raise InputError(t, "CPU trace not found")
+    if not traces:
+        found = default_cpu_trace(run_p)
+        traces = [found] if found is not None else []
+    node_cpu: dict[str, TracedCpu] | None = None
+    if traces:
+        node_cpu = {}
+        for t in traces:
+            for node, nc in node_cpu_from_trace(t, plan, system, stats.start_ns, stats.end_ns).items():
+                if node in node_cpu:
+                    warnings.warn(f"{t}: node {node!r} also in {node_cpu[node].trace}; the later trace is used",
+                                  PerfrosWarning, stacklevel=2)
+                node_cpu[node] = nc
+    return check_run(stats, plan, cap=cap, tolerance=tolerance, system=system, node_cpu=node_cpu,
+                     cpu_traces=[str(t) for t in traces], plan_path=str(plan_p))

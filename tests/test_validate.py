@@ -1,0 +1,212 @@
+"""validate (eq 10): constructed runs at known fractions of the planned rates."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from perfros_bag.errors import InputError
+from perfros_bag.ingest.stats import RecordingStats, TopicStats
+from perfros_bag.plan import parse_plan
+from perfros_bag.validate import TracedCpu, check_run, default_cpu_trace
+
+# Two computers; node a has one topic, node b two (its ratio is the mean of both).
+PLAN: dict[str, Any] = {
+    "format": "perfros-bag/plan@1", "problem": 1, "method": "test", "status": "optimal",
+    "objective": 65.0,
+    "computers": {"robot1": {"kind": "robot", "capacity": 100, "cpu": 60},
+                  "server": {"kind": "server", "capacity": 400, "cpu": 120}},
+    "links": [{"between": ["robot1", "server"], "bandwidth_kBps": 3.0, "load_kBps": 1.0}],
+    "nodes": {
+        "a": {"computer": "robot1", "parameter": "rate", "value": 10, "cpu": 60, "performance": 80,
+              "weight": 0.5, "topics": {"/a/out": {"frequency_hz": 10, "bandwidth_kBps": 1.0}}},
+        "b": {"computer": "server", "parameter": None, "value": None, "cpu": 120, "performance": 50,
+              "weight": 0.5, "topics": {"/b/x": {"frequency_hz": 20, "bandwidth_kBps": 2.0},
+                                        "/b/y": {"frequency_hz": 5, "bandwidth_kBps": 0.5}}},
+    },
+}
+PLANNED_HZ = {"/a/out": 10, "/b/x": 20, "/b/y": 5}
+SPAN_S = 10  # every constructed topic spans exactly 10 s
+
+
+def times_at(freq: float, span_s: int = SPAN_S, t0: int = 1_700_000_000_000_000_000) -> np.ndarray:
+    """Timestamps with (n - 1) / span == freq exactly: an integer period in ns."""
+    period = round(1e9 / freq)
+    assert period * freq == 1e9, "choose frequencies with an integer period in ns"
+    n = int(round(freq * span_s)) + 1
+    return t0 + np.arange(n, dtype=np.int64) * period
+
+
+def stats_at(factor: float, *, drop: tuple[str, ...] = (), extra: tuple[str, ...] = (),
+             size: int = 100) -> RecordingStats:
+    topics: dict[str, TopicStats] = {}
+    for t, f in PLANNED_HZ.items():
+        if t in drop:
+            continue
+        ts = times_at(f * factor)
+        topics[t] = TopicStats(t, "std_msgs/msg/String", len(ts), size * len(ts), ts)
+    for t in extra:
+        ts = times_at(2)
+        topics[t] = TopicStats(t, "std_msgs/msg/String", len(ts), 10 * len(ts), ts)
+    return RecordingStats(Path("run.mcap"), "mcap", topics)
+
+
+def plan(**changes: Any) -> Any:
+    data = json.loads(json.dumps(PLAN))
+    data.update(changes)
+    return parse_plan(data, "plan.json")
+
+
+def overall_expected() -> float:
+    return sum(n["weight"] * n["performance"] for n in PLAN["nodes"].values())
+
+
+def test_eighty_percent_gives_point_eight_performance() -> None:
+    v = check_run(stats_at(0.8), plan())
+    for n in v.nodes:
+        assert n.p_measured == pytest.approx(0.8 * n.p_expected, abs=1e-9)
+        assert n.deviation_pct == pytest.approx(20.0, abs=1e-9)
+        for t in n.topics:
+            assert t.f_measured == pytest.approx(0.8 * PLANNED_HZ[t.topic], abs=1e-9)
+    assert v.overall_expected == pytest.approx(65.0)
+    assert v.overall_measured == pytest.approx(0.8 * 65.0, abs=1e-9)
+    assert v.deviation_pct == pytest.approx(20.0, abs=1e-9)
+    assert not v.passed
+
+
+def test_planned_rates_pass() -> None:
+    v = check_run(stats_at(1.0), plan())
+    assert v.deviation_pct == pytest.approx(0.0, abs=1e-9)
+    assert v.passed
+    assert v.missing_topics == []
+
+
+def test_mean_of_ratios_for_a_node_with_several_topics() -> None:
+    # /b/x at 16 of 20 Hz, /b/y at 2 of 5 Hz: b's ratio is (0.8 + 0.4) / 2 = 0.6, the
+    # mean of the ratios, not the ratio of the sums (18 / 25 = 0.72).
+    s = stats_at(1.0)
+    for t, f in (("/b/x", 16), ("/b/y", 2)):
+        ts = times_at(f)
+        s.topics[t] = TopicStats(t, "x", len(ts), 0, ts)
+    v = check_run(s, plan())
+    b = next(n for n in v.nodes if n.node == "b")
+    assert b.ratio == pytest.approx(0.6, abs=1e-12)
+    assert b.p_measured == pytest.approx(50 * 0.6, abs=1e-9)
+    assert v.overall_measured == pytest.approx(0.5 * 80 + 0.5 * 30, abs=1e-9)
+
+
+def test_missing_topic_counts_zero_and_is_flagged() -> None:
+    v = check_run(stats_at(1.0, drop=("/a/out",)), plan())
+    a = next(n for n in v.nodes if n.node == "a")
+    (t,) = a.topics
+    assert t.status == "missing" and t.f_measured == 0.0 and t.messages == 0
+    assert a.flagged and a.p_measured == 0.0
+    assert v.missing_topics == ["/a/out"]
+    assert v.overall_measured == pytest.approx(0.5 * 50)
+    assert any("/a/out" in note for note in v.notes)
+    assert v.to_dict()["nodes"][0]["flagged"] is True
+
+
+def test_unplanned_topics_listed_not_counted() -> None:
+    v = check_run(stats_at(1.0, extra=("/rosout", "/tf")), plan())
+    assert [u.topic for u in v.unplanned_topics] == ["/rosout", "/tf"]
+    assert v.deviation_pct == pytest.approx(0.0, abs=1e-9)
+
+
+def test_topic_without_expected_frequency_leaves_node_as_expected() -> None:
+    data = json.loads(json.dumps(PLAN))
+    data["nodes"]["a"]["topics"]["/a/out"]["frequency_hz"] = None
+    v = check_run(stats_at(0.5), parse_plan(data, "plan.json"))
+    a = next(n for n in v.nodes if n.node == "a")
+    assert not a.counted and a.p_measured == a.p_expected and a.deviation_pct == 0.0
+    assert a.topics[0].status == "no-expectation"
+    # only b deviates (50 %), weighted: 0.5*25 off 65
+    assert v.deviation_pct == pytest.approx(100 * 0.5 * 25 / 65, abs=1e-9)
+
+
+def test_cap_limits_measured_to_expected() -> None:
+    fast = stats_at(1.25)
+    assert check_run(fast, plan()).overall_measured == pytest.approx(1.25 * 65, abs=1e-9)
+    capped = check_run(fast, plan(), cap=True)
+    assert capped.overall_measured == pytest.approx(65, abs=1e-9)
+    assert all(n.p_measured == n.p_expected for n in capped.nodes)
+
+
+def test_topic_names_match_without_leading_slash() -> None:
+    s = stats_at(0.8)
+    s.topics = {k.lstrip("/"): v for k, v in s.topics.items()}
+    v = check_run(s, plan())
+    assert v.deviation_pct == pytest.approx(20.0, abs=1e-9)
+    assert v.unplanned_topics == []
+
+
+def test_cpu_overload_per_computer() -> None:
+    # robot1: 1 node at 130 % of a 2-core trace -> 65 units on capacity 100 (ok);
+    # at 230 % -> 115 units: overloaded. server: 150 % of 4 cores -> 150 units of 400.
+    ok = {"a": TracedCpu(130.0, 2, "t.csv"), "b": TracedCpu(150.0, 4, "t.csv")}
+    v = check_run(stats_at(1.0), plan(), node_cpu=ok)
+    comp = {c.name: c for c in v.computers}
+    assert comp["robot1"].cpu_measured == pytest.approx(130 / 200 * 100)
+    assert comp["server"].cpu_measured == pytest.approx(150 / 400 * 400)
+    assert v.overloaded_computers == []
+    hot = dict(ok, a=TracedCpu(230.0, 2, "t.csv"))
+    v = check_run(stats_at(1.0), plan(), node_cpu=hot)
+    assert v.overloaded_computers == ["robot1"]
+    assert {c.name: c.overloaded for c in v.computers} == {"robot1": True, "server": False}
+
+
+def test_computer_without_traced_nodes_is_unknown() -> None:
+    v = check_run(stats_at(1.0), plan(), node_cpu={"a": TracedCpu(10.0, 2, "t.csv")})
+    comp = {c.name: c for c in v.computers}
+    assert comp["server"].cpu_measured is None and comp["server"].overloaded is None
+    assert comp["server"].unmatched_nodes == ["b"]
+
+
+def test_infeasible_plan_is_bad_input() -> None:
+    data = {"format": "perfros-bag/plan@1", "problem": 1, "method": "x", "status": "infeasible",
+            "reason": "node 'a' fits on no computer", "nodes": {}}
+    with pytest.raises(InputError, match="infeasible"):
+        check_run(stats_at(1.0), parse_plan(data, "p.json"), plan_path="p.json")
+
+
+def test_default_cpu_trace(tmp_path: Path) -> None:
+    run = tmp_path / "run.mcap"
+    run.write_bytes(b"")
+    assert default_cpu_trace(run) is None
+    (tmp_path / "run.cpu.csv").write_text("")
+    assert default_cpu_trace(run) == tmp_path / "run.cpu.csv"
+    bagdir = tmp_path / "bag2"
+    bagdir.mkdir()
+    (bagdir / "bag2.cpu.csv").write_text("")
+    assert default_cpu_trace(bagdir) == bagdir / "bag2.cpu.csv"
+    (tmp_path / "bag2.cpu.csv").write_text("")
+    assert default_cpu_trace(bagdir) == tmp_path / "bag2.cpu.csv"
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.lists(st.sampled_from([1, 2, 4, 5, 8, 10, 16, 20, 25, 40]), min_size=3, max_size=3),
+       st.floats(0, 50), st.booleans())
+def test_eq10_against_independent_sum(freqs: list[int], tolerance: float, cap: bool) -> None:
+    topics = {}
+    for t, f in zip(PLANNED_HZ, freqs, strict=True):
+        ts = times_at(f)
+        topics[t] = TopicStats(t, "x", len(ts), len(ts), ts)
+    v = check_run(RecordingStats(Path("r"), "mcap", topics), plan(), cap=cap, tolerance=tolerance)
+    ra = freqs[0] / 10
+    rb = (freqs[1] / 20 + freqs[2] / 5) / 2
+    if cap:
+        ra, rb = min(ra, 1.0), min(rb, 1.0)
+    measured = 0.5 * 80 * ra + 0.5 * 50 * rb
+    assert v.overall_measured == pytest.approx(measured, rel=1e-12)
+    dev = 100 * abs(measured - 65) / 65
+    assert v.deviation_pct == pytest.approx(dev, rel=1e-9, abs=1e-9)
+    if abs(dev - tolerance) > 1e-6:
+        assert v.passed == (dev <= tolerance)
+    if cap:
+        assert all(n.p_measured <= n.p_expected + 1e-12 for n in v.nodes)
