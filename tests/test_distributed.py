@@ -1,0 +1,144 @@
+"""run_distributed: in-process vs a real 2-process LocalCluster, worker deaths, bad input.
+
+One LocalCluster (2 worker processes, 1 thread each) is started for the whole module
+and reached through ``scheduler=`` like an external cluster would be.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import cloudpickle
+import pytest
+
+from perfros_bag import distributed as dist
+from perfros_bag.distributed import Outcome, run_distributed
+from perfros_bag.errors import InputError, PerfrosError
+
+ROOT = Path(__file__).resolve().parent.parent
+# Workers import perfros_bag, but not this test module: ship its functions by value.
+cloudpickle.register_pickle_by_value(sys.modules[__name__])
+
+
+def square_or_fail(x: int) -> int:
+    if x % 5 == 3:
+        raise InputError(f"rec{x}.bag", "truncated chunk at byte 1234")
+    return x * x
+
+
+def slow_square(x: int) -> tuple[int, int]:
+    time.sleep(0.25)
+    return x * x, os.getpid()
+
+
+def kill_own_worker_on_9(x: int) -> int:
+    from distributed import get_worker
+
+    get_worker()  # raises outside a worker: never kill the test process
+    if x == 9:
+        os.kill(os.getpid(), signal.SIGKILL)
+    return -x
+
+
+@pytest.fixture(scope="module")
+def cluster() -> Iterator[str]:
+    import logging
+
+    import dask
+    from distributed import LocalCluster
+
+    # A task whose worker died twice is given up on (default 3): keeps the test short.
+    with dask.config.set({"distributed.scheduler.allowed-failures": 1}):
+        lc = LocalCluster(n_workers=2, processes=True, threads_per_worker=1,
+                          dashboard_address=None, silence_logs=logging.ERROR)
+    try:
+        yield lc.scheduler_address
+    finally:
+        lc.close()
+
+
+def _summary(outcomes: list[Outcome[int]]) -> list[tuple[str, int | None, str | None]]:
+    return [(o.label, o.value, None if o.error is None else str(o.error)) for o in outcomes]
+
+
+def test_local_path_imports_no_dask() -> None:
+    code = ("import sys; from perfros_bag.distributed import run_distributed as r; "
+            "out = r([1, -2], abs); assert [o.value for o in out] == [1, 2], out; "
+            "bad = [m for m in sys.modules if m.split('.')[0] in ('dask', 'distributed')]; "
+            "assert not bad, bad")
+    subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT)
+
+
+def test_local_reports_errors_and_keeps_order() -> None:
+    seen: list[str] = []
+    out = run_distributed(range(10), square_or_fail, progress=lambda o: seen.append(o.label))
+    assert seen == [str(i) for i in range(10)]
+    assert [o.value for o in out] == [None if i % 5 == 3 else i * i for i in range(10)]
+    assert [str(o.error) for o in out if not o.ok] == [
+        "rec3.bag: truncated chunk at byte 1234", "rec8.bag: truncated chunk at byte 1234"]
+    assert all(o.error.exit_code == 2 for o in out if o.error is not None)
+
+
+def test_cluster_gives_same_outcomes_as_local(cluster: str) -> None:
+    seen: list[str] = []
+    local = run_distributed(range(12), square_or_fail)
+    remote = run_distributed(range(12), square_or_fail, scheduler=cluster,
+                             progress=lambda o: seen.append(o.label))
+    assert _summary(remote) == _summary(local)
+    assert sorted(seen, key=int) == [str(i) for i in range(12)]  # every task reported once
+
+
+def test_worker_killed_mid_run_loses_nothing(cluster: str) -> None:
+    from distributed import Client
+
+    with Client(cluster) as client:
+        pids = client.run(os.getpid)
+    assert len(pids) == 2
+    victim = sorted(pids.values())[0]
+    done: list[Outcome[tuple[int, int]]] = []
+
+    def on_done(outcome: Outcome[tuple[int, int]]) -> None:
+        done.append(outcome)
+        if len(done) == 2:  # both workers are busy with the queue: kill one of them
+            os.kill(victim, signal.SIGKILL)
+
+    out = run_distributed(range(16), slow_square, scheduler=cluster, progress=on_done)
+    assert [o.value[0] if o.value else None for o in out] == [i * i for i in range(16)]
+    worker_pids = {o.value[1] for o in out if o.value}
+    assert len(worker_pids) >= 2  # the work really ran in worker processes
+    with pytest.raises(ProcessLookupError):
+        os.kill(victim, 0)  # the victim is gone; its tasks were re-run elsewhere
+    assert [o.value[1] for o in done[2:] if o.value].count(victim) == 0
+
+
+def test_task_that_always_kills_its_worker_is_a_clear_error(cluster: str) -> None:
+    # The poison task is the last one, so no other task shares its worker when it dies
+    # (a task queued on a worker that keeps dying would get the same clear error).
+    out = run_distributed(range(10), kill_own_worker_on_9, scheduler=cluster)
+    assert [o.value for o in out[:9]] == [-i for i in range(9)]
+    bad = out[9]
+    assert bad.value is None and bad.error is not None
+    assert str(bad.error).startswith("9: the Dask worker running this task died")
+
+
+def test_local_cluster_by_workers_count() -> None:
+    # --workers N: run_distributed starts (and stops) its own LocalCluster.
+    out = run_distributed(range(6), slow_square, workers=2)
+    assert [o.value[0] for o in out if o.value] == [i * i for i in range(6)]
+    assert os.getpid() not in {o.value[1] for o in out if o.value}
+
+
+def test_bad_options_and_unreachable_scheduler(monkeypatch: pytest.MonkeyPatch) -> None:
+    with pytest.raises(PerfrosError, match="either --scheduler or --workers"):
+        run_distributed([1], abs, scheduler="tcp://127.0.0.1:1", workers=2)
+    with pytest.raises(PerfrosError, match="at least 1"):
+        run_distributed([1], abs, workers=0)
+    monkeypatch.setattr(dist, "CONNECT_TIMEOUT", "1s")
+    with pytest.raises(PerfrosError, match="cannot connect to the Dask scheduler tcp://127.0.0.1:1"):
+        run_distributed([1], abs, scheduler="tcp://127.0.0.1:1")
