@@ -1,0 +1,114 @@
+"""Helpers shared by the readers: a per-topic accumulator and little-endian gathers.
+
+Readers feed :class:`Accumulator` with arrays of receive times and payload byte totals per
+connection/channel; :meth:`Accumulator.build` merges connections of one topic and sorts the
+times once, giving the :class:`~perfros_bag.ingest.stats.RecordingStats` contract.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+
+from perfros_bag.ingest.stats import RecordingStats, TopicStats
+
+I64 = npt.NDArray[np.int64]
+U8 = npt.NDArray[np.uint8]
+
+_AR4 = np.arange(4, dtype=np.int64)
+_AR8 = np.arange(8, dtype=np.int64)
+
+
+class Damaged(Exception):  # noqa: N818 - internal signal, never escapes read_recording
+    """The file's structure is inconsistent; the caller turns it into an InputError or falls back."""
+
+
+class NoIndex(Exception):  # noqa: N818
+    """The fast path cannot be used (index missing or inconsistent): stream instead."""
+
+
+def describe(exc: BaseException) -> str:
+    """One line for a failure while parsing a recording."""
+    if isinstance(exc, Damaged):
+        return f"corrupt or truncated recording: {exc}"
+    if isinstance(exc, MemoryError):
+        return "corrupt recording (implausible sizes: out of memory)"
+    if isinstance(exc, OSError) and exc.strerror:
+        return exc.strerror
+    text = str(exc).splitlines()[0] if str(exc) else ""
+    return f"corrupt or unreadable recording ({type(exc).__name__}{': ' + text if text else ''})"
+
+
+def gather_u32(buf: U8, pos: I64) -> I64:
+    """Little-endian uint32 at every byte position ``pos`` of ``buf`` (vectorised, unaligned)."""
+    if pos.size == 0:
+        return np.empty(0, dtype=np.int64)
+    if int(pos.min()) < 0 or int(pos.max()) + 4 > buf.size:
+        raise Damaged("record offset outside its chunk")
+    return buf[pos[:, None] + _AR4].view("<u4").reshape(-1).astype(np.int64)
+
+
+def gather_u64(buf: U8, pos: I64) -> I64:
+    if pos.size == 0:
+        return np.empty(0, dtype=np.int64)
+    if int(pos.min()) < 0 or int(pos.max()) + 8 > buf.size:
+        raise Damaged("record offset outside its chunk")
+    vals = buf[pos[:, None] + _AR8].view("<u8").reshape(-1)
+    if vals.size and int(vals.max()) >= 2**62:
+        raise Damaged("implausible record length")
+    return vals.astype(np.int64)
+
+
+@dataclass
+class _Topic:
+    msgtype: str
+    times: list[I64] = field(default_factory=list)
+    nbytes: int = 0
+    publishers: set[str] = field(default_factory=set)
+
+
+class Accumulator:
+    """Collects per-topic times and byte totals; connections of one topic merge."""
+
+    def __init__(self) -> None:
+        self._topics: dict[str, _Topic] = {}
+
+    def declare(self, topic: str, msgtype: str, publisher: str | None = None) -> None:
+        t = self._topics.get(topic)
+        if t is None:
+            t = self._topics[topic] = _Topic(msgtype)
+        elif not t.msgtype:
+            t.msgtype = msgtype
+        if publisher:
+            t.publishers.add(publisher)
+
+    def add(self, topic: str, msgtype: str, times: I64, nbytes: int,
+            publisher: str | None = None) -> None:
+        self.declare(topic, msgtype, publisher)
+        t = self._topics[topic]
+        if times.size:
+            t.times.append(np.asarray(times, dtype=np.int64))
+        t.nbytes += int(nbytes)
+
+    def extend(self, other: Accumulator) -> None:
+        """Add every topic of ``other`` (another file of the same recording)."""
+        for name, t in other._topics.items():
+            self.declare(name, t.msgtype)
+            mine = self._topics[name]
+            mine.times.extend(t.times)
+            mine.nbytes += t.nbytes
+            mine.publishers |= t.publishers
+
+    def build(self, path: Path, fmt: str) -> RecordingStats:
+        topics: dict[str, TopicStats] = {}
+        for name in sorted(self._topics):
+            t = self._topics[name]
+            times = (np.concatenate(t.times) if len(t.times) > 1
+                     else t.times[0] if t.times else np.empty(0, dtype=np.int64))
+            times = np.sort(times, kind="stable")
+            topics[name] = TopicStats(name, t.msgtype, int(times.size), t.nbytes, times,
+                                      tuple(sorted(t.publishers)))
+        return RecordingStats(path, fmt, topics)

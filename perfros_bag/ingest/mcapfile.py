@@ -1,0 +1,333 @@
+"""MCAP reader (any profile and message encoding): per-channel counts, log times, payload bytes.
+
+Records are ``u8 opcode, u64 length, content`` (https://mcap.dev/spec). No message is ever
+deserialised; only record framing is parsed.
+
+* fast path: the summary section (footer -> summary start) gives schemas, channels, chunk
+  indexes and statistics; each chunk index points at the message-index records written after
+  its chunk, which hold ``(log_time, offset)`` per message. A message's payload size is its
+  record length minus 22 (channel id, sequence, log and publish time), gathered (numpy) at the
+  indexed offsets: straight from the mmapped file for an uncompressed chunk, after one
+  decompression for a zstd/lz4 chunk. Statistics' message count cross-checks the indexes.
+* streaming path: walk every record from the start, decompressing chunks; also for files
+  without summary, unchunked files and files whose summary is damaged or truncated away.
+
+``message_zstd`` (rosbag2 message compression): the payload size is the decompressed size, read
+from each zstd frame header (decompressing only frames that do not record it).
+"""
+
+from __future__ import annotations
+
+import mmap
+import struct
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from perfros_bag.ingest._accum import I64, U8, Accumulator, Damaged, NoIndex, gather_u64
+
+MAGIC = b"\x89MCAP0\r\n"
+OP_HEADER, OP_FOOTER, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_CHUNK = 1, 2, 3, 4, 5, 6
+OP_MESSAGE_INDEX, OP_CHUNK_INDEX, OP_STATISTICS, OP_DATA_END = 7, 8, 11, 15
+MSG_HEADER = 22  # channel u16 + sequence u32 + log_time u64 + publish_time u64
+_U16, _U32, _U64 = struct.Struct("<H"), struct.Struct("<I"), struct.Struct("<Q")
+Buf = bytes | memoryview | mmap.mmap
+
+
+class _Cursor:
+    """Bounds-checked little-endian reads inside one record's content."""
+
+    def __init__(self, buf: Buf, pos: int, end: int) -> None:
+        self.buf, self.pos, self.end = buf, pos, end
+
+    def _take(self, n: int) -> int:
+        p = self.pos
+        if n < 0 or p + n > self.end:
+            raise Damaged(f"record field overruns its record at byte {p}")
+        self.pos = p + n
+        return p
+
+    def u16(self) -> int:
+        return int(_U16.unpack_from(self.buf, self._take(2))[0])
+
+    def u32(self) -> int:
+        return int(_U32.unpack_from(self.buf, self._take(4))[0])
+
+    def u64(self) -> int:
+        return int(_U64.unpack_from(self.buf, self._take(8))[0])
+
+    def string(self) -> str:
+        n = self.u32()
+        p = self._take(n)
+        return bytes(self.buf[p:p + n]).decode("utf-8", "replace")
+
+    def skip_prefixed(self) -> tuple[int, int]:
+        n = self.u32()
+        return self._take(n), n
+
+
+@dataclass
+class _Channel:
+    topic: str
+    schema_id: int
+
+
+@dataclass
+class _ChunkIndex:
+    chunk_start: int
+    chunk_length: int
+    index_offsets: dict[int, int]
+    index_length: int
+    compression: str
+    uncompressed_size: int
+
+
+@dataclass
+class _State:
+    schemas: dict[int, str] = field(default_factory=dict)
+    channels: dict[int, _Channel] = field(default_factory=dict)
+    times: dict[int, list[I64]] = field(default_factory=dict)
+    nbytes: dict[int, int] = field(default_factory=dict)
+
+    def add(self, cid: int, times: I64, nbytes: int) -> None:
+        self.times.setdefault(cid, []).append(times)
+        self.nbytes[cid] = self.nbytes.get(cid, 0) + nbytes
+
+    def accumulator(self) -> Accumulator:
+        unknown = set(self.times) - set(self.channels)
+        if unknown:
+            raise Damaged(f"messages on undeclared channel(s) {sorted(unknown)}")
+        acc = Accumulator()
+        for cid, ch in sorted(self.channels.items()):
+            parts = self.times.get(cid, [])
+            times = np.concatenate(parts) if parts else np.empty(0, dtype=np.int64)
+            acc.add(ch.topic, self.schemas.get(ch.schema_id, ""), times, self.nbytes.get(cid, 0))
+        return acc
+
+
+def _record(buf: Buf, pos: int, end: int) -> tuple[int, int, int]:
+    """(opcode, content start, content length) of the record at ``pos``."""
+    if pos + 9 > end:
+        raise Damaged(f"truncated record at byte {pos}")
+    op = buf[pos]
+    (length,) = _U64.unpack_from(buf, pos + 1)
+    if pos + 9 + length > end:
+        raise Damaged(f"truncated record at byte {pos} (opcode {op:#x}, {length} bytes)")
+    return int(op), pos + 9, int(length)
+
+
+def _schema(buf: Buf, start: int, length: int, st: _State) -> None:
+    c = _Cursor(buf, start, start + length)
+    sid = c.u16()
+    st.schemas[sid] = c.string()
+
+
+def _channel(buf: Buf, start: int, length: int, st: _State) -> None:
+    c = _Cursor(buf, start, start + length)
+    cid, schema_id = c.u16(), c.u16()
+    st.channels[cid] = _Channel(c.string(), schema_id)
+
+
+def decompress(compression: str, data: Buf, usize: int) -> bytes:
+    if compression == "zstd":
+        import zstandard
+
+        out = zstandard.ZstdDecompressor().decompressobj().decompress(bytes(data))
+    elif compression == "lz4":
+        import lz4.frame
+
+        out = lz4.frame.decompress(bytes(data))
+    elif compression == "":
+        out = bytes(data)
+    else:
+        raise Damaged(f"unsupported chunk compression {compression!r}")
+    if len(out) != usize:
+        raise Damaged(f"chunk decompressed to {len(out)} bytes, its header says {usize}")
+    return out
+
+
+def zstd_payload_sizes(buf: U8, data_pos: I64, data_len: I64) -> int:
+    """Sum of decompressed sizes of zstd-compressed payloads (rosbag2 message compression)."""
+    import zstandard
+
+    total = 0
+    raw = buf.tobytes() if buf.size < 1 << 16 else None
+    for p, n in zip(data_pos.tolist(), data_len.tolist(), strict=True):
+        frame = raw[p:p + n] if raw is not None else buf[p:p + n].tobytes()
+        size = zstandard.frame_content_size(frame[:18]) if n >= 6 else -1
+        if size < 0:
+            size = len(zstandard.ZstdDecompressor().decompressobj().decompress(frame))
+        total += size
+    return total
+
+
+def _chunk_records(buf: Buf, start: int, length: int) -> tuple[str, int, int, int]:
+    """(compression, records start, records length, uncompressed size) of a chunk record."""
+    c = _Cursor(buf, start, start + length)
+    c.u64()
+    c.u64()
+    usize = c.u64()
+    c.u32()
+    compression = c.string()
+    n = c.u64()
+    p = c._take(n)
+    return compression, p, n, usize
+
+
+def _scan_records(buf: Buf, pos: int, end: int, st: _State, message_zstd: bool,
+                  in_chunk: bool) -> tuple[bool, bool]:
+    """Walk records; returns (saw data end, saw footer)."""
+    times: dict[int, list[int]] = {}
+    sizes: dict[int, int] = {}
+    data_end = footer = False
+    while pos < end:
+        op, start, length = _record(buf, pos, end)
+        pos = start + length
+        if op == OP_MESSAGE:
+            c = _Cursor(buf, start, start + length)
+            cid = c.u16()
+            c.u32()
+            log_time = c.u64()
+            c.u64()
+            n = length - MSG_HEADER
+            if message_zstd:
+                arr = np.frombuffer(bytes(buf[start + MSG_HEADER:start + length]), dtype=np.uint8)
+                n = zstd_payload_sizes(arr, np.zeros(1, np.int64), np.array([n], np.int64))
+            times.setdefault(cid, []).append(log_time)
+            sizes[cid] = sizes.get(cid, 0) + n
+        elif op == OP_SCHEMA:
+            _schema(buf, start, length, st)
+        elif op == OP_CHANNEL:
+            _channel(buf, start, length, st)
+        elif op == OP_CHUNK and not in_chunk:
+            compression, rstart, rlen, usize = _chunk_records(buf, start, length)
+            raw = decompress(compression, memoryview(buf)[rstart:rstart + rlen], usize)
+            _scan_records(raw, 0, len(raw), st, message_zstd, in_chunk=True)
+        elif op == OP_DATA_END:
+            data_end = True
+        elif op == OP_FOOTER:
+            footer = True
+            break
+    for cid, ts in times.items():
+        st.add(cid, np.asarray(ts, dtype=np.int64), sizes[cid])
+    return data_end, footer
+
+
+def read_stream(mm: mmap.mmap, message_zstd: bool = False) -> Accumulator:
+    if mm[:8] != MAGIC:
+        raise Damaged("not an MCAP file (no MCAP magic)")
+    st = _State()
+    data_end, footer = _scan_records(mm, 8, len(mm), st, message_zstd, in_chunk=False)
+    if not (data_end or footer):
+        raise Damaged("truncated: no data-end or footer record")
+    return st.accumulator()
+
+
+def _summary(mm: mmap.mmap, st: _State) -> tuple[list[_ChunkIndex], int | None]:
+    size = len(mm)
+    if size < 8 + 29 + 8 or mm[size - 8:] != MAGIC:
+        raise NoIndex("no trailing magic")
+    fpos = size - 8 - 29
+    op, start, length = _record(mm, fpos, size - 8)
+    if op != OP_FOOTER or length != 20:
+        raise NoIndex("no footer")
+    c = _Cursor(mm, start, start + length)
+    summary_start, summary_offset_start = c.u64(), c.u64()
+    if summary_start == 0:
+        raise NoIndex("no summary section")
+    end = summary_offset_start or fpos
+    if not 8 <= summary_start <= end <= fpos:
+        raise NoIndex("summary offsets out of range")
+    chunks: list[_ChunkIndex] = []
+    count: int | None = None
+    pos = summary_start
+    while pos < end:
+        op, start, length = _record(mm, pos, end)
+        pos = start + length
+        if op == OP_SCHEMA:
+            _schema(mm, start, length, st)
+        elif op == OP_CHANNEL:
+            _channel(mm, start, length, st)
+        elif op == OP_CHUNK_INDEX:
+            c = _Cursor(mm, start, start + length)
+            c.u64()
+            c.u64()
+            cstart, clen = c.u64(), c.u64()
+            mstart, mlen = c.skip_prefixed()
+            if mlen % 10:
+                raise NoIndex("malformed message-index offsets")
+            offsets = {int(_U16.unpack_from(mm, mstart + i)[0]): int(_U64.unpack_from(mm, mstart + i + 2)[0])
+                       for i in range(0, mlen, 10)}
+            ilen = c.u64()
+            compression = c.string()
+            c.u64()
+            usize = c.u64()
+            chunks.append(_ChunkIndex(cstart, clen, offsets, ilen, compression, usize))
+        elif op == OP_STATISTICS:
+            count = _Cursor(mm, start, start + length).u64()
+    return chunks, count
+
+
+def read_fast(mm: mmap.mmap, message_zstd: bool = False) -> Accumulator:
+    if mm[:8] != MAGIC:
+        raise Damaged("not an MCAP file (no MCAP magic)")
+    st = _State()
+    chunks, count = _summary(mm, st)
+    if not chunks and count != 0:
+        raise NoIndex("no chunk index")
+    size = len(mm)
+    whole: U8 = np.frombuffer(mm, dtype=np.uint8)
+    total = 0
+    for ci in chunks:
+        op, start, length = _record(mm, ci.chunk_start, size)
+        if op != OP_CHUNK:
+            raise NoIndex(f"chunk index points at a non-chunk record (byte {ci.chunk_start})")
+        compression, rstart, rlen, usize = _chunk_records(mm, start, length)
+        if usize and not ci.index_offsets:
+            raise NoIndex("chunk without message indexes")
+        if compression == "":
+            buf, base, blen = whole, rstart, rlen
+        else:
+            raw = decompress(compression, memoryview(mm)[rstart:rstart + rlen], usize)
+            buf, base, blen = np.frombuffer(raw, dtype=np.uint8), 0, len(raw)
+        for cid, ipos in ci.index_offsets.items():
+            op, istart, ilen = _record(mm, ipos, size)
+            if op != OP_MESSAGE_INDEX:
+                raise NoIndex("message-index offset does not point at a message index")
+            c = _Cursor(mm, istart, istart + ilen)
+            if c.u16() != cid:
+                raise NoIndex("message index for the wrong channel")
+            ppos, plen = c.skip_prefixed()
+            if plen % 16:
+                raise NoIndex("malformed message index")
+            pairs = np.frombuffer(mm, dtype="<u8", count=plen // 8, offset=ppos).reshape(-1, 2)
+            offs = pairs[:, 1].astype(np.int64)
+            if offs.size and (int(offs.max()) + 9 + MSG_HEADER > blen):
+                raise NoIndex("message-index offset outside its chunk")
+            if offs.size and not np.all(buf[base + offs] == OP_MESSAGE):
+                raise NoIndex("message-index offset does not point at a message")
+            lengths = gather_u64(buf, base + offs + 1)
+            if offs.size and (int(lengths.min()) < MSG_HEADER
+                              or int((offs + 9 + lengths).max()) > blen):
+                raise NoIndex("indexed message overruns its chunk")
+            if message_zstd:
+                nbytes = zstd_payload_sizes(buf, base + offs + 9 + MSG_HEADER, lengths - MSG_HEADER)
+            else:
+                nbytes = int(lengths.sum()) - MSG_HEADER * int(offs.size)
+            if offs.size and int(pairs[:, 0].max()) >= 2**63:
+                raise NoIndex("log time out of range")
+            st.add(cid, pairs[:, 0].astype(np.int64), nbytes)
+            total += int(offs.size)
+    if count is not None and count != total:
+        raise NoIndex(f"statistics count {count} disagrees with the indexes ({total})")
+    return st.accumulator()
+
+
+def read(mm: mmap.mmap, fast: bool = True, message_zstd: bool = False) -> Accumulator:
+    if fast:
+        try:
+            return read_fast(mm, message_zstd)
+        except (NoIndex, Damaged):
+            pass  # summary or indexes missing or damaged: stream
+    return read_stream(mm, message_zstd)
+

@@ -1,0 +1,292 @@
+"""ROS 1 bag (format 2.0) reader: per-topic counts, times and payload bytes, no deserialisation.
+
+Record layout (http://wiki.ros.org/Bags/Format/2.0): ``u32 header_len, header fields
+(u32 len + "name=value"), u32 data_len, data``. The bag header points at the index section
+(connection records + one chunk-info record per chunk); each chunk record is followed by one
+index-data record per connection with ``(time, offset)`` for every message of that connection
+in the chunk, the offset being the message data record's position in the *uncompressed* chunk.
+
+* fast path: connections and chunk infos from the index section, counts and times from the
+  index-data records; the payload size of each message is its data record's ``data_len``,
+  gathered (numpy) at the indexed offsets: for an uncompressed chunk straight from the mmapped
+  file (touching one page per message), for a bz2/lz4 chunk after decompressing it.
+* streaming path: walk every record from the start (also for unindexed bags, e.g. from a
+  recorder that was killed): connection and message data records, inside chunks too.
+"""
+
+from __future__ import annotations
+
+import bz2
+import mmap
+import struct
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from perfros_bag.ingest._accum import I64, U8, Accumulator, Damaged, NoIndex, gather_u32
+from perfros_bag.ingest.stats import RecordingStats
+
+MAGIC = b"#ROSBAG V2.0\n"
+OP_MSG, OP_BAG_HEADER, OP_INDEX, OP_CHUNK, OP_CHUNK_INFO, OP_CONNECTION = 2, 3, 4, 5, 6, 7
+_U32 = struct.Struct("<I")
+_IDX_DT = np.dtype([("sec", "<u4"), ("nsec", "<u4"), ("offset", "<u4")])
+
+
+@dataclass
+class Record:
+    op: int
+    header: dict[str, bytes]
+    data_start: int
+    data_len: int
+    end: int
+
+
+@dataclass
+class Connection:
+    topic: str
+    msgtype: str
+    callerid: str
+
+
+@dataclass
+class _ConnAcc:
+    times: list[I64] = field(default_factory=list)
+    nbytes: int = 0
+
+
+def parse_fields(buf: bytes | memoryview | mmap.mmap, start: int, end: int) -> dict[str, bytes]:
+    """Header fields between ``start`` and ``end``: ``u32 len`` + ``name=value`` each."""
+    fields: dict[str, bytes] = {}
+    pos = start
+    while pos < end:
+        if pos + 4 > end:
+            raise Damaged(f"header field length cut at byte {pos}")
+        (n,) = _U32.unpack_from(buf, pos)
+        pos += 4
+        if pos + n > end:
+            raise Damaged(f"header field overruns its header at byte {pos}")
+        raw = bytes(buf[pos:pos + n])
+        eq = raw.find(b"=")
+        if eq < 0:
+            raise Damaged(f"header field without '=' at byte {pos}")
+        fields[raw[:eq].decode("latin-1")] = raw[eq + 1:]
+        pos += n
+    return fields
+
+
+def read_record(buf: bytes | memoryview | mmap.mmap, pos: int, end: int) -> Record:
+    if pos + 4 > end:
+        raise Damaged(f"truncated record header at byte {pos}")
+    (hlen,) = _U32.unpack_from(buf, pos)
+    hstart = pos + 4
+    if hstart + hlen + 4 > end:
+        raise Damaged(f"truncated record at byte {pos} (header of {hlen} bytes)")
+    header = parse_fields(buf, hstart, hstart + hlen)
+    (dlen,) = _U32.unpack_from(buf, hstart + hlen)
+    dstart = hstart + hlen + 4
+    if dstart + dlen > end:
+        raise Damaged(f"truncated record at byte {pos} (data of {dlen} bytes)")
+    op = header.get("op")
+    if op is None or len(op) != 1:
+        raise Damaged(f"record without op code at byte {pos}")
+    return Record(op[0], header, dstart, dlen, dstart + dlen)
+
+
+def _u32(h: dict[str, bytes], key: str) -> int:
+    v = h.get(key)
+    if v is None or len(v) != 4:
+        raise Damaged(f"record field {key!r} missing or malformed")
+    return int(_U32.unpack(v)[0])
+
+
+def _u64(h: dict[str, bytes], key: str) -> int:
+    v = h.get(key)
+    if v is None or len(v) != 8:
+        raise Damaged(f"record field {key!r} missing or malformed")
+    return int(struct.unpack("<Q", v)[0])
+
+
+def _time(h: dict[str, bytes], key: str = "time") -> int:
+    v = h.get(key)
+    if v is None or len(v) != 8:
+        raise Damaged(f"record field {key!r} missing or malformed")
+    sec, nsec = struct.unpack("<II", v)
+    return int(sec) * 1_000_000_000 + int(nsec)
+
+
+def _connection(buf: bytes | memoryview | mmap.mmap, rec: Record) -> tuple[int, Connection]:
+    cid = _u32(rec.header, "conn")
+    topic = rec.header.get("topic", b"").decode("utf-8", "replace")
+    fields = parse_fields(buf, rec.data_start, rec.data_start + rec.data_len)
+    msgtype = fields.get("type", b"").decode("utf-8", "replace")
+    callerid = fields.get("callerid", b"").decode("utf-8", "replace")
+    return cid, Connection(topic or fields.get("topic", b"").decode("utf-8", "replace"),
+                           msgtype, callerid)
+
+
+def decompress_chunk(compression: str, data: bytes | memoryview, size: int) -> bytes:
+    if compression == "none":
+        out = bytes(data)
+    elif compression == "bz2":
+        out = bz2.decompress(data)
+    elif compression == "lz4":
+        import lz4.frame
+
+        out = lz4.frame.decompress(bytes(data))
+    else:
+        raise Damaged(f"unknown chunk compression {compression!r}")
+    if len(out) != size:
+        raise Damaged(f"chunk decompressed to {len(out)} bytes, header says {size}")
+    return out
+
+
+def _check_magic(mm: mmap.mmap) -> None:
+    if mm[:len(MAGIC)] != MAGIC:
+        head = bytes(mm[:13])
+        if head.startswith(b"#ROSBAG V"):
+            raise Damaged(f"unsupported bag format {head.decode('latin-1').strip()!r} (only 2.0)")
+        raise Damaged("not a ROS 1 bag (no '#ROSBAG V2.0' magic)")
+
+
+def _bag_header(mm: mmap.mmap) -> tuple[int, int, int]:
+    rec = read_record(mm, len(MAGIC), len(mm))
+    if rec.op != OP_BAG_HEADER:
+        raise Damaged("first record is not a bag header")
+    return _u64(rec.header, "index_pos"), _u32(rec.header, "conn_count"), _u32(rec.header, "chunk_count")
+
+
+def _records(buf: bytes | memoryview | mmap.mmap, pos: int, end: int) -> Iterator[Record]:
+    while pos < end:
+        rec = read_record(buf, pos, end)
+        yield rec
+        pos = rec.end
+
+
+def read_fast(path: Path, mm: mmap.mmap) -> RecordingStats:
+    """Counts and times from the index; payload sizes gathered at the indexed offsets."""
+    _check_magic(mm)
+    size = len(mm)
+    index_pos, conn_count, chunk_count = _bag_header(mm)
+    if index_pos == 0 or (index_pos >= size and (conn_count or chunk_count)):
+        raise NoIndex("bag has no index (not closed cleanly)")
+    conns: dict[int, Connection] = {}
+    chunks: list[tuple[int, dict[int, int]]] = []
+    for rec in _records(mm, index_pos, size):
+        if rec.op == OP_CONNECTION:
+            cid, conn = _connection(mm, rec)
+            conns[cid] = conn
+        elif rec.op == OP_CHUNK_INFO:
+            if _u32(rec.header, "ver") != 1:
+                raise NoIndex("unknown chunk-info version")
+            n = _u32(rec.header, "count")
+            if rec.data_len != 8 * n:
+                raise NoIndex("chunk-info record size mismatch")
+            pairs = np.frombuffer(mm, dtype="<u4", count=2 * n, offset=rec.data_start).reshape(-1, 2)
+            chunks.append((_u64(rec.header, "chunk_pos"), {int(c): int(k) for c, k in pairs}))
+        else:
+            raise NoIndex(f"unexpected record op {rec.op} in the index section")
+    if len(conns) != conn_count or len(chunks) != chunk_count:
+        raise NoIndex("index section disagrees with the bag header")
+
+    accs: dict[int, _ConnAcc] = {cid: _ConnAcc() for cid in conns}
+    whole: U8 = np.frombuffer(mm, dtype=np.uint8)
+    for chunk_pos, expected in chunks:
+        crec = read_record(mm, chunk_pos, size)
+        if crec.op != OP_CHUNK:
+            raise NoIndex(f"chunk-info points at a non-chunk record (byte {chunk_pos})")
+        compression = crec.header.get("compression", b"").decode("latin-1")
+        usize = _u32(crec.header, "size")
+        if compression == "none":
+            if usize != crec.data_len:
+                raise NoIndex("uncompressed chunk size mismatch")
+            buf, base = whole, crec.data_start
+        else:
+            raw = decompress_chunk(compression, memoryview(mm)[crec.data_start:crec.end], usize)
+            buf, base = np.frombuffer(raw, dtype=np.uint8), 0
+        pos = crec.end
+        seen: dict[int, int] = {}
+        while len(seen) < len(expected):
+            irec = read_record(mm, pos, size)
+            if irec.op != OP_INDEX or _u32(irec.header, "ver") != 1:
+                raise NoIndex(f"missing index-data record after the chunk at byte {chunk_pos}")
+            cid, n = _u32(irec.header, "conn"), _u32(irec.header, "count")
+            if cid not in accs or irec.data_len != 12 * n or expected.get(cid) != n or cid in seen:
+                raise NoIndex("index-data record disagrees with its chunk info")
+            entries = np.frombuffer(mm, dtype=_IDX_DT, count=n, offset=irec.data_start)
+            offs = entries["offset"].astype(np.int64)
+            if offs.size and int(offs.max()) + 8 > usize:
+                raise NoIndex("index offset outside its chunk")
+            hlen = gather_u32(buf, base + offs)
+            dlen = gather_u32(buf, base + offs + 4 + hlen)
+            if offs.size and int((offs + 8 + hlen + dlen).max()) > usize:
+                raise NoIndex("indexed message overruns its chunk")
+            acc = accs[cid]
+            acc.times.append(entries["sec"].astype(np.int64) * 1_000_000_000
+                             + entries["nsec"].astype(np.int64))
+            acc.nbytes += int(dlen.sum())
+            seen[cid] = n
+            pos = irec.end
+
+    out = Accumulator()
+    for cid, conn in conns.items():
+        acc = accs[cid]
+        times = np.concatenate(acc.times) if acc.times else np.empty(0, dtype=np.int64)
+        out.add(conn.topic, conn.msgtype, times, acc.nbytes, conn.callerid)
+    return out.build(path, "ros1")
+
+
+def read_stream(path: Path, mm: mmap.mmap) -> RecordingStats:
+    """Walk every record (chunks decompressed); needs no index."""
+    _check_magic(mm)
+    size = len(mm)
+    conns: dict[int, Connection] = {}
+    times: dict[int, list[int]] = {}
+    nbytes: dict[int, int] = {}
+
+    def visit(buf: bytes | memoryview | mmap.mmap, rec: Record) -> None:
+        if rec.op == OP_CONNECTION:
+            cid, conn = _connection(buf, rec)
+            conns.setdefault(cid, conn)
+        elif rec.op == OP_MSG:
+            cid = _u32(rec.header, "conn")
+            times.setdefault(cid, []).append(_time(rec.header))
+            nbytes[cid] = nbytes.get(cid, 0) + rec.data_len
+
+    index_pos, chunk_count, chunks_seen = None, 0, 0
+    for rec in _records(mm, len(MAGIC), size):
+        if rec.op == OP_BAG_HEADER:
+            index_pos = _u64(rec.header, "index_pos")
+            chunk_count = _u32(rec.header, "chunk_count")
+        elif rec.op == OP_CHUNK:
+            chunks_seen += 1
+            compression = rec.header.get("compression", b"").decode("latin-1")
+            raw = decompress_chunk(compression, memoryview(mm)[rec.data_start:rec.end],
+                                   _u32(rec.header, "size"))
+            for inner in _records(raw, 0, len(raw)):
+                visit(raw, inner)
+        else:
+            visit(mm, rec)
+    if index_pos is None:
+        raise Damaged("no bag header record")
+    if index_pos and chunks_seen != chunk_count:
+        raise Damaged(f"bag header declares {chunk_count} chunks, the file holds {chunks_seen} "
+                      "(truncated?)")
+    unknown = set(times) - set(conns)
+    if unknown:
+        raise Damaged(f"messages for undeclared connection(s) {sorted(unknown)}")
+    out = Accumulator()
+    for cid, conn in conns.items():
+        out.add(conn.topic, conn.msgtype, np.asarray(times.get(cid, []), dtype=np.int64),
+                nbytes.get(cid, 0), conn.callerid)
+    return out.build(path, "ros1")
+
+
+def read(path: Path, mm: mmap.mmap, fast: bool = True) -> RecordingStats:
+    if fast:
+        try:
+            return read_fast(path, mm)
+        except (NoIndex, Damaged):
+            pass  # index missing or damaged: stream (raises Damaged if the data is too)
+    return read_stream(path, mm)

@@ -1,0 +1,261 @@
+"""rosbag2 recordings: directories (metadata.yaml + sqlite3/mcap files, split or not) and loose .db3.
+
+Storage is inferred per file from its suffix (``.db3``, ``.mcap``, optionally ``.zstd`` for
+file compression), so metadata quirks do not matter: ``storage_identifier: ""`` (v5),
+``files: []``, stale directory prefixes in ``relative_file_paths`` (v2), or no metadata.yaml
+at all. The metadata contributes only the declared topics (so topics without messages are
+listed) and the compression mode; counts and durations always come from the messages.
+
+sqlite3: one SQL pass ``SELECT topic_id, timestamp, length(data) FROM messages`` (SQLite reads
+a blob's length from the record header, not the blob), database opened read-only and
+immutable. With zstd *message* compression the payload size is the decompressed size, read
+from each frame header (``substr(data, 1, 18)``).
+"""
+
+from __future__ import annotations
+
+import itertools
+import mmap
+import re
+import shutil
+import sqlite3
+import tempfile
+import urllib.parse
+import warnings
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from perfros_bag.errors import InputError, PerfrosWarning
+from perfros_bag.ingest import mcapfile
+from perfros_bag.ingest._accum import Accumulator, Damaged, describe
+
+STORAGE_SUFFIXES = {".db3": "sqlite3", ".mcap": "mcap"}
+ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"
+
+
+@dataclass
+class Metadata:
+    storage: str = ""
+    files: list[str] = field(default_factory=list)
+    compression_mode: str = ""  # "", "FILE", "MESSAGE"
+    compression_format: str = ""  # "", "zstd"
+    topics: list[tuple[str, str]] = field(default_factory=list)  # (name, type)
+
+
+def storage_of(path: Path) -> str | None:
+    """'sqlite3' / 'mcap' from the suffix (``.zstd`` file compression stripped), else None."""
+    name = path.name[:-5] if path.name.endswith(".zstd") else path.name
+    return STORAGE_SUFFIXES.get(Path(name).suffix)
+
+
+def _natural_key(p: Path) -> list[Any]:
+    return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", p.name)]
+
+
+def parse_metadata(path: Path) -> Metadata:
+    from perfros_bag.fileio import read_yaml
+
+    doc = read_yaml(path)
+    info = doc.get("rosbag2_bagfile_information") if isinstance(doc, dict) else None
+    if not isinstance(info, dict):
+        raise InputError(path, "not rosbag2 metadata (no 'rosbag2_bagfile_information' mapping)")
+    meta = Metadata()
+    meta.storage = str(info.get("storage_identifier") or "")
+    rel = info.get("relative_file_paths") or []
+    if not isinstance(rel, list):
+        raise InputError(path, "relative_file_paths is not a list")
+    meta.files = [str(r) for r in rel if r]
+    meta.compression_mode = str(info.get("compression_mode") or "").upper()
+    meta.compression_format = str(info.get("compression_format") or "").lower()
+    for entry in info.get("topics_with_message_count") or []:
+        tm = entry.get("topic_metadata") if isinstance(entry, dict) else None
+        if isinstance(tm, dict) and tm.get("name"):
+            meta.topics.append((str(tm["name"]), str(tm.get("type") or "")))
+    if meta.compression_mode not in ("", "NONE", "FILE", "MESSAGE"):
+        raise InputError(path, f"unknown compression_mode {meta.compression_mode!r}")
+    if meta.compression_mode in ("FILE", "MESSAGE") and meta.compression_format not in ("zstd", ""):
+        raise InputError(path, f"unsupported compression_format {meta.compression_format!r}")
+    return meta
+
+
+def resolve_files(root: Path, meta: Metadata | None) -> list[Path]:
+    """The storage files of a rosbag2 directory: those the metadata lists (tolerating stale
+    prefixes), plus any other storage file present (with a warning)."""
+    present = sorted((p for p in root.iterdir() if p.is_file() and storage_of(p)), key=_natural_key)
+    if meta is None or not meta.files:
+        return present
+    listed: list[Path] = []
+    for rel in meta.files:
+        base = Path(rel).name
+        candidates = [root / rel, root / base, root / (base + ".zstd")]
+        if base.endswith(".zstd"):
+            candidates.append(root / base[:-5])
+        found = next((c for c in candidates if c.is_file()), None)
+        if found is None:
+            raise InputError(root, f"metadata.yaml lists {rel!r}, which does not exist")
+        if storage_of(found) is None:
+            what = meta.storage or "none"
+            raise InputError(found, f"unknown storage {what!r} (expected a .db3 or .mcap file)")
+        if found not in listed:
+            listed.append(found)
+    extra = [p for p in present if p not in listed]
+    if extra:
+        warnings.warn(f"{root}: storage files not listed in metadata.yaml also read: "
+                      + ", ".join(p.name for p in extra), PerfrosWarning, stacklevel=2)
+    return listed + extra
+
+
+@contextmanager
+def _decompressed(path: Path) -> Iterator[Path]:
+    """A zstd-compressed storage file (rosbag2 FILE compression) decompressed to a temp file."""
+    import zstandard
+
+    with tempfile.TemporaryDirectory(prefix="perfros-") as tmp:
+        target = Path(tmp) / path.name[:-5] if path.name.endswith(".zstd") else Path(tmp) / path.name
+        with path.open("rb") as src, target.open("wb") as dst:
+            zstandard.ZstdDecompressor().copy_stream(src, dst)
+        yield target
+
+
+@contextmanager
+def open_mmap(path: Path) -> Iterator[mmap.mmap]:
+    with path.open("rb") as f:
+        if path.stat().st_size == 0:
+            raise InputError(path, "empty file (0 bytes)")
+        mm = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
+        try:
+            yield mm
+        finally:
+            mm.close()
+
+
+@contextmanager
+def _connect(db: Path) -> Iterator[sqlite3.Connection]:
+    """Read-only, immutable connection; a database with a non-empty WAL is copied with it first
+    (immutable would ignore the WAL's committed messages)."""
+    wal = db.with_name(db.name + "-wal")
+    tmp: tempfile.TemporaryDirectory[str] | None = None
+    try:
+        if wal.is_file() and wal.stat().st_size > 0:
+            tmp = tempfile.TemporaryDirectory(prefix="perfros-")
+            shutil.copy(db, Path(tmp.name) / db.name)
+            shutil.copy(wal, Path(tmp.name) / wal.name)
+            uri = "file:" + urllib.parse.quote(str(Path(tmp.name) / db.name)) + "?mode=ro"
+        else:
+            uri = "file:" + urllib.parse.quote(str(db.resolve())) + "?mode=ro&immutable=1"
+        con = sqlite3.connect(uri, uri=True)
+        try:
+            yield con
+        finally:
+            con.close()
+    finally:
+        if tmp is not None:
+            tmp.cleanup()
+
+
+def _zstd_size(blob: bytes) -> int:
+    import zstandard
+
+    size = zstandard.frame_content_size(blob[:18]) if len(blob) >= 6 else -1
+    if size < 0:
+        size = len(zstandard.ZstdDecompressor().decompressobj().decompress(blob))
+    return int(size)
+
+
+def read_sqlite(db: Path, fast: bool = True, message_zstd: bool = False) -> Accumulator:
+    acc = Accumulator()
+    with _connect(db) as con:
+        try:
+            topic_rows = con.execute("SELECT id, name, type FROM topics").fetchall()
+        except sqlite3.DatabaseError as exc:
+            raise Damaged(f"not a rosbag2 sqlite3 database ({exc})") from None
+        topics = {int(tid): (str(name), str(mtype or "")) for tid, name, mtype in topic_rows}
+        if fast and not message_zstd:
+            cur = con.execute("SELECT topic_id, timestamp, length(data) FROM messages")
+            flat = np.fromiter(itertools.chain.from_iterable(cur), dtype=np.int64)
+            rows = flat.reshape(-1, 3)
+            tids, times, sizes = rows[:, 0], rows[:, 1], rows[:, 2]
+        elif fast:
+            cur = con.execute("SELECT topic_id, timestamp, substr(data, 1, 18), id FROM messages")
+            tid_l, time_l, size_l = [], [], []
+            for tid, ts, head, mid in cur:
+                size = _zstd_frame_size(head)
+                if size < 0:
+                    (blob,) = con.execute("SELECT data FROM messages WHERE id = ?", (mid,)).fetchone()
+                    size = _zstd_size(bytes(blob))
+                tid_l.append(tid)
+                time_l.append(ts)
+                size_l.append(size)
+            tids, times, sizes = (np.asarray(x, dtype=np.int64) for x in (tid_l, time_l, size_l))
+        else:
+            tid_l, time_l, size_l = [], [], []
+            for tid, ts, data in con.execute("SELECT topic_id, timestamp, data FROM messages"):
+                tid_l.append(tid)
+                time_l.append(ts)
+                size_l.append(_zstd_size(bytes(data)) if message_zstd else len(data))
+            tids, times, sizes = (np.asarray(x, dtype=np.int64) for x in (tid_l, time_l, size_l))
+    unknown = set(np.unique(tids).tolist()) - set(topics)
+    if unknown:
+        raise Damaged(f"messages for unknown topic id(s) {sorted(unknown)}")
+    for tid, (name, mtype) in topics.items():
+        mask = tids == tid
+        acc.add(name, mtype, times[mask], int(sizes[mask].sum()))
+    return acc
+
+
+def _zstd_frame_size(head: bytes | None) -> int:
+    import zstandard
+
+    if head is None or len(head) < 6:
+        return -1
+    try:
+        return int(zstandard.frame_content_size(bytes(head)))
+    except zstandard.ZstdError:
+        return -1
+
+
+def read_storage_file(path: Path, fast: bool = True, message_zstd: bool = False) -> Accumulator:
+    """One storage file of a rosbag2 recording (file compression undone first)."""
+    if path.name.endswith(".zstd"):
+        with _decompressed(path) as plain:
+            return read_storage_file(plain, fast, message_zstd)
+    with path.open("rb") as f:
+        head = f.read(16)
+    if not head:
+        raise InputError(path, "empty file (0 bytes)")
+    if head.startswith(b"SQLite format 3\0"):
+        return read_sqlite(path, fast, message_zstd)
+    if head.startswith(mcapfile.MAGIC):
+        with open_mmap(path) as mm:
+            return mcapfile.read(mm, fast, message_zstd)
+    if head.startswith(ZSTD_MAGIC):
+        raise InputError(path, "zstd-compressed file without a .zstd suffix")
+    raise InputError(path, "not a sqlite3 or MCAP storage file")
+
+
+def read_dir(root: Path, fast: bool = True) -> tuple[Accumulator, str]:
+    meta_path = root / "metadata.yaml"
+    meta = parse_metadata(meta_path) if meta_path.is_file() else None
+    files = resolve_files(root, meta)
+    if not files:
+        if meta is not None and meta.storage not in ("", "sqlite3", "mcap"):
+            raise InputError(root, f"unknown storage {meta.storage!r} and no .db3 or .mcap file")
+        raise InputError(root, "no .db3 or .mcap file: not a rosbag2 recording")
+    message_zstd = meta is not None and meta.compression_mode == "MESSAGE"
+    acc = Accumulator()
+    for f in files:
+        try:
+            acc.extend(read_storage_file(f, fast, message_zstd))
+        except InputError:
+            raise
+        except Exception as exc:  # corrupt data can fail anywhere: one clear line, never a traceback
+            raise InputError(f, describe(exc)) from None
+    if meta is not None:
+        for name, mtype in meta.topics:
+            acc.declare(name, mtype)
+    return acc, "rosbag2-" + (storage_of(files[0]) or "unknown")
