@@ -421,7 +421,7 @@ def default_cpu_trace(run: str | Path) -> Path | None:
     return next((c for c in candidates if c.is_file()), None)
 
 
-def _plan_system(plan: Plan, plan_path: Path) -> System | None:
+def plan_system(plan: Plan, plan_path: Path) -> System | None:
     """The system the plan was solved from, when its path still exists (relative paths:
     beside the plan first, then from the working directory)."""
     if not plan.system:
@@ -434,7 +434,7 @@ def _plan_system(plan: Plan, plan_path: Path) -> System | None:
             try:
                 return load_system(cand)
             except InputError as exc:
-                warnings.warn(f"the plan's system could not be read ({exc}); no link check",
+                warnings.warn(f"the plan's system could not be read ({exc}); going on without it",
                               PerfrosWarning, stacklevel=2)
                 return None
     return None
@@ -456,7 +456,7 @@ def validate_files(run: str | Path, plan_path: str | Path, *, cpu: Sequence[str 
         raise InputError(plan_p, f"the plan is infeasible ({plan.reason or 'no reason given'}): nothing to validate")
     if not run_p.exists():
         raise InputError(run_p, "recording not found")
-    system = load_system(system_path) if system_path is not None else _plan_system(plan, plan_p)
+    system = load_system(system_path) if system_path is not None else plan_system(plan, plan_p)
     stats = read_recording(run_p)
     if not stats.topics or stats.messages == 0:
         raise InputError(run_p, "the recording has no messages")

@@ -1,0 +1,190 @@
+"""export: ROS 1 launch XML and ROS 2 parameters from a plan."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import xml.etree.ElementTree as ET
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+from typer.testing import CliRunner
+
+from perfros_bag.cli import app
+from perfros_bag.errors import InputError
+from perfros_bag.export import read_placement_comments, ros2_params_yaml, roslaunch_xml
+from perfros_bag.plan import parse_plan
+from perfros_bag.spec import parse_system
+
+WEIRD = 'trk&<1> "q\' x'  # XML-special characters in a node name
+
+PLAN: dict[str, Any] = {
+    "format": "perfros-bag/plan@1", "problem": 1, "method": "test", "status": "optimal",
+    "computers": {"robot1": {"kind": "robot", "capacity": 100, "cpu": 60},
+                  "server": {"kind": "server", "capacity": 400, "cpu": 200}},
+    "links": [],
+    "nodes": {
+        "amcl": {"computer": "robot1", "parameter": "particles", "value": 500.0, "cpu": 41,
+                 "performance": 50, "weight": 0.4, "topics": {}},
+        "nav": {"computer": "robot1", "parameter": "controller_frequency", "value": 12.5, "cpu": 19,
+                "performance": 70, "weight": 0.3, "topics": {}},
+        WEIRD: {"computer": "server", "parameter": "out<freq>&", "value": 22.0, "cpu": 176,
+                "performance": 95, "weight": 0.2, "topics": {}},
+        "core": {"computer": "robot1", "parameter": None, "value": None, "cpu": 16,
+                 "performance": 100, "weight": 0.1, "topics": {}},
+    },
+}
+
+SYSTEM: dict[str, Any] = {
+    "computers": [{"name": "robot1", "kind": "robot", "capacity": 100},
+                  {"name": "server", "kind": "server", "capacity": 400}],
+    "machines": {"robot1": {"address": "10.0.0.2", "user": "ro&bot", "env_loader": "/opt/env.sh"}},
+    "nodes": [
+        {"name": "amcl", "weight": 0.4, "parameter": {"name": "particles", "type": "int"},
+         "launch": {"package": "amcl", "type": "amcl", "param": "max_particles", "namespace": "robot1"},
+         "settings": [{"value": 200, "cpu": 19, "performance": 20}, {"value": 3000, "cpu": 66, "performance": 100}]},
+        {"name": "nav", "weight": 0.3, "parameter": {"name": "controller_frequency"},
+         "launch": {"package": "move_base", "type": "move_base", "name": "move_base"},
+         "settings": [{"value": 2, "cpu": 25, "performance": 10}, {"value": 20, "cpu": 50, "performance": 100}]},
+        {"name": WEIRD, "weight": 0.2, "parameter": {"name": "out<freq>&"},
+         "launch": {"package": 'pk"g&', "type": "t<r>ack"},
+         "settings": [{"value": 10, "cpu": 80, "performance": 40}, {"value": 25, "cpu": 200, "performance": 100}]},
+        {"name": "core", "weight": 0.1, "settings": [{"cpu": 16, "performance": 100}]},
+    ],
+}
+
+
+def plan() -> Any:
+    return parse_plan(json.loads(json.dumps(PLAN)), "plan.json")
+
+
+def system() -> Any:
+    return parse_system(json.loads(json.dumps(SYSTEM)), "system.yaml")
+
+
+def test_launch_without_system_names_every_node_machine_and_param() -> None:
+    root = ET.fromstring(roslaunch_xml(plan()))
+    assert root.tag == "launch"
+    machines = {m.get("name"): m for m in root.iter("machine")}
+    assert set(machines) == {"robot1", "server"}
+    args = {a.get("name"): a.get("default") for a in root.iter("arg")}
+    assert machines["server"].get("address") == "$(arg server_address)" and args["server_address"] == "server"
+    nodes = {n.get("name"): n for n in root.iter("node")}
+    assert set(nodes) == set(PLAN["nodes"])
+    for name, pn in PLAN["nodes"].items():
+        el = nodes[name]
+        assert el.get("machine") == pn["computer"]
+        params = {p.get("name"): p.get("value") for p in el.iter("param")}
+        if pn["value"] is None:
+            assert params == {}
+        else:
+            assert float(params[pn["parameter"]]) == pn["value"]
+    # integral values become ints without a system's type, others stay doubles
+    assert nodes["amcl"].find("param").attrib == {"name": "particles", "type": "int", "value": "500"}  # type: ignore[union-attr]
+    assert nodes["nav"].find("param").get("type") == "double"  # type: ignore[union-attr]
+
+
+def test_launch_with_system_fields_and_escaping(tmp_path: Path) -> None:
+    text = roslaunch_xml(plan(), system())
+    assert "&amp;" in text and "&lt;" in text and "&quot;" in text  # escaped, not raw
+    root = ET.fromstring(text)
+    m = {e.get("name"): e.attrib for e in root.iter("machine")}
+    assert m["robot1"] == {"name": "robot1", "address": "10.0.0.2", "user": "ro&bot", "env-loader": "/opt/env.sh"}
+    nodes = {n.get("name"): n for n in root.iter("node")}
+    assert set(nodes) == {"amcl", "move_base", WEIRD, "core"}
+    assert nodes["amcl"].attrib == {"name": "amcl", "pkg": "amcl", "type": "amcl", "machine": "robot1", "ns": "robot1"}
+    assert [(p.get("name"), p.get("value"), p.get("type")) for p in nodes["amcl"].iter("param")] == [
+        ("max_particles", "500", "int")]
+    assert nodes["move_base"].find("param").attrib["value"] == "12.5"  # type: ignore[union-attr]
+    weird = nodes[WEIRD]
+    assert (weird.get("pkg"), weird.get("type"), weird.get("machine")) == ('pk"g&', "t<r>ack", "server")
+    # the system says float: 22.0 stays a double
+    assert [(p.get("name"), p.get("value"), p.get("type")) for p in weird.iter("param")] == [
+        ("out<freq>&", "22.0", "double")]
+
+
+def test_ros2_params_round_trip() -> None:
+    text = ros2_params_yaml(plan(), system())
+    data = yaml.safe_load(text)
+    assert data == {
+        "/robot1/amcl": {"ros__parameters": {"max_particles": 500}},
+        "move_base": {"ros__parameters": {"controller_frequency": 12.5}},
+        WEIRD: {"ros__parameters": {"out<freq>&": 22.0}},
+        "core": {"ros__parameters": {}},
+    }
+    assert isinstance(data["/robot1/amcl"]["ros__parameters"]["max_particles"], int)
+    assert read_placement_comments(text) == {"/robot1/amcl": "robot1", "move_base": "robot1",
+                                             WEIRD: "server", "core": "robot1"}
+
+
+def test_newline_in_name_cannot_break_the_comment_table() -> None:
+    data = json.loads(json.dumps(PLAN))
+    data["nodes"]["evil\nkey: 1"] = data["nodes"].pop("core")
+    text = ros2_params_yaml(parse_plan(data, "p.json"))
+    assert "key" not in yaml.safe_load(text)
+    assert read_placement_comments(text)["evil\nkey: 1"] == "robot1"
+
+
+def test_infeasible_plan_is_refused() -> None:
+    p = parse_plan({"format": "perfros-bag/plan@1", "problem": 2, "method": "x", "status": "infeasible",
+                    "reason": "too big"}, "p.json")
+    with pytest.raises(InputError, match="infeasible"):
+        roslaunch_xml(p)
+
+
+def test_cli_writes_files_atomically(tmp_path: Path) -> None:
+    plan_path = tmp_path / "plan.json"
+    plan_path.write_text(json.dumps(PLAN))
+    sys_path = tmp_path / "system.yaml"
+    sys_path.write_text(yaml.safe_dump(SYSTEM))
+    runner = CliRunner()
+    out = tmp_path / "sys.launch"
+    r = runner.invoke(app, ["export", str(plan_path), "--format", "roslaunch", "--out", str(out),
+                            "--system", str(sys_path)])
+    assert r.exit_code == 0, r.output
+    assert {n.get("machine") for n in ET.parse(out).getroot().iter("node")} == {"robot1", "server"}
+    out2 = tmp_path / "params.yaml"
+    r = runner.invoke(app, ["export", str(plan_path), "--format", "ros2-params", "--out", str(out2)])
+    assert r.exit_code == 0, r.output
+    assert set(yaml.safe_load(out2.read_text())) == set(PLAN["nodes"])
+    # bad input: exit 2, one line, nothing written
+    bad = tmp_path / "bad.launch"
+    r = runner.invoke(app, ["export", str(tmp_path / "nope.json"), "--format", "roslaunch", "--out", str(bad)])
+    assert r.exit_code == 2 and "nope.json" in r.output and "Traceback" not in r.output
+    r = runner.invoke(app, ["export", str(plan_path), "--format", "bogus", "--out", str(bad)])
+    assert r.exit_code == 2 and "bogus" in r.output
+    assert not bad.exists()
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
+
+
+@pytest.mark.ros
+def test_roslaunch_loads_the_file(tmp_path: Path) -> None:
+    """Debian's roslaunch parses the exported file: machines and params resolved."""
+    if shutil.which("roslaunch") is None or not Path("/usr/bin/python3").exists():
+        pytest.fail("Debian ROS 1 (roslaunch) is not installed: run make setup-debs")
+    data = json.loads(json.dumps(PLAN))
+    data["nodes"]["tracker"] = data["nodes"].pop(WEIRD)
+    data["nodes"]["tracker"]["parameter"] = "output_freq"
+    path = tmp_path / "sys.launch"
+    path.write_text(roslaunch_xml(parse_plan(data, "p.json")))
+    script = (
+        "import sys, roslaunch.config, roslaunch.xmlloader\n"
+        "cfg = roslaunch.config.ROSLaunchConfig()\n"
+        "roslaunch.xmlloader.XmlLoader().load(sys.argv[1], cfg, verbose=False)\n"
+        "for n in cfg.nodes: print('node', n.name, n.machine_name)\n"
+        "for k, v in sorted(cfg.params.items()): print('param', k, repr(v.value))\n"
+        "for k, m in sorted(cfg.machines.items()): print('machine', k, m.address)\n"
+    )
+    r = subprocess.run(["/usr/bin/python3", "-c", script, str(path)], capture_output=True, text=True,
+                       timeout=60)
+    assert r.returncode == 0, r.stderr
+    lines = set(r.stdout.splitlines())
+    for name, pn in data["nodes"].items():
+        assert f"node {name} {pn['computer']}" in lines
+    assert "param /amcl/particles 500" in lines
+    assert "param /nav/controller_frequency 12.5" in lines
+    assert "param /tracker/output_freq 22" in lines  # integral, no system type: int
+    assert "machine server server" in lines
