@@ -1,0 +1,402 @@
+"""``model.json``: a system.yaml whose configurable nodes carry fitted curves.
+
+:func:`build_model` joins the expert's numbers of ``system.yaml`` (performance levels and
+weights per setting) with the measured ``characterisation.csv`` (CPU, frequency and
+bandwidth per setting: the mean over the recordings of the same node and value, with the
+spread kept in the ``measured`` part), fits per configurable node the relations of
+:mod:`perfros_bag.regression` and fills each node's ``curve`` (CPU -> performance, what the
+solvers use) and ``relations`` in, so :func:`perfros_bag.spec.load_system` reads the
+``system`` part like a system.yaml. Format: ``docs/formats.md``.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import warnings
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from perfros_bag.errors import InputError, PerfrosWarning
+from perfros_bag.fileio import atomic_write_json, read_json, read_yaml
+from perfros_bag.model import Curve, Node, System
+from perfros_bag.regression import Fit, FitError, clip_domain, fit_curve
+from perfros_bag.spec import parse_system
+
+MODEL_FORMAT = "perfros-bag/model@1"
+REQUIRED_COLUMNS = ("recording", "node", "value", "topic", "frequency_hz", "bandwidth_kBps", "cpu_units_mean")
+RELATIONS = ("parameter->cpu", "parameter->performance", "cpu->performance",
+             "parameter->frequency", "parameter->bandwidth")
+CPU_SCALE = 100.0  # x = CPU units / 100, as the paper's Fig 4
+
+
+@dataclass
+class Stat:
+    """Mean, sample standard deviation and count of one measured quantity."""
+
+    mean: float
+    std: float
+    count: int
+
+    @staticmethod
+    def of(values: list[float]) -> Stat | None:
+        vs = [v for v in values if math.isfinite(v)]
+        if not vs:
+            return None
+        m = sum(vs) / len(vs)
+        sd = math.sqrt(sum((v - m) ** 2 for v in vs) / (len(vs) - 1)) if len(vs) > 1 else 0.0
+        return Stat(m, sd, len(vs))
+
+    def to_dict(self) -> dict[str, float | int]:
+        return {"mean": _r(self.mean), "std": _r(self.std), "count": self.count}
+
+
+@dataclass
+class Measured:
+    """What the recordings of one node at one parameter value showed."""
+
+    value: float | None
+    recordings: list[str]
+    cpu: Stat | None
+    frequency_hz: Stat | None
+    bandwidth_kBps: Stat | None
+    topics: dict[str, tuple[Stat | None, Stat | None]] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        def st(s: Stat | None) -> dict[str, float | int] | None:
+            return None if s is None else s.to_dict()
+
+        return {
+            "value": self.value, "recordings": len(self.recordings),
+            "cpu": st(self.cpu), "frequency_hz": st(self.frequency_hz), "bandwidth_kBps": st(self.bandwidth_kBps),
+            "topics": {t: {"frequency_hz": st(f), "bandwidth_kBps": st(b)} for t, (f, b) in self.topics.items()},
+        }
+
+
+@dataclass
+class ModelResult:
+    """The model.json document plus the fits (for tables and plots)."""
+
+    document: dict[str, Any]
+    fits: dict[str, dict[str, Fit]]
+    system: System
+    warnings: list[str]
+
+
+def _r(v: float) -> float:
+    return float(f"{v:.9g}") if math.isfinite(v) else v
+
+
+# --- characterisation.csv ---------------------------------------------------------------
+
+def _float(text: str) -> float:
+    text = text.strip()
+    if not text:
+        return math.nan
+    try:
+        return float(text)
+    except ValueError:
+        return math.nan
+
+
+def read_characterisation(path: str | Path) -> list[dict[str, str]]:
+    """The rows of a characterisation.csv as strings, after checking its columns."""
+    import csv
+
+    p = Path(path)
+    try:
+        with p.open(newline="", encoding="utf-8") as handle:
+            lines = [ln for ln in handle if not ln.startswith("#")]
+    except FileNotFoundError:
+        raise InputError(p, "file not found") from None
+    except IsADirectoryError:
+        raise InputError(p, "is a directory, expected a characterisation CSV") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(p, f"cannot read: {exc}") from None
+    reader = csv.DictReader(lines)
+    header = [h.strip() for h in (reader.fieldnames or [])]
+    if not header:
+        raise InputError(p, "the file is empty (expected a characterisation.csv header)")
+    missing = [c for c in REQUIRED_COLUMNS if c not in header]
+    if missing:
+        raise InputError(p, f"not a characterisation.csv: missing column(s) {', '.join(missing)}")
+    rows = []
+    try:
+        for row in reader:
+            rows.append({(k or "").strip(): (v if isinstance(v, str) else "") for k, v in row.items()})
+    except csv.Error as exc:
+        raise InputError(p, f"invalid CSV: {exc}") from None
+    if not rows:
+        raise InputError(p, "has a header but no rows")
+    return rows
+
+
+def aggregate(rows: list[dict[str, str]], system: System, path: str) -> dict[str, list[Measured]]:
+    """Per node of ``system``: one :class:`Measured` per parameter value (rows of other
+    nodes are ignored). A non-numeric value of a node in the system is an error."""
+    # node -> value -> recording -> rows
+    grouped: dict[str, dict[float | None, dict[str, list[dict[str, str]]]]] = {}
+    names = set(system.node)
+    for i, row in enumerate(rows):
+        node = row.get("node", "").strip()
+        if node not in names:
+            continue
+        raw = row.get("value", "").strip()
+        value: float | None = None
+        if raw:
+            try:
+                value = float(raw)
+            except ValueError:
+                raise InputError(path, f"line {i + 2}: node {node!r}: parameter value {raw!r} is not a number") from None
+            if not math.isfinite(value):
+                raise InputError(path, f"line {i + 2}: node {node!r}: parameter value {raw!r} is not finite")
+        rec = row.get("recording", "").strip() or f"(row {i + 2})"
+        grouped.setdefault(node, {}).setdefault(value, {}).setdefault(rec, []).append(row)
+
+    out: dict[str, list[Measured]] = {}
+    for node, by_value in grouped.items():
+        declared = set(system.node[node].topics)
+        ms = []
+        for value, by_rec in by_value.items():
+            cpus, freqs, bws = [], [], []
+            per_topic: dict[str, tuple[list[float], list[float]]] = {}
+            for rec_rows in by_rec.values():
+                c = [_float(r.get("cpu_units_mean", "")) for r in rec_rows]
+                c = [v for v in c if math.isfinite(v)]
+                cpus.append(sum(c) / len(c) if c else math.nan)
+                topic_rows = [r for r in rec_rows if r.get("topic", "").strip()]
+                if declared and any(r["topic"].strip() in declared for r in topic_rows):
+                    topic_rows = [r for r in topic_rows if r["topic"].strip() in declared]
+                f = [_float(r.get("frequency_hz", "")) for r in topic_rows]
+                b = [_float(r.get("bandwidth_kBps", "")) for r in topic_rows]
+                fv = [v for v in f if math.isfinite(v)]
+                bv = [v for v in b if math.isfinite(v)]
+                freqs.append(sum(fv) / len(fv) if fv else math.nan)
+                bws.append(sum(bv) if bv else math.nan)
+                for r, fq, bw in zip(topic_rows, f, b, strict=True):
+                    lists = per_topic.setdefault(r["topic"].strip(), ([], []))
+                    lists[0].append(fq)
+                    lists[1].append(bw)
+            ms.append(Measured(value, sorted(by_rec), Stat.of(cpus), Stat.of(freqs), Stat.of(bws),
+                               {t: (Stat.of(fl), Stat.of(bl)) for t, (fl, bl) in sorted(per_topic.items())}))
+        ms.sort(key=lambda m: (m.value is not None, m.value if m.value is not None else 0.0))
+        out[node] = ms
+    return out
+
+
+# --- building the model -----------------------------------------------------------------
+
+def _same(a: float | None, b: float | None) -> bool:
+    if a is None or b is None:
+        return a is None and b is None
+    return abs(a - b) <= 1e-9 * max(1.0, abs(a), abs(b))
+
+
+class _Warn:
+    def __init__(self) -> None:
+        self.messages: list[str] = []
+
+    def __call__(self, msg: str) -> None:
+        self.messages.append(msg)
+        warnings.warn(msg, PerfrosWarning, stacklevel=3)
+
+
+def build_model(system_path: str | Path, characterisation_path: str | Path) -> ModelResult:
+    """Fit the configurable nodes of ``system_path`` to ``characterisation_path``."""
+    sys_path, csv_path = str(system_path), str(characterisation_path)
+    raw = read_yaml(system_path) if not sys_path.lower().endswith(".json") else read_json(system_path)
+    if isinstance(raw, Mapping) and "format" in raw and "system" in raw:
+        raw = raw["system"]  # refitting a model.json
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", PerfrosWarning)  # reported when the model is loaded
+        system = parse_system(raw, sys_path)
+    rows = read_characterisation(csv_path)
+    measured = aggregate(rows, system, csv_path)
+    if not measured:
+        known = sorted({r.get("node", "").strip() for r in rows if r.get("node", "").strip()})
+        raise InputError(csv_path, "no row names a node of " + sys_path
+                         + (f" (its nodes: {', '.join(known[:8])}{'...' if len(known) > 8 else ''})" if known else " (the node column is empty)"))
+    warn = _Warn()
+    doc_system = copy.deepcopy(dict(raw))
+    raw_nodes = {str(n.get("name")): n for n in doc_system["nodes"]}
+    fits: dict[str, dict[str, Fit]] = {}
+    unmeasured = [n.name for n in system.nodes if n.name not in measured]
+    if unmeasured:
+        warn(f"{csv_path}: no rows for node(s) {', '.join(unmeasured)}: kept the numbers of {sys_path}")
+    for node in system.nodes:
+        if node.name not in measured:
+            continue
+        fits_n = _fit_node(node, measured[node.name], raw_nodes[node.name], warn, sys_path)
+        if fits_n:
+            fits[node.name] = fits_n
+    document: dict[str, Any] = {
+        "format": MODEL_FORMAT,
+        "system_file": sys_path,
+        "characterisation": csv_path,
+        "system": doc_system,
+        "fits": {n: {rel: f.to_dict() for rel, f in fs.items()} for n, fs in fits.items()},
+        "measured": {n: [m.to_dict() for m in ms] for n, ms in measured.items()},
+        "warnings": warn.messages,
+    }
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", PerfrosWarning)
+        final = parse_system(doc_system, sys_path)  # what solve will read: must load
+    return ModelResult(document, fits, final, warn.messages)
+
+
+def _match(node: Node, value: float | None, measured: list[Measured]) -> Measured | None:
+    for m in measured:
+        if _same(m.value, value):
+            return m
+    if len(node.settings) == 1 and len(measured) == 1:
+        return measured[0]
+    return None
+
+
+def _fit_node(node: Node, measured: list[Measured], raw: dict[str, Any], warn: _Warn,
+              sys_path: str) -> dict[str, Fit]:
+    """Fill ``raw`` (the node's system.yaml mapping, changed in place) with measured
+    numbers and fitted curves; return the fits."""
+    who = f"node {node.name!r}"
+    new_settings: list[dict[str, Any]] = []
+    # Points: (value, cpu, performance, frequency, bandwidth); performance None when unrated.
+    points: list[tuple[float | None, float, float | None, float | None, float | None]] = []
+    used: set[int] = set()
+    raw_settings = raw.get("settings") or []
+    for s, rs in zip(node.settings, raw_settings, strict=True):
+        m = _match(node, s.value, measured)
+        rs = dict(rs)
+        cpu, freq, bw = s.cpu, s.frequency_hz, s.bandwidth_kBps
+        if m is None:
+            if node.parameter is not None:
+                warn(f"{who}: setting {s.value:g} has no recording: kept {sys_path}'s cpu/frequency/bandwidth"
+                     if s.value is not None else f"{who}: a setting has no value and no recording")
+        else:
+            used.add(id(m))
+            if m.cpu is not None and m.cpu.mean > 0:
+                cpu = m.cpu.mean
+            elif m.cpu is not None:
+                warn(f"{who}: measured CPU {m.cpu.mean:g} at value {m.value}: kept {sys_path}'s cpu {s.cpu:g}")
+            else:
+                warn(f"{who}: no CPU measured at value {m.value}: kept {sys_path}'s cpu {s.cpu:g}")
+            if m.frequency_hz is not None:
+                freq = m.frequency_hz.mean
+            if m.bandwidth_kBps is not None:
+                bw = m.bandwidth_kBps.mean
+            rs["cpu"] = _r(cpu)
+            if freq is not None:
+                rs["frequency_hz"] = _r(freq)
+            if bw is not None:
+                rs["bandwidth_kBps"] = _r(bw)
+            topics = {t: {k: _r(st.mean) for k, st in (("frequency_hz", f), ("bandwidth_kBps", b)) if st is not None}
+                      for t, (f, b) in m.topics.items()}
+            if "topics" not in rs and len(topics) > 1:
+                rs["topics"] = topics
+        new_settings.append(rs)
+        points.append((s.value, cpu, s.performance, freq, bw))
+    if raw_settings:
+        raw["settings"] = new_settings
+    for m in measured:  # measured values the expert did not rate: CPU/frequency/bandwidth only
+        if id(m) not in used and m.value is not None and m.cpu is not None and m.cpu.mean > 0:
+            points.append((m.value, m.cpu.mean,
+                           None, None if m.frequency_hz is None else m.frequency_hz.mean,
+                           None if m.bandwidth_kBps is None else m.bandwidth_kBps.mean))
+
+    if node.parameter is None:
+        return {}
+    values = {p[0] for p in points if p[0] is not None}
+    rated = [p for p in points if p[0] is not None and p[2] is not None]
+    if len(values) < 2 or len({p[0] for p in rated}) < 2:
+        warn(f"{who}: a single setting of {node.parameter.name} "
+             f"({len(values)} value(s) measured, {len(rated)} rated): nothing to fit, the node stays discrete")
+        return {}
+
+    def pts(ix: int, iy: int, source: list[Any]) -> tuple[list[float], list[float]]:
+        sel = [p for p in source if p[ix] is not None and p[iy] is not None and math.isfinite(p[iy])]
+        return [float(p[ix]) for p in sel], [float(p[iy]) for p in sel]
+
+    fits: dict[str, Fit] = {}
+    specs: list[tuple[str, int, int, list[Any], float, Any]] = [
+        ("parameter->cpu", 0, 1, points, 1.0, "either"),
+        ("parameter->performance", 0, 2, rated, 1.0, None),
+        ("cpu->performance", 1, 2, rated, CPU_SCALE, "nondecreasing"),
+        ("parameter->frequency", 0, 3, points, 1.0, None),
+        ("parameter->bandwidth", 0, 4, points, 1.0, None),
+    ]
+    for rel, ix, iy, source, scale, mono in specs:
+        xs, ys = pts(ix, iy, source)
+        if len(set(xs)) < 2:
+            if rel in ("parameter->frequency", "parameter->bandwidth"):
+                continue  # nothing measured: the solver interpolates the settings
+            warn(f"{who}: {rel}: fewer than 2 distinct points: the node stays discrete")
+            return {}
+        try:
+            fit = fit_curve(xs, ys, relation=rel, scale=scale, monotone=mono)
+        except FitError as exc:
+            warn(f"{who}: {rel}: {exc}: the node stays discrete")
+            return {}
+        for note in fit.warnings:
+            warn(f"{who}: {rel}: {note}")
+        fits[rel] = fit
+
+    curve, notes = solver_curve(fits["cpu->performance"], fits["parameter->cpu"],
+                                max(p[2] for p in rated if p[2] is not None))
+    for note in notes:
+        warn(f"{who}: cpu->performance: {note}")
+    extra = fits["cpu->performance"].warnings + tuple(notes)
+    fits["cpu->performance"] = _with_warnings(fits["cpu->performance"], extra)
+    raw["curve"] = curve.to_dict()
+    raw["relations"] = {rel: f.curve.to_dict() for rel, f in fits.items()}
+    return fits
+
+
+def _with_warnings(fit: Fit, notes: tuple[str, ...]) -> Fit:
+    from dataclasses import replace
+
+    return replace(fit, warnings=notes)
+
+
+def solver_curve(c2p: Fit, p2c: Fit, max_perf: float) -> tuple[Curve, list[str]]:
+    """The node's CPU -> performance curve for the solvers: the fitted curve on the CPU
+    range where (a) the parameter -> CPU fit has an inverse inside the measured parameter
+    range, (b) performance stays within [0, max observed], (c) the ends are whole CPU
+    units (rounded inwards, when that leaves at least one unit)."""
+    notes: list[str] = []
+    lo, hi = c2p.domain
+    pc = p2c.curve
+    img = sorted((pc(p2c.domain[0]), pc(p2c.domain[1])))
+    if img[0] < hi and img[1] > lo and (img[0] > lo or img[1] < hi):
+        new_lo, new_hi = max(lo, img[0]), min(hi, img[1])
+        if new_lo - lo > 1 or hi - new_hi > 1:
+            notes.append(f"solver's CPU range narrowed from [{lo:.4g}, {hi:.4g}] to [{new_lo:.4g}, {new_hi:.4g}], "
+                         f"where the parameter->cpu fit maps back into [{p2c.domain[0]:g}, {p2c.domain[1]:g}]")
+        lo, hi = new_lo, new_hi
+    curve = Curve(c2p.form, c2p.coef, (lo, hi), c2p.scale)
+    curve, msg = clip_domain(curve, 0.0, max_perf)
+    if msg:
+        notes.append(msg)
+    lo, hi = curve.domain
+    ilo, ihi = math.ceil(lo - 1e-9), math.floor(hi + 1e-9)
+    if ihi - ilo >= 1 and ilo > 0:
+        lo, hi = float(ilo), float(ihi)
+    return Curve(curve.form, curve.coef, (lo, hi), curve.scale), notes
+
+
+# --- reading and writing ----------------------------------------------------------------
+
+def write_model(path: str | Path, result: ModelResult) -> None:
+    atomic_write_json(path, result.document)
+
+
+def read_model(path: str | Path) -> tuple[System, dict[str, Any]]:
+    """A model.json's system (validated as system.yaml is) and the whole document."""
+    p = Path(path)
+    doc = read_json(p)
+    if not isinstance(doc, dict) or doc.get("format") != MODEL_FORMAT:
+        fmt = doc.get("format") if isinstance(doc, dict) else None
+        raise InputError(p, f"not a perfros-bag model (format {fmt!r}, expected {MODEL_FORMAT!r})")
+    if not isinstance(doc.get("system"), dict):
+        raise InputError(p, "has no 'system' object")
+    return parse_system(doc["system"], str(p)), doc

@@ -1,0 +1,303 @@
+"""Curve fitting for the paper's regressions (section IV-B, Fig 3 and 4).
+
+Each relation (parameter -> CPU, CPU -> performance, ...) is fitted with every candidate
+form of :class:`~perfros_bag.model.Curve` (linear, log, quadratic, power) by least squares
+on transformed features (scikit-learn's ``LinearRegression``; power in log space, then
+refined by nonlinear least squares), and the form with the smallest leave-one-out error
+is kept. A form never has as many coefficients as there are points, except that two
+points get the (exact) line. Constraints the solver relies on are enforced here:
+
+- ``monotone="nondecreasing"`` (CPU -> performance) or ``"either"`` (parameter -> CPU,
+  whose inverse maps a CPU level back to a parameter value): a form that breaks it on the
+  domain is skipped for the next best, and the line is the last resort (its slope is
+  clamped at 0 for "nondecreasing");
+- :func:`clip_domain` narrows a non-decreasing curve's domain so that its output stays
+  within ``[lo, hi]`` (performance within ``[0, max observed]``).
+
+Every such decision is recorded in :attr:`Fit.warnings` (callers warn with them).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+import numpy.typing as npt
+
+from perfros_bag.model import CURVE_FORMS, CURVE_NCOEF, Curve
+
+Monotone = Literal["nondecreasing", "either"] | None
+FloatArray = npt.NDArray[np.float64]
+
+#: warn below this R².
+R2_WARN = 0.9
+#: points whose range is below this fraction of their mean are "constant": R² says nothing
+#: about them (it only measures noise), so no R² warning.
+FLAT_SPREAD = 0.05
+#: how many points the monotonicity check samples on a domain.
+_GRID = 513
+
+
+class FitError(ValueError):
+    """The points cannot be fitted at all (fewer than 2 distinct inputs, non-finite values)."""
+
+
+@dataclass(frozen=True)
+class Fit:
+    """A fitted relation: the chosen curve, how well it fits and why it was chosen."""
+
+    relation: str
+    form: str
+    coef: tuple[float, ...]
+    domain: tuple[float, float]
+    scale: float
+    r2: float
+    loo_rmse: float | None  # None with 2 points (nothing to leave out)
+    x: tuple[float, ...]
+    y: tuple[float, ...]
+    candidates: dict[str, float | None] = field(default_factory=dict)  # form -> LOO RMSE
+    warnings: tuple[str, ...] = ()
+
+    @property
+    def curve(self) -> Curve:
+        return Curve(self.form, self.coef, self.domain, self.scale)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "form": self.form, "coef": [float(c) for c in self.coef],
+            "domain": [float(d) for d in self.domain], "scale": self.scale,
+            "r2": _round(self.r2), "loo_rmse": None if self.loo_rmse is None else _round(self.loo_rmse),
+            "points": [[float(a), float(b)] for a, b in zip(self.x, self.y, strict=True)],
+            "candidates": {k: None if v is None else _round(v) for k, v in self.candidates.items()},
+            "warnings": list(self.warnings),
+        }
+
+
+def _round(v: float) -> float:
+    return float(f"{v:.6g}") if math.isfinite(v) else v
+
+
+# --- one form ---------------------------------------------------------------------------
+
+def _features(form: str, x: FloatArray) -> FloatArray:
+    if form == "linear":
+        return x[:, None]
+    if form == "log":
+        return np.log(x)[:, None]
+    if form == "quadratic":
+        return np.column_stack([x * x, x])
+    if form == "power":
+        return np.log(x)[:, None]
+    raise ValueError(f"unknown form {form!r}")
+
+
+def fit_form(form: str, x: Sequence[float] | FloatArray, y: Sequence[float] | FloatArray) -> tuple[float, ...]:
+    """Least-squares coefficients of ``form`` (in :class:`Curve` order) for points (x, y),
+    x already divided by the scale."""
+    from sklearn.linear_model import LinearRegression
+
+    xa = np.asarray(x, dtype=float)
+    ya = np.asarray(y, dtype=float)
+    if form == "power":
+        reg = LinearRegression().fit(_features(form, xa), np.log(ya))
+        a, b = float(math.exp(reg.intercept_)), float(reg.coef_[0])
+        return _refine_power(xa, ya, a, b)
+    reg = LinearRegression().fit(_features(form, xa), ya)
+    coefs = [float(c) for c in reg.coef_]
+    return (*coefs, float(reg.intercept_))
+
+
+def _refine_power(x: FloatArray, y: FloatArray, a: float, b: float) -> tuple[float, float]:
+    """Least squares in the original space (the log-space fit weighs small y too much)."""
+    try:
+        from scipy.optimize import least_squares
+    except ImportError:  # pragma: no cover - scipy comes with scikit-learn
+        return a, b
+
+    def resid(p: FloatArray) -> FloatArray:
+        return np.asarray(p[0] * x ** p[1] - y, dtype=float)
+
+    try:
+        with np.errstate(all="ignore"):
+            res = least_squares(resid, np.array([a, b]), method="lm" if len(x) > 2 else "trf")
+    except (ValueError, FloatingPointError):
+        return a, b
+    pa, pb = (float(v) for v in res.x)
+    if not (math.isfinite(pa) and math.isfinite(pb)):
+        return a, b
+    old = float(np.sum(resid(np.array([a, b])) ** 2))
+    return (pa, pb) if float(np.sum(res.fun ** 2)) <= old else (a, b)
+
+
+def predict(form: str, coef: Sequence[float], x: Sequence[float] | FloatArray) -> FloatArray:
+    """The curve's outputs at (already scaled) inputs ``x``."""
+    xa = np.asarray(x, dtype=float)
+    c = coef
+    with np.errstate(all="ignore"):
+        if form == "linear":
+            return np.asarray(c[0] * xa + c[1], dtype=float)
+        if form == "log":
+            return np.asarray(c[0] * np.log(xa) + c[1], dtype=float)
+        if form == "quadratic":
+            return np.asarray(c[0] * xa * xa + c[1] * xa + c[2], dtype=float)
+        return np.asarray(c[0] * xa ** c[1], dtype=float)
+
+
+def r_squared(y: FloatArray, yhat: FloatArray) -> float:
+    """1 - SS_res/SS_tot; for constant data 1.0 when the fit is exact, else 0.0."""
+    ss_res = float(np.sum((y - yhat) ** 2))
+    ss_tot = float(np.sum((y - y.mean()) ** 2))
+    scale = max(1.0, float(np.max(np.abs(y))))
+    if ss_tot <= 1e-18 * scale * scale * len(y):
+        return 1.0 if ss_res <= 1e-12 * scale * scale * len(y) else 0.0
+    return 1.0 - ss_res / ss_tot
+
+
+def loo_rmse(form: str, x: FloatArray, y: FloatArray) -> float:
+    """Root mean squared leave-one-out prediction error of ``form``."""
+    errs = []
+    idx = np.arange(len(x))
+    for i in idx:
+        keep = idx != i
+        coef = fit_form(form, x[keep], y[keep])
+        errs.append(float(predict(form, coef, x[i:i + 1])[0] - y[i]))
+    e = np.asarray(errs)
+    return float(math.sqrt(float(np.mean(e * e)))) if np.all(np.isfinite(e)) else math.inf
+
+
+def eligible_forms(x: FloatArray, y: FloatArray, forms: Sequence[str] = CURVE_FORMS) -> list[str]:
+    """Forms that may be fitted to these points: fewer coefficients than points (the line
+    alone for 2 points), positive inputs for log and power, positive outputs for power."""
+    n = len(x)
+    out = []
+    for f in forms:
+        k = CURVE_NCOEF[f]
+        if n == 2 and f != "linear":
+            continue
+        if n > 2 and k >= n:
+            continue
+        if f in ("log", "power") and np.any(x <= 0):
+            continue
+        if f == "power" and np.any(y <= 0):
+            continue
+        out.append(f)
+    return out
+
+
+# --- monotonicity and range -------------------------------------------------------------
+
+def is_monotone(curve: Curve, kind: Literal["nondecreasing", "either"], tol: float = 1e-9) -> bool:
+    """Whether ``curve`` is non-decreasing (or monotone either way) on its domain."""
+    lo, hi = curve.domain
+    if hi <= lo:
+        return True
+    grid = np.linspace(lo, hi, _GRID) / curve.scale
+    v = predict(curve.form, curve.coef, grid)
+    if not np.all(np.isfinite(v)):
+        return False
+    d = np.diff(v)
+    span = max(1.0, float(np.max(np.abs(v))))
+    up = bool(np.all(d >= -tol * span))
+    if kind == "nondecreasing":
+        return up
+    return up or bool(np.all(d <= tol * span))
+
+
+def clip_domain(curve: Curve, lo_y: float, hi_y: float) -> tuple[Curve, str | None]:
+    """Narrow a non-decreasing curve's domain so its outputs stay within ``[lo_y, hi_y]``;
+    the message says what changed (None when nothing did)."""
+    lo, hi = curve.domain
+    new_lo, new_hi = lo, hi
+    eps = 1e-9 * max(1.0, abs(hi_y))
+    if curve(hi) > hi_y + eps:
+        new_hi = curve.inverse(hi_y)
+    if curve(lo) < lo_y - eps:
+        new_lo = curve.inverse(lo_y)
+    if new_lo == lo and new_hi == hi:
+        return curve, None
+    if new_hi < new_lo:  # pragma: no cover - impossible for a non-decreasing curve and lo_y <= hi_y
+        new_lo = new_hi
+    clipped = Curve(curve.form, curve.coef, (new_lo, new_hi), curve.scale)
+    parts = []
+    if new_hi != hi:
+        parts.append(f"reaches {hi_y:g} at {new_hi:.4g} (it would give {curve(hi):.4g} at {hi:g})")
+    if new_lo != lo:
+        parts.append(f"reaches {lo_y:g} at {new_lo:.4g} (it would give {curve(lo):.4g} at {lo:g})")
+    return clipped, (f"domain narrowed from [{lo:g}, {hi:g}] to [{new_lo:.4g}, {new_hi:.4g}] to keep the output "
+                     f"within [{lo_y:g}, {hi_y:g}]: " + "; ".join(parts))
+
+
+# --- model selection --------------------------------------------------------------------
+
+def fit_curve(x: Sequence[float], y: Sequence[float], *, relation: str = "", scale: float = 1.0,
+              forms: Sequence[str] = CURVE_FORMS, monotone: Monotone = None) -> Fit:
+    """Fit every eligible form to (x, y) and keep the one with the smallest leave-one-out
+    RMSE that satisfies ``monotone`` on ``[min x, max x]``.
+
+    Raises :class:`FitError` for fewer than 2 distinct inputs or non-finite values.
+    """
+    xs = np.asarray(x, dtype=float)
+    ys = np.asarray(y, dtype=float)
+    if xs.shape != ys.shape or xs.ndim != 1:
+        raise FitError("x and y must be 1-D sequences of the same length")
+    if not (np.all(np.isfinite(xs)) and np.all(np.isfinite(ys))):
+        raise FitError("the points contain non-finite values")
+    order = np.argsort(xs, kind="stable")
+    xs, ys = xs[order], ys[order]
+    if len(np.unique(xs)) < 2:
+        raise FitError(f"{len(np.unique(xs))} distinct input value(s): at least 2 are needed")
+    xn = xs / scale
+    domain = (float(xs[0]), float(xs[-1]))
+    notes: list[str] = []
+    n = len(xs)
+    distinct = len(np.unique(xs))
+    if distinct < 3:
+        notes.append(f"only {distinct} distinct points: the line through them is exact, nothing checks it")
+
+    forms_ok = eligible_forms(xn, ys, forms) if distinct > 2 else ["linear"]
+    candidates: dict[str, float | None] = {}
+    for f in forms_ok:
+        candidates[f] = loo_rmse(f, xn, ys) if n > 2 and distinct > 2 else None
+
+    ranked = sorted(forms_ok, key=lambda f: (candidates[f] if candidates[f] is not None else 0.0,
+                                             CURVE_NCOEF[f], forms_ok.index(f)))
+    chosen: tuple[str, tuple[float, ...]] | None = None
+    rejected: list[str] = []
+    for f in ranked:
+        coef = fit_form(f, xn, ys)
+        if not all(math.isfinite(c) for c in coef):
+            rejected.append(f"{f} (no finite fit)")
+            continue
+        if monotone is not None and not is_monotone(Curve(f, coef, domain, scale), monotone):
+            rejected.append(f)
+            continue
+        chosen = (f, coef)
+        break
+    want = "non-decreasing" if monotone == "nondecreasing" else "monotone"
+    if chosen is None:
+        coef = fit_form("linear", xn, ys)
+        if monotone == "nondecreasing" and coef[0] < 0:
+            coef = (0.0, float(ys.mean()))
+            notes.append(f"no candidate form is {want} on [{domain[0]:g}, {domain[1]:g}] "
+                         f"({', '.join(rejected)}) and the data decrease: fell back to the constant {coef[1]:.4g}")
+        else:
+            notes.append(f"no candidate form is {want} on [{domain[0]:g}, {domain[1]:g}] "
+                         f"({', '.join(rejected)}): fell back to linear")
+        chosen = ("linear", coef)
+    elif rejected and monotone is not None:
+        notes.append(f"{', '.join(rejected)} fitted better but {'is' if len(rejected) == 1 else 'are'} not "
+                     f"{want} on [{domain[0]:g}, {domain[1]:g}]: chose {chosen[0]}")
+    form, coef = chosen
+    if monotone == "either" and abs(predict(form, coef, xn[-1:])[0] - predict(form, coef, xn[:1])[0]) <= 1e-12:
+        notes.append("the fitted curve is flat: its inverse is not defined")
+    r2 = r_squared(ys, predict(form, coef, xn))
+    spread = float(ys.max() - ys.min())
+    flat = spread <= FLAT_SPREAD * max(abs(float(ys.mean())), 1e-12)
+    if r2 < R2_WARN and not flat:
+        notes.append(f"R² = {r2:.3f} < {R2_WARN}: the {form} fit explains the points poorly")
+    return Fit(relation, form, tuple(float(c) for c in coef), domain, float(scale), float(r2),
+               candidates.get(form), tuple(float(v) for v in xs), tuple(float(v) for v in ys),
+               candidates, tuple(notes))
