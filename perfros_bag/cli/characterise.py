@@ -1,0 +1,87 @@
+"""``perfros-bag characterise DIR``: recordings + CPU traces -> characterisation.csv."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import typer
+
+from perfros_bag.cli._app import command, err, out
+
+if TYPE_CHECKING:
+    from perfros_bag.characterise import Failure
+    from perfros_bag.manifest import RecordingEntry
+
+
+def _fmt(v: float | None, digits: int = 1) -> str:
+    return "" if v is None else f"{v:.{digits}f}"
+
+
+@command("characterise")
+def characterise_cmd(
+    directory: Path = typer.Argument(..., help="Directory of recordings (or one recording)."),  # noqa: B008
+    manifest: Path | None = typer.Option(None, "--manifest", "-m", help="manifest.yaml (default: DIR/manifest.yaml when present)."),  # noqa: B008
+    system_path: Path | None = typer.Option(None, "--system", "-s", help="system.yaml: nodes' topics and process patterns, computers' capacities."),  # noqa: B008
+    out_path: Path | None = typer.Option(None, "--out", "-o", help="characterisation.csv to write."),  # noqa: B008
+    as_json: bool = typer.Option(False, "--json", help="Print the rows as a JSON array on stdout (only)."),
+    slow: bool = typer.Option(False, "--slow", help="Stream every message instead of reading the indexes."),
+) -> None:
+    """Characterise every recording in DIR: per node and topic, frequency, bandwidth and CPU."""
+    from rich.markup import escape
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+    from rich.table import Table
+
+    from perfros_bag.characterise import (
+        characterise,
+        check_settings,
+        find_entries,
+        rows_json,
+        table_one,
+        write_csv,
+    )
+    from perfros_bag.errors import PerfrosError
+    from perfros_bag.spec import load_system
+
+    if out_path is None and not as_json:
+        raise PerfrosError("characterise needs --out FILE or --json")
+    entries, manifest_system = find_entries(directory, manifest)
+    sys_file = system_path or manifest_system
+    system = load_system(sys_file) if sys_file is not None else None
+    if system is not None and entries:
+        check_settings(entries, system, manifest or directory / "manifest.yaml")
+    if not entries:
+        raise PerfrosError(f"{directory}: no recordings found")
+
+    with Progress(TextColumn("characterise"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                  TextColumn("{task.description}"), console=err, transient=True) as progress:
+        task = progress.add_task("", total=len(entries))
+
+        def done(entry: RecordingEntry, failure: Failure | None) -> None:
+            progress.update(task, advance=1, description=entry.name)
+
+        result = characterise(entries, system, fast=not slow, on_done=done)
+
+    for f in result.failures:
+        err.print(f"[red]error:[/] {escape(f.message)}", highlight=False, soft_wrap=True)
+    if out_path is not None and result.rows:
+        write_csv(out_path, result.rows)
+    if as_json:
+        print(json.dumps(rows_json(result.rows), indent=1))
+
+    table = Table(title="characterisation (Table I)", title_justify="left")
+    for col, just in (("node", "left"), ("setting", "left"), ("recordings", "right"), ("CPU", "right"),
+                      ("freq Hz", "right"), ("kB/s", "right")):
+        table.add_column(col, justify=just)  # type: ignore[arg-type]
+    for t in table_one(result.rows):
+        setting = "" if t.value is None else (f"{t.parameter}={t.value:g}" if isinstance(t.value, float) and t.parameter
+                                               else f"{t.value:g}" if isinstance(t.value, float) else str(t.value))
+        table.add_row(t.node, setting, str(t.recordings), _fmt(t.cpu), _fmt(t.frequency_hz, 2), _fmt(t.bandwidth_kBps, 3))
+    (err if as_json else out).print(table)
+    summary = f"{len(result.rows)} rows from {result.recordings - len(result.failures)}/{result.recordings} recordings"
+    if out_path is not None:
+        summary += f" -> {out_path}" if result.rows else f"; {out_path} not written"
+    err.print(summary, highlight=False)
+    if result.exit_code:
+        raise typer.Exit(result.exit_code)

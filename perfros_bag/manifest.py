@@ -1,0 +1,144 @@
+"""``manifest.yaml``: which recordings to characterise, with their CPU trace, computer and
+settings (design.md contract)::
+
+    system: ../system.yaml           # optional
+    recordings:
+      - path: tracker_f10.bag        # file or rosbag2 directory, relative to the manifest
+        cpu: tracker_f10.cpu.csv     # optional; default <stem>.cpu.csv when it exists
+        computer: robot1             # whose capacity normalises the CPU trace
+        settings: {tracker1: 10}     # node -> parameter value in this run
+
+Structural problems are :class:`InputError` naming the manifest and the entry; a missing
+recording file is left to the per-recording work (one bad recording must not stop the rest).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from perfros_bag.errors import InputError
+from perfros_bag.fileio import read_yaml
+
+TOP_KEYS = {"system", "recordings"}
+ENTRY_KEYS = {"path", "cpu", "computer", "settings"}
+
+SettingValue = float | str
+
+
+@dataclass(frozen=True)
+class RecordingEntry:
+    """One recording to characterise (resolved paths), from a manifest or from discovery."""
+
+    path: Path
+    name: str  # how the recording is named in the output (path relative to the manifest/DIR)
+    cpu: Path | None = None  # the CPU trace; None: no trace
+    computer: str | None = None
+    settings: Mapping[str, SettingValue] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Manifest:
+    path: Path
+    system: Path | None
+    recordings: tuple[RecordingEntry, ...]
+
+
+def recording_stem(path: Path) -> str:
+    """``run.bag`` -> ``run``; a rosbag2 directory ``run/`` -> ``run``."""
+    return path.name if path.is_dir() else path.stem
+
+
+def default_cpu_path(recording: Path) -> Path | None:
+    """``<stem>.cpu.csv`` beside the recording (or inside a rosbag2 directory) when it exists."""
+    stem = recording_stem(recording)
+    candidates = [recording.parent / f"{stem}.cpu.csv"]
+    if recording.is_dir():
+        candidates.append(recording / f"{stem}.cpu.csv")
+    return next((c for c in candidates if c.is_file()), None)
+
+
+def load_manifest(path: str | Path) -> Manifest:
+    p = Path(path)
+    data = read_yaml(p)
+    return parse_manifest(data, p)
+
+
+def parse_manifest(data: Any, path: Path) -> Manifest:
+    def fail(where: str, problem: str) -> InputError:
+        return InputError(path, f"{where}: {problem}" if where else problem)
+
+    if data is None:
+        raise fail("", "the manifest is empty (expected 'recordings:')")
+    if not isinstance(data, Mapping):
+        raise fail("", f"expected a mapping with 'recordings:', got {type(data).__name__}")
+    unknown = sorted(str(k) for k in data if k not in TOP_KEYS)
+    if unknown:
+        raise fail("", f"unknown key(s) {', '.join(map(repr, unknown))} (allowed: recordings, system)")
+    base = path.parent
+    system: Path | None = None
+    if data.get("system") is not None:
+        if not isinstance(data["system"], str) or not data["system"].strip():
+            raise fail("system", f"must be a path, got {data['system']!r}")
+        system = base / data["system"]
+    raw = data.get("recordings")
+    if raw is None:
+        raise fail("", "missing 'recordings:' (a list of {path, cpu, computer, settings})")
+    if not isinstance(raw, list):
+        raise fail("recordings", f"must be a list, got {type(raw).__name__}")
+    entries: list[RecordingEntry] = []
+    seen: set[str] = set()
+    for i, item in enumerate(raw):
+        where = f"recordings[{i}]"
+        if isinstance(item, str):
+            item = {"path": item}
+        if not isinstance(item, Mapping):
+            raise fail(where, f"expected a mapping with 'path:', got {type(item).__name__}")
+        bad = sorted(str(k) for k in item if k not in ENTRY_KEYS)
+        if bad:
+            raise fail(where, f"unknown key(s) {', '.join(map(repr, bad))} (allowed: {', '.join(sorted(ENTRY_KEYS))})")
+        rel = item.get("path")
+        if not isinstance(rel, str) or not rel.strip():
+            raise fail(f"{where}.path", f"must be a file or directory name, got {rel!r}")
+        if rel in seen:
+            raise fail(f"{where}.path", f"{rel!r} is listed twice")
+        seen.add(rel)
+        rec = base / rel
+        cpu: Path | None
+        if item.get("cpu") is not None:
+            if not isinstance(item["cpu"], str) or not item["cpu"].strip():
+                raise fail(f"{where}.cpu", f"must be a path, got {item['cpu']!r}")
+            cpu = base / item["cpu"]
+        else:
+            cpu = default_cpu_path(rec)
+        computer = item.get("computer")
+        if computer is not None and (not isinstance(computer, str) or not computer.strip()):
+            raise fail(f"{where}.computer", f"must be a computer's name, got {computer!r}")
+        settings = _settings(item.get("settings"), f"{where}.settings", fail)
+        entries.append(RecordingEntry(rec, rel, cpu, computer, settings))
+    return Manifest(path, system, tuple(entries))
+
+
+def _settings(raw: Any, where: str, fail: Any) -> dict[str, SettingValue]:
+    if raw is None:
+        return {}
+    if not isinstance(raw, Mapping):
+        raise fail(where, f"must be a mapping node -> value, got {type(raw).__name__}")
+    out: dict[str, SettingValue] = {}
+    for node, value in raw.items():
+        if not isinstance(node, str) or not node:
+            raise fail(where, f"node names must be strings, got {node!r}")
+        if isinstance(value, bool) or value is None:
+            raise fail(f"{where}.{node}", f"must be a number or a string, got {value!r}")
+        if isinstance(value, int | float):
+            if not math.isfinite(float(value)):
+                raise fail(f"{where}.{node}", f"must be finite, got {value!r}")
+            out[node] = float(value)
+        elif isinstance(value, str):
+            out[node] = value
+        else:
+            raise fail(f"{where}.{node}", f"must be a number or a string, got {type(value).__name__}")
+    return out
