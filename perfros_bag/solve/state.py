@@ -1,0 +1,227 @@
+"""The mutable assignment the heuristics work on: placement, setting levels, loads.
+
+Every change goes through :meth:`State.change`, which checks CPU (eq 3), bandwidth per
+link and per shared medium (eq 4) and residence (eq 8) before applying it, so a state is
+feasible at every step. Coresidence (eq 9) is kept by moving whole groups.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+
+from perfros_bag.model import Choice, System
+from perfros_bag.plan import Assignment, Plan, build_plan
+
+EPS = 1e-9
+
+
+def ladder(choices: list[Choice]) -> list[Choice]:
+    """The upgrade ladder of a node: its choices by increasing CPU, keeping only those whose
+    performance beats every cheaper one (a dearer, no-better setting is never an upgrade)."""
+    out: list[Choice] = []
+    for ch in sorted(choices, key=lambda c: (c.cpu, -c.performance, c.index)):
+        if out and math.isclose(ch.cpu, out[-1].cpu, abs_tol=EPS):
+            continue
+        if not out or ch.performance > out[-1].performance + EPS:
+            out.append(ch)
+    return out
+
+
+class State:
+    def __init__(self, system: System, problem: int, choices: Mapping[str, list[Choice]]) -> None:
+        self.system = system
+        self.problem = problem
+        self.nodes = [n.name for n in system.nodes]
+        self.order = {n: i for i, n in enumerate(self.nodes)}
+        self.weight = {n.name: n.weight for n in system.nodes}
+        self.ladder = {n: (ladder(choices[n]) if problem == 1 else list(choices[n][:1])) for n in self.nodes}
+        self.level = dict.fromkeys(self.nodes, 0)
+        self.place: dict[str, str | None] = dict.fromkeys(self.nodes)
+        self.computers = [c.name for c in system.computers]
+        self.kind = {c.name: c.kind for c in system.computers}
+        # Problem 2: servers start at 0 and grow up to max_capacity; robots (and Problem 1) fixed
+        self.cap: dict[str, float] = {}
+        self.maxcap: dict[str, float] = {}
+        for c in system.computers:
+            if problem == 2 and c.kind == "server":
+                self.cap[c.name] = 0.0
+                self.maxcap[c.name] = c.max_capacity if c.max_capacity is not None else math.inf
+            else:
+                self.cap[c.name] = c.capacity or 0.0
+                self.maxcap[c.name] = self.cap[c.name]
+        self.load = dict.fromkeys(self.computers, 0.0)
+        self.groups: list[tuple[str, ...]] = list(system.coresidence_groups)
+        self.group_of = {n: gi for gi, g in enumerate(self.groups) for n in g}
+        self.group_allowed: list[list[str]] = []
+        for g in self.groups:
+            allowed = set(self.computers)
+            for n in g:
+                allowed &= set(system.allowed(n))
+            self.group_allowed.append([c for c in self.computers if c in allowed])
+        # network: per edge the bandwidth at each of its publisher's ladder levels
+        self.edges = list(system.edges)
+        self.edge_bw = [[system.edge_bandwidth(e, ch) for ch in self.ladder[e.src]] for e in self.edges]
+        self.incident: dict[str, list[int]] = {n: [] for n in self.nodes}
+        for i, e in enumerate(self.edges):
+            self.incident[e.src].append(i)
+            if e.dst != e.src:
+                self.incident[e.dst].append(i)
+        self.links = list(system.links)
+        self.link_load = [0.0] * len(self.links)
+        self.media = list(system.media)
+        self.medium_links = {m.name: [i for i, lk in enumerate(self.links) if lk.medium == m.name] for m in self.media}
+
+    # ---- reading -------------------------------------------------------------------
+    def choice(self, n: str) -> Choice:
+        return self.ladder[n][self.level[n]]
+
+    def cpu(self, n: str) -> float:
+        return self.ladder[n][self.level[n]].cpu
+
+    def free(self, c: str) -> float:
+        return self.cap[c] - self.load[c]
+
+    def at_max(self, n: str) -> bool:
+        return self.level[n] >= len(self.ladder[n]) - 1
+
+    def step(self, n: str) -> tuple[float, float]:
+        """(CPU, weighted performance) of the next upgrade of ``n``."""
+        lad, k = self.ladder[n], self.level[n]
+        return lad[k + 1].cpu - lad[k].cpu, self.weight[n] * (lad[k + 1].performance - lad[k].performance)
+
+    def gradient(self, n: str) -> float:
+        """Weighted performance gained per CPU unit by the next upgrade (0 at the top)."""
+        if self.at_max(n):
+            return 0.0
+        du, dp = self.step(n)
+        return dp / du if du > EPS else math.inf
+
+    def on(self, c: str) -> list[str]:
+        return [n for n in self.nodes if self.place[n] == c]
+
+    def value(self) -> float:
+        if self.problem == 1:
+            return sum(self.weight[n] * self.choice(n).performance for n in self.nodes)
+        return sum(self.load[c] for c in self.computers if self.kind[c] == "server")
+
+    def group_cpu(self, gi: int) -> float:
+        return sum(self.cpu(n) for n in self.groups[gi])
+
+    # ---- changing ------------------------------------------------------------------
+    def _net_delta(self, changes: Mapping[str, tuple[str | None, int]]) -> tuple[dict[int, float], str | None]:
+        edges: set[int] = set()
+        for n in changes:
+            edges.update(self.incident[n])
+        delta: dict[int, float] = {}
+        for ei in edges:
+            e = self.edges[ei]
+            for sign, (pa, pb, lvl) in (
+                (-1.0, (self.place[e.src], self.place[e.dst], self.level[e.src])),
+                (1.0, (changes.get(e.src, (self.place[e.src], 0))[0], changes.get(e.dst, (self.place[e.dst], 0))[0],
+                       changes[e.src][1] if e.src in changes else self.level[e.src])),
+            ):
+                if pa is None or pb is None or pa == pb:
+                    continue
+                route = self.system.route(pa, pb)
+                if route is None:
+                    if sign > 0:
+                        return delta, f"no network path between {pa} and {pb} (edge {e.src}->{e.dst})"
+                    continue
+                bw = self.edge_bw[ei][lvl]
+                for li in route:
+                    delta[li] = delta.get(li, 0.0) + sign * bw
+        return delta, None
+
+    def check(self, changes: Mapping[str, tuple[str | None, int]]) -> tuple[str | None, dict[int, float], dict[str, float]]:
+        """Whether ``changes`` (node -> (computer, level)) keeps the state feasible: the
+        reason it does not (or None), the link load deltas and the computer load deltas."""
+        dload: dict[str, float] = {}
+        for n, (c, lvl) in changes.items():
+            old = self.place[n]
+            if old is not None:
+                dload[old] = dload.get(old, 0.0) - self.cpu(n)
+            if c is not None:
+                if c not in self.system.allowed(n):
+                    return f"{n} may not run on {c} (residence)", {}, {}
+                dload[c] = dload.get(c, 0.0) + self.ladder[n][lvl].cpu
+        for c, d in dload.items():
+            if d > EPS and self.load[c] + d > self.cap[c] + EPS * max(1.0, self.cap[c]):
+                return f"{c} has {_fmt(self.free(c))} CPU free", {}, {}
+        delta, why = self._net_delta(changes)
+        if why is not None:
+            return why, {}, {}
+        for li, d in delta.items():
+            lk = self.links[li]
+            if d > EPS and self.link_load[li] + d > lk.bandwidth_kBps + EPS * max(1.0, lk.bandwidth_kBps):
+                return (f"link {lk.between[0]}-{lk.between[1]} would carry {_fmt(self.link_load[li] + d)} "
+                        f"> {_fmt(lk.bandwidth_kBps)} kB/s"), {}, {}
+        for m in self.media:
+            d = sum(delta.get(li, 0.0) for li in self.medium_links[m.name])
+            if d > EPS:
+                now = sum(self.link_load[li] for li in self.medium_links[m.name])
+                if now + d > m.bandwidth_kBps + EPS * max(1.0, m.bandwidth_kBps):
+                    return f"medium {m.name} would carry {_fmt(now + d)} > {_fmt(m.bandwidth_kBps)} kB/s", {}, {}
+        return None, delta, dload
+
+    def change(self, changes: Mapping[str, tuple[str | None, int]]) -> str | None:
+        """Apply ``changes`` if feasible; else return why not (and change nothing)."""
+        why, delta, dload = self.check(changes)
+        if why is not None:
+            return why
+        for li, d in delta.items():
+            self.link_load[li] += d
+        for comp, d in dload.items():
+            self.load[comp] += d
+        for n, (target, lvl) in changes.items():
+            self.place[n] = target
+            self.level[n] = lvl
+        return None
+
+    def move_group(self, gi: int, c: str | None) -> str | None:
+        return self.change({n: (c, self.level[n]) for n in self.groups[gi]})
+
+    def snapshot(self) -> tuple[dict[str, str | None], dict[str, int], dict[str, float]]:
+        return dict(self.place), dict(self.level), dict(self.cap)
+
+    def restore(self, snap: tuple[dict[str, str | None], dict[str, int], dict[str, float]]) -> None:
+        """Return to a snapshot, recomputing the loads from scratch."""
+        self.place, self.level, self.cap = dict(snap[0]), dict(snap[1]), dict(snap[2])
+        self.recompute()
+
+    def recompute(self) -> None:
+        self.load = dict.fromkeys(self.computers, 0.0)
+        for n in self.nodes:
+            c = self.place[n]
+            if c is not None:
+                self.load[c] += self.cpu(n)
+        self.link_load = [0.0] * len(self.links)
+        for ei, e in enumerate(self.edges):
+            a, b = self.place[e.src], self.place[e.dst]
+            if a is None or b is None or a == b:
+                continue
+            for li in self.system.route(a, b) or ():
+                self.link_load[li] += self.edge_bw[ei][self.level[e.src]]
+
+    def network_ok(self) -> bool:
+        for li, lk in enumerate(self.links):
+            if self.link_load[li] > lk.bandwidth_kBps + EPS * max(1.0, lk.bandwidth_kBps):
+                return False
+        for m in self.media:
+            if sum(self.link_load[li] for li in self.medium_links[m.name]) > m.bandwidth_kBps + EPS * max(1.0, m.bandwidth_kBps):
+                return False
+        return True
+
+    # ---- output --------------------------------------------------------------------
+    def plan(self, method: str, status: str = "feasible") -> Plan:
+        placement = {n: c for n, c in self.place.items() if c is not None}
+        assert len(placement) == len(self.nodes), "every node must be placed"
+        capacities: dict[str, float] = {}
+        if self.problem == 2:
+            capacities = {c: self.load[c] for c in self.computers if self.kind[c] == "server"}
+        return build_plan(self.system, Assignment(placement, {n: self.choice(n) for n in self.nodes}, capacities),
+                          problem=self.problem, method=method, status=status)
+
+
+def _fmt(x: float) -> str:
+    return f"{x:.6g}"
