@@ -210,3 +210,189 @@ def test_eq10_against_independent_sum(freqs: list[int], tolerance: float, cap: b
         assert v.passed == (dev <= tolerance)
     if cap:
         assert all(n.p_measured <= n.p_expected + 1e-12 for n in v.nodes)
+
+
+# ---------------------------------------------------------------------------------------
+# end to end: recordings written with the MCAP and rosbags writers, the CLI
+
+
+def write_mcap(path: Path, factor: float, drop: tuple[str, ...] = ()) -> None:
+    from mcap.writer import Writer
+
+    with path.open("wb") as f:
+        w = Writer(f)
+        w.start(profile="ros2", library="test")
+        sid = w.register_schema(name="std_msgs/msg/String", encoding="ros2msg", data=b"string data")
+        for t, hz in PLANNED_HZ.items():
+            if t in drop:
+                continue
+            cid = w.register_channel(topic=t, message_encoding="cdr", schema_id=sid)
+            for i, ns in enumerate(times_at(hz * factor).tolist()):
+                w.add_message(channel_id=cid, log_time=ns, publish_time=ns, data=b"\0" * 40, sequence=i)
+        w.finish()
+
+
+def write_rosbag(path: Path, factor: float, kind: str) -> None:
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS2_HUMBLE if kind != "ros1" else Stores.ROS1_NOETIC)
+    String = store.types["std_msgs/msg/String"]
+    if kind == "ros1":
+        from rosbags.rosbag1 import Writer as W1
+
+        with W1(path) as w1:
+            for t, hz in PLANNED_HZ.items():
+                conn = w1.add_connection(t, "std_msgs/msg/String", typestore=store, callerid="/pub")
+                for ns in times_at(hz * factor).tolist():
+                    w1.write(conn, ns, store.serialize_ros1(String(data="x" * 30), "std_msgs/msg/String"))
+        return
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    plugin = StoragePlugin.MCAP if kind == "rosbag2-mcap" else StoragePlugin.SQLITE3
+    with Writer(path, version=9, storage_plugin=plugin) as w2:
+        for t, hz in PLANNED_HZ.items():
+            conn = w2.add_connection(t, "std_msgs/msg/String", typestore=store)
+            for ns in times_at(hz * factor).tolist():
+                w2.write(conn, ns, store.serialize_cdr(String(data="x" * 30), "std_msgs/msg/String"))
+
+
+def run_cli(*args: str) -> Any:
+    from typer.testing import CliRunner
+
+    from perfros_bag.cli import app
+
+    return CliRunner().invoke(app, list(args))
+
+
+@pytest.fixture
+def plan_file(tmp_path: Path) -> Path:
+    p = tmp_path / "plan.json"
+    p.write_text(json.dumps(PLAN))
+    return p
+
+
+@pytest.mark.parametrize("kind", ["mcap", "ros1", "rosbag2-sqlite3", "rosbag2-mcap"])
+def test_cli_recordings_at_80_and_100_percent(tmp_path: Path, plan_file: Path, kind: str) -> None:
+    for factor, code in ((0.8, 1), (1.0, 0)):
+        run = tmp_path / f"run{int(factor * 100)}"
+        if kind == "mcap":
+            run = run.with_suffix(".mcap")
+            write_mcap(run, factor)
+        elif kind == "ros1":
+            run = run.with_suffix(".bag")
+            write_rosbag(run, factor, kind)
+        else:
+            write_rosbag(run, factor, kind)
+        r = run_cli("validate", str(run), str(plan_file), "--json")
+        assert r.exit_code == code, r.output
+        doc = json.loads(r.stdout)
+        assert doc["format"] == "perfros-bag/validation@1"
+        assert doc["overall"]["measured"] == pytest.approx(factor * 65.0, abs=1e-9)
+        assert doc["overall"]["deviation_pct"] == pytest.approx(100 * (1 - factor), abs=1e-9)
+        assert doc["overall"]["passed"] is (code == 0)
+        for n in doc["nodes"]:
+            assert n["p_measured"] == pytest.approx(factor * n["p_expected"], abs=1e-9)
+
+
+def test_cli_tolerance_and_tables(tmp_path: Path, plan_file: Path) -> None:
+    run = tmp_path / "run.mcap"
+    write_mcap(run, 0.8)
+    assert run_cli("validate", str(run), str(plan_file), "--tolerance", "20.5").exit_code == 0
+    r = run_cli("validate", str(run), str(plan_file))
+    assert r.exit_code == 1
+    assert "eq 10" in r.stdout and "20.00 %" in r.stdout
+
+
+def test_cli_missing_topic_flagged(tmp_path: Path, plan_file: Path) -> None:
+    run = tmp_path / "run.mcap"
+    write_mcap(run, 1.0, drop=("/b/y",))
+    r = run_cli("validate", str(run), str(plan_file), "--json")
+    doc = json.loads(r.stdout)
+    assert doc["missing_topics"] == ["/b/y"]
+    b = next(n for n in doc["nodes"] if n["node"] == "b")
+    assert b["flagged"] and b["ratio"] == pytest.approx(0.5)
+    by = next(t for t in b["topics"] if t["topic"] == "/b/y")
+    assert by["status"] == "missing" and by["f_measured"] == 0.0
+    assert r.exit_code == 1  # 0.5 * 25 of 65 lost: 19 %
+
+
+def write_trace(path: Path, rows: list[tuple[str, float]], ncpu: int, t0_s: float) -> None:
+    lines = ["# host=h", f"# logical_cpus={ncpu}", "# interval_s=1", "time,pid,node,process,cpu_percent,rss_bytes"]
+    for k in range(1, 10):  # samples inside the 10 s recording
+        for pid, (node, pct) in enumerate(rows, start=100):
+            lines.append(f"{t0_s + k:.3f},{pid},{node},python3,{pct},1000")
+    path.write_text("\n".join(lines) + "\n")
+
+
+def test_cli_cpu_trace_overload(tmp_path: Path, plan_file: Path) -> None:
+    run = tmp_path / "run.mcap"
+    write_mcap(run, 1.0)
+    t0 = 1_700_000_000.0
+    # default trace beside the recording: a at 130 % of 2 cores = 65 units of 100 (ok)
+    write_trace(tmp_path / "run.cpu.csv", [("/a", 130.0), ("b", 100.0)], 2, t0)
+    doc = json.loads(run_cli("validate", str(run), str(plan_file), "--json").stdout)
+    comp = {c["computer"]: c for c in doc["computers"]}
+    assert comp["robot1"]["cpu_measured"] == pytest.approx(65.0)
+    assert comp["server"]["cpu_measured"] == pytest.approx(100 / 200 * 400)
+    assert doc["overloaded"] == []
+    # an explicit hot trace: 230 % of 2 cores = 115 units > 100
+    hot = tmp_path / "hot.cpu.csv"
+    write_trace(hot, [("a", 230.0), ("b", 100.0), ("unrelated", 50.0)], 2, t0)
+    r = run_cli("validate", str(run), str(plan_file), "--cpu", str(hot), "--json")
+    doc = json.loads(r.stdout)
+    assert doc["overloaded"] == ["robot1"]
+    assert {c["computer"]: c["overloaded"] for c in doc["computers"]} == {"robot1": True, "server": False}
+    assert r.exit_code == 0  # frequencies are as planned: overload alone does not fail eq 10
+    r = run_cli("validate", str(run), str(plan_file), "--cpu", str(hot))
+    assert "overloaded" in r.stdout
+
+
+def test_cli_links_with_system(tmp_path: Path, plan_file: Path) -> None:
+    import yaml
+
+    system = {
+        "computers": [{"name": "robot1", "kind": "robot", "capacity": 100},
+                      {"name": "server", "kind": "server", "capacity": 400}],
+        "links": [{"between": ["robot1", "server"], "bandwidth_kBps": 3.0}],
+        "nodes": [{"name": "a", "weight": 0.5, "topics": ["/a/out"], "settings": [{"cpu": 60, "performance": 80}]},
+                  {"name": "b", "weight": 0.5, "topics": ["/b/x", "/b/y"], "settings": [{"cpu": 120, "performance": 50}]}],
+        "edges": [{"from": "a", "to": "b"}, {"from": "b", "to": "a", "topic": "/b/y"}],
+    }
+    sp = tmp_path / "system.yaml"
+    sp.write_text(yaml.safe_dump(system))
+    run = tmp_path / "run.mcap"
+    write_mcap(run, 1.0)
+    doc = json.loads(run_cli("validate", str(run), str(plan_file), "--system", str(sp), "--json").stdout)
+    (link,) = doc["links"]
+    # 40-byte payloads: /a/out 101 msgs and /b/y 51 msgs over 10 s
+    assert link["measured_kBps"] == pytest.approx((101 * 40 + 51 * 40) / 10 / 1000)
+    assert link["edges"] == ["a->b", "b->a"] and link["overloaded"] is False
+    system["links"][0]["bandwidth_kBps"] = 0.5
+    sp.write_text(yaml.safe_dump(system))
+    doc = json.loads(run_cli("validate", str(run), str(plan_file), "--system", str(sp), "--json").stdout)
+    assert doc["links"][0]["overloaded"] is True
+
+
+def test_cli_bad_inputs_exit_2(tmp_path: Path, plan_file: Path) -> None:
+    run = tmp_path / "run.mcap"
+    write_mcap(run, 1.0)
+    corrupt = tmp_path / "corrupt.mcap"
+    corrupt.write_bytes(run.read_bytes()[: len(run.read_bytes()) // 3])
+    (tmp_path / "bad.json").write_text("{not json")
+    infeasible = tmp_path / "inf.json"
+    infeasible.write_text(json.dumps({"format": "perfros-bag/plan@1", "problem": 1, "method": "x",
+                                      "status": "infeasible", "reason": "nope"}))
+    badtrace = tmp_path / "bad.cpu.csv"
+    badtrace.write_text("time,pid\n1,2\n")
+    cases = [
+        ([str(tmp_path / "absent.mcap"), str(plan_file)], "absent.mcap"),
+        ([str(corrupt), str(plan_file)], "corrupt.mcap"),
+        ([str(run), str(tmp_path / "bad.json")], "bad.json"),
+        ([str(run), str(infeasible)], "infeasible"),
+        ([str(run), str(plan_file), "--cpu", str(tmp_path / "none.cpu.csv")], "none.cpu.csv"),
+        ([str(run), str(plan_file), "--cpu", str(badtrace)], "bad.cpu.csv"),
+    ]
+    for args, needle in cases:
+        r = run_cli("validate", *args)
+        assert r.exit_code == 2, (args, r.output)
+        assert needle in r.output and "Traceback" not in r.output
