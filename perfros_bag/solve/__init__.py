@@ -77,22 +77,24 @@ def fixed_choices(system: System, problem: int, settings: Mapping[str, float] | 
 
 
 def settings_from_values(system: System, values: Mapping[str, float], resolution: float = 1.0) -> dict[str, float]:
-    """node -> parameter value  ==>  node -> CPU level (the choice with that value; a curve
-    node with a fitted ``parameter->cpu`` relation is evaluated on it)."""
+    """node -> parameter value  ==>  node -> CPU level: the choice or the setting with that
+    value; else a curve node's fitted ``parameter->cpu`` relation evaluated at it."""
     out: dict[str, float] = {}
     for name, v in values.items():
         node = system.node.get(name)
         if node is None:
             raise InputError(_where(system), f"settings: unknown node {name!r}")
         rel = node.relations.get("parameter->cpu")
-        match = [c for c in node.choices(resolution) if c.value is not None and math.isclose(c.value, v, rel_tol=1e-9, abs_tol=1e-9)]
+        match = [c.cpu for c in node.choices(resolution) if c.value is not None and math.isclose(c.value, v, rel_tol=1e-9, abs_tol=1e-9)]
+        match += [s.cpu for s in node.settings if s.value is not None and math.isclose(s.value, v, rel_tol=1e-9, abs_tol=1e-9)]
         if match:
-            out[name] = match[0].cpu
+            out[name] = match[0]
         elif rel is not None and node.curve is not None:
             lo, hi = node.curve.domain
             out[name] = min(max(rel(v), lo), hi)
         else:
-            have = sorted({c.value for c in node.choices(resolution) if c.value is not None})
+            have = sorted({c.value for c in node.choices(resolution) if c.value is not None}
+                          | {s.value for s in node.settings if s.value is not None})
             hint = f"its values: {', '.join(f'{x:g}' for x in have)}" if have else "it has no parameter values; give a CPU level as cpu:U"
             raise InputError(_where(system), f"settings: node {name!r} has no setting with value {v:g} ({hint})")
     return out

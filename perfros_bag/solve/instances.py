@@ -39,6 +39,16 @@ CURVES: dict[str, dict[str, Any]] = {
     "navigation": {"form": "log", "coef": [129.12, 188.36], "cpu": [25, 50]},
 }
 
+# parameter -> CPU through Table I's points (tracker and the quadratics exact; AMCL's
+# points are not monotone as a quadratic, so a log fit), for the parameter value of a CPU level.
+PARAMETER_CPU: dict[str, dict[str, Any]] = {
+    "tracker": {"form": "linear", "coef": [8.0, 0.0], "domain": [10, 25]},
+    "model": {"form": "quadratic", "coef": [-3.50342566e-07, 7.80654772e-03, 16.9687794], "domain": [4, 10000]},
+    "amcl": {"form": "log", "coef": [16.88674777, -67.87245935], "domain": [200, 3000]},
+    "navigation": {"form": "quadratic", "coef": [-0.0361111111, 2.18333333, 20.7777778], "domain": [2, 20]},
+}
+INT_PARAMETERS = {"model", "amcl"}
+
 # Table II: instance -> (robots, cameras)
 TABLE_II: dict[int, tuple[int, int]] = {1: (1, 1), 2: (1, 2), 3: (1, 3), 4: (2, 1), 5: (2, 2), 6: (2, 3)}
 
@@ -65,6 +75,9 @@ def _node(kind: str, name: str, weight: float, *, continuous: bool, residence: l
     node["settings"] = rows
     if continuous and kind in CURVES:
         node["curve"] = dict(CURVES[kind])
+        node["relations"] = {"parameter->cpu": dict(PARAMETER_CPU[kind])}
+    if param is not None and kind in INT_PARAMETERS:
+        node["parameter"]["type"] = "int"
     return node
 
 

@@ -1,0 +1,127 @@
+"""``perfros-bag solve``: a system.yaml or model.json -> plan.json (Problem 1 or 2)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from perfros_bag.cli._app import command, err, out
+from perfros_bag.errors import InputError
+from perfros_bag.model import System
+from perfros_bag.plan import Plan
+
+
+def parse_settings(system: System, text: str, resolution: float) -> dict[str, float]:
+    """``--settings``: a plan.json (each node's CPU) or ``node=value,...`` (a parameter
+    value) / ``node=cpu:U`` (a CPU level). Returns node -> CPU level."""
+    from perfros_bag.plan import load_plan
+    from perfros_bag.solve import settings_from_plan, settings_from_values
+
+    if text.lower().endswith(".json") or Path(text).is_file():
+        return settings_from_plan(load_plan(text))
+    values: dict[str, float] = {}
+    cpus: dict[str, float] = {}
+    for item in filter(None, (p.strip() for p in text.split(","))):
+        name, sep, raw = item.partition("=")
+        if not sep or not name.strip():
+            raise InputError(None, f"--settings: expected node=value or node=cpu:U, got {item!r}")
+        raw = raw.strip()
+        target = values
+        if raw.lower().startswith("cpu:"):
+            raw, target = raw[4:], cpus
+        try:
+            target[name.strip()] = float(raw)
+        except ValueError:
+            raise InputError(None, f"--settings: {item!r}: {raw!r} is not a number") from None
+    result = settings_from_values(system, values, resolution)
+    for name in cpus:
+        if name not in system.node:
+            raise InputError(system.source, f"settings: unknown node {name!r}")
+    result.update(cpus)
+    return result
+
+
+def _num(x: float | None, digits: int = 2) -> str:
+    return "-" if x is None else f"{x:.{digits}f}".rstrip("0").rstrip(".") if digits else f"{x:.0f}"
+
+
+def print_plan(console: Console, plan: Plan) -> None:
+    """Nodes (computer, parameter value, CPU, performance), computers and links."""
+    title = f"Problem {plan.problem} · {plan.method} · {plan.status}"
+    nodes = Table(title=title, title_justify="left")
+    for col in ("node", "computer", "parameter", "value", "CPU", "performance", "weight"):
+        nodes.add_column(col, justify="right" if col in ("value", "CPU", "performance", "weight") else "left")
+    for name, n in plan.nodes.items():
+        nodes.add_row(name, n.computer, n.parameter or "-", _num(n.value, 3), _num(n.cpu), _num(n.performance),
+                      _num(n.weight, 4))
+    console.print(nodes)
+    comps = Table(title="computers", title_justify="left")
+    for col in ("computer", "kind", "CPU", "capacity", "use"):
+        comps.add_column(col, justify="left" if col in ("computer", "kind") else "right")
+    for name, c in plan.computers.items():
+        use = f"{100 * c.cpu / c.capacity:.1f} %" if c.capacity else "-"
+        comps.add_row(name, c.kind, _num(c.cpu), _num(c.capacity), use)
+    console.print(comps)
+    if plan.links:
+        links = Table(title="links", title_justify="left")
+        for col in ("link", "medium", "load kB/s", "bandwidth kB/s", "use"):
+            links.add_column(col, justify="left" if col in ("link", "medium") else "right")
+        for lk in plan.links:
+            use = f"{100 * lk.load_kBps / lk.bandwidth_kBps:.2f} %" if lk.bandwidth_kBps else "-"
+            links.add_row(f"{lk.between[0]} - {lk.between[1]}", lk.medium or "-", _num(lk.load_kBps, 3),
+                          _num(lk.bandwidth_kBps), use)
+        console.print(links)
+    what = "Σ w·P" if plan.problem == 1 else "Σ server capacity"
+    console.print(f"objective ({what}): [bold]{_num(plan.objective, 4)}[/]"
+                  + (f"  bound {_num(plan.bound, 4)}" if plan.bound is not None else "")
+                  + (f"  solved in {plan.solve_s:.3f} s" if plan.solve_s is not None else ""), highlight=False)
+
+
+@command("solve")
+def solve(
+    system_path: Path = typer.Argument(..., metavar="SYSTEM_OR_MODEL", help="system.yaml or model.json"),
+    problem: int = typer.Option(1, "--problem", "-p", help="1: maximise Σ w·P; 2: minimise server capacity"),
+    method: str = typer.Option("greedy", "--method", "-m", help="greedy | greedy+ | exact | bruteforce"),
+    out_path: Path | None = typer.Option(None, "--out", "-o", help="write plan.json here"),
+    as_json: bool = typer.Option(False, "--json", help="print the plan JSON (only) on stdout"),
+    resolution: float = typer.Option(1.0, "--resolution", help="CPU step of a curve's choices"),
+    settings: str | None = typer.Option(None, "--settings",
+                                        help="Problem 2: plan.json, or node=value,... (parameter values) / node=cpu:U"),
+    time_limit: float | None = typer.Option(None, "--time-limit", help="exact: stop after S seconds (best plan, status feasible)"),
+) -> None:
+    """Choose a setting and a computer for every node (the paper's Problems 1 and 2)."""
+    from perfros_bag.solve import METHODS
+    from perfros_bag.solve import solve as run
+    from perfros_bag.spec import load_system
+
+    if problem not in (1, 2):
+        raise InputError(None, f"--problem must be 1 or 2, got {problem}")
+    if method not in METHODS:
+        raise InputError(None, f"--method must be one of {', '.join(METHODS)}, got {method!r}")
+    if not resolution > 0:
+        raise InputError(None, f"--resolution must be > 0, got {resolution}")
+    if time_limit is not None and not time_limit > 0:
+        raise InputError(None, f"--time-limit must be > 0, got {time_limit}")
+    system = load_system(system_path)
+    fixed = None
+    if settings is not None:
+        if problem != 2:
+            raise InputError(None, "--settings applies to Problem 2 (Problem 1 chooses the settings)")
+        fixed = parse_settings(system, settings, resolution)
+    try:
+        plan = run(system, problem, method, resolution=resolution, settings=fixed, time_limit=time_limit)
+    except ValueError as exc:  # a model that cannot be evaluated (e.g. a curve off its domain)
+        raise InputError(system_path, str(exc)) from None
+    if out_path is not None:
+        plan.save(out_path)
+    if as_json:
+        print(json.dumps(plan.to_dict(), indent=2))
+    if plan.status == "infeasible":
+        raise InputError(system_path, f"infeasible: {plan.reason}")
+    print_plan(err if as_json else out, plan)
+    if out_path is not None and not as_json:
+        out.print(f"plan written to {out_path}", highlight=False)
