@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Annotated
 
 import typer
 from rich.console import Console
@@ -83,15 +84,16 @@ def print_plan(console: Console, plan: Plan) -> None:
 
 @command("solve")
 def solve(
-    system_path: Path = typer.Argument(..., metavar="SYSTEM_OR_MODEL", help="system.yaml or model.json"),
-    problem: int = typer.Option(1, "--problem", "-p", help="1: maximise Σ w·P; 2: minimise server capacity"),
-    method: str = typer.Option("greedy", "--method", "-m", help="greedy | greedy+ | exact | bruteforce"),
-    out_path: Path | None = typer.Option(None, "--out", "-o", help="write plan.json here"),
-    as_json: bool = typer.Option(False, "--json", help="print the plan JSON (only) on stdout"),
-    resolution: float = typer.Option(1.0, "--resolution", help="CPU step of a curve's choices"),
-    settings: str | None = typer.Option(None, "--settings",
-                                        help="Problem 2: plan.json, or node=value,... (parameter values) / node=cpu:U"),
-    time_limit: float | None = typer.Option(None, "--time-limit", help="exact: stop after S seconds (best plan, status feasible)"),
+    system_path: Annotated[Path, typer.Argument(metavar="SYSTEM_OR_MODEL", help="system.yaml or model.json")],
+    problem: Annotated[int, typer.Option("--problem", "-p", help="1: maximise Σ w·P; 2: minimise server capacity")] = 1,
+    method: Annotated[str, typer.Option("--method", "-m", help="greedy | greedy+ | exact | bruteforce")] = "greedy",
+    out_path: Annotated[Path | None, typer.Option("--out", "-o", help="write plan.json here")] = None,
+    as_json: Annotated[bool, typer.Option("--json", help="print the plan JSON (only) on stdout")] = False,
+    resolution: Annotated[float, typer.Option("--resolution", help="CPU step of a curve's choices")] = 1.0,
+    settings: Annotated[str | None, typer.Option(
+        "--settings", help="Problem 2: plan.json, or node=value,... (parameter values) / node=cpu:U")] = None,
+    time_limit: Annotated[float | None, typer.Option(
+        "--time-limit", help="exact: stop after S seconds (best plan, status feasible)")] = None,
 ) -> None:
     """Choose a setting and a computer for every node (the paper's Problems 1 and 2)."""
     from perfros_bag.solve import METHODS
