@@ -1,0 +1,29 @@
+"""``perfros-bag report``: one HTML page (and PNGs) from whatever outputs are given."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.markup import escape
+
+from perfros_bag.cli._app import command, err
+
+
+@command("report")
+def report(
+    out_dir: Annotated[Path, typer.Option("--out", help="Directory for index.html and its PNGs.")],
+    characterisation: Annotated[Path | None, typer.Option(
+        "--characterisation", help="characterisation.csv from characterise.")] = None,
+    model: Annotated[Path | None, typer.Option("--model", help="model.json from fit (regression plots).")] = None,
+    plan: Annotated[Path | None, typer.Option("--plan", help="plan.json from solve.")] = None,
+    validation: Annotated[Path | None, typer.Option(
+        "--validation", help="The JSON of validate --json.")] = None,
+) -> None:
+    """Write an HTML report; anything not given is left out."""
+    from perfros_bag.report import build_report
+
+    index = build_report(out_dir, characterisation=characterisation, model=model, plan=plan,
+                         validation=validation)
+    err.print(f"wrote {escape(str(index))}", highlight=False)
