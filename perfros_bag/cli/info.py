@@ -1,0 +1,62 @@
+"""``perfros-bag info RECORDING``: per-topic counts, rates and bandwidth of one recording."""
+
+from __future__ import annotations
+
+import json
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from perfros_bag.cli._app import command, err, out
+
+
+def _utc(ns: int | None) -> str:
+    if ns is None:
+        return "-"
+    return datetime.fromtimestamp(ns / 1e9, tz=UTC).strftime("%Y-%m-%d %H:%M:%S.%f")[:-3] + " UTC"
+
+
+@command("info")
+def info(
+    recording: Annotated[Path, typer.Argument(help="A .bag, .mcap or .db3 file or a rosbag2 directory.")],
+    as_json: Annotated[bool, typer.Option("--json", help="Print the perfros-bag/info@1 JSON document on stdout.")] = False,
+    slow: Annotated[bool, typer.Option("--slow", help="Stream every record instead of reading the indexes (same numbers, slower).")] = False,
+) -> None:
+    """Per-topic table like `rosbag info` / `ros2 bag info`, with rates and bandwidth."""
+    from rich.console import Console
+    from rich.table import Table
+
+    from perfros_bag.ingest import read_recording
+    from perfros_bag.ingest.document import recording_document
+
+    rec = read_recording(recording, fast=not slow)
+    doc = recording_document(rec)
+    if as_json:
+        print(json.dumps(doc, indent=2))
+        return
+    # piped output is not cut to 80 columns: the table is for reading and for grep
+    console = out if out.is_terminal else Console(width=240, highlight=False)
+    console.print(f"[bold]path[/]:      {rec.path}\n[bold]format[/]:    {rec.format}\n"
+                  f"[bold]start[/]:     {_utc(rec.start_ns)}\n[bold]end[/]:       {_utc(rec.end_ns)}\n"
+                  f"[bold]duration[/]:  {doc['duration_s']:.3f} s\n"
+                  f"[bold]messages[/]:  {rec.messages}   [bold]payload[/]: {doc['bytes']} bytes",
+                  highlight=False)
+    table = Table(show_edge=False, header_style="bold")
+    for name, justify in [("topic", "left"), ("type", "left"), ("msgs", "right"), ("freq Hz", "right"),
+                          ("median Hz", "right"), ("p95 gap s", "right"), ("kB/s", "right"),
+                          ("first s", "right"), ("last s", "right"), ("publishers", "left")]:
+        table.add_column(name, justify=justify, no_wrap=name != "publishers")  # type: ignore[arg-type]
+    start = rec.start_ns or 0
+
+    def rel(ns: int | None) -> str:
+        return "-" if ns is None else f"{(ns - start) / 1e9:.3f}"
+
+    for t in rec.topics.values():
+        table.add_row(t.topic, t.msgtype, str(t.messages), f"{t.frequency_hz:.3f}",
+                      f"{t.median_rate_hz:.3f}", f"{t.p95_gap_s:.4f}", f"{t.bandwidth_kBps:.3f}",
+                      rel(t.first_ns), rel(t.last_ns), ", ".join(t.publishers))
+    console.print(table)
+    if not rec.topics:
+        err.print("(no topics)")
