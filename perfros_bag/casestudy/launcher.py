@@ -275,7 +275,7 @@ def run_plan(system: System, plan: Plan, out: Path, cfg: RunConfig, *,
     if not Path("/usr/bin/python3").exists():
         raise PerfrosError("/usr/bin/python3 not found (rospy runs under Debian's python3)")
     out.mkdir(parents=True, exist_ok=True)
-    for stale in ("run.bag", "run.bag.active", "run.cpu.csv", "run.json", "manifest.yaml"):
+    for stale in ("run.bag", "run.bag.active", "run.cpu.csv", "run.host.cpu.csv", "run.json", "manifest.yaml"):
         (out / stale).unlink(missing_ok=True)
     note = progress or (lambda stage, done, total: None)
     calib = cfg.calibration or measure_calibration(units_per_core=cfg.units_per_core, headroom=cfg.headroom)
@@ -307,7 +307,7 @@ def run_plan(system: System, plan: Plan, out: Path, cfg: RunConfig, *,
                   for ln in launches},
     }
     bag = out / "run.bag"
-    trace = out / "run.cpu.csv"
+    trace = out / "run.host.cpu.csv"
     topics = sorted({t for ln in launches for t in ln.publishes})
     ok = False
     try:
@@ -381,6 +381,9 @@ def run_plan(system: System, plan: Plan, out: Path, cfg: RunConfig, *,
         raise PerfrosError(f"rosbag record did not write {bag} (see {out / 'rosbag.log'})")
     if ok:
         record["loads"] = measured_loads(trace, launches, cfg.units_per_core, cores)
+        if trace.exists():
+            emulated_trace(trace, out / "run.cpu.csv", {ln.name: ln.computer for ln in launches},
+                           {c: n * cfg.units_per_core for c, n in cores.items()}, cfg.units_per_core)
         _write_outputs(out, record, system, plan, launches, system_path)
     return record
 
@@ -419,6 +422,32 @@ def measured_loads(trace: Path, launches: list[NodeLaunch], units_per_core: floa
             "nodes": {n: mean(d) for n, d in node_time.items()}}
 
 
+def emulated_trace(raw: Path, dest: Path, where: dict[str, str], capacity: dict[str, float],
+                   units_per_core: float) -> None:
+    """Rewrite the host's psutil trace for the emulated computers.
+
+    The contract normalises a trace as ``cpu_percent / (100 N) * R`` (N = the host's logical
+    CPUs, R = the computer's capacity). An emulated computer of capacity R is
+    ``R / units_per_core`` cores, so each row of a node on it is scaled by
+    ``N * units_per_core / R``: then the contract's formula gives
+    ``cpu_percent / 100 * units_per_core`` CPU units, as it should. Rows of processes that
+    are not plan nodes are dropped. The raw trace stays beside it (``run.host.cpu.csv``).
+    """
+    from perfros_bag.ingest.cputrace import read_cpu_trace, write_cpu_trace
+
+    tr = read_cpu_trace(raw)
+    rows = []
+    for t, pid, label, proc, cpu, rss in zip(tr.time.tolist(), tr.pid.tolist(), tr.node, tr.process,
+                                             tr.cpu_percent.tolist(), tr.rss_bytes.tolist(), strict=True):
+        comp = where.get(label)
+        if comp is None:
+            continue
+        rows.append((t, pid, label, proc, cpu * tr.logical_cpus * units_per_core / capacity[comp], rss))
+    write_cpu_trace(dest, rows, host=f"{tr.host or 'host'} (emulated computers: cpu_percent scaled by "
+                    f"N*{units_per_core:g}/capacity; raw psutil trace: {raw.name})",
+                    logical_cpus=tr.logical_cpus, interval_s=tr.interval_s or 0.5)
+
+
 def _write_outputs(out: Path, record: dict[str, Any], system: System, plan: Plan,
                    launches: list[NodeLaunch], system_path: Path | None) -> None:
     import yaml
@@ -432,3 +461,17 @@ def _write_outputs(out: Path, record: dict[str, Any], system: System, plan: Plan
     manifest["recordings"] = [entry]
     atomic_write_text(out / "manifest.yaml", yaml.safe_dump(manifest, sort_keys=False))
     atomic_write_json(out / "run.json", record)
+
+
+def kill_stale(run_id: str | None = None) -> list[int]:
+    """SIGKILL every live process of a case-study run (for ``casestudy cleanup``)."""
+    import psutil
+
+    pids = leftover_processes(run_id)
+    for pid in pids:
+        with contextlib.suppress(psutil.Error):
+            psutil.Process(pid).kill()
+    for pid in pids:
+        with contextlib.suppress(psutil.Error):
+            psutil.Process(pid).wait(2.0)
+    return pids
