@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
+from rich import box
 from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
@@ -21,9 +22,11 @@ def _f(x: float | None, fmt: str = ".3g") -> str:
 
 def render(v: Validation, console: Console) -> None:
     """The validation as rich tables."""
-    t = Table(title="eq 10 per node: P_measured = P_expected x F_measured / F_expected")
-    for col in ("node", "computer", "topic", "F exp (Hz)", "F meas (Hz)", "ratio", "P exp", "P meas", "dev %"):
-        t.add_column(col, justify="left" if col in ("node", "computer", "topic") else "right")
+    t = Table(title="eq 10 per node: P_meas = P_exp x F_meas / F_exp (F in Hz)",
+              box=box.SIMPLE_HEAD, pad_edge=False, collapse_padding=True)
+    for col in ("node", "computer", "topic", "F exp", "F meas", "ratio", "P exp", "P meas", "dev%"):
+        text = col in ("node", "computer", "topic")
+        t.add_column(col, justify="left" if text else "right", overflow="fold", no_wrap=not text)
     for n in v.nodes:
         first = True
         rows: list[TopicCheck | None] = list(n.topics) or [None]
@@ -37,7 +40,7 @@ def render(v: Validation, console: Console) -> None:
             t.add_row(
                 escape(n.node) if first else "", escape(n.computer) if first else "", topic,
                 _f(None if tc is None else tc.f_expected), _f(None if tc is None else tc.f_measured),
-                _f(None if tc is None else tc.ratio, ".4f"),
+                _f(None if tc is None else tc.ratio, ".3f"),
                 _f(n.p_expected) if first else "", _f(n.p_measured) if first else "",
                 dev if first else "",
             )
