@@ -1,0 +1,381 @@
+"""``greedy+``: the paper's greedy followed by local search until no move improves.
+
+Problem 1 (maximise Σ w·P). For a fixed placement the best settings of the nodes on one
+computer are a multiple-choice knapsack, solved exactly by dynamic programming over CPU
+units (:func:`best_settings`); that covers "re-upgrade with freed capacity" and
+"downgrade one node to upgrade another". The moves are then: re-optimise one computer's
+settings; relocate a coresidence group to another computer; swap two groups between
+computers; each evaluated with the knapsack optimum of the two computers involved, the
+best improving one applied (and kept only if CPU and bandwidth still hold), until none
+improves. A last pass of Algorithm 2 uses any capacity left.
+
+Problem 2 (minimise server capacity): move groups from servers to robots where they fit,
+and swap a group on a robot for a larger one on a server, until no move improves.
+
+When the greedy finds no plan, a bounded depth-first search for any feasible placement
+(most constrained group first) gives the local search a start.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+
+import numpy as np
+
+from perfros_bag.model import Choice, System
+from perfros_bag.plan import Plan, infeasible_plan
+from perfros_bag.solve.greedy import run_greedy, upgrade
+from perfros_bag.solve.state import EPS, State
+
+MAX_ROUNDS = 500
+DP_CELLS = 200_000
+SEARCH_BUDGET = 20_000
+
+
+def solve_greedy_plus(system: System, problem: int, choices: dict[str, list[Choice]]) -> Plan:
+    state, reason = run_greedy(system, problem, choices)
+    if reason is not None:
+        found = feasible_start(system, problem, choices)
+        if found is None:
+            return infeasible_plan(problem, "greedy+", reason, system=system.source)
+        state = found
+        if problem == 1:
+            upgrade(state, [n for n in state.nodes if len(state.ladder[n]) > 1])
+    if problem == 2:
+        improve_p2(state)
+    else:
+        Improver(state).run()
+    return state.plan("greedy+")
+
+
+# ---- a feasible start when the greedy fails -------------------------------------------
+def feasible_start(system: System, problem: int, choices: dict[str, list[Choice]]) -> State | None:
+    """Any feasible placement at the lowest settings (bounded depth-first search)."""
+    state = State(system, problem, choices)
+    if problem == 2:
+        for c in state.computers:
+            state.cap[c] = state.maxcap[c]
+    order = sorted(range(len(state.groups)), key=lambda gi: (len(state.group_allowed[gi]), -state.group_cpu(gi), gi))
+    budget = [SEARCH_BUDGET]
+
+    def dfs(i: int) -> bool:
+        if i == len(order):
+            return True
+        gi = order[i]
+        for c in sorted(state.group_allowed[gi], key=lambda c: (-state.free(c), state.computers.index(c))):
+            budget[0] -= 1
+            if budget[0] < 0:
+                return False
+            if state.move_group(gi, c) is None:
+                if dfs(i + 1):
+                    return True
+                state.move_group(gi, None)
+        return False
+
+    return state if dfs(0) else None
+
+
+# ---- Problem 1 ------------------------------------------------------------------------
+def _grid_scale(state: State) -> float | None:
+    """A factor that makes every CPU value an integer (None: none small enough)."""
+    cpus = [ch.cpu for lad in state.ladder.values() for ch in lad]
+    biggest = max((state.cap[c] for c in state.computers), default=0.0)
+    for scale in (1, 2, 4, 5, 10, 20, 50, 100):
+        if biggest * scale > DP_CELLS:
+            return None
+        if all(abs(u * scale - round(u * scale)) < 1e-6 for u in cpus):
+            return float(scale)
+    return None
+
+
+Plan_ = dict[str, list[str]]  # computer -> the nodes it would hold
+
+
+class Improver:
+    """Best-improvement local search over relocations and swaps of coresidence groups, each
+    computer's value being its best settings (Problem 1) or minus its server load (Problem 2).
+    When no single move improves, the groups of every pair of computers are redistributed
+    between them (all splits, when at most :data:`REPARTITION` groups could go either way);
+    then a pair of moves (the first among the best :data:`DEPTH2` single moves) is tried.
+
+    Problem 1 values come from knapsack tables: ``table(c, S)[x]`` is the best Σ w·P of the
+    nodes ``S`` within ``x`` CPU (on the integer grid), so adding a node to a known table
+    costs one maximum over its levels."""
+
+    DEPTH2 = 4
+    REPARTITION = 10
+
+    def __init__(self, state: State) -> None:
+        self.s = state
+        self.scale = _grid_scale(state) if state.problem == 1 else None
+        self.tables: dict[tuple[str, frozenset[str]], np.ndarray] = {}
+        self.items: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+        self.values: dict[tuple[str, frozenset[str]], float] = {}
+        if self.scale is not None:
+            for n in state.nodes:
+                lad = state.ladder[n]
+                self.items[n] = (np.array([int(round(ch.cpu * self.scale)) for ch in lad]),
+                                 np.array([state.weight[n] * ch.performance for ch in lad]))
+
+    # ---- values --------------------------------------------------------------------
+    def _cap(self, comp: str) -> int:
+        assert self.scale is not None
+        return int(math.floor(self.s.cap[comp] * self.scale + 1e-6))
+
+    def table(self, comp: str, nodes: frozenset[str]) -> np.ndarray:
+        key = (comp, nodes)
+        t = self.tables.get(key)
+        if t is None:
+            if not nodes:
+                t = np.zeros(self._cap(comp) + 1)
+            else:
+                last = max(nodes, key=self.s.order.__getitem__)
+                t = _combine(self.table(comp, nodes - {last}), *self.items[last])[0]
+            self.tables[key] = t
+        return t
+
+    def value(self, comp: str, base: Iterable[str], extra: Iterable[str] = ()) -> float:
+        """The best value of ``base`` + ``extra`` on ``comp`` (-inf: they do not fit)."""
+        s = self.s
+        nodes = frozenset(base)
+        more = [n for n in extra if n not in nodes]
+        key = (comp, nodes | frozenset(more))
+        hit = self.values.get(key)
+        if hit is not None:
+            return hit
+        if s.problem == 2 or self.scale is None:
+            ordered = sorted(key[1], key=s.order.__getitem__)
+            if s.problem == 2:
+                load = sum(s.ladder[n][0].cpu for n in ordered)
+                fits = load <= s.cap[comp] + EPS * max(1.0, s.cap[comp])
+                v = (-load if s.kind[comp] == "server" else 0.0) if fits else -math.inf
+            else:
+                v = _marginal(s, s.cap[comp], ordered)[0]
+        else:
+            t = self.table(comp, nodes)
+            for n in more[:-1]:
+                t = _combine(t, *self.items[n])[0]
+            if more:
+                us, vs = self.items[more[-1]]
+                ok = us <= len(t) - 1
+                v = float(np.max(t[len(t) - 1 - us[ok]] + vs[ok])) if ok.any() else -math.inf
+            else:
+                v = float(t[-1])
+        self.values[key] = v
+        return v
+
+    def levels(self, comp: str, nodes: list[str]) -> dict[str, int]:
+        s = self.s
+        ordered = sorted(nodes, key=s.order.__getitem__)
+        if s.problem == 2:
+            return dict.fromkeys(ordered, 0)
+        return best_settings(s, s.cap[comp], ordered, self.scale)[1]
+
+    def current(self, nodes: Iterable[str]) -> float:
+        s = self.s
+        if s.problem == 2:
+            return -sum(s.cpu(n) for n in nodes if s.kind[s.place[n] or ""] == "server")
+        return sum(s.weight[n] * s.choice(n).performance for n in nodes)
+
+    # ---- search --------------------------------------------------------------------
+    def run(self) -> None:
+        s = self.s
+        for _ in range(MAX_ROUNDS):
+            if not self._step():
+                break
+        if s.problem == 1:
+            upgrade(s, [n for n in s.nodes if len(s.ladder[n]) > 1])
+
+    def _apply(self, plan: Plan_) -> bool:
+        """Place nodes on computers at their best levels there, in one checked change."""
+        changes: dict[str, tuple[str | None, int]] = {}
+        for comp, nodes in plan.items():
+            for n, lvl in self.levels(comp, nodes).items():
+                changes[n] = (comp, lvl)
+        return self.s.change(changes) is None
+
+    def moves(self) -> list[tuple[float, int, Plan_]]:
+        """Every settings re-optimisation, relocation and swap with its gain, best first."""
+        s = self.s
+        on = {c: s.on(c) for c in s.computers}
+        cur = {c: self.current(on[c]) for c in s.computers}
+        out: list[tuple[float, int, Plan_]] = []
+        if s.problem == 1:
+            for c in s.computers:
+                out.append((self.value(c, on[c]) - cur[c], len(out), {c: on[c]}))
+        groups_on = {c: sorted({s.group_of[n] for n in on[c]}) for c in s.computers}
+        for src in s.computers:
+            for gi in groups_on[src]:
+                g = s.groups[gi]
+                rest = [n for n in on[src] if n not in g]
+                v_src = self.value(src, rest)
+                if v_src == -math.inf:
+                    continue
+                for dst in s.group_allowed[gi]:
+                    if dst != src:
+                        v_dst = self.value(dst, on[dst], g)
+                        if v_dst != -math.inf:
+                            out.append((v_src + v_dst - cur[src] - cur[dst], len(out),
+                                        {src: rest, dst: on[dst] + list(g)}))
+        comps = s.computers
+        for i, a in enumerate(comps):
+            for b in comps[i + 1:]:
+                for ga in groups_on[a]:
+                    if b not in s.group_allowed[ga]:
+                        continue
+                    rest_a = [n for n in on[a] if s.group_of[n] != ga]
+                    for gb in groups_on[b]:
+                        if a not in s.group_allowed[gb]:
+                            continue
+                        rest_b = [n for n in on[b] if s.group_of[n] != gb]
+                        va = self.value(a, rest_a, s.groups[gb])
+                        if va == -math.inf:
+                            continue
+                        vb = self.value(b, rest_b, s.groups[ga])
+                        if vb != -math.inf:
+                            out.append((va + vb - cur[a] - cur[b], len(out),
+                                        {a: rest_a + list(s.groups[gb]), b: rest_b + list(s.groups[ga])}))
+        out.sort(key=lambda m: (-m[0], m[1]))
+        return out
+
+    def _step(self) -> bool:
+        s = self.s
+        moves = self.moves()
+        for gain, _, plan in moves:
+            if gain <= 1e-9:
+                break
+            if self._apply(plan):
+                return True
+        if self._repartition():
+            return True
+        before = self.current(s.nodes)
+        tried = 0
+        for gain, _, plan in moves:
+            if tried >= self.DEPTH2:
+                break
+            if abs(gain) <= 1e-9 and len(plan) == 2:
+                continue  # most likely two identical nodes swapped
+            snap = s.snapshot()
+            if not self._apply(plan):
+                continue
+            tried += 1
+            for gain2, _, plan2 in self.moves():
+                if gain2 <= 1e-9:
+                    break
+                if gain + gain2 > 1e-9 and self._apply(plan2):
+                    if self.current(s.nodes) > before + 1e-9:
+                        return True
+                    break
+            s.restore(snap)
+        return False
+
+    def _repartition(self) -> bool:
+        """The best split of two computers' groups between them, applied when it improves."""
+        s = self.s
+        on = {c: s.on(c) for c in s.computers}
+        best: tuple[float, Plan_] | None = None
+        for i, a in enumerate(s.computers):
+            for b in s.computers[i + 1:]:
+                groups = sorted({s.group_of[n] for n in on[a] + on[b]})
+                both = [gi for gi in groups if a in s.group_allowed[gi] and b in s.group_allowed[gi]]
+                if not both or len(both) > self.REPARTITION:
+                    continue
+                fixed_a = [n for n in on[a] if s.group_of[n] not in both]
+                fixed_b = [n for n in on[b] if s.group_of[n] not in both]
+                cur = self.current(on[a] + on[b])
+                side_a = self._subset_values(a, fixed_a, both)
+                side_b = self._subset_values(b, fixed_b, both)
+                full = (1 << len(both)) - 1
+                for mask in range(full + 1):
+                    gain = side_a[mask] + side_b[full ^ mask] - cur
+                    if gain > 1e-9 and (best is None or gain > best[0] + 1e-12):
+                        na = fixed_a + [n for j, gi in enumerate(both) if mask >> j & 1 for n in s.groups[gi]]
+                        nb = fixed_b + [n for j, gi in enumerate(both) if not mask >> j & 1 for n in s.groups[gi]]
+                        best = (gain, {a: na, b: nb})
+        return best is not None and self._apply(best[1])
+
+    def _subset_values(self, comp: str, fixed: list[str], groups: list[int]) -> list[float]:
+        """The value on ``comp`` of ``fixed`` plus each subset (bit mask) of ``groups``."""
+        s = self.s
+        k = len(groups)
+        if s.problem == 2 or self.scale is None:
+            return [self.value(comp, fixed, [n for j, gi in enumerate(groups) if m >> j & 1 for n in s.groups[gi]])
+                    for m in range(1 << k)]
+        tabs: list[np.ndarray] = [self.table(comp, frozenset(fixed))]
+        for m in range(1, 1 << k):
+            low = (m & -m).bit_length() - 1
+            t = tabs[m & (m - 1)]
+            for n in s.groups[groups[low]]:
+                t = _combine(t, *self.items[n])[0]
+            tabs.append(t)
+        return [float(t[-1]) for t in tabs]
+
+
+def _combine(table: np.ndarray, us: np.ndarray, vs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Add one node (levels of CPU ``us`` and value ``vs``) to a knapsack table: the new
+    table and, per budget, the level chosen (the cheapest among equals)."""
+    size = len(table)
+    pad = int(us.max())
+    padded = np.concatenate([np.full(pad, -np.inf), table])
+    idx = pad + np.arange(size)[None, :] - us[:, None]
+    grid = padded[idx] + vs[:, None]
+    arg = np.argmax(grid, axis=0)
+    return grid[arg, np.arange(size)], arg
+
+
+def best_settings(state: State, capacity: float, nodes: list[str], scale: float | None) -> tuple[float, dict[str, int]]:
+    """The best Σ w·P of ``nodes`` on one computer of ``capacity`` and their levels
+    (-inf when even the lowest settings do not fit). Exact on the integer grid ``scale``;
+    without one, Algorithm 2's marginal rule on this computer alone."""
+    if scale is None:
+        return _marginal(state, capacity, nodes)
+    size = int(math.floor(capacity * scale + 1e-6)) + 1
+    table = np.zeros(size)
+    steps: list[tuple[str, np.ndarray, np.ndarray]] = []
+    for n in nodes:
+        lad = state.ladder[n]
+        us = np.array([int(round(ch.cpu * scale)) for ch in lad])
+        vs = np.array([state.weight[n] * ch.performance for ch in lad])
+        table, arg = _combine(table, us, vs)
+        steps.append((n, us, arg))
+    if not np.isfinite(table[-1]):
+        return -math.inf, {}
+    levels: dict[str, int] = {}
+    x = size - 1
+    for n, us, arg in reversed(steps):
+        k = int(arg[x])
+        levels[n] = k
+        x -= int(us[k])
+    return float(table[-1]), levels
+
+
+def _marginal(state: State, capacity: float, nodes: list[str]) -> tuple[float, dict[str, int]]:
+    levels = dict.fromkeys(nodes, 0)
+    used = sum(state.ladder[n][0].cpu for n in nodes)
+    if used > capacity + EPS:
+        return -math.inf, {}
+    while True:
+        best: tuple[float, int, str] | None = None
+        for n in nodes:
+            lad, k = state.ladder[n], levels[n]
+            if k + 1 < len(lad):
+                du = lad[k + 1].cpu - lad[k].cpu
+                if used + du <= capacity + EPS:
+                    g = state.weight[n] * (lad[k + 1].performance - lad[k].performance) / max(du, EPS)
+                    if best is None or g > best[0]:
+                        best = (g, state.order[n], n)
+        if best is None:
+            break
+        n = best[2]
+        used += state.ladder[n][levels[n] + 1].cpu - state.ladder[n][levels[n]].cpu
+        levels[n] += 1
+    return sum(state.weight[n] * state.ladder[n][levels[n]].performance for n in nodes), levels
+
+
+# ---- Problem 2 ------------------------------------------------------------------------
+def improve_p2(state: State) -> None:
+    for c in state.computers:
+        if state.kind[c] == "server":
+            state.cap[c] = state.maxcap[c]
+    Improver(state).run()
