@@ -104,6 +104,14 @@ def test_fast_equals_stream(name: str) -> None:
     _same(read_recording(REALBAGS / name, fast=True), read_recording(REALBAGS / name, fast=False))
 
 
+@pytest.mark.parametrize("name", GOOD)
+def test_fast_path_uses_the_index(name: str) -> None:
+    """Every indexed recording is read from its index; only index-less MCAP is streamed."""
+    indexless = any(w in SOURCES[name]["format"] for w in ("no summary", "unchunked"))
+    assert read_recording(REALBAGS / name).method == ("stream" if indexless else "index")
+    assert read_recording(REALBAGS / name, fast=False).method == "stream"
+
+
 def test_three_compressions_identical() -> None:
     base = read_recording(REALBAGS / "rosbagjs_example.bag")
     for other in ("rosbagjs_example-bz2.bag", "rosbagjs_example-lz4.bag"):

@@ -75,6 +75,9 @@ class Accumulator:
 
     def __init__(self) -> None:
         self._topics: dict[str, _Topic] = {}
+        #: how the numbers were read: "index" (fast path) or "stream"; "mixed" across files
+        self.method = "stream"
+        self._files = 0  # how many per-file accumulators were merged in by extend()
 
     def declare(self, topic: str, msgtype: str, publisher: str | None = None) -> None:
         t = self._topics.get(topic)
@@ -95,6 +98,11 @@ class Accumulator:
 
     def extend(self, other: Accumulator) -> None:
         """Add every topic of ``other`` (another file of the same recording)."""
+        if self._files == 0:
+            self.method = other.method
+        elif self.method != other.method:
+            self.method = "mixed"
+        self._files += 1
         for name, t in other._topics.items():
             self.declare(name, t.msgtype)
             mine = self._topics[name]
@@ -111,4 +119,4 @@ class Accumulator:
             times = np.sort(times, kind="stable")
             topics[name] = TopicStats(name, t.msgtype, int(times.size), t.nbytes, times,
                                       tuple(sorted(t.publishers)))
-        return RecordingStats(path, fmt, topics)
+        return RecordingStats(path, fmt, topics, self.method)

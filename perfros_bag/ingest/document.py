@@ -36,6 +36,7 @@ def recording_document(rec: RecordingStats) -> dict[str, Any]:
         "format": FORMAT,
         "path": str(rec.path),
         "recording_format": rec.format,
+        "read_method": rec.method,
         "messages": rec.messages,
         "bytes": sum(t.bytes for t in rec.topics.values()),
         "start_ns": start,

@@ -290,6 +290,8 @@ def read_fast(mm: mmap.mmap, message_zstd: bool = False) -> Accumulator:
         else:
             raw = decompress(compression, memoryview(mm)[rstart:rstart + rlen], usize)
             buf, base, blen = np.frombuffer(raw, dtype=np.uint8), 0, len(raw)
+        chunk_offs: list[I64] = []
+        chunk_ends: list[I64] = []
         for cid, ipos in ci.index_offsets.items():
             op, istart, ilen = _record(mm, ipos, size)
             if op != OP_MESSAGE_INDEX:
@@ -310,6 +312,11 @@ def read_fast(mm: mmap.mmap, message_zstd: bool = False) -> Accumulator:
             if offs.size and (int(lengths.min()) < MSG_HEADER
                               or int((offs + 9 + lengths).max()) > blen):
                 raise NoIndex("indexed message overruns its chunk")
+            chan = buf[base + offs + 9].astype(np.int64) | (buf[base + offs + 10].astype(np.int64) << 8)
+            if np.any(chan != cid):
+                raise NoIndex("message index points at another channel's message")
+            chunk_offs.append(offs)
+            chunk_ends.append(offs + 9 + lengths)
             if message_zstd:
                 nbytes = zstd_payload_sizes(buf, base + offs + 9 + MSG_HEADER, lengths - MSG_HEADER)
             else:
@@ -318,9 +325,16 @@ def read_fast(mm: mmap.mmap, message_zstd: bool = False) -> Accumulator:
                 raise NoIndex("log time out of range")
             st.add(cid, pairs[:, 0].astype(np.int64), nbytes)
             total += int(offs.size)
+        if len(chunk_offs) > 1:  # records of different channels must not overlap
+            o, e = np.concatenate(chunk_offs), np.concatenate(chunk_ends)
+            order = np.argsort(o, kind="stable")
+            if np.any(o[order][1:] < e[order][:-1]):
+                raise NoIndex("indexed message records overlap")
     if count is not None and count != total:
         raise NoIndex(f"statistics count {count} disagrees with the indexes ({total})")
-    return st.accumulator()
+    acc = st.accumulator()
+    acc.method = "index"
+    return acc
 
 
 def read(mm: mmap.mmap, fast: bool = True, message_zstd: bool = False) -> Accumulator:

@@ -164,6 +164,27 @@ def _records(buf: bytes | memoryview | mmap.mmap, pos: int, end: int) -> Iterato
         pos = rec.end
 
 
+def _message_sizes(buf: U8, base: int, offs: I64, usize: int) -> I64:
+    """``data_len`` of the message data records at chunk offsets ``offs`` (vectorised).
+
+    The records must lie inside the chunk and must not overlap: a damaged index fails here
+    rather than giving wrong byte totals.
+    """
+    if offs.size == 0:
+        return offs
+    if int(offs.min()) < 0 or int(offs.max()) + 8 > usize:
+        raise NoIndex("index offset outside its chunk")
+    hlen = gather_u32(buf, base + offs)
+    if int(hlen.max()) + int(offs.max()) + 8 > usize:
+        raise NoIndex("indexed record header overruns its chunk")
+    dlen = gather_u32(buf, base + offs + 4 + hlen)
+    ends = offs + 8 + hlen + dlen
+    order = np.argsort(offs, kind="stable")
+    if int(ends.max()) > usize or np.any(offs[order][1:] < ends[order][:-1]):
+        raise NoIndex("indexed message records overlap or overrun their chunk")
+    return dlen
+
+
 def read_fast(path: Path, mm: mmap.mmap) -> RecordingStats:
     """Counts and times from the index; payload sizes gathered at the indexed offsets."""
     _check_magic(mm)
@@ -206,7 +227,8 @@ def read_fast(path: Path, mm: mmap.mmap) -> RecordingStats:
             raw = decompress_chunk(compression, memoryview(mm)[crec.data_start:crec.end], usize)
             buf, base = np.frombuffer(raw, dtype=np.uint8), 0
         pos = crec.end
-        seen: dict[int, int] = {}
+        parts: list[tuple[int, I64, I64]] = []  # (conn, times, offsets) per index-data record
+        seen: set[int] = set()
         while len(seen) < len(expected):
             irec = read_record(mm, pos, size)
             if irec.op != OP_INDEX or _u32(irec.header, "ver") != 1:
@@ -215,25 +237,25 @@ def read_fast(path: Path, mm: mmap.mmap) -> RecordingStats:
             if cid not in accs or irec.data_len != 12 * n or expected.get(cid) != n or cid in seen:
                 raise NoIndex("index-data record disagrees with its chunk info")
             entries = np.frombuffer(mm, dtype=_IDX_DT, count=n, offset=irec.data_start)
-            offs = entries["offset"].astype(np.int64)
-            if offs.size and int(offs.max()) + 8 > usize:
-                raise NoIndex("index offset outside its chunk")
-            hlen = gather_u32(buf, base + offs)
-            dlen = gather_u32(buf, base + offs + 4 + hlen)
-            if offs.size and int((offs + 8 + hlen + dlen).max()) > usize:
-                raise NoIndex("indexed message overruns its chunk")
-            acc = accs[cid]
-            acc.times.append(entries["sec"].astype(np.int64) * 1_000_000_000
-                             + entries["nsec"].astype(np.int64))
-            acc.nbytes += int(dlen.sum())
-            seen[cid] = n
+            times = entries["sec"].astype(np.int64) * 1_000_000_000 + entries["nsec"].astype(np.int64)
+            parts.append((cid, times, entries["offset"].astype(np.int64)))
+            seen.add(cid)
             pos = irec.end
+        offs = np.concatenate([p[2] for p in parts]) if parts else np.empty(0, dtype=np.int64)
+        dlen = _message_sizes(buf, base, offs, usize)
+        k = 0
+        for cid, times, o in parts:
+            acc = accs[cid]
+            acc.times.append(times)
+            acc.nbytes += int(dlen[k:k + o.size].sum())
+            k += o.size
 
     out = Accumulator()
     for cid, conn in conns.items():
         acc = accs[cid]
         times = np.concatenate(acc.times) if acc.times else np.empty(0, dtype=np.int64)
         out.add(conn.topic, conn.msgtype, times, acc.nbytes, conn.callerid)
+    out.method = "index"
     return out.build(path, "ros1")
 
 

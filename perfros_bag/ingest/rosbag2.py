@@ -205,6 +205,7 @@ def read_sqlite(db: Path, fast: bool = True, message_zstd: bool = False) -> Accu
     for tid, (name, mtype) in topics.items():
         mask = tids == tid
         acc.add(name, mtype, times[mask], int(sizes[mask].sum()))
+    acc.method = "index" if fast else "stream"
     return acc
 
 

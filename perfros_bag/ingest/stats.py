@@ -84,6 +84,9 @@ class RecordingStats:
     path: Path
     format: str  # "ros1", "rosbag2-sqlite3", "rosbag2-mcap", "mcap"
     topics: dict[str, TopicStats] = field(default_factory=dict)
+    #: how the readers got the numbers: "index" (fast path: index records / one SQL pass),
+    #: "stream" (every record walked), "mixed" (files of one rosbag2 recording differ); "" unknown
+    method: str = ""
 
     @property
     def messages(self) -> int:
