@@ -344,7 +344,7 @@ def _fit_node(node: Node, measured: list[Measured], raw: dict[str, Any], warn: _
     curve, notes = solver_curve(fits["cpu->performance"], fits["parameter->cpu"],
                                 max(p[2] for p in rated if p[2] is not None))
     for note in notes:
-        warn(f"{who}: cpu->performance: {note}")
+        warn(f"{who}: solver's CPU range: {note}")
     extra = fits["cpu->performance"].warnings + tuple(notes)
     fits["cpu->performance"] = _with_warnings(fits["cpu->performance"], extra)
     raw["curve"] = curve.to_dict()
@@ -359,28 +359,28 @@ def _with_warnings(fit: Fit, notes: tuple[str, ...]) -> Fit:
 
 
 def solver_curve(c2p: Fit, p2c: Fit, max_perf: float) -> tuple[Curve, list[str]]:
-    """The node's CPU -> performance curve for the solvers: the fitted curve on the CPU
-    range where (a) the parameter -> CPU fit has an inverse inside the measured parameter
-    range, (b) performance stays within [0, max observed], (c) the ends are whole CPU
-    units (rounded inwards, when that leaves at least one unit)."""
+    """The node's CPU -> performance curve for the solvers: the fitted curve on the measured
+    CPU range, narrowed where its performance leaves [0, max observed], with whole-CPU-unit
+    ends (rounded inwards, when that leaves at least one unit). CPU levels the
+    parameter -> CPU fit does not reach from inside the measured parameter range map to
+    that range's end (a note says so when that spans more than one CPU unit)."""
     notes: list[str] = []
-    lo, hi = c2p.domain
-    pc = p2c.curve
-    img = sorted((pc(p2c.domain[0]), pc(p2c.domain[1])))
-    if img[0] < hi and img[1] > lo and (img[0] > lo or img[1] < hi):
-        new_lo, new_hi = max(lo, img[0]), min(hi, img[1])
-        if new_lo - lo > 1 or hi - new_hi > 1:
-            notes.append(f"solver's CPU range narrowed from [{lo:.4g}, {hi:.4g}] to [{new_lo:.4g}, {new_hi:.4g}], "
-                         f"where the parameter->cpu fit maps back into [{p2c.domain[0]:g}, {p2c.domain[1]:g}]")
-        lo, hi = new_lo, new_hi
-    curve = Curve(c2p.form, c2p.coef, (lo, hi), c2p.scale)
-    curve, msg = clip_domain(curve, 0.0, max_perf)
+    curve, msg = clip_domain(c2p.curve, 0.0, max_perf)
     if msg:
-        notes.append(msg)
+        notes.append(f"cpu->performance {msg}")
     lo, hi = curve.domain
     ilo, ihi = math.ceil(lo - 1e-9), math.floor(hi + 1e-9)
     if ihi - ilo >= 1 and ilo > 0:
         lo, hi = float(ilo), float(ihi)
+    pc = p2c.curve
+    ends = sorted(((pc(p2c.domain[0]), p2c.domain[0]), (pc(p2c.domain[1]), p2c.domain[1])))
+    (img_lo, v_lo), (img_hi, v_hi) = ends
+    if img_lo - lo > 1:
+        notes.append(f"CPU levels [{lo:g}, {img_lo:.4g}] all map to parameter value {v_lo:g} "
+                     f"(the parameter->cpu fit gives {img_lo:.4g} there)")
+    if hi - img_hi > 1:
+        notes.append(f"CPU levels [{img_hi:.4g}, {hi:g}] all map to parameter value {v_hi:g} "
+                     f"(the parameter->cpu fit gives {img_hi:.4g} there)")
     return Curve(curve.form, curve.coef, (lo, hi), curve.scale), notes
 
 

@@ -37,6 +37,10 @@ R2_WARN = 0.9
 #: points whose range is below this fraction of their mean are "constant": R² says nothing
 #: about them (it only measures noise), so no R² warning.
 FLAT_SPREAD = 0.05
+#: a simpler form is preferred when its leave-one-out RMSE is within this fraction of the best.
+PARSIMONY = 0.05
+#: a power form's exponent beyond this is treated as a failed fit (overflow territory).
+_MAX_EXPONENT = 50.0
 #: how many points the monotonicity check samples on a domain.
 _GRID = 513
 
@@ -96,40 +100,73 @@ def _features(form: str, x: FloatArray) -> FloatArray:
 
 def fit_form(form: str, x: Sequence[float] | FloatArray, y: Sequence[float] | FloatArray) -> tuple[float, ...]:
     """Least-squares coefficients of ``form`` (in :class:`Curve` order) for points (x, y),
-    x already divided by the scale."""
+    x already divided by the scale: scikit-learn's ``LinearRegression`` on the transformed
+    features (power: on logs, then refined by Gauss-Newton in the original space)."""
     from sklearn.linear_model import LinearRegression
 
     xa = np.asarray(x, dtype=float)
     ya = np.asarray(y, dtype=float)
     if form == "power":
         reg = LinearRegression().fit(_features(form, xa), np.log(ya))
-        a, b = float(math.exp(reg.intercept_)), float(reg.coef_[0])
-        return _refine_power(xa, ya, a, b)
+        return _power_start(xa, ya, float(reg.intercept_), float(reg.coef_[0]))
     reg = LinearRegression().fit(_features(form, xa), ya)
     coefs = [float(c) for c in reg.coef_]
     return (*coefs, float(reg.intercept_))
 
 
+def _lstsq_form(form: str, x: FloatArray, y: FloatArray) -> tuple[float, ...]:
+    """The same fit as :func:`fit_form` with numpy alone (leave-one-out refits: no
+    scikit-learn overhead per fold)."""
+    feats = _features(form, x)
+    design = np.column_stack([feats, np.ones(len(x))])
+    target = np.log(y) if form == "power" else y
+    sol = np.linalg.lstsq(design, target, rcond=None)[0]
+    if form == "power":
+        return _power_start(x, y, float(sol[1]), float(sol[0]))
+    return tuple(float(v) for v in sol)
+
+
+def _power_start(x: FloatArray, y: FloatArray, log_a: float, b: float) -> tuple[float, float]:
+    """Refine the log-space solution; NaNs when it is out of floating-point range."""
+    if not (math.isfinite(log_a) and math.isfinite(b)) or abs(log_a) > 700 or abs(b) > _MAX_EXPONENT:
+        return math.nan, math.nan
+    return _refine_power(x, y, math.exp(log_a), b)
+
+
 def _refine_power(x: FloatArray, y: FloatArray, a: float, b: float) -> tuple[float, float]:
-    """Least squares in the original space (the log-space fit weighs small y too much)."""
-    try:
-        from scipy.optimize import least_squares
-    except ImportError:  # pragma: no cover - scipy comes with scikit-learn
-        return a, b
+    """Least squares of a*x**b in the original space (the log-space fit weighs small y too
+    much): Gauss-Newton with step halving from the log-space solution."""
+    lx = np.log(x)
 
-    def resid(p: FloatArray) -> FloatArray:
-        return np.asarray(p[0] * x ** p[1] - y, dtype=float)
-
-    try:
+    def sse(pa: float, pb: float) -> float:
         with np.errstate(all="ignore"):
-            res = least_squares(resid, np.array([a, b]), method="lm" if len(x) > 2 else "trf")
-    except (ValueError, FloatingPointError):
-        return a, b
-    pa, pb = (float(v) for v in res.x)
-    if not (math.isfinite(pa) and math.isfinite(pb)):
-        return a, b
-    old = float(np.sum(resid(np.array([a, b])) ** 2))
-    return (pa, pb) if float(np.sum(res.fun ** 2)) <= old else (a, b)
+            r = pa * x ** pb - y
+            v = float(np.sum(r * r))
+        return v if math.isfinite(v) else math.inf
+
+    cur = sse(a, b)
+    for _ in range(50):
+        with np.errstate(all="ignore"):
+            xb = x ** b
+            jac = np.column_stack([xb, a * xb * lx])
+            resid = a * xb - y
+        if not (np.all(np.isfinite(jac)) and np.all(np.isfinite(resid))):
+            break
+        step = np.linalg.lstsq(jac, -resid, rcond=None)[0]
+        t = 1.0
+        while t > 1e-6:
+            na, nb = a + t * float(step[0]), b + t * float(step[1])
+            new = sse(na, nb)
+            if new < cur:
+                break
+            t /= 2
+        else:
+            break
+        improved = cur - new
+        a, b, cur = na, nb, new
+        if improved <= 1e-14 * max(1.0, cur):
+            break
+    return a, b
 
 
 def predict(form: str, coef: Sequence[float], x: Sequence[float] | FloatArray) -> FloatArray:
@@ -162,7 +199,7 @@ def loo_rmse(form: str, x: FloatArray, y: FloatArray) -> float:
     idx = np.arange(len(x))
     for i in idx:
         keep = idx != i
-        coef = fit_form(form, x[keep], y[keep])
+        coef = _lstsq_form(form, x[keep], y[keep])
         errs.append(float(predict(form, coef, x[i:i + 1])[0] - y[i]))
     e = np.asarray(errs)
     return float(math.sqrt(float(np.mean(e * e)))) if np.all(np.isfinite(e)) else math.inf
@@ -232,6 +269,30 @@ def clip_domain(curve: Curve, lo_y: float, hi_y: float) -> tuple[Curve, str | No
 
 # --- model selection --------------------------------------------------------------------
 
+def _usable(form: str, coef: tuple[float, ...]) -> bool:
+    """Finite coefficients in a range where evaluating the curve cannot overflow."""
+    if not all(math.isfinite(c) and abs(c) < 1e15 for c in coef):
+        return False
+    return not (form == "power" and abs(coef[1]) > _MAX_EXPONENT)
+
+
+def _rank(forms: list[str], loo: dict[str, float | None]) -> list[str]:
+    """Forms by leave-one-out RMSE, except that a form with fewer coefficients whose error
+    is within :data:`PARSIMONY` of the best goes first (noise alone should not buy a
+    coefficient)."""
+    def err(f: str) -> float:
+        v = loo[f]
+        return 0.0 if v is None else v
+
+    ranked = sorted(forms, key=lambda f: (err(f), CURVE_NCOEF[f], forms.index(f)))
+    if not ranked:
+        return ranked
+    best = err(ranked[0])
+    close = [f for f in ranked if err(f) <= best * (1 + PARSIMONY) + 1e-12]
+    first = min(close, key=lambda f: (CURVE_NCOEF[f], err(f)))
+    return [first] + [f for f in ranked if f != first]
+
+
 def fit_curve(x: Sequence[float], y: Sequence[float], *, relation: str = "", scale: float = 1.0,
               forms: Sequence[str] = CURVE_FORMS, monotone: Monotone = None) -> Fit:
     """Fit every eligible form to (x, y) and keep the one with the smallest leave-one-out
@@ -262,13 +323,12 @@ def fit_curve(x: Sequence[float], y: Sequence[float], *, relation: str = "", sca
     for f in forms_ok:
         candidates[f] = loo_rmse(f, xn, ys) if n > 2 and distinct > 2 else None
 
-    ranked = sorted(forms_ok, key=lambda f: (candidates[f] if candidates[f] is not None else 0.0,
-                                             CURVE_NCOEF[f], forms_ok.index(f)))
+    ranked = _rank(forms_ok, candidates)
     chosen: tuple[str, tuple[float, ...]] | None = None
     rejected: list[str] = []
     for f in ranked:
         coef = fit_form(f, xn, ys)
-        if not all(math.isfinite(c) for c in coef):
+        if not _usable(f, coef):
             rejected.append(f"{f} (no finite fit)")
             continue
         if monotone is not None and not is_monotone(Curve(f, coef, domain, scale), monotone):
