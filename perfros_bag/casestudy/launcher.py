@@ -40,7 +40,6 @@ from perfros_bag.casestudy.profiles import (
     NodeLaunch,
     NodeProfile,
     launch_for,
-    measure_calibration,
 )
 from perfros_bag.errors import InputError, PerfrosError
 from perfros_bag.fileio import atomic_write_json, atomic_write_text
@@ -278,7 +277,7 @@ def run_plan(system: System, plan: Plan, out: Path, cfg: RunConfig, *,
     for stale in ("run.bag", "run.bag.active", "run.cpu.csv", "run.host.cpu.csv", "run.json", "manifest.yaml"):
         (out / stale).unlink(missing_ok=True)
     note = progress or (lambda stage, done, total: None)
-    calib = cfg.calibration or measure_calibration(units_per_core=cfg.units_per_core, headroom=cfg.headroom)
+    calib = cfg.calibration or Calibration(units_per_core=cfg.units_per_core, headroom=cfg.headroom)
     launches = node_launches(system, plan, calib, overrides)
     cores = computer_cores(system, plan, cfg.units_per_core)
 
@@ -302,7 +301,7 @@ def run_plan(system: System, plan: Plan, out: Path, cfg: RunConfig, *,
         "duration_s": cfg.duration, "calibration": calib.to_dict(),
         "nodes": {ln.name: {"computer": ln.computer, "parameter": ln.parameter, "value": ln.value,
                             "rate_hz": ln.rate_hz, "message_bytes": ln.message_bytes,
-                            "iterations": ln.iterations, "target_cpu": round(ln.target_cpu, 3),
+                            "work_ms": round(ln.work_ms, 4), "target_cpu": round(ln.target_cpu, 3),
                             "publishes": list(ln.publishes), "subscribes": list(ln.subscribes)}
                   for ln in launches},
     }

@@ -10,16 +10,14 @@ CPU units become real work through the calibration (:class:`Calibration`):
 ``units_per_core`` CPU units are one core (default 400: a robot of capacity 100 is a
 quarter of a core), ``headroom`` scales the work down (default 0.85: the emulated nodes
 use 85 % of Table I's CPU, so a plan that fills a robot leaves room for rospy's own
-jitter), ``overhead_s`` is the CPU a rospy cycle costs without any work (publishing,
-the rate loop; measured ~0.6 ms per cycle on the development machine), and
-``iterations_per_cpu_s`` is the busy loop's speed under ``/usr/bin/python3``
-(``casestudy_node.py --calibrate``).
+jitter), and ``overhead_s`` is the CPU a rospy cycle costs without any work (publishing,
+the rate loop; measured ~0.6 ms per cycle on the development machine). A node's work per
+cycle is ``cpu * headroom / units_per_core / rate - overhead_s`` seconds of CPU time,
+burnt on the node thread's own CPU clock (see nodes/casestudy_node.py).
 """
 
 from __future__ import annotations
 
-import json
-import subprocess
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -32,27 +30,12 @@ ROS_PYTHON = "/usr/bin/python3"
 
 @dataclass(frozen=True)
 class Calibration:
-    iterations_per_cpu_s: float
     units_per_core: float = 400.0
     headroom: float = 0.85
     overhead_s: float = 0.0006
 
     def to_dict(self) -> dict[str, float]:
         return asdict(self)
-
-
-def measure_calibration(python: str = ROS_PYTHON, *, units_per_core: float = 400.0,
-                        headroom: float = 0.85, overhead_s: float = 0.0006) -> Calibration:
-    """Time the node's busy loop under the ROS interpreter (about 2 s of CPU)."""
-    try:
-        done = subprocess.run([python, str(NODE_SCRIPT), "--calibrate"], capture_output=True,
-                              text=True, timeout=60, check=False)
-    except (OSError, subprocess.TimeoutExpired) as exc:
-        raise PerfrosError(f"cannot run {python} for the calibration: {exc}") from None
-    if done.returncode != 0:
-        raise PerfrosError(f"calibration with {python} failed: {done.stderr.strip()[-300:]}")
-    speed = float(json.loads(done.stdout)["iterations_per_cpu_s"])
-    return Calibration(speed, units_per_core, headroom, overhead_s)
 
 
 def _interp(points: list[tuple[float, float]], x: float) -> float:
@@ -135,7 +118,7 @@ class NodeLaunch:
     value: float | None
     rate_hz: float
     message_bytes: int
-    iterations: int
+    work_ms: float
     target_cpu: float  # CPU units the node should use (Table I x headroom)
     publishes: tuple[str, ...]
     subscribes: tuple[str, ...]
@@ -143,7 +126,7 @@ class NodeLaunch:
     def argv(self, run_id: str = "") -> list[str]:
         cmd = [ROS_PYTHON, str(NODE_SCRIPT), "--run", run_id, "--name", self.name, "--kind", _kind(self.name),
                "--rate", f"{self.rate_hz:g}", "--bytes", str(self.message_bytes),
-               "--iterations", str(self.iterations)]
+               "--work-ms", f"{self.work_ms:.4f}"]
         if self.parameter and self.value is not None:
             cmd += ["--parameter", self.parameter, "--value", f"{self.value:g}"]
         for t in self.publishes:
@@ -169,6 +152,5 @@ def launch_for(node: Node, computer: str, value: float | None, calib: Calibratio
     size = max(16, int(round(per_topic_kBps * 1000 / rate)) - 4)
     target = max(0.0, prof.cpu(value)) * calib.headroom
     work_s = target / calib.units_per_core / rate - calib.overhead_s
-    iterations = max(0, int(round(work_s * calib.iterations_per_cpu_s)))
-    return NodeLaunch(node.name, computer, prof.parameter, value, rate, size, iterations, target,
+    return NodeLaunch(node.name, computer, prof.parameter, value, rate, size, max(0.0, work_s * 1000), target,
                       tuple(topics), subscribes)

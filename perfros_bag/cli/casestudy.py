@@ -126,17 +126,6 @@ def _summary(record: dict[str, Any], out_dir: Path) -> None:
               f"check it with: perfros-bag validate {out_dir}/run.bag {out_dir}/plan.json", highlight=False)
 
 
-@_verb("calibrate")
-def calibrate_cmd(
-    units_per_core: float = typer.Option(400.0, "--units-per-core", min=1.0),
-    headroom: float = typer.Option(0.85, "--headroom", min=0.05, max=2.0),
-) -> None:
-    """Measure the node's busy-loop speed under /usr/bin/python3 and print the calibration as JSON."""
-    from perfros_bag.casestudy.profiles import measure_calibration
-
-    print(json.dumps(measure_calibration(units_per_core=units_per_core, headroom=headroom).to_dict()))
-
-
 @_verb("cleanup")
 def cleanup_cmd() -> None:
     """Kill processes and remove cgroups left by a case-study run that was itself killed (-9)."""

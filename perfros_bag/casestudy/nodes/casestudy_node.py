@@ -6,16 +6,16 @@ interpreter). The launcher (perfros_bag/casestudy/launcher.py) turns a node's pa
 into the numbers below with the calibrated profiles of perfros_bag/casestudy/profiles.py:
 
     casestudy_node.py --name tracker1 --kind tracker --parameter output_freq --value 22
-        --rate 22 --bytes 100 --iterations 41000 --pub /tracker1/tracks --sub /experiment/status
+        --rate 22 --bytes 96 --work-ms 18.7 --pub /tracker1/tracks --sub /experiment/status
 
-Every cycle (``--rate`` Hz, rospy.Rate): a deterministic busy loop of ``--iterations``
-steps (the node's real CPU work), then one std_msgs/String of ``--bytes`` characters on
+Every cycle (``--rate`` Hz, rospy.Rate): ``--work-ms`` milliseconds of busy CPU work
+(measured on the thread's CPU clock; the node's real CPU work), then one std_msgs/String of ``--bytes`` characters on
 each ``--pub`` topic. Subscriptions only count messages. When the work no longer fits in
 the period (its computer's CPU quota is exhausted), the rate drops: that is the overload
 the model predicts.
 
 ``--calibrate`` prints, as JSON, how many busy-loop iterations one CPU-second runs on
-this machine (best of several process_time measurements): the launcher's calibration.
+this machine (median of several process_time measurements); for information only.
 """
 
 import argparse
@@ -30,6 +30,24 @@ def burn(iterations):
     for _ in range(iterations):
         x = (x * 1103515245 + 12345) & 0x7FFFFFFF
     return x
+
+
+def burn_cpu(seconds, chunk=500):
+    """Busy work until this thread has used ``seconds`` of CPU time.
+
+    Measured on the thread's own CPU clock (what psutil and the cgroup quota count), not in
+    iterations: on a shared VM the speed of a fixed loop varied by +-25 % between runs, so a
+    fixed iteration count does not mean a fixed CPU cost. When the computer's quota is
+    exhausted the thread waits, the cycle takes longer and the rate drops: an overload.
+    """
+    if seconds <= 0:
+        return 0
+    end = time.thread_time() + seconds
+    n = 0
+    while time.thread_time() < end:
+        burn(chunk)
+        n += chunk
+    return n
 
 
 def calibrate(seconds=0.2, rounds=5):
@@ -73,7 +91,7 @@ def main(argv):
     ap.add_argument("--value", type=float, default=None)
     ap.add_argument("--rate", type=float, default=10.0)
     ap.add_argument("--bytes", type=int, default=100)
-    ap.add_argument("--iterations", type=int, default=0)
+    ap.add_argument("--work-ms", type=float, default=0.0, help="CPU milliseconds of work per cycle")
     ap.add_argument("--pub", action="append", default=[])
     ap.add_argument("--sub", action="append", default=[])
     ap.add_argument("--run", default="", help="the launcher's run id (lets it find its processes)")
@@ -101,10 +119,11 @@ def main(argv):
     subs = [rospy.Subscriber(t, String, on_message, queue_size=10) for t in args.sub]
     filler = "x" * max(0, args.bytes - 12)
     rate = rospy.Rate(args.rate)
+    work_s = args.work_ms / 1000.0
     seq = 0
     try:
         while not rospy.is_shutdown():
-            burn(args.iterations)
+            burn_cpu(work_s)
             head = f"{seq:011d} "
             msg = String(data=(head + filler)[: max(args.bytes, 1)])
             for p in pubs:
