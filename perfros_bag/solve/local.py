@@ -59,18 +59,31 @@ def feasible_start(system: System, problem: int, choices: dict[str, list[Choice]
     order = sorted(range(len(state.groups)), key=lambda gi: (len(state.group_allowed[gi]), -state.group_cpu(gi), gi))
     budget = [SEARCH_BUDGET]
 
+    def levels(gi: int) -> list[dict[str, int]]:
+        """The lowest settings, and for a lone node the one sending the least traffic."""
+        out = [{n: 0 for n in state.groups[gi]}]
+        if len(state.groups[gi]) == 1:
+            n = state.groups[gi][0]
+            sends = [ei for ei in state.incident[n] if state.edges[ei].src == n]
+            if sends:
+                k = min(range(len(state.ladder[n])), key=lambda k: (sum(state.edge_bw[ei][k] for ei in sends), k))
+                if k:
+                    out.append({n: k})
+        return out
+
     def dfs(i: int) -> bool:
         if i == len(order):
             return True
         gi = order[i]
         for c in sorted(state.group_allowed[gi], key=lambda c: (-state.free(c), state.computers.index(c))):
-            budget[0] -= 1
-            if budget[0] < 0:
-                return False
-            if state.move_group(gi, c) is None:
-                if dfs(i + 1):
-                    return True
-                state.move_group(gi, None)
+            for lv in levels(gi):
+                budget[0] -= 1
+                if budget[0] < 0:
+                    return False
+                if state.change({n: (c, k) for n, k in lv.items()}) is None:
+                    if dfs(i + 1):
+                        return True
+                    state.change({n: (None, 0) for n in lv})
         return False
 
     return state if dfs(0) else None
@@ -112,6 +125,8 @@ class Improver:
         self.tables: dict[tuple[str, frozenset[str]], np.ndarray] = {}
         self.items: dict[str, tuple[np.ndarray, np.ndarray]] = {}
         self.values: dict[tuple[str, frozenset[str]], float] = {}
+        self.sig = [tuple(sorted((state.weight[n], tuple((c.cpu, c.performance) for c in state.ladder[n]),
+                                  tuple(state.system.allowed(n))) for n in g)) for g in state.groups]
         if self.scale is not None:
             for n in state.nodes:
                 lad = state.ladder[n]
@@ -226,8 +241,8 @@ class Improver:
                         continue
                     rest_a = [n for n in on[a] if s.group_of[n] != ga]
                     for gb in groups_on[b]:
-                        if a not in s.group_allowed[gb]:
-                            continue
+                        if a not in s.group_allowed[gb] or self.sig[ga] == self.sig[gb]:
+                            continue  # not allowed, or two identical groups
                         rest_b = [n for n in on[b] if s.group_of[n] != gb]
                         va = self.value(a, rest_a, s.groups[gb])
                         if va == -math.inf:
@@ -236,6 +251,20 @@ class Improver:
                         if vb != -math.inf:
                             out.append((va + vb - cur[a] - cur[b], len(out),
                                         {a: rest_a + list(s.groups[gb]), b: rest_b + list(s.groups[ga])}))
+        # two groups joined by an edge move together (bandwidth may forbid moving one alone)
+        pairs = sorted({tuple(sorted((s.group_of[e.src], s.group_of[e.dst]))) for e in s.edges
+                        if s.group_of[e.src] != s.group_of[e.dst]})
+        for ga, gb in pairs:
+            members = list(s.groups[ga]) + list(s.groups[gb])
+            homes = {s.place[n] or "" for n in members}
+            for dst in s.group_allowed[ga]:
+                if dst not in s.group_allowed[gb] or homes == {dst}:
+                    continue
+                plan: Plan_ = {c: [n for n in on[c] if n not in members] for c in homes if c != dst}
+                plan[dst] = [n for n in on[dst] if n not in members] + members
+                vals = [self.value(c, nodes) for c, nodes in plan.items()]
+                if -math.inf not in vals:
+                    out.append((sum(vals) - sum(cur[c] for c in plan), len(out), plan))
         out.sort(key=lambda m: (-m[0], m[1]))
         return out
 
@@ -254,8 +283,8 @@ class Improver:
         for gain, _, plan in moves:
             if tried >= self.DEPTH2:
                 break
-            if abs(gain) <= 1e-9 and len(plan) == 2:
-                continue  # most likely two identical nodes swapped
+            if len(plan) == 1 and gain <= 1e-9:
+                continue  # re-optimising one computer's settings changes nothing
             snap = s.snapshot()
             if not self._apply(plan):
                 continue
