@@ -396,3 +396,75 @@ def test_cli_bad_inputs_exit_2(tmp_path: Path, plan_file: Path) -> None:
         r = run_cli("validate", *args)
         assert r.exit_code == 2, (args, r.output)
         assert needle in r.output and "Traceback" not in r.output
+
+
+# ---------------------------------------------------------------------------------------
+# real recordings (../shared/realbags): frequencies against the independent EXPECTED.tsv
+
+
+def expected_rows(realbags: Path) -> dict[str, list[dict[str, str]]]:
+    import csv
+
+    lines = [ln for ln in (realbags / "EXPECTED.tsv").read_text().splitlines() if not ln.startswith("#")]
+    out: dict[str, list[dict[str, str]]] = {}
+    for row in csv.DictReader(lines, delimiter="\t"):
+        out.setdefault(row["file"], []).append(row)
+    return out
+
+
+@pytest.mark.parametrize("name", ["robot_localization_test1.bag", "plotjuggler_rosbag2_test",
+                                  "rosbag2_mcap_talker", "event_camera_test_events_1_db3"])
+def test_real_recordings_against_expected_tsv(realbags: Path, tmp_path: Path, name: str) -> None:
+    rows = [r for r in expected_rows(realbags)[name] if float(r["mean_hz"] or 0) > 0]
+    assert rows
+    # one node per topic, planned at mean_hz / 0.8: every ratio is 0.8 -> deviation 20 %
+    nodes = {f"n{i}": {"computer": "c", "cpu": 1, "performance": 10.0 * (i + 1), "weight": 1 / len(rows),
+                       "topics": {r["topic"]: {"frequency_hz": float(r["mean_hz"]) / 0.8, "bandwidth_kBps": None}}}
+             for i, r in enumerate(rows)}
+    nodes["ghost"] = {"computer": "c", "cpu": 1, "performance": 5.0, "weight": 0.0,
+                      "topics": {"/not/recorded": {"frequency_hz": 1.0, "bandwidth_kBps": None}}}
+    plan_path = tmp_path / "plan.json"
+    plan_path.write_text(json.dumps({"format": "perfros-bag/plan@1", "problem": 1, "method": "t",
+                                     "status": "optimal", "computers": {"c": {"kind": "server", "capacity": 100, "cpu": 1}},
+                                     "links": [], "nodes": nodes}))
+    r = run_cli("validate", str(realbags / name), str(plan_path), "--json")
+    assert r.exit_code == 1, r.output
+    doc = json.loads(r.stdout)
+    assert doc["overall"]["deviation_pct"] == pytest.approx(20.0, abs=1e-3)
+    by_topic = {t["topic"]: t for n in doc["nodes"] for t in n["topics"]}
+    for row in rows:
+        t = by_topic[row["topic"]]
+        assert t["f_measured"] == pytest.approx(float(row["mean_hz"]), rel=1e-4)
+        assert t["messages"] == int(row["count"])
+    assert doc["missing_topics"] == ["/not/recorded"]
+    listed = {u["topic"] for u in doc["unplanned_topics"]}
+    assert listed == {r["topic"] for r in expected_rows(realbags)[name]} - set(by_topic)
+
+
+@pytest.mark.parametrize("name", ["rosbagjs_empty-file.bag", "webviz_invalid.bag", "rosbagjs_no-messages.bag",
+                                  "rosbag2_sqlite3_empty_bag"])
+def test_real_bad_recordings_exit_2(realbags: Path, plan_file: Path, name: str) -> None:
+    r = run_cli("validate", str(realbags / name), str(plan_file))
+    assert r.exit_code == 2, r.output
+    assert name in r.output and "Traceback" not in r.output
+
+
+def test_simulated_demo_run(tmp_path: Path, plan_file: Path) -> None:
+    """pipelines/simulate_run.py (the demo's run) passes at the planned rates and deviates
+    by the rate factor otherwise; its CPU trace reproduces the planned loads."""
+    import subprocess
+    import sys
+
+    from conftest import ROOT
+
+    script = ROOT / "pipelines" / "simulate_run.py"
+    for rate, code in ((1.0, 0), (0.8, 1)):
+        run = tmp_path / f"sim{code}.mcap"
+        p = subprocess.run([sys.executable, str(script), str(plan_file), str(run), "--seconds", "10",
+                            "--rate", str(rate)], capture_output=True, text=True, timeout=120)
+        assert p.returncode == 0, p.stderr
+        r = run_cli("validate", str(run), str(plan_file), "--json")
+        assert r.exit_code == code
+        doc = json.loads(r.stdout)
+        assert doc["overall"]["deviation_pct"] == pytest.approx(100 * (1 - rate), abs=1e-6)
+        assert {c["computer"]: c["cpu_measured"] for c in doc["computers"]} == pytest.approx({"robot1": 60, "server": 120})
