@@ -85,10 +85,15 @@ def inputs(tmp: Path) -> dict[str, Path]:
             "characterisation": tmp / "char.csv"}
 
 
-def test_report_sections_tables_and_images(tmp_path: Path) -> None:
-    files = inputs(tmp_path)
-    index = build_report(tmp_path / "report", **files)  # type: ignore[arg-type]
-    text = index.read_text()
+@pytest.fixture(scope="module")
+def full_report(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The report of every input, built once for the module."""
+    tmp = tmp_path_factory.mktemp("report")
+    return build_report(tmp / "report", **inputs(tmp))  # type: ignore[arg-type]
+
+
+def test_report_sections_tables_and_images(full_report: Path) -> None:
+    text = full_report.read_text()
     assert "<script>" not in text and "&lt;script&gt;" in text  # escaped everywhere
     c = Collector()
     c.feed(text)
@@ -110,7 +115,7 @@ def test_report_sections_tables_and_images(tmp_path: Path) -> None:
     for src in c.images:
         assert src.startswith("data:image/png;base64,")
         assert base64.b64decode(src.split(",", 1)[1]).startswith(PNG_MAGIC)
-    pngs = sorted(p.name for p in (tmp_path / "report").glob("*.png"))
+    pngs = sorted(p.name for p in full_report.parent.glob("*.png"))
     assert pngs == ["fit_00.png", "fit_01.png", "plan_cpu.png", "validation.png"]
 
 
@@ -152,10 +157,8 @@ def run_chromium(tmp: Path, *args: str) -> subprocess.CompletedProcess[str]:
     return subprocess.run(cmd, capture_output=True, text=True, timeout=120)
 
 
-def test_report_renders_in_headless_chromium(tmp_path: Path) -> None:
-    files = inputs(tmp_path)
-    index = build_report(tmp_path / "report", **files)  # type: ignore[arg-type]
-    url = index.resolve().as_uri()
+def test_report_renders_in_headless_chromium(full_report: Path, tmp_path: Path) -> None:
+    url = full_report.resolve().as_uri()
     dom = run_chromium(tmp_path, "--dump-dom", url)
     assert dom.returncode == 0, dom.stderr[-2000:]
     c = Collector()
