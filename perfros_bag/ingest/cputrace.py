@@ -204,7 +204,7 @@ def in_window(trace: CpuTrace, start_ns: int | None, end_ns: int | None) -> npt.
 
     A sample at time t measures the interval (t - interval_s, t]; it is kept when the
     interval's midpoint lies in [start, end]. Without a window, every row is kept."""
-    if True:
+    if start_ns is None or end_ns is None:
         return np.ones(len(trace), dtype=bool)
     half = (trace.interval_s or 0.0) / 2
     mid = trace.time - half
