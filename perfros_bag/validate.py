@@ -222,6 +222,7 @@ class TracedCpu:
     percent: float
     logical_cpus: int
     trace: str
+    host: str | None = None  # the trace's "# host=" line
 
 
 def node_cpu_from_trace(path: str | Path, plan: Plan, system: System | None,
@@ -244,7 +245,7 @@ def node_cpu_from_trace(path: str | Path, plan: Plan, system: System | None,
             warnings.warn(f"{path}: no CPU sample inside the recording's time window; using the whole trace",
                           PerfrosWarning, stacklevel=2)
             found = everything
-    return {n: TracedCpu(c.mean, trace.logical_cpus, str(path)) for n, c in found.items()}
+    return {n: TracedCpu(c.mean, trace.logical_cpus, str(path), trace.host) for n, c in found.items()}
 
 
 # ---------------------------------------------------------------------------------------
@@ -321,7 +322,7 @@ def check_run(stats: RecordingStats, plan: Plan, *, cap: bool = False,
     unplanned = [UnplannedTopic(t, ts.msgtype, ts.messages, ts.frequency_hz, ts.bandwidth_kBps)
                  for t, ts in sorted(stats.topics.items()) if t not in planned]
 
-    computers = _check_computers(plan, nodes, node_cpu) if node_cpu is not None else []
+    computers = _check_computers(plan, nodes, node_cpu, notes) if node_cpu is not None else []
     links, media = _check_links(plan, stats, system, notes) if system is not None else ([], [])
     return Validation(
         recording=str(stats.path), recording_format=stats.format, plan=plan_path,
@@ -332,8 +333,14 @@ def check_run(stats: RecordingStats, plan: Plan, *, cap: bool = False,
     )
 
 
-def _check_computers(plan: Plan, nodes: list[NodeCheck], node_cpu: dict[str, TracedCpu]) -> list[ComputerCheck]:
+def _check_computers(plan: Plan, nodes: list[NodeCheck], node_cpu: dict[str, TracedCpu],
+                     notes: list[str]) -> list[ComputerCheck]:
     out: list[ComputerCheck] = []
+    for n in nodes:
+        nc = node_cpu.get(n.node)
+        if nc is not None and nc.host in plan.computers and nc.host != n.computer:
+            notes.append(f"node {n.node!r} is planned on {n.computer!r} but its CPU trace {nc.trace} was "
+                         f"recorded on {nc.host!r}: was the plan deployed?")
     for cname, pc in plan.computers.items():
         members = [n for n in nodes if n.computer == cname]
         total: float | None = None

@@ -468,3 +468,10 @@ def test_simulated_demo_run(tmp_path: Path, plan_file: Path) -> None:
         doc = json.loads(r.stdout)
         assert doc["overall"]["deviation_pct"] == pytest.approx(100 * (1 - rate), abs=1e-6)
         assert {c["computer"]: c["cpu_measured"] for c in doc["computers"]} == pytest.approx({"robot1": 60, "server": 120})
+
+
+def test_trace_host_differing_from_the_plan_is_noted() -> None:
+    cpu = {"a": TracedCpu(10.0, 2, "t.csv", host="server"), "b": TracedCpu(10.0, 2, "t.csv", host="server")}
+    v = check_run(stats_at(1.0), plan(), node_cpu=cpu)
+    assert [n for n in v.notes if "was the plan deployed" in n] == [
+        "node 'a' is planned on 'robot1' but its CPU trace t.csv was recorded on 'server': was the plan deployed?"]
