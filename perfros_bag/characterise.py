@@ -203,12 +203,10 @@ def find_entries(directory: str | Path, manifest: str | Path | None = None) -> t
     if mpath is not None:
         m = load_manifest(mpath)
         return list(m.recordings), m.system
-    from perfros_bag.ingest.discover import discover
+    from perfros_bag.ingest.discover import find_recordings
 
-    found = discover(d)
     entries = []
-    for rec in found:
-        path = Path(rec)
+    for path in find_recordings(d):
         try:
             name = str(path.relative_to(d)) if d.is_dir() else path.name
         except ValueError:
@@ -302,6 +300,9 @@ def table_one(rows: Sequence[Row]) -> list[TableRow]:
         if not r.node:
             continue
         groups.setdefault((r.node, "" if r.value is None else repr(r.value)), []).append(r)
+    first: dict[str, int] = {}
+    for r in rows:
+        first.setdefault(r.node, len(first))
     out: list[TableRow] = []
     for (node, _), rs in groups.items():
         recs: dict[str, list[Row]] = {}
@@ -318,7 +319,7 @@ def table_one(rows: Sequence[Row]) -> list[TableRow]:
             if b:
                 bws.append(sum(b))
         out.append(TableRow(node, rs[0].parameter, rs[0].value, len(recs), _mean(cpus), _mean(freqs), _mean(bws)))
-    return sorted(out, key=lambda t: (t.node, _sort_value(t.value)))
+    return sorted(out, key=lambda t: (first[t.node], _sort_value(t.value)))
 
 
 def _sort_value(v: SettingValue | None) -> tuple[int, float, str]:

@@ -1,0 +1,359 @@
+"""characterise: rows against the values the fixtures were generated with (Table I), CPU
+against an independent pandas computation over the trace files, bad input as one line and
+exit 2, one bad recording among good ones as exit 1 with the good rows written."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import pickle
+import shutil
+import subprocess
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import yaml
+from typer.testing import CliRunner
+
+from perfros_bag.characterise import (
+    COLUMNS,
+    characterise,
+    characterise_recording,
+    find_entries,
+    table_one,
+)
+from perfros_bag.cli import app
+from perfros_bag.errors import InputError
+from perfros_bag.manifest import load_manifest
+from perfros_bag.solve.instances import TABLE_I
+from perfros_bag.spec import load_system
+
+ROOT = Path(__file__).resolve().parent.parent
+FIX = ROOT / "fixtures" / "recordings"
+BIN = ROOT / ".venv" / "bin" / "perfros-bag"
+sys.path.insert(0, str(ROOT / "fixtures"))
+import make_fixtures as mf  # noqa: E402
+
+CONTRACT = ("recording, node, parameter, value, topic, msgtype, messages, duration_s, frequency_hz, "
+            "bandwidth_kBps, cpu_units_mean, cpu_units_p95, cpu_samples").split(", ")
+
+
+def run_subprocess(*args: str | Path) -> subprocess.CompletedProcess[str]:
+    """The real console script: stdout/stderr exactly as a user's pipe sees them."""
+    return subprocess.run([str(BIN), *map(str, args)], capture_output=True, text=True, timeout=120)
+
+
+@dataclass
+class Ran:
+    returncode: int
+    stdout: str
+    stderr: str
+
+
+def run(*args: str | Path) -> Ran:
+    """In-process (fast) via typer's CliRunner, stdout and stderr kept apart."""
+    res = CliRunner().invoke(app, [str(a) for a in args])
+    if res.exception is not None and not isinstance(res.exception, SystemExit):
+        raise res.exception
+    return Ran(res.exit_code, res.stdout, res.stderr)
+
+
+def read_csv(path: Path) -> list[dict[str, str]]:
+    with path.open() as fh:
+        return list(csv.DictReader(fh))
+
+
+def kind(node: str) -> str:
+    return node.rstrip("0123456789")
+
+
+def table_i(node: str, value: float | None) -> tuple[float, float, float]:
+    for v, cpu, _perf, freq, bw in TABLE_I[kind(node)][2]:
+        if v is None or v == value:
+            return cpu, freq, bw
+    raise AssertionError(f"{node}={value} not in Table I")
+
+
+def independent_cpu(trace: Path, start_s: float, end_s: float, capacity: float, procs: dict[str, str | None]) -> dict[str, tuple[float, float, int]]:
+    """pandas: rows in window (interval midpoint), node by name or regex, sum per time."""
+    lines = trace.read_text().splitlines()
+    meta = dict(ln[1:].strip().split("=", 1) for ln in lines if ln.startswith("#"))
+    df = pd.read_csv(trace, comment="#")
+    ncpu, interval = int(meta["logical_cpus"]), float(meta["interval_s"])
+    df = df[(df.time - interval / 2 >= start_s) & (df.time - interval / 2 <= end_s)].copy()
+
+    def owner(row: pd.Series) -> str:
+        for n in procs:
+            if row.node == n:
+                return n
+        for n, rx in procs.items():
+            if rx and (pd.Series([row.node, row.process]).str.contains(rx, regex=True).any()):
+                return n
+        return ""
+
+    df["owner"] = df.apply(owner, axis=1)
+    df = df[df.owner != ""]
+    sums = df.groupby(["owner", "time"]).cpu_percent.sum() / (100 * ncpu) * capacity
+    return {n: (g.mean(), float(np.percentile(g.to_numpy(), 95)), len(g)) for n, g in sums.groupby(level=0)}
+
+
+@pytest.fixture(scope="module")
+def fixture_rows(tmp_path_factory: pytest.TempPathFactory) -> list[dict[str, str]]:
+    out = tmp_path_factory.mktemp("c") / "characterisation.csv"
+    r = run("characterise", FIX, "--out", out)
+    assert r.returncode == 0, r.stderr
+    assert "Traceback" not in r.stderr
+    return read_csv(out)
+
+
+def test_columns_are_the_contract(fixture_rows: list[dict[str, str]]) -> None:
+    assert list(fixture_rows[0])[: len(CONTRACT)] == CONTRACT
+    assert list(fixture_rows[0]) == list(COLUMNS)
+
+
+def test_fixtures_reproduce_table_i(fixture_rows: list[dict[str, str]]) -> None:
+    manifest = load_manifest(FIX / "manifest.yaml")
+    system = load_system(FIX / "system.yaml")
+    by_rec = {e.name: e for e in manifest.recordings}
+    seen: set[tuple[str, str]] = set()
+    for rec in mf.RECORDINGS:
+        rows = [r for r in fixture_rows if r["recording"] == rec.path]
+        assert sorted(r["node"] for r in rows) == sorted(rec.nodes), rec.path
+        entry = by_rec[rec.path]
+        t0_ns = (mf.T0_S + 100 * mf.RECORDINGS.index(rec)) * 1_000_000_000
+        start_ns, end_ns = mf.window(rec, t0_ns)
+        capacity = system.computer[entry.computer or ""].capacity or 0
+        cpu = independent_cpu(entry.cpu or Path(), start_ns / 1e9, end_ns / 1e9, capacity,
+                              {n.name: n.process for n in system.nodes})
+        for r in rows:
+            node = r["node"]
+            value = rec.settings.get(node)
+            exp_cpu, exp_f, exp_bw = table_i(node, value)
+            assert r["topic"] == f"/{node}/out"
+            assert int(r["messages"]) == round(exp_f * mf.DURATION_S) + 1
+            assert float(r["duration_s"]) == pytest.approx(mf.DURATION_S, abs=1e-9)
+            assert float(r["frequency_hz"]) == pytest.approx(exp_f, rel=1e-6)
+            assert float(r["bandwidth_kBps"]) == pytest.approx(exp_bw, rel=1e-9)
+            assert float(r["cpu_units_mean"]) == pytest.approx(exp_cpu, abs=1e-6)
+            mean, p95, n = cpu[node]
+            assert float(r["cpu_units_mean"]) == pytest.approx(mean, rel=1e-9)
+            assert float(r["cpu_units_p95"]) == pytest.approx(p95, rel=1e-9)
+            assert int(r["cpu_samples"]) == n == 21
+            assert float(r["median_rate_hz"]) == pytest.approx(exp_f, rel=1e-6)
+            if value is not None:
+                assert float(r["value"]) == value and r["parameter"] == system.node[node].parameter.name  # type: ignore[union-attr]
+            else:
+                assert r["value"] == "" and r["parameter"] == ""
+            seen.add((node, "" if value is None else str(value)))
+    # every Table I setting of every node kind is covered
+    expected = {(f"{k}1" if k not in ("experiment",) else k, "" if v is None else str(float(v)))
+                for k, (_, _, settings) in TABLE_I.items() for v, *_ in settings}
+    assert {(n, str(float(v)) if v else "") for n, v in seen} == expected
+
+
+def test_json_is_pure_and_equals_csv(fixture_rows: list[dict[str, str]], tmp_path: Path) -> None:
+    r = run_subprocess("characterise", FIX, "--json")
+    assert r.returncode == 0, r.stderr
+    data = json.loads(r.stdout)  # stdout holds only the document
+    assert "characterisation" in r.stderr  # the table went to stderr
+    assert len(data) == len(fixture_rows)
+    for j, c in zip(data, fixture_rows, strict=True):
+        assert list(j) == list(COLUMNS)
+        for k in COLUMNS:
+            if c[k] == "":
+                assert j[k] is None
+            elif isinstance(j[k], float):
+                assert j[k] == pytest.approx(float(c[k]), rel=1e-12)
+            else:
+                assert str(j[k]) == c[k]
+
+
+def test_fast_and_slow_paths_agree() -> None:
+    entries, _ = find_entries(FIX)
+    system = load_system(FIX / "system.yaml")
+    fast = characterise(entries, system, fast=True)
+    slow = characterise(entries, system, fast=False)
+    assert not fast.failures and fast.rows == slow.rows
+
+
+def test_per_recording_work_is_picklable() -> None:
+    """The fleet ships (entry, system) to workers: both pickle, the function is top-level."""
+    entries, _ = find_entries(FIX)
+    system = load_system(FIX / "system.yaml")
+    fn = pickle.loads(pickle.dumps(characterise_recording))
+    rows = fn(pickle.loads(pickle.dumps(entries[0])), pickle.loads(pickle.dumps(system)))
+    assert rows == characterise_recording(entries[0], system)
+    assert pickle.loads(pickle.dumps(rows)) == rows
+
+
+def test_table_one_averages_over_recordings() -> None:
+    entries, _ = find_entries(FIX)
+    res = characterise(entries, load_system(FIX / "system.yaml"))
+    table = {(t.node, t.value): t for t in table_one(res.rows)}
+    assert table[("environment1", None)].recordings == 3
+    assert table[("tracker1", 20.0)].cpu == pytest.approx(160)
+    assert table[("tracker1", 20.0)].frequency_hz == pytest.approx(20)
+    assert table[("navigation1", 2.0)].bandwidth_kBps == pytest.approx(0.1)
+    assert len(table) == 4 + 3 + 3 + 3 + 4  # configurable settings + 4 fixed nodes
+
+
+def copy_fixtures(tmp_path: Path) -> Path:
+    d = tmp_path / "recs"
+    shutil.copytree(FIX, d)
+    return d
+
+
+def edit_manifest(d: Path, fn: object) -> None:
+    data = yaml.safe_load((d / "manifest.yaml").read_text())
+    fn(data)  # type: ignore[operator]
+    (d / "manifest.yaml").write_text(yaml.safe_dump(data))
+
+
+def test_one_bad_recording_exit_1_good_rows_written(tmp_path: Path) -> None:
+    d = copy_fixtures(tmp_path)
+    raw = (d / "tracker_f10.bag").read_bytes()
+    (d / "broken.bag").write_bytes(raw[: len(raw) // 3])
+    (d / "broken.cpu.csv").write_text("not a trace\n")
+
+    def add(data: dict) -> None:
+        data["recordings"].insert(1, {"path": "broken.bag", "computer": "server"})
+        data["recordings"].append({"path": "missing.mcap", "computer": "robot1"})
+
+    edit_manifest(d, add)
+    out = tmp_path / "c.csv"
+    r = run_subprocess("characterise", d, "--out", out)
+    assert r.returncode == 1, r.stderr
+    assert "Traceback" not in r.stderr
+    errors = [ln for ln in r.stderr.splitlines() if ln.startswith("error:")]
+    assert len(errors) == 2
+    assert "broken.bag" in errors[0] and "missing.mcap" in errors[1] and "not found" in errors[1]
+    rows = read_csv(out)
+    assert {r["recording"] for r in rows} == {rec.path for rec in mf.RECORDINGS}
+    assert len(rows) == sum(len(rec.nodes) for rec in mf.RECORDINGS)
+
+
+def test_bad_trace_fails_only_its_recording(tmp_path: Path) -> None:
+    d = copy_fixtures(tmp_path)
+    p = d / "robot_low.cpu.csv"
+    lines = p.read_text().splitlines()
+    lines[10] = "1700000400.25,1001,environment1,python3,lots,1"
+    p.write_text("\n".join(lines) + "\n")
+    out = tmp_path / "c.csv"
+    r = run("characterise", d, "--out", out)
+    assert r.returncode == 1
+    err = [ln for ln in r.stderr.splitlines() if ln.startswith("error:")]
+    assert len(err) == 1 and "robot_low.cpu.csv: line 11: cpu_percent 'lots' is not a number" in err[0]
+    assert "robot_low.bag" not in {row["recording"] for row in read_csv(out)}
+
+
+def test_nothing_readable_exit_2_no_output(tmp_path: Path) -> None:
+    d = tmp_path / "bad"
+    d.mkdir()
+    (d / "a.bag").write_bytes(b"")
+    (d / "b.mcap").write_bytes(b"\x89MCAP0\r\n garbage")
+    out = tmp_path / "c.csv"
+    r = run("characterise", d, "--out", out)
+    assert r.returncode == 2, r.stderr
+    assert "Traceback" not in r.stderr
+    assert len([ln for ln in r.stderr.splitlines() if ln.startswith("error:")]) == 2
+    assert not out.exists()
+
+
+@pytest.mark.parametrize(("mutate", "needle"), [
+    (lambda d: (d / "manifest.yaml").write_text("recordings: [\n  {path: x"), "invalid YAML"),
+    (lambda d: (d / "manifest.yaml").write_text("recordings:\n  - {path: a.bag, colour: red}\n"), "unknown key(s) 'colour'"),
+    (lambda d: (d / "manifest.yaml").write_text("recordings: 3\n"), "recordings: must be a list"),
+    (lambda d: (d / "manifest.yaml").write_text("system: system.yaml\nrecordings:\n  - {path: tracker_f10.bag, settings: {nobody: 3}}\n"),
+     "unknown node 'nobody'"),
+    (lambda d: (d / "manifest.yaml").write_text("system: system.yaml\nrecordings:\n  - {path: tracker_f10.bag, computer: mars}\n"),
+     "unknown computer 'mars'"),
+    (lambda d: (d / "manifest.yaml").write_text("recordings:\n  - {path: tracker_f10.bag, settings: {tracker1: [1]}}\n"),
+     "must be a number or a string"),
+    (lambda d: (d / "system.yaml").write_text("computers: [}\n"), "system.yaml: invalid YAML"),
+    (lambda d: (d / "system.yaml").write_text("computers: []\nnodes: []\n"), "at least one computer"),
+])
+def test_bad_manifest_or_system_is_one_line_exit_2(tmp_path: Path, mutate: object, needle: str) -> None:
+    d = copy_fixtures(tmp_path)
+    mutate(d)  # type: ignore[operator]
+    out = tmp_path / "c.csv"
+    r = run("characterise", d, "--out", out)
+    assert r.returncode == 2, r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error:") and needle in lines[0], r.stderr
+    assert not out.exists()
+
+
+def test_computer_without_system_is_an_error_for_that_recording(tmp_path: Path) -> None:
+    d = copy_fixtures(tmp_path)
+    edit_manifest(d, lambda data: data.pop("system"))
+    r = run("characterise", d, "--json")
+    assert r.returncode == 2  # every recording names a computer and no system gives capacities
+    assert "no system.yaml" in r.stderr and "Traceback" not in r.stderr
+    r = run("characterise", d, "--system", d / "system.yaml", "--json")
+    assert r.returncode == 0 and len(json.loads(r.stdout)) == sum(len(x.nodes) for x in mf.RECORDINGS)
+
+
+def test_without_manifest_topics_publishers_and_cpu_only_rows(tmp_path: Path) -> None:
+    d = tmp_path / "plain"
+    d.mkdir()
+    for name in ("tracker_f10.bag", "tracker_f10.cpu.csv", "tracker_f25.mcap", "robot_mid", "robot_mid.cpu.csv"):
+        src = FIX / name
+        (shutil.copytree if src.is_dir() else shutil.copy)(src, d / name)
+    r = run("characterise", d, "--json")
+    assert r.returncode == 0, r.stderr
+    rows = json.loads(r.stdout)
+    # every topic of every recording has a row
+    topics = {(x["recording"], x["topic"]) for x in rows if x["topic"]}
+    assert topics == {(rec.path, f"/{n}/out") for rec in mf.RECORDINGS if rec.path in ("tracker_f10.bag", "tracker_f25.mcap", "robot_mid")
+                      for n in rec.nodes}
+    ros1 = {x["topic"]: x for x in rows if x["recording"] == "tracker_f10.bag" and x["topic"]}
+    assert ros1["/tracker1/out"]["node"] == "/tracker1"  # ROS 1 callerid
+    assert ros1["/experiment/out"]["node"] == "/experiment"
+    # no computer: capacity 100 = the whole (4-CPU) machine -> experiment's 1 % of a core = 0.25
+    assert ros1["/experiment/out"]["cpu_units_mean"] == pytest.approx(1 / 4)
+    assert all(x["node"] == "" for x in rows if x["recording"] == "tracker_f25.mcap")
+    # trace processes without a topic: CPU-only rows with an empty topic (2 cores -> /2)
+    cpu_only = {x["node"]: x for x in rows if x["recording"] == "robot_mid" and not x["topic"]}
+    assert set(cpu_only) == {"environment1", "model1", "planner1", "amcl", "navigation1", "youbot_core1",
+                             "youbot_driver", "rosmaster"}
+    assert cpu_only["model1"]["cpu_units_mean"] == pytest.approx(40.0)  # 80 % of a core out of 2 cores
+    assert cpu_only["model1"]["duration_s"] == pytest.approx(10.035)
+
+
+def test_node_without_topic_gets_a_cpu_row(tmp_path: Path) -> None:
+    d = copy_fixtures(tmp_path)
+    system = yaml.safe_load((d / "system.yaml").read_text())
+    system["nodes"].append({"name": "master", "weight": 0.01, "process": "^rosmaster$",
+                            "settings": [{"cpu": 3, "performance": 100}]})
+    (d / "system.yaml").write_text(yaml.safe_dump(system))
+    r = run("characterise", d, "--json")
+    assert r.returncode == 0, r.stderr
+    rows = [x for x in json.loads(r.stdout) if x["node"] == "master"]
+    assert {x["recording"] for x in rows} == {"robot_low.bag", "robot_mid", "robot_high.mcap"}
+    for x in rows:
+        assert x["topic"] is None and x["messages"] is None and x["frequency_hz"] is None
+        assert x["cpu_units_mean"] == pytest.approx(3.0) and x["cpu_samples"] == 21
+
+
+def test_library_errors_are_input_errors(tmp_path: Path) -> None:
+    with pytest.raises(InputError, match="directory not found"):
+        find_entries(tmp_path / "nope")
+    (tmp_path / "m.yaml").write_text("")
+    with pytest.raises(InputError, match="manifest is empty"):
+        find_entries(tmp_path, tmp_path / "m.yaml")
+
+
+def test_no_recordings_found_exit_2(tmp_path: Path) -> None:
+    r = run("characterise", tmp_path, "--out", tmp_path / "c.csv")
+    assert r.returncode == 2 and "no recordings found" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_values_are_finite_numbers(fixture_rows: list[dict[str, str]]) -> None:
+    for r in fixture_rows:
+        for k in ("frequency_hz", "bandwidth_kBps", "cpu_units_mean", "cpu_units_p95", "duration_s"):
+            assert math.isfinite(float(r[k]))
