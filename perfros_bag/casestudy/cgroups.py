@@ -79,6 +79,7 @@ class CpuGroups:
                 self.mode = "cgroup-v2"
             else:
                 raise OSError(f"no cgroup cpu controller under {self.root}")
+            self._probe()
         except OSError as exc:
             self.remove()
             self.mode = "uncapped"
@@ -86,6 +87,16 @@ class CpuGroups:
             warnings.warn(f"cannot create CPU-capped cgroups ({exc}); the computers run UNCAPPED "
                           "(results are marked uncapped: overloads will not show)", PerfrosWarning,
                           stacklevel=2)
+
+    def _probe(self) -> None:
+        """A process can join each group (the same shell step :meth:`wrap` uses)."""
+        import subprocess
+
+        for comp in self.dirs:
+            argv = self.wrap(comp, ["/bin/true"])
+            done = subprocess.run(argv, capture_output=True, text=True, timeout=10, check=False)
+            if done.returncode != 0:
+                raise OSError(f"cannot move a process into {self.dirs[comp]}: {done.stderr.strip() or done.returncode}")
 
     def apply(self) -> None:
         """Set every group's CPU quota (the nodes start uncapped: rospy's imports are slow)."""

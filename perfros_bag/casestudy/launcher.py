@@ -228,6 +228,11 @@ def node_launches(system: System, plan: Plan, calib: Calibration,
     missing = [n for n in plan.nodes if n not in by_name]
     if missing:
         raise InputError(plan.system, f"plan nodes not in the system: {', '.join(missing)}")
+    for name in overrides or {}:
+        if name not in plan.nodes:
+            raise InputError(None, f"--set {name}: no such node in the plan ({', '.join(plan.nodes)})")
+        if not NodeProfile.of(by_name[name]).configurable:
+            raise InputError(None, f"--set {name}: the node has no parameter to set")
     topics = {n.name: (n.topics or (f"/{n.name}/out",)) for n in system.nodes}
     subs: dict[str, list[str]] = {n: [] for n in plan.nodes}
     for e in system.edges:
@@ -367,8 +372,7 @@ def run_plan(system: System, plan: Plan, out: Path, cfg: RunConfig, *,
                 time.sleep(min(0.5, cfg.duration - el))
             note("recording", cfg.duration, cfg.duration)
             record["throttling"] = {c: _delta(throttle0[c], groups.throttled(c)) for c in cores}
-            procs.stop(["rosbag"], timeout=15.0)
-            procs.stop(["record-cpu"])
+            procs.stop(["rosbag", "record-cpu"], timeout=15.0)
             ok = True
     finally:
         note("stopping", 0, 1)
