@@ -90,6 +90,10 @@ def settings_from_values(system: System, values: Mapping[str, float], resolution
         if match:
             out[name] = match[0]
         elif rel is not None and node.curve is not None:
+            plo, phi = rel.domain
+            if not plo - 1e-9 <= v <= phi + 1e-9:
+                raise InputError(_where(system), f"settings: node {name!r}: value {v:g} is outside its parameter's "
+                                                 f"range [{plo:g}, {phi:g}]")
             lo, hi = node.curve.domain
             out[name] = min(max(rel(v), lo), hi)
         else:

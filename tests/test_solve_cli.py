@@ -1,0 +1,143 @@
+"""``perfros-bag solve``: exit codes, pure JSON on stdout with --json, plan.json written
+and checkable, one clear error line (never a traceback) on bad input and infeasibility."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+from typer.testing import CliRunner
+
+from perfros_bag.cli import app
+from perfros_bag.plan import load_plan
+from perfros_bag.solve.check import check_plan
+from perfros_bag.solve.instances import table2_instance
+from perfros_bag.spec import load_system
+
+ROOT = Path(__file__).resolve().parent.parent
+INSTANCE1 = ROOT / "fixtures" / "casestudy" / "instance1.yaml"
+runner = CliRunner()
+
+
+def cli(*args: str) -> tuple[int, str, str]:
+    r = runner.invoke(app, ["solve", *args])
+    assert "Traceback" not in r.stderr and r.exception is None or isinstance(r.exception, SystemExit), r.exception
+    return r.exit_code, r.stdout, r.stderr
+
+
+def infeasible_system(tmp_path: Path) -> Path:
+    data = table2_instance(1)
+    data["computers"][0]["capacity"] = 10
+    path = tmp_path / "small.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+def test_solve_writes_a_checkable_plan(tmp_path: Path) -> None:
+    out = tmp_path / "plan.json"
+    code, stdout, _ = cli(str(INSTANCE1), "--problem", "1", "--method", "greedy", "--out", str(out))
+    assert code == 0
+    assert "youbot_core1" in stdout and "robot1" in stdout and "objective" in stdout
+    plan = load_plan(out)
+    assert plan.status == "feasible" and plan.method == "greedy"
+    assert check_plan(load_system(INSTANCE1), plan) == []
+
+
+@pytest.mark.parametrize("method", ["greedy", "greedy+", "bruteforce"])
+def test_json_stdout_is_pure_json(tmp_path: Path, method: str) -> None:
+    data = table2_instance(1)
+    if method == "bruteforce":  # keep it tiny: the discrete Table I settings
+        from perfros_bag.solve.instances import casestudy_system
+
+        data = casestudy_system(1, 1, continuous=False)
+    path = tmp_path / "s.yaml"
+    path.write_text(yaml.safe_dump(data))
+    code, stdout, stderr = cli(str(path), "--problem", "2", "--method", method, "--json")
+    assert code == 0
+    doc = json.loads(stdout)
+    assert doc["format"] == "perfros-bag/plan@1" and doc["problem"] == 2 and doc["method"] == method
+    assert "computers" in stderr  # the tables went to stderr
+
+
+def test_model_json_input(tmp_path: Path) -> None:
+    path = tmp_path / "model.json"
+    path.write_text(json.dumps({"system": table2_instance(1)}))
+    code, stdout, _ = cli(str(path), "--json")
+    assert code == 0 and json.loads(stdout)["status"] == "feasible"
+
+
+def test_infeasible_exit_2_with_reason_and_plan(tmp_path: Path) -> None:
+    path = infeasible_system(tmp_path)
+    out = tmp_path / "plan.json"
+    code, stdout, stderr = cli(str(path), "--out", str(out))
+    assert code == 2
+    lines = [ln for ln in stderr.splitlines() if ln.strip()]
+    assert lines == [f"error: {path}: infeasible: youbot_core1 needs 16 CPU on robot1 (residence) but robot1 has 10"]
+    plan = json.loads(out.read_text())
+    assert plan["status"] == "infeasible" and "youbot_core1" in plan["reason"]
+    code, stdout, stderr = cli(str(path), "--json")
+    assert code == 2 and json.loads(stdout)["status"] == "infeasible"
+
+
+def test_problem2_settings_values_and_plan(tmp_path: Path) -> None:
+    code, stdout, _ = cli(str(INSTANCE1), "--problem", "2", "--settings", "tracker1=15,model1=cpu:40", "--json")
+    assert code == 0
+    doc = json.loads(stdout)
+    assert doc["nodes"]["tracker1"]["cpu"] == 120 and doc["nodes"]["model1"]["cpu"] == 40
+    assert doc["nodes"]["amcl1"]["cpu"] == 66  # not given: its maximum
+    p1 = tmp_path / "p1.json"
+    assert cli(str(INSTANCE1), "--problem", "1", "--out", str(p1))[0] == 0
+    code, stdout, _ = cli(str(INSTANCE1), "--problem", "2", "--settings", str(p1), "--json")
+    assert code == 0
+    p1_cpu = {n: v["cpu"] for n, v in json.loads(p1.read_text())["nodes"].items()}
+    assert {n: v["cpu"] for n, v in json.loads(stdout)["nodes"].items()} == p1_cpu
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["missing.yaml"], "missing.yaml"),
+        ([str(INSTANCE1), "--problem", "3"], "--problem must be 1 or 2"),
+        ([str(INSTANCE1), "--method", "magic"], "--method must be one of"),
+        ([str(INSTANCE1), "--resolution", "0"], "--resolution must be > 0"),
+        ([str(INSTANCE1), "--problem", "2", "--settings", "tracker1=30"], "value 30 is outside its parameter's range [10, 25]"),
+        ([str(INSTANCE1), "--problem", "2", "--settings", "youbot_core1=3"], "no setting with value 3"),
+        ([str(INSTANCE1), "--problem", "2", "--settings", "ghost=1"], "unknown node 'ghost'"),
+        ([str(INSTANCE1), "--problem", "2", "--settings", "tracker1"], "expected node=value"),
+        ([str(INSTANCE1), "--settings", "tracker1=10"], "--settings applies to Problem 2"),
+        ([str(ROOT / "fixtures" / "casestudy" / "instance6.yaml"), "--method", "bruteforce"], "too large for bruteforce"),
+    ],
+)
+def test_bad_input_one_error_line(args: list[str], message: str) -> None:
+    code, stdout, stderr = cli(*args)
+    assert code == 2
+    lines = [ln for ln in stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: ") and message in lines[0], stderr
+
+
+def test_bad_yaml_and_bad_system(tmp_path: Path) -> None:
+    broken = tmp_path / "broken.yaml"
+    broken.write_text("computers: [\n")
+    code, _, stderr = cli(str(broken))
+    assert code == 2 and "broken.yaml" in stderr
+    nocap = tmp_path / "nocap.yaml"
+    data = table2_instance(1)
+    del data["computers"][1]["capacity"]  # fine for Problem 2, not for Problem 1
+    nocap.write_text(yaml.safe_dump(data))
+    code, _, stderr = cli(str(nocap), "--problem", "1")
+    assert code == 2 and "Problem 1 needs every capacity" in stderr
+    assert cli(str(nocap), "--problem", "2", "--json")[0] == 0
+
+
+def test_console_script_end_to_end(tmp_path: Path) -> None:
+    """The installed entry point: exit 2 and no traceback on an infeasible instance."""
+    exe = Path(sys.executable).parent / "perfros-bag"
+    path = infeasible_system(tmp_path)
+    r = subprocess.run([str(exe), "solve", str(path), "--json"], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2
+    assert "Traceback" not in r.stderr and "infeasible: youbot_core1" in r.stderr
+    assert json.loads(r.stdout)["status"] == "infeasible"
