@@ -37,11 +37,12 @@ MACHINE_ATTRS = {"address": "address", "user": "user", "env_loader": "env-loader
 
 
 def _param_value(plan: Plan, system: System | None, node: str) -> int | float | None:
-    """The node's planned parameter value, typed: int when system.yaml says ``type: int``
-    (or, without a system, when the value is integral)."""
+    """The node's planned parameter value (9 significant digits), typed: int when
+    system.yaml says ``type: int`` (or, without a system, when the value is integral)."""
     v = plan.nodes[node].value
     if v is None or not math.isfinite(v):
         return None
+    v = float(f"{v:.9g}")  # a curve's inverse leaves bisection noise: 24.99999999301508 -> 25.0
     sn = system.node.get(node) if system is not None else None
     if sn is not None and sn.parameter is not None:
         return int(round(v)) if sn.parameter.type == "int" else float(v)

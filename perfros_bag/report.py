@@ -52,6 +52,8 @@ def fmt(x: Any, digits: int = 4) -> str:
     if isinstance(x, float):
         if not math.isfinite(x):
             return str(x)
+        if abs(x) >= 10 ** digits and abs(x) < 1e15:
+            return f"{x:,.0f}"
         return f"{x:.{digits}g}"
     return str(x)
 
@@ -231,12 +233,16 @@ def plot_plan_loads(plan: Plan) -> bytes:
     names = list(plan.computers)
     fig, ax = plt.subplots(figsize=(max(4.0, 1.6 * len(names) + 2), 3.6))
     bottoms = [0.0] * len(names)
+    loads = [sum(pn.cpu for pn in plan.nodes.values() if pn.computer == c) for c in names]
+    caps = [plan.computers[c].capacity or 0.0 for c in names]
+    top = max([*loads, *caps, 1e-9])
     for node, pn in plan.nodes.items():
         if pn.computer not in plan.computers:
             continue
         i = names.index(pn.computer)
         ax.bar(i, pn.cpu, bottom=bottoms[i], edgecolor="white")
-        ax.text(i, bottoms[i] + pn.cpu / 2, _label(node, 18), ha="center", va="center", fontsize=7)
+        if pn.cpu >= 0.04 * top:  # label only the bars tall enough to hold it
+            ax.text(i, bottoms[i] + pn.cpu / 2, _label(node, 18), ha="center", va="center", fontsize=7)
         bottoms[i] += pn.cpu
     for i, c in enumerate(names):
         cap = plan.computers[c].capacity
@@ -267,7 +273,8 @@ def plot_validation(v: dict[str, Any]) -> bytes:
     ax.set_xticks(list(xs), [_label(str(n.get("node", "")), 14) for n in nodes], rotation=30, ha="right", fontsize=8)
     ax.set_ylabel("performance")
     ax.set_title("per node (eq 10)")
-    ax.legend(fontsize=8)
+    ax.set_ylim(0, max([*pe, *pm, 1e-9]) * 1.25)  # room for the legend above the bars
+    ax.legend(fontsize=8, ncol=2, loc="upper right")
     ov = v["overall"]
     e, m = _num(ov.get("expected")) or 0.0, _num(ov.get("measured")) or 0.0
     ax2.bar([0], [1.0], 0.4, color="tab:blue", label="Expected")
@@ -356,6 +363,13 @@ def section_plan(plan: Plan, images: list[Image]) -> str:
     return f'<h2 id="plan">Plan</h2>{head}<h3>Placement per computer</h3>{comp}{_img(img)}<h3>Nodes</h3>{nodes}{links}'
 
 
+def _link_name(lc: dict[str, Any]) -> str:
+    between = [str(b) for b in lc.get("between", []) if b is not None]
+    if len(between) == 2 and between[0] == between[1]:
+        return f"medium {between[0]}"
+    return " – ".join(between)
+
+
 def section_validation(v: dict[str, Any], images: list[Image]) -> str:
     ov = v["overall"]
     passed = ov.get("passed")
@@ -391,7 +405,7 @@ def section_validation(v: dict[str, Any], images: list[Image]) -> str:
     if links:
         parts.append("<h3>Bandwidth</h3>" + table(
             ("link", "capacity kB/s", "planned", "measured", "overloaded"),
-            [(" – ".join(map(str, lc.get("between", []))), _num(lc.get("capacity_kBps")),
+            [(_link_name(lc), _num(lc.get("capacity_kBps")),
               _num(lc.get("expected_kBps")), _num(lc.get("measured_kBps")), lc.get("overloaded")) for lc in links],
             row_classes=["bad" if lc.get("overloaded") else "" for lc in links]))
     extra = [u for u in v.get("unplanned_topics", []) if isinstance(u, dict)]

@@ -188,3 +188,12 @@ def test_roslaunch_loads_the_file(tmp_path: Path) -> None:
     assert "param /nav/controller_frequency 12.5" in lines
     assert "param /tracker/output_freq 22" in lines  # integral, no system type: int
     assert "machine server server" in lines
+
+
+def test_bisection_noise_is_rounded() -> None:
+    data = json.loads(json.dumps(PLAN))
+    data["nodes"]["nav"]["value"] = 24.99999999301508
+    data["nodes"]["amcl"]["value"] = 0.1 + 0.2  # 0.30000000000000004
+    nodes = {n.get("name"): n for n in ET.fromstring(roslaunch_xml(parse_plan(data, "p.json"))).iter("node")}
+    assert nodes["nav"].find("param").attrib["value"] == "25"  # type: ignore[union-attr]
+    assert nodes["amcl"].find("param").attrib["value"] == "0.3"  # type: ignore[union-attr]
