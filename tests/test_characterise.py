@@ -80,12 +80,12 @@ def table_i(node: str, value: float | None) -> tuple[float, float, float]:
 
 
 def independent_cpu(trace: Path, start_s: float, end_s: float, capacity: float, procs: dict[str, str | None]) -> dict[str, tuple[float, float, int]]:
-    """pandas: rows in window (interval midpoint), node by name or regex, sum per time."""
+    """pandas: rows in the window, node by name or regex, sum per time."""
     lines = trace.read_text().splitlines()
     meta = dict(ln[1:].strip().split("=", 1) for ln in lines if ln.startswith("#"))
     df = pd.read_csv(trace, comment="#")
-    ncpu, interval = int(meta["logical_cpus"]), float(meta["interval_s"])
-    df = df[(df.time - interval / 2 >= start_s) & (df.time - interval / 2 <= end_s)].copy()
+    ncpu = int(meta["logical_cpus"])
+    df = df[(df.time >= start_s) & (df.time <= end_s)].copy()
 
     def owner(row: pd.Series) -> str:
         for n in procs:
@@ -143,7 +143,7 @@ def test_fixtures_reproduce_table_i(fixture_rows: list[dict[str, str]]) -> None:
             mean, p95, n = cpu[node]
             assert float(r["cpu_units_mean"]) == pytest.approx(mean, rel=1e-9)
             assert float(r["cpu_units_p95"]) == pytest.approx(p95, rel=1e-9)
-            assert int(r["cpu_samples"]) == n == 21
+            assert int(r["cpu_samples"]) == n == 20  # 0.25, 0.75, ... 9.75 s into the 10.0x s window
             assert float(r["median_rate_hz"]) == pytest.approx(exp_f, rel=1e-6)
             if value is not None:
                 assert float(r["value"]) == value and r["parameter"] == system.node[node].parameter.name  # type: ignore[union-attr]
@@ -337,7 +337,7 @@ def test_node_without_topic_gets_a_cpu_row(tmp_path: Path) -> None:
     assert {x["recording"] for x in rows} == {"robot_low.bag", "robot_mid", "robot_high.mcap"}
     for x in rows:
         assert x["topic"] is None and x["messages"] is None and x["frequency_hz"] is None
-        assert x["cpu_units_mean"] == pytest.approx(3.0) and x["cpu_samples"] == 21
+        assert x["cpu_units_mean"] == pytest.approx(3.0) and x["cpu_samples"] == 20
 
 
 def test_library_errors_are_input_errors(tmp_path: Path) -> None:

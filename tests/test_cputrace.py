@@ -53,9 +53,8 @@ def test_parse_and_normalise_by_hand(tmp_path: Path) -> None:
     assert node_cpu(tr, 400.0)["a"].mean == pytest.approx(4 * 37.5)
 
 
-def test_window_alignment_uses_interval_midpoints() -> None:
-    # samples at t measure (t - 0.5, t]: midpoint t - 0.25 must be inside [start, end]
-    rows = "".join(f"{t},1,a,a,{v},0\n" for t, v in [(9.9, 1000), (10.25, 10), (10.75, 20), (11.25, 30), (11.6, 1000)])
+def test_window_alignment_keeps_samples_inside_start_end() -> None:
+    rows = "".join(f"{t},1,a,a,{v},0\n" for t, v in [(9.9, 1000), (10.0, 10), (10.5, 20), (11.0, 30), (11.1, 1000)])
     tr = parse_cpu_trace(HEADER + rows)
     res = node_cpu(tr, 200.0, start_ns=10_000_000_000, end_ns=11_000_000_000)
     assert res["a"].samples == 3 and res["a"].mean == pytest.approx(20.0)  # capacity 200 on 2 cores: % = units
@@ -118,7 +117,7 @@ def test_node_cpu_matches_pandas(tmp_path_factory: pytest.TempPathFactory, rows:
     res = node_cpu(tr, capacity, start_ns=round(start_s * 1e9), end_ns=round(end_s * 1e9))
 
     df = pd.DataFrame(data, columns=["time", "pid", "node", "process", "cpu", "rss"])
-    df = df[(df.time - 0.25 >= start_s) & (df.time - 0.25 <= end_s)]
+    df = df[(df.time >= start_s) & (df.time <= end_s)]
     per_time = df.groupby(["node", "time"]).cpu.sum() * capacity / (100 * ncpu)
     expected = {n: (g.mean(), np.percentile(g.to_numpy(), 95), len(g)) for n, g in per_time.groupby(level=0)}
     assert set(res) == set(expected)

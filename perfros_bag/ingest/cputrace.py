@@ -200,15 +200,14 @@ def assign_nodes(trace: CpuTrace, nodes: Mapping[str, str | None] | None) -> lis
 
 
 def in_window(trace: CpuTrace, start_ns: int | None, end_ns: int | None) -> npt.NDArray[np.bool_]:
-    """Rows whose measured interval lies in the recording's window.
+    """Rows whose sample time lies in the recording's window [start, end] (inclusive).
 
-    A sample at time t measures the interval (t - interval_s, t]; it is kept when the
-    interval's midpoint lies in [start, end]. Without a window, every row is kept."""
+    (A sample at t measures (t - interval_s, t]: the first sample inside may cover up to one
+    interval before the recording; over a recording of many intervals that edge is noise.)
+    Without a window, every row is kept."""
     if start_ns is None or end_ns is None:
         return np.ones(len(trace), dtype=bool)
-    half = (trace.interval_s or 0.0) / 2
-    mid = trace.time - half
-    return (mid >= start_ns / 1e9) & (mid <= end_ns / 1e9)
+    return (trace.time >= start_ns / 1e9) & (trace.time <= end_ns / 1e9)
 
 
 def node_cpu(trace: CpuTrace, capacity: float, *, start_ns: int | None = None,
