@@ -157,7 +157,10 @@ def random_instance(rng: random.Random, *, robots: tuple[int, int] = (1, 4), cam
     nc = rng.randint(*cameras)
     weights = {k: v[0] * rng.uniform(1 / weight_spread, weight_spread) for k, v in TABLE_I.items()}
     wifi = rng.uniform(8.0, 30.0) * nr if tight_network else WIFI_kBps
-    data = casestudy_system(nr, nc, robot_capacity=100, server_capacity=rng.randint(*map(int, server_capacity)),
+    # the server must at least hold the trackers' and experiment's lowest settings (80 + 1)
+    lo, hi = int(server_capacity[0]), int(server_capacity[1])
+    lo = max(lo, 80 * nc + 1 + 20)
+    data = casestudy_system(nr, nc, robot_capacity=100, server_capacity=rng.randint(lo, max(lo, hi)),
                             weights=weights, wifi_kBps=wifi)
     for comp in data["computers"]:
         if comp["kind"] == "robot":
