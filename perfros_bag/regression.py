@@ -276,20 +276,21 @@ def _usable(form: str, coef: tuple[float, ...]) -> bool:
     return not (form == "power" and abs(coef[1]) > _MAX_EXPONENT)
 
 
-def _rank(forms: list[str], loo: dict[str, float | None]) -> list[str]:
+def _rank(forms: list[str], loo: dict[str, float | None], tiny: float = 0.0) -> list[str]:
     """Forms by leave-one-out RMSE, except that a form with fewer coefficients whose error
     is within :data:`PARSIMONY` of the best goes first (noise alone should not buy a
-    coefficient)."""
+    coefficient). Errors below ``tiny`` (exact fits, up to rounding) tie, and ties go to
+    the earlier form of ``forms`` (linear first)."""
     def err(f: str) -> float:
         v = loo[f]
-        return 0.0 if v is None else v
+        return 0.0 if v is None or v <= tiny else v
 
     ranked = sorted(forms, key=lambda f: (err(f), CURVE_NCOEF[f], forms.index(f)))
     if not ranked:
         return ranked
     best = err(ranked[0])
     close = [f for f in ranked if err(f) <= best * (1 + PARSIMONY) + 1e-12]
-    first = min(close, key=lambda f: (CURVE_NCOEF[f], err(f)))
+    first = min(close, key=lambda f: (CURVE_NCOEF[f], err(f), forms.index(f)))
     return [first] + [f for f in ranked if f != first]
 
 
@@ -323,7 +324,7 @@ def fit_curve(x: Sequence[float], y: Sequence[float], *, relation: str = "", sca
     for f in forms_ok:
         candidates[f] = loo_rmse(f, xn, ys) if n > 2 and distinct > 2 else None
 
-    ranked = _rank(forms_ok, candidates)
+    ranked = _rank(forms_ok, candidates, tiny=1e-9 * max(1.0, float(np.max(np.abs(ys)))))
     chosen: tuple[str, tuple[float, ...]] | None = None
     rejected: list[str] = []
     for f in ranked:
