@@ -131,9 +131,11 @@ def test_ctrl_c_stops_everything(instance1: tuple[Path, Path], tmp_path: Path) -
     proc = subprocess.Popen([str(BIN), "casestudy", "run", "--system", str(system), "--plan", str(plan),
                              "--duration", "60", "--out", str(out)], stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 45
-    # wait until rosbag record runs (all nodes are up by then)
-    while not (out / "rosbag.log").exists() and proc.poll() is None and time.monotonic() < deadline:
-        time.sleep(0.2)
+    # wait until every node process runs (roscore is up by then; cgroups exist)
+    logs = [out / "ros" / f"{n}.log" for n in json.loads(plan.read_text())["nodes"]]
+    while not all(p.exists() for p in logs) and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.1)
+    time.sleep(0.5)
     assert proc.poll() is None, proc.stderr.read() if proc.stderr else ""
     run_ids = {p.environ().get("PERFROS_CASESTUDY_RUN") for p in psutil.Process(proc.pid).children(recursive=True)}
     run_ids.discard(None)
