@@ -231,3 +231,19 @@ def test_navigation_reproduces_the_reference_log_fit() -> None:
     fit = fit_curve(cpu, perf, scale=100)
     assert fit.form == "log"
     assert fit.coef == pytest.approx((129.12, 188.36), abs=0.01)
+
+
+def test_exactly_flat_data_give_the_constant_line() -> None:
+    fit = fit_curve([4, 3500, 10000], [5.0, 5.0, 5.0])
+    assert fit.form == "linear" and fit.coef == pytest.approx((0.0, 5.0), abs=1e-12)
+    assert fit.r2 == 1.0 and not fit.warnings
+
+
+def test_a_simpler_form_within_parsimony_of_the_best_is_preferred() -> None:
+    rng = np.random.default_rng(0)
+    x = np.linspace(1, 10, 20)
+    y = 3 * x + 2 + rng.normal(0, 0.1, 20)
+    fit = fit_curve(x.tolist(), y.tolist())
+    assert fit.form == "linear"
+    best = min(v for v in fit.candidates.values() if v is not None)
+    assert fit.candidates["linear"] is not None and fit.candidates["linear"] <= 1.05 * best
