@@ -226,8 +226,16 @@ def check_settings(entries: Iterable[RecordingEntry], system: System, source: st
 
 
 def characterise(entries: Sequence[RecordingEntry], system: System | None = None, *, fast: bool = True,
-                 on_done: Callable[[RecordingEntry, Failure | None], None] | None = None) -> Result:
-    """Characterise every entry; a failing recording becomes a :class:`Failure`, not an abort."""
+                 on_done: Callable[[RecordingEntry, Failure | None], None] | None = None,
+                 scheduler: str | None = None, workers: int | None = None) -> Result:
+    """Characterise every entry; a failing recording becomes a :class:`Failure`, not an abort.
+
+    In this process by default; with ``scheduler`` (a dask.distributed address) or
+    ``workers`` (a LocalCluster of that many processes) the per-recording work runs on
+    Dask through :func:`perfros_bag.distributed.run_distributed`. Rows keep entry order.
+    """
+    if scheduler is not None or workers is not None:
+        return _characterise_dask(entries, system, fast, on_done, scheduler, workers)
     rows: list[Row] = []
     failures: list[Failure] = []
     for entry in entries:
@@ -242,6 +250,33 @@ def characterise(entries: Sequence[RecordingEntry], system: System | None = None
             failures.append(failure)
         if on_done is not None:
             on_done(entry, failure)
+    return Result(rows, failures, len(entries))
+
+
+def _characterise_dask(entries: Sequence[RecordingEntry], system: System | None, fast: bool,
+                       on_done: Callable[[RecordingEntry, Failure | None], None] | None,
+                       scheduler: str | None, workers: int | None) -> Result:
+    from functools import partial
+
+    from perfros_bag.distributed import Outcome, run_distributed
+
+    by_name = {e.name: e for e in entries}
+
+    def progress(outcome: Outcome[Any]) -> None:
+        if on_done is not None:
+            fail = None if outcome.ok else Failure(outcome.label, str(outcome.error))
+            on_done(by_name[outcome.label], fail)
+
+    task = partial(characterise_recording, system=system, fast=fast)
+    outcomes = run_distributed(list(entries), task, scheduler=scheduler, workers=workers,
+                               progress=progress, label=lambda e: e.name)
+    rows: list[Row] = []
+    failures: list[Failure] = []
+    for o in outcomes:
+        if o.ok and o.value is not None:
+            rows.extend(o.value)
+        elif not o.ok:
+            failures.append(Failure(o.label, str(o.error)))
     return Result(rows, failures, len(entries))
 
 

@@ -357,3 +357,18 @@ def test_values_are_finite_numbers(fixture_rows: list[dict[str, str]]) -> None:
     for r in fixture_rows:
         for k in ("frequency_hz", "bandwidth_kBps", "cpu_units_mean", "cpu_units_p95", "duration_s"):
             assert math.isfinite(float(r[k]))
+
+
+def test_dask_workers_give_the_same_rows_and_failures(tmp_path: Path) -> None:
+    """The per-recording work shipped to a LocalCluster: same rows, the bad one reported."""
+    d = copy_fixtures(tmp_path)
+    (d / "broken.mcap").write_bytes((d / "tracker_f25.mcap").read_bytes()[:500])
+    edit_manifest(d, lambda data: data["recordings"].append({"path": "broken.mcap", "computer": "server"}))
+    local, dask = tmp_path / "local.csv", tmp_path / "dask.csv"
+    r1 = run("characterise", d, "--out", local)
+    r2 = run("characterise", d, "--out", dask, "--workers", "1")
+    assert r1.returncode == r2.returncode == 1, (r1.stderr, r2.stderr)
+    assert local.read_bytes() == dask.read_bytes()
+    e1 = [ln for ln in r1.stderr.splitlines() if ln.startswith("error:")]
+    e2 = [ln for ln in r2.stderr.splitlines() if ln.startswith("error:")]
+    assert e1 == e2 and len(e1) == 1 and "broken.mcap" in e1[0]

@@ -27,6 +27,8 @@ def characterise_cmd(
     out_path: Path | None = typer.Option(None, "--out", "-o", help="characterisation.csv to write."),  # noqa: B008
     as_json: bool = typer.Option(False, "--json", help="Print the rows as a JSON array on stdout (only)."),
     slow: bool = typer.Option(False, "--slow", help="Stream every message instead of reading the indexes."),
+    scheduler: str | None = typer.Option(None, "--scheduler", help="Run on a dask.distributed cluster (tcp://HOST:PORT)."),
+    workers: int | None = typer.Option(None, "--workers", help="Run on a local Dask cluster of N worker processes."),
 ) -> None:
     """Characterise every recording in DIR: per node and topic, frequency, bandwidth and CPU."""
     from rich.markup import escape
@@ -61,7 +63,7 @@ def characterise_cmd(
         def done(entry: RecordingEntry, failure: Failure | None) -> None:
             progress.update(task, advance=1, description=entry.name)
 
-        result = characterise(entries, system, fast=not slow, on_done=done)
+        result = characterise(entries, system, fast=not slow, on_done=done, scheduler=scheduler, workers=workers)
 
     for f in result.failures:
         err.print(f"[red]error:[/] {escape(f.message)}", highlight=False, soft_wrap=True)
