@@ -34,7 +34,7 @@ th,td{border:1px solid #ccc;padding:.25em .6em;text-align:right;vertical-align:t
 th{background:#f0f0f0}td.t,th.t{text-align:left}
 tr.bad td{background:#fde8e8}.bad{color:#b00020;font-weight:bold}.ok{color:#0a7d28;font-weight:bold}
 .muted{color:#777}img{max-width:100%;border:1px solid #eee;margin:.5em 0}
-.summary{font-size:1.05em;margin:.5em 0}
+.summary{font-size:1.05em;margin:.5em 0}.scroll{overflow-x:auto}
 """
 
 
@@ -62,7 +62,7 @@ def table(headers: Sequence[str], rows: Iterable[Sequence[Any]], *, text_cols: I
           row_classes: Sequence[str] | None = None, table_id: str | None = None) -> str:
     """An HTML table; cells are escaped (numbers formatted), text columns left-aligned."""
     tcols = set(text_cols)
-    out = [f'<table{f" id={chr(34)}{esc(table_id)}{chr(34)}" if table_id else ""}><thead><tr>']
+    out = [f'<div class="scroll"><table{f" id={chr(34)}{esc(table_id)}{chr(34)}" if table_id else ""}><thead><tr>']
     out += [f'<th class="{"t" if i in tcols else ""}">{esc(h)}</th>' for i, h in enumerate(headers)]
     out.append("</tr></thead><tbody>")
     for k, row in enumerate(rows):
@@ -70,7 +70,7 @@ def table(headers: Sequence[str], rows: Iterable[Sequence[Any]], *, text_cols: I
         out.append(f'<tr class="{esc(cls)}">' if cls else "<tr>")
         out += [f'<td class="{"t" if i in tcols else ""}">{esc(fmt(v))}</td>' for i, v in enumerate(row)]
         out.append("</tr>")
-    out.append("</tbody></table>")
+    out.append("</tbody></table></div>")
     return "".join(out)
 
 
@@ -200,8 +200,13 @@ def plot_fits(node: str, fits: list[FitView]) -> bytes:
     import numpy as np
 
     n = len(fits)
-    fig, axes = plt.subplots(1, n, figsize=(4.2 * n, 3.4), squeeze=False)
-    for ax, f in zip(axes[0], fits, strict=True):
+    ncols = min(n, 3)
+    nrows = (n + ncols - 1) // ncols
+    fig, axes = plt.subplots(nrows, ncols, figsize=(4.2 * ncols, 3.4 * nrows), squeeze=False)
+    flat = [ax for row in axes for ax in row]
+    for ax in flat[n:]:
+        ax.set_visible(False)
+    for ax, f in zip(flat, fits, strict=False):
         xs = [p[0] for p in f.points]
         if f.points:
             ax.scatter(xs, [p[1] for p in f.points], color="black", zorder=3, label="measured")
