@@ -201,7 +201,7 @@ def test_record_cpu_command_children_and_exit_code(tmp_path: Path) -> None:
     out = tmp_path / "cmd.cpu.csv"
     script = _duty_script(tmp_path)
     # sh stays the parent (not exec'd: another command follows), the python is its child
-    cmd = f"{sys.executable} {script} 0.3 1.5; exit 3"
+    cmd = f"{sys.executable} {script} 0.3 1.5 0 __name:=duty_node; exit 3"
     r = subprocess.run([str(BIN), "record-cpu", "--interval", "0.25", "--out", str(out), "--", "sh", "-c", cmd],
                        capture_output=True, timeout=60)
     assert r.returncode == 3, r.stderr
@@ -209,8 +209,9 @@ def test_record_cpu_command_children_and_exit_code(tmp_path: Path) -> None:
     tr = read_cpu_trace(out)
     names = set(tr.process)
     assert any(n.startswith("python") for n in names), names  # the grandchild was traced
+    assert "duty_node" in set(tr.node)  # its ROS name from __name:=
     assert "sh" in names or "dash" in names or "bash" in names, names
-    busy = np.array([n.startswith("python") for n in tr.process])
+    busy = np.array([n == "duty_node" for n in tr.node])
     assert tr.cpu_percent[busy].max() > 5  # it did work
 
 
