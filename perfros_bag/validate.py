@@ -317,6 +317,9 @@ def check_run(stats: RecordingStats, plan: Plan, *, cap: bool = False,
             cpu_expected=pn.cpu, note=note,
         ))
 
+    if nodes and not any(n.counted for n in nodes):
+        raise InputError(plan_path, "no node of the plan has a topic with an expected frequency: eq 10 has "
+                                    "nothing to compare (the plan's topics need frequency_hz)")
     overall_e = sum(n.weight * n.p_expected for n in nodes)
     overall_m = sum(n.weight * n.p_measured for n in nodes)
     unplanned = [UnplannedTopic(t, ts.msgtype, ts.messages, ts.frequency_hz, ts.bandwidth_kBps)

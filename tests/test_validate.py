@@ -475,3 +475,12 @@ def test_trace_host_differing_from_the_plan_is_noted() -> None:
     v = check_run(stats_at(1.0), plan(), node_cpu=cpu)
     assert [n for n in v.notes if "was the plan deployed" in n] == [
         "node 'a' is planned on 'robot1' but its CPU trace t.csv was recorded on 'server': was the plan deployed?"]
+
+
+def test_plan_without_any_expected_frequency_is_bad_input() -> None:
+    data = json.loads(json.dumps(PLAN))
+    for n in data["nodes"].values():
+        for t in n["topics"].values():
+            t["frequency_hz"] = 0
+    with pytest.raises(InputError, match="nothing to compare"):
+        check_run(stats_at(1.0), parse_plan(data, "p.json"), plan_path="p.json")
