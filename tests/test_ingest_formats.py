@@ -28,7 +28,7 @@ from tests.ingest_gen import (
     write_rosbag2,
 )
 
-MSGS = random_msgs(np.random.default_rng(7), 1500)
+MSGS = random_msgs(np.random.default_rng(7), 800)
 
 
 def check(rec: RecordingStats, exp: dict[str, Expected], publishers: bool = False) -> None:
@@ -52,7 +52,7 @@ def both(path: Path, exp: dict[str, Expected], method: str = "index", publishers
 
 @pytest.mark.parametrize("compression", [None, "bz2", "lz4"])
 def test_ros1_chunk_compressions(tmp_path: Path, compression: str | None) -> None:
-    bag = write_ros1(tmp_path / "a.bag", MSGS, compression, chunk_threshold=16_000)
+    bag = write_ros1(tmp_path / "a.bag", MSGS, compression, chunk_threshold=8_000)
     both(bag, expected(MSGS, ros1=True), publishers=True)
     assert read_recording(bag).format == "ros1"
 
@@ -88,7 +88,7 @@ def test_mcap_json_without_schema(tmp_path: Path) -> None:
 
 def test_ros1_unindexed_bag_is_streamed(tmp_path: Path) -> None:
     """A bag whose recorder was killed: index_pos 0 and no index section."""
-    bag = write_ros1(tmp_path / "a.bag", MSGS, "lz4", chunk_threshold=16_000)
+    bag = write_ros1(tmp_path / "a.bag", MSGS, "lz4", chunk_threshold=8_000)
     raw = bytearray(bag.read_bytes())
     key = b"index_pos="
     at = raw.index(key) + len(key)
@@ -101,7 +101,7 @@ def test_ros1_unindexed_bag_is_streamed(tmp_path: Path) -> None:
 
 def test_ros1_damaged_index_falls_back(tmp_path: Path) -> None:
     """An index-data offset pointing into another record: detected, the stream is used."""
-    bag = write_ros1(tmp_path / "a.bag", MSGS, None, chunk_threshold=16_000)
+    bag = write_ros1(tmp_path / "a.bag", MSGS, None, chunk_threshold=8_000)
     from perfros_bag.ingest.rosbag1 import OP_INDEX, read_record
 
     raw = bytearray(bag.read_bytes())
@@ -118,7 +118,7 @@ def test_ros1_damaged_index_falls_back(tmp_path: Path) -> None:
 
 def test_mcap_lost_summary_is_streamed(tmp_path: Path) -> None:
     """Cut after the data-end record (summary and footer lost): all data is still there."""
-    f = write_mcap(tmp_path / "c.mcap", MSGS, chunk_size=16_000)
+    f = write_mcap(tmp_path / "c.mcap", MSGS, chunk_size=8_000)
     raw = f.read_bytes()
     (summary_start,) = struct.unpack_from("<Q", raw, len(raw) - 8 - 20)
     f.write_bytes(raw[:summary_start])

@@ -8,6 +8,7 @@ SOURCES.tsv marks the files that must be rejected ("[BAD]") and the message tota
 from __future__ import annotations
 
 import csv
+import functools
 import json
 import subprocess
 import sys
@@ -40,6 +41,12 @@ BAD = sorted(f for f, r in SOURCES.items() if "[BAD]" in r["notes"])
 GOOD = sorted(f for f in SOURCES if f not in BAD)
 
 
+@functools.cache
+def _read(name: str, fast: bool = True) -> RecordingStats:
+    """Each recording is read once per path (the results are not modified by the tests)."""
+    return read_recording(REALBAGS / name, fast=fast)
+
+
 def _first_ns(row: dict[str, str]) -> int | None:
     """EXPECTED leaves first_ns empty when it is 0 (the conformance file's log_time 0..9); then
     it follows from last_ns and mean_hz = (n-1)/span, computed independently of the reader."""
@@ -61,7 +68,7 @@ def test_expected_covers_realbags() -> None:
 @pytest.mark.parametrize("name", sorted(EXPECTED))
 def test_matches_expected(name: str) -> None:
     """Fast path against EXPECTED (the streaming path equals it: test_fast_equals_stream)."""
-    rec = read_recording(REALBAGS / name)
+    rec = _read(name)
     rows = {r["topic"]: r for r in EXPECTED[name]}
     assert set(rec.topics) == set(rows)
     for topic, row in rows.items():
@@ -82,14 +89,6 @@ def test_matches_expected(name: str) -> None:
         assert np.all(np.diff(t.times_ns) >= 0)
 
 
-@pytest.mark.parametrize("name", GOOD)
-def test_sources_totals(name: str) -> None:
-    """Every good recording: message total and topic count as SOURCES.tsv says."""
-    rec = read_recording(REALBAGS / name)
-    assert rec.messages == int(SOURCES[name]["messages"])
-    assert len(rec.topics) == int(SOURCES[name]["topics"])
-
-
 def _same(a: RecordingStats, b: RecordingStats) -> None:
     assert list(a.topics) == list(b.topics)
     for k, ta in a.topics.items():
@@ -99,23 +98,23 @@ def _same(a: RecordingStats, b: RecordingStats) -> None:
 
 
 @pytest.mark.parametrize("name", GOOD)
-def test_fast_equals_stream(name: str) -> None:
-    """The index fast path and the streaming path give identical numbers on every recording."""
-    _same(read_recording(REALBAGS / name, fast=True), read_recording(REALBAGS / name, fast=False))
-
-
-@pytest.mark.parametrize("name", GOOD)
-def test_fast_path_uses_the_index(name: str) -> None:
-    """Every indexed recording is read from its index; only index-less MCAP is streamed."""
+def test_fast_equals_stream_and_sources(name: str) -> None:
+    """On every good recording: the index fast path and the streaming path give identical
+    numbers; the fast path really used the index (only index-less MCAP is streamed); message
+    and topic totals are those of SOURCES.tsv."""
+    fast, slow = _read(name), _read(name, False)
+    _same(fast, slow)
     indexless = any(w in SOURCES[name]["format"] for w in ("no summary", "unchunked"))
-    assert read_recording(REALBAGS / name).method == ("stream" if indexless else "index")
-    assert read_recording(REALBAGS / name, fast=False).method == "stream"
+    assert fast.method == ("stream" if indexless else "index")
+    assert slow.method == "stream"
+    assert fast.messages == int(SOURCES[name]["messages"])
+    assert len(fast.topics) == int(SOURCES[name]["topics"])
 
 
 def test_three_compressions_identical() -> None:
-    base = read_recording(REALBAGS / "rosbagjs_example.bag")
+    base = _read("rosbagjs_example.bag")
     for other in ("rosbagjs_example-bz2.bag", "rosbagjs_example-lz4.bag"):
-        rec = read_recording(REALBAGS / other)
+        rec = _read(other)
         for k, t in base.topics.items():  # compressed copies were rewritten without callerids
             o = rec.topics[k]
             assert (t.msgtype, t.messages, t.bytes) == (o.msgtype, o.messages, o.bytes)
@@ -124,8 +123,8 @@ def test_three_compressions_identical() -> None:
 
 
 def test_event_camera_ros1_and_rosbag2_same_rates() -> None:
-    a = read_recording(REALBAGS / "event_camera_test_events_1.bag").topics["/event_camera/events"]
-    b = read_recording(REALBAGS / "event_camera_test_events_1_db3").topics["/event_camera/events"]
+    a = _read("event_camera_test_events_1.bag").topics["/event_camera/events"]
+    b = _read("event_camera_test_events_1_db3").topics["/event_camera/events"]
     np.testing.assert_array_equal(a.times_ns, b.times_ns)
     assert a.frequency_hz == b.frequency_hz > 200
     assert a.median_rate_hz == b.median_rate_hz
@@ -135,7 +134,7 @@ def test_event_camera_ros1_and_rosbag2_same_rates() -> None:
 
 
 def test_publishers_from_callerid() -> None:
-    rec = read_recording(REALBAGS / "rosbagjs_example.bag")
+    rec = _read("rosbagjs_example.bag")
     assert rec.topics["/tf"].publishers == ("/turtle1_tf_broadcaster", "/turtle2_tf_broadcaster")
     assert rec.topics["/turtle1/pose"].publishers == ("/sim",)
 

@@ -181,7 +181,12 @@ def _scan_records(buf: Buf, pos: int, end: int, st: _State, message_zstd: bool,
     sizes: dict[int, int] = {}
     data_end = footer = False
     while pos < end:
-        op, start, length = _record(buf, pos, end)
+        try:
+            op, start, length = _record(buf, pos, end)
+        except Damaged:
+            if data_end:  # summary cut off after the data section: every message was read
+                break
+            raise
         pos = start + length
         if op == OP_MESSAGE:
             c = _Cursor(buf, start, start + length)
