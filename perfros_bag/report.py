@@ -24,6 +24,7 @@ from perfros_bag.model import Curve
 from perfros_bag.plan import Plan
 
 MAX_TABLE_ROWS = 2000
+MAX_PLOT_NODES = 40
 
 CSS = """
 body{font-family:system-ui,-apple-system,"Segoe UI",sans-serif;margin:2em auto;max-width:1100px;
@@ -268,6 +269,10 @@ def plot_validation(v: dict[str, Any]) -> bytes:
     (the overall panel normalised to expected = 1)."""
     plt = _pyplot()
     nodes = [n for n in v["nodes"] if isinstance(n, dict)]
+    title = "per node (eq 10)"
+    if len(nodes) > MAX_PLOT_NODES:  # keep the figure readable: the largest deviations
+        nodes = sorted(nodes, key=lambda n: -(_num(n.get("deviation_pct")) or 0.0))[:MAX_PLOT_NODES]
+        title = f"per node (eq 10), the {MAX_PLOT_NODES} largest deviations"
     fig, (ax, ax2) = plt.subplots(1, 2, figsize=(max(6.0, 0.8 * len(nodes) + 4), 3.8),
                                   gridspec_kw={"width_ratios": [max(1, len(nodes)), 1.2]})
     xs = range(len(nodes))
@@ -277,7 +282,7 @@ def plot_validation(v: dict[str, Any]) -> bytes:
     ax.bar([x + 0.2 for x in xs], pm, 0.4, label="Measured", color="tab:orange")
     ax.set_xticks(list(xs), [_label(str(n.get("node", "")), 14) for n in nodes], rotation=30, ha="right", fontsize=8)
     ax.set_ylabel("performance")
-    ax.set_title("per node (eq 10)")
+    ax.set_title(title)
     ax.set_ylim(0, max([*pe, *pm, 1e-9]) * 1.25)  # room for the legend above the bars
     ax.legend(fontsize=8, ncol=2, loc="upper right")
     ov = v["overall"]

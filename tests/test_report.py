@@ -175,3 +175,17 @@ def test_report_renders_in_headless_chromium(full_report: Path, tmp_path: Path) 
     keep: Any = __import__("os").environ.get("PERFROS_KEEP_SCREENSHOT")
     if keep:
         shutil.copy(shot, keep)
+
+
+def test_validation_plot_of_many_nodes_keeps_the_largest_deviations(tmp_path: Path) -> None:
+    from perfros_bag import report
+
+    nodes = [{"node": f"n{i}", "p_expected": 10.0, "p_measured": 10.0 - i % 7, "deviation_pct": 10.0 * (i % 7)}
+             for i in range(300)]
+    v = {"nodes": nodes, "overall": {"expected": 1.0, "measured": 0.9, "deviation_pct": 10.0}}
+    png = report.plot_validation(v)
+    assert png.startswith(PNG_MAGIC)
+    import struct
+
+    width = struct.unpack(">I", png[16:20])[0]
+    assert width < 100 * (0.8 * report.MAX_PLOT_NODES + 4) * 1.1  # capped, not 300 bars wide
