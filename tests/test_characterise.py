@@ -372,3 +372,20 @@ def test_dask_workers_give_the_same_rows_and_failures(tmp_path: Path) -> None:
     e1 = [ln for ln in r1.stderr.splitlines() if ln.startswith("error:")]
     e2 = [ln for ln in r2.stderr.splitlines() if ln.startswith("error:")]
     assert e1 == e2 and len(e1) == 1 and "broken.mcap" in e1[0]
+
+
+def test_empty_recording_is_a_correct_empty_result(tmp_path: Path) -> None:
+    from mcap.writer import Writer
+
+    d = tmp_path / "empty"
+    d.mkdir()
+    with (d / "nothing.mcap").open("wb") as fh:
+        w = Writer(fh)
+        w.start(profile="", library="test")
+        w.finish()
+    out = tmp_path / "c.csv"
+    r = run("characterise", d, "--out", out)
+    assert r.returncode == 0, r.stderr
+    assert out.read_text().splitlines() == [",".join(COLUMNS)]
+    r = run("characterise", d, "--json")
+    assert r.returncode == 0 and json.loads(r.stdout) == []
