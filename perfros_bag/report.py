@@ -237,7 +237,7 @@ def plot_fits(node: str, fits: list[FitView]) -> bytes:
 def plot_plan_loads(plan: Plan) -> bytes:
     plt = _pyplot()
     names = list(plan.computers)
-    fig, ax = plt.subplots(figsize=(max(4.0, 1.6 * len(names) + 2), 3.6))
+    fig, ax = plt.subplots(figsize=(min(24.0, max(4.0, 1.6 * len(names) + 2)), 3.6))
     bottoms = [0.0] * len(names)
     loads = [sum(pn.cpu for pn in plan.nodes.values() if pn.computer == c) for c in names]
     caps = [plan.computers[c].capacity or 0.0 for c in names]
