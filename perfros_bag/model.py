@@ -182,7 +182,8 @@ class Node:
     process: str | None = None
     launch: dict[str, str] = field(default_factory=dict)
     # Fitted relations from model.json, keyed "parameter->cpu", "parameter->performance",
-    # "cpu->performance", "parameter->frequency", "parameter->bandwidth".
+    # "cpu->performance", "parameter->frequency", "parameter->bandwidth", and per topic
+    # "parameter->frequency:<topic>", "parameter->bandwidth:<topic>".
     relations: dict[str, Curve] = field(default_factory=dict)
 
     @property
@@ -223,7 +224,23 @@ class Node:
                 value = float(round(value))
         freq = self._relation_or_interp("parameter->frequency", value, cpu, "frequency_hz")
         bw = self._relation_or_interp("parameter->bandwidth", value, cpu, "bandwidth_kBps")
-        return Choice(index, cpu, self.curve(cpu), value, freq, bw)
+        return Choice(index, cpu, self.curve(cpu), value, freq, bw, self._topic_rates(value))
+
+    def _topic_rates(self, value: float | None) -> dict[str, TopicRate]:
+        """Per-topic rates from relations keyed ``parameter->frequency:<topic>`` /
+        ``parameter->bandwidth:<topic>`` (fitted for nodes with several topics)."""
+        out: dict[str, TopicRate] = {}
+        if value is None:
+            return out
+        for key, rel in self.relations.items():
+            kind, sep, topic = key.partition(":")
+            if not sep or kind not in ("parameter->frequency", "parameter->bandwidth"):
+                continue
+            v = rel(min(max(value, rel.domain[0]), rel.domain[1]))
+            cur = out.get(topic, TopicRate())
+            out[topic] = (TopicRate(v, cur.bandwidth_kBps) if kind == "parameter->frequency"
+                          else TopicRate(cur.frequency_hz, v))
+        return out
 
     def _relation_or_interp(self, key: str, value: float | None, cpu: float, attr: str) -> float | None:
         rel = self.relations.get(key)

@@ -341,6 +341,7 @@ def _fit_node(node: Node, measured: list[Measured], raw: dict[str, Any], warn: _
             warn(f"{who}: {rel}: {note}")
         fits[rel] = fit
 
+    fits.update(_topic_fits(who, measured, warn))
     curve, notes = solver_curve(fits["cpu->performance"], fits["parameter->cpu"],
                                 max(p[2] for p in rated if p[2] is not None))
     for note in notes:
@@ -350,6 +351,36 @@ def _fit_node(node: Node, measured: list[Measured], raw: dict[str, Any], warn: _
     raw["curve"] = curve.to_dict()
     raw["relations"] = {rel: f.curve.to_dict() for rel, f in fits.items()}
     return fits
+
+
+def _topic_fits(who: str, measured: list[Measured], warn: _Warn) -> dict[str, Fit]:
+    """``parameter->frequency:<topic>`` and ``parameter->bandwidth:<topic>`` for a node that
+    publishes several topics (their rates differ; the node-level relations are a mean and
+    a sum). Topics measured at fewer than 2 values are skipped."""
+    topics = sorted({t for m in measured for t in m.topics})
+    out: dict[str, Fit] = {}
+    if len(topics) < 2:
+        return out
+    for t in topics:
+        for k, kind in ((0, "parameter->frequency"), (1, "parameter->bandwidth")):
+            xs: list[float] = []
+            ys: list[float] = []
+            for m in measured:
+                st = m.topics.get(t, (None, None))[k]
+                if m.value is not None and st is not None:
+                    xs.append(m.value)
+                    ys.append(st.mean)
+            if len(set(xs)) < 2:
+                continue
+            rel = f"{kind}:{t}"
+            try:
+                fit = fit_curve(xs, ys, relation=rel)
+            except FitError:
+                continue
+            for note in fit.warnings:
+                warn(f"{who}: {rel}: {note}")
+            out[rel] = fit
+    return out
 
 
 def _with_warnings(fit: Fit, notes: tuple[str, ...]) -> Fit:

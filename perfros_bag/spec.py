@@ -46,6 +46,8 @@ EDGE_KEYS = {"from", "to", "topic", "bandwidth_kBps"}
 LAUNCH_KEYS = {"package", "type", "param", "name", "namespace"}
 RELATION_KEYS = {"parameter->cpu", "parameter->performance", "cpu->performance",
                  "parameter->frequency", "parameter->bandwidth"}
+# ... and per topic: "parameter->frequency:<topic>", "parameter->bandwidth:<topic>"
+TOPIC_RELATIONS = {"parameter->frequency", "parameter->bandwidth"}
 
 
 class _Ctx:
@@ -303,7 +305,9 @@ def _nodes(ctx: _Ctx, raw: Any, computers: set[str]) -> list[Node]:
 
         relations: dict[str, Curve] = {}
         if m.get("relations") is not None:
-            rm = ctx.mapping(m["relations"], f"{where}: relations", RELATION_KEYS)
+            per_topic = {k for k in m["relations"] if isinstance(k, str) and k.partition(":")[0] in TOPIC_RELATIONS
+                         and k.partition(":")[2]} if isinstance(m["relations"], Mapping) else set()
+            rm = ctx.mapping(m["relations"], f"{where}: relations", RELATION_KEYS | per_topic)
             for key, rv in rm.items():
                 relations[key] = parse_curve(ctx.path, rv, f"{where}: relations.{key}")
 

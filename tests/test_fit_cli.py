@@ -356,3 +356,32 @@ def test_round_trip_from_the_fixture_recordings(tmp_path: Path) -> None:
     plan = json.loads(plan_path.read_text())
     configurable = [n["name"] for n in yaml.safe_load((rec / "system.yaml").read_text())["nodes"] if n.get("parameter")]
     assert _check_plan_maps_back(model, plan) == len(configurable) > 0
+
+
+def test_a_node_with_several_topics_gets_per_topic_rates_in_the_plan(tmp_path: Path) -> None:
+    system = {"computers": [{"name": "r", "kind": "robot", "capacity": 100}],
+              "nodes": [{"name": "lidar", "weight": 1, "parameter": {"name": "rate"}, "topics": ["/scan", "/cloud"],
+                         "settings": [{"value": v, "cpu": 2 * v, "performance": 2 * v} for v in (10, 20, 30)]}]}
+    rows = []
+    for v in (10, 20, 30):
+        rows.append({"recording": f"r{v}", "node": "lidar", "value": v, "topic": "/scan",
+                     "frequency_hz": v, "bandwidth_kBps": v * 0.5, "cpu_units_mean": 2 * v})
+        rows.append({"recording": f"r{v}", "node": "lidar", "value": v, "topic": "/cloud",
+                     "frequency_hz": v / 10, "bandwidth_kBps": v * 3, "cpu_units_mean": 2 * v})
+    model = tmp_path / "m.json"
+    result = run(str(write_yaml(tmp_path / "s.yaml", system)), str(write_csv(tmp_path / "c.csv", rows)), "--out", str(model))
+    assert result.exit_code == 0, result.stderr
+    rels = load_system(model).node["lidar"].relations
+    assert {"parameter->frequency:/scan", "parameter->frequency:/cloud",
+            "parameter->bandwidth:/scan", "parameter->bandwidth:/cloud"} <= set(rels)
+    # node level: frequency is the mean over topics, bandwidth the sum
+    assert rels["parameter->frequency"](20) == pytest.approx((20 + 2) / 2)
+    assert rels["parameter->bandwidth"](20) == pytest.approx(10 + 60)
+    plan_path = tmp_path / "plan.json"
+    solved = CliRunner().invoke(app, ["solve", str(model), "--method", "exact", "--out", str(plan_path)])
+    assert solved.exit_code == 0, solved.stderr
+    node = json.loads(plan_path.read_text())["nodes"]["lidar"]
+    v = node["value"]
+    assert node["cpu"] == pytest.approx(2 * v, abs=1e-6)
+    assert node["topics"]["/scan"] == pytest.approx({"frequency_hz": v, "bandwidth_kBps": v * 0.5})
+    assert node["topics"]["/cloud"] == pytest.approx({"frequency_hz": v / 10, "bandwidth_kBps": v * 3})
