@@ -389,3 +389,17 @@ def test_empty_recording_is_a_correct_empty_result(tmp_path: Path) -> None:
     assert out.read_text().splitlines() == [",".join(COLUMNS)]
     r = run("characterise", d, "--json")
     assert r.returncode == 0 and json.loads(r.stdout) == []
+
+
+def test_plot_png(tmp_path: Path) -> None:
+    png = tmp_path / "char.png"
+    r = run("characterise", FIX, "--out", tmp_path / "c.csv", "--plot", png)
+    assert r.returncode == 0, r.stderr
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    from perfros_bag.characterise_plot import plot_characterisation
+
+    entries, _ = find_entries(FIX)
+    rows = characterise(entries, load_system(FIX / "system.yaml")).rows
+    assert plot_characterisation(rows, tmp_path / "p.png") == 4  # the four configurable nodes
+    fixed = [r for r in rows if r.parameter is None]
+    assert plot_characterisation(fixed, tmp_path / "none.png") == 0 and not (tmp_path / "none.png").exists()

@@ -29,6 +29,7 @@ def characterise_cmd(
     slow: bool = typer.Option(False, "--slow", help="Stream every message instead of reading the indexes."),
     scheduler: str | None = typer.Option(None, "--scheduler", help="Run on a dask.distributed cluster (tcp://HOST:PORT)."),
     workers: int | None = typer.Option(None, "--workers", help="Run on a local Dask cluster of N worker processes."),
+    plot: Path | None = typer.Option(None, "--plot", help="Also write a PNG: CPU and frequency per setting of each configurable node."),  # noqa: B008
 ) -> None:
     """Characterise every recording in DIR: per node and topic, frequency, bandwidth and CPU."""
     from rich.markup import escape
@@ -71,6 +72,11 @@ def characterise_cmd(
         write_csv(out_path, result.rows)
     if as_json:
         print(json.dumps(rows_json(result.rows), indent=1))
+    if plot is not None and result.rows:
+        from perfros_bag.characterise_plot import plot_characterisation
+
+        if not plot_characterisation(result.rows, plot):
+            err.print(f"no node with two or more settings: {plot} not written", highlight=False)
 
     table = Table(title="characterisation (Table I)", title_justify="left")
     for col, just in (("node", "left"), ("setting", "left"), ("recordings", "right"), ("CPU", "right"),
