@@ -68,7 +68,7 @@ def main() -> None:
         v = validate_files(d / "run.mcap", d / "plan.json")
         assert abs(v.deviation_pct) < 0.5, v.deviation_pct
         print(f"{args.nodes} nodes, {n} messages, {args.seconds:g} s, CPU trace {len(plan.nodes) * int(args.seconds)} rows")
-        print("| step | best of %d (s) | ratio to reading |" % args.repeat)
+        print(f"| step | best of {args.repeat} (s) | ratio to reading |")
         print("|---|---:|---:|")
         print(f"| read_recording (baseline) | {base:.3f} | 1.00 |")
         print(f"| eq 10 on the statistics (check_run) | {eq10:.4f} | {eq10 / base:.3f} |")
