@@ -20,13 +20,12 @@ from pathlib import Path
 
 import psutil
 import pytest
-import yaml
 
 from perfros_bag.casestudy.cgroups import leftover_groups
 from perfros_bag.casestudy.launcher import leftover_processes
 from perfros_bag.solve import solve
-from perfros_bag.solve.instances import table2_instance
 from perfros_bag.spec import load_system
+from tests.conftest import FIXTURES
 
 pytestmark = pytest.mark.ros
 
@@ -75,8 +74,7 @@ def _nothing_left(run_id: str, port: int) -> None:
 def instance1(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     _require_ros()
     d = tmp_path_factory.mktemp("cs")
-    system = d / "system.yaml"
-    system.write_text(yaml.safe_dump(table2_instance(1)))
+    system = FIXTURES / "casestudy" / "instance1.yaml"  # Table II instance 1, Table I settings
     plan = d / "plan.json"
     solve(load_system(system), 1, method="greedy").save(plan)
     return system, plan

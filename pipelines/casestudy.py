@@ -1,0 +1,386 @@
+"""The paper's case study on real ROS 1, end to end (section V-C: RQ2 and RQ3).
+
+    .venv/bin/python pipelines/casestudy.py [--out out/casestudy] [--duration 20]
+        [--char-duration 15] [--instances 1,2,3,4,5,6] [--units-per-core 400] [--docs docs/casestudy.md]
+
+1. characterisation: instance 1's nodes at every Table I setting of one configurable node
+   (the others at their minimum), all on one uncapped computer -> OUT/characterisation/
+   (run.bag + run.cpu.csv per run, manifest.yaml);
+2. ``perfros-bag characterise`` -> ``fit`` (Table I's expert performance levels) per
+   instance (nodes of one type share instance 1's measurements) -> ``solve`` Problem 1
+   (greedy, and exact for the optimum) and Problem 2 (greedy) for instances 1-6;
+3. every greedy plan deployed with ``perfros-bag casestudy run`` (computers as CPU-capped
+   cgroups: 100 units = 1/units_per_core*100 core) and checked with ``perfros-bag validate``;
+4. RQ3: instance 1 with the robot's nodes kept on the robot, the plan (baseline) and
+   Table III's Mod. 1-3 (parameters forced above the plan): predicted robot CPU vs its
+   capacity, and the run's measured CPU, throttling, frequencies and performance.
+
+Results: OUT/results.json, OUT/fig5.png, OUT/rq3.png and the results section of
+``docs/casestudy.md`` (with the commands and the date). A run whose run.json exists is
+reused: delete OUT (or a run folder) to measure again.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import os
+import re
+import shlex
+import subprocess
+import sys
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from rich.console import Console
+
+from perfros_bag.casestudy.launcher import RunConfig, run_plan
+from perfros_bag.fileio import atomic_write_json, atomic_write_text
+from perfros_bag.model import Choice, System
+from perfros_bag.plan import Assignment, Plan, build_plan, load_plan
+from perfros_bag.spec import load_system
+
+ROOT = Path(__file__).resolve().parent.parent
+BIN = Path(sys.executable).with_name("perfros-bag")
+FIXTURES = ROOT / "fixtures" / "casestudy"
+# Table III: node kind -> value for Mod. 1, 2, 3 (the paper's baseline: 80 goals, 200 particles, 15 Hz)
+TABLE_III = {"model": (200, 3500, 10000), "amcl": (300, 1000, 3000), "navigation": (16, 18, 20)}
+err = Console(stderr=True)
+COMMANDS: list[str] = []
+
+
+def sh(args: list[str], *, ok: tuple[int, ...] = (0,)) -> subprocess.CompletedProcess[str]:
+    shown = " ".join(shlex.quote(str(a)) for a in args).replace(str(ROOT) + "/", "")
+    shown = shown.replace(str(BIN), "perfros-bag")
+    COMMANDS.append(shown)
+    err.print(f"[dim]$ {shown}[/]", highlight=False)
+    done = subprocess.run([str(a) for a in args], capture_output=True, text=True)
+    if done.returncode not in ok:
+        raise SystemExit(f"error: `{shown}` failed ({done.returncode}): {done.stderr.strip()[-800:]}")
+    return done
+
+
+def kind(name: str) -> str:
+    return name.rstrip("0123456789")
+
+
+def table1_choice(node: Any, index: int) -> Choice:
+    rows = sorted(node.settings, key=lambda s: (s.value if s.value is not None else 0.0))
+    s = rows[index]
+    return Choice(index, s.cpu, s.performance, s.value, s.frequency_hz, s.bandwidth_kBps, s.topics)
+
+
+def deploy(system: System, system_path: Path, plan: Plan, out: Path, cfg: RunConfig, label: str) -> dict[str, Any]:
+    if (out / "run.json").exists():
+        err.print(f"reusing {out}")
+        return json.loads((out / "run.json").read_text())
+    plan_path = out.with_suffix(".plan.json")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    plan.save(plan_path)
+    COMMANDS.append(f"perfros-bag casestudy run --system {system_path.relative_to(ROOT) if system_path.is_relative_to(ROOT) else system_path} "
+                    f"--plan {plan_path} --duration {cfg.duration:g} --out {out}"
+                    + ("" if cfg.cap else " --no-cap") + f" --units-per-core {cfg.units_per_core:g}")
+    err.print(f"[bold]{label}[/]: running {cfg.duration:g} s -> {out}")
+    return run_plan(system, plan, out, cfg, system_path=system_path)
+
+
+# ---------------------------------------------------------------- 1. characterisation
+
+def characterise(out: Path, args: argparse.Namespace) -> Path:
+    sys_path = FIXTURES / "instance1.yaml"
+    system = load_system(sys_path)
+    char = out / "characterisation"
+    char.mkdir(parents=True, exist_ok=True)
+    configurable = [n for n in system.nodes if len(n.settings) > 1]
+    entries = []
+    cfg = RunConfig(duration=args.char_duration, units_per_core=args.units_per_core, cap=False)
+    for target in configurable:
+        for idx in range(len(target.settings)):
+            choice = {n.name: table1_choice(n, idx if n.name == target.name else 0) for n in system.nodes}
+            place = {n.name: "server" for n in system.nodes}
+            plan = build_plan(system, Assignment(place, choice), problem=1, method="characterisation", status="feasible")
+            name = f"{target.name}_{choice[target.name].value:g}"
+            deploy(system, sys_path, plan, char / name, cfg, f"characterise {name}")
+            entries.append({"path": f"{name}/run.bag", "cpu": f"{name}/run.cpu.csv", "computer": "server",
+                            "settings": {n.name: choice[n.name].value for n in configurable}})
+    import yaml
+
+    manifest = {"system": os.path.relpath(sys_path, char), "recordings": entries}
+    atomic_write_text(char / "manifest.yaml", yaml.safe_dump(manifest, sort_keys=False))
+    csv_path = out / "characterisation.csv"
+    sh([BIN, "characterise", char, "--system", sys_path, "--out", csv_path])
+    return csv_path
+
+
+def csv_for_instance(rows: list[dict[str, str]], system: System) -> list[dict[str, str]]:
+    """Instance 1's measured rows copied to every node of the same type in ``system``."""
+    by_kind: dict[str, list[str]] = {}
+    for n in system.nodes:
+        by_kind.setdefault(kind(n.name), []).append(n.name)
+    out = []
+    for row in rows:
+        src = row["node"]
+        for dst in by_kind.get(kind(src), []):
+            new = dict(row)
+            new["node"] = dst
+            new["topic"] = row["topic"].replace(f"/{src}/", f"/{dst}/")
+            out.append(new)
+    return out
+
+
+# ---------------------------------------------------------------- 2. fit + solve
+
+def fit_and_solve(out: Path, char_csv: Path, instances: list[int]) -> dict[int, dict[str, Path]]:
+    with char_csv.open(newline="") as handle:
+        reader = csv.DictReader(handle)
+        fields = list(reader.fieldnames or [])
+        rows = list(reader)
+    plans: dict[int, dict[str, Path]] = {}
+    for i in instances:
+        sys_path = FIXTURES / f"instance{i}.yaml"
+        system = load_system(sys_path)
+        d = out / f"instance{i}"
+        d.mkdir(parents=True, exist_ok=True)
+        inst_csv = d / "characterisation.csv"
+        with inst_csv.open("w", newline="") as handle:
+            w = csv.DictWriter(handle, fieldnames=fields)
+            w.writeheader()
+            w.writerows(csv_for_instance(rows, system))
+        model = d / "model.json"
+        sh([BIN, "fit", sys_path, inst_csv, "--out", model] + (["--plots", d / "fit-plots"] if i == 1 else []))
+        plans[i] = {}
+        for problem, method in ((1, "greedy"), (1, "exact"), (2, "greedy")):
+            p = d / f"plan-p{problem}-{method}.json"
+            sh([BIN, "solve", model, "--problem", str(problem), "--method", method, "--out", p])
+            plans[i][f"p{problem}-{method}"] = p
+    return plans
+
+
+# ---------------------------------------------------------------- 3. deploy + validate
+
+def validate(run_dir: Path, plan: Path, system: Path) -> dict[str, Any]:
+    out = run_dir / "validation.json"
+    sh([BIN, "validate", run_dir / "run.bag", plan, "--system", system, "--json", "--out", out], ok=(0, 1))
+    return json.loads(out.read_text())
+
+
+def summarise(val: dict[str, Any], record: dict[str, Any]) -> dict[str, Any]:
+    ratios = [abs(t["ratio"] - 1) * 100 for n in val["nodes"] for t in n["topics"] if t.get("ratio") is not None]
+    comps = {c["computer"]: {"capacity": c["capacity"], "expected": c["cpu_expected"], "measured": c["cpu_measured"]}
+             for c in val["computers"]}
+    thr = {c: (t["nr_throttled"] / t["nr_periods"] if t.get("nr_periods") else None)
+           for c, t in record.get("throttling", {}).items()}
+    return {"expected": val["overall"]["expected"], "measured": val["overall"]["measured"],
+            "deviation_pct": val["overall"]["deviation_pct"],
+            "freq_dev_mean_pct": sum(ratios) / len(ratios) if ratios else None,
+            "cpu_cap": record["cpu_cap"]["mode"], "computers": comps, "throttled": thr,
+            "nodes": {n["node"]: {"value": n["value"], "p_expected": n["p_expected"], "p_measured": n["p_measured"],
+                                  "f_ratio": n["ratio"]} for n in val["nodes"]}}
+
+
+def deploy_all(out: Path, plans: dict[int, dict[str, Path]], args: argparse.Namespace) -> list[dict[str, Any]]:
+    cfg = RunConfig(duration=args.duration, units_per_core=args.units_per_core)
+    results = []
+    for i, ps in plans.items():
+        sys_path = FIXTURES / f"instance{i}.yaml"
+        system = load_system(sys_path)
+        optimum = load_plan(ps["p1-exact"]).objective
+        for key in ("p1-greedy", "p2-greedy"):
+            plan = load_plan(ps[key])
+            run_dir = out / f"instance{i}" / f"run-{key}"
+            record = deploy(system, sys_path, plan, run_dir, cfg, f"instance {i} {key}")
+            val = validate(run_dir, ps[key], sys_path)
+            row = {"instance": i, "problem": plan.problem, "method": plan.method, "objective": plan.objective,
+                   "optimum": optimum if plan.problem == 1 else None, **summarise(val, record)}
+            results.append(row)
+            err.print(f"instance {i} P{plan.problem}: expected {row['expected']:.2f} measured {row['measured']:.2f} "
+                      f"({row['deviation_pct']:.2f} %)")
+    return results
+
+
+# ---------------------------------------------------------------- 4. RQ3
+
+def rq3(out: Path, args: argparse.Namespace) -> list[dict[str, Any]]:
+    from perfros_bag.solve import fixed_choices, settings_from_plan, settings_from_values, solve
+
+    d = out / "rq3"
+    d.mkdir(parents=True, exist_ok=True)
+    model_doc = json.loads((out / "instance1" / "model.json").read_text())
+    for node in model_doc["system"]["nodes"]:
+        if re.fullmatch(r"(environment|model|planner|amcl|navigation)1", node["name"]):
+            node["residence"] = ["robot1"]
+    model_path = d / "model-robot.json"
+    atomic_write_json(model_path, model_doc)
+    system = load_system(model_path)
+    baseline = solve(system, 1, "greedy")
+    baseline.save(d / "plan-baseline.json")
+    COMMANDS.append(f"(RQ3) perfros-bag solve {model_path} --problem 1 --method greedy --out {d / 'plan-baseline.json'}")
+    truth_path = FIXTURES / "instance1.yaml"
+    truth = load_system(truth_path)
+    cfg = RunConfig(duration=args.duration, units_per_core=args.units_per_core)
+    configs: list[tuple[str, Plan]] = [("Baseline", baseline)]
+    base_values = {n: pn.value for n, pn in baseline.nodes.items() if pn.value is not None}
+    for m in range(3):
+        values = {f"{k}1": max(float(v[m]), float(base_values.get(f"{k}1", 0.0))) for k, v in TABLE_III.items()}
+        levels = settings_from_plan(baseline)
+        levels.update(settings_from_values(system, values))
+        choices = fixed_choices(system, 2, levels)
+        placement = {n: pn.computer for n, pn in baseline.nodes.items()}
+        plan = build_plan(system, Assignment(placement, {n: c[0] for n, c in choices.items()}), problem=1,
+                          method=f"forced (Table III Mod. {m + 1})", status="feasible")
+        configs.append((f"Mod. {m + 1}", plan))
+    rows = []
+    for label, plan in configs:
+        slug = label.lower().replace(". ", "").replace(" ", "")
+        run_dir = d / f"run-{slug}"
+        record = deploy(truth, truth_path, plan, run_dir, cfg, f"RQ3 {label}")
+        plan_path = run_dir.with_suffix(".plan.json")
+        val = validate(run_dir, plan_path, truth_path)
+        s = summarise(val, record)
+        robot = plan.computers["robot1"]
+        rows.append({"config": label, "values": {n: plan.nodes[n].value for n in ("model1", "amcl1", "navigation1")},
+                     "robot_cpu_predicted": robot.cpu, "robot_capacity": robot.capacity,
+                     "predicted_overload": robot.cpu > (robot.capacity or 0) + 1e-9,
+                     "robot_cpu_measured": s["computers"]["robot1"]["measured"],
+                     "robot_throttled": s["throttled"].get("robot1"),
+                     **{k: s[k] for k in ("expected", "measured", "deviation_pct", "freq_dev_mean_pct", "cpu_cap")},
+                     "nodes": s["nodes"]})
+    return rows
+
+
+# ---------------------------------------------------------------- report
+
+def plots(out: Path, results: list[dict[str, Any]], rq3_rows: list[dict[str, Any]]) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))
+    for ax, problem in zip(axes, (1, 2), strict=True):
+        rows = [r for r in results if r["problem"] == problem]
+        xs = list(range(len(rows)))
+        ref = [r["optimum"] if problem == 1 and r["optimum"] else r["expected"] for r in rows]
+        ax.bar([x - 0.2 for x in xs], [r["expected"] / f for r, f in zip(rows, ref, strict=True)], 0.4, label="expected")
+        ax.bar([x + 0.2 for x in xs], [r["measured"] / f for r, f in zip(rows, ref, strict=True)], 0.4, label="measured")
+        ax.set_xticks(xs, [str(r["instance"]) for r in rows])
+        ax.set_xlabel("instance")
+        ax.set_ylim(0.8, 1.05)
+        ax.set_title(f"Problem {problem}: performance / " + ("optimum" if problem == 1 else "expected"))
+        ax.axhline(1.0, color="grey", lw=0.8)
+    axes[0].legend(loc="lower left")
+    fig.tight_layout()
+    fig.savefig(out / "fig5.png", dpi=110)
+    plt.close(fig)
+    if rq3_rows:
+        fig, (a1, a2) = plt.subplots(1, 2, figsize=(10, 3.6))
+        labels = [r["config"] for r in rq3_rows]
+        xs = list(range(len(labels)))
+        a1.bar([x - 0.2 for x in xs], [r["robot_cpu_predicted"] for r in rq3_rows], 0.4, label="predicted")
+        a1.bar([x + 0.2 for x in xs], [r["robot_cpu_measured"] for r in rq3_rows], 0.4, label="measured")
+        a1.axhline(rq3_rows[0]["robot_capacity"], color="red", lw=1, label="capacity")
+        a1.set_xticks(xs, labels)
+        a1.set_title("robot CPU (units)")
+        a1.legend()
+        a2.bar([x - 0.2 for x in xs], [r["expected"] for r in rq3_rows], 0.4, label="expected (model)")
+        a2.bar([x + 0.2 for x in xs], [r["measured"] for r in rq3_rows], 0.4, label="measured (eq 10)")
+        a2.set_xticks(xs, labels)
+        a2.set_title("overall performance Σ w·P")
+        a2.legend(loc="lower left")
+        fig.tight_layout()
+        fig.savefig(out / "rq3.png", dpi=110)
+        plt.close(fig)
+
+
+def markdown(results: list[dict[str, Any]], rq3_rows: list[dict[str, Any]], args: argparse.Namespace,
+             argv: list[str]) -> str:
+    def f(x: Any, nd: int = 2) -> str:
+        return "-" if x is None else f"{x:.{nd}f}"
+
+    lines = [f"Measured on {datetime.now(UTC).strftime('%Y-%m-%d %H:%M UTC')} on this machine "
+             f"({args.units_per_core:g} CPU units per core: a robot of 100 = {100 / args.units_per_core:g} core, "
+             f"the server of 400 = {400 / args.units_per_core:g} core; {args.duration:g} s per run).", "",
+             "### RQ2: expected vs measured (Fig. 5)", "",
+             "| instance | problem | greedy objective | optimum | greedy/optimum | expected Σ w·P | measured Σ w·P "
+             "| deviation % | mean freq. dev. % | CPU cap |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in results:
+        opt = r["optimum"]
+        ratio = r["expected"] / opt if opt else None
+        lines.append(f"| {r['instance']} | {r['problem']} | {f(r['objective'])} | {f(opt)} | {f(ratio, 4)} | "
+                     f"{f(r['expected'])} | {f(r['measured'])} | {f(r['deviation_pct'])} | "
+                     f"{f(r['freq_dev_mean_pct'])} | {r['cpu_cap']} |")
+    for problem in (1, 2):
+        devs = [r["deviation_pct"] for r in results if r["problem"] == problem]
+        if devs:
+            lines.append(f"\nProblem {problem}: mean deviation of measured from expected performance "
+                         f"**{sum(devs) / len(devs):.2f} %** over {len(devs)} instances (paper: 2.5 %).")
+    lines += ["", "Problem 2's objective is the server capacity it sized (CPU units).", "",
+              "![expected vs measured](casestudy/fig5.png)", ""]
+    if rq3_rows:
+        lines += ["### RQ3: parameters forced above the plan (Table III), instance 1, robot nodes on the robot", "",
+                  "| config | model goals | AMCL particles | nav. Hz | robot CPU predicted | capacity | overload predicted "
+                  "| robot CPU measured | robot throttled periods | expected Σ w·P | measured Σ w·P | deviation % |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+        for r in rq3_rows:
+            v = r["values"]
+            thr = r["robot_throttled"]
+            lines.append(f"| {r['config']} | {f(v['model1'], 0)} | {f(v['amcl1'], 0)} | {f(v['navigation1'], 1)} | "
+                         f"{f(r['robot_cpu_predicted'], 1)} | {f(r['robot_capacity'], 0)} | "
+                         f"{'yes' if r['predicted_overload'] else 'no'} | {f(r['robot_cpu_measured'], 1)} | "
+                         f"{'-' if thr is None else f'{thr:.0%}'} | {f(r['expected'])} | {f(r['measured'])} | "
+                         f"{f(r['deviation_pct'])} |")
+        lines += ["", "![RQ3](casestudy/rq3.png)", ""]
+    lines += ["### Commands", "", "```", f"make casestudy   # = .venv/bin/python pipelines/casestudy.py {' '.join(argv)}",
+              *dict.fromkeys(COMMANDS), "```", ""]
+    return "\n".join(lines)
+
+
+def write_docs(docs: Path, section: str, out: Path) -> None:
+    import shutil
+
+    begin, end = "<!-- casestudy-results:begin -->", "<!-- casestudy-results:end -->"
+    text = docs.read_text() if docs.exists() else f"# Case study\n\n{begin}\n{end}\n"
+    if begin not in text:
+        text += f"\n{begin}\n{end}\n"
+    head, rest = text.split(begin, 1)
+    _, tail = rest.split(end, 1)
+    atomic_write_text(docs, f"{head}{begin}\n{section}\n{end}{tail}")
+    img = docs.parent / "casestudy"
+    img.mkdir(exist_ok=True)
+    for name in ("fig5.png", "rq3.png"):
+        if (out / name).exists():
+            shutil.copyfile(out / name, img / name)
+
+
+def main(argv: list[str]) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", type=Path, default=ROOT / "out" / "casestudy")
+    ap.add_argument("--duration", type=float, default=20.0)
+    ap.add_argument("--char-duration", type=float, default=15.0)
+    ap.add_argument("--instances", default="1,2,3,4,5,6")
+    ap.add_argument("--units-per-core", type=float, default=400.0)
+    ap.add_argument("--docs", type=Path, default=ROOT / "docs" / "casestudy.md")
+    ap.add_argument("--skip-rq3", action="store_true")
+    args = ap.parse_args(argv)
+    instances = [int(x) for x in args.instances.split(",") if x.strip()]
+    out: Path = args.out.resolve()
+    out.mkdir(parents=True, exist_ok=True)
+    char_csv = characterise(out, args)
+    plans = fit_and_solve(out, char_csv, instances)
+    results = deploy_all(out, plans, args)
+    rq3_rows = [] if args.skip_rq3 or 1 not in instances else rq3(out, args)
+    atomic_write_json(out / "results.json", {"rq2": results, "rq3": rq3_rows, "args": vars(args) | {"out": str(out), "docs": str(args.docs)}})
+    plots(out, results, rq3_rows)
+    section = markdown(results, rq3_rows, args, argv)
+    atomic_write_text(out / "results.md", section)
+    if args.docs:
+        write_docs(args.docs, section, out)
+    err.print(section)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
