@@ -260,7 +260,29 @@ def test_nothing_readable_exit_2_no_output(tmp_path: Path) -> None:
     r = run("characterise", d, "--out", out)
     assert r.returncode == 2, r.stderr
     assert "Traceback" not in r.stderr
-    assert len([ln for ln in r.stderr.splitlines() if ln.startswith("error:")]) == 2
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 2 and all(ln.startswith("error:") for ln in lines)
+    assert "a.bag" in lines[0] and "b.mcap" in lines[1]
+    assert not out.exists()
+
+
+@pytest.mark.parametrize(("line", "needle"), [
+    ("1700000400.25,1001,environment1", "line 11: expected 6 fields, got 3"),
+    ("1700000400.25,abc,environment1,python3,1,1", "line 11: pid 'abc' is not an integer"),
+])
+def test_single_recording_with_malformed_trace_is_one_line_exit_2(tmp_path: Path, line: str, needle: str) -> None:
+    d = tmp_path / "one"
+    d.mkdir()
+    shutil.copy(FIX / "robot_low.bag", d)
+    lines = (FIX / "robot_low.cpu.csv").read_text().splitlines()
+    lines[10] = line
+    (d / "robot_low.cpu.csv").write_text("\n".join(lines) + "\n")
+    out = tmp_path / "c.csv"
+    r = run("characterise", d, "--out", out, "--json")
+    assert r.returncode == 2
+    assert r.stdout == ""
+    err = r.stderr.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error:") and needle in err[0] and "robot_low.cpu.csv" in err[0]
     assert not out.exists()
 
 

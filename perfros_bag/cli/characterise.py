@@ -68,7 +68,9 @@ def characterise_cmd(
 
     for f in result.failures:
         err.print(f"[red]error:[/] {escape(f.message)}", highlight=False, soft_wrap=True)
-    if out_path is not None and result.exit_code != 2:  # an empty result is a header-only file
+    if result.exit_code == 2:  # nothing could be read: the error lines only, no output file
+        raise typer.Exit(2)
+    if out_path is not None:  # an empty result is a header-only file
         write_csv(out_path, result.rows)
     if as_json:
         print(json.dumps(rows_json(result.rows), indent=1))
@@ -89,7 +91,7 @@ def characterise_cmd(
     (err if as_json else out).print(table)
     summary = f"{len(result.rows)} rows from {result.recordings - len(result.failures)}/{result.recordings} recordings"
     if out_path is not None:
-        summary += f" -> {out_path}" if result.exit_code != 2 else f"; {out_path} not written"
+        summary += f" -> {out_path}"
     err.print(summary, highlight=False)
     if result.exit_code:
         raise typer.Exit(result.exit_code)
