@@ -276,15 +276,15 @@ def _fit_node(node: Node, measured: list[Measured], raw: dict[str, Any], warn: _
         else:
             used.add(id(m))
             if m.cpu is not None and m.cpu.mean > 0:
-                cpu = m.cpu.mean
+                cpu = _r(m.cpu.mean)
             elif m.cpu is not None:
                 warn(f"{who}: measured CPU {m.cpu.mean:g} at value {m.value}: kept {sys_path}'s cpu {s.cpu:g}")
             else:
                 warn(f"{who}: no CPU measured at value {m.value}: kept {sys_path}'s cpu {s.cpu:g}")
             if m.frequency_hz is not None:
-                freq = m.frequency_hz.mean
+                freq = _r(m.frequency_hz.mean)
             if m.bandwidth_kBps is not None:
-                bw = m.bandwidth_kBps.mean
+                bw = _r(m.bandwidth_kBps.mean)
             rs["cpu"] = _r(cpu)
             if freq is not None:
                 rs["frequency_hz"] = _r(freq)
