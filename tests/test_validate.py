@@ -484,3 +484,26 @@ def test_plan_without_any_expected_frequency_is_bad_input() -> None:
             t["frequency_hz"] = 0
     with pytest.raises(InputError, match="nothing to compare"):
         check_run(stats_at(1.0), parse_plan(data, "p.json"), plan_path="p.json")
+
+
+def test_cli_cpu_trace_matched_by_system_process_regex(tmp_path: Path, plan_file: Path) -> None:
+    import yaml
+
+    system = {
+        "computers": [{"name": "robot1", "kind": "robot", "capacity": 100},
+                      {"name": "server", "kind": "server", "capacity": 400}],
+        "nodes": [{"name": "a", "weight": 0.5, "process": "^drv_.*", "settings": [{"cpu": 60, "performance": 80}]},
+                  {"name": "b", "weight": 0.5, "settings": [{"cpu": 120, "performance": 50}]}],
+    }
+    sp = tmp_path / "system.yaml"
+    sp.write_text(yaml.safe_dump(system))
+    run = tmp_path / "run.mcap"
+    write_mcap(run, 1.0)
+    # two processes of node a (labels matched by the regex): their CPU adds up per sample
+    write_trace(tmp_path / "run.cpu.csv", [("drv_left", 40.0), ("drv_right", 60.0), ("b", 8.0)], 4, 1_700_000_000.0)
+    without = json.loads(run_cli("validate", str(run), str(plan_file), "--json").stdout)
+    assert {c["computer"]: c["unmatched_nodes"] for c in without["computers"]} == {"robot1": ["a"], "server": []}
+    doc = json.loads(run_cli("validate", str(run), str(plan_file), "--system", str(sp), "--json").stdout)
+    comp = {c["computer"]: c for c in doc["computers"]}
+    assert comp["robot1"]["cpu_measured"] == pytest.approx((40 + 60) / 400 * 100)
+    assert comp["server"]["cpu_measured"] == pytest.approx(8 / 400 * 400)
