@@ -10,7 +10,8 @@ Either way the caller gets one :class:`Outcome` per task, in task order: the val
 or the :class:`~perfros_bag.errors.PerfrosError` the task raised (a bad recording is
 reported exactly as in the local path, the other tasks go on). A worker that dies is
 replaced and its tasks are re-run by the scheduler (``distributed.scheduler
-.allowed-failures`` times); a task whose worker keeps dying, or that raises an
+.allowed-failures`` times; a task given up on is submitted once more, since it may have
+shared the worker with the culprit); a task whose worker keeps dying, or that raises an
 unexpected exception after ``retries`` re-runs, becomes an error outcome naming the
 task, never a lost result or a traceback. Functions and task items must be picklable
 and importable on the workers (install perfros-bag on every worker of a real cluster).
@@ -19,6 +20,7 @@ and importable on the workers (install perfros-bag on every worker of a real clu
 from __future__ import annotations
 
 import logging
+import uuid
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -127,21 +129,35 @@ def _run_dask(client: Client, items: list[T], labels: list[str], fn: Callable[[T
               advance: ProgressCallback, retries: int) -> list[Outcome[R]]:
     from distributed import as_completed
 
-    futures = [client.submit(_call, fn, item, key=f"perfros-{i}-{_safe(name)}",
-                             retries=retries, pure=False)
-               for i, (item, name) in enumerate(zip(items, labels, strict=True))]
-    index = {future.key: i for i, future in enumerate(futures)}
-    outcomes: list[Outcome[R] | None] = [None] * len(futures)
+    run = uuid.uuid4().hex[:12]  # keys unique per run: a cluster may still hold old keys
+    index: dict[str, int] = {}
+    futures = []
+
+    def submit(i: int, attempt: int) -> Any:
+        key = f"perfros-{run}-{i}-{attempt}-{_safe(labels[i])}"
+        future = client.submit(_call, fn, items[i], key=key, retries=retries, pure=False)
+        index[key] = i
+        futures.append(future)
+        return future
+
+    outcomes: list[Outcome[R] | None] = [None] * len(items)
+    resubmitted: set[int] = set()
     try:
-        for future in as_completed(futures):
-            i = index[future.key]
-            if future.status == "finished":
+        pending = as_completed([submit(i, 0) for i in range(len(items))])
+        for future in pending:
+            i = index[str(future.key)]
+            try:
+                # result() also waits when the result was lost with its worker after the
+                # task finished (the scheduler recomputes it)
                 result = _outcome(labels[i], future.result())
-            else:
-                try:
-                    exc: BaseException | None = future.exception()
-                except BaseException as lost:  # cancelled: the scheduler forgot the task
-                    exc = lost
+            except (KeyboardInterrupt, SystemExit):
+                raise
+            except BaseException as exc:  # the task's exception, KilledWorker, cancelled
+                if type(exc).__name__ == "KilledWorker" and i not in resubmitted:
+                    # Its worker died while it ran, maybe because of another task: once more.
+                    resubmitted.add(i)
+                    pending.add(submit(i, 1))
+                    continue
                 result = Outcome(labels[i], error=_task_error(labels[i], exc))
             outcomes[i] = result
             advance(result)
@@ -151,7 +167,7 @@ def _run_dask(client: Client, items: list[T], labels: list[str], fn: Callable[[T
     return [o for o in outcomes if o is not None]
 
 
-def _task_error(name: str, exc: BaseException | None) -> PerfrosError:
+def _task_error(name: str, exc: BaseException) -> PerfrosError:
     kind = type(exc).__name__
     if kind == "KilledWorker":
         return _error(f"{name}: the Dask worker running this task died repeatedly (out of memory? "

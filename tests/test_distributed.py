@@ -53,8 +53,11 @@ def cluster() -> Iterator[str]:
     import dask
     from distributed import LocalCluster
 
-    # A task whose worker died twice is given up on (default 3): keeps the test short.
-    with dask.config.set({"distributed.scheduler.allowed-failures": 1}):
+    # A task whose worker died is given up on at once (default: after 3 deaths), then
+    # resubmitted once by run_distributed: keeps the test short. worker-saturation 1.0 as run_distributed's own LocalCluster: a worker holds only the
+    # task it runs, so a dying worker takes no queued task with it.
+    with dask.config.set({"distributed.scheduler.allowed-failures": 0,
+                          "distributed.scheduler.worker-saturation": 1.0}):
         lc = LocalCluster(n_workers=2, processes=True, threads_per_worker=1,
                           dashboard_address=None, silence_logs=logging.ERROR)
     try:
@@ -118,20 +121,42 @@ def test_worker_killed_mid_run_loses_nothing(cluster: str) -> None:
 
 
 def test_task_that_always_kills_its_worker_is_a_clear_error(cluster: str) -> None:
-    # The poison task is the last one, so no other task shares its worker when it dies
-    # (a task queued on a worker that keeps dying would get the same clear error).
     out = run_distributed(range(10), kill_own_worker_on_9, scheduler=cluster)
-    assert [o.value for o in out[:9]] == [-i for i in range(9)]
+    assert [o.value for o in out[:9]] == [-i for i in range(9)], [str(o.error) for o in out if o.error]
     bad = out[9]
     assert bad.value is None and bad.error is not None
     assert str(bad.error).startswith("9: the Dask worker running this task died")
 
 
-def test_local_cluster_by_workers_count() -> None:
-    # --workers N: run_distributed starts (and stops) its own LocalCluster.
-    out = run_distributed(range(6), slow_square, workers=2)
-    assert [o.value[0] for o in out if o.value] == [i * i for i in range(6)]
-    assert os.getpid() not in {o.value[1] for o in out if o.value}
+def test_characterise_workers_2_gives_the_same_csv(tmp_path: Path) -> None:
+    # --workers 2: run_distributed starts (and stops) its own LocalCluster of 2 processes.
+    from typer.testing import CliRunner
+
+    from perfros_bag.cli import app
+    from tests.bench.gen_corpus import FORMATS, default_topics, write_recording
+
+    rec = tmp_path / "recs"
+    rec.mkdir()
+    for k, fmt in enumerate(FORMATS * 2):
+        name = f"r{k}_{fmt}" + {"ros1": ".bag", "mcap": ".mcap"}.get(fmt, "")
+        write_recording(rec / name, fmt, default_topics(0.01), 2.0 + k, chunk_bytes=4096, seed=k)
+    good = (rec / "r0_ros1.bag").read_bytes()
+    (rec / "r9_cut.bag").write_bytes(good[: len(good) // 2])  # a truncated bag: one error line
+
+    def characterise(*extra: str) -> tuple[bytes, list[str]]:
+        out = tmp_path / f"out{len(extra)}.csv"
+        res = CliRunner().invoke(app, ["characterise", str(rec), "--out", str(out), *extra])
+        assert res.exit_code == 1, res.stderr  # one bad recording: exit 1, the others written
+        assert "Traceback" not in res.stderr
+        errors = [line for line in res.stderr.splitlines() if line.startswith("error:")]
+        head, *rows = out.read_bytes().splitlines(keepends=True)
+        return head + b"".join(sorted(rows)), errors
+
+    local_csv, local_errors = characterise()
+    dask_csv, dask_errors = characterise("--workers", "2")
+    assert dask_csv == local_csv
+    assert dask_errors == local_errors and len(local_errors) == 1 and "r9_cut.bag" in local_errors[0]
+    assert local_csv.count(b"\n") == 1 + 8 * 4  # header + 8 recordings x 4 topics
 
 
 def test_bad_options_and_unreachable_scheduler(monkeypatch: pytest.MonkeyPatch) -> None:
