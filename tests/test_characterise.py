@@ -103,12 +103,18 @@ def independent_cpu(trace: Path, start_s: float, end_s: float, capacity: float, 
 
 
 @pytest.fixture(scope="module")
-def fixture_rows(tmp_path_factory: pytest.TempPathFactory) -> list[dict[str, str]]:
-    out = tmp_path_factory.mktemp("c") / "characterisation.csv"
-    r = run("characterise", FIX, "--out", out)
+def fixture_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """characterise on the bundled fixtures once: its CSV and PNG in the returned directory."""
+    d = tmp_path_factory.mktemp("c")
+    r = run("characterise", FIX, "--out", d / "characterisation.csv", "--plot", d / "characterisation.png")
     assert r.returncode == 0, r.stderr
     assert "Traceback" not in r.stderr
-    return read_csv(out)
+    return d
+
+
+@pytest.fixture(scope="module")
+def fixture_rows(fixture_run: Path) -> list[dict[str, str]]:
+    return read_csv(fixture_run / "characterisation.csv")
 
 
 def test_columns_are_the_contract(fixture_rows: list[dict[str, str]]) -> None:
@@ -413,15 +419,13 @@ def test_empty_recording_is_a_correct_empty_result(tmp_path: Path) -> None:
     assert r.returncode == 0 and json.loads(r.stdout) == []
 
 
-def test_plot_png(tmp_path: Path) -> None:
-    png = tmp_path / "char.png"
-    r = run("characterise", FIX, "--out", tmp_path / "c.csv", "--plot", png)
-    assert r.returncode == 0, r.stderr
-    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+def test_plot_png(fixture_run: Path, tmp_path: Path) -> None:
+    from perfros_bag.characterise import Row
     from perfros_bag.characterise_plot import plot_characterisation
 
-    entries, _ = find_entries(FIX)
-    rows = characterise(entries, load_system(FIX / "system.yaml")).rows
-    assert plot_characterisation(rows, tmp_path / "p.png") == 4  # the four configurable nodes
-    fixed = [r for r in rows if r.parameter is None]
-    assert plot_characterisation(fixed, tmp_path / "none.png") == 0 and not (tmp_path / "none.png").exists()
+    assert (fixture_run / "characterisation.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    rows = [Row("r", n, "p", float(v), f"/{n}", "t", 11, 10.0, 1.0, 1.0, 5.0 * v, 6.0 * v, 20)
+            for n in ("a", "b", "c") for v in ((1, 2) if n != "c" else (1,))]
+    assert plot_characterisation(rows, tmp_path / "p.png") == 2  # c has a single setting
+    assert (tmp_path / "p.png").stat().st_size > 1000
+    assert plot_characterisation(rows[-1:], tmp_path / "none.png") == 0 and not (tmp_path / "none.png").exists()

@@ -237,13 +237,17 @@ def test_record_cpu_sigint_finishes_the_file(tmp_path: Path) -> None:
 
 
 def test_record_cpu_bad_arguments_are_one_line(tmp_path: Path) -> None:
+    from typer.testing import CliRunner
+
+    from perfros_bag.cli import app
+
     for args, needle in ((["--match", "("], "not a valid regular expression"),
                          ([], "needs --match"),
                          (["--", "/nonexistent/prog-xyz"], "cannot run")):
-        r = subprocess.run([str(BIN), "record-cpu", "--out", str(tmp_path / "x.csv"), "--duration", "1", *args],
-                           capture_output=True, text=True, timeout=60)
-        assert r.returncode == 2, (args, r.stderr)
+        r = CliRunner().invoke(app, ["record-cpu", "--out", str(tmp_path / "x.csv"), "--duration", "1", *args])
+        assert r.exit_code == 2, (args, r.stderr)
         assert needle in r.stderr and "Traceback" not in r.stderr
+        assert r.exception is None or isinstance(r.exception, SystemExit)
         assert len(r.stderr.strip().splitlines()) == 1, r.stderr
         assert not (tmp_path / "x.csv").exists()
     assert os.listdir(tmp_path) == []
