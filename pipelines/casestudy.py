@@ -52,8 +52,8 @@ COMMANDS: list[str] = []
 
 
 def sh(args: list[str], *, ok: tuple[int, ...] = (0,)) -> subprocess.CompletedProcess[str]:
-    shown = " ".join(shlex.quote(str(a)) for a in args).replace(str(ROOT) + "/", "")
-    shown = shown.replace(str(BIN), "perfros-bag")
+    shown = " ".join(shlex.quote(str(a)) for a in args).replace(str(BIN), "perfros-bag")
+    shown = shown.replace(str(ROOT) + "/", "")
     COMMANDS.append(shown)
     err.print(f"[dim]$ {shown}[/]", highlight=False)
     done = subprocess.run([str(a) for a in args], capture_output=True, text=True)
@@ -202,8 +202,29 @@ def deploy_all(out: Path, plans: dict[int, dict[str, Path]], args: argparse.Name
 
 # ---------------------------------------------------------------- 4. RQ3
 
+def forced_choice(system: System, name: str, value: float) -> Choice:
+    """What the fitted model predicts for ``name`` at parameter ``value`` (the relations
+    parameter->cpu/performance/frequency/bandwidth, unclamped in CPU: an overload must show)."""
+    rel = system.node[name].relations
+
+    def at(key: str) -> float | None:
+        r = rel.get(key)
+        return None if r is None else r(min(max(value, r.domain[0]), r.domain[1]))
+
+    cpu = rel["parameter->cpu"](value)
+    return Choice(0, cpu, at("parameter->performance") or 0.0, value, at("parameter->frequency"),
+                  at("parameter->bandwidth"))
+
+
+def baseline_choice(system: System, plan: Plan, name: str) -> Choice:
+    pn = plan.nodes[name]
+    topic = next(iter(pn.topics.values()), None)
+    return Choice(0, pn.cpu, pn.performance, pn.value, topic.frequency_hz if topic else None,
+                  topic.bandwidth_kBps if topic else None)
+
+
 def rq3(out: Path, args: argparse.Namespace) -> list[dict[str, Any]]:
-    from perfros_bag.solve import fixed_choices, settings_from_plan, settings_from_values, solve
+    from perfros_bag.solve import solve
 
     d = out / "rq3"
     d.mkdir(parents=True, exist_ok=True)
@@ -224,11 +245,11 @@ def rq3(out: Path, args: argparse.Namespace) -> list[dict[str, Any]]:
     base_values = {n: pn.value for n, pn in baseline.nodes.items() if pn.value is not None}
     for m in range(3):
         values = {f"{k}1": max(float(v[m]), float(base_values.get(f"{k}1", 0.0))) for k, v in TABLE_III.items()}
-        levels = settings_from_plan(baseline)
-        levels.update(settings_from_values(system, values))
-        choices = fixed_choices(system, 2, levels)
+        choice = {n: baseline_choice(system, baseline, n) for n in baseline.nodes}
+        for name, v in values.items():
+            choice[name] = forced_choice(system, name, v)
         placement = {n: pn.computer for n, pn in baseline.nodes.items()}
-        plan = build_plan(system, Assignment(placement, {n: c[0] for n, c in choices.items()}), problem=1,
+        plan = build_plan(system, Assignment(placement, choice), problem=1,
                           method=f"forced (Table III Mod. {m + 1})", status="feasible")
         configs.append((f"Mod. {m + 1}", plan))
     rows = []

@@ -52,8 +52,9 @@ class CpuGroups:
     def capped(self) -> bool:
         return self.mode != "uncapped"
 
-    def create(self, *, capped: bool = True) -> None:
-        """Create the groups; with ``capped=False`` without a quota yet (see :meth:`apply`)."""
+    def create(self, *, capped: bool = True, quiet: bool = False) -> None:
+        """Create the groups; with ``capped=False`` without a quota yet (see :meth:`apply`).
+        ``quiet``: no warning when that fails (a run that was not going to cap anyway)."""
         version = cgroup_version(self.root)
         try:
             if version == "v1":
@@ -84,6 +85,8 @@ class CpuGroups:
             self.remove()
             self.mode = "uncapped"
             self.reason = str(exc)
+            if quiet:
+                return
             warnings.warn(f"cannot create CPU-capped cgroups ({exc}); the computers run UNCAPPED "
                           "(results are marked uncapped: overloads will not show)", PerfrosWarning,
                           stacklevel=2)

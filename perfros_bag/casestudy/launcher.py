@@ -319,11 +319,11 @@ def run_plan(system: System, plan: Plan, out: Path, cfg: RunConfig, *,
     ok = False
     try:
         with _sigterm_as_interrupt():
-            if cfg.cap:
-                groups.create(capped=False)
-            else:
-                groups.reason = "disabled (--no-cap)"
-            record["cpu_cap"] = {"mode": groups.mode, "reason": groups.reason,
+            # the groups also give the nodes CPU priority over unrelated load: create them
+            # uncapped runs too, and set the quotas only when capping
+            groups.create(capped=False, quiet=not cfg.cap)
+            mode, reason = (groups.mode, groups.reason) if cfg.cap else ("uncapped", "disabled (--no-cap)")
+            record["cpu_cap"] = {"mode": mode, "reason": reason, "cgroups": groups.mode,
                                  "cores": cores, "units_per_core": cfg.units_per_core}
             note("roscore", 0, 1)
             core = procs.start("roscore", [ROSCORE, "-p", str(port)], out / "roscore.log", cwd=out)
@@ -347,7 +347,8 @@ def run_plan(system: System, plan: Plan, out: Path, cfg: RunConfig, *,
                 return all(f"/{ln.name}" in pubs.get(t, set()) for ln in launches for t in ln.publishes)
 
             _wait("every node to publish", all_publishing, cfg.startup_timeout, nodes_dead)
-            groups.apply()
+            if cfg.cap:
+                groups.apply()
             note("rosbag", 0, 1)
             procs.start("record-cpu", [sys.executable, "-m", "perfros_bag", "record-cpu", "--quiet",
                                        "--match", f"--run {run_id} ", "--interval", f"{cfg.interval:g}",
