@@ -100,10 +100,11 @@ def characterise_recording(entry: RecordingEntry, system: System | None = None, 
         cpu = node_cpu(trace, capacity, start_ns=start, end_ns=end, nodes=patterns)
         if trace.time.size and start is not None and end is not None and not cpu:
             lo, hi = float(trace.time.min()), float(trace.time.max())
-            if hi < start / 1e9 or lo > end / 1e9:
+            if hi < start / 1e9 or lo > end / 1e9:  # other clocks (sim time?): the whole trace
                 warnings.warn(f"{entry.cpu}: no sample inside the recording's time window "
-                              f"({start / 1e9:.3f}-{end / 1e9:.3f} s; the trace covers {lo:.3f}-{hi:.3f} s)",
-                              PerfrosWarning, stacklevel=2)
+                              f"({start / 1e9:.3f}-{end / 1e9:.3f} s; the trace covers {lo:.3f}-{hi:.3f} s); "
+                              "using the whole trace", PerfrosWarning, stacklevel=2)
+                cpu = node_cpu(trace, capacity, nodes=patterns)
 
     owner: dict[str, str] = {}
     if system is not None:

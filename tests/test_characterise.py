@@ -429,3 +429,25 @@ def test_plot_png(fixture_run: Path, tmp_path: Path) -> None:
     assert plot_characterisation(rows, tmp_path / "p.png") == 2  # c has a single setting
     assert (tmp_path / "p.png").stat().st_size > 1000
     assert plot_characterisation(rows[-1:], tmp_path / "none.png") == 0 and not (tmp_path / "none.png").exists()
+
+
+def test_trace_outside_the_window_falls_back_to_the_whole_trace_with_a_warning(tmp_path: Path) -> None:
+    d = tmp_path / "shifted"
+    d.mkdir()
+    shutil.copy(FIX / "robot_low.bag", d)
+    lines = (FIX / "robot_low.cpu.csv").read_text().splitlines()
+    out_lines = []
+    for ln in lines:
+        if ln[:1].isdigit():
+            t, rest = ln.split(",", 1)
+            ln = f"{float(t) - 10_000:.3f},{rest}"  # another clock: 10,000 s earlier
+        out_lines.append(ln)
+    (d / "robot_low.cpu.csv").write_text("\n".join(out_lines) + "\n")
+    r = run("characterise", d, "--json")
+    assert r.returncode == 0, r.stderr
+    assert "no sample inside the recording's time window" in r.stderr and "whole trace" in r.stderr
+    rows = {x["node"]: x for x in json.loads(r.stdout)}
+    # no manifest: ROS 1 publisher /model1 takes trace label model1's CPU, capacity 100 on 2 CPUs.
+    # The whole trace: 20 samples in the (original) window averaging 34 %, 13 idle ones at 1.7 %
+    assert rows["/model1"]["cpu_samples"] == 33
+    assert rows["/model1"]["cpu_units_mean"] == pytest.approx((20 * 34 + 13 * 1.7) / 33 / 2, rel=1e-9)
