@@ -119,7 +119,10 @@ def _run_local(items: list[T], labels: list[str], fn: Callable[[T], R],
                advance: ProgressCallback) -> list[Outcome[R]]:
     outcomes: list[Outcome[R]] = []
     for item, name in zip(items, labels, strict=True):
-        result = _outcome(name, _call(fn, item))
+        try:
+            result: Outcome[R] = Outcome(name, value=fn(item))
+        except PerfrosError as exc:  # in-process: the original exception, type and all
+            result = Outcome(name, error=exc)
         advance(result)
         outcomes.append(result)
     return outcomes

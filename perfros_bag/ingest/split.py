@@ -108,13 +108,16 @@ def read_part(part: Part) -> RecordingStats | None:
     """Partial statistics of ``part`` (``None``: its index is damaged, read the whole file)."""
     if part.format == "whole":
         return read_recording(part.path, fast=part.fast)
+    reader = _read_ros1 if part.format == "ros1" else _read_mcap
     try:
         with open_mmap(part.path) as mm:
-            if part.format == "ros1":
-                return _read_ros1(part, mm)
-            return _read_mcap(part, mm)
-    except (NoIndex, Damaged, OSError, ValueError, IndexError):
-        return None
+            try:
+                return reader(part, mm)
+            except (NoIndex, Damaged, ValueError, IndexError):
+                pass  # handled here, so no traceback keeps a view of the mmap alive
+    except (InputError, OSError):
+        pass
+    return None
 
 
 def merge_parts(plan: SplitPlan, parts: Sequence[RecordingStats | None]) -> RecordingStats:
