@@ -302,9 +302,15 @@ def rows_csv(rows: Iterable[Row]) -> str:
 
 
 def write_csv(path: str | Path, rows: Iterable[Row]) -> None:
+    """Write characterisation.csv atomically; a path that cannot be written is an InputError."""
     from perfros_bag.fileio import atomic_write_text
 
-    atomic_write_text(path, rows_csv(rows))
+    if Path(path).is_dir():
+        raise InputError(path, "is a directory, expected the output CSV file")
+    try:
+        atomic_write_text(path, rows_csv(rows))
+    except OSError as exc:
+        raise InputError(path, f"cannot write: {exc.strerror or exc}") from None
 
 
 def rows_json(rows: Iterable[Row]) -> list[dict[str, Any]]:

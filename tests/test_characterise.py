@@ -451,3 +451,14 @@ def test_trace_outside_the_window_falls_back_to_the_whole_trace_with_a_warning(t
     # The whole trace: 20 samples in the (original) window averaging 34 %, 13 idle ones at 1.7 %
     assert rows["/model1"]["cpu_samples"] == 33
     assert rows["/model1"]["cpu_units_mean"] == pytest.approx((20 * 34 + 13 * 1.7) / 33 / 2, rel=1e-9)
+
+
+def test_unwritable_outputs_are_one_line(tmp_path: Path) -> None:
+    for args in (["--out", tmp_path], ["--json", "--plot", tmp_path], ["--out", tmp_path / "no" / "x.csv"]):
+        target = tmp_path / "no"
+        target.write_text("a file where a directory is expected")
+        r = run("characterise", FIX, *args)
+        assert r.returncode == 2, (args, r.stderr)
+        lines = r.stderr.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith("error:"), r.stderr
+        target.unlink()

@@ -251,3 +251,15 @@ def test_record_cpu_bad_arguments_are_one_line(tmp_path: Path) -> None:
         assert len(r.stderr.strip().splitlines()) == 1, r.stderr
         assert not (tmp_path / "x.csv").exists()
     assert os.listdir(tmp_path) == []
+
+
+def test_record_cpu_unwritable_output_is_one_line(tmp_path: Path) -> None:
+    from typer.testing import CliRunner
+
+    from perfros_bag.cli import app
+
+    (tmp_path / "f").write_text("x")
+    for out in (tmp_path, tmp_path / "f" / "x.cpu.csv"):
+        r = CliRunner().invoke(app, ["record-cpu", "--match", "zzz_none", "--duration", "0.2", "--out", str(out)])
+        assert r.exit_code == 2
+        assert r.stderr.startswith("error:") and len(r.stderr.strip().splitlines()) == 1, r.stderr

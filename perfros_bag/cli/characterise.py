@@ -49,6 +49,9 @@ def characterise_cmd(
 
     if out_path is None and not as_json:
         raise PerfrosError("characterise needs --out FILE or --json")
+    for target in (out_path, plot):
+        if target is not None and target.is_dir():
+            raise PerfrosError(f"{target}: is a directory, expected a file to write")
     entries, manifest_system = find_entries(directory, manifest)
     sys_file = system_path or manifest_system
     system = load_system(sys_file) if sys_file is not None else None

@@ -385,6 +385,8 @@ def record_cpu(out: str | Path, patterns: Sequence[str], interval: float = 0.5, 
             re.compile(pat)
         except re.error as exc:
             raise InputError(None, f"--match {pat!r} is not a valid regular expression: {exc}") from None
+    if Path(out).is_dir():
+        raise InputError(out, "is a directory, expected the CPU trace file to write")
     stop = stop or threading.Event()
     child: subprocess.Popen[bytes] | None = None
     old_handlers: dict[int, Any] = {}
@@ -408,9 +410,12 @@ def record_cpu(out: str | Path, patterns: Sequence[str], interval: float = 0.5, 
             except OSError as exc:
                 raise InputError(None, f"cannot run {command[0]!r}: {exc.strerror or exc}") from None
         recorder = CpuRecorder(patterns, interval, root_pid=child.pid if child else None)
-        with atomic_open(out, "w") as handle:
-            handle.write(trace_header(socket.gethostname(), psutil.cpu_count(logical=True) or 1, interval))
-            rc = _loop(recorder, handle, interval, duration, child, stop, on_round)
+        try:
+            with atomic_open(out, "w") as handle:
+                handle.write(trace_header(socket.gethostname(), psutil.cpu_count(logical=True) or 1, interval))
+                rc = _loop(recorder, handle, interval, duration, child, stop, on_round)
+        except OSError as exc:
+            raise InputError(out, f"cannot write the CPU trace: {exc.strerror or exc}") from None
     finally:
         for signum, old in old_handlers.items():
             signal.signal(signum, old)
