@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import time
 import warnings
 from pathlib import Path
 
@@ -195,3 +196,36 @@ def test_run_requires_ros_tools_clearly(monkeypatch: pytest.MonkeyPatch, tmp_pat
     plan = build_plan(inst1, Assignment(place, choice), problem=1, method="t", status="feasible")
     with pytest.raises(PerfrosError, match="apt-get install"):
         launcher.run_plan(inst1, plan, tmp_path / "r", launcher.RunConfig(duration=1))
+
+
+def test_cleanup_kills_a_runs_processes_and_groups_only(tmp_path: Path) -> None:
+    import subprocess
+
+    import psutil
+
+    from perfros_bag.casestudy.launcher import RUN_ENV, leftover_processes
+
+    run_id = f"cleanup{os.getpid()}"
+    started = time.monotonic()
+    mine = subprocess.Popen(["sleep", "30"], env={**os.environ, RUN_ENV: run_id})
+    other = subprocess.Popen(["sleep", "30"], env={**os.environ, RUN_ENV: run_id + "x"})
+    group = None
+    if os.geteuid() == 0:
+        groups = CpuGroups(run_id, {"robot1": 0.25})
+        groups.create(quiet=True)
+        group = groups.dirs.get("robot1")
+    try:
+        assert mine.pid in leftover_processes(run_id) and other.pid not in leftover_processes(run_id)
+        rc, err = _cli("casestudy", "cleanup", "--run", run_id)
+        assert rc == 0, err
+        mine.wait(5)  # killed (its status may already be reaped by psutil in this process)
+        assert time.monotonic() - started < 20
+        assert other.poll() is None and psutil.pid_exists(other.pid)
+        assert leftover_processes(run_id) == []
+        if group is not None:
+            assert not group.exists()
+    finally:
+        other.kill()
+        other.wait()
+        if mine.poll() is None:
+            mine.kill()

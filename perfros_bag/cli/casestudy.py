@@ -127,12 +127,14 @@ def _summary(record: dict[str, Any], out_dir: Path) -> None:
 
 
 @_verb("cleanup")
-def cleanup_cmd() -> None:
+def cleanup_cmd(
+    run: str | None = typer.Option(None, "--run", help="Only this run id (run.json's run_id); default: every run."),
+) -> None:
     """Kill processes and remove cgroups left by a case-study run that was itself killed (-9)."""
     from perfros_bag.casestudy.cgroups import leftover_groups
     from perfros_bag.casestudy.launcher import kill_stale
 
-    pids, groups = kill_stale(), leftover_groups()
+    pids, groups = kill_stale(run), leftover_groups(run_id=run)
     removed = []
     for g in groups:
         try:
