@@ -49,6 +49,7 @@ FIXTURES = ROOT / "fixtures" / "casestudy"
 TABLE_III = {"model": (200, 3500, 10000), "amcl": (300, 1000, 3000), "navigation": (16, 18, 20)}
 err = Console(stderr=True)
 COMMANDS: list[str] = []
+BAR: list[Any] = []  # [rich Progress, task id] while the pipeline runs
 
 
 def sh(args: list[str], *, ok: tuple[int, ...] = (0,)) -> subprocess.CompletedProcess[str]:
@@ -75,6 +76,8 @@ def table1_choice(node: Any, index: int) -> Choice:
 def deploy(system: System, system_path: Path, plan: Plan, out: Path, cfg: RunConfig, label: str) -> dict[str, Any]:
     if (out / "run.json").exists():
         err.print(f"reusing {out}")
+        if BAR:
+            BAR[0].advance(BAR[1])
         return json.loads((out / "run.json").read_text())
     plan_path = out.with_suffix(".plan.json")
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -83,7 +86,12 @@ def deploy(system: System, system_path: Path, plan: Plan, out: Path, cfg: RunCon
                     f"--plan {plan_path} --duration {cfg.duration:g} --out {out}"
                     + ("" if cfg.cap else " --no-cap") + f" --units-per-core {cfg.units_per_core:g}")
     err.print(f"[bold]{label}[/]: running {cfg.duration:g} s -> {out}")
-    return run_plan(system, plan, out, cfg, system_path=system_path)
+    if BAR:
+        BAR[0].update(BAR[1], description=label)
+    record = run_plan(system, plan, out, cfg, system_path=system_path)
+    if BAR:
+        BAR[0].advance(BAR[1])
+    return record
 
 
 # ---------------------------------------------------------------- 1. characterisation
@@ -389,10 +397,16 @@ def main(argv: list[str]) -> int:
     instances = [int(x) for x in args.instances.split(",") if x.strip()]
     out: Path = args.out.resolve()
     out.mkdir(parents=True, exist_ok=True)
-    char_csv = characterise(out, args)
-    plans = fit_and_solve(out, char_csv, instances)
-    results = deploy_all(out, plans, args)
-    rq3_rows = [] if args.skip_rq3 or 1 not in instances else rq3(out, args)
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                  console=err) as bar:
+        BAR[:] = [bar, bar.add_task("runs", total=13 + 2 * len(instances) + (0 if args.skip_rq3 else 4))]
+        char_csv = characterise(out, args)
+        plans = fit_and_solve(out, char_csv, instances)
+        results = deploy_all(out, plans, args)
+        rq3_rows = [] if args.skip_rq3 or 1 not in instances else rq3(out, args)
+        BAR.clear()
     atomic_write_json(out / "results.json", {"rq2": results, "rq3": rq3_rows, "args": vars(args) | {"out": str(out), "docs": str(args.docs)}})
     plots(out, results, rq3_rows)
     section = markdown(results, rq3_rows, args, argv)
