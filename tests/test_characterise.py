@@ -18,6 +18,8 @@ import numpy as np
 import pandas as pd
 import pytest
 import yaml
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from typer.testing import CliRunner
 
 from perfros_bag.characterise import (
@@ -462,3 +464,26 @@ def test_unwritable_outputs_are_one_line(tmp_path: Path) -> None:
         lines = r.stderr.strip().splitlines()
         assert len(lines) == 1 and lines[0].startswith("error:"), r.stderr
         target.unlink()
+
+
+json_values = st.recursive(
+    st.none() | st.booleans() | st.integers(-5, 5) | st.floats(allow_nan=True) | st.text(max_size=6),
+    lambda inner: st.lists(inner, max_size=3) | st.dictionaries(
+        st.sampled_from(["path", "cpu", "computer", "settings", "system", "recordings", "x"]), inner, max_size=4),
+    max_leaves=12)
+
+
+@settings(max_examples=300, deadline=None)
+@given(data=json_values)
+def test_manifest_parser_never_crashes(data: object) -> None:
+    """Any YAML-shaped document: a Manifest or one InputError line naming the file."""
+    from perfros_bag.manifest import parse_manifest
+
+    try:
+        m = parse_manifest(data, Path("m/manifest.yaml"))
+    except InputError as exc:
+        assert str(exc).startswith("m/manifest.yaml: ") and "\n" not in str(exc)
+    else:
+        for e in m.recordings:
+            assert isinstance(e.name, str) and e.path == Path("m") / e.name
+            assert all(isinstance(v, float | str) for v in e.settings.values())

@@ -263,3 +263,18 @@ def test_record_cpu_unwritable_output_is_one_line(tmp_path: Path) -> None:
         r = CliRunner().invoke(app, ["record-cpu", "--match", "zzz_none", "--duration", "0.2", "--out", str(out)])
         assert r.exit_code == 2
         assert r.stderr.startswith("error:") and len(r.stderr.strip().splitlines()) == 1, r.stderr
+
+
+@settings(max_examples=300, deadline=None)
+@given(body=st.text(alphabet=st.sampled_from(list('0123456789.,-#=e\n\r"abx \x00\t')), max_size=200),
+       with_header=st.booleans())
+def test_trace_parser_never_crashes(body: str, with_header: bool) -> None:
+    """Arbitrary bytes after (or instead of) the header: a trace or an InputError, nothing else."""
+    text = (HEADER if with_header else "") + body
+    try:
+        tr = parse_cpu_trace(text, "fuzz.cpu.csv")
+    except InputError as exc:
+        assert str(exc).startswith("fuzz.cpu.csv: ") and "\n" not in str(exc)
+    else:
+        assert len(tr) == tr.cpu_percent.size == len(tr.node)
+        assert np.isfinite(tr.cpu_percent).all() and (tr.cpu_percent >= 0).all()
