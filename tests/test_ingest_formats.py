@@ -64,7 +64,8 @@ def test_rosbag2_storages_and_compression(tmp_path: Path, storage: str, compress
     d = write_rosbag2(tmp_path / "b", MSGS, storage, compression, declare=[("/idle", "std_msgs/msg/String")])
     exp = expected(MSGS)
     exp["/idle"] = Expected("std_msgs/msg/String", 0, 0, [], set())
-    both(d, exp)
+    pages = storage == "sqlite3" and compression != "message"
+    both(d, exp, "sqlite-pages" if pages else "sql" if storage == "sqlite3" else "index")
     assert read_recording(d).format == f"rosbag2-{storage}"
 
 
@@ -157,13 +158,13 @@ def test_rosbag2_split_files(tmp_path: Path, storage: str, meta: str) -> None:
     exp = expected(MSGS)
     if meta == "v5-empty-storage":
         exp["/declared"] = Expected("std_msgs/msg/String", 0, 0, [], set())
-    both(rec_dir, exp)
+    both(rec_dir, exp, "sqlite-pages" if storage == "sqlite3" else "index")
 
 
 def test_loose_db3_and_metadata_path(tmp_path: Path) -> None:
     d = write_rosbag2(tmp_path / "b", MSGS, "sqlite3")
     db = next(d.glob("*.db3"))
-    both(db, expected(MSGS))
+    both(db, expected(MSGS), "sqlite-pages")
     check(read_recording(d / "metadata.yaml"), expected(MSGS))
     assert read_recording(db).format == "rosbag2-sqlite3"
 
@@ -192,7 +193,32 @@ def test_sqlite_wal_is_read(tmp_path: Path) -> None:
     con.close()
     assert (crashed / (db.name + "-wal")).stat().st_size > 0
     exp = expected([*MSGS, Msg("/t2", "std_msgs/msg/String", last, b"x" * 77)])
-    both(crashed, exp)
+    both(crashed, exp, "sql")  # the B-tree pages do not hold the WAL's rows: SQL
+
+
+def test_sqlite_pages_equal_sql_with_overflow_and_small_ints(tmp_path: Path,
+                                                           monkeypatch: pytest.MonkeyPatch) -> None:
+    """Big blobs (overflow pages), tiny and negative-free small timestamps (1-6 byte integers),
+    a multi-level B-tree: the page reader equals SQLite's own answer (SQL path forced)."""
+    from perfros_bag.ingest import sqlitepages
+    from perfros_bag.ingest._accum import NoIndex
+
+    rng = np.random.default_rng(5)
+    msgs = [Msg(f"/b{i % 2}", "std_msgs/msg/String", int(t), rng.bytes(int(n)))
+            for i, (t, n) in enumerate(zip(sorted(rng.integers(0, 2**40, 300)),
+                                           rng.choice([0, 5, 3000, 70_000], 300), strict=True))]
+    d = write_rosbag2(tmp_path / "b", msgs, "sqlite3")
+    pages = read_recording(d)
+    assert pages.method == "sqlite-pages"
+    check(pages, expected(msgs))
+
+    def refuse(*_: object) -> None:
+        raise NoIndex("forced")
+
+    monkeypatch.setattr(sqlitepages, "read_file", refuse)
+    sql = read_recording(d)
+    assert sql.method == "sql"
+    check(sql, expected(msgs))
 
 
 def test_ros1_and_mcap_empty_but_declared(tmp_path: Path) -> None:
@@ -246,13 +272,14 @@ def test_find_recordings(tmp_path: Path) -> None:
 _msg = st.tuples(st.integers(0, 2), st.integers(0, 10**12), st.binary(max_size=64), st.integers(0, 1))
 
 
-@settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
-@given(st.lists(_msg, max_size=60), st.sampled_from(["ros1", "ros1-bz2", "mcap", "mcap-lz4", "sqlite3"]))
+@settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(st.lists(_msg, max_size=60), st.sampled_from(["ros1", "ros1-bz2", "mcap", "mcap-lz4", "sqlite3"]),
+       st.sampled_from([0, 1_500_000_000_000_000_000]))
 def test_property_any_message_list(tmp_path_factory: pytest.TempPathFactory,
-                                   items: list[tuple[int, int, bytes, int]], fmt: str) -> None:
-    """Arbitrary topics, times (any order, duplicates), sizes (also 0 bytes), callerids."""
-    msgs = [Msg(f"/p{k}", "std_msgs/msg/String", 1_500_000_000_000_000_000 + t, data, f"/c{c}")
-            for k, t, data, c in items]
+                                   items: list[tuple[int, int, bytes, int]], fmt: str, t0: int) -> None:
+    """Arbitrary topics, times (any order, duplicates, small or epoch-sized), sizes (also 0
+    bytes), callerids."""
+    msgs = [Msg(f"/p{k}", "std_msgs/msg/String", t0 + t, data, f"/c{c}") for k, t, data, c in items]
     d = tmp_path_factory.mktemp("prop")
     if fmt.startswith("ros1"):
         path = write_ros1(d / "p.bag", msgs, "bz2" if fmt.endswith("bz2") else None, chunk_threshold=500)

@@ -100,12 +100,15 @@ def _same(a: RecordingStats, b: RecordingStats) -> None:
 @pytest.mark.parametrize("name", GOOD)
 def test_fast_equals_stream_and_sources(name: str) -> None:
     """On every good recording: the index fast path and the streaming path give identical
-    numbers; the fast path really used the index (only index-less MCAP is streamed); message
+    numbers; the fast path really used the index or the SQLite pages (only index-less MCAP is
+    streamed); message
     and topic totals are those of SOURCES.tsv."""
     fast, slow = _read(name), _read(name, False)
     _same(fast, slow)
-    indexless = any(w in SOURCES[name]["format"] for w in ("no summary", "unchunked"))
-    assert fast.method == ("stream" if indexless else "index")
+    fmt = SOURCES[name]["format"]
+    indexless = any(w in fmt for w in ("no summary", "unchunked"))
+    sqlite = fmt.startswith("rosbag2 sqlite3")
+    assert fast.method == ("stream" if indexless else "sqlite-pages" if sqlite else "index")
     assert slow.method == "stream"
     assert fast.messages == int(SOURCES[name]["messages"])
     assert len(fast.topics) == int(SOURCES[name]["topics"])

@@ -91,7 +91,9 @@ def read_cpu_trace(path: str | Path) -> CpuTrace:
     return parse_cpu_trace(text, p)
 
 
-def parse_cpu_trace(text: str, path: str | Path = "<cpu trace>") -> CpuTrace:
+def parse_cpu_trace(text: str, path: str | Path = "<cpu trace>", *, fast: bool = True) -> CpuTrace:
+    """Parse a trace's text. ``fast`` reads the rows with pandas' C parser; anything it
+    does not accept cleanly is re-read line by line, which names the first bad line."""
     p = Path(path)
     meta: dict[str, str] = {}
     lines = text.splitlines()
@@ -107,6 +109,16 @@ def parse_cpu_trace(text: str, path: str | Path = "<cpu trace>") -> CpuTrace:
     header = [h.strip() for h in next(csv.reader([lines[i]]))]
     if tuple(header[: len(TRACE_COLUMNS)]) != TRACE_COLUMNS:
         raise InputError(p, f"line {i + 1}: bad header {lines[i]!r} (expected '{','.join(TRACE_COLUMNS)}')")
+    ncpu, interval = _meta(p, meta)
+    rows = lines[i + 1:]
+    parsed = _rows_fast(rows, len(header)) if fast else None
+    if parsed is None:
+        parsed = _rows_slow(p, rows, len(header), i + 2)
+    times, pids, nodes, procs, cpus, rsss = parsed
+    return CpuTrace(p, ncpu, meta.get("host"), interval, times, pids, nodes, procs, cpus, rsss)
+
+
+def _meta(p: Path, meta: Mapping[str, str]) -> tuple[int, float | None]:
     if "logical_cpus" not in meta:
         raise InputError(p, "missing the '# logical_cpus=N' comment line (needed to normalise CPU)")
     try:
@@ -123,17 +135,50 @@ def parse_cpu_trace(text: str, path: str | Path = "<cpu trace>") -> CpuTrace:
             raise InputError(p, f"interval_s={meta['interval_s']!r} is not a number") from None
         if not (math.isfinite(interval) and interval > 0):
             raise InputError(p, f"interval_s must be > 0, got {meta['interval_s']!r}")
+    return ncpu, interval
 
+
+_Rows = tuple[npt.NDArray[np.float64], npt.NDArray[np.int64], list[str], list[str],
+              npt.NDArray[np.float64], npt.NDArray[np.int64]]
+
+
+def _rows_fast(rows: list[str], ncol: int) -> _Rows | None:
+    """pandas' C parser; None when the rows need the careful parser (comments inside,
+    an empty RSS, a bad value, a short line...)."""
+    import pandas as pd
+
+    body = "\n".join(rows)
+    if "\n#" in "\n" + body or not body.strip():
+        return None
+    names = [f"c{k}" for k in range(ncol)]
+    try:
+        df = pd.read_csv(io.StringIO(body), header=None, names=names, engine="c", na_filter=False,
+                         dtype={"c0": "float64", "c1": "int64", "c2": "str", "c3": "str",
+                                "c4": "float64", "c5": "int64"}, skip_blank_lines=True)
+    except (ValueError, TypeError, OverflowError, pd.errors.ParserError):
+        return None
+    times = df["c0"].to_numpy(dtype=np.float64)
+    cpus = df["c4"].to_numpy(dtype=np.float64)
+    if not (np.isfinite(times).all() and np.isfinite(cpus).all() and (cpus >= 0).all()):
+        return None
+    # a short line would have been padded by pandas: count the fields as the careful parser does
+    expected = ncol - 1
+    if any(r.count(",") < expected for r in rows if r.strip()) and '"' not in body:
+        return None
+    return (times, df["c1"].to_numpy(dtype=np.int64), df["c2"].astype(str).tolist(),
+            df["c3"].astype(str).tolist(), cpus, df["c5"].to_numpy(dtype=np.int64))
+
+
+def _rows_slow(p: Path, rows: list[str], ncol: int, first_lineno: int) -> _Rows:
     times: list[float] = []
     pids: list[int] = []
     nodes: list[str] = []
     procs: list[str] = []
     cpus: list[float] = []
     rsss: list[int] = []
-    ncol = len(header)
-    reader = csv.reader(io.StringIO("\n".join(lines[i + 1:])))
+    reader = csv.reader(io.StringIO("\n".join(rows)))
     for offset, row in enumerate(reader):
-        lineno = i + 2 + offset
+        lineno = first_lineno + offset
         if not row or (len(row) == 1 and not row[0].strip()) or row[0].startswith("#"):
             continue
         if len(row) != ncol:
@@ -150,9 +195,8 @@ def parse_cpu_trace(text: str, path: str | Path = "<cpu trace>") -> CpuTrace:
         procs.append(row[3])
         cpus.append(cpu)
         rsss.append(rss)
-    return CpuTrace(p, ncpu, meta.get("host"), interval, np.asarray(times, dtype=np.float64),
-                    np.asarray(pids, dtype=np.int64), nodes, procs,
-                    np.asarray(cpus, dtype=np.float64), np.asarray(rsss, dtype=np.int64))
+    return (np.asarray(times, dtype=np.float64), np.asarray(pids, dtype=np.int64), nodes, procs,
+            np.asarray(cpus, dtype=np.float64), np.asarray(rsss, dtype=np.int64))
 
 
 def _num(p: Path, lineno: int, name: str, raw: str, kind: Callable[[str], Any]) -> Any:

@@ -42,7 +42,7 @@ class TopicStats:
     def span_s(self) -> float:
         if self.times_ns.size < 2:
             return 0.0
-        return float(self.times_ns[-1] - self.times_ns[0]) / 1e9
+        return float(int(self.times_ns[-1]) - int(self.times_ns[0])) / 1e9  # no int64 overflow
 
     @property
     def frequency_hz(self) -> float:

@@ -1,0 +1,220 @@
+"""Benchmark of the recording readers (``perfros_bag.ingest.read_recording``).
+
+Generates, once, into tests/bench/data/ingest/ (git-ignored):
+  (a) "big":   ~500 MB: /camera/image 130 KB messages at 10 Hz + /scan 2 KB at 100 Hz
+  (b) "small": ~1M small messages (8-120 bytes) on 4 topics
+each as a ROS 1 bag (uncompressed chunks), a rosbag2 sqlite3 directory, a rosbag2 mcap
+directory (rosbags writers) and a plain zstd-chunked MCAP (mcap writer).
+
+Measured in the same run, page cache warm (every file read once before timing):
+  raw     `cat files > /dev/null` (best of 3)
+  ours    read_recording(path) in-process (best of 3, imports warmed)
+  cli     `perfros-bag info --json PATH` wall time (one run, includes interpreter start)
+  any     rosbags AnyReader, loop over every raw message summing len(raw) (one run)
+  rosbag  Debian python3-rosbag (ROS 1 only, /usr/bin/python3 subprocess): Bag(path) +
+          get_type_and_topic_info(), and a read_messages(raw=True) loop (one run each)
+Ratios: any/ours (target >= 20x on "small"), raw/ours = fraction of the raw read speed
+(target >= 30 % on "big"), rosbag/ours. Counts and bytes of ours and AnyReader are compared.
+
+    .venv/bin/python tests/bench/bench_ingest.py [--scale 0.1] [--data DIR] [--skip-baselines]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent.parent
+sys.path.insert(0, str(ROOT))
+
+from tests.ingest_gen import Msg, write_mcap, write_ros1, write_rosbag2  # noqa: E402
+
+T0 = 1_700_000_000_000_000_000
+FORMATS = ["ros1", "rosbag2-sqlite3", "rosbag2-mcap", "mcap-zstd"]
+
+ROSBAG_SCRIPT = r"""
+import json, sys, time
+import rosbag
+path = sys.argv[1]
+t = time.perf_counter()
+with rosbag.Bag(path) as bag:
+    info = bag.get_type_and_topic_info()
+    n_info = sum(v.message_count for v in info.topics.values())
+t_info = time.perf_counter() - t
+t = time.perf_counter()
+n = size = 0
+with rosbag.Bag(path) as bag:
+    for topic, raw, ts in bag.read_messages(raw=True):
+        n += 1
+        size += len(raw[1])
+t_loop = time.perf_counter() - t
+print(json.dumps({"info_s": t_info, "loop_s": t_loop, "messages": n, "info_messages": n_info, "bytes": size}))
+"""
+
+
+def dataset(kind: str, scale: float) -> Iterator[Msg]:
+    """Messages in time order; payload objects are reused (content does not matter here)."""
+    if kind == "big":
+        import numpy as np
+
+        rng = np.random.default_rng(1)
+        image, scan = rng.bytes(130_000), rng.bytes(2_000)
+        duration_s = 330 * scale
+        n_img, n_scan = int(duration_s * 10), int(duration_s * 100)
+        events = [(T0 + i * 100_000_000 + 1234, "/camera/image", "std_msgs/msg/String", image)
+                  for i in range(n_img)]
+        events += [(T0 + i * 10_000_000, "/scan", "std_msgs/msg/String", scan) for i in range(n_scan)]
+        events.sort(key=lambda e: e[0])
+        for t, topic, mtype, data in events:
+            yield Msg(topic, mtype, t, data, "/driver")
+    else:
+        n = int(1_000_000 * scale)
+        payloads = [bytes(range(8 + 16 * k)) for k in range(8)]
+        topics = ["/imu", "/odom", "/tf", "/status"]
+        for i in range(n):
+            yield Msg(topics[i % 4], "std_msgs/msg/String", T0 + i * 250_000, payloads[i % 8], "/node")
+
+
+def generate(data: Path, kind: str, fmt: str, scale: float) -> Path:
+    target = data / f"{kind}-{scale:g}-{fmt}" / ("rec.bag" if fmt == "ros1" else "rec.mcap" if fmt == "mcap-zstd" else "rec")
+    done = target.parent / ".complete"
+    if done.exists():
+        return target
+    shutil.rmtree(target.parent, ignore_errors=True)
+    target.parent.mkdir(parents=True)
+    msgs = list(dataset(kind, scale))
+    t = time.perf_counter()
+    if fmt == "ros1":
+        write_ros1(target, msgs)
+    elif fmt == "rosbag2-sqlite3":
+        write_rosbag2(target, msgs, "sqlite3")
+    elif fmt == "rosbag2-mcap":
+        write_rosbag2(target, msgs, "mcap")
+    else:
+        write_mcap(target, msgs, compression="zstd", chunk_size=1 << 20)
+    print(f"  generated {target.relative_to(data)} in {time.perf_counter() - t:.1f} s", flush=True)
+    done.touch()
+    return target
+
+
+def files_of(path: Path) -> list[Path]:
+    return sorted(p for p in path.iterdir() if p.is_file()) if path.is_dir() else [path]
+
+
+def best_of(n: int, fn: Callable[[], object]) -> float:
+    best = float("inf")
+    for _ in range(n):
+        t = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t)
+    return best
+
+
+def cat(path: Path) -> None:
+    subprocess.run(["cat", *map(str, files_of(path))], stdout=subprocess.DEVNULL, check=True)
+
+
+def anyreader(path: Path) -> tuple[int, int]:
+    from rosbags.highlevel import AnyReader
+
+    n = size = 0
+    with AnyReader([path]) as reader:
+        for _conn, _ts, raw in reader.messages():
+            n += 1
+            size += len(raw)
+    return n, size
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--scale", type=float, default=1.0, help="dataset size factor (1 = 500 MB / 1M msgs)")
+    ap.add_argument("--data", type=Path, default=HERE / "data" / "ingest")
+    ap.add_argument("--skip-baselines", action="store_true", help="no AnyReader / python3-rosbag runs")
+    args, _ = ap.parse_known_args()
+    args.data.mkdir(parents=True, exist_ok=True)
+
+    from perfros_bag.ingest import read_recording
+
+    cli = ROOT / ".venv" / "bin" / "perfros-bag"
+    rows = []
+    for kind in ("big", "small"):
+        for fmt in FORMATS:
+            path = generate(args.data, kind, fmt, args.scale)
+            size = sum(p.stat().st_size for p in files_of(path))
+            cat(path)  # warm the page cache
+            read_recording(path)  # warm imports
+            t_raw = best_of(3, lambda p=path: cat(p))  # type: ignore[misc]
+            rec = read_recording(path)
+            t_ours = best_of(3, lambda p=path: read_recording(p))  # type: ignore[misc]
+            t = time.perf_counter()
+            subprocess.run([str(cli), "info", "--json", str(path)], stdout=subprocess.DEVNULL, check=True)
+            t_cli = time.perf_counter() - t
+            row = {"kind": kind, "format": fmt, "MB": size / 1e6, "messages": rec.messages,
+                   "method": rec.method, "raw_s": t_raw, "ours_s": t_ours, "cli_s": t_cli}
+            if not args.skip_baselines:
+                t = time.perf_counter()
+                n, nbytes = anyreader(path)
+                row["any_s"] = time.perf_counter() - t
+                ours_bytes = sum(tp.bytes for tp in rec.topics.values())
+                row["agree"] = (n, nbytes) == (rec.messages, ours_bytes)
+                if fmt == "ros1" and Path("/usr/bin/python3").exists():
+                    res = subprocess.run(["/usr/bin/python3", "-c", ROSBAG_SCRIPT, str(path)],
+                                         capture_output=True, text=True)
+                    if res.returncode == 0:
+                        rb = json.loads(res.stdout)
+                        row["rosbag_info_s"], row["rosbag_loop_s"] = rb["info_s"], rb["loop_s"]
+                        row["agree"] = row["agree"] and rb["messages"] == rec.messages
+                    else:
+                        print(f"  python3-rosbag failed: {res.stderr.strip().splitlines()[-1:]}")
+            rows.append(row)
+            print(_line(row), flush=True)
+    print()
+    print(_table(rows))
+    print()
+    for r in rows:
+        if r["kind"] == "small" and "any_s" in r:
+            x = r["any_s"] / r["ours_s"]
+            print(f"target small {r['format']:16s} >= 20x AnyReader: {x:7.1f}x  {'met' if x >= 20 else 'MISSED'}")
+        if r["kind"] == "big":
+            f = r["raw_s"] / r["ours_s"]
+            print(f"target big   {r['format']:16s} >= 30% raw read:   {100 * f:7.1f}%  {'met' if f >= 0.3 else 'MISSED'}")
+    if any(r.get("agree") is False for r in rows):
+        print("DISAGREEMENT between perfros-bag and a baseline reader")
+        sys.exit(1)
+
+
+def _line(r: dict[str, object]) -> str:
+    return " ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in r.items())
+
+
+def _table(rows: list[dict[str, object]]) -> str:
+    head = ("| data | format | MB | msgs | path | raw s | ours s | % raw | cli s | AnyReader s | × Any "
+            "| rosbag info s | × | rosbag loop s | × |\n|" + "---|" * 15)
+    out = [head]
+    for r in rows:
+        ours = float(r["ours_s"])  # type: ignore[arg-type]
+
+        def ratio(key: str, r: dict[str, object] = r, ours: float = ours) -> str:
+            return f"{float(r[key]) / ours:.1f}×" if key in r else "-"  # type: ignore[arg-type]
+
+        def sec(key: str, r: dict[str, object] = r) -> str:
+            return f"{float(r[key]):.3f}" if key in r else "-"  # type: ignore[arg-type]
+
+        out.append(f"| {r['kind']} | {r['format']} | {float(r['MB']):.0f} | {r['messages']} | {r['method']} "  # type: ignore[arg-type]
+                   f"| {sec('raw_s')} | {ours:.3f} | {100 * float(r['raw_s']) / ours:.0f} % | {sec('cli_s')} "  # type: ignore[arg-type]
+                   f"| {sec('any_s')} | {ratio('any_s')} | {sec('rosbag_info_s')} | {ratio('rosbag_info_s')} "
+                   f"| {sec('rosbag_loop_s')} | {ratio('rosbag_loop_s')} |")
+    return "\n".join(out)
+
+
+if __name__ == "__main__":
+    os.environ.setdefault("PYTHONHASHSEED", "0")
+    main()
