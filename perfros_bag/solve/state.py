@@ -51,6 +51,7 @@ class State:
                 self.cap[c.name] = c.capacity or 0.0
                 self.maxcap[c.name] = self.cap[c.name]
         self.load = dict.fromkeys(self.computers, 0.0)
+        self.members: dict[str, set[str]] = {c: set() for c in self.computers}
         self.groups: list[tuple[str, ...]] = list(system.coresidence_groups)
         self.group_of = {n: gi for gi, g in enumerate(self.groups) for n in g}
         self.group_allowed: list[list[str]] = []
@@ -61,15 +62,26 @@ class State:
             self.group_allowed.append([c for c in self.computers if c in allowed])
         # network: per edge the bandwidth at each of its publisher's ladder levels
         self.edges = list(system.edges)
-        self.edge_bw = [[system.edge_bandwidth(e, ch) for ch in self.ladder[e.src]] for e in self.edges]
+        self.pub_bw = {n: [ch.bandwidth_kBps or 0.0 for ch in self.ladder[n]] for n in self.nodes}
+        self.edge_bw = [self.pub_bw[e.src] if e.bandwidth_kBps is None and not e.topic
+                        else [system.edge_bandwidth(e, ch) for ch in self.ladder[e.src]] for e in self.edges]
         self.incident: dict[str, list[int]] = {n: [] for n in self.nodes}
         for i, e in enumerate(self.edges):
             self.incident[e.src].append(i)
             if e.dst != e.src:
                 self.incident[e.dst].append(i)
+        self.neighbours: dict[str, set[str]] = {n: set() for n in self.nodes}
+        for e in self.edges:
+            self.neighbours[e.src].add(e.dst)
+            self.neighbours[e.dst].add(e.src)
+        # per publisher: its edges that cross the network now, as link multiplicities for the
+        # edges that carry the publisher's own bandwidth, and the rest edge by edge
+        self._out: dict[str, tuple[dict[int, int], list[tuple[int, tuple[int, ...]]]]] = {}
         self.links = list(system.links)
         self.link_load = [0.0] * len(self.links)
         self.media = list(system.media)
+        self.medium_by_name = {m.name: m for m in self.media}
+        self.allowed_set = {n: set(system.allowed(n)) for n in self.nodes}
         self.medium_links = {m.name: [i for i, lk in enumerate(self.links) if lk.medium == m.name] for m in self.media}
 
     # ---- reading -------------------------------------------------------------------
@@ -98,7 +110,7 @@ class State:
         return dp / du if du > EPS else math.inf
 
     def on(self, c: str) -> list[str]:
-        return [n for n in self.nodes if self.place[n] == c]
+        return sorted(self.members[c], key=self.order.__getitem__)
 
     def value(self) -> float:
         if self.problem == 1:
@@ -109,28 +121,74 @@ class State:
         return sum(self.cpu(n) for n in self.groups[gi])
 
     # ---- changing ------------------------------------------------------------------
+    def _crossing(self, n: str) -> tuple[dict[int, int], list[tuple[int, tuple[int, ...]]]]:
+        hit = self._out.get(n)
+        if hit is None:
+            mult: dict[int, int] = {}
+            special: list[tuple[int, tuple[int, ...]]] = []
+            a = self.place[n]
+            for ei in self.incident[n]:
+                e = self.edges[ei]
+                if e.src != n:
+                    continue
+                b = self.place[e.dst]
+                if a is None or b is None or a == b:
+                    continue
+                route = self.system.route(a, b) or ()
+                if self.edge_bw[ei] is self.pub_bw[n]:
+                    for li in route:
+                        mult[li] = mult.get(li, 0) + 1
+                else:
+                    special.append((ei, route))
+            hit = (mult, special)
+            self._out[n] = hit
+        return hit
+
+    def _level_delta(self, n: str, new: int) -> dict[int, float]:
+        """Link load deltas when only ``n``'s level changes."""
+        mult, special = self._crossing(n)
+        old = self.level[n]
+        delta: dict[int, float] = {}
+        d = self.pub_bw[n][new] - self.pub_bw[n][old]
+        if d:
+            for li, k in mult.items():
+                delta[li] = k * d
+        for ei, route in special:
+            de = self.edge_bw[ei][new] - self.edge_bw[ei][old]
+            if de:
+                for li in route:
+                    delta[li] = delta.get(li, 0.0) + de
+        return delta
+
     def _net_delta(self, changes: Mapping[str, tuple[str | None, int]]) -> tuple[dict[int, float], str | None]:
+        if len(changes) == 1:
+            (n, (c, lvl)), = changes.items()
+            if c == self.place[n] and c is not None:
+                return self._level_delta(n, lvl), None
         edges: set[int] = set()
         for n in changes:
             edges.update(self.incident[n])
         delta: dict[int, float] = {}
+        place, level, route_of = self.place, self.level, self.system.route
         for ei in edges:
             e = self.edges[ei]
-            for sign, (pa, pb, lvl) in (
-                (-1.0, (self.place[e.src], self.place[e.dst], self.level[e.src])),
-                (1.0, (changes.get(e.src, (self.place[e.src], 0))[0], changes.get(e.dst, (self.place[e.dst], 0))[0],
-                       changes[e.src][1] if e.src in changes else self.level[e.src])),
-            ):
-                if pa is None or pb is None or pa == pb:
-                    continue
-                route = self.system.route(pa, pb)
+            oa, ob = place[e.src], place[e.dst]
+            ca, cb = changes.get(e.src), changes.get(e.dst)
+            na = ca[0] if ca is not None else oa
+            nb = cb[0] if cb is not None else ob
+            if oa is not None and ob is not None and oa != ob:
+                bw = self.edge_bw[ei][level[e.src]]
+                if bw:
+                    for li in route_of(oa, ob) or ():
+                        delta[li] = delta.get(li, 0.0) - bw
+            if na is not None and nb is not None and na != nb:
+                route = route_of(na, nb)
                 if route is None:
-                    if sign > 0:
-                        return delta, f"no network path between {pa} and {pb} (edge {e.src}->{e.dst})"
-                    continue
-                bw = self.edge_bw[ei][lvl]
-                for li in route:
-                    delta[li] = delta.get(li, 0.0) + sign * bw
+                    return delta, f"no network path between {na} and {nb} (edge {e.src}->{e.dst})"
+                bw = self.edge_bw[ei][ca[1] if ca is not None else level[e.src]]
+                if bw:
+                    for li in route:
+                        delta[li] = delta.get(li, 0.0) + bw
         return delta, None
 
     def check(self, changes: Mapping[str, tuple[str | None, int]]) -> tuple[str | None, dict[int, float], dict[str, float]]:
@@ -142,7 +200,7 @@ class State:
             if old is not None:
                 dload[old] = dload.get(old, 0.0) - self.cpu(n)
             if c is not None:
-                if c not in self.system.allowed(n):
+                if c not in self.allowed_set[n]:
                     return f"{n} may not run on {c} (residence)", {}, {}
                 dload[c] = dload.get(c, 0.0) + self.ladder[n][lvl].cpu
         for c, d in dload.items():
@@ -156,12 +214,18 @@ class State:
             if d > EPS and self.link_load[li] + d > lk.bandwidth_kBps + EPS * max(1.0, lk.bandwidth_kBps):
                 return (f"link {lk.between[0]}-{lk.between[1]} would carry {_fmt(self.link_load[li] + d)} "
                         f"> {_fmt(lk.bandwidth_kBps)} kB/s"), {}, {}
-        for m in self.media:
-            d = sum(delta.get(li, 0.0) for li in self.medium_links[m.name])
-            if d > EPS:
-                now = sum(self.link_load[li] for li in self.medium_links[m.name])
-                if now + d > m.bandwidth_kBps + EPS * max(1.0, m.bandwidth_kBps):
-                    return f"medium {m.name} would carry {_fmt(now + d)} > {_fmt(m.bandwidth_kBps)} kB/s", {}, {}
+        if self.media:
+            dm: dict[str, float] = {}
+            for li, d in delta.items():
+                med = self.links[li].medium
+                if med is not None:
+                    dm[med] = dm.get(med, 0.0) + d
+            for name, d in dm.items():
+                if d > EPS:
+                    m = self.medium_by_name[name]
+                    now = sum(self.link_load[li] for li in self.medium_links[name])
+                    if now + d > m.bandwidth_kBps + EPS * max(1.0, m.bandwidth_kBps):
+                        return f"medium {name} would carry {_fmt(now + d)} > {_fmt(m.bandwidth_kBps)} kB/s", {}, {}
         return None, delta, dload
 
     def change(self, changes: Mapping[str, tuple[str | None, int]]) -> str | None:
@@ -174,6 +238,15 @@ class State:
         for comp, d in dload.items():
             self.load[comp] += d
         for n, (target, lvl) in changes.items():
+            old = self.place[n]
+            if old != target:
+                if old is not None:
+                    self.members[old].discard(n)
+                if target is not None:
+                    self.members[target].add(n)
+                self._out.pop(n, None)
+                for m in self.neighbours[n]:
+                    self._out.pop(m, None)
             self.place[n] = target
             self.level[n] = lvl
         return None
@@ -190,6 +263,12 @@ class State:
         self.recompute()
 
     def recompute(self) -> None:
+        self._out.clear()
+        self.members = {c: set() for c in self.computers}
+        for n in self.nodes:
+            c = self.place[n]
+            if c is not None:
+                self.members[c].add(n)
         self.load = dict.fromkeys(self.computers, 0.0)
         for n in self.nodes:
             c = self.place[n]
