@@ -18,7 +18,9 @@ When the greedy finds no plan, a bounded depth-first search for any feasible pla
 
 from __future__ import annotations
 
+import heapq
 import math
+import time
 from collections.abc import Iterable
 
 import numpy as np
@@ -30,6 +32,11 @@ from perfros_bag.solve.state import EPS, State
 
 MAX_ROUNDS = 500
 DP_CELLS = 200_000
+DP_WORK = 30_000_000  # levels x CPU cells of the whole instance, above which no knapsack tables
+MOVES_LIMIT = 5_000  # groups x computers above which only settings are re-optimised
+SWAPS_LIMIT = 150  # groups above which no swaps
+DEPTH2_LIMIT = 60  # groups above which no pairs of moves
+TIME_BUDGET_S = 60.0  # safety net: stop improving after this long (the plan stays feasible)
 SEARCH_BUDGET = 20_000
 
 
@@ -95,7 +102,7 @@ def _grid_scale(state: State) -> float | None:
     cpus = [ch.cpu for lad in state.ladder.values() for ch in lad]
     biggest = max((state.cap[c] for c in state.computers), default=0.0)
     for scale in (1, 2, 4, 5, 10, 20, 50, 100):
-        if biggest * scale > DP_CELLS:
+        if biggest * scale > DP_CELLS or biggest * scale * len(cpus) > DP_WORK:
             return None
         if all(abs(u * scale - round(u * scale)) < 1e-6 for u in cpus):
             return float(scale)
@@ -196,8 +203,9 @@ class Improver:
     # ---- search --------------------------------------------------------------------
     def run(self) -> None:
         s = self.s
+        stop = time.monotonic() + TIME_BUDGET_S
         for _ in range(MAX_ROUNDS):
-            if not self._step():
+            if time.monotonic() > stop or not self._step():
                 break
         if s.problem == 1:
             upgrade(s, [n for n in s.nodes if len(s.ladder[n]) > 1])
@@ -219,6 +227,9 @@ class Improver:
         if s.problem == 1:
             for c in s.computers:
                 out.append((self.value(c, on[c]) - cur[c], len(out), {c: on[c]}))
+        if len(s.groups) * len(s.computers) > MOVES_LIMIT:
+            out.sort(key=lambda m: (-m[0], m[1]))
+            return out
         groups_on = {c: sorted({s.group_of[n] for n in on[c]}) for c in s.computers}
         for src in s.computers:
             for gi in groups_on[src]:
@@ -233,7 +244,7 @@ class Improver:
                         if v_dst != -math.inf:
                             out.append((v_src + v_dst - cur[src] - cur[dst], len(out),
                                         {src: rest, dst: on[dst] + list(g)}))
-        comps = s.computers
+        comps = s.computers if len(s.groups) <= SWAPS_LIMIT else []
         for i, a in enumerate(comps):
             for b in comps[i + 1:]:
                 for ga in groups_on[a]:
@@ -276,8 +287,12 @@ class Improver:
                 break
             if self._apply(plan):
                 return True
+        if len(s.groups) * len(s.computers) > MOVES_LIMIT:
+            return False
         if self._repartition():
             return True
+        if len(s.groups) > DEPTH2_LIMIT:
+            return False
         before = self.current(s.nodes)
         tried = 0
         for gain, _, plan in moves:
@@ -380,25 +395,30 @@ def best_settings(state: State, capacity: float, nodes: list[str], scale: float 
 
 
 def _marginal(state: State, capacity: float, nodes: list[str]) -> tuple[float, dict[str, int]]:
+    """Algorithm 2's rule on one computer, from the lowest settings: the best gain per CPU
+    unit first; a node whose next step does not fit stops."""
     levels = dict.fromkeys(nodes, 0)
     used = sum(state.ladder[n][0].cpu for n in nodes)
     if used > capacity + EPS:
         return -math.inf, {}
-    while True:
-        best: tuple[float, int, str] | None = None
-        for n in nodes:
-            lad, k = state.ladder[n], levels[n]
-            if k + 1 < len(lad):
-                du = lad[k + 1].cpu - lad[k].cpu
-                if used + du <= capacity + EPS:
-                    g = state.weight[n] * (lad[k + 1].performance - lad[k].performance) / max(du, EPS)
-                    if best is None or g > best[0]:
-                        best = (g, state.order[n], n)
-        if best is None:
-            break
-        n = best[2]
-        used += state.ladder[n][levels[n] + 1].cpu - state.ladder[n][levels[n]].cpu
-        levels[n] += 1
+
+    def entry(n: str) -> tuple[float, int, str]:
+        lad, k = state.ladder[n], levels[n]
+        du = lad[k + 1].cpu - lad[k].cpu
+        return -state.weight[n] * (lad[k + 1].performance - lad[k].performance) / max(du, EPS), state.order[n], n
+
+    heap = [entry(n) for n in nodes if len(state.ladder[n]) > 1]
+    heapq.heapify(heap)
+    while heap:
+        n = heapq.heappop(heap)[2]
+        lad, k = state.ladder[n], levels[n]
+        du = lad[k + 1].cpu - lad[k].cpu
+        if used + du > capacity + EPS:
+            continue
+        used += du
+        levels[n] = k + 1
+        if k + 2 < len(lad):
+            heapq.heappush(heap, entry(n))
     return sum(state.weight[n] * state.ladder[n][levels[n]].performance for n in nodes), levels
 
 
