@@ -223,6 +223,24 @@ def test_greedy_plus_never_worse_than_greedy_on_table2() -> None:
         assert gp2.objective <= g2.objective + 1e-9
 
 
+@pytest.mark.parametrize("seed", range(3))
+def test_random_casestudy_like_instances(seed: int) -> None:
+    import random
+    import warnings
+
+    from perfros_bag.solve.instances import random_instance
+
+    rng = random.Random(seed)
+    data = random_instance(rng, robots=(1, 2), cameras=(1, 2), tight_network=seed == 2)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        for problem in (1, 2):
+            g, gp = run(data, problem, "greedy"), run(data, problem, "greedy+")
+            assert g.status == gp.status == "feasible"
+            assert gp.objective is not None and g.objective is not None
+            assert (gp.objective - g.objective) * (1 if problem == 1 else -1) >= -1e-9
+
+
 def test_problem2_defaults_to_maximum_settings() -> None:
     p = run(table2_instance(1), 2, "greedy")
     assert p.nodes["tracker1"].cpu == 200 and p.nodes["amcl1"].cpu == 66

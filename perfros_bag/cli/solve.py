@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import warnings
 from pathlib import Path
 from typing import Annotated
 
@@ -11,7 +12,7 @@ from rich.console import Console
 from rich.table import Table
 
 from perfros_bag.cli._app import command, err, out
-from perfros_bag.errors import InputError
+from perfros_bag.errors import InputError, PerfrosWarning
 from perfros_bag.model import System
 from perfros_bag.plan import Plan
 
@@ -108,6 +109,8 @@ def solve(
         raise InputError(None, f"--resolution must be > 0, got {resolution}")
     if time_limit is not None and not time_limit > 0:
         raise InputError(None, f"--time-limit must be > 0, got {time_limit}")
+    if time_limit is not None and method != "exact":
+        warnings.warn(f"--time-limit applies to --method exact only; {method} ignores it", PerfrosWarning, stacklevel=1)
     system = load_system(system_path)
     fixed = None
     if settings is not None:
