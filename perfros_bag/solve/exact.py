@@ -44,6 +44,14 @@ __all__ = ["solve_exact"]
 
 EPS = 1e-9
 _INF = math.inf
+_LOG = False  # HiGHS log on stdout (debugging)
+# Measured (docs/solvers.md): on the case study these root heuristics cost more than they
+# find, since the x-form's LP is tight; switching them off sped Table II instance 6 up 2.7x.
+_HIGHS_OPTIONS: dict[str, Any] = {
+    "mip_heuristic_run_rins": False,
+    "mip_heuristic_run_rens": False,
+    "mip_heuristic_run_root_reduced_cost": False,
+}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -87,10 +95,12 @@ class _Milp:
         import highspy  # lazy: keeps the CLI's start-up fast
 
         h = highspy.Highs()
-        h.setOptionValue("output_flag", False)
+        h.setOptionValue("output_flag", _LOG)
         h.setOptionValue("mip_rel_gap", float(mip_gap))
         h.setOptionValue("mip_abs_gap", 1e-7)
         h.setOptionValue("random_seed", 0)
+        for name, value in _HIGHS_OPTIONS.items():
+            h.setOptionValue(name, value)
         if time_limit is not None:
             h.setOptionValue("time_limit", float(max(time_limit, 0.01)))
         inf = highspy.kHighsInf
@@ -248,7 +258,8 @@ def _prepare(system: System, problem: int, choices: dict[str, list[Choice]]) -> 
                 return (f"coresidence: nodes {who} need {need:g} CPU together at their minimum settings "
                         f"but the largest computer allowed for them, {biggest}, has {cap[biggest]:g}")
             if len(allowed) == 1:
-                return f"{who} needs {need:g} CPU on {biggest} (residence) but {biggest} has {cap[biggest]:g}"
+                why = "residence" if len(system.computers) > 1 else "the only computer"
+                return f"{who} needs {need:g} CPU on {biggest} ({why}) but {biggest} has {cap[biggest]:g}"
             return (f"{who} needs {need:g} CPU at its minimum setting but the largest computer allowed "
                     f"for it, {biggest}, has {cap[biggest]:g}")
         groups.append(_Group(tuple(members), tuple(fits)))
@@ -264,7 +275,8 @@ def _prepare(system: System, problem: int, choices: dict[str, list[Choice]]) -> 
         if need > cap[comp] + EPS:
             names = [n for g in gs for n in g.members]
             verb = "needs" if len(names) == 1 else "need"
-            return (f"{', '.join(names)} {verb} {need:g} CPU on {comp} (residence) but {comp} has {cap[comp]:g}")
+            why = "residence" if len(system.computers) > 1 else "the only computer"
+            return f"{', '.join(names)} {verb} {need:g} CPU on {comp} ({why}) but {comp} has {cap[comp]:g}"
     total_cap = sum(cap.values())
     total_need = sum(min_cpu.values())
     if total_need > total_cap + EPS:
@@ -350,32 +362,120 @@ class _Built:
     x: dict[tuple[str, int, str], int]  # (node, kept position, computer) -> column
     server_cap: dict[str, int]  # Problem 2: server -> capacity column
     slack: dict[str, int]  # elastic copy: constraint label -> overflow column
+    # compact nodes: (node, computer) -> (placed column, level column); level m is the
+    # kept position (CPU = lo + r·m)
+    compact: dict[tuple[str, str], tuple[int, int]] = field(default_factory=dict)
 
 
-def _build(inst: _Instance, *, elastic: bool = False) -> _Built:
+def _active_links(inst: _Instance) -> set[int]:
+    """Links (by index) whose bandwidth, or whose medium's, could ever be exceeded: the
+    others need no rows at all."""
+    system = inst.system
+    potential = [0.0] * len(system.links)
+    for e in system.edges:
+        if inst.group_of[e.src] is inst.group_of[e.dst]:
+            continue
+        big = max(system.edge_bandwidth(e, ch) for ch in inst.choices[e.src])
+        if big <= 0:
+            continue
+        for li in range(len(system.links)):
+            if _crossing_always(inst, e, li) is not False:
+                potential[li] += big
+    active = {li for li, link in enumerate(system.links) if potential[li] > link.bandwidth_kBps + EPS}
+    for m in system.media:
+        lis = [li for li, link in enumerate(system.links) if link.medium == m.name]
+        if sum(potential[li] for li in lis) > m.bandwidth_kBps + EPS:
+            active.update(lis)
+    return active
+
+
+def _modelled_edges(inst: _Instance, active: set[int]) -> list[int]:
+    system = inst.system
+    out = []
+    for ei, e in enumerate(system.edges):
+        if inst.group_of[e.src] is inst.group_of[e.dst]:
+            continue
+        if max(system.edge_bandwidth(e, ch) for ch in inst.choices[e.src]) <= 0:
+            continue
+        if any(_crossing_always(inst, e, li) is not False for li in active):
+            out.append(ei)
+    return out
+
+
+def _grid(inst: _Instance, node: str, modelled: Sequence[int]) -> tuple[float, float] | None:
+    """``(lo, step)`` when the node's kept choices are ``lo + step·m`` (m = 0..M), with a
+    concave performance sequence and constant traffic on every modelled edge: then the
+    compact form (a placement binary, an integer level and the concave envelope, which is
+    the convex hull of the choices) replaces the node's x columns."""
+    opts = inst.choices[node]
+    if inst.problem != 1 or len(opts) < 3:
+        return None
+    lo, step = opts[0].cpu, opts[1].cpu - opts[0].cpu
+    if step <= EPS:
+        return None
+    tol = 1e-9 * max(1.0, abs(opts[-1].cpu))
+    if any(abs(ch.cpu - (lo + step * k)) > tol for k, ch in enumerate(opts)):
+        return None
+    slopes = [b.performance - a.performance for a, b in zip(opts, opts[1:], strict=False)]
+    if any(s2 > s1 + 1e-9 * max(1.0, abs(s1)) for s1, s2 in zip(slopes, slopes[1:], strict=False)):
+        return None
+    system = inst.system
+    for ei in modelled:
+        e = system.edges[ei]
+        if e.src == node and len({system.edge_bandwidth(e, ch) for ch in opts}) > 1:
+            return None
+    return lo, step
+
+
+def _build(inst: _Instance, *, elastic: bool = False, compact_form: bool = False) -> _Built:
     system, problem = inst.system, inst.problem
     milp = _Milp()
     x: dict[tuple[str, int, str], int] = {}
     slack: dict[str, int] = {}
-    by_node_comp: dict[tuple[str, str], list[tuple[int, Choice]]] = {}
+    compact: dict[tuple[str, str], tuple[int, int]] = {}
+    active = _active_links(inst) if system.links else set()
+    modelled = _modelled_edges(inst, active) if active else []
+    # per (node, computer): terms of "node sits there" and of its CPU there
+    placed_terms: dict[tuple[str, str], list[tuple[int, float]]] = {}
+    cpu_terms: dict[tuple[str, str], list[tuple[int, float]]] = {}
     for g in inst.groups:
-        for n in g.members:
-            w = system.node[n].weight
-            for k, ch in enumerate(inst.choices[n]):
-                for c in g.allowed:
-                    cost = 0.0 if elastic or problem != 1 else w * ch.performance
-                    col = milp.var(0.0, 1.0, cost, integer=True)
-                    x[(n, k, c)] = col
-                    by_node_comp.setdefault((n, c), []).append((col, ch))
-        if len(g.members) == 1:
-            n = g.members[0]
-            milp.row(((x[(n, k, c)], 1.0) for k in range(len(inst.choices[n])) for c in g.allowed), 1.0, 1.0)
-        else:
+        if len(g.members) > 1:
             g.z = {c: milp.var(0.0, 1.0, 0.0, integer=True) for c in g.allowed}
             milp.row(((col, 1.0) for col in g.z.values()), 1.0, 1.0)
-            for n in g.members:
+        else:
+            g.z = {}
+        for n in g.members:
+            w = 0.0 if elastic or problem != 1 else system.node[n].weight
+            opts = inst.choices[n]
+            grid = _grid(inst, n, modelled) if compact_form else None
+            for c in g.allowed:
+                if grid is not None:
+                    lo, step = grid
+                    p = g.z[c] if g.z else milp.var(0.0, 1.0, 0.0, integer=True)
+                    m = milp.var(0.0, len(opts) - 1, 0.0, integer=True)
+                    y = milp.var(-_INF, _INF, w)
+                    milp.row([(m, 1.0), (p, -(len(opts) - 1))], -_INF, 0.0)  # m <= M·p
+                    # y <= P_k·p + (P_{k+1} - P_k)·(m - k·p): the concave envelope's pieces
+                    for k in range(len(opts) - 1):
+                        slope = opts[k + 1].performance - opts[k].performance
+                        milp.row([(y, 1.0), (m, -slope), (p, -(opts[k].performance - slope * k))], -_INF, 0.0)
+                    compact[(n, c)] = (p, m)
+                    placed_terms[(n, c)] = [(p, 1.0)]
+                    cpu_terms[(n, c)] = [(p, lo), (m, step)]
+                    continue
+                cols = []
+                for k, ch in enumerate(opts):
+                    col = milp.var(0.0, 1.0, w * ch.performance, integer=True)
+                    x[(n, k, c)] = col
+                    cols.append((col, ch.cpu))
+                placed_terms[(n, c)] = [(col, 1.0) for col, _ in cols]
+                cpu_terms[(n, c)] = cols
+            if g.z:
                 for c in g.allowed:
-                    milp.row([(col, 1.0) for col, _ in by_node_comp[(n, c)]] + [(g.z[c], -1.0)], 0.0, 0.0)
+                    if (n, c) not in compact:
+                        milp.row(placed_terms[(n, c)] + [(g.z[c], -1.0)], 0.0, 0.0)
+            else:
+                milp.row((t for c in g.allowed for t in placed_terms[(n, c)]), 1.0, 1.0)
 
     def placed(node: str, comp: str) -> list[tuple[int, float]]:
         """Terms of the 0/1 expression 'node sits on comp' (empty when it cannot)."""
@@ -384,13 +484,13 @@ def _build(inst: _Instance, *, elastic: bool = False) -> _Built:
             return []
         if g.z:
             return [(g.z[comp], 1.0)]
-        return [(col, 1.0) for col, _ in by_node_comp[(node, comp)]]
+        return placed_terms[(node, comp)]
 
     # CPU per computer (eq 3)
     server_cap: dict[str, int] = {}
     for comp in system.computers:
-        terms = [(col, ch.cpu) for g in inst.groups if comp.name in g.allowed
-                 for n in g.members for col, ch in by_node_comp[(n, comp.name)]]
+        terms = [t for g in inst.groups if comp.name in g.allowed
+                 for n in g.members for t in cpu_terms[(n, comp.name)]]
         if problem == 2 and comp.kind == "server":
             cost = 0.0 if elastic else 1.0
             server_cap[comp.name] = milp.var(0.0, inst.cap[comp.name], cost)
@@ -405,31 +505,41 @@ def _build(inst: _Instance, *, elastic: bool = False) -> _Built:
             terms.append((s, -1.0))
         milp.row(terms, -_INF, inst.cap[comp.name])
 
-    # bandwidth per link (eq 4) and per shared medium
-    if system.links and system.edges:
-        load_terms: list[list[tuple[int, float]]] = [[] for _ in system.links]
-        pair_cols: dict[tuple[int, str, str], int] = {}
-        for ei, e in enumerate(system.edges):
+    # computers joined by no path: the two ends of an edge cannot sit there together
+    if system.links:
+        for e in system.edges:
             gs, gd = inst.group_of[e.src], inst.group_of[e.dst]
             if gs is gd:
                 continue
-            bw = [system.edge_bandwidth(e, ch) for ch in inst.choices[e.src]]
-            big = max(bw)
-            # computers joined by no path: the two ends cannot sit there together
             for a in gs.allowed:
                 for b in gd.allowed:
                     if a != b and system.route(a, b) is None:
                         milp.row(placed(e.src, a) + placed(e.dst, b), -_INF, 1.0)
-            if big <= 0:
-                continue
+
+    # bandwidth per link (eq 4) and per shared medium
+    if active:
+        load_terms: list[list[tuple[int, float]]] = [[] for _ in system.links]
+        pair_cols: dict[tuple[int, str, str], int] = {}
+        for ei in modelled:
+            e = system.edges[ei]
+            gs, gd = inst.group_of[e.src], inst.group_of[e.dst]
+            bw = [system.edge_bandwidth(e, ch) for ch in inst.choices[e.src]]
+            big = max(bw)
 
             def traffic(comps: Iterable[str], src: str = e.src, allowed: tuple[str, ...] = gs.allowed,
                         bw: list[float] = bw) -> list[tuple[int, float]]:
                 """b_e · [src on one of comps]"""
-                return [(x[(src, k, c)], bw[k]) for c in comps if c in allowed
-                        for k in range(len(bw)) if bw[k] != 0.0]
+                out: list[tuple[int, float]] = []
+                for c in comps:
+                    if c not in allowed:
+                        continue
+                    if (src, c) in compact:  # constant traffic (see _grid)
+                        out.append((compact[(src, c)][0], bw[0]))
+                    else:
+                        out.extend((x[(src, k, c)], bw[k]) for k in range(len(bw)) if bw[k] != 0.0)
+                return out
 
-            for li in range(len(system.links)):
+            for li in sorted(active):
                 always = _crossing_always(inst, e, li)
                 if always is False:
                     continue
@@ -473,24 +583,27 @@ def _build(inst: _Instance, *, elastic: bool = False) -> _Built:
                 slack[_link_name(system, li)] = s
                 terms.append((s, -1.0))
             milp.row(terms, -_INF, link.bandwidth_kBps)
-        for m in system.media:
-            cols = [load_cols[li] for li, link in enumerate(system.links)
-                    if link.medium == m.name and li in load_cols]
-            if not cols:
+        for medium in system.media:
+            on_medium = [load_cols[li] for li, link in enumerate(system.links)
+                         if link.medium == medium.name and li in load_cols]
+            if not on_medium:
                 continue
-            terms = [(col, 1.0) for col in cols]
+            terms = [(col, 1.0) for col in on_medium]
             if elastic:
-                s = milp.var(0.0, _INF, 1.0 / max(m.bandwidth_kBps, 1e-6))
-                slack[f"medium {m.name}"] = s
+                s = milp.var(0.0, _INF, 1.0 / max(medium.bandwidth_kBps, 1e-6))
+                slack[f"medium {medium.name}"] = s
                 terms.append((s, -1.0))
-            milp.row(terms, -_INF, m.bandwidth_kBps)
-    return _Built(milp, x, server_cap, slack)
+            milp.row(terms, -_INF, medium.bandwidth_kBps)
+    return _Built(milp, x, server_cap, slack, compact)
 
 
 def _start_values(inst: _Instance, built: _Built, start: Assignment) -> dict[int, float] | None:
     """The binaries of a MIP start (HiGHS completes the continuous columns); None when the
     start does not map onto the pruned model."""
     values = {col: 0.0 for col in built.x.values()}
+    for p, m in built.compact.values():
+        values[p] = 0.0
+        values[m] = 0.0
     for g in inst.groups:
         for n in g.members:
             comp = start.placement.get(n)
@@ -501,7 +614,12 @@ def _start_values(inst: _Instance, built: _Built, start: Assignment) -> dict[int
             pos = None if original is None else inst.replace[n].get(original)
             if pos is None:
                 return None
-            values[built.x[(n, pos, comp)]] = 1.0
+            if (n, comp) in built.compact:
+                p, m = built.compact[(n, comp)]
+                values[p] = 1.0
+                values[m] = float(pos)
+            else:
+                values[built.x[(n, pos, comp)]] = 1.0
         if g.z:
             comp = start.placement[g.members[0]]
             for c, col in g.z.items():
@@ -516,6 +634,10 @@ def _extract(inst: _Instance, built: _Built, values: Sequence[float]) -> Assignm
         if values[col] > 0.5:
             placement[n] = c
             choice[n] = inst.choices[n][k]
+    for (n, c), (p, m) in built.compact.items():
+        if values[p] > 0.5:
+            placement[n] = c
+            choice[n] = inst.choices[n][int(round(values[m]))]
     capacities: dict[str, float] = {}
     if inst.problem == 2:
         load = {c.name: 0.0 for c in inst.system.computers}
