@@ -278,3 +278,41 @@ def test_trace_parser_never_crashes(body: str, with_header: bool) -> None:
     else:
         assert len(tr) == tr.cpu_percent.size == len(tr.node)
         assert np.isfinite(tr.cpu_percent).all() and (tr.cpu_percent >= 0).all()
+
+
+trace_rows_st = st.lists(
+    st.tuples(st.floats(0, 2e9, allow_nan=False), st.integers(0, 2**40),
+              st.text(alphabet=st.sampled_from(list('ab,"# /_1é')), max_size=6),
+              st.text(alphabet=st.sampled_from(list('py ,"x')), max_size=5),
+              st.floats(0, 1e4, allow_nan=False), st.integers(0, 2**50)),
+    max_size=40)
+
+
+@settings(max_examples=150, deadline=None)
+@given(rows=trace_rows_st)
+def test_fast_and_careful_parsers_agree(rows: list[tuple[float, int, str, str, float, int]]) -> None:
+    import csv
+    import io
+
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    for r in rows:
+        w.writerow([repr(r[0]), r[1], r[2], r[3], repr(r[4]), r[5]])
+    text = HEADER + buf.getvalue()
+    fast, slow = parse_cpu_trace(text, fast=True), parse_cpu_trace(text, fast=False)
+    assert fast.time.tolist() == slow.time.tolist() == [r[0] for r in rows]
+    assert fast.pid.tolist() == slow.pid.tolist() == [r[1] for r in rows]
+    assert fast.node == slow.node == [r[2] for r in rows]
+    assert fast.process == slow.process == [r[3] for r in rows]
+    assert fast.cpu_percent.tolist() == slow.cpu_percent.tolist() == [r[4] for r in rows]
+    assert fast.rss_bytes.tolist() == slow.rss_bytes.tolist()
+
+
+def test_fast_parser_is_used_and_agrees_on_the_fixtures() -> None:
+    from perfros_bag.ingest.cputrace import _rows_fast
+
+    for p in sorted((ROOT / "fixtures" / "recordings").glob("*.cpu.csv")):
+        text = p.read_text()
+        assert _rows_fast(text.split("rss_bytes\n", 1)[1]) is not None  # no silent fallback on clean files
+        a, b = parse_cpu_trace(text, fast=True), parse_cpu_trace(text, fast=False)
+        assert (a.time == b.time).all() and (a.cpu_percent == b.cpu_percent).all() and a.node == b.node

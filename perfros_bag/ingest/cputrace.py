@@ -96,24 +96,31 @@ def parse_cpu_trace(text: str, path: str | Path = "<cpu trace>", *, fast: bool =
     does not accept cleanly is re-read line by line, which names the first bad line."""
     p = Path(path)
     meta: dict[str, str] = {}
-    lines = text.splitlines()
-    i = 0
-    while i < len(lines) and (lines[i].startswith("#") or not lines[i].strip()):
-        body = lines[i].lstrip("#").strip()
-        if "=" in body:
-            key, _, value = body.partition("=")
-            meta[key.strip()] = value.strip()
-        i += 1
-    if i >= len(lines):
+    pos, lineno, header_line = 0, 0, None
+    while pos < len(text):  # comment lines, then the header: only the top of the file
+        nl = text.find("\n", pos)
+        end = len(text) if nl < 0 else nl
+        line = text[pos:end].rstrip("\r")
+        lineno += 1
+        pos = end + 1
+        if line.startswith("#") or not line.strip():
+            body = line.lstrip("#").strip()
+            if "=" in body:
+                key, _, value = body.partition("=")
+                meta[key.strip()] = value.strip()
+            continue
+        header_line = line
+        break
+    if header_line is None:
         raise InputError(p, f"no header line (expected '{','.join(TRACE_COLUMNS)}')")
-    header = [h.strip() for h in next(csv.reader([lines[i]]))]
+    header = [h.strip() for h in header_line.split(",")]
     if tuple(header[: len(TRACE_COLUMNS)]) != TRACE_COLUMNS:
-        raise InputError(p, f"line {i + 1}: bad header {lines[i]!r} (expected '{','.join(TRACE_COLUMNS)}')")
+        raise InputError(p, f"line {lineno}: bad header {header_line!r} (expected '{','.join(TRACE_COLUMNS)}')")
     ncpu, interval = _meta(p, meta)
-    rows = lines[i + 1:]
-    parsed = _rows_fast(rows, len(header)) if fast else None
+    rest = text[pos:]
+    parsed = _rows_fast(rest) if fast and len(header) == len(TRACE_COLUMNS) else None
     if parsed is None:
-        parsed = _rows_slow(p, rows, len(header), i + 2)
+        parsed = _rows_slow(p, rest.splitlines(), len(header), lineno + 1)
     times, pids, nodes, procs, cpus, rsss = parsed
     return CpuTrace(p, ncpu, meta.get("host"), interval, times, pids, nodes, procs, cpus, rsss)
 
@@ -142,31 +149,28 @@ _Rows = tuple[npt.NDArray[np.float64], npt.NDArray[np.int64], list[str], list[st
               npt.NDArray[np.float64], npt.NDArray[np.int64]]
 
 
-def _rows_fast(rows: list[str], ncol: int) -> _Rows | None:
-    """pandas' C parser; None when the rows need the careful parser (comments inside,
-    an empty RSS, a bad value, a short line...)."""
+def _rows_fast(body: str) -> _Rows | None:
+    """pandas' C parser on the rows; None when they need the careful parser (a comment or
+    an empty field inside, a bad value, a short or long line: pandas cannot fill a missing
+    int64 ``rss_bytes`` and rejects extra fields)."""
     import pandas as pd
 
-    body = "\n".join(rows)
-    if "\n#" in "\n" + body or not body.strip():
+    if not body.strip() or body.startswith("#") or "\n#" in body or "\r#" in body:
         return None
-    names = [f"c{k}" for k in range(ncol)]
+    names = [f"c{k}" for k in range(len(TRACE_COLUMNS))]
+    dtypes: dict[str, Any] = {"c0": "float64", "c1": "int64", "c2": object, "c3": object,
+                              "c4": "float64", "c5": "int64"}
     try:
         df = pd.read_csv(io.StringIO(body), header=None, names=names, engine="c", na_filter=False,
-                         dtype={"c0": "float64", "c1": "int64", "c2": "str", "c3": "str",
-                                "c4": "float64", "c5": "int64"}, skip_blank_lines=True)
+                         dtype=dtypes, skip_blank_lines=True)
     except (ValueError, TypeError, OverflowError, pd.errors.ParserError):
         return None
     times = df["c0"].to_numpy(dtype=np.float64)
     cpus = df["c4"].to_numpy(dtype=np.float64)
     if not (np.isfinite(times).all() and np.isfinite(cpus).all() and (cpus >= 0).all()):
         return None
-    # a short line would have been padded by pandas: count the fields as the careful parser does
-    expected = ncol - 1
-    if any(r.count(",") < expected for r in rows if r.strip()) and '"' not in body:
-        return None
-    return (times, df["c1"].to_numpy(dtype=np.int64), df["c2"].astype(str).tolist(),
-            df["c3"].astype(str).tolist(), cpus, df["c5"].to_numpy(dtype=np.int64))
+    return (times, df["c1"].to_numpy(dtype=np.int64), [str(x) for x in df["c2"].tolist()],
+            [str(x) for x in df["c3"].tolist()], cpus, df["c5"].to_numpy(dtype=np.int64))
 
 
 def _rows_slow(p: Path, rows: list[str], ncol: int, first_lineno: int) -> _Rows:
@@ -177,8 +181,14 @@ def _rows_slow(p: Path, rows: list[str], ncol: int, first_lineno: int) -> _Rows:
     cpus: list[float] = []
     rsss: list[int] = []
     reader = csv.reader(io.StringIO("\n".join(rows)))
-    for offset, row in enumerate(reader):
-        lineno = first_lineno + offset
+    while True:
+        try:
+            row = next(reader)
+        except StopIteration:
+            break
+        except csv.Error as exc:
+            raise InputError(p, f"line {first_lineno + reader.line_num - 1}: not CSV: {exc}") from None
+        lineno = first_lineno + reader.line_num - 1  # the row's last physical line
         if not row or (len(row) == 1 and not row[0].strip()) or row[0].startswith("#"):
             continue
         if len(row) != ncol:
@@ -229,18 +239,29 @@ def assign_nodes(trace: CpuTrace, nodes: Mapping[str, str | None] | None) -> lis
     """
     if nodes is None:
         return list(trace.node)
-    cache: dict[tuple[str, str], str] = {}
-    out: list[str] = []
-    for label, proc in zip(trace.node, trace.process, strict=True):
-        key = (label, proc)
-        if key not in cache:
-            found = next((n for n in nodes if match_label(label, proc, n, None)), None)
-            if found is None:
-                found = next((n for n, pat in nodes.items()
-                              if pat is not None and match_label(label, proc, n, pat)), "")
-            cache[key] = found
-        out.append(cache[key])
-    return out
+    return _owners(trace, nodes).tolist()
+
+
+def _owners(trace: CpuTrace, nodes: Mapping[str, str | None] | None) -> npt.NDArray[np.object_]:
+    """:func:`assign_nodes` as an object array, matching each distinct (label, process) once."""
+    import pandas as pd
+
+    if not len(trace):
+        return np.empty(0, dtype=object)
+    c_node, u_node = pd.factorize(np.asarray(trace.node, dtype=object))
+    c_proc, u_proc = pd.factorize(np.asarray(trace.process, dtype=object))
+    pair_codes, codes = np.unique(c_node.astype(np.int64) * max(1, len(u_proc)) + c_proc, return_inverse=True)
+    owner = []
+    for pc in pair_codes.tolist():
+        label, proc = str(u_node[pc // max(1, len(u_proc))]), str(u_proc[pc % max(1, len(u_proc))])
+        if nodes is None:
+            owner.append(label)
+            continue
+        found = next((n for n in nodes if match_label(label, proc, n, None)), None)
+        if found is None:
+            found = next((n for n, pat in nodes.items() if pat is not None and match_label(label, proc, n, pat)), "")
+        owner.append(found)
+    return np.asarray(owner, dtype=object)[codes]
 
 
 def in_window(trace: CpuTrace, start_ns: int | None, end_ns: int | None) -> npt.NDArray[np.bool_]:
@@ -261,22 +282,21 @@ def node_cpu(trace: CpuTrace, capacity: float, *, start_ns: int | None = None,
     A node's value at a sample time is the sum over its processes; samples are the sample
     times at which the node had at least one process. Units: ``cpu_percent / (100 N) * R``.
     """
-    owner = np.asarray(assign_nodes(trace, nodes), dtype=object)
+    import pandas as pd
+
+    owner = _owners(trace, nodes)
     keep = in_window(trace, start_ns, end_ns) & (owner != "")
     scale = capacity / (100.0 * trace.logical_cpus)
     result: dict[str, NodeCpu] = {}
     if not keep.any():
         return result
-    times = trace.time[keep]
-    units = trace.cpu_percent[keep] * scale
-    who = owner[keep]
-    for name in dict.fromkeys(who.tolist()):
-        sel = who == name
-        t_uniq, inverse = np.unique(times[sel], return_inverse=True)
-        sums = np.zeros(t_uniq.size)
-        np.add.at(sums, inverse, units[sel])
-        result[name] = NodeCpu(name, float(sums.mean()), float(np.percentile(sums, 95)), int(t_uniq.size))
-    return result
+    df = pd.DataFrame({"node": owner[keep], "time": trace.time[keep], "units": trace.cpu_percent[keep] * scale})
+    sums = df.groupby(["node", "time"], sort=False).units.sum()  # a node's processes, per sample
+    order = list(dict.fromkeys(df["node"].tolist()))
+    for name, per_time in sums.groupby(level=0, sort=False):
+        values = per_time.to_numpy(dtype=np.float64)
+        result[str(name)] = NodeCpu(str(name), float(values.mean()), float(np.percentile(values, 95)), int(values.size))
+    return {n: result[n] for n in order}
 
 
 # --------------------------------------------------------------------------- writing
