@@ -18,8 +18,6 @@ from perfros_bag.ingest.stats import RecordingStats, TopicStats
 I64 = npt.NDArray[np.int64]
 U8 = npt.NDArray[np.uint8]
 
-_AR4 = np.arange(4, dtype=np.int64)
-_AR8 = np.arange(8, dtype=np.int64)
 
 
 class Damaged(Exception):  # noqa: N818 - internal signal, never escapes read_recording
@@ -43,12 +41,14 @@ def describe(exc: BaseException) -> str:
 
 
 def gather_u32(buf: U8, pos: I64) -> I64:
-    """Little-endian uint32 at every byte position ``pos`` of ``buf`` (vectorised, unaligned)."""
+    """Little-endian uint32 at every byte position ``pos`` of ``buf`` (vectorised, unaligned):
+    rows of a strided 4-byte window view, no index matrix."""
     if pos.size == 0:
         return np.empty(0, dtype=np.int64)
     if int(pos.min()) < 0 or int(pos.max()) + 4 > buf.size:
         raise Damaged("record offset outside its chunk")
-    return buf[pos[:, None] + _AR4].view("<u4").reshape(-1).astype(np.int64)
+    rows = np.lib.stride_tricks.sliding_window_view(buf, 4)[pos]
+    return rows.view("<u4").reshape(-1).astype(np.int64)
 
 
 def gather_u64(buf: U8, pos: I64) -> I64:
@@ -56,7 +56,7 @@ def gather_u64(buf: U8, pos: I64) -> I64:
         return np.empty(0, dtype=np.int64)
     if int(pos.min()) < 0 or int(pos.max()) + 8 > buf.size:
         raise Damaged("record offset outside its chunk")
-    vals = buf[pos[:, None] + _AR8].view("<u8").reshape(-1)
+    vals = np.lib.stride_tricks.sliding_window_view(buf, 8)[pos].view("<u8").reshape(-1)
     if vals.size and int(vals.max()) >= 2**62:
         raise Damaged("implausible record length")
     return vals.astype(np.int64)

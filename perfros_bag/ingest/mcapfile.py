@@ -23,6 +23,7 @@ import struct
 from dataclasses import dataclass, field
 
 import numpy as np
+import numpy.typing as npt
 
 from perfros_bag.ingest._accum import I64, U8, Accumulator, Damaged, NoIndex, gather_u64
 
@@ -132,7 +133,12 @@ def decompress(compression: str, data: Buf, usize: int) -> bytes:
     if compression == "zstd":
         import zstandard
 
-        out = zstandard.ZstdDecompressor().decompressobj().decompress(bytes(data))
+        raw = bytes(data)
+        declared = zstandard.frame_content_size(raw[:18]) if len(raw) >= 18 else -1
+        if declared == usize:  # one allocation of the right size
+            out = zstandard.ZstdDecompressor().decompress(raw)
+        else:  # no content size in the frame: grow as needed (never trust usize to allocate)
+            out = zstandard.ZstdDecompressor().decompressobj().decompress(raw)
     elif compression == "lz4":
         import lz4.frame
 
@@ -295,8 +301,8 @@ def read_fast(mm: mmap.mmap, message_zstd: bool = False) -> Accumulator:
         else:
             raw = decompress(compression, memoryview(mm)[rstart:rstart + rlen], usize)
             buf, base, blen = np.frombuffer(raw, dtype=np.uint8), 0, len(raw)
-        chunk_offs: list[I64] = []
-        chunk_ends: list[I64] = []
+        cids: list[int] = []
+        parts: list[npt.NDArray[np.uint64]] = []
         for cid, ipos in ci.index_offsets.items():
             op, istart, ilen = _record(mm, ipos, size)
             if op != OP_MESSAGE_INDEX:
@@ -307,34 +313,45 @@ def read_fast(mm: mmap.mmap, message_zstd: bool = False) -> Accumulator:
             ppos, plen = c.skip_prefixed()
             if plen % 16:
                 raise NoIndex("malformed message index")
-            pairs = np.frombuffer(mm, dtype="<u8", count=plen // 8, offset=ppos).reshape(-1, 2)
-            offs = pairs[:, 1].astype(np.int64)
-            if offs.size and (int(offs.max()) + 9 + MSG_HEADER > blen):
-                raise NoIndex("message-index offset outside its chunk")
-            if offs.size and not np.all(buf[base + offs] == OP_MESSAGE):
-                raise NoIndex("message-index offset does not point at a message")
-            lengths = gather_u64(buf, base + offs + 1)
-            if offs.size and (int(lengths.min()) < MSG_HEADER
-                              or int((offs + 9 + lengths).max()) > blen):
-                raise NoIndex("indexed message overruns its chunk")
-            chan = buf[base + offs + 9].astype(np.int64) | (buf[base + offs + 10].astype(np.int64) << 8)
-            if np.any(chan != cid):
-                raise NoIndex("message index points at another channel's message")
-            chunk_offs.append(offs)
-            chunk_ends.append(offs + 9 + lengths)
-            if message_zstd:
-                nbytes = zstd_payload_sizes(buf, base + offs + 9 + MSG_HEADER, lengths - MSG_HEADER)
-            else:
-                nbytes = int(lengths.sum()) - MSG_HEADER * int(offs.size)
-            if offs.size and int(pairs[:, 0].max()) >= 2**63:
-                raise NoIndex("log time out of range")
-            st.add(cid, pairs[:, 0].astype(np.int64), nbytes)
-            total += int(offs.size)
-        if len(chunk_offs) > 1:  # records of different channels must not overlap
-            o, e = np.concatenate(chunk_offs), np.concatenate(chunk_ends)
-            order = np.argsort(o, kind="stable")
-            if np.any(o[order][1:] < e[order][:-1]):
-                raise NoIndex("indexed message records overlap")
+            cids.append(cid)
+            parts.append(np.frombuffer(mm, dtype="<u8", count=plen // 8, offset=ppos).reshape(-1, 2))
+        counts = np.array([len(p) for p in parts], dtype=np.int64)
+        n = int(counts.sum())
+        if n == 0:
+            continue
+        pairs = np.concatenate(parts)
+        if int(pairs.max()) >= 2**62:
+            raise NoIndex("log time or offset out of range")
+        offs = pairs[:, 1].astype(np.int64)
+        if int(offs.max()) + 9 + MSG_HEADER > blen:
+            raise NoIndex("message-index offset outside its chunk")
+        at = base + offs
+        if not np.all(buf[at] == OP_MESSAGE):
+            raise NoIndex("message-index offset does not point at a message")
+        lengths = gather_u64(buf, at + 1)
+        ends = offs + 9 + lengths
+        if int(lengths.min()) < MSG_HEADER or int(ends.max()) > blen:
+            raise NoIndex("indexed message overruns its chunk")
+        chan = np.lib.stride_tricks.sliding_window_view(buf, 2)[at + 9].view("<u2").reshape(-1)
+        if np.any(chan != np.repeat(np.array(cids, dtype=np.uint16), counts)):
+            raise NoIndex("message index points at another channel's message")
+        order = np.argsort(offs, kind="stable")
+        if np.any(offs[order][1:] < ends[order][:-1]):
+            raise NoIndex("indexed message records overlap")
+        if message_zstd:
+            per = [zstd_payload_sizes(buf, base + o + 9 + MSG_HEADER, ln - MSG_HEADER)
+                   for o, ln in zip(np.split(offs, np.cumsum(counts)[:-1]),
+                                    np.split(lengths, np.cumsum(counts)[:-1]), strict=True)]
+        else:
+            starts = np.cumsum(counts) - counts
+            sums = np.add.reduceat(lengths, starts) if n else np.zeros(len(cids), np.int64)
+            per = [int(x) - MSG_HEADER * int(k) if k else 0 for x, k in zip(sums.tolist(), counts.tolist(), strict=True)]
+        times = pairs[:, 0].astype(np.int64)
+        k = 0
+        for cid, cnt, nbytes in zip(cids, counts.tolist(), per, strict=True):
+            st.add(cid, times[k:k + cnt], nbytes)
+            k += cnt
+        total += n
     if count is not None and count != total:
         raise NoIndex(f"statistics count {count} disagrees with the indexes ({total})")
     acc = st.accumulator()

@@ -35,51 +35,6 @@ def _be(buf: U8, pos: I64, width: int) -> I64:
     return val
 
 
-def _varint(buf: U8, pos: I64) -> tuple[I64, I64]:
-    """SQLite varints at ``pos``: (values, byte lengths). Shrinking subsets: most are 1 byte."""
-    if pos.size and int(pos.max()) + 9 > buf.size:
-        raise NoIndex("varint outside the file")
-    b = buf[pos]
-    high = b >= 0x80
-    if not high.any():
-        return b.astype(np.int64), np.ones(pos.size, dtype=np.int64)
-    val = (b & 0x7F).astype(np.int64)
-    n = np.ones(pos.size, dtype=np.int64)
-    active = np.flatnonzero(high)
-    for k in range(1, 9):
-        if active.size == 0:
-            break
-        byte = buf[pos[active] + k].astype(np.int64)
-        if k < 8:
-            val[active] = (val[active] << 7) | (byte & 0x7F)
-            n[active] += 1
-            active = active[(byte & 0x80) != 0]
-        else:
-            val[active] = (val[active] << 8) | byte  # 9th byte: all 8 bits
-            n[active] += 1
-    return val, n
-
-
-def _signed_be(buf: U8, pos: I64, types: I64) -> I64:
-    """Integer values of serial types 1-6, 8 (0) and 9 (1) at ``pos``, one pass per distinct
-    type present (usually one: rosbag2 writes every timestamp as 8 bytes)."""
-    out = np.empty(pos.size, dtype=np.int64)
-    for t in np.unique(types).tolist():
-        sel = types == t
-        if t in (8, 9):
-            out[sel] = t - 8
-            continue
-        w = int(_WIDTH[t])
-        idx = pos[sel] if not sel.all() else pos
-        if w == 8:
-            v = buf[idx[:, None] + np.arange(8)].view(">i8").reshape(-1).astype(np.int64)
-        else:
-            v = _be(buf, idx, w)
-            v = np.where(v >= (1 << (8 * w - 1)), v - (1 << (8 * w)), v)
-        out[sel] = v
-    return out
-
-
 def _interior_children(buf: U8, off: int, hdr: int, page_size: int) -> list[int]:
     ncells = int(_be(buf, np.array([hdr + 3]), 2)[0])
     if 12 + 2 * ncells > page_size:
@@ -93,22 +48,126 @@ def _interior_children(buf: U8, off: int, hdr: int, page_size: int) -> list[int]
 
 
 def _leaves(buf: U8, root: int, page_size: int, n_pages: int) -> I64:
-    leaves: list[int] = []
-    stack, seen = [root], set()
-    while stack:
-        pg = stack.pop()
-        if pg < 2 or pg > n_pages or pg in seen:
-            raise NoIndex(f"bad or repeated page number {pg} in the messages B-tree")
-        seen.add(pg)
-        off = (pg - 1) * page_size
-        flag = int(buf[off])
-        if flag == 0x0D:
-            leaves.append(pg)
-        elif flag == 0x05:
-            stack.extend(_interior_children(buf, off, off, page_size))
+    """Leaf pages of the table B-tree under ``root`` (interior pages walked level by level)."""
+    seen = np.zeros(n_pages + 1, dtype=bool)
+    leaves: list[I64] = []
+    level = np.array([root], dtype=np.int64)
+    while level.size:
+        if int(level.min()) < 2 or int(level.max()) > n_pages or seen[level].any() \
+                or np.unique(level).size != level.size:
+            raise NoIndex("bad or repeated page number in the messages B-tree")
+        seen[level] = True
+        flags = buf[(level - 1) * page_size]
+        if not np.all((flags == 0x0D) | (flags == 0x05)):
+            raise NoIndex("a page of the messages B-tree is not a table B-tree page")
+        leaves.append(level[flags == 0x0D])
+        children: list[int] = []
+        for pg in level[flags == 0x05].tolist():
+            off = (pg - 1) * page_size
+            children.extend(_interior_children(buf, off, off, page_size))
+        level = np.asarray(children, dtype=np.int64)
+    return np.concatenate(leaves)
+
+
+W = 48  # bytes of a cell that hold every varint and both integer values of a valid record
+BATCH = 500_000  # cells per window matrix (48 bytes each)
+
+
+def _mvarint(m: U8, rowbase: I64, col: I64) -> tuple[I64, I64]:
+    """Varints at per-row columns ``col`` of the flattened window matrix ``m`` (rows start at
+    ``rowbase``): (values, lengths). Whole-array steps, one per byte of the longest varint."""
+    if col.size and int(col.max()) + 9 > W:
+        raise NoIndex("record header longer than expected")
+    pos = rowbase + col
+    b8 = m[pos]
+    if col.size == 0 or int(b8.max()) < 0x80:  # all one byte (serial types of integers)
+        return b8.astype(np.int64), np.ones(col.size, dtype=np.int64)
+    val = (b8 & 0x7F).astype(np.int64)
+    n = np.ones(col.size, dtype=np.int64)
+    cont = b8 >= 0x80
+    for k in range(1, 9):
+        bk = m[pos + k]
+        if k < 8:
+            val = np.where(cont, (val << 7) | (bk & 0x7F), val)
         else:
-            raise NoIndex(f"page {pg} is not a table B-tree page (flag {flag:#x})")
-    return np.asarray(leaves, dtype=np.int64)
+            val = np.where(cont, (val << 8) | bk, val)
+        n += cont
+        cont &= bk >= 0x80
+        if not cont.any():
+            break
+    return val, n
+
+
+def _mint(m: U8, rowbase: I64, col: I64, types: I64) -> I64:
+    """Integers of serial types 1-6, 8, 9 at per-row columns ``col`` of ``m``."""
+    out = np.empty(col.size, dtype=np.int64)
+    uniform = bool(col.size) and bool(np.all(types == types[0]))
+    distinct = [int(types[0])] if uniform else np.unique(types).tolist()
+    for t in distinct:
+        sel = np.arange(col.size) if uniform else np.flatnonzero(types == t)
+        if t in (8, 9):
+            out[sel] = t - 8
+            continue
+        w = int(_WIDTH[t])
+        pos = rowbase[sel] + col[sel]
+        if col.size and int(col[sel].max()) + w > W:
+            raise NoIndex("record values outside the expected window")
+        if w == 8:  # one gather of 8-byte rows of a strided view
+            sv = np.lib.stride_tricks.sliding_window_view(m, 8)[pos].view(">i8").reshape(-1).astype(np.int64)
+            out[sel] = sv
+            continue
+        v = np.zeros(sel.size, dtype=np.uint64)
+        for k in range(w):
+            v = (v << np.uint64(8)) | m[pos + k].astype(np.uint64)
+        sv = v.view(np.int64)
+        if w < 8:
+            sv = np.where(sv >= (1 << (8 * w - 1)), sv - (1 << (8 * w)), sv)
+        out[sel] = sv
+    return out
+
+
+def _window(buf: U8, cell: I64) -> U8:
+    """The W bytes at every cell, gathered as whole rows of a strided view (no index matrix);
+    cells closer than W to the end of the file read zero padding past it."""
+    view = np.lib.stride_tricks.sliding_window_view(buf, W)
+    near_end = cell > buf.size - W
+    m = view[np.where(near_end, 0, cell)]
+    if near_end.any():
+        tail = np.concatenate([buf[buf.size - W:], np.zeros(W, dtype=np.uint8)])
+        tview = np.lib.stride_tricks.sliding_window_view(tail, W)
+        m[near_end] = tview[cell[near_end] - (buf.size - W)]
+    return m.reshape(-1)
+
+
+def _cells(buf: U8, cell: I64, page_end: I64) -> tuple[I64, I64, I64]:
+    """Decode a batch of leaf cells: (topic ids, timestamps, payload sizes)."""
+    m = _window(buf, cell)
+    rowbase = np.arange(cell.size, dtype=np.int64) * W
+    payload, n1 = _mvarint(m, rowbase, np.zeros(cell.size, dtype=np.int64))
+    _rowid, n2 = _mvarint(m, rowbase, n1)
+    rec = n1 + n2
+    hsize, n3 = _mvarint(m, rowbase, rec)
+    p = rec + n3
+    types = []
+    for _ in range(4):
+        t, n = _mvarint(m, rowbase, p)
+        types.append(t)
+        p = p + n
+    if np.any(p - rec != hsize):
+        raise NoIndex("records are not 4 columns (id, topic_id, timestamp, data)")
+    t_id, t_topic, t_time, t_data = types
+    ints_ok = ((t_topic <= 6) & (t_topic >= 1)) | (t_topic == 8) | (t_topic == 9)
+    ints_ok &= ((t_time <= 6) & (t_time >= 1)) | (t_time == 8) | (t_time == 9)
+    if np.any(t_id != 0) or not np.all(ints_ok) or np.any((t_data < 12) | (t_data % 2 == 1)):
+        raise NoIndex("unexpected column types in the messages table")
+    body = rec + hsize
+    w_topic, w_time = _WIDTH[t_topic], _WIDTH[t_time]
+    if np.any(cell + body + w_topic + w_time > page_end):
+        raise NoIndex("record values outside their page")
+    sizes = (t_data - 12) // 2
+    if np.any(payload != hsize + w_topic + w_time + sizes):
+        raise NoIndex("payload size disagrees with the record")
+    return _mint(m, rowbase, body, t_topic), _mint(m, rowbase, body + w_topic, t_time), sizes
 
 
 def read_messages(mm: mmap.mmap, root: int, expected_rows: int) -> tuple[I64, I64, I64]:
@@ -142,33 +201,11 @@ def read_messages(mm: mmap.mmap, root: int, expected_rows: int) -> tuple[I64, I6
         raise NoIndex("leaf cell outside its page")
     cell = base + ptr
     page_end = base + usable
-    payload, n1 = _varint(buf, cell)
-    _rowid, n2 = _varint(buf, cell + n1)
-    rec = cell + n1 + n2
-    hsize, n3 = _varint(buf, rec)
-    p = rec + n3
-    types = []
-    for _ in range(4):
-        t, n = _varint(buf, p)
-        types.append(t)
-        p = p + n
-    if np.any(p - rec != hsize):
-        raise NoIndex("records are not 4 columns (id, topic_id, timestamp, data)")
-    t_id, t_topic, t_time, t_data = types
-    ints_ok = ((t_topic <= 6) & (t_topic >= 1)) | (t_topic == 8) | (t_topic == 9)
-    ints_ok &= ((t_time <= 6) & (t_time >= 1)) | (t_time == 8) | (t_time == 9)
-    if np.any(t_id != 0) or not np.all(ints_ok) or np.any((t_data < 12) | (t_data % 2 == 1)):
-        raise NoIndex("unexpected column types in the messages table")
-    body = rec + hsize
-    w_topic, w_time = _WIDTH[t_topic], _WIDTH[t_time]
-    if np.any(body + w_topic + w_time > page_end):
-        raise NoIndex("record values outside their page")
-    sizes = (t_data - 12) // 2
-    if np.any(payload != hsize + w_topic + w_time + sizes):
-        raise NoIndex("payload size disagrees with the record")
-    tids = _signed_be(buf, body, t_topic)
-    times = _signed_be(buf, body + w_topic, t_time)
-    return tids, times, sizes
+    parts = [_cells(buf, cell[a:a + BATCH], page_end[a:a + BATCH]) for a in range(0, total, BATCH)]
+    if len(parts) == 1:
+        return parts[0]
+    return (np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]),
+            np.concatenate([p[2] for p in parts]))
 
 
 def messages_root(con: object) -> int | None:

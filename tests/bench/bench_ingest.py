@@ -66,12 +66,16 @@ def dataset(kind: str, scale: float) -> Iterator[Msg]:
         import numpy as np
 
         rng = np.random.default_rng(1)
-        image, scan = rng.bytes(130_000), rng.bytes(2_000)
         duration_s = 330 * scale
         n_img, n_scan = int(duration_s * 10), int(duration_s * 100)
-        events = [(T0 + i * 100_000_000 + 1234, "/camera/image", "std_msgs/msg/String", image)
+        # distinct random payloads: compression (zstd MCAP) cannot shrink them, as with real images
+        blob = rng.bytes(130_000 * n_img + 2_000 * n_scan)
+        images = [blob[i * 130_000:(i + 1) * 130_000] for i in range(n_img)]
+        o = 130_000 * n_img
+        scans = [blob[o + i * 2_000:o + (i + 1) * 2_000] for i in range(n_scan)]
+        events = [(T0 + i * 100_000_000 + 1234, "/camera/image", "std_msgs/msg/String", images[i])
                   for i in range(n_img)]
-        events += [(T0 + i * 10_000_000, "/scan", "std_msgs/msg/String", scan) for i in range(n_scan)]
+        events += [(T0 + i * 10_000_000, "/scan", "std_msgs/msg/String", scans[i]) for i in range(n_scan)]
         events.sort(key=lambda e: e[0])
         for t, topic, mtype, data in events:
             yield Msg(topic, mtype, t, data, "/driver")
