@@ -156,7 +156,7 @@ def test_mcap_with_wrong_magic(tmp_path: Path) -> None:
 FUZZ_SOURCES = ["rosbagjs_example-lz4.bag", "rosbagjs_example.bag", "lichtblick_example.mcap",
                 "mcap_conformance_TenMessages.mcap", "rosbag2_mcap_talker",
                 "rosbag2_mcap_reindex_multiple_files_nometa", "plotjuggler_rosbag2_test"]
-FUZZ_BUDGET_S = 12.0
+FUZZ_BUDGET_S = 10.0
 
 
 def _target(root: Path) -> Path:
