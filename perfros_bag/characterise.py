@@ -29,6 +29,7 @@ from typing import Any
 
 from perfros_bag.errors import InputError, PerfrosError, PerfrosWarning
 from perfros_bag.ingest.cputrace import NodeCpu, match_label, node_cpu, read_cpu_trace
+from perfros_bag.ingest.stats import RecordingStats
 from perfros_bag.manifest import RecordingEntry, SettingValue, default_cpu_path, load_manifest
 from perfros_bag.model import System
 
@@ -84,13 +85,17 @@ class Result:
 
 
 def characterise_recording(entry: RecordingEntry, system: System | None = None, *,
-                           fast: bool = True) -> list[Row]:
-    """The rows of one recording. Raises :class:`PerfrosError` when it cannot be read."""
+                           fast: bool = True, stats: RecordingStats | None = None) -> list[Row]:
+    """The rows of one recording. Raises :class:`PerfrosError` when it cannot be read.
+
+    ``stats``: the recording's statistics when already read (the fleet merges a large
+    recording's chunk-range parts, perfros_bag/fleet.py); else read here."""
     from perfros_bag.ingest import read_recording
 
     if not entry.path.exists():
         raise InputError(entry.path, "recording not found")
-    stats = read_recording(entry.path, fast=fast)
+    if stats is None:
+        stats = read_recording(entry.path, fast=fast)
     start, end = stats.start_ns, stats.end_ns
     cpu: dict[str, NodeCpu] = {}
     if entry.cpu is not None:
@@ -257,9 +262,8 @@ def characterise(entries: Sequence[RecordingEntry], system: System | None = None
 def _characterise_dask(entries: Sequence[RecordingEntry], system: System | None, fast: bool,
                        on_done: Callable[[RecordingEntry, Failure | None], None] | None,
                        scheduler: str | None, workers: int | None) -> Result:
-    from functools import partial
-
-    from perfros_bag.distributed import Outcome, run_distributed
+    from perfros_bag.distributed import Outcome
+    from perfros_bag.fleet import characterise_on_dask
 
     by_name = {e.name: e for e in entries}
 
@@ -268,9 +272,9 @@ def _characterise_dask(entries: Sequence[RecordingEntry], system: System | None,
             fail = None if outcome.ok else Failure(outcome.label, str(outcome.error))
             on_done(by_name[outcome.label], fail)
 
-    task = partial(characterise_recording, system=system, fast=fast)
-    outcomes = run_distributed(list(entries), task, scheduler=scheduler, workers=workers,
-                               progress=progress, label=lambda e: e.name)
+    # large ROS 1 bags / MCAP files are split into chunk-range tasks (perfros_bag/fleet.py)
+    outcomes = characterise_on_dask(entries, system, fast=fast, scheduler=scheduler,
+                                    workers=workers, progress=progress)
     rows: list[Row] = []
     failures: list[Failure] = []
     for o in outcomes:

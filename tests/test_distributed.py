@@ -167,3 +167,39 @@ def test_bad_options_and_unreachable_scheduler(monkeypatch: pytest.MonkeyPatch) 
     monkeypatch.setattr(dist, "CONNECT_TIMEOUT", "1s")
     with pytest.raises(PerfrosError, match="cannot connect to the Dask scheduler tcp://127.0.0.1:1"):
         run_distributed([1], abs, scheduler="tcp://127.0.0.1:1")
+
+
+def test_fleet_splits_large_recordings_and_gives_the_local_rows(cluster: str, tmp_path: Path) -> None:
+    from perfros_bag.characterise import characterise, find_entries
+    from perfros_bag.fleet import characterise_on_dask, plan_units
+    from tests.bench.gen_corpus import default_topics, write_recording
+
+    for k, (name, fmt, comp, secs) in enumerate([
+            ("big.bag", "ros1", "lz4", 8.0), ("big.mcap", "mcap", "zstd", 8.0),
+            ("small.bag", "ros1", "none", 1.0), ("dir2", "rosbag2-sqlite3", "none", 8.0)]):
+        write_recording(tmp_path / name, fmt, default_topics(0.02), secs, chunk_bytes=8000,
+                        compression=comp, seed=k)
+    # a CPU trace for the split bag: its rows carry CPU read on the client after the merge
+    t0 = 1_700_000_000.0
+    lines = ["# host=test", "# logical_cpus=2", "# interval_s=0.5", "time,pid,node,process,cpu_percent,rss_bytes"]
+    lines += [f"{t0 + 0.5 * i:.1f},42,/camera_driver,camera,{20 + i % 5},1000" for i in range(16)]
+    (tmp_path / "big.cpu.csv").write_text("\n".join(lines) + "\n")
+    (tmp_path / "cut.mcap").write_bytes((tmp_path / "big.mcap").read_bytes()[:5000])
+    entries, _ = find_entries(tmp_path)
+    assert sorted(e.name for e in entries) == ["big.bag", "big.mcap", "cut.mcap", "dir2", "small.bag"]
+
+    units, plans = plan_units(entries, split_bytes=300_000, part_bytes=30_000)
+    split = {entries[i].name for i in plans}
+    assert split == {"big.bag", "big.mcap"}  # small.bag is under split_bytes; cut.mcap has no index
+    assert len(units) > len(entries) + 4
+
+    local = characterise(entries)
+    seen: list[str] = []
+    remote = characterise_on_dask(entries, None, scheduler=cluster, split_bytes=300_000,
+                                  part_bytes=30_000, progress=lambda o: seen.append(o.label))
+    assert sorted(seen) == sorted(e.name for e in entries)  # once per recording, not per part
+    rows = [r for o in remote if o.value for r in o.value]
+    assert rows == local.rows
+    assert any(r.cpu_units_mean for r in rows if r.recording == "big.bag")
+    errors = {o.label: str(o.error) for o in remote if o.error is not None}
+    assert errors == {f.recording: f.message for f in local.failures} and list(errors) == ["cut.mcap"]
