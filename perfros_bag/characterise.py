@@ -189,7 +189,14 @@ def _setting(node: str, settings: Mapping[str, SettingValue], system: System | N
             parameter = n.parameter.name
         elif value is None and len(n.settings) == 1 and n.settings[0].value is not None:
             value = n.settings[0].value
-    return parameter, value
+    return parameter, _norm_value(value)
+
+
+def _norm_value(value: SettingValue | None) -> SettingValue | None:
+    """A whole number is written as one (``10``, not ``10.0``)."""
+    if isinstance(value, float) and value.is_integer() and abs(value) < 2**53:
+        return int(value)
+    return value
 
 
 # --------------------------------------------------------------------------- a directory
@@ -371,8 +378,8 @@ def table_one(rows: Sequence[Row]) -> list[TableRow]:
 def _sort_value(v: SettingValue | None) -> tuple[int, float, str]:
     if v is None:
         return (0, 0.0, "")
-    if isinstance(v, float):
-        return (1, v, "")
+    if isinstance(v, int | float):
+        return (1, float(v), "")
     return (2, 0.0, v)
 
 

@@ -25,11 +25,12 @@ def plot_characterisation(rows: Sequence[Row], path: str | Path) -> int:
     params: dict[str, str] = {}
     seen: set[tuple[str, str, float]] = set()
     for r in rows:
-        if not r.node or not isinstance(r.value, float):
+        if not r.node or isinstance(r.value, bool) or not isinstance(r.value, int | float):
             continue
         params[r.node] = r.parameter or "value"
-        cpu, p95, freq = data[r.node].setdefault(r.value, ([], [], []))
-        key = (r.recording, r.node, r.value)
+        value = float(r.value)
+        cpu, p95, freq = data[r.node].setdefault(value, ([], [], []))
+        key = (r.recording, r.node, value)
         if key not in seen and r.cpu_units_mean is not None:
             seen.add(key)
             cpu.append(r.cpu_units_mean)

@@ -26,7 +26,7 @@ from perfros_bag.fileio import read_yaml
 TOP_KEYS = {"system", "recordings"}
 ENTRY_KEYS = {"path", "cpu", "computer", "settings"}
 
-SettingValue = float | str
+SettingValue = int | float | str
 
 
 @dataclass(frozen=True)
@@ -136,7 +136,7 @@ def _settings(raw: Any, where: str, fail: Any) -> dict[str, SettingValue]:
         if isinstance(value, int | float):
             if not math.isfinite(float(value)):
                 raise fail(f"{where}.{node}", f"must be finite, got {value!r}")
-            out[node] = float(value)
+            out[node] = int(value) if isinstance(value, int) else float(value)
         elif isinstance(value, str):
             out[node] = value
         else:

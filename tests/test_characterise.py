@@ -154,7 +154,8 @@ def test_fixtures_reproduce_table_i(fixture_rows: list[dict[str, str]]) -> None:
             assert int(r["cpu_samples"]) == n == 20  # 0.25, 0.75, ... 9.75 s into the 10.0x s window
             assert float(r["median_rate_hz"]) == pytest.approx(exp_f, rel=1e-6)
             if value is not None:
-                assert float(r["value"]) == value and r["parameter"] == system.node[node].parameter.name  # type: ignore[union-attr]
+                assert r["value"] == f"{value:g}"  # whole numbers as written in the manifest: "10", not "10.0"
+                assert r["parameter"] == system.node[node].parameter.name  # type: ignore[union-attr]
             else:
                 assert r["value"] == "" and r["parameter"] == ""
             seen.add((node, "" if value is None else str(value)))
@@ -486,4 +487,4 @@ def test_manifest_parser_never_crashes(data: object) -> None:
     else:
         for e in m.recordings:
             assert isinstance(e.name, str) and e.path == Path("m") / e.name
-            assert all(isinstance(v, float | str) for v in e.settings.values())
+            assert all(isinstance(v, int | float | str) and not isinstance(v, bool) for v in e.settings.values())

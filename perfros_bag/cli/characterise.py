@@ -88,8 +88,8 @@ def characterise_cmd(
                       ("freq Hz", "right"), ("kB/s", "right")):
         table.add_column(col, justify=just)  # type: ignore[arg-type]
     for t in table_one(result.rows):
-        setting = "" if t.value is None else (f"{t.parameter}={t.value:g}" if isinstance(t.value, float) and t.parameter
-                                               else f"{t.value:g}" if isinstance(t.value, float) else str(t.value))
+        value = "" if t.value is None else f"{t.value:g}" if isinstance(t.value, int | float) else str(t.value)
+        setting = f"{t.parameter}={value}" if t.parameter and value else value
         table.add_row(t.node, setting, str(t.recordings), _fmt(t.cpu), _fmt(t.frequency_hz, 2), _fmt(t.bandwidth_kBps, 3))
     (err if as_json else out).print(table)
     summary = f"{len(result.rows)} rows from {result.recordings - len(result.failures)}/{result.recordings} recordings"
