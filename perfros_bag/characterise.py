@@ -167,6 +167,9 @@ def _cpu_for_publisher(publisher: str, cpu: Mapping[str, NodeCpu]) -> NodeCpu | 
 
 def _capacity(entry: RecordingEntry, system: System | None) -> float:
     if entry.computer is None:
+        if system is not None:
+            warnings.warn(f"{entry.name}: no 'computer' in the manifest: CPU normalised to "
+                          f"{DEFAULT_CAPACITY:g} = the whole traced machine", PerfrosWarning, stacklevel=3)
         return DEFAULT_CAPACITY
     if system is None:
         raise InputError(entry.cpu, f"computer {entry.computer!r} given but no system.yaml to find its capacity "

@@ -488,3 +488,23 @@ def test_manifest_parser_never_crashes(data: object) -> None:
         for e in m.recordings:
             assert isinstance(e.name, str) and e.path == Path("m") / e.name
             assert all(isinstance(v, int | float | str) and not isinstance(v, bool) for v in e.settings.values())
+
+
+def test_no_computer_with_a_system_warns_and_uses_the_whole_machine(tmp_path: Path) -> None:
+    d = copy_fixtures(tmp_path)
+
+    def drop(data: dict) -> None:
+        data["recordings"] = [dict(e, computer=None) if e["path"] == "tracker_f15" else e for e in data["recordings"]
+                              if e["path"] in ("tracker_f15", "tracker_f20")]
+        for e in data["recordings"]:
+            if e.get("computer") is None:
+                e.pop("computer")
+
+    edit_manifest(d, drop)
+    r = run("characterise", d, "--json")
+    assert r.returncode == 0, r.stderr
+    assert "tracker_f15: no 'computer' in the manifest" in r.stderr
+    rows = {(x["recording"], x["node"]): x for x in json.loads(r.stdout)}
+    # server trace: 4 logical CPUs; capacity 400 (server) vs 100 (whole machine): a factor 4
+    assert rows[("tracker_f15", "tracker1")]["cpu_units_mean"] == pytest.approx(120 / 4)
+    assert rows[("tracker_f20", "tracker1")]["cpu_units_mean"] == pytest.approx(160)
