@@ -346,3 +346,23 @@ def test_time_limit_returns_best_plan_with_bound() -> None:
         assert plan.reason is not None and "time" in plan.reason
     else:
         assert plan.bound is not None and plan.bound >= plan.objective - 1e-9
+
+
+def test_start_is_checked_and_the_lp_bound_can_prove_it() -> None:
+    system = system_of(table2_instance(5))
+    choices = fixed_choices(system, 1)
+    best = exact(system, 1)
+    greedy = solve_greedy(system, 1, choices)
+    by_cpu = {n: {c.cpu: c for c in choices[n]} for n in choices}
+    as_start = Assignment({n: p.computer for n, p in greedy.nodes.items()},
+                          {n: by_cpu[n][p.cpu] for n, p in greedy.nodes.items()})
+    # within a 50 % gap of the LP bound: the start comes back as it is, with that bound
+    loose = exact(system, 1, mip_gap=0.5, start=as_start)
+    assert loose.objective == pytest.approx(greedy.objective)
+    assert loose.status == "feasible" and loose.bound is not None
+    assert best.objective <= loose.bound <= 1.5 * loose.objective
+    # an infeasible start (every node on the server at its top setting) is ignored
+    top = {n: choices[n][-1] for n in choices}
+    broken = Assignment({n: "server" for n in choices}, top)
+    plan = exact(system, 1, start=broken)
+    assert plan.status == "optimal" and plan.objective == pytest.approx(best.objective, abs=1e-7)
