@@ -163,6 +163,16 @@ def _proc_cpu_s(proc: psutil.Process) -> float:
     return t.user + t.system
 
 
+def _wait_for_recording(out: Path, rec: subprocess.Popen[bytes], timeout: float = 90.0) -> None:
+    """The recorder writes to a temp file beside ``out`` from its first round on (start-up
+    can take seconds on a loaded machine)."""
+    end = time.monotonic() + timeout
+    while not list(out.parent.glob(f".{out.name}.*.tmp")):
+        assert rec.poll() is None, rec.communicate()[1]
+        assert time.monotonic() < end, "record-cpu did not start"
+        time.sleep(0.05)
+
+
 def test_record_cpu_measures_a_half_busy_process(tmp_path: Path) -> None:
     """A 50 % duty-cycle process started after the recorder: the recorder picks it up, and
     its mean CPU % equals psutil's own cpu_times over the same window (the reference)."""
@@ -170,20 +180,20 @@ def test_record_cpu_measures_a_half_busy_process(tmp_path: Path) -> None:
     out = tmp_path / "run.cpu.csv"
     script = _duty_script(tmp_path)
     rec = subprocess.Popen([str(BIN), "record-cpu", "--match", marker, "--interval", "0.5",
-                            "--duration", "5.5", "--out", str(out), "--quiet"],
-                           stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+                            "--out", str(out), "--quiet"], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     try:
-        time.sleep(1.0)
-        child = subprocess.Popen([sys.executable, str(script), "0.5", "3.5", marker])  # marker in argv
+        _wait_for_recording(out, rec)
+        child = subprocess.Popen([sys.executable, str(script), "0.5", "3.5", "0", marker])  # marker in argv
         proc = psutil.Process(child.pid)
         time.sleep(0.7)
         ta, ca = time.monotonic(), _proc_cpu_s(proc)
         time.sleep(2.2)
         tb, cb = time.monotonic(), _proc_cpu_s(proc)
         reference = (cb - ca) / (tb - ta) * 100
-        child.wait(10)
+        assert child.wait(30) == 0
+        rec.send_signal(signal.SIGINT)
     finally:
-        _, stderr = rec.communicate(timeout=30)
+        _, stderr = rec.communicate(timeout=60)
     assert rec.returncode == 0, stderr
     assert b"Traceback" not in stderr
     tr = read_cpu_trace(out)
@@ -221,7 +231,8 @@ def test_record_cpu_sigint_finishes_the_file(tmp_path: Path) -> None:
     try:
         rec = subprocess.Popen([str(BIN), "record-cpu", "--match", f"^{sleeper.pid}$|^sleep$", "--interval", "0.2",
                                 "--out", str(out), "--quiet"], stderr=subprocess.PIPE)
-        time.sleep(2.0)
+        _wait_for_recording(out, rec)
+        time.sleep(1.0)
         assert not out.exists(), "output appears only when complete"
         rec.send_signal(signal.SIGINT)
         _, stderr = rec.communicate(timeout=20)
