@@ -229,3 +229,36 @@ def test_cleanup_kills_a_runs_processes_and_groups_only(tmp_path: Path) -> None:
         other.wait()
         if mine.poll() is None:
             mine.kill()
+
+
+def test_a_foreign_server_on_the_master_port_is_not_a_master() -> None:
+    """Another program (here: one answering binary garbage, as a Dask scheduler does) that
+    took the port is not mistaken for roscore."""
+    import socket
+    import threading
+
+    from perfros_bag.casestudy.launcher import _master_call, _master_state
+
+    srv = socket.socket()
+    srv.bind(("127.0.0.1", 0))
+    srv.listen(4)
+    port = srv.getsockname()[1]
+
+    def serve() -> None:
+        for _ in range(2):
+            try:
+                conn, _ = srv.accept()
+            except OSError:
+                return
+            conn.recv(4096)
+            conn.sendall(b"\x00\x01\x02compression\xc0python pickle-protocol\n\n")
+            conn.close()
+
+    t = threading.Thread(target=serve, daemon=True)
+    t.start()
+    try:
+        assert _master_call(f"http://127.0.0.1:{port}", "getPid") is None
+        assert _master_state(f"http://127.0.0.1:{port}") is None
+    finally:
+        srv.close()
+        t.join(2)

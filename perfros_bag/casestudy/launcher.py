@@ -17,6 +17,7 @@ go through the same cleanup.
 from __future__ import annotations
 
 import contextlib
+import functools
 import os
 import shutil
 import signal
@@ -192,14 +193,56 @@ def _sigterm_as_interrupt() -> Iterator[None]:
 
 
 def _master_state(uri: str) -> tuple[list[Any], list[Any]] | None:
+    reply = _master_call(uri, "getSystemState")
+    if reply is None:
+        return None
+    return list(reply[0]), list(reply[1])
+
+
+def _master_call(uri: str, method: str) -> Any:
+    """One ROS master XML-RPC call; None on any failure (not up yet, or not a ROS master:
+    another program may have taken the port)."""
     try:
-        reply: Any = xmlrpc.client.ServerProxy(uri).getSystemState("/perfros_launcher")
-    except (OSError, xmlrpc.client.Error):
+        reply: Any = getattr(xmlrpc.client.ServerProxy(uri), method)("/perfros_launcher")
+        code, _msg, value = reply
+    except Exception:  # noqa: BLE001 - whatever answers on the port, it is not our master
         return None
-    code, _msg, state = reply
-    if code != 1:
-        return None
-    return list(state[0]), list(state[1])
+    return value if code == 1 else None
+
+
+def _exited(st: Started) -> str | None:
+    return st.name if st.popen.poll() is not None else None
+
+
+def _start_roscore(procs: Processes, out: Path, timeout: float) -> str:
+    """roscore on a free port; retried on another port when the port was taken meanwhile.
+    The master must be ours: its PID is a descendant of the roscore we started."""
+    import psutil
+
+    for attempt in range(3):
+        port = free_port()
+        uri = f"http://127.0.0.1:{port}"
+        procs.env["ROS_MASTER_URI"] = uri
+        core = procs.start(f"roscore{attempt or ''}", [ROSCORE, "-p", str(port)],
+                           out / f"roscore{attempt or ''}.log", cwd=out)
+
+        def ours(uri: str = uri, core: Started = core) -> bool:
+            pid = _master_call(uri, "getPid")
+            if pid is None:
+                return False
+            try:
+                return pid in {c.pid for c in psutil.Process(core.popen.pid).children(recursive=True)}
+            except psutil.Error:
+                return False
+
+        try:
+            _wait("roscore", ours, timeout, functools.partial(_exited, core))
+            return uri
+        except PerfrosError:
+            procs.stop([core.name])
+            if attempt == 2:
+                raise
+    raise AssertionError("unreachable")
 
 
 def _wait(what: str, check: Callable[[], bool], timeout: float, alive: Callable[[], str | None]) -> None:
@@ -290,8 +333,6 @@ def run_plan(system: System, plan: Plan, out: Path, cfg: RunConfig, *,
     cores = computer_cores(system, plan, cfg.units_per_core)
 
     run_id = uuid.uuid4().hex[:10]
-    port = free_port()
-    uri = f"http://127.0.0.1:{port}"
     ros_home = out / "ros"
     ros_home.mkdir(exist_ok=True)
     env = dict(os.environ)
@@ -299,12 +340,12 @@ def run_plan(system: System, plan: Plan, out: Path, cfg: RunConfig, *,
         env.pop(k, None)
     env["PATH"] = ":".join(p for p in env.get("PATH", "").split(":")
                            if p and not p.startswith(str(Path(sys.prefix)))) or "/usr/bin:/bin"
-    env.update({"ROS_MASTER_URI": uri, "ROS_IP": "127.0.0.1", "ROS_HOME": str(ros_home),
+    env.update({"ROS_IP": "127.0.0.1", "ROS_HOME": str(ros_home),
                 "ROS_LOG_DIR": str(ros_home / "log"), RUN_ENV: run_id, "PYTHONUNBUFFERED": "1"})
     procs = Processes(run_id, env)
     groups = CpuGroups(run_id, cores)
     record: dict[str, Any] = {
-        "format": "perfros-bag/casestudy-run@1", "run_id": run_id, "ros_master_uri": uri,
+        "format": "perfros-bag/casestudy-run@1", "run_id": run_id,
         "plan": plan.to_dict(), "overrides": overrides or {},
         "duration_s": cfg.duration, "calibration": calib.to_dict(),
         "nodes": {ln.name: {"computer": ln.computer, "parameter": ln.parameter, "value": ln.value,
@@ -326,9 +367,8 @@ def run_plan(system: System, plan: Plan, out: Path, cfg: RunConfig, *,
             record["cpu_cap"] = {"mode": mode, "reason": reason, "cgroups": groups.mode,
                                  "cores": cores, "units_per_core": cfg.units_per_core}
             note("roscore", 0, 1)
-            core = procs.start("roscore", [ROSCORE, "-p", str(port)], out / "roscore.log", cwd=out)
-            _wait("roscore", lambda: _master_state(uri) is not None, cfg.startup_timeout,
-                  lambda: "roscore" if core.popen.poll() is not None else None)
+            uri = _start_roscore(procs, out, cfg.startup_timeout)
+            record["ros_master_uri"] = uri
             note("nodes", 0, len(launches))
             node_procs = {}
             for ln in launches:
