@@ -12,8 +12,9 @@ One run (``.venv/bin/python tests/bench/bench_fleet.py``, also run by ``make ben
    peers: Debian ``rosbag info`` (/usr/bin/rosbag) and its Python API (/usr/bin/python3:
    ``get_type_and_topic_info`` from the index, and a ``read_messages(raw=True)`` loop), a
    plain rosbags ``AnyReader`` loop over raw messages, the mcap reader's ``iter_messages``;
-3. the 2 GB files: ``characterise`` in-process (memory target < 300 MB RSS) and the chunk
-   split (``read_split``) in-process vs ``--workers 2``;
+3. the 2 GB files: ``characterise`` in-process (memory target < 300 MB RSS) and with
+   ``--workers 2`` (the file is split into chunk-range tasks), and the chunk split alone
+   (``read_split``) in-process vs ``--workers 2``;
 4. prints a table with ratios and deletes the data (``--keep`` keeps it).
 """
 
@@ -210,6 +211,9 @@ def main() -> int:
         sub = {"all": corpus, "bags": bags, "mcap": mcaps, "anyreader": anyreader_ok}
 
         print("corpus (20 recordings):", flush=True)
+        runs.append(measure("LocalCluster(2 workers) start+stop only", "-",
+                            [PY, "-c", "from perfros_bag.distributed import run_distributed as r; "
+                             "r([1], abs, workers=2)"]))
         measure("warm page cache: cat", "all", ["cat", *map(str, every)])
         runs.append(measure("raw read: cat > /dev/null", "all", ["cat", *map(str, every)]))
         out1, out2 = data / "inproc.csv", data / "workers2.csv"
@@ -244,6 +248,11 @@ def main() -> int:
             out = data / f"{label}.csv"
             runs.append(measure("perfros-bag characterise (in-process)", label,
                                 [CLI, "characterise", str(path), "--out", str(out)]))
+            runs.append(measure("perfros-bag characterise --workers 2", label,
+                                [CLI, "characterise", str(path), "--out", str(out) + "2",
+                                 "--workers", "2"]))
+            if sorted_csv(out) != sorted_csv(Path(str(out) + "2")):
+                raise SystemExit(f"{label}: in-process and --workers 2 (split) CSVs differ")
             runs.append(measure("read_split in-process", label, py_loop(SPLIT, [Path("0"), path])))
             runs.append(measure("read_split --workers 2", label, py_loop(SPLIT, [Path("2"), path])))
         sizes = {"all": du(corpus), "bags": du(bags), "mcap": du(mcaps),
@@ -283,9 +292,17 @@ def report(runs: list[Run], sizes: dict[str, int], sub: dict[str, list[Path]]) -
     dask = t("perfros-bag characterise --workers 2", "all")
     print(f"characterise corpus: in-process {inproc:.2f} s, --workers 2 {dask:.2f} s "
           f"(speed-up {inproc / dask:.2f}x, {sizes['all'] / inproc / 1e6:.0f} MB/s in-process)")
+    print(f"LocalCluster(2) start+stop alone: {t('LocalCluster(2 workers) start+stop only', '-'):.2f} s")
     for label in ("big.bag", "big.mcap"):
         a, b = t("read_split in-process", label), t("read_split --workers 2", label)
         print(f"split {label}: in-process {a:.2f} s, --workers 2 {b:.2f} s (speed-up {a / b:.2f}x)")
+    print("memory target: a 2 GB recording under 300 MB RSS (peak RSS / anonymous part):")
+    for label in ("big.bag", "big.mcap"):
+        for name in ("perfros-bag characterise (in-process)", "perfros-bag characterise --workers 2",
+                     "read_split in-process"):
+            r = next(r for r in runs if r.name == name and r.files == label)
+            verdict = "met" if r.peak_rss < 300e6 else "MISSED"
+            print(f"  {label:<9} {name:<40} {r.peak_rss / 1e6:6.0f} MB / {r.peak_anon / 1e6:4.0f} MB  {verdict}")
 
 
 if __name__ == "__main__":
