@@ -56,10 +56,10 @@ def gather_u64(buf: U8, pos: I64) -> I64:
         return np.empty(0, dtype=np.int64)
     if int(pos.min()) < 0 or int(pos.max()) + 8 > buf.size:
         raise Damaged("record offset outside its chunk")
-    vals = np.lib.stride_tricks.sliding_window_view(buf, 8)[pos].view("<u8").reshape(-1)
-    if vals.size and int(vals.max()) >= 2**62:
+    vals = np.lib.stride_tricks.sliding_window_view(buf, 8)[pos].view("<i8").reshape(-1)
+    if vals.size and not (0 <= int(vals.min()) and int(vals.max()) < 2**62):
         raise Damaged("implausible record length")
-    return vals.astype(np.int64)
+    return vals
 
 
 @dataclass

@@ -53,10 +53,12 @@ def _leaves(buf: U8, root: int, page_size: int, n_pages: int) -> I64:
     leaves: list[I64] = []
     level = np.array([root], dtype=np.int64)
     while level.size:
-        if int(level.min()) < 2 or int(level.max()) > n_pages or seen[level].any() \
-                or np.unique(level).size != level.size:
+        if int(level.min()) < 2 or int(level.max()) > n_pages or seen[level].any():
             raise NoIndex("bad or repeated page number in the messages B-tree")
+        before = int(np.count_nonzero(seen))
         seen[level] = True
+        if int(np.count_nonzero(seen)) - before != level.size:
+            raise NoIndex("repeated page number in the messages B-tree")
         flags = buf[(level - 1) * page_size]
         if not np.all((flags == 0x0D) | (flags == 0x05)):
             raise NoIndex("a page of the messages B-tree is not a table B-tree page")
@@ -73,24 +75,36 @@ W = 48  # bytes of a cell that hold every varint and both integer values of a va
 BATCH = 500_000  # cells per window matrix (48 bytes each)
 
 
-def _mvarint(m: U8, rowbase: I64, col: I64) -> tuple[I64, I64]:
+def _mvarint(m: U8, rowbase: I64, col: I64, value: bool = True) -> tuple[I64, I64]:
     """Varints at per-row columns ``col`` of the flattened window matrix ``m`` (rows start at
-    ``rowbase``): (values, lengths). Whole-array steps, one per byte of the longest varint."""
+    ``rowbase``): (values, lengths); ``value=False`` computes the lengths only."""
     if col.size and int(col.max()) + 9 > W:
         raise NoIndex("record header longer than expected")
     pos = rowbase + col
     b8 = m[pos]
     if col.size == 0 or int(b8.max()) < 0x80:  # all one byte (serial types of integers)
         return b8.astype(np.int64), np.ones(col.size, dtype=np.int64)
-    val = (b8 & 0x7F).astype(np.int64)
-    n = np.ones(col.size, dtype=np.int64)
     cont = b8 >= 0x80
+    n = np.ones(col.size, dtype=np.int64)
+    val = (b8 & 0x7F).astype(np.int64) if value else n
+    active = np.flatnonzero(cont)
+    if active.size * 4 < col.size:  # few multi-byte varints: work on that subset only
+        for k in range(1, 9):
+            byte = m[pos[active] + k].astype(np.int64)
+            if value:
+                val[active] = (val[active] << (7 if k < 8 else 8)) | (byte & (0x7F if k < 8 else 0xFF))
+            n[active] += 1
+            active = active[(byte & 0x80) != 0] if k < 8 else active[:0]
+            if active.size == 0:
+                break
+        return val, n
     for k in range(1, 9):
         bk = m[pos + k]
-        if k < 8:
-            val = np.where(cont, (val << 7) | (bk & 0x7F), val)
-        else:
-            val = np.where(cont, (val << 8) | bk, val)
+        if value:
+            if k < 8:
+                val = np.where(cont, (val << 7) | (bk & 0x7F), val)
+            else:
+                val = np.where(cont, (val << 8) | bk, val)
         n += cont
         cont &= bk >= 0x80
         if not cont.any():
@@ -144,7 +158,7 @@ def _cells(buf: U8, cell: I64, page_end: I64) -> tuple[I64, I64, I64]:
     m = _window(buf, cell)
     rowbase = np.arange(cell.size, dtype=np.int64) * W
     payload, n1 = _mvarint(m, rowbase, np.zeros(cell.size, dtype=np.int64))
-    _rowid, n2 = _mvarint(m, rowbase, n1)
+    _, n2 = _mvarint(m, rowbase, n1, value=False)  # the rowid itself is not needed
     rec = n1 + n2
     hsize, n3 = _mvarint(m, rowbase, rec)
     p = rec + n3
