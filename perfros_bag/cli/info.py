@@ -31,7 +31,8 @@ def info(
     from perfros_bag.ingest import read_recording
     from perfros_bag.ingest.document import recording_document
 
-    rec = read_recording(recording, fast=not slow)
+    with err.status(f"reading {recording}", spinner="dots"):  # animates on a terminal only
+        rec = read_recording(recording, fast=not slow)
     doc = recording_document(rec)
     if as_json:
         print(json.dumps(doc, indent=2))

@@ -259,6 +259,62 @@ def read_fast(path: Path, mm: mmap.mmap) -> RecordingStats:
     return out.build(path, "ros1")
 
 
+def _scan_chunk(raw: bytes, conns: dict[int, Connection], times: dict[int, list[int]],
+                nbytes: dict[int, int]) -> None:
+    """The records of one decompressed chunk, with the header fields of message records read
+    in place (no dict per record): the streaming path's inner loop."""
+    end = len(raw)
+    unpack_u32 = _U32.unpack_from
+    pos = 0
+    while pos < end:
+        if pos + 4 > end:
+            raise Damaged(f"truncated record header at chunk byte {pos}")
+        (hlen,) = unpack_u32(raw, pos)
+        hstart, hend = pos + 4, pos + 4 + hlen
+        if hend + 4 > end:
+            raise Damaged(f"truncated record at chunk byte {pos}")
+        (dlen,) = unpack_u32(raw, hend)
+        if hend + 4 + dlen > end:
+            raise Damaged(f"truncated record at chunk byte {pos} (data of {dlen} bytes)")
+        op = conn = stamp = None
+        f = hstart
+        while f < hend:  # fields: u32 length + name=value
+            if f + 4 > hend:
+                raise Damaged(f"header field length cut at chunk byte {f}")
+            (flen,) = unpack_u32(raw, f)
+            f += 4
+            if f + flen > hend:
+                raise Damaged(f"header field overruns its header at chunk byte {f}")
+            eq = raw.find(b"=", f, f + flen)
+            if eq < 0:
+                raise Damaged(f"header field without '=' at chunk byte {f}")
+            name = raw[f:eq]
+            if name == b"op":
+                op = raw[eq + 1:f + flen]
+            elif name == b"conn":
+                conn = raw[eq + 1:f + flen]
+            elif name == b"time":
+                stamp = raw[eq + 1:f + flen]
+            f += flen
+        if op is None or len(op) != 1:
+            raise Damaged(f"record without op code at chunk byte {pos}")
+        if op[0] == OP_MSG:
+            if conn is None or len(conn) != 4 or stamp is None or len(stamp) != 8:
+                raise Damaged(f"message record without conn/time at chunk byte {pos}")
+            cid = unpack_u32(conn)[0]
+            sec, nsec = struct.unpack("<II", stamp)
+            lst = times.get(cid)
+            if lst is None:
+                lst = times[cid] = []
+            lst.append(sec * 1_000_000_000 + nsec)
+            nbytes[cid] = nbytes.get(cid, 0) + dlen
+        elif op[0] == OP_CONNECTION:
+            rec = Record(OP_CONNECTION, parse_fields(raw, hstart, hend), hend + 4, dlen, hend + 4 + dlen)
+            cid, c = _connection(raw, rec)
+            conns.setdefault(cid, c)
+        pos = hend + 4 + dlen
+
+
 def read_stream(path: Path, mm: mmap.mmap) -> RecordingStats:
     """Walk every record (chunks decompressed); needs no index."""
     _check_magic(mm)
@@ -286,8 +342,7 @@ def read_stream(path: Path, mm: mmap.mmap) -> RecordingStats:
             compression = rec.header.get("compression", b"").decode("latin-1")
             raw = decompress_chunk(compression, memoryview(mm)[rec.data_start:rec.end],
                                    _u32(rec.header, "size"))
-            for inner in _records(raw, 0, len(raw)):
-                visit(raw, inner)
+            _scan_chunk(raw, conns, times, nbytes)
         else:
             visit(mm, rec)
     if index_pos is None:
