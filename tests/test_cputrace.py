@@ -19,12 +19,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from perfros_bag.errors import InputError
+from perfros_bag.ingest.cpurecord import ros_node_label
 from perfros_bag.ingest.cputrace import (
     assign_nodes,
     node_cpu,
     parse_cpu_trace,
     read_cpu_trace,
-    ros_node_label,
     write_cpu_trace,
 )
 

@@ -21,7 +21,7 @@ def record_cpu_cmd(
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No live status on stderr."),
 ) -> None:
     """Sample CPU % and RSS of matching processes until the duration ends, Ctrl-C, or COMMAND exits."""
-    from perfros_bag.ingest.cputrace import record_cpu
+    from perfros_bag.ingest.cpurecord import record_cpu
 
     seen = [0]
 
