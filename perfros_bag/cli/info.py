@@ -11,6 +11,10 @@ import typer
 
 from perfros_bag.cli._app import command, err, out
 
+_HOW = {"index": "read from the index records", "sqlite-pages": "read from the SQLite pages",
+        "sql": "read with one SQL pass", "stream": "every record streamed",
+        "mixed": "files read in different ways"}
+
 
 def _utc(ns: int | None) -> str:
     if ns is None:
@@ -39,7 +43,8 @@ def info(
         return
     # piped output is not cut to 80 columns: the table is for reading and for grep
     console = out if out.is_terminal else Console(width=240, highlight=False)
-    console.print(f"[bold]path[/]:      {rec.path}\n[bold]format[/]:    {rec.format}\n"
+    console.print(f"[bold]path[/]:      {rec.path}\n[bold]format[/]:    {rec.format} "
+                  f"({doc['file_bytes']:,} bytes on disk; {_HOW.get(rec.method, rec.method)})\n"
                   f"[bold]start[/]:     {_utc(rec.start_ns)}\n[bold]end[/]:       {_utc(rec.end_ns)}\n"
                   f"[bold]duration[/]:  {doc['duration_s']:.3f} s\n"
                   f"[bold]messages[/]:  {rec.messages}   [bold]payload[/]: {doc['bytes']} bytes",

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 from perfros_bag.ingest.stats import RecordingStats, TopicStats
@@ -30,6 +31,13 @@ def topic_document(t: TopicStats) -> dict[str, Any]:
     }
 
 
+def file_bytes(path: Path) -> int:
+    """Size on disk: the file, or every file of a rosbag2 directory."""
+    if path.is_dir():
+        return sum(p.stat().st_size for p in path.iterdir() if p.is_file())
+    return path.stat().st_size if path.exists() else 0
+
+
 def recording_document(rec: RecordingStats) -> dict[str, Any]:
     start, end = rec.start_ns, rec.end_ns
     return {
@@ -37,6 +45,7 @@ def recording_document(rec: RecordingStats) -> dict[str, Any]:
         "path": str(rec.path),
         "recording_format": rec.format,
         "read_method": rec.method,
+        "file_bytes": file_bytes(Path(rec.path)),
         "messages": rec.messages,
         "bytes": sum(t.bytes for t in rec.topics.values()),
         "start_ns": start,
