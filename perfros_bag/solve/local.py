@@ -19,7 +19,9 @@ When the greedy finds no plan, a bounded depth-first search for any feasible pla
 from __future__ import annotations
 
 import heapq
+import itertools
 import math
+import random
 import time
 from collections.abc import Iterable
 
@@ -36,6 +38,8 @@ DP_WORK = 30_000_000  # levels x CPU cells of the whole instance, above which no
 MOVES_LIMIT = 5_000  # groups x computers above which only settings are re-optimised
 SWAPS_LIMIT = 150  # groups above which no swaps
 DEPTH2_LIMIT = 60  # groups above which no pairs of moves
+KICKS = 30  # perturbations of the iterated local search
+KICK_LIMIT = 600  # groups x computers above which no perturbations
 TIME_BUDGET_S = 60.0  # safety net: stop improving after this long (the plan stays feasible)
 SEARCH_BUDGET = 20_000
 
@@ -50,10 +54,46 @@ def solve_greedy_plus(system: System, problem: int, choices: dict[str, list[Choi
         if problem == 1:
             upgrade(state, [n for n in state.nodes if len(state.ladder[n]) > 1])
     if problem == 2:
-        improve_p2(state)
-    else:
-        Improver(state).run()
+        for c in state.computers:
+            if state.kind[c] == "server":
+                state.cap[c] = state.maxcap[c]
+    improver = Improver(state)
+    improver.run()
+    kick(improver)
     return state.plan("greedy+")
+
+
+def kick(improver: Improver, *, seed: int = 0) -> None:
+    """Iterated local search: move a few random groups (at their lowest settings) to
+    random allowed computers, search again, keep the result only when it is better.
+    The generator is seeded, so the outcome is deterministic."""
+    s = improver.s
+    movable = [gi for gi in range(len(s.groups)) if len(s.group_allowed[gi]) > 1]
+    size = len(s.groups) * len(s.computers)
+    if not movable or size > KICK_LIMIT:
+        return
+    rng = random.Random(seed)
+    improver.trios = False
+    best = improver.current(s.nodes)
+    snap = s.snapshot()
+    stop = time.monotonic() + TIME_BUDGET_S
+    for _ in range(KICKS):
+        if time.monotonic() > stop:
+            break
+        for gi in rng.sample(movable, min(len(movable), rng.randint(2, 4))):
+            targets = [c for c in s.group_allowed[gi] if c != s.place[s.groups[gi][0]]]
+            rng.shuffle(targets)
+            for c in targets:
+                if s.change({n: (c, 0) for n in s.groups[gi]}) is None:
+                    break
+        improver.run()
+        value = improver.current(s.nodes)
+        if value > best + 1e-9:
+            best, snap = value, s.snapshot()
+        else:
+            s.restore(snap)
+    improver.trios = True
+    improver.run()  # a last full search from the best point
 
 
 # ---- a feasible start when the greedy fails -------------------------------------------
@@ -125,6 +165,7 @@ class Improver:
 
     DEPTH2 = 4
     REPARTITION = 10
+    TRIO_LIMIT = 20_000
 
     def __init__(self, state: State) -> None:
         self.s = state
@@ -132,6 +173,8 @@ class Improver:
         self.tables: dict[tuple[str, frozenset[str]], np.ndarray] = {}
         self.items: dict[str, tuple[np.ndarray, np.ndarray]] = {}
         self.values: dict[tuple[str, frozenset[str]], float] = {}
+        self.trios = True  # try three-computer reassignments (off during perturbations)
+        self.subsets: dict[tuple[str, frozenset[str], tuple[int, ...]], list[float]] = {}
         self.sig = [tuple(sorted((state.weight[n], tuple((c.cpu, c.performance) for c in state.ladder[n]),
                                   tuple(state.system.allowed(n))) for n in g)) for g in state.groups]
         if self.scale is not None:
@@ -289,7 +332,7 @@ class Improver:
                 return True
         if len(s.groups) * len(s.computers) > MOVES_LIMIT:
             return False
-        if self._repartition():
+        if self._repartition() or (self.trios and self._repartition3()):
             return True
         if len(s.groups) > DEPTH2_LIMIT:
             return False
@@ -339,8 +382,45 @@ class Improver:
                         best = (gain, {a: na, b: nb})
         return best is not None and self._apply(best[1])
 
+    def _repartition3(self) -> bool:
+        """The best assignment of three computers' groups among them (every one, when at
+        most :data:`TRIO_LIMIT` assignments), applied when it improves."""
+        s = self.s
+        on = {c: s.on(c) for c in s.computers}
+        best: tuple[float, Plan_] | None = None
+        for trio in itertools.combinations(s.computers, 3):
+            nodes = [n for c in trio for n in on[c]]
+            groups = sorted({s.group_of[n] for n in nodes})
+            opts = {gi: [c for c in trio if c in s.group_allowed[gi]] for gi in groups}
+            movable = [gi for gi in groups if len(opts[gi]) > 1]
+            if not movable or math.prod(len(opts[gi]) for gi in movable) > self.TRIO_LIMIT:
+                continue
+            fixed = {c: [n for n in on[c] if s.group_of[n] not in movable] for c in trio}
+            cand = {c: [gi for gi in movable if c in opts[gi]] for c in trio}
+            vals = {c: self._subset_values(c, fixed[c], cand[c]) for c in trio}
+            bit = {c: {gi: 1 << j for j, gi in enumerate(cand[c])} for c in trio}
+            cur = self.current(nodes)
+            for combo in itertools.product(*(opts[gi] for gi in movable)):
+                masks = dict.fromkeys(trio, 0)
+                for gi, c in zip(movable, combo, strict=True):
+                    masks[c] |= bit[c][gi]
+                gain = sum(vals[c][masks[c]] for c in trio) - cur
+                if gain > 1e-9 and (best is None or gain > best[0] + 1e-12):
+                    plan = {c: list(fixed[c]) for c in trio}
+                    for gi, c in zip(movable, combo, strict=True):
+                        plan[c] += list(s.groups[gi])
+                    best = (gain, plan)
+        return best is not None and self._apply(best[1])
+
     def _subset_values(self, comp: str, fixed: list[str], groups: list[int]) -> list[float]:
         """The value on ``comp`` of ``fixed`` plus each subset (bit mask) of ``groups``."""
+        key = (comp, frozenset(fixed), tuple(groups))
+        hit = self.subsets.get(key)
+        if hit is None:
+            hit = self.subsets[key] = self._subset_values_uncached(comp, fixed, groups)
+        return hit
+
+    def _subset_values_uncached(self, comp: str, fixed: list[str], groups: list[int]) -> list[float]:
         s = self.s
         k = len(groups)
         if s.problem == 2 or self.scale is None:
