@@ -21,20 +21,27 @@ def record_cpu_cmd(
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No live status on stderr."),
 ) -> None:
     """Sample CPU % and RSS of matching processes until the duration ends, Ctrl-C, or COMMAND exits."""
+    import time
+
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
     from perfros_bag.ingest.cpurecord import record_cpu
 
     seen = [0]
+    columns = [TextColumn("record-cpu"), BarColumn() if duration else TextColumn(""), TimeElapsedColumn(),
+               TextColumn("{task.description}")]
+    with Progress(*columns, console=err, transient=True, disable=quiet or not err.is_terminal) as progress:
+        task = progress.add_task("starting", total=duration or None)
+        t0 = time.monotonic()
 
-    def status(rnd: int, rows: int) -> None:
-        seen[0] += rows
-        if not quiet and err.is_terminal:
-            err.print(f"\rround {rnd + 1}: {rows} processes, {seen[0]} rows", end="", highlight=False)
+        def status(rnd: int, rows: int) -> None:
+            seen[0] += rows
+            progress.update(task, completed=time.monotonic() - t0,
+                            description=f"{rows} processes, {seen[0]} rows -> {out_path}")
 
-    rc = record_cpu(out_path, list(match or []), interval, duration=duration,
-                    command=list(command_args or []) or None, on_round=status)
+        rc = record_cpu(out_path, list(match or []), interval, duration=duration,
+                        command=list(command_args or []) or None, on_round=status)
     if not quiet:
-        if err.is_terminal:
-            err.print()
         err.print(f"wrote {out_path} ({seen[0]} samples)", highlight=False)
     if rc:
         raise typer.Exit(rc)
