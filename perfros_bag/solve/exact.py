@@ -19,6 +19,10 @@ Formulation (eq 1-9 of the paper; see docs/solvers.md for the measurements behin
   [d on b])`` for every pair of computers whose route crosses it. A shared medium caps the
   sum of its links' loads.
 
+A MIP start (``start``, e.g. greedy+'s plan) is checked and mapped onto the pruned model;
+when the LP relaxation's bound already proves it within ``mip_gap`` the solver stops
+there, otherwise HiGHS gets it as its first incumbent.
+
 An infeasible instance gets a reason naming the constraint: cheap checks first (a node or
 coresidence group larger than every allowed computer, residence sums, totals, edges that
 always cross a link), then, when the MILP itself is infeasible, an elastic copy of it
@@ -183,11 +187,10 @@ def _prune_choices(system: System, problem: int, node: str, options: Sequence[Ch
     replace it (for MIP starts); unusable positions are absent."""
     usable = [i for i, ch in enumerate(options) if ch.cpu <= cpu_room + EPS]
     if problem != 1 or len(usable) <= 1:
-        kept = usable
-        return [options[i] for i in kept], {i: p for p, i in enumerate(kept)}
+        return [options[i] for i in usable], {i: p for p, i in enumerate(usable)}
     bws = {i: _bw_vector(system, node, options[i]) for i in usable}
     order = sorted(usable, key=lambda i: (options[i].cpu, -options[i].performance, bws[i]))
-    kept: list[int] = []  # type: ignore[no-redef]
+    kept: list[int] = []
     best_of: dict[int, int] = {}
     uniform = len({bws[i] for i in usable}) == 1
     best_perf = -_INF
@@ -725,7 +728,8 @@ def solve_exact(system: System, problem: int, choices: dict[str, list[Choice]], 
     The plan's status is ``optimal`` when proven (gap below 1e-6 relative), ``feasible``
     with the solver's ``bound`` when ``time_limit`` or a positive ``mip_gap`` stopped it
     first, or ``infeasible`` with a reason naming the constraint. ``start`` (e.g. the
-    greedy+ answer) is passed to HiGHS as a MIP start.
+    greedy+ plan) is checked and passed to HiGHS as a MIP start; on hard instances it is
+    what lets HiGHS close the gap quickly (docs/solvers.md).
     """
     import highspy
 
