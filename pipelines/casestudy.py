@@ -30,6 +30,7 @@ import re
 import shlex
 import subprocess
 import sys
+from collections.abc import Sequence
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -52,7 +53,7 @@ COMMANDS: list[str] = []
 BAR: list[Any] = []  # [rich Progress, task id] while the pipeline runs
 
 
-def sh(args: list[str], *, ok: tuple[int, ...] = (0,)) -> subprocess.CompletedProcess[str]:
+def sh(args: Sequence[object], *, ok: tuple[int, ...] = (0,)) -> subprocess.CompletedProcess[str]:
     shown = " ".join(shlex.quote(str(a)) for a in args).replace(str(BIN), "perfros-bag")
     shown = shown.replace(str(ROOT) + "/", "")
     COMMANDS.append(shown)
