@@ -390,21 +390,6 @@ def test_values_are_finite_numbers(fixture_rows: list[dict[str, str]]) -> None:
             assert math.isfinite(float(r[k]))
 
 
-def test_dask_workers_give_the_same_rows_and_failures(tmp_path: Path) -> None:
-    """The per-recording work shipped to a LocalCluster: same rows, the bad one reported."""
-    d = copy_fixtures(tmp_path)
-    (d / "broken.mcap").write_bytes((d / "tracker_f25.mcap").read_bytes()[:500])
-    edit_manifest(d, lambda data: data["recordings"].append({"path": "broken.mcap", "computer": "server"}))
-    local, dask = tmp_path / "local.csv", tmp_path / "dask.csv"
-    r1 = run("characterise", d, "--out", local)
-    r2 = run("characterise", d, "--out", dask, "--workers", "1")
-    assert r1.returncode == r2.returncode == 1, (r1.stderr, r2.stderr)
-    assert local.read_bytes() == dask.read_bytes()
-    e1 = [ln for ln in r1.stderr.splitlines() if ln.startswith("error:")]
-    e2 = [ln for ln in r2.stderr.splitlines() if ln.startswith("error:")]
-    assert e1 == e2 and len(e1) == 1 and "broken.mcap" in e1[0]
-
-
 def test_empty_recording_is_a_correct_empty_result(tmp_path: Path) -> None:
     from mcap.writer import Writer
 
@@ -474,7 +459,7 @@ json_values = st.recursive(
     max_leaves=12)
 
 
-@settings(max_examples=300, deadline=None)
+@settings(max_examples=150, deadline=None)
 @given(data=json_values)
 def test_manifest_parser_never_crashes(data: object) -> None:
     """Any YAML-shaped document: a Manifest or one InputError line naming the file."""

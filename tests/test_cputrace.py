@@ -276,7 +276,7 @@ def test_record_cpu_unwritable_output_is_one_line(tmp_path: Path) -> None:
         assert r.stderr.startswith("error:") and len(r.stderr.strip().splitlines()) == 1, r.stderr
 
 
-@settings(max_examples=300, deadline=None)
+@settings(max_examples=150, deadline=None)
 @given(body=st.text(alphabet=st.sampled_from(list('0123456789.,-#=e\n\r"abx \x00\t')), max_size=200),
        with_header=st.booleans())
 def test_trace_parser_never_crashes(body: str, with_header: bool) -> None:
@@ -299,7 +299,7 @@ trace_rows_st = st.lists(
     max_size=40)
 
 
-@settings(max_examples=150, deadline=None)
+@settings(max_examples=80, deadline=None)
 @given(rows=trace_rows_st)
 def test_fast_and_careful_parsers_agree(rows: list[tuple[float, int, str, str, float, int]]) -> None:
     import csv
