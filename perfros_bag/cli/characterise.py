@@ -21,7 +21,7 @@ def _fmt(v: float | None, digits: int = 1) -> str:
 
 @command("characterise")
 def characterise_cmd(
-    directory: Path = typer.Argument(..., help="Directory of recordings (or one recording)."),  # noqa: B008
+    directory: Path = typer.Argument(..., metavar="DIR", help="Directory of recordings (or one recording)."),  # noqa: B008
     manifest: Path | None = typer.Option(None, "--manifest", "-m", help="manifest.yaml (default: DIR/manifest.yaml when present)."),  # noqa: B008
     system_path: Path | None = typer.Option(None, "--system", "-s", help="system.yaml: nodes' topics and process patterns, computers' capacities."),  # noqa: B008
     out_path: Path | None = typer.Option(None, "--out", "-o", help="characterisation.csv to write."),  # noqa: B008
