@@ -113,31 +113,32 @@ def _mvarint(m: U8, rowbase: I64, col: I64, value: bool = True) -> tuple[I64, I6
 
 
 def _mint(m: U8, rowbase: I64, col: I64, types: I64) -> I64:
-    """Integers of serial types 1-6, 8, 9 at per-row columns ``col`` of ``m``."""
-    out = np.empty(col.size, dtype=np.int64)
-    uniform = bool(col.size) and bool(np.all(types == types[0]))
-    distinct = [int(types[0])] if uniform else np.unique(types).tolist()
-    for t in distinct:
-        sel = np.arange(col.size) if uniform else np.flatnonzero(types == t)
-        if t in (8, 9):
-            out[sel] = t - 8
-            continue
-        w = int(_WIDTH[t])
-        pos = rowbase[sel] + col[sel]
-        if col.size and int(col[sel].max()) + w > W:
-            raise NoIndex("record values outside the expected window")
-        if w == 8:  # one gather of 8-byte rows of a strided view
-            sv = np.lib.stride_tricks.sliding_window_view(m, 8)[pos].view(">i8").reshape(-1).astype(np.int64)
-            out[sel] = sv
-            continue
-        v = np.zeros(sel.size, dtype=np.uint64)
-        for k in range(w):
-            v = (v << np.uint64(8)) | m[pos + k].astype(np.uint64)
-        sv = v.view(np.int64)
-        if w < 8:
-            sv = np.where(sv >= (1 << (8 * w - 1)), sv - (1 << (8 * w)), sv)
-        out[sel] = sv
-    return out
+    """Integers of serial types 1-6, 8 (0) and 9 (1) at per-row columns ``col`` of ``m``.
+
+    Whole-array passes, one per byte of the widest value; 8-byte values (rosbag2 timestamps)
+    are read as one big-endian word each."""
+    if col.size == 0:
+        return np.empty(0, dtype=np.int64)
+    widths = _WIDTH[types]
+    maxw = int(widths.max())
+    if int(col.max()) + maxw > W:
+        raise NoIndex("record values outside the expected window")
+    pos = rowbase + col
+    eight = widths == 8
+    if eight.all():
+        return np.lib.stride_tricks.sliding_window_view(m, 8)[pos].view(">i8").reshape(-1).astype(np.int64)
+    v = np.zeros(col.size, dtype=np.int64)
+    for k in range(min(maxw, 6)):
+        v = np.where(k < widths, (v << 8) | m[pos + k], v)
+    small = (widths > 0) & (widths < 8)
+    if small.any():  # two's complement of 1-6 byte values
+        bits = 8 * np.where(small, widths, 1)
+        v = np.where(small & (v >= (1 << (bits - 1))), v - (1 << bits), v)
+    v = np.where(types == 9, 1, np.where(types == 8, 0, v))
+    if eight.any():
+        sel = np.flatnonzero(eight)
+        v[sel] = np.lib.stride_tricks.sliding_window_view(m, 8)[pos[sel]].view(">i8").reshape(-1)
+    return v
 
 
 def _window(buf: U8, cell: I64) -> U8:
