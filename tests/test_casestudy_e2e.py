@@ -96,12 +96,15 @@ def test_instance1_runs_validates_and_leaves_nothing(instance1: tuple[Path, Path
     for name in ("run.bag", "run.cpu.csv", "run.host.cpu.csv", "manifest.yaml", "plan.json", "run.json"):
         assert (out / name).is_file(), name
 
-    val = subprocess.run([str(BIN), "validate", str(out / "run.bag"), str(out / "plan.json"),
-                          "--system", str(system), "--tolerance", "5", "--json"],
-                         capture_output=True, text=True, timeout=60)
-    assert "Traceback" not in val.stderr
+    from typer.testing import CliRunner
+
+    from perfros_bag.cli import app
+
+    val = CliRunner().invoke(app, ["validate", str(out / "run.bag"), str(out / "plan.json"),
+                                   "--system", str(system), "--tolerance", "5", "--json"])
+    assert val.exception is None or isinstance(val.exception, SystemExit), val.exception
     doc = json.loads(val.stdout)
-    assert val.returncode == 0, (doc["overall"], val.stderr)
+    assert val.exit_code == 0, (doc["overall"], val.stderr)
     assert doc["overall"]["deviation_pct"] <= 5.0
     assert doc["missing_topics"] == []
 
