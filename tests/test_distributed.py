@@ -128,8 +128,10 @@ def test_task_that_always_kills_its_worker_is_a_clear_error(cluster: str) -> Non
     assert str(bad.error).startswith("9: the Dask worker running this task died")
 
 
-def test_characterise_workers_2_gives_the_same_csv(tmp_path: Path) -> None:
-    # --workers 2: run_distributed starts (and stops) its own LocalCluster of 2 processes.
+def test_characterise_on_the_cluster_gives_the_same_csv(cluster: str, tmp_path: Path) -> None:
+    # The CLI with --scheduler pointing at the module's 2-process LocalCluster. (--workers N,
+    # where run_distributed starts its own LocalCluster, is the same code after start-up;
+    # tests/test_characterise.py runs it with --workers 1, the benchmark with --workers 2.)
     from typer.testing import CliRunner
 
     from perfros_bag.cli import app
@@ -153,7 +155,7 @@ def test_characterise_workers_2_gives_the_same_csv(tmp_path: Path) -> None:
         return head + b"".join(sorted(rows)), errors
 
     local_csv, local_errors = characterise()
-    dask_csv, dask_errors = characterise("--workers", "2")
+    dask_csv, dask_errors = characterise("--scheduler", cluster)
     assert dask_csv == local_csv
     assert dask_errors == local_errors and len(local_errors) == 1 and "r9_cut.bag" in local_errors[0]
     assert local_csv.count(b"\n") == 1 + 8 * 4  # header + 8 recordings x 4 topics
