@@ -1,3 +1,3 @@
-from perfros_bag.cli import main
+from perfros_bag.entry import main
 
 main()

@@ -126,3 +126,17 @@ def test_yaml_is_data_not_code(tmp_path: Path) -> None:
     p.write_text("computers: !!python/object/apply:os.system ['echo pwned']\nnodes: []\n")
     with pytest.raises(InputError, match="invalid YAML"):
         load_system(p)
+
+
+def test_atomic_outputs_get_normal_permissions(tmp_path: Path) -> None:
+    import os
+
+    from perfros_bag.fileio import atomic_write_text
+
+    umask = os.umask(0o022)
+    try:
+        atomic_write_text(tmp_path / "out.txt", "x")
+    finally:
+        os.umask(umask)
+    assert (tmp_path / "out.txt").stat().st_mode & 0o777 == 0o644
+    assert [p.name for p in tmp_path.iterdir()] == ["out.txt"]
