@@ -157,7 +157,7 @@ def release(mm: mmap.mmap, start: int, end: int) -> None:
     to the file's size, though nothing is copied: RSS counts mapped page-cache pages."""
     lo = start - start % mmap.PAGESIZE
     hi = min(end, len(mm))
-    if hi > lo:
+    if hi > lo and hasattr(mm, "madvise"):  # no madvise on Windows
         mm.madvise(mmap.MADV_DONTNEED, lo, hi - lo)
 
 
