@@ -6,10 +6,19 @@ file compression), so metadata quirks do not matter: ``storage_identifier: ""`` 
 at all. The metadata contributes only the declared topics (so topics without messages are
 listed) and the compression mode; counts and durations always come from the messages.
 
-sqlite3: one SQL pass ``SELECT topic_id, timestamp, length(data) FROM messages`` (SQLite reads
-a blob's length from the record header, not the blob), database opened read-only and
-immutable. With zstd *message* compression the payload size is the decompressed size, read
-from each frame header (``substr(data, 1, 18)``).
+sqlite3 (database opened read-only and immutable), cheapest exact way first:
+
+1. ``sqlite-pages``: the ``messages`` table decoded straight from its B-tree pages
+   (:mod:`perfros_bag.ingest.sqlitepages`; blob sizes from the record headers, blobs and their
+   overflow pages never read);
+2. ``sql``: one pass ``group_concat(topic_id), group_concat(timestamp),
+   group_concat(length(data))`` per batch of rowids (no Python per row; ``length`` reads the
+   size from the record header), used when a WAL holds committed rows (the database and WAL
+   are copied to a temp dir first: ``immutable`` would ignore the WAL) or the table looks
+   unusual; a plain row loop if even that fails;
+3. with zstd *message* compression the payload size is the decompressed size, read from each
+   frame header (``substr(data, 1, 18)``);
+4. ``stream`` (``fast=False``): every row with its blob.
 """
 
 from __future__ import annotations
