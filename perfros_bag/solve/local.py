@@ -39,6 +39,7 @@ MOVES_LIMIT = 5_000  # groups x computers above which only settings are re-optim
 SWAPS_LIMIT = 150  # groups above which no swaps
 DEPTH2_LIMIT = 60  # groups above which no pairs of moves
 KICKS = 30  # perturbations of the iterated local search
+KICKS_IDLE = 12  # stop after this many perturbations without improvement
 KICK_LIMIT = 600  # groups x computers above which no perturbations
 TIME_BUDGET_S = 60.0  # safety net: stop improving after this long (the plan stays feasible)
 SEARCH_BUDGET = 20_000
@@ -77,9 +78,12 @@ def kick(improver: Improver, *, seed: int = 0) -> None:
     best = improver.current(s.nodes)
     snap = s.snapshot()
     stop = time.monotonic() + TIME_BUDGET_S
+    bound = _bound(s)
+    idle = 0
     for _ in range(KICKS):
-        if time.monotonic() > stop:
+        if time.monotonic() > stop or idle >= KICKS_IDLE or best >= bound - 1e-9:
             break
+        idle += 1
         for gi in rng.sample(movable, min(len(movable), rng.randint(2, 4))):
             targets = [c for c in s.group_allowed[gi] if c != s.place[s.groups[gi][0]]]
             rng.shuffle(targets)
@@ -89,11 +93,22 @@ def kick(improver: Improver, *, seed: int = 0) -> None:
         improver.run()
         value = improver.current(s.nodes)
         if value > best + 1e-9:
-            best, snap = value, s.snapshot()
+            best, snap, idle = value, s.snapshot(), 0
         else:
             s.restore(snap)
     improver.trios = True
     improver.run()  # a last full search from the best point
+
+
+def _bound(s: State) -> float:
+    """A bound no plan can beat, in the improver's sense (bigger is better): every node at
+    its best setting (Problem 1); minus the CPU that cannot fit on the robots (Problem 2)."""
+    if s.problem == 1:
+        return sum(s.weight[n] * s.ladder[n][-1].performance for n in s.nodes)
+    robots = [c for c in s.computers if s.kind[c] == "robot"]
+    total = sum(s.cpu(n) for n in s.nodes)
+    server_only = sum(s.group_cpu(gi) for gi in range(len(s.groups)) if not set(s.group_allowed[gi]) & set(robots))
+    return -max(server_only, total - sum(s.cap[c] for c in robots))
 
 
 # ---- a feasible start when the greedy fails -------------------------------------------
