@@ -106,7 +106,9 @@ def write_rosbag2(path: Path, msgs: Sequence[Msg], storage: str = "sqlite3",
 
 def write_mcap(path: Path, msgs: Sequence[Msg], *, chunked: bool = True, compression: str = "zstd",
                index: bool = True, summary: bool = True, encoding: str = "cdr",
-               chunk_size: int = 1 << 20, schemaless: bool = False) -> Path:
+               chunk_size: int = 1 << 20, schemaless: bool = False, callerid: bool = False) -> Path:
+    """``callerid``: one channel per (topic, callerid) with the ROS 1 profile's ``callerid``
+    channel metadata."""
     from mcap.writer import CompressionType, IndexType, Writer
 
     with path.open("wb") as f:
@@ -117,12 +119,13 @@ def write_mcap(path: Path, msgs: Sequence[Msg], *, chunked: bool = True, compres
         w.start(profile="ros2" if encoding == "cdr" else "", library="perfros-bag tests")
         channels: dict[tuple[str, ...], int] = {}
         for m in msgs:
-            key = _conn_key(m, False)
+            key = _conn_key(m, callerid)
             if key not in channels:
                 sid = 0 if schemaless else w.register_schema(
                     name=m.msgtype, encoding="ros2msg" if encoding == "cdr" else "jsonschema",
                     data=TYPES[m.msgtype][2].encode())
-                channels[key] = w.register_channel(topic=m.topic, message_encoding=encoding, schema_id=sid)
+                channels[key] = w.register_channel(topic=m.topic, message_encoding=encoding, schema_id=sid,
+                                                   metadata={"callerid": m.callerid} if callerid else {})
             w.add_message(channels[key], log_time=m.time_ns, data=m.payload, publish_time=m.time_ns)
         w.finish()
     return path

@@ -79,6 +79,12 @@ def test_mcap_variants(tmp_path: Path, kw: dict[str, object]) -> None:
     both(f, expected(MSGS), "index" if indexed else "stream")
 
 
+def test_mcap_ros1_callerid_publishers(tmp_path: Path) -> None:
+    """ROS 1 profile MCAP: one channel per publisher with callerid metadata; channels merge."""
+    f = write_mcap(tmp_path / "r.mcap", MSGS, callerid=True, chunk_size=8_000)
+    both(f, expected(MSGS), publishers=True)
+
+
 def test_mcap_json_without_schema(tmp_path: Path) -> None:
     f = write_mcap(tmp_path / "j.mcap", MSGS, encoding="json", schemaless=True)
     exp = expected(MSGS)

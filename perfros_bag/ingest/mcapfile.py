@@ -71,6 +71,7 @@ class _Cursor:
 class _Channel:
     topic: str
     schema_id: int
+    callerid: str = ""  # ROS 1 profile: the publisher, from the channel metadata
 
 
 @dataclass
@@ -102,7 +103,8 @@ class _State:
         for cid, ch in sorted(self.channels.items()):
             parts = self.times.get(cid, [])
             times = np.concatenate(parts) if parts else np.empty(0, dtype=np.int64)
-            acc.add(ch.topic, self.schemas.get(ch.schema_id, ""), times, self.nbytes.get(cid, 0))
+            acc.add(ch.topic, self.schemas.get(ch.schema_id, ""), times, self.nbytes.get(cid, 0),
+                    ch.callerid or None)
         return acc
 
 
@@ -126,7 +128,17 @@ def _schema(buf: Buf, start: int, length: int, st: _State) -> None:
 def _channel(buf: Buf, start: int, length: int, st: _State) -> None:
     c = _Cursor(buf, start, start + length)
     cid, schema_id = c.u16(), c.u16()
-    st.channels[cid] = _Channel(c.string(), schema_id)
+    topic = c.string()
+    c.string()  # message encoding
+    callerid = ""
+    if c.pos < c.end:  # metadata map<string, string> (the ros1 profile records callerid)
+        mstart, mlen = c.skip_prefixed()
+        m = _Cursor(buf, mstart, mstart + mlen)
+        while m.pos < m.end:
+            key, value = m.string(), m.string()
+            if key == "callerid":
+                callerid = value
+    st.channels[cid] = _Channel(topic, schema_id, callerid)
 
 
 def decompress(compression: str, data: Buf, usize: int) -> bytes:
