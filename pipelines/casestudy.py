@@ -74,22 +74,32 @@ def table1_choice(node: Any, index: int) -> Choice:
     return Choice(index, s.cpu, s.performance, s.value, s.frequency_hz, s.bandwidth_kBps, s.topics)
 
 
+def rel(p: Path | str) -> str:
+    return str(p).replace(str(ROOT) + "/", "")
+
+
+RUN_TIMES: list[str] = []
+
+
 def deploy(system: System, system_path: Path, plan: Plan, out: Path, cfg: RunConfig, label: str) -> dict[str, Any]:
+    plan_path = out.with_suffix(".plan.json")
     if (out / "run.json").exists():
         err.print(f"reusing {out}")
+        record: dict[str, Any] = json.loads((out / "run.json").read_text())
+    else:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        plan.save(plan_path)
+        err.print(f"[bold]{label}[/]: running {cfg.duration:g} s -> {out}")
         if BAR:
-            BAR[0].advance(BAR[1])
-        return json.loads((out / "run.json").read_text())
-    plan_path = out.with_suffix(".plan.json")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    plan.save(plan_path)
-    COMMANDS.append(f"perfros-bag casestudy run --system {system_path.relative_to(ROOT) if system_path.is_relative_to(ROOT) else system_path} "
-                    f"--plan {plan_path} --duration {cfg.duration:g} --out {out}"
-                    + ("" if cfg.cap else " --no-cap") + f" --units-per-core {cfg.units_per_core:g}")
-    err.print(f"[bold]{label}[/]: running {cfg.duration:g} s -> {out}")
-    if BAR:
-        BAR[0].update(BAR[1], description=label)
-    record = run_plan(system, plan, out, cfg, system_path=system_path)
+            BAR[0].update(BAR[1], description=label)
+        record = run_plan(system, plan, out, cfg, system_path=system_path)
+    cap = record["cpu_cap"]
+    COMMANDS.append(f"perfros-bag casestudy run --system {rel(system_path)} --plan {rel(plan_path)} "
+                    f"--duration {record['duration_s']:g} --out {rel(out)}"
+                    + (" --no-cap" if "--no-cap" in cap.get("reason", "") else "")
+                    + f" --units-per-core {cap['units_per_core']:g}")
+    if record.get("started"):
+        RUN_TIMES.append(record["started"])
     if BAR:
         BAR[0].advance(BAR[1])
     return record
@@ -257,7 +267,8 @@ def rq3(out: Path, args: argparse.Namespace) -> list[dict[str, Any]]:
     system = load_system(model_path)
     baseline = solve(system, 1, "greedy")
     baseline.save(d / "plan-baseline.json")
-    COMMANDS.append(f"(RQ3) perfros-bag solve {model_path} --problem 1 --method greedy --out {d / 'plan-baseline.json'}")
+    COMMANDS.append(f"perfros-bag solve {rel(model_path)} --problem 1 --method greedy --out {rel(d / 'plan-baseline.json')}"
+                    "   # RQ3 baseline (done in-process)")
     truth_path = FIXTURES / "instance1.yaml"
     truth = load_system(truth_path)
     cfg = RunConfig(duration=args.duration, units_per_core=args.units_per_core)
@@ -340,7 +351,8 @@ def markdown(results: list[dict[str, Any]], rq3_rows: list[dict[str, Any]], args
     def f(x: Any, nd: int = 2) -> str:
         return "-" if x is None else f"{x:.{nd}f}"
 
-    lines = [f"Measured on {datetime.now(UTC).strftime('%Y-%m-%d %H:%M UTC')} on this machine "
+    span = f"{min(RUN_TIMES)} to {max(RUN_TIMES)}" if RUN_TIMES else "-"
+    lines = [f"Runs recorded {span} (UTC), report written {datetime.now(UTC).strftime('%Y-%m-%d %H:%M UTC')}, on this machine "
              f"({args.units_per_core:g} CPU units per core: a robot of 100 = {100 / args.units_per_core:g} core, "
              f"the server of 400 = {400 / args.units_per_core:g} core; a deployment whose computers would need more "
              f"than {args.max_cores:g} cores is shrunk further, see the last column; {args.duration:g} s per run).", "",
