@@ -13,6 +13,7 @@ import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import cloudpickle
 import pytest
@@ -47,23 +48,26 @@ def kill_own_worker_on_9(x: int) -> int:
 
 
 @pytest.fixture(scope="module")
-def cluster() -> Iterator[str]:
+def local_cluster() -> Iterator[Any]:
     import logging
 
     import dask
     from distributed import LocalCluster
 
-    # A task whose worker died is given up on at once (default: after 3 deaths), then
-    # resubmitted once by run_distributed: keeps the test short. worker-saturation 1.0 as run_distributed's own LocalCluster: a worker holds only the
+    # worker-saturation 1.0 as run_distributed's own LocalCluster: a worker holds only the
     # task it runs, so a dying worker takes no queued task with it.
-    with dask.config.set({"distributed.scheduler.allowed-failures": 0,
-                          "distributed.scheduler.worker-saturation": 1.0}):
+    with dask.config.set({"distributed.scheduler.worker-saturation": 1.0}):
         lc = LocalCluster(n_workers=2, processes=True, threads_per_worker=1,
                           dashboard_address=None, silence_logs=logging.ERROR)
     try:
-        yield lc.scheduler_address
+        yield lc
     finally:
         lc.close()
+
+
+@pytest.fixture
+def cluster(local_cluster: Any) -> str:
+    return str(local_cluster.scheduler_address)
 
 
 def _summary(outcomes: list[Outcome[int]]) -> list[tuple[str, int | None, str | None]]:
@@ -120,8 +124,16 @@ def test_worker_killed_mid_run_loses_nothing(cluster: str) -> None:
     assert [o.value[1] for o in done[2:] if o.value].count(victim) == 0
 
 
-def test_task_that_always_kills_its_worker_is_a_clear_error(cluster: str) -> None:
-    out = run_distributed(range(10), kill_own_worker_on_9, scheduler=cluster)
+def test_task_that_always_kills_its_worker_is_a_clear_error(local_cluster: Any) -> None:
+    # Give a task up as soon as its worker died once (default: after 3 deaths), so the poison
+    # task costs only two worker restarts (run_distributed resubmits it once).
+    scheduler = local_cluster.scheduler
+    allowed, scheduler.allowed_failures = scheduler.allowed_failures, 0
+    try:
+        out = run_distributed(range(10), kill_own_worker_on_9,
+                              scheduler=local_cluster.scheduler_address)
+    finally:
+        scheduler.allowed_failures = allowed
     assert [o.value for o in out[:9]] == [-i for i in range(9)], [str(o.error) for o in out if o.error]
     bad = out[9]
     assert bad.value is None and bad.error is not None
@@ -156,7 +168,8 @@ def test_characterise_on_the_cluster_gives_the_same_csv(cluster: str, tmp_path: 
 
     local_csv, local_errors = characterise()
     dask_csv, dask_errors = characterise("--scheduler", cluster)
-    assert dask_csv == local_csv
+    diff = [(a, b) for a, b in zip(local_csv.splitlines(), dask_csv.splitlines(), strict=False) if a != b]
+    assert dask_csv == local_csv, (diff, dask_errors)
     assert dask_errors == local_errors and len(local_errors) == 1 and "r9_cut.bag" in local_errors[0]
     assert local_csv.count(b"\n") == 1 + 8 * 4  # header + 8 recordings x 4 topics
 
