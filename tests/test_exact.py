@@ -65,7 +65,7 @@ def with_cycle(data: dict[str, Any]) -> dict[str, Any]:
     return data
 
 
-@settings(max_examples=70, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=100, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(seed=st.integers(0, 2**32 - 1), cycle=st.booleans())
 def test_exact_matches_bruteforce(seed: int, cycle: bool) -> None:
     data = random_tiny(random.Random(seed))
