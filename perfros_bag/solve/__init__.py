@@ -28,7 +28,7 @@ from collections.abc import Mapping
 
 from perfros_bag.errors import InputError
 from perfros_bag.model import Choice, Node, System
-from perfros_bag.plan import Plan, infeasible_plan
+from perfros_bag.plan import Plan
 
 METHODS: tuple[str, ...] = ("greedy", "greedy+", "exact", "bruteforce")
 
@@ -156,7 +156,3 @@ def _dispatch(system: System, problem: int, method: str, choices: dict[str, list
         raise InputError(None, f"the exact solver is not available ({exc})") from None
     return solve_exact(system, problem, choices, time_limit=time_limit)
 
-
-def unsolved(problem: int, method: str, reason: str, system: System) -> Plan:
-    """An infeasible plan naming ``reason`` (helper for the solvers)."""
-    return infeasible_plan(problem, method, reason, system=system.source)

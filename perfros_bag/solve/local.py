@@ -3,14 +3,15 @@
 Problem 1 (maximise Σ w·P). For a fixed placement the best settings of the nodes on one
 computer are a multiple-choice knapsack, solved exactly by dynamic programming over CPU
 units (:func:`best_settings`); that covers "re-upgrade with freed capacity" and
-"downgrade one node to upgrade another". The moves are then: re-optimise one computer's
-settings; relocate a coresidence group to another computer; swap two groups between
-computers; each evaluated with the knapsack optimum of the two computers involved, the
-best improving one applied (and kept only if CPU and bandwidth still hold), until none
-improves. A last pass of Algorithm 2 uses any capacity left.
+"downgrade one node to upgrade another". The moves (:class:`Improver`): re-optimise one
+computer's settings; relocate a coresidence group; swap two groups; move two groups joined
+by an edge together; the best split of two computers' groups; the best assignment of three
+computers' groups; a pair of moves. Each is valued by the knapsack optimum of the computers
+involved; the best improving one is applied if CPU and bandwidth still hold. A last pass
+of Algorithm 2 uses any capacity left. Then :func:`kick` (a seeded iterated local search).
 
-Problem 2 (minimise server capacity): move groups from servers to robots where they fit,
-and swap a group on a robot for a larger one on a server, until no move improves.
+Problem 2 (minimise server capacity) uses the same moves with minus the server load as the
+value (settings are fixed; servers may grow up to ``max_capacity``).
 
 When the greedy finds no plan, a bounded depth-first search for any feasible placement
 (most constrained group first) gives the local search a start.
@@ -515,11 +516,3 @@ def _marginal(state: State, capacity: float, nodes: list[str]) -> tuple[float, d
         if k + 2 < len(lad):
             heapq.heappush(heap, entry(n))
     return sum(state.weight[n] * state.ladder[n][levels[n]].performance for n in nodes), levels
-
-
-# ---- Problem 2 ------------------------------------------------------------------------
-def improve_p2(state: State) -> None:
-    for c in state.computers:
-        if state.kind[c] == "server":
-            state.cap[c] = state.maxcap[c]
-    Improver(state).run()
