@@ -34,6 +34,8 @@ from perfros_bag.solve.state import EPS, State, _fmt
 def solve_greedy(system: System, problem: int, choices: dict[str, list[Choice]]) -> Plan:
     state, reason = run_greedy(system, problem, choices)
     if reason is not None:
+        if not state.proven:
+            reason += " (this is where the greedy got stuck: greedy+ or exact may still find a plan)"
         return infeasible_plan(problem, "greedy", reason, system=system.source)
     return state.plan("greedy")
 
@@ -98,6 +100,8 @@ def explain(state: State, gi: int, why: dict[str, str]) -> str:
     lowest = " at its lowest setting" if state.problem == 1 and any(len(state.ladder[n]) > 1 for n in group) else ""
     if len(allowed) == 1:
         c = allowed[0]
+        # alone on its only computer it does not fit: no solver can do better
+        state.proven = cpu > state.maxcap[c] + EPS * max(1.0, state.maxcap[c])
         constraint = "residence" if allowed != state.computers else "the only computer"
         if why.get(c, "").startswith(f"{c} has"):
             has = _fmt(state.free(c)) if math.isclose(state.free(c), state.cap[c]) else \

@@ -50,6 +50,7 @@ class State:
             else:
                 self.cap[c.name] = c.capacity or 0.0
                 self.maxcap[c.name] = self.cap[c.name]
+        self.proven = False  # set when a failure is a proof of infeasibility
         self.load = dict.fromkeys(self.computers, 0.0)
         self.members: dict[str, set[str]] = {c: set() for c in self.computers}
         self.groups: list[tuple[str, ...]] = list(system.coresidence_groups)
