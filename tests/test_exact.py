@@ -366,3 +366,26 @@ def test_start_is_checked_and_the_lp_bound_can_prove_it() -> None:
     broken = Assignment({n: "server" for n in choices}, top)
     plan = exact(system, 1, start=broken)
     assert plan.status == "optimal" and plan.objective == pytest.approx(best.objective, abs=1e-7)
+
+
+def test_big_model_path_lp_rounding_start(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Models above _BIG_MODEL columns solve the LP first and round its placement into a
+    start (and run without MIP presolve): same optimum, checked plan."""
+    import perfros_bag.solve.exact as exact_mod
+
+    system = system_of(table2_instance(4))
+    best = exact(system, 1)
+    calls: list[int] = []
+    real = exact_mod._lp_rounding
+
+    def spy(*args: Any, **kw: Any) -> Any:
+        calls.append(1)
+        return real(*args, **kw)
+
+    monkeypatch.setattr(exact_mod, "_BIG_MODEL", 0)
+    monkeypatch.setattr(exact_mod, "_lp_rounding", spy)
+    plan = exact(system, 1)
+    assert calls, "the LP rounding start was not tried"
+    assert plan.status == "optimal" and plan.objective == pytest.approx(best.objective, abs=1e-7)
+    loose = exact(system, 1, mip_gap=0.05)
+    assert loose.objective >= 0.95 * best.objective - 1e-9
