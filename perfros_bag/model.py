@@ -66,8 +66,12 @@ class Curve:
         return c[0] * x ** c[1]  # power
 
     def inverse(self, y: float, tol: float = 1e-9) -> float:
-        """The input in ``domain`` whose output is ``y`` (bisection; the curve must be monotone
-        on the domain). Outputs beyond the domain's ends clamp to the ends."""
+        """The input in ``domain`` whose output is ``y`` (the curve must be monotone on the
+        domain). Outputs beyond the domain's ends clamp to the ends.
+
+        Closed form for every form (solvers call this once per CPU level of every node);
+        bisection only where the closed form does not apply (a flat curve, no root).
+        """
         lo, hi = self.domain
         flo, fhi = self(lo), self(hi)
         increasing = fhi >= flo
@@ -75,6 +79,41 @@ class Curve:
             return lo
         if (y >= fhi) == increasing and y != fhi:
             return hi
+        x = self._closed_form_inverse(y)
+        if x is not None:
+            return min(max(x * self.scale, lo), hi)
+        return self._bisect(y, lo, hi, increasing, tol)
+
+    def _closed_form_inverse(self, y: float) -> float | None:
+        """``x`` (before scaling) with ``f(x) = y`` inside the domain, or None."""
+        c = self.coef
+        lo, hi = self.domain[0] / self.scale, self.domain[1] / self.scale
+        slack = 1e-9 * max(1.0, abs(hi))
+        roots: list[float] = []
+        try:
+            if self.form == "linear" and c[0] != 0:
+                roots = [(y - c[1]) / c[0]]
+            elif self.form == "log" and c[0] != 0:
+                roots = [math.exp((y - c[1]) / c[0])]
+            elif self.form == "power" and c[0] != 0 and c[1] != 0 and y / c[0] > 0:
+                roots = [(y / c[0]) ** (1.0 / c[1])]
+            elif self.form == "quadratic":
+                a, b, k = c[0], c[1], c[2] - y
+                if a == 0:
+                    roots = [-k / b] if b != 0 else []
+                else:
+                    disc = b * b - 4 * a * k
+                    if disc >= 0:
+                        sq = math.sqrt(disc)
+                        # the numerically stable pair of roots
+                        q = -0.5 * (b + math.copysign(sq, b))
+                        roots = [q / a] + ([k / q] if q != 0 else [])
+        except (OverflowError, ZeroDivisionError, ValueError):
+            return None
+        inside = [r for r in roots if math.isfinite(r) and lo - slack <= r <= hi + slack]
+        return inside[0] if inside else None
+
+    def _bisect(self, y: float, lo: float, hi: float, increasing: bool, tol: float) -> float:
         for _ in range(200):
             mid = (lo + hi) / 2
             if (self(mid) < y) == increasing:
