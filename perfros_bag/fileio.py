@@ -47,17 +47,25 @@ def atomic_write_json(path: str | Path, data: Any) -> None:
     atomic_write_text(path, json.dumps(data, indent=2, sort_keys=False) + "\n")
 
 
+def read_text(path: str | Path, what: str = "file", *, newline: str | None = None) -> str:
+    """A text file's content; a missing, unreadable or non-UTF-8 file, or a directory,
+    becomes an :class:`InputError` naming it (``what`` says what was expected there)."""
+    p = Path(path)
+    try:
+        with p.open(encoding="utf-8", newline=newline) as handle:
+            return handle.read()
+    except FileNotFoundError:
+        raise InputError(p, f"{what} not found") from None
+    except IsADirectoryError:
+        raise InputError(p, f"is a directory, expected a {what}") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(p, f"cannot read {what}: {exc}") from None
+
+
 def read_yaml(path: str | Path) -> Any:
     """``yaml.safe_load`` a file; any problem becomes an :class:`InputError` naming it."""
     p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise InputError(p, "file not found") from None
-    except IsADirectoryError:
-        raise InputError(p, "is a directory, expected a YAML file") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(p, f"cannot read: {exc}") from None
+    text = read_text(p, "YAML file")
     try:
         return yaml.safe_load(text)
     except yaml.YAMLError as exc:
@@ -69,12 +77,7 @@ def read_yaml(path: str | Path) -> Any:
 
 def read_json(path: str | Path) -> Any:
     p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise InputError(p, "file not found") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(p, f"cannot read: {exc}") from None
+    text = read_text(p, "JSON file")
     try:
         return json.loads(text)
     except json.JSONDecodeError as exc:

@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from perfros_bag.errors import InputError, PerfrosWarning
-from perfros_bag.fileio import atomic_write_json, read_json, read_yaml
+from perfros_bag.fileio import atomic_write_json, read_json, read_text, read_yaml
 from perfros_bag.model import Curve, Node, System
 from perfros_bag.regression import Fit, FitError, clip_domain, fit_curve
 from perfros_bag.spec import parse_system
@@ -104,17 +104,11 @@ def _float(text: str) -> float:
 def read_characterisation(path: str | Path) -> list[dict[str, str]]:
     """The rows of a characterisation.csv as strings, after checking its columns."""
     import csv
+    import io
 
     p = Path(path)
-    try:
-        with p.open(newline="", encoding="utf-8") as handle:
-            lines = [ln for ln in handle if not ln.startswith("#")]
-    except FileNotFoundError:
-        raise InputError(p, "file not found") from None
-    except IsADirectoryError:
-        raise InputError(p, "is a directory, expected a characterisation CSV") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(p, f"cannot read: {exc}") from None
+    text = read_text(p, "characterisation CSV", newline="")
+    lines = [ln for ln in io.StringIO(text, newline="") if not ln.startswith("#")]
     reader = csv.DictReader(lines)
     header = [h.strip() for h in (reader.fieldnames or [])]
     if not header:

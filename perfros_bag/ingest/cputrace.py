@@ -31,6 +31,7 @@ import numpy as np
 import numpy.typing as npt
 
 from perfros_bag.errors import InputError
+from perfros_bag.fileio import read_text
 
 TRACE_COLUMNS: tuple[str, ...] = ("time", "pid", "node", "process", "cpu_percent", "rss_bytes")
 
@@ -75,15 +76,7 @@ class NodeCpu:
 def read_cpu_trace(path: str | Path) -> CpuTrace:
     """Parse a CPU trace; any malformed line is an :class:`InputError` naming file and line."""
     p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise InputError(p, "CPU trace not found") from None
-    except IsADirectoryError:
-        raise InputError(p, "is a directory, expected a CPU trace CSV") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(p, f"cannot read CPU trace: {exc}") from None
-    return parse_cpu_trace(text, p)
+    return parse_cpu_trace(read_text(p, "CPU trace CSV"), p)
 
 
 def parse_cpu_trace(text: str, path: str | Path = "<cpu trace>", *, fast: bool = True) -> CpuTrace:
