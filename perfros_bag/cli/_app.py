@@ -34,8 +34,11 @@ def _show_warning(message: Warning | str, category: type[Warning], filename: str
     err.print(f"[yellow]warning:[/] {escape(str(message))}", highlight=False, markup=True, soft_wrap=True)
 
 
-def command(*args: Any, **kwargs: Any) -> Callable[[F], F]:
-    """``@app.command`` plus: PerfrosError -> one line on stderr and its exit code (2)."""
+def command(*args: Any, group: typer.Typer | None = None, interrupted: str = "interrupted",
+            **kwargs: Any) -> Callable[[F], F]:
+    """``@app.command`` (or ``group.command`` for a sub-command group) plus: a PerfrosError
+    becomes one line on stderr and its exit code (2); Ctrl-C prints ``interrupted`` and
+    exits 130."""
 
     def decorate(func: F) -> F:
         @functools.wraps(func)
@@ -47,10 +50,10 @@ def command(*args: Any, **kwargs: Any) -> Callable[[F], F]:
                 err.print(f"[red]error:[/] {escape(str(exc))}", highlight=False, soft_wrap=True, markup=True)
                 raise typer.Exit(exc.exit_code) from None
             except KeyboardInterrupt:
-                err.print("[red]interrupted[/]")
+                err.print(f"[red]{escape(interrupted)}[/]")
                 raise typer.Exit(130) from None
 
-        app.command(*args, **kwargs)(wrapper)
+        (group or app).command(*args, **kwargs)(wrapper)
         return func
 
     return decorate

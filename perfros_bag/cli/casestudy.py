@@ -1,47 +1,22 @@
-"""``perfros-bag casestudy run|calibrate|cleanup``: the paper's case study on real ROS 1."""
+"""``perfros-bag casestudy run|cleanup``: the paper's case study on real ROS 1."""
 
 from __future__ import annotations
 
-import functools
 import json
-import warnings
-from collections.abc import Callable
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any
 
 import typer
 from rich.markup import escape
 
-from perfros_bag.cli._app import _show_warning, app, err, out
+from perfros_bag.cli._app import app, command, err, out
 from perfros_bag.errors import PerfrosError
 
 casestudy_app = typer.Typer(help="The paper's case study on real ROS 1 nodes (roscore, rospy, rosbag).",
                             no_args_is_help=True)
 app.add_typer(casestudy_app, name="casestudy")
 
-F = TypeVar("F", bound=Callable[..., Any])
-
-
-def _verb(name: str) -> Callable[[F], F]:
-    """Like ``perfros_bag.cli._app.command`` for this sub-command group."""
-
-    def decorate(func: F) -> F:
-        @functools.wraps(func)
-        def wrapper(*a: Any, **kw: Any) -> Any:
-            warnings.showwarning = _show_warning
-            try:
-                return func(*a, **kw)
-            except PerfrosError as exc:
-                err.print(f"[red]error:[/] {escape(str(exc))}", highlight=False, soft_wrap=True)
-                raise typer.Exit(exc.exit_code) from None
-            except KeyboardInterrupt:
-                err.print("[red]interrupted[/] (every process and cgroup of the run was removed)")
-                raise typer.Exit(130) from None
-
-        casestudy_app.command(name)(wrapper)
-        return func
-
-    return decorate
+_CLEANED = "interrupted (every process and cgroup of the run was removed)"
 
 
 def _parse_overrides(items: list[str]) -> dict[str, float]:
@@ -59,7 +34,7 @@ def _parse_overrides(items: list[str]) -> dict[str, float]:
     return found
 
 
-@_verb("run")
+@command("run", group=casestudy_app, interrupted=_CLEANED)
 def run_cmd(
     system: Path = typer.Option(..., "--system", "-s", help="system.yaml whose settings (Table I) the nodes emulate."),  # noqa: B008
     plan: Path = typer.Option(..., "--plan", "-p", help="plan.json: each node's setting and computer."),  # noqa: B008
@@ -126,7 +101,7 @@ def _summary(record: dict[str, Any], out_dir: Path) -> None:
               f"check it with: perfros-bag validate {out_dir}/run.bag {out_dir}/plan.json", highlight=False)
 
 
-@_verb("cleanup")
+@command("cleanup", group=casestudy_app, interrupted=_CLEANED)
 def cleanup_cmd(
     run: str | None = typer.Option(None, "--run", help="Only this run id (run.json's run_id); default: every run."),
 ) -> None:
