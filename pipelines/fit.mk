@@ -2,7 +2,8 @@
 # configurable node, Fig 3/4 plots), then Problem 1 solved over the fitted continuum.
 #
 #   make $(OUT)/demo/model.json          fit (plots in $(OUT)/demo/fit-plots/)
-#   make $(OUT)/demo/plan-fitted.json    greedy plan over every CPU unit of the fitted curves
+#   make $(OUT)/demo/plan-fitted.json    the paper's greedy over every CPU unit of the fitted curves
+#                                        (plan.json, from solve.mk, is greedy+ on the same model)
 #
 # $(OUT)/demo/characterisation.csv comes from the characterise pipeline (characterise.mk).
 

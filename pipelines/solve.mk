@@ -1,11 +1,11 @@
-# solve: the demo's plan, Problem 1 on the paper's Table II instance 1 (reference curves).
+# solve: the demo's plans, from the model fitted to the bundled recordings (fit.mk).
 #
-#   make $(OUT)/demo/plan.json           greedy+ plan of fixtures/casestudy/instance1.yaml
-#   make $(OUT)/demo/plan-p2.json        Problem 2 (server sized) for the same system
+#   make $(OUT)/demo/plan.json           Problem 1, greedy+, over the fitted curves
+#   make $(OUT)/demo/plan-p2.json        Problem 2 (server sized) for the same model
 #
-# (Later the demo may solve a fitted model.json instead: change SOLVE_INPUT.)
+# SOLVE_INPUT=fixtures/casestudy/instance1.yaml solves the paper's reference curves instead.
 
-SOLVE_INPUT ?= fixtures/casestudy/instance1.yaml
+SOLVE_INPUT ?= $(OUT)/demo/model.json
 SOLVE_METHOD ?= greedy+
 
 $(OUT)/demo/plan.json: $(SOLVE_INPUT) | setup
