@@ -10,9 +10,17 @@ from __future__ import annotations
 import importlib
 import pkgutil
 
-from perfros_bag.cli._app import app, main
+from perfros_bag.cli._app import app, main, out
 
 for _mod in sorted(m.name for m in pkgutil.iter_modules(__path__) if not m.name.startswith("_")):
     importlib.import_module(f"{__name__}.{_mod}")
+
+
+@app.command("version")
+def version() -> None:
+    """Print perfros-bag's version."""
+    from perfros_bag import __version__
+
+    out.print(__version__)
 
 __all__ = ["app", "main"]

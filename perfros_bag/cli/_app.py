@@ -59,14 +59,6 @@ def command(*args: Any, group: typer.Typer | None = None, interrupted: str = "in
     return decorate
 
 
-@app.command("version")
-def version() -> None:
-    """Print perfros-bag's version."""
-    from perfros_bag import __version__
-
-    out.print(__version__)
-
-
 def main() -> None:
     """Console-script entry point."""
     app(prog_name="perfros-bag")
