@@ -25,7 +25,16 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
-from perfros_bag.ingest._accum import I64, U8, Accumulator, Damaged, NoIndex, gather_u64
+from perfros_bag.ingest._accum import (
+    I64,
+    RELEASE_STEP,
+    U8,
+    Accumulator,
+    Damaged,
+    NoIndex,
+    gather_u64,
+    release,
+)
 
 MAGIC = b"\x89MCAP0\r\n"
 OP_HEADER, OP_FOOTER, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_CHUNK = 1, 2, 3, 4, 5, 6
@@ -198,6 +207,8 @@ def _scan_records(buf: Buf, pos: int, end: int, st: _State, message_zstd: bool,
     times: dict[int, list[int]] = {}
     sizes: dict[int, int] = {}
     data_end = footer = False
+    mapped = isinstance(buf, mmap.mmap)
+    released = 0
     while pos < end:
         try:
             op, start, length = _record(buf, pos, end)
@@ -205,6 +216,10 @@ def _scan_records(buf: Buf, pos: int, end: int, st: _State, message_zstd: bool,
             if data_end:  # summary cut off after the data section: every message was read
                 break
             raise
+        if mapped and start - released >= RELEASE_STEP:  # pages behind this record: unmap
+            cut = start - start % mmap.PAGESIZE
+            release(buf, released, cut)  # type: ignore[arg-type]
+            released = cut
         pos = start + length
         if op == OP_MESSAGE:
             c = _Cursor(buf, start, start + length)
@@ -330,6 +345,7 @@ def read_fast(mm: mmap.mmap, message_zstd: bool = False) -> Accumulator:
         counts = np.array([len(p) for p in parts], dtype=np.int64)
         n = int(counts.sum())
         if n == 0:
+            release(mm, ci.chunk_start, ci.chunk_start + ci.chunk_length + ci.index_length)
             continue
         pairs = np.concatenate(parts)
         if int(pairs.max()) >= 2**62:
@@ -364,6 +380,8 @@ def read_fast(mm: mmap.mmap, message_zstd: bool = False) -> Accumulator:
             st.add(cid, times[k:k + cnt], nbytes)
             k += cnt
         total += n
+        # keep the resident set small however large the file (see _accum.release)
+        release(mm, ci.chunk_start, ci.chunk_start + ci.chunk_length + ci.index_length)
     if count is not None and count != total:
         raise NoIndex(f"statistics count {count} disagrees with the indexes ({total})")
     acc = st.accumulator()

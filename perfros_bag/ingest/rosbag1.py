@@ -25,7 +25,16 @@ from pathlib import Path
 
 import numpy as np
 
-from perfros_bag.ingest._accum import I64, U8, Accumulator, Damaged, NoIndex, gather_u32
+from perfros_bag.ingest._accum import (
+    I64,
+    RELEASE_STEP,
+    U8,
+    Accumulator,
+    Damaged,
+    NoIndex,
+    gather_u32,
+    release,
+)
 from perfros_bag.ingest.stats import RecordingStats
 
 MAGIC = b"#ROSBAG V2.0\n"
@@ -249,6 +258,7 @@ def read_fast(path: Path, mm: mmap.mmap) -> RecordingStats:
             acc.times.append(times)
             acc.nbytes += int(dlen[k:k + o.size].sum())
             k += o.size
+        release(mm, chunk_pos, pos)  # keep the resident set small however large the file
 
     out = Accumulator()
     for cid, conn in conns.items():
@@ -333,7 +343,12 @@ def read_stream(path: Path, mm: mmap.mmap) -> RecordingStats:
             nbytes[cid] = nbytes.get(cid, 0) + rec.data_len
 
     index_pos, chunk_count, chunks_seen = None, 0, 0
+    released = 0
     for rec in _records(mm, len(MAGIC), size):
+        if rec.end - released >= RELEASE_STEP:  # pages behind this record: unmap them
+            cut = rec.data_start - rec.data_start % mmap.PAGESIZE
+            release(mm, released, cut)
+            released = cut
         if rec.op == OP_BAG_HEADER:
             index_pos = _u64(rec.header, "index_pos")
             chunk_count = _u32(rec.header, "chunk_count")

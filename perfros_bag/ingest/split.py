@@ -31,7 +31,7 @@ import numpy as np
 
 from perfros_bag.errors import InputError
 from perfros_bag.ingest import detect_format, mcapfile, read_recording, rosbag1
-from perfros_bag.ingest._accum import I64, U8, Accumulator, Damaged, NoIndex, gather_u64
+from perfros_bag.ingest._accum import I64, U8, Accumulator, Damaged, NoIndex, gather_u64, release
 from perfros_bag.ingest.rosbag2 import open_mmap
 from perfros_bag.ingest.stats import RecordingStats
 
@@ -149,16 +149,6 @@ def read_split(path: str | Path, *, scheduler: str | None = None, workers: int |
         if outcome.error is not None:
             raise outcome.error
     return merge_parts(plan, [o.value for o in outcomes])
-
-
-def release(mm: mmap.mmap, start: int, end: int) -> None:
-    """Unmap the pages of ``[start, end)`` that this process touched (they stay in the page
-    cache). Without it the resident set of a reader walking one mmap of a 2 GB file grows
-    to the file's size, though nothing is copied: RSS counts mapped page-cache pages."""
-    lo = start - start % mmap.PAGESIZE
-    hi = min(end, len(mm))
-    if hi > lo and hasattr(mm, "madvise"):  # no madvise on Windows
-        mm.madvise(mmap.MADV_DONTNEED, lo, hi - lo)
 
 
 # --------------------------------------------------------------------------- ROS 1

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from perfros_bag.ingest._accum import I64, U8, NoIndex
+from perfros_bag.ingest._accum import I64, U8, NoIndex, release
 
 _WIDTH = np.array([0, 1, 2, 3, 4, 6, 8, -1, 0, 0], dtype=np.int64)  # serial type -> int width
 MESSAGES_COLUMNS = ["id", "topic_id", "timestamp", "data"]
@@ -33,6 +33,26 @@ def _be(buf: U8, pos: I64, width: int) -> I64:
     for k in range(width):
         val = (val << 8) | buf[pos + k].astype(np.int64)
     return val
+
+
+SLICE = 1 << 16  # positions per slice of a page-releasing gather
+
+
+def _be_released(mm: mmap.mmap | None, buf: U8, pos: I64, width: int) -> I64:
+    """:func:`_be` in slices, unmapping the pages each slice touched (see
+    :func:`perfros_bag.ingest._accum.release`): reading one value from every page of a large
+    file would otherwise keep the whole file resident."""
+    if mm is None or pos.size <= SLICE:
+        val = _be(buf, pos, width)
+        if mm is not None and pos.size:
+            release(mm, int(pos.min()), int(pos.max()) + width)
+        return val
+    out = np.empty(pos.size, dtype=np.int64)
+    for a in range(0, pos.size, SLICE):
+        part = pos[a:a + SLICE]
+        out[a:a + SLICE] = _be(buf, part, width)
+        release(mm, int(part.min()), int(part.max()) + width)
+    return out
 
 
 def _interior_children(buf: U8, off: int, hdr: int, page_size: int) -> list[int]:
@@ -47,7 +67,8 @@ def _interior_children(buf: U8, off: int, hdr: int, page_size: int) -> list[int]
     return [int(c) for c in children]
 
 
-def _leaves(buf: U8, root: int, page_size: int, n_pages: int) -> I64:
+def _leaves(buf: U8, root: int, page_size: int, n_pages: int,
+            mm: mmap.mmap | None = None) -> I64:
     """Leaf pages of the table B-tree under ``root`` (interior pages walked level by level)."""
     seen = np.zeros(n_pages + 1, dtype=bool)
     leaves: list[I64] = []
@@ -59,7 +80,7 @@ def _leaves(buf: U8, root: int, page_size: int, n_pages: int) -> I64:
         seen[level] = True
         if int(np.count_nonzero(seen)) - before != level.size:
             raise NoIndex("repeated page number in the messages B-tree")
-        flags = buf[(level - 1) * page_size]
+        flags = _be_released(mm, buf, (level - 1) * page_size, 1)
         if not np.all((flags == 0x0D) | (flags == 0x05)):
             raise NoIndex("a page of the messages B-tree is not a table B-tree page")
         leaves.append(level[flags == 0x0D])
@@ -196,9 +217,9 @@ def read_messages(mm: mmap.mmap, root: int, expected_rows: int) -> tuple[I64, I6
         raise NoIndex("bad page size")
     usable = page_size - int(buf[20])
     n_pages = buf.size // page_size
-    leaves = _leaves(buf, root, page_size, n_pages)
+    leaves = _leaves(buf, root, page_size, n_pages, mm)
     off = (leaves - 1) * page_size
-    ncells = _be(buf, off + 3, 2)
+    ncells = _be_released(mm, buf, off + 3, 2)
     if np.any(8 + 2 * ncells > usable):
         raise NoIndex("leaf cell count out of range")
     total = int(ncells.sum())
@@ -211,12 +232,15 @@ def read_messages(mm: mmap.mmap, root: int, expected_rows: int) -> tuple[I64, I6
     first = np.repeat(np.cumsum(ncells) - ncells, ncells)
     j = np.arange(total, dtype=np.int64) - first
     base = off[page_of]
-    ptr = _be(buf, base + 8 + 2 * j, 2)
+    ptr = _be_released(mm, buf, base + 8 + 2 * j, 2)
     if int(ptr.min()) < 8 or int(ptr.max()) + 4 > usable:
         raise NoIndex("leaf cell outside its page")
     cell = base + ptr
     page_end = base + usable
-    parts = [_cells(buf, cell[a:a + BATCH], page_end[a:a + BATCH]) for a in range(0, total, BATCH)]
+    parts = []
+    for a in range(0, total, BATCH):
+        parts.append(_cells(buf, cell[a:a + BATCH], page_end[a:a + BATCH]))
+        release(mm, int(cell[a:a + BATCH].min()), int(cell[a:a + BATCH].max()) + W)
     if len(parts) == 1:
         return parts[0]
     return (np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]),
