@@ -46,7 +46,12 @@ TIME_BUDGET_S = 60.0  # safety net: stop improving after this long (the plan sta
 SEARCH_BUDGET = 20_000
 
 
-def solve_greedy_plus(system: System, problem: int, choices: dict[str, list[Choice]]) -> Plan:
+def solve_greedy_plus(system: System, problem: int, choices: dict[str, list[Choice]], *,
+                      time_budget: float | None = None) -> Plan:
+    """The greedy, then local search. ``time_budget`` (seconds, default
+    :data:`TIME_BUDGET_S`) bounds the whole search: the plan found by then is returned
+    (the exact solver's dispatcher uses it to get a MIP start on big instances)."""
+    deadline = time.monotonic() + (TIME_BUDGET_S if time_budget is None else max(time_budget, 0.0))
     state, reason = run_greedy(system, problem, choices)
     if reason is not None:
         found = feasible_start(system, problem, choices)
@@ -59,7 +64,7 @@ def solve_greedy_plus(system: System, problem: int, choices: dict[str, list[Choi
         for c in state.computers:
             if state.kind[c] == "server":
                 state.cap[c] = state.maxcap[c]
-    improver = Improver(state)
+    improver = Improver(state, deadline=deadline)
     improver.run()
     kick(improver)
     return state.plan("greedy+")
@@ -78,7 +83,7 @@ def kick(improver: Improver, *, seed: int = 0) -> None:
     improver.trios = False
     best = improver.current(s.nodes)
     snap = s.snapshot()
-    stop = time.monotonic() + TIME_BUDGET_S
+    stop = improver.stop()
     bound = _bound(s)
     idle = 0
     for _ in range(KICKS):
@@ -183,8 +188,9 @@ class Improver:
     REPARTITION = 10
     TRIO_LIMIT = 20_000
 
-    def __init__(self, state: State) -> None:
+    def __init__(self, state: State, *, deadline: float | None = None) -> None:
         self.s = state
+        self.deadline = deadline  # time.monotonic() after which no search starts
         self.scale = _grid_scale(state) if state.problem == 1 else None
         self.tables: dict[tuple[str, frozenset[str]], np.ndarray] = {}
         self.items: dict[str, tuple[np.ndarray, np.ndarray]] = {}
@@ -260,9 +266,14 @@ class Improver:
         return sum(s.weight[n] * s.choice(n).performance for n in nodes)
 
     # ---- search --------------------------------------------------------------------
+    def stop(self) -> float:
+        """When a search starting now must stop (:data:`TIME_BUDGET_S`, or the deadline)."""
+        stop = time.monotonic() + TIME_BUDGET_S
+        return stop if self.deadline is None else min(stop, self.deadline)
+
     def run(self) -> None:
         s = self.s
-        stop = time.monotonic() + TIME_BUDGET_S
+        stop = self.stop()
         for _ in range(MAX_ROUNDS):
             if time.monotonic() > stop or not self._step():
                 break
