@@ -22,7 +22,8 @@ import csv
 import io
 import math
 import warnings
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any
@@ -82,6 +83,25 @@ class Result:
 
 
 # --------------------------------------------------------------------------- per recording
+
+
+#: What a reader may raise on a case it did not foresee (read_recording turns everything it
+#: knows into an InputError); the recording is reported as unreadable, never a traceback.
+UNFORESEEN: tuple[type[Exception], ...] = (OSError, ValueError, KeyError, IndexError, EOFError)
+
+
+@contextmanager
+def reporting(entry: RecordingEntry) -> Iterator[None]:
+    """Turn an unforeseen exception raised while characterising ``entry`` into the
+    :class:`PerfrosError` the user sees. The one conversion: the local loop and the Dask
+    tasks (perfros_bag/fleet.py, on the workers) both run inside it, so a recording fails
+    with the same words whether or not ``--workers``/``--scheduler`` is given."""
+    try:
+        yield
+    except PerfrosError:
+        raise
+    except UNFORESEEN as exc:
+        raise PerfrosError(f"{entry.path}: cannot read: {type(exc).__name__}: {exc}") from None
 
 
 def characterise_recording(entry: RecordingEntry, system: System | None = None, *,
@@ -257,11 +277,10 @@ def characterise(entries: Sequence[RecordingEntry], system: System | None = None
     for entry in entries:
         failure = None
         try:
-            rows.extend(characterise_recording(entry, system, fast=fast))
+            with reporting(entry):
+                rows.extend(characterise_recording(entry, system, fast=fast))
         except PerfrosError as exc:
             failure = Failure(entry.name, str(exc))
-        except (OSError, ValueError, KeyError, IndexError, EOFError) as exc:  # a reader's unforeseen case
-            failure = Failure(entry.name, f"{entry.path}: cannot read: {type(exc).__name__}: {exc}")
         if failure is not None:
             failures.append(failure)
         if on_done is not None:

@@ -63,11 +63,12 @@ def plan_units(entries: Sequence[RecordingEntry], *, fast: bool = True,
 
 def run_unit(unit: Unit, system: System | None, fast: bool) -> Any:
     """On a worker: a recording's rows, or a part's partial statistics."""
-    from perfros_bag.characterise import characterise_recording
+    from perfros_bag.characterise import characterise_recording, reporting
 
     if unit.part is not None:
         return read_part(unit.part)
-    return characterise_recording(unit.entry, system, fast=fast)
+    with reporting(unit.entry):  # the local loop's wording for an unforeseen exception
+        return characterise_recording(unit.entry, system, fast=fast)
 
 
 def characterise_on_dask(entries: Sequence[RecordingEntry], system: System | None, *,
@@ -77,7 +78,7 @@ def characterise_on_dask(entries: Sequence[RecordingEntry], system: System | Non
                          split_bytes: int = SPLIT_BYTES,
                          part_bytes: int = PART_BYTES) -> list[Outcome[list[Row]]]:
     """One outcome (rows or error) per entry, in entry order."""
-    from perfros_bag.characterise import characterise_recording
+    from perfros_bag.characterise import characterise_recording, reporting
 
     entries = list(entries)
     units, plans = plan_units(entries, fast=fast, split_bytes=split_bytes, part_bytes=part_bytes)
@@ -93,8 +94,9 @@ def characterise_on_dask(entries: Sequence[RecordingEntry], system: System | Non
         if failed is not None:
             return Outcome(entry.name, error=failed.error)
         try:
-            stats = merge_parts(plans[i], [o.value for o in outcomes])
-            rows = characterise_recording(entry, system, fast=fast, stats=stats)
+            with reporting(entry):
+                stats = merge_parts(plans[i], [o.value for o in outcomes])
+                rows = characterise_recording(entry, system, fast=fast, stats=stats)
         except PerfrosError as exc:
             return Outcome(entry.name, error=exc)
         return Outcome(entry.name, value=rows)

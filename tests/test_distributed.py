@@ -218,3 +218,39 @@ def test_fleet_splits_large_recordings_and_gives_the_local_rows(cluster: str, tm
     assert any(r.cpu_units_mean for r in rows if r.recording == "big.bag")
     errors = {o.label: str(o.error) for o in remote if o.error is not None}
     assert errors == {f.recording: f.message for f in local.failures} and list(errors) == ["cut.mcap"]
+
+
+class UnforeseenSettings(dict[str, Any]):
+    """Settings whose lookup fails as a reader's unforeseen bug would (KeyError): shipped to
+    the workers by value with this module, so the real characterise code fails there too."""
+
+    def get(self, key: str, default: Any = None) -> Any:
+        raise KeyError(f"unforeseen {key}")
+
+
+def test_unforeseen_exception_reads_the_same_locally_and_on_dask(cluster: str, tmp_path: Path) -> None:
+    from perfros_bag.characterise import characterise
+    from perfros_bag.fleet import characterise_on_dask
+    from perfros_bag.manifest import RecordingEntry
+    from tests.bench.gen_corpus import default_topics, write_recording
+
+    for name, secs in (("good.bag", 1.0), ("odd.bag", 1.0), ("odd_big.bag", 8.0)):
+        write_recording(tmp_path / name, "ros1", default_topics(0.02), secs, chunk_bytes=8000)
+    entries = [RecordingEntry(tmp_path / "good.bag", "good.bag"),
+               RecordingEntry(tmp_path / "odd.bag", "odd.bag", settings=UnforeseenSettings()),
+               RecordingEntry(tmp_path / "odd_big.bag", "odd_big.bag", settings=UnforeseenSettings())]
+
+    local = characterise(entries)
+    expected = {f.recording: f.message for f in local.failures}
+    assert expected == {n: f"{tmp_path / n}: cannot read: KeyError: 'unforeseen /camera_driver'"
+                        for n in ("odd.bag", "odd_big.bag")}
+    assert local.rows and {r.recording for r in local.rows} == {"good.bag"}
+
+    remote = characterise(entries, scheduler=cluster)  # one task per recording
+    assert {f.recording: f.message for f in remote.failures} == expected
+    assert remote.rows == local.rows and remote.exit_code == local.exit_code == 1
+
+    # odd_big.bag split into chunk-range tasks: the rows are built on the client after the merge
+    split = characterise_on_dask(entries, None, scheduler=cluster, split_bytes=100_000,
+                                 part_bytes=20_000)
+    assert {o.label: str(o.error) for o in split if o.error is not None} == expected

@@ -34,6 +34,16 @@ def release(mm: mmap.mmap, start: int, end: int) -> None:
         mm.madvise(mmap.MADV_DONTNEED, lo, hi - lo)
 
 
+def close_mmap(mm: mmap.mmap) -> None:
+    """Close ``mm``; if a numpy view of it is still referenced (on a Dask worker the
+    statistical profiler can hold a reader's finished frame for a moment), leave the
+    mapping to be freed with the last view instead of failing a read that succeeded."""
+    try:
+        mm.close()
+    except BufferError:
+        pass
+
+
 class Damaged(Exception):  # noqa: N818 - internal signal, never escapes read_recording
     """The file's structure is inconsistent; the caller turns it into an InputError or falls back."""
 

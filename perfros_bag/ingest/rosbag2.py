@@ -41,7 +41,7 @@ import numpy as np
 
 from perfros_bag.errors import InputError, PerfrosWarning
 from perfros_bag.ingest import mcapfile, sqlitepages
-from perfros_bag.ingest._accum import I64, Accumulator, Damaged, NoIndex, describe
+from perfros_bag.ingest._accum import I64, Accumulator, Damaged, NoIndex, close_mmap, describe
 
 STORAGE_SUFFIXES = {".db3": "sqlite3", ".mcap": "mcap"}
 ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"
@@ -158,7 +158,8 @@ def open_mmap(path: Path) -> Iterator[mmap.mmap]:
         try:
             yield mm
         finally:
-            mm.close()
+            close_mmap(mm)
+
 
 
 @contextmanager

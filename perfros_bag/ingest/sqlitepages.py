@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from perfros_bag.ingest._accum import I64, U8, NoIndex, release
+from perfros_bag.ingest._accum import I64, U8, NoIndex, close_mmap, release
 
 _WIDTH = np.array([0, 1, 2, 3, 4, 6, 8, -1, 0, 0], dtype=np.int64)  # serial type -> int width
 MESSAGES_COLUMNS = ["id", "topic_id", "timestamp", "data"]
@@ -275,4 +275,4 @@ def read_file(db: Path, con: object) -> tuple[I64, I64, I64]:
         try:
             return read_messages(mm, root, int(count))
         finally:
-            mm.close()
+            close_mmap(mm)
