@@ -12,7 +12,9 @@ signature ``(system, problem, choices) -> Plan`` (the exact solver also takes
 
 - ``greedy``      :func:`perfros_bag.solve.greedy.solve_greedy` (the paper's Algorithms 1-3)
 - ``greedy+``     :func:`perfros_bag.solve.local.solve_greedy_plus` (greedy + local search)
-- ``exact``       ``perfros_bag.solve.exact.solve_exact(system, problem, choices, *, time_limit=None)``
+- ``exact``       ``perfros_bag.solve.exact.solve_exact(system, problem, choices, *, time_limit=None)``;
+  on Problem 1 above :data:`START_COLUMNS` columns :func:`solve` first runs greedy+ for
+  :data:`START_SHARE` of ``time_limit`` and passes its plan as the MIP start
 - ``bruteforce``  :func:`perfros_bag.solve.bruteforce.solve_bruteforce` (tiny instances)
 
 ``settings`` (Problem 2) maps node -> **CPU level** (units of the system's CPU scale).
@@ -33,7 +35,8 @@ from perfros_bag.plan import Assignment, Plan
 
 METHODS: tuple[str, ...] = ("greedy", "greedy+", "exact", "bruteforce")
 
-__all__ = ["METHODS", "fixed_choices", "settings_from_plan", "settings_from_values", "solve"]
+__all__ = ["METHODS", "START_COLUMNS", "START_SHARE", "exact_columns", "fixed_choices", "settings_from_plan",
+           "settings_from_values", "solve", "start_of"]
 
 
 def _where(system: System) -> str | None:
