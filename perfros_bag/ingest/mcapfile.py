@@ -154,16 +154,17 @@ def decompress(compression: str, data: Buf, usize: int) -> bytes:
     if compression == "zstd":
         import zstandard
 
-        raw = bytes(data)
-        declared = zstandard.frame_content_size(raw[:18]) if len(raw) >= 18 else -1
+        # zstandard and lz4 read any buffer: no copy of the compressed bytes out of the mmap
+        view = memoryview(data)
+        declared = zstandard.frame_content_size(view[:18]) if len(view) >= 18 else -1
         if declared == usize:  # one allocation of the right size
-            out = zstandard.ZstdDecompressor().decompress(raw)
+            out = zstandard.ZstdDecompressor().decompress(view)
         else:  # no content size in the frame: grow as needed (never trust usize to allocate)
-            out = zstandard.ZstdDecompressor().decompressobj().decompress(raw)
+            out = zstandard.ZstdDecompressor().decompressobj().decompress(view)
     elif compression == "lz4":
         import lz4.frame
 
-        out = lz4.frame.decompress(bytes(data))
+        out = lz4.frame.decompress(memoryview(data))
     elif compression == "":
         out = bytes(data)
     else:
@@ -313,73 +314,10 @@ def read_fast(mm: mmap.mmap, message_zstd: bool = False) -> Accumulator:
     chunks, count = _summary(mm, st)
     if not chunks and count != 0:
         raise NoIndex("no chunk index")
-    size = len(mm)
-    whole: U8 = np.frombuffer(mm, dtype=np.uint8)
     total = 0
     for ci in chunks:
-        op, start, length = _record(mm, ci.chunk_start, size)
-        if op != OP_CHUNK:
-            raise NoIndex(f"chunk index points at a non-chunk record (byte {ci.chunk_start})")
-        compression, rstart, rlen, usize = _chunk_records(mm, start, length)
-        if usize and not ci.index_offsets:
-            raise NoIndex("chunk without message indexes")
-        if compression == "":
-            buf, base, blen = whole, rstart, rlen
-        else:
-            raw = decompress(compression, memoryview(mm)[rstart:rstart + rlen], usize)
-            buf, base, blen = np.frombuffer(raw, dtype=np.uint8), 0, len(raw)
-        cids: list[int] = []
-        parts: list[npt.NDArray[np.uint64]] = []
-        for cid, ipos in ci.index_offsets.items():
-            op, istart, ilen = _record(mm, ipos, size)
-            if op != OP_MESSAGE_INDEX:
-                raise NoIndex("message-index offset does not point at a message index")
-            c = _Cursor(mm, istart, istart + ilen)
-            if c.u16() != cid:
-                raise NoIndex("message index for the wrong channel")
-            ppos, plen = c.skip_prefixed()
-            if plen % 16:
-                raise NoIndex("malformed message index")
-            cids.append(cid)
-            parts.append(np.frombuffer(mm, dtype="<u8", count=plen // 8, offset=ppos).reshape(-1, 2))
-        counts = np.array([len(p) for p in parts], dtype=np.int64)
-        n = int(counts.sum())
-        if n == 0:
-            release(mm, ci.chunk_start, ci.chunk_start + ci.chunk_length + ci.index_length)
-            continue
-        pairs = np.concatenate(parts)
-        if int(pairs.max()) >= 2**62:
-            raise NoIndex("log time or offset out of range")
-        offs = pairs[:, 1].astype(np.int64)
-        if int(offs.max()) + 9 + MSG_HEADER > blen:
-            raise NoIndex("message-index offset outside its chunk")
-        at = base + offs
-        if not np.all(buf[at] == OP_MESSAGE):
-            raise NoIndex("message-index offset does not point at a message")
-        lengths = gather_u64(buf, at + 1)
-        ends = offs + 9 + lengths
-        if int(lengths.min()) < MSG_HEADER or int(ends.max()) > blen:
-            raise NoIndex("indexed message overruns its chunk")
-        chan = np.lib.stride_tricks.sliding_window_view(buf, 2)[at + 9].view("<u2").reshape(-1)
-        if np.any(chan != np.repeat(np.array(cids, dtype=np.uint16), counts)):
-            raise NoIndex("message index points at another channel's message")
-        order = np.argsort(offs, kind="stable")
-        if np.any(offs[order][1:] < ends[order][:-1]):
-            raise NoIndex("indexed message records overlap")
-        if message_zstd:
-            per = [zstd_payload_sizes(buf, base + o + 9 + MSG_HEADER, ln - MSG_HEADER)
-                   for o, ln in zip(np.split(offs, np.cumsum(counts)[:-1]),
-                                    np.split(lengths, np.cumsum(counts)[:-1]), strict=True)]
-        else:
-            starts = np.cumsum(counts) - counts
-            sums = np.add.reduceat(lengths, starts) if n else np.zeros(len(cids), np.int64)
-            per = [int(x) - MSG_HEADER * int(k) if k else 0 for x, k in zip(sums.tolist(), counts.tolist(), strict=True)]
-        times = pairs[:, 0].astype(np.int64)
-        k = 0
-        for cid, cnt, nbytes in zip(cids, counts.tolist(), per, strict=True):
-            st.add(cid, times[k:k + cnt], nbytes)
-            k += cnt
-        total += n
+        buf, base, blen = _load_chunk(mm, ci)
+        total += _index_chunk(mm, ci, buf, base, blen, st, message_zstd)
         # keep the resident set small however large the file (see _accum.release)
         release(mm, ci.chunk_start, ci.chunk_start + ci.chunk_length + ci.index_length)
     if count is not None and count != total:
@@ -387,6 +325,77 @@ def read_fast(mm: mmap.mmap, message_zstd: bool = False) -> Accumulator:
     acc = st.accumulator()
     acc.method = "index"
     return acc
+
+
+def _load_chunk(mm: mmap.mmap, ci: _ChunkIndex) -> tuple[U8, int, int]:
+    """(buffer, records start in it, records length) of an indexed chunk."""
+    op, start, length = _record(mm, ci.chunk_start, len(mm))
+    if op != OP_CHUNK:
+        raise NoIndex(f"chunk index points at a non-chunk record (byte {ci.chunk_start})")
+    compression, rstart, rlen, usize = _chunk_records(mm, start, length)
+    if usize and not ci.index_offsets:
+        raise NoIndex("chunk without message indexes")
+    if compression == "":
+        return np.frombuffer(mm, dtype=np.uint8), rstart, rlen
+    raw = decompress(compression, memoryview(mm)[rstart:rstart + rlen], usize)
+    return np.frombuffer(raw, dtype=np.uint8), 0, len(raw)
+
+
+def _index_chunk(mm: mmap.mmap, ci: _ChunkIndex, buf: U8, base: int, blen: int, st: _State,
+                 message_zstd: bool) -> int:
+    """Adds one chunk's indexed messages to ``st``; returns their number."""
+    size = len(mm)
+    cids: list[int] = []
+    parts: list[npt.NDArray[np.uint64]] = []
+    for cid, ipos in ci.index_offsets.items():
+        op, istart, ilen = _record(mm, ipos, size)
+        if op != OP_MESSAGE_INDEX:
+            raise NoIndex("message-index offset does not point at a message index")
+        c = _Cursor(mm, istart, istart + ilen)
+        if c.u16() != cid:
+            raise NoIndex("message index for the wrong channel")
+        ppos, plen = c.skip_prefixed()
+        if plen % 16:
+            raise NoIndex("malformed message index")
+        cids.append(cid)
+        parts.append(np.frombuffer(mm, dtype="<u8", count=plen // 8, offset=ppos).reshape(-1, 2))
+    counts = np.array([len(p) for p in parts], dtype=np.int64)
+    n = int(counts.sum())
+    if n == 0:
+        return 0
+    pairs = np.concatenate(parts)
+    if int(pairs.max()) >= 2**62:
+        raise NoIndex("log time or offset out of range")
+    offs = pairs[:, 1].astype(np.int64)
+    if int(offs.max()) + 9 + MSG_HEADER > blen:
+        raise NoIndex("message-index offset outside its chunk")
+    at = base + offs
+    if not np.all(buf[at] == OP_MESSAGE):
+        raise NoIndex("message-index offset does not point at a message")
+    lengths = gather_u64(buf, at + 1)
+    ends = offs + 9 + lengths
+    if int(lengths.min()) < MSG_HEADER or int(ends.max()) > blen:
+        raise NoIndex("indexed message overruns its chunk")
+    chan = buf[at + 9].astype(np.uint16) | (buf[at + 10].astype(np.uint16) << 8)  # u16 LE
+    if np.any(chan != np.repeat(np.array(cids, dtype=np.uint16), counts)):
+        raise NoIndex("message index points at another channel's message")
+    order = np.argsort(offs, kind="stable")
+    if np.any(offs[order][1:] < ends[order][:-1]):
+        raise NoIndex("indexed message records overlap")
+    if message_zstd:
+        per = [zstd_payload_sizes(buf, base + o + 9 + MSG_HEADER, ln - MSG_HEADER)
+               for o, ln in zip(np.split(offs, np.cumsum(counts)[:-1]),
+                                np.split(lengths, np.cumsum(counts)[:-1]), strict=True)]
+    else:
+        starts = np.cumsum(counts) - counts
+        sums = np.add.reduceat(lengths, starts) if n else np.zeros(len(cids), np.int64)
+        per = [int(x) - MSG_HEADER * int(k) if k else 0 for x, k in zip(sums.tolist(), counts.tolist(), strict=True)]
+    times = pairs[:, 0].astype(np.int64)
+    k = 0
+    for cid, cnt, nbytes in zip(cids, counts.tolist(), per, strict=True):
+        st.add(cid, times[k:k + cnt], nbytes)
+        k += cnt
+    return n
 
 
 def read(mm: mmap.mmap, fast: bool = True, message_zstd: bool = False) -> Accumulator:

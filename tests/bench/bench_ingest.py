@@ -19,6 +19,7 @@ Ratios: any/ours (target >= 20x on "small"), raw/ours = fraction of the raw read
 (target >= 30 % on "big"), rosbag/ours. Counts and bytes of ours and AnyReader are compared.
 
     .venv/bin/python tests/bench/bench_ingest.py [--scale 0.1] [--data DIR] [--skip-baselines]
+        [--only big:mcap-zstd ...]
 """
 
 from __future__ import annotations
@@ -159,6 +160,8 @@ def main() -> None:
     ap.add_argument("--scale", type=float, default=1.0, help="dataset size factor (1 = 500 MB / 1M msgs)")
     ap.add_argument("--data", type=Path, default=HERE / "data" / "ingest")
     ap.add_argument("--skip-baselines", action="store_true", help="no AnyReader / python3-rosbag runs")
+    ap.add_argument("--only", action="append", default=[], metavar="KIND:FORMAT",
+                    help="run only these rows, e.g. big:mcap-zstd (repeatable; KIND or FORMAT alone matches all)")
     args, _ = ap.parse_known_args()
     args.data.mkdir(parents=True, exist_ok=True)
 
@@ -168,6 +171,8 @@ def main() -> None:
     rows = []
     for kind in ("big", "small"):
         for fmt in FORMATS:
+            if args.only and not any(_selected(sel, kind, fmt) for sel in args.only):
+                continue
             path = generate(args.data, kind, fmt, args.scale)
             size = sum(p.stat().st_size for p in files_of(path))
             cat(path)  # warm the page cache
@@ -215,6 +220,12 @@ def main() -> None:
     if any(r.get("agree") is False for r in rows):
         print("DISAGREEMENT between perfros-bag and a baseline reader")
         sys.exit(1)
+
+
+def _selected(sel: str, kind: str, fmt: str) -> bool:
+    """``--only`` value ``KIND:FORMAT``, ``KIND`` or ``FORMAT`` matches this row."""
+    k, _, f = sel.partition(":")
+    return (k == kind and f in ("", fmt)) or (not f and k == fmt)
 
 
 def _line(r: dict[str, object]) -> str:
