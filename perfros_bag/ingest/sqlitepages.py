@@ -252,15 +252,17 @@ def _cells(buf: U8, cell: I64, page_end: I64) -> tuple[I64, I64, I64]:
     sizes = (t_data - 12) // 2
     w_topic, w_time = WIDTH256[t_top], WIDTH256[t_time]
     body = r + 4 + nd  # = r + hsize where ok (a damaged hsize must not move the reads)
-    ok &= (t_data >= 12) & (t_data % 2 == 0) & (cell + body + w_topic + w_time <= page_end)
-    ok &= _varint_n([m[:, k] for k in range(4)], n1) == hsize + w_topic + w_time + sizes
-    safe_top = np.where(ok, t_top, 8)
+    values = w_topic + w_time
+    ok &= (t_data >= 12) & ((t_data & 1) == 0) & (cell + body + values <= page_end)
+    ok &= _varint_n([m[:, k] for k in range(4)], n1) == hsize + values + sizes
+    all_ok = bool(ok.all())
+    safe_top = t_top if all_ok else np.where(ok, t_top, 8)
     if int(w_topic.max()) <= 1:  # topic ids 0-127: one signed byte, or types 8 / 9 (0, 1)
         topic = np.where(w_topic == 1, flat.view(np.int8)[rowbase + body], safe_top == 9).astype(np.int64)
     else:
         topic = _mint(flat, rowbase, body, safe_top)
-    time = _mint(flat, rowbase, body + w_topic, np.where(ok, t_time, 8))
-    if not ok.all():
+    time = _mint(flat, rowbase, body + w_topic, t_time if all_ok else np.where(ok, t_time, 8))
+    if not all_ok:
         bad = np.flatnonzero(~ok)
         topic[bad], time[bad], sizes[bad] = _cells_general(m[bad], cell[bad], page_end[bad])
     return topic, time, sizes
