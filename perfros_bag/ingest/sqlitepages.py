@@ -163,21 +163,22 @@ def _mint(m: U8, rowbase: I64, col: I64, types: I64) -> I64:
     return v
 
 
-def _window(buf: U8, cell: I64) -> U8:
-    """The W bytes at every cell as a (cells, W) matrix, gathered as whole rows of a strided view (no index matrix);
+def _window(buf: U8, cell: I64, w: int = W) -> U8:
+    """The ``w`` bytes at every cell as a (cells, w) matrix, gathered as whole rows of a strided view (no index matrix);
     cells closer than W to the end of the file read zero padding past it."""
-    view = np.lib.stride_tricks.sliding_window_view(buf, W)
-    near_end = cell > buf.size - W
+    view = np.lib.stride_tricks.sliding_window_view(buf, w)
+    near_end = cell > buf.size - w
     if not near_end.any():
         return view[cell]
     m = view[np.where(near_end, 0, cell)]
-    tail = np.concatenate([buf[buf.size - W:], np.zeros(W, dtype=np.uint8)])
-    tview = np.lib.stride_tricks.sliding_window_view(tail, W)
-    m[near_end] = tview[cell[near_end] - (buf.size - W)]
+    tail = np.concatenate([buf[buf.size - w:], np.zeros(w, dtype=np.uint8)])
+    tview = np.lib.stride_tricks.sliding_window_view(tail, w)
+    m[near_end] = tview[cell[near_end] - (buf.size - w)]
     return m
 
 
 K = 16  # leading bytes of a cell whose continuation bits fix the record header's layout
+WF = 32  # bytes per cell the fast path reads: a header within K bytes, then two <= 8-byte values
 VALID = np.zeros(256, dtype=bool)
 VALID[[1, 2, 3, 4, 5, 6, 8, 9]] = True  # integer serial types
 WIDTH256 = np.zeros(256, dtype=np.int64)
@@ -241,10 +242,10 @@ def _cells(buf: U8, cell: I64, page_end: I64) -> tuple[I64, I64, I64]:
     cell instead of a varint decode per field. Cells it does not accept (unusual layouts, or
     any failed check) go through :func:`_cells_general`, which decodes them varint by varint
     and raises :class:`NoIndex` on what is really wrong."""
-    m = _window(buf, cell)
+    m = _window(buf, cell, WF)
     n1, r, nd, ok = _lengths(_cont_bits(m))
     flat = m.reshape(-1)
-    rowbase = np.arange(cell.size, dtype=np.int64) * W
+    rowbase = np.arange(cell.size, dtype=np.int64) * WF
     hdr = np.lib.stride_tricks.sliding_window_view(flat, 8)[rowbase + r]
     hsize, t_top, t_time = hdr[:, 0], hdr[:, 2], hdr[:, 3]
     ok &= (hsize == 4 + nd) & (hdr[:, 1] == 0) & VALID[t_top] & VALID[t_time]
@@ -264,7 +265,7 @@ def _cells(buf: U8, cell: I64, page_end: I64) -> tuple[I64, I64, I64]:
     time = _mint(flat, rowbase, body + w_topic, t_time if all_ok else np.where(ok, t_time, 8))
     if not all_ok:
         bad = np.flatnonzero(~ok)
-        topic[bad], time[bad], sizes[bad] = _cells_general(m[bad], cell[bad], page_end[bad])
+        topic[bad], time[bad], sizes[bad] = _cells_general(_window(buf, cell[bad]), cell[bad], page_end[bad])
     return topic, time, sizes
 
 
