@@ -322,12 +322,10 @@ def read_messages(mm: mmap.mmap, root: int, expected_rows: int) -> tuple[I64, I6
     if total == 0:
         empty = np.empty(0, dtype=np.int64)
         return empty, empty.copy(), empty.copy()
-    page_of = np.repeat(np.arange(leaves.size), ncells)
-    first = np.repeat(np.cumsum(ncells) - ncells, ncells)
-    j = np.arange(total, dtype=np.int64) - first
-    base = off[page_of]
+    base = np.repeat(off, ncells)
     u16 = buf[:buf.size & ~1].view(">u2")  # cell pointers sit at even offsets of a page
-    at = (base + 8) // 2 + j
+    # u16 index of cell pointer j of a page: (page offset + 8) / 2 + j, with j = i - first(i)
+    at = np.repeat((off + 8) // 2 - (np.cumsum(ncells) - ncells), ncells) + np.arange(total, dtype=np.int64)
     ptr = np.empty(total, dtype=np.int64)
     for a in range(0, total, SLICE):  # pages released slice by slice, as in _be_released
         ptr[a:a + SLICE] = u16[at[a:a + SLICE]]
