@@ -447,6 +447,9 @@ def plan_system(plan: Plan, plan_path: Path) -> System | None:
                 warnings.warn(f"the plan's system could not be read ({exc}); going on without it",
                               PerfrosWarning, stacklevel=2)
                 return None
+    warnings.warn(f"the plan's system {plan.system!r} was not found (beside the plan or here): "
+                  "links are not checked and CPU traces match nodes by name only; pass --system",
+                  PerfrosWarning, stacklevel=2)
     return None
 
 

@@ -507,3 +507,17 @@ def test_cli_cpu_trace_matched_by_system_process_regex(tmp_path: Path, plan_file
     comp = {c["computer"]: c for c in doc["computers"]}
     assert comp["robot1"]["cpu_measured"] == pytest.approx((40 + 60) / 400 * 100)
     assert comp["server"]["cpu_measured"] == pytest.approx(8 / 400 * 400)
+
+
+def test_missing_plan_system_is_said_not_skipped_silently(tmp_path: Path) -> None:
+    import warnings
+
+    from perfros_bag.errors import PerfrosWarning
+    from perfros_bag.validate import plan_system
+
+    plan = parse_plan({**PLAN, "system": "gone/system.yaml"})
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        assert plan_system(plan, tmp_path / "plan.json") is None
+    messages = [str(w.message) for w in caught if issubclass(w.category, PerfrosWarning)]
+    assert len(messages) == 1 and "gone/system.yaml" in messages[0] and "--system" in messages[0]
