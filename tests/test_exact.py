@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 
 from perfros_bag.model import System
 from perfros_bag.plan import Assignment, Plan
-from perfros_bag.solve import fixed_choices
+from perfros_bag.solve import fixed_choices, start_of
 from perfros_bag.solve.bruteforce import solve_bruteforce
 from perfros_bag.solve.check import check_plan
 from perfros_bag.solve.exact import solve_exact
@@ -326,9 +326,8 @@ def test_mip_start_and_gap() -> None:
     choices = fixed_choices(system, 1)
     best = exact(system, 1)
     greedy = solve_greedy_plus(system, 1, choices)
-    by_cpu = {n: {c.cpu: c for c in choices[n]} for n in choices}
-    start = Assignment({n: p.computer for n, p in greedy.nodes.items()},
-                       {n: by_cpu[n][p.cpu] for n, p in greedy.nodes.items()})
+    start = start_of(greedy, choices)
+    assert start is not None
     warm = exact(system, 1, start=start)
     assert warm.status == "optimal" and warm.objective == pytest.approx(best.objective, abs=1e-7)
     # a loose gap: a feasible plan no worse than the gap allows, and an honest bound
@@ -353,9 +352,8 @@ def test_start_is_checked_and_the_lp_bound_can_prove_it() -> None:
     choices = fixed_choices(system, 1)
     best = exact(system, 1)
     greedy = solve_greedy(system, 1, choices)
-    by_cpu = {n: {c.cpu: c for c in choices[n]} for n in choices}
-    as_start = Assignment({n: p.computer for n, p in greedy.nodes.items()},
-                          {n: by_cpu[n][p.cpu] for n, p in greedy.nodes.items()})
+    as_start = start_of(greedy, choices)
+    assert as_start is not None
     # within a 50 % gap of the LP bound: the start comes back as it is, with that bound
     loose = exact(system, 1, mip_gap=0.5, start=as_start)
     assert loose.objective == pytest.approx(greedy.objective)
