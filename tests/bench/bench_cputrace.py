@@ -12,23 +12,15 @@ from __future__ import annotations
 import argparse
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+from _timing import best  # tests/bench/_timing.py (this folder is on sys.path)
+
 from perfros_bag.ingest.cputrace import node_cpu, read_cpu_trace, write_cpu_trace  # noqa: E402
-
-
-def best(fn: object, repeat: int) -> float:
-    times = []
-    for _ in range(repeat):
-        t = time.perf_counter()
-        fn()  # type: ignore[operator]
-        times.append(time.perf_counter() - t)
-    return min(times)
 
 
 def main() -> int:

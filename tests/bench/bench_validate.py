@@ -10,8 +10,9 @@ import argparse
 import json
 import sys
 import tempfile
-import time
 from pathlib import Path
+
+from _timing import best  # tests/bench/_timing.py (this folder is on sys.path)
 
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / "pipelines"))
@@ -29,15 +30,6 @@ def make_plan(nodes: int, path: Path) -> None:
         },
     }
     path.write_text(json.dumps(plan))
-
-
-def best(fn, repeat: int) -> float:  # type: ignore[no-untyped-def]
-    times = []
-    for _ in range(repeat):
-        t = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t)
-    return min(times)
 
 
 def main() -> None:
