@@ -40,6 +40,7 @@ from typing import Any
 import numpy as np
 
 from perfros_bag.errors import InputError, PerfrosWarning
+from perfros_bag.fileio import read_yaml
 from perfros_bag.ingest import mcapfile, sqlitepages
 from perfros_bag.ingest._accum import I64, Accumulator, Damaged, NoIndex, close_mmap, describe
 
@@ -66,28 +67,8 @@ def _natural_key(p: Path) -> list[Any]:
     return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", p.name)]
 
 
-def _read_metadata_yaml(path: Path) -> Any:
-    """Safe YAML load with libyaml when available (metadata with QoS strings takes ~0.1 s in
-    pure Python); errors as InputError like :func:`perfros_bag.fileio.read_yaml`."""
-    import yaml
-
-    loader = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
-    try:
-        text = path.read_text(encoding="utf-8")
-        return yaml.load(text, Loader=loader)  # noqa: S506 - a safe loader
-    except OSError as exc:
-        raise InputError(path, exc.strerror or str(exc)) from None
-    except UnicodeDecodeError as exc:
-        raise InputError(path, f"cannot read: {exc}") from None
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
-        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
-        raise InputError(path, f"invalid YAML{where}: {problem}") from None
-
-
 def parse_metadata(path: Path) -> Metadata:
-    doc = _read_metadata_yaml(path)
+    doc = read_yaml(path)
     info = doc.get("rosbag2_bagfile_information") if isinstance(doc, dict) else None
     if not isinstance(info, dict):
         raise InputError(path, "not rosbag2 metadata (no 'rosbag2_bagfile_information' mapping)")
