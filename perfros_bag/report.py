@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from perfros_bag.errors import InputError
-from perfros_bag.fileio import atomic_open, atomic_write_text, read_json
+from perfros_bag.fileio import atomic_open, atomic_write_text, read_json, read_text
 from perfros_bag.model import Curve
 from perfros_bag.plan import Plan
 
@@ -81,14 +81,12 @@ def table(headers: Sequence[str], rows: Iterable[Sequence[Any]], *, text_cols: I
 
 def read_characterisation(path: str | Path) -> tuple[list[str], list[dict[str, str]]]:
     p = Path(path)
+    text = read_text(p, "characterisation CSV", newline="")
     try:
-        with p.open(newline="", encoding="utf-8") as f:
-            reader = csv.DictReader(f)
-            rows = list(reader)
-            return list(reader.fieldnames or []), rows
-    except FileNotFoundError:
-        raise InputError(p, "file not found") from None
-    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+        reader = csv.DictReader(io.StringIO(text, newline=""))
+        rows = list(reader)
+        return list(reader.fieldnames or []), rows
+    except csv.Error as exc:
         raise InputError(p, f"cannot read the characterisation CSV: {exc}") from None
 
 
