@@ -266,6 +266,11 @@ def read_sqlite(db: Path, fast: bool = True, message_zstd: bool = False) -> Accu
             raise Damaged(f"not a rosbag2 sqlite3 database ({exc})") from None
         topics = {int(tid): (str(name), str(mtype or "")) for tid, name, mtype in topic_rows}
         (tids, times, sizes), acc.method = _columns(con, db, fast, message_zstd, wal)
+    grouped = sqlitepages.group_by_topic(tids, times, sizes, list(topics))
+    if grouped is not None:  # one counting sort in C
+        for (name, mtype), tt, nbytes in zip(topics.values(), *grouped, strict=True):
+            acc.add(name, mtype, tt, nbytes)
+        return acc
     if len(topics) <= 16:  # a mask per topic beats a sort of all rows
         known = np.zeros(tids.size, dtype=bool)
         for tid, (name, mtype) in topics.items():
