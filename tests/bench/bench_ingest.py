@@ -9,6 +9,7 @@ directory (rosbags writers) and a plain zstd-chunked MCAP (mcap writer).
 Measured in the same run, page cache warm (every file read once before timing):
   raw     `cat files > /dev/null` (best of 3)
   ours    read_recording(path) in-process (best of 3, imports warmed)
+  numpy   rosbag2 sqlite3 only: the same with the numpy page decoder instead of the C one
   cli     `perfros-bag info --json PATH` wall time (one run, includes interpreter start)
   any     rosbags AnyReader, loop over every raw message summing len(raw) (one run)
   rosbag  Debian python3-rosbag (ROS 1 only, /usr/bin/python3 subprocess): Bag(path) +
@@ -186,6 +187,8 @@ def main() -> None:
             row = {"kind": kind, "format": fmt, "MB": size / 1e6, "messages": rec.messages,
                    "method": rec.method, "raw_s": t_raw, "ours_s": t_ours, "cli_s": t_cli,
                    "raw_cpu": c_raw, "ours_cpu": c_ours}
+            if fmt == "rosbag2-sqlite3":  # the numpy page decoder (the fallback) in the same run
+                row["numpy_s"], row["numpy_cpu"] = _numpy_decoder(path)
             if not args.skip_baselines:
                 (n, nbytes), row["any_s"], row["any_cpu"] = timed(lambda p=path: anyreader(p))  # type: ignore[misc]
                 ours_bytes = sum(tp.bytes for tp in rec.topics.values())
@@ -208,6 +211,13 @@ def main() -> None:
     print(_table(rows, "cpu"))
     print()
     for r in rows:
+        if "numpy_s" in r:
+            print(f"{r['kind']:5s} {r['format']:16s} C page decoder vs numpy page decoder: "
+                  f"{float(r['numpy_s']) / float(r['ours_s']):.1f}x wall, "  # type: ignore[arg-type]
+                  f"{float(r['numpy_cpu']) / float(r['ours_cpu']):.1f}x CPU "  # type: ignore[arg-type]
+                  f"(numpy {float(r['numpy_s']):.3f} s wall, {float(r['numpy_cpu']):.3f} s CPU)")  # type: ignore[arg-type]
+    print()
+    for r in rows:
         for unit in ("s", "cpu"):
             ours = float(r[f"ours_{unit}"])  # type: ignore[arg-type]
             what = "wall" if unit == "s" else "cpu "
@@ -220,6 +230,26 @@ def main() -> None:
     if any(r.get("agree") is False for r in rows):
         print("DISAGREEMENT between perfros-bag and a baseline reader")
         sys.exit(1)
+
+
+def _numpy_decoder(path: Path) -> tuple[float, float]:
+    """Best-of-3 wall and CPU time of read_recording with the numpy page decoder (what runs
+    where the C extension is not built); its numbers must equal the C decoder's."""
+    from perfros_bag.ingest import read_recording, sqlitepages
+
+    saved = sqlitepages.DECODER
+    sqlitepages.DECODER = "numpy"
+    try:
+        by_numpy = read_recording(path)
+        t = best_of(3, lambda: read_recording(path))
+    finally:
+        sqlitepages.DECODER = saved
+    by_c = read_recording(path)
+    if any(x.messages != y.messages or x.bytes != y.bytes or not (x.times_ns == y.times_ns).all()
+           for x, y in zip(by_numpy.topics.values(), by_c.topics.values(), strict=True)):
+        print("DISAGREEMENT between the numpy and the C sqlite page decoders")
+        sys.exit(1)
+    return t
 
 
 def _selected(sel: str, kind: str, fmt: str) -> bool:
