@@ -39,7 +39,9 @@ def _sql(con: sqlite3.Connection) -> tuple[np.ndarray, ...]:
 def test_extension_is_built() -> None:
     """``make test`` builds the C decoder; a silent fallback to numpy would leave it untested
     (and the reader 5-8x slower on small messages)."""
-    assert sqlitepages.DECODER == "c"
+    assert sqlitepages.DECODER == "c", (
+        "perfros_bag/ingest/_sqlitecells.c is not built: reinstall with a C compiler "
+        "(rm .venv/.installed-stamp && make setup, or pip install -e .)")
 
 
 @pytest.mark.parametrize("decoder", DECODERS)
