@@ -34,6 +34,10 @@ typedef struct {
     Py_ssize_t cap, n;
     const char *err;
     uint64_t lo, hi; /* byte range read since the last release */
+    uint8_t *seen;   /* bitmap of the pages visited or queued */
+    uint32_t *stack; /* pages still to visit, the next one last */
+    uint64_t depth, room; /* entries on the stack, and its capacity */
+    int nomem;
 } Walk;
 
 /* A varint of at most 9 bytes at p: its length, 0 if it runs to ``end`` or past it. With
@@ -218,23 +222,31 @@ static int leaf(Walk *w, const uint8_t *page) {
 }
 
 /* Children of an interior page, pushed right to left so the leftmost is visited first. */
-static int interior(Walk *w, const uint8_t *page, uint32_t *stack, uint64_t *top, uint8_t *seen) {
+static int interior(Walk *w, const uint8_t *page) {
     const uint64_t usable = w->usable;
     uint64_t ncells = be16(page + 3);
-    if (12 + 2 * ncells > usable) return w->err = "interior page cell count out of range", -1;
+    if (12 + 2 * ncells > usable) FAIL("interior page cell count out of range");
+    uint64_t need = w->depth + ncells + 1;
+    if (need > w->room) { /* the stack holds about tree depth x fan-out pages: grow it */
+        uint64_t room = 2 * w->room > need ? 2 * w->room : need;
+        uint32_t *grown = realloc(w->stack, room * sizeof(uint32_t));
+        if (grown == NULL) return w->nomem = 1, -1;
+        w->stack = grown;
+        w->room = room;
+    }
     for (uint64_t j = ncells + 1; j-- > 0;) {
         uint64_t child;
         if (j == ncells) {
             child = be32(page + 8);
         } else {
             uint64_t ptr = be16(page + 12 + 2 * j);
-            if (ptr < 12 + 2 * ncells || ptr + 4 > usable) return w->err = "interior cell outside its page", -1;
+            if (ptr < 12 + 2 * ncells || ptr + 4 > usable) FAIL("interior cell outside its page");
             child = be32(page + ptr);
         }
-        if (child < 2 || child > w->n_pages || seen[child])
-            return w->err = "bad or repeated page number in the messages B-tree", -1;
-        seen[child] = 1;
-        stack[(*top)++] = (uint32_t)child;
+        if (child < 2 || child > w->n_pages || (w->seen[child >> 3] >> (child & 7) & 1))
+            FAIL("bad or repeated page number in the messages B-tree");
+        w->seen[child >> 3] |= (uint8_t)(1 << (child & 7));
+        w->stack[w->depth++] = (uint32_t)child;
     }
     return 0;
 }
@@ -271,8 +283,6 @@ static PyObject *decode(PyObject *self, PyObject *args) {
         return NULL;
     PyObject *result = NULL;
     int have_t = 0, have_s = 0, have_z = 0;
-    uint8_t *seen = NULL;
-    uint32_t *stack = NULL;
     if (i64_buffer(ot, &vt, "topic", 1) < 0) goto done;
     have_t = 1;
     if (i64_buffer(os, &vs, "time", 1) < 0) goto done;
@@ -288,7 +298,7 @@ static PyObject *decode(PyObject *self, PyObject *args) {
         goto done;
     }
     Walk w = {src.buf, page_size, usable, (uint64_t)src.len / page_size, vt.buf, vs.buf, vz.buf,
-              vt.len / 8, 0, NULL, UINT64_MAX, 0};
+              vt.len / 8, 0, NULL, UINT64_MAX, 0, NULL, NULL, 0, 64, 0};
     if (root < 2 || root > w.n_pages) {
         PyErr_SetString(Malformed, "bad root page of the messages table");
         goto done;
@@ -297,25 +307,25 @@ static PyObject *decode(PyObject *self, PyObject *args) {
         PyErr_SetString(Malformed, "file too large for an SQLite database");
         goto done;
     }
-    seen = calloc(w.n_pages + 1, 1);
-    stack = malloc((w.n_pages + 1) * sizeof(uint32_t));
-    if (seen == NULL || stack == NULL) {
+    w.seen = calloc(w.n_pages / 8 + 1, 1);
+    w.stack = malloc(w.room * sizeof(uint32_t));
+    if (w.seen == NULL || w.stack == NULL) {
         PyErr_NoMemory();
         goto done;
     }
-    uint64_t top = 0, since = 0;
-    stack[top++] = (uint32_t)root;
-    seen[root] = 1;
+    uint64_t since = 0;
+    w.stack[w.depth++] = (uint32_t)root;
+    w.seen[root >> 3] |= (uint8_t)(1 << (root & 7));
     int failed = 0;
     PyThreadState *ts = PyEval_SaveThread();
-    while (top && !w.err) {
-        uint64_t off = (uint64_t)(stack[--top] - 1) * page_size;
+    while (w.depth && !w.err && !w.nomem) {
+        uint64_t off = (uint64_t)(w.stack[--w.depth] - 1) * page_size;
         const uint8_t *page = w.buf + off;
         touched(&w, off);
         if (page[0] == 0x0D) {
             leaf(&w, page);
         } else if (page[0] == 0x05) {
-            interior(&w, page, stack, &top, seen);
+            interior(&w, page);
         } else {
             w.err = "a page of the messages B-tree is not a table B-tree page";
         }
@@ -330,6 +340,10 @@ static PyObject *decode(PyObject *self, PyObject *args) {
     }
     PyEval_RestoreThread(ts);
     if (failed) goto done;
+    if (w.nomem) {
+        PyErr_NoMemory();
+        goto done;
+    }
     if (w.err) {
         PyErr_SetString(Malformed, w.err);
         goto done;
@@ -337,8 +351,8 @@ static PyObject *decode(PyObject *self, PyObject *args) {
     if (call_release(release, &w) < 0) goto done;
     result = PyLong_FromSsize_t(w.n);
 done:
-    free(seen);
-    free(stack);
+    free(w.seen);
+    free(w.stack);
     if (have_t) PyBuffer_Release(&vt);
     if (have_s) PyBuffer_Release(&vs);
     if (have_z) PyBuffer_Release(&vz);
