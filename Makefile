@@ -11,12 +11,13 @@ DEBS ?= ros-core python3-rospy python3-rosbag chromium
 PYTEST_ARGS ?=
 OUT ?= out
 
-.PHONY: help setup setup-debs test lint bench demo clean
+.PHONY: help setup setup-debs test lint bench demo clean sanitize
 help:
 	@echo "make demo   - run the pipeline on the bundled fixtures (sets everything up)"
 	@echo "make test   - run the test suite (sets everything up)"
 	@echo "make lint   - ruff + mypy"
 	@echo "make bench  - benchmarks (results: docs/benchmarks.md)"
+	@echo "make sanitize - the C sqlite page decoder under ASan/UBSan with a long fuzz"
 	@echo "make paper  - the paper's Table II instances with every solver"
 	@echo "make casestudy - the case study on real ROS 1 nodes (long)"
 
@@ -47,6 +48,19 @@ lint: setup
 
 bench: setup setup-debs
 	$(PY) tests/bench/run.py
+
+# After changing perfros_bag/ingest/_sqlitecells.c: rebuild it with AddressSanitizer and
+# UBSan in place, run its tests with 6000 damaged files, then put the normal build back.
+EXT_SO = $(shell $(PY) -c 'import sysconfig; print("perfros_bag/ingest/_sqlitecells" + sysconfig.get_config_var("EXT_SUFFIX"))' 2>/dev/null)
+sanitize: setup
+	@set -e; cp $(EXT_SO) $(EXT_SO).keep; trap 'mv -f $(EXT_SO).keep $(EXT_SO)' EXIT; \
+	gcc -shared -fPIC -O1 -g -fsanitize=address,undefined -fno-omit-frame-pointer \
+	  -I"$$($(PY) -c 'import sysconfig; print(sysconfig.get_paths()["include"])')" \
+	  perfros_bag/ingest/_sqlitecells.c -o $(EXT_SO); \
+	ASAN_OPTIONS=detect_leaks=0 UBSAN_OPTIONS=halt_on_error=1:print_stacktrace=1 PERFROS_FUZZ_CASES=6000 \
+	LD_PRELOAD="$$(gcc -print-file-name=libasan.so) $$(gcc -print-file-name=libubsan.so)" \
+	  $(PY) -m pytest -q -p no:cacheprovider tests/test_ingest_sqlitepages.py tests/test_ingest_formats.py \
+	  tests/test_ingest_broken.py tests/test_ingest_memory.py
 
 clean:
 	rm -rf $(OUT) .pytest_cache .mypy_cache .ruff_cache
