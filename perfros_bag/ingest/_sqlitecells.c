@@ -283,6 +283,7 @@ static PyObject *decode(PyObject *self, PyObject *args) {
         return NULL;
     PyObject *result = NULL;
     int have_t = 0, have_s = 0, have_z = 0;
+    Walk w = {0}; /* zeroed first: every exit below frees w.seen and w.stack */
     if (i64_buffer(ot, &vt, "topic", 1) < 0) goto done;
     have_t = 1;
     if (i64_buffer(os, &vs, "time", 1) < 0) goto done;
@@ -297,8 +298,9 @@ static PyObject *decode(PyObject *self, PyObject *args) {
         PyErr_SetString(Malformed, "bad page size");
         goto done;
     }
-    Walk w = {src.buf, page_size, usable, (uint64_t)src.len / page_size, vt.buf, vs.buf, vz.buf,
-              vt.len / 8, 0, NULL, UINT64_MAX, 0, NULL, NULL, 0, 64, 0};
+    w = (Walk){.buf = src.buf, .page_size = page_size, .usable = usable,
+               .n_pages = (uint64_t)src.len / page_size, .topic = vt.buf, .time = vs.buf,
+               .size = vz.buf, .cap = vt.len / 8, .lo = UINT64_MAX, .room = 64};
     if (root < 2 || root > w.n_pages) {
         PyErr_SetString(Malformed, "bad root page of the messages table");
         goto done;

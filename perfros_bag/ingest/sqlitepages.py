@@ -14,7 +14,7 @@ the sum of the column sizes, cell count equals ``count(*)``); any surprise raise
 :class:`~perfros_bag.ingest._accum.NoIndex` and the caller uses SQL instead.
 
 Two implementations of the same decoder: the C extension ``_sqlitecells`` (one pass per cell,
-built at install time; ~8x less CPU on 1M small messages) and the numpy one below (whole-array
+built at install time; ~4x less CPU than numpy on 1M small messages) and the numpy one below (whole-array
 passes), used when the extension is not built (no C compiler) and compared against the C one
 and against SQLite itself in the tests. :data:`DECODER` says which one runs.
 """
