@@ -39,9 +39,9 @@ from rich.console import Console
 
 from perfros_bag.casestudy.launcher import RunConfig, run_plan
 from perfros_bag.fileio import atomic_write_json, atomic_write_text
-from perfros_bag.model import Choice, System
-from perfros_bag.plan import Assignment, Plan, build_plan, load_plan
-from perfros_bag.spec import load_system
+from perfros_bag.system.types import Choice, System
+from perfros_bag.system.plan import Assignment, Plan, build_plan, load_plan
+from perfros_bag.system.systemfile import load_system
 
 ROOT = Path(__file__).resolve().parent.parent
 BIN = Path(sys.executable).with_name("perfros-bag")

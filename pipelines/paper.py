@@ -22,8 +22,8 @@ from rich.progress import Progress
 from perfros_bag.fileio import atomic_write_json, atomic_write_text
 from perfros_bag.solve import solve
 from perfros_bag.solve.check import check_plan
-from perfros_bag.solve.instances import TABLE_II
-from perfros_bag.spec import load_system
+from perfros_bag.casestudy.instances import TABLE_II
+from perfros_bag.system.systemfile import load_system
 
 ROOT = Path(__file__).resolve().parent.parent
 HEURISTICS = ("greedy", "greedy+")

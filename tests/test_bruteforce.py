@@ -12,11 +12,11 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from perfros_bag.casestudy.instances import random_tiny, table2_instance
 from perfros_bag.errors import InputError
 from perfros_bag.solve import solve
 from perfros_bag.solve.check import check_plan
-from perfros_bag.solve.instances import random_tiny, table2_instance
-from perfros_bag.spec import parse_system
+from perfros_bag.system.systemfile import parse_system
 
 
 def tiny(seed: int):  # type: ignore[no-untyped-def]
@@ -53,7 +53,7 @@ def test_heuristics_bounded_by_brute_force(seed: int, problem: int) -> None:
 def independent_optimum(s, problem: int) -> float | None:  # type: ignore[no-untyped-def]
     """A second, naive enumeration (itertools.product over every node's choice and
     computer, feasibility from the checker's own rules) to cross-check brute force."""
-    from perfros_bag.plan import Assignment, build_plan
+    from perfros_bag.system.plan import Assignment, build_plan
 
     names = [n.name for n in s.nodes]
     opts = [[(c, ch) for c in s.allowed(n) for ch in (s.node[n].choices() if problem == 1 else s.node[n].choices()[-1:])]

@@ -13,13 +13,13 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from perfros_bag.casestudy.cgroups import CpuGroups, cgroup_version, leftover_groups
+from perfros_bag.casestudy.instances import table2_instance
 from perfros_bag.casestudy.launcher import computer_cores, emulated_trace, node_launches
 from perfros_bag.casestudy.profiles import Calibration, NodeProfile, _interp, launch_for
+from perfros_bag.cpu.trace import node_cpu, read_cpu_trace, write_cpu_trace
 from perfros_bag.errors import PerfrosWarning
-from perfros_bag.ingest.cputrace import node_cpu, read_cpu_trace, write_cpu_trace
-from perfros_bag.plan import Assignment, build_plan
-from perfros_bag.solve.instances import table2_instance
-from perfros_bag.spec import parse_system
+from perfros_bag.system.plan import Assignment, build_plan
+from perfros_bag.system.systemfile import parse_system
 
 
 @pytest.fixture

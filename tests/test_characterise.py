@@ -22,7 +22,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from typer.testing import CliRunner
 
-from perfros_bag.characterise import (
+from perfros_bag.casestudy.instances import TABLE_I
+from perfros_bag.characterisation.manifest import load_manifest
+from perfros_bag.characterisation.table import (
     COLUMNS,
     characterise,
     characterise_recording,
@@ -31,9 +33,7 @@ from perfros_bag.characterise import (
 )
 from perfros_bag.cli import app
 from perfros_bag.errors import InputError
-from perfros_bag.manifest import load_manifest
-from perfros_bag.solve.instances import TABLE_I
-from perfros_bag.spec import load_system
+from perfros_bag.system.systemfile import load_system
 
 ROOT = Path(__file__).resolve().parent.parent
 FIX = ROOT / "fixtures" / "recordings"
@@ -408,8 +408,8 @@ def test_empty_recording_is_a_correct_empty_result(tmp_path: Path) -> None:
 
 
 def test_plot_png(fixture_run: Path, tmp_path: Path) -> None:
-    from perfros_bag.characterise import Row
-    from perfros_bag.characterise_plot import plot_characterisation
+    from perfros_bag.characterisation.table import Row
+    from perfros_bag.report.characterisation_plots import plot_characterisation
 
     assert (fixture_run / "characterisation.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     rows = [Row("r", n, "p", float(v), f"/{n}", "t", 11, 10.0, 1.0, 1.0, 5.0 * v, 6.0 * v, 20)
@@ -463,7 +463,7 @@ json_values = st.recursive(
 @given(data=json_values)
 def test_manifest_parser_never_crashes(data: object) -> None:
     """Any YAML-shaped document: a Manifest or one InputError line naming the file."""
-    from perfros_bag.manifest import parse_manifest
+    from perfros_bag.characterisation.manifest import parse_manifest
 
     try:
         m = parse_manifest(data, Path("m/manifest.yaml"))

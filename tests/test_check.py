@@ -8,9 +8,9 @@ from typing import Any
 
 import pytest
 
-from perfros_bag.plan import Plan, parse_plan
 from perfros_bag.solve.check import check_plan, plan_objective
-from perfros_bag.spec import parse_system
+from perfros_bag.system.plan import Plan, parse_plan
+from perfros_bag.system.systemfile import parse_system
 
 # r1, r2: robots of 50; srv: a server of 100 (Problem 2: at most 120). Links r1-srv and
 # r2-srv carry 10 kB/s each, both on the wifi medium of 15 kB/s.

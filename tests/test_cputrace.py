@@ -18,15 +18,15 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from perfros_bag.errors import InputError
-from perfros_bag.ingest.cpurecord import ros_node_label
-from perfros_bag.ingest.cputrace import (
+from perfros_bag.cpu.record import ros_node_label
+from perfros_bag.cpu.trace import (
     assign_nodes,
     node_cpu,
     parse_cpu_trace,
     read_cpu_trace,
     write_cpu_trace,
 )
+from perfros_bag.errors import InputError
 
 ROOT = Path(__file__).resolve().parent.parent
 BIN = ROOT / ".venv" / "bin" / "perfros-bag"
@@ -320,7 +320,7 @@ def test_fast_and_careful_parsers_agree(rows: list[tuple[float, int, str, str, f
 
 
 def test_fast_parser_is_used_and_agrees_on_the_fixtures() -> None:
-    from perfros_bag.ingest.cputrace import _rows_fast
+    from perfros_bag.cpu.trace import _rows_fast
 
     for p in sorted((ROOT / "fixtures" / "recordings").glob("*.cpu.csv")):
         text = p.read_text()

@@ -18,8 +18,8 @@ from typing import Any
 import cloudpickle
 import pytest
 
-from perfros_bag import distributed as dist
-from perfros_bag.distributed import Outcome, run_distributed
+from perfros_bag.characterisation import distributed as dist
+from perfros_bag.characterisation.distributed import Outcome, run_distributed
 from perfros_bag.errors import InputError, PerfrosError
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -75,7 +75,7 @@ def _summary(outcomes: list[Outcome[int]]) -> list[tuple[str, int | None, str | 
 
 
 def test_local_path_imports_no_dask() -> None:
-    code = ("import sys; from perfros_bag.distributed import run_distributed as r; "
+    code = ("import sys; from perfros_bag.characterisation.distributed import run_distributed as r; "
             "out = r([1, -2], abs); assert [o.value for o in out] == [1, 2], out; "
             "bad = [m for m in sys.modules if m.split('.')[0] in ('dask', 'distributed')]; "
             "assert not bad, bad")
@@ -185,8 +185,8 @@ def test_bad_options_and_unreachable_scheduler(monkeypatch: pytest.MonkeyPatch) 
 
 
 def test_fleet_splits_large_recordings_and_gives_the_local_rows(cluster: str, tmp_path: Path) -> None:
-    from perfros_bag.characterise import characterise, find_entries
-    from perfros_bag.fleet import characterise_on_dask, plan_units
+    from perfros_bag.characterisation.cluster import characterise_on_dask, plan_units
+    from perfros_bag.characterisation.table import characterise, find_entries
     from tests.bench.gen_corpus import default_topics, write_recording
 
     for k, (name, fmt, comp, secs) in enumerate([
@@ -229,9 +229,9 @@ class UnforeseenSettings(dict[str, Any]):
 
 
 def test_unforeseen_exception_reads_the_same_locally_and_on_dask(cluster: str, tmp_path: Path) -> None:
-    from perfros_bag.characterise import characterise
-    from perfros_bag.fleet import characterise_on_dask
-    from perfros_bag.manifest import RecordingEntry
+    from perfros_bag.characterisation.cluster import characterise_on_dask
+    from perfros_bag.characterisation.manifest import RecordingEntry
+    from perfros_bag.characterisation.table import characterise
     from tests.bench.gen_corpus import default_topics, write_recording
 
     for name, secs in (("good.bag", 1.0), ("odd.bag", 1.0), ("odd_big.bag", 8.0)):

@@ -11,16 +11,16 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from perfros_bag.model import System
-from perfros_bag.plan import Assignment, Plan
+from perfros_bag.casestudy.instances import random_tiny, table2_instance
 from perfros_bag.solve import fixed_choices, start_of
 from perfros_bag.solve.bruteforce import solve_bruteforce
 from perfros_bag.solve.check import check_plan
 from perfros_bag.solve.exact import solve_exact
 from perfros_bag.solve.greedy import solve_greedy
-from perfros_bag.solve.instances import random_tiny, table2_instance
 from perfros_bag.solve.local import solve_greedy_plus
-from perfros_bag.spec import parse_system
+from perfros_bag.system.plan import Assignment, Plan
+from perfros_bag.system.systemfile import parse_system
+from perfros_bag.system.types import System
 
 
 def system_of(data: dict[str, Any]) -> System:

@@ -15,9 +15,9 @@ from typer.testing import CliRunner
 
 from perfros_bag.cli import app
 from perfros_bag.errors import InputError
-from perfros_bag.export import read_placement_comments, ros2_params_yaml, roslaunch_xml
-from perfros_bag.plan import parse_plan
-from perfros_bag.spec import parse_system
+from perfros_bag.export.writers import read_placement_comments, ros2_params_yaml, roslaunch_xml
+from perfros_bag.system.plan import parse_plan
+from perfros_bag.system.systemfile import parse_system
 
 WEIRD = 'trk&<1> "q\' x'  # XML-special characters in a node name
 

@@ -15,9 +15,9 @@ import yaml
 from typer.testing import CliRunner
 
 from perfros_bag.cli import app
-from perfros_bag.model import Node
-from perfros_bag.modelfile import MODEL_FORMAT, read_model
-from perfros_bag.spec import load_system
+from perfros_bag.fitting.build import MODEL_FORMAT, read_model
+from perfros_bag.system.systemfile import load_system
+from perfros_bag.system.types import Node
 from tests.conftest import FIXTURES
 
 HEADER = ["recording", "node", "parameter", "value", "topic", "msgtype", "messages", "duration_s",

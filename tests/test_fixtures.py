@@ -8,10 +8,10 @@ from pathlib import Path
 
 import pytest
 
+from perfros_bag.casestudy.instances import casestudy_system
+from perfros_bag.characterisation.manifest import load_manifest
 from perfros_bag.ingest import read_recording
-from perfros_bag.manifest import load_manifest
-from perfros_bag.solve.instances import casestudy_system
-from perfros_bag.spec import load_system
+from perfros_bag.system.systemfile import load_system
 
 ROOT = Path(__file__).resolve().parent.parent
 FIX = ROOT / "fixtures" / "recordings"

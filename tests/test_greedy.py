@@ -12,11 +12,11 @@ from typing import Any
 import pytest
 import yaml
 
-from perfros_bag.plan import Plan
+from perfros_bag.casestudy.instances import TABLE_II, casestudy_system, table2_instance
 from perfros_bag.solve import fixed_choices, solve
 from perfros_bag.solve.check import check_plan
-from perfros_bag.solve.instances import TABLE_II, casestudy_system, table2_instance
-from perfros_bag.spec import load_system, parse_system
+from perfros_bag.system.plan import Plan
+from perfros_bag.system.systemfile import load_system, parse_system
 
 FIXTURES = Path(__file__).resolve().parent.parent / "fixtures" / "casestudy"
 HEURISTICS = ("greedy", "greedy+")
@@ -229,7 +229,7 @@ def test_random_casestudy_like_instances(seed: int) -> None:
     import random
     import warnings
 
-    from perfros_bag.solve.instances import random_instance
+    from perfros_bag.casestudy.instances import random_instance
 
     rng = random.Random(seed)
     data = random_instance(rng, robots=(1, 2), cameras=(1, 2), tight_network=seed == 2)

@@ -9,9 +9,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from perfros_bag.model import Curve
-from perfros_bag.modelfile import solver_curve
-from perfros_bag.regression import (
+from perfros_bag.fitting.build import solver_curve
+from perfros_bag.fitting.regression import (
     FitError,
     clip_domain,
     eligible_forms,
@@ -20,6 +19,7 @@ from perfros_bag.regression import (
     is_monotone,
     loo_rmse,
 )
+from perfros_bag.system.types import Curve
 
 # (form, true coefficients, x range): shapes distinct enough that 20 noisy points decide.
 KNOWN = [

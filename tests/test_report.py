@@ -15,9 +15,9 @@ from test_validate import PLAN, stats_at  # tests/ is on sys.path (no package)
 from typer.testing import CliRunner
 
 from perfros_bag.cli import app
-from perfros_bag.plan import parse_plan
-from perfros_bag.report import build_report
-from perfros_bag.validate import check_run
+from perfros_bag.report.html import build_report
+from perfros_bag.system.plan import parse_plan
+from perfros_bag.validation.eq10 import check_run
 
 EVIL = '<script>alert("x")</script>&$\\frac{a$'  # HTML specials; $ would be mathtext
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -178,7 +178,7 @@ def test_report_renders_in_headless_chromium(full_report: Path, tmp_path: Path) 
 
 
 def test_validation_plot_of_many_nodes_keeps_the_largest_deviations(tmp_path: Path) -> None:
-    from perfros_bag import report
+    from perfros_bag.report import html as report
 
     nodes = [{"node": f"n{i}", "p_expected": 10.0, "p_measured": 10.0 - i % 7, "deviation_pct": 10.0 * (i % 7)}
              for i in range(300)]

@@ -12,11 +12,11 @@ import pytest
 import yaml
 from typer.testing import CliRunner
 
+from perfros_bag.casestudy.instances import table2_instance
 from perfros_bag.cli import app
-from perfros_bag.plan import load_plan
 from perfros_bag.solve.check import check_plan
-from perfros_bag.solve.instances import table2_instance
-from perfros_bag.spec import load_system
+from perfros_bag.system.plan import load_plan
+from perfros_bag.system.systemfile import load_system
 
 ROOT = Path(__file__).resolve().parent.parent
 INSTANCE1 = ROOT / "fixtures" / "casestudy" / "instance1.yaml"
@@ -51,7 +51,7 @@ def test_solve_writes_a_checkable_plan(tmp_path: Path) -> None:
 def test_json_stdout_is_pure_json(tmp_path: Path, method: str) -> None:
     data = table2_instance(1)
     if method == "bruteforce":  # keep it tiny: the discrete Table I settings
-        from perfros_bag.solve.instances import casestudy_system
+        from perfros_bag.casestudy.instances import casestudy_system
 
         data = casestudy_system(1, 1, continuous=False)
     path = tmp_path / "s.yaml"

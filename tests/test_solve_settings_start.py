@@ -14,15 +14,15 @@ import pytest
 from typer.testing import CliRunner
 
 import perfros_bag.solve as solve_mod
+from perfros_bag.casestudy.instances import table2_instance
 from perfros_bag.cli import app
 from perfros_bag.errors import InputError, PerfrosWarning
-from perfros_bag.model import Choice, System
-from perfros_bag.modelfile import read_model
-from perfros_bag.plan import Assignment, Plan, load_plan
+from perfros_bag.fitting.build import read_model
 from perfros_bag.solve import fixed_choices, settings_from_values, solve
 from perfros_bag.solve.check import check_plan
-from perfros_bag.solve.instances import table2_instance
-from perfros_bag.spec import parse_system
+from perfros_bag.system.plan import Assignment, Plan, load_plan
+from perfros_bag.system.systemfile import parse_system
+from perfros_bag.system.types import Choice, System
 from tests.test_fit_cli import table_i_rows, table_i_system, write_csv, write_yaml
 
 
@@ -198,7 +198,7 @@ def test_cli_exact_with_start_writes_a_checkable_plan(monkeypatch: pytest.Monkey
     assert doc["status"] == "optimal"
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        from perfros_bag.spec import load_system
+        from perfros_bag.system.systemfile import load_system
 
         system = load_system(path)
     assert check_plan(system, load_plan(out)) == []

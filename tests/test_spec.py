@@ -10,7 +10,7 @@ import pytest
 import yaml
 
 from perfros_bag.errors import InputError, PerfrosWarning
-from perfros_bag.spec import load_system, parse_system
+from perfros_bag.system.systemfile import load_system, parse_system
 
 BASE = {
     "cpu_unit": "100 = one robot",

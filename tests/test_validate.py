@@ -13,8 +13,8 @@ from hypothesis import strategies as st
 
 from perfros_bag.errors import InputError
 from perfros_bag.ingest.stats import RecordingStats, TopicStats
-from perfros_bag.plan import parse_plan
-from perfros_bag.validate import TracedCpu, check_run, default_cpu_trace
+from perfros_bag.system.plan import parse_plan
+from perfros_bag.validation.eq10 import TracedCpu, check_run, default_cpu_trace
 
 # Two computers; node a has one topic, node b two (its ratio is the mean of both).
 PLAN: dict[str, Any] = {
@@ -513,7 +513,7 @@ def test_missing_plan_system_is_said_not_skipped_silently(tmp_path: Path) -> Non
     import warnings
 
     from perfros_bag.errors import PerfrosWarning
-    from perfros_bag.validate import plan_system
+    from perfros_bag.validation.eq10 import plan_system
 
     plan = parse_plan({**PLAN, "system": "gone/system.yaml"})
     with warnings.catch_warnings(record=True) as caught:

@@ -44,8 +44,8 @@ from perfros_bag.casestudy.profiles import (
 )
 from perfros_bag.errors import InputError, PerfrosError
 from perfros_bag.fileio import atomic_write_json, atomic_write_text
-from perfros_bag.model import System
-from perfros_bag.plan import Plan
+from perfros_bag.system.plan import Plan
+from perfros_bag.system.types import System
 
 RUN_ENV = "PERFROS_CASESTUDY_RUN"
 ROSCORE = "roscore"
@@ -443,7 +443,7 @@ def _delta(a: dict[str, float], b: dict[str, float]) -> dict[str, float]:
 def measured_loads(trace: Path, launches: list[NodeLaunch], units_per_core: float,
                    cores: dict[str, float]) -> dict[str, Any]:
     """Mean CPU units per node and per computer from the CPU trace (units_per_core scale)."""
-    from perfros_bag.ingest.cputrace import read_cpu_trace
+    from perfros_bag.cpu.trace import read_cpu_trace
 
     if not trace.exists():
         return {}
@@ -481,7 +481,7 @@ def emulated_trace(raw: Path, dest: Path, where: dict[str, str], capacity: dict[
     ``cpu_percent / 100 * units_per_core`` CPU units, as it should. Rows of processes that
     are not plan nodes are dropped. The raw trace stays beside it (``run.host.cpu.csv``).
     """
-    from perfros_bag.ingest.cputrace import read_cpu_trace, write_cpu_trace
+    from perfros_bag.cpu.trace import read_cpu_trace, write_cpu_trace
 
     tr = read_cpu_trace(raw)
     rows = []

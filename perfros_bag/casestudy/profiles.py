@@ -22,7 +22,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from perfros_bag.errors import PerfrosError
-from perfros_bag.model import Node
+from perfros_bag.system.types import Node
 
 NODE_SCRIPT = Path(__file__).resolve().parent / "nodes" / "casestudy_node.py"
 ROS_PYTHON = "/usr/bin/python3"

@@ -54,8 +54,8 @@ def run_cmd(
     from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
     from perfros_bag.casestudy.launcher import RunConfig, run_plan
-    from perfros_bag.plan import load_plan
-    from perfros_bag.spec import load_system
+    from perfros_bag.system.plan import load_plan
+    from perfros_bag.system.systemfile import load_system
 
     sys_ = load_system(system)
     pl = load_plan(plan)

@@ -11,8 +11,8 @@ import typer
 from perfros_bag.cli._app import command, err, out
 
 if TYPE_CHECKING:
-    from perfros_bag.characterise import Failure
-    from perfros_bag.manifest import RecordingEntry
+    from perfros_bag.characterisation.manifest import RecordingEntry
+    from perfros_bag.characterisation.table import Failure
 
 
 def _fmt(v: float | None, digits: int = 1) -> str:
@@ -36,7 +36,7 @@ def characterise_cmd(
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
     from rich.table import Table
 
-    from perfros_bag.characterise import (
+    from perfros_bag.characterisation.table import (
         characterise,
         check_settings,
         find_entries,
@@ -45,7 +45,7 @@ def characterise_cmd(
         write_csv,
     )
     from perfros_bag.errors import PerfrosError
-    from perfros_bag.spec import load_system
+    from perfros_bag.system.systemfile import load_system
 
     if out_path is None and not as_json:
         raise PerfrosError("characterise needs --out FILE or --json")
@@ -78,7 +78,7 @@ def characterise_cmd(
     if as_json:
         print(json.dumps(rows_json(result.rows), indent=1))
     if plot is not None and result.rows:
-        from perfros_bag.characterise_plot import plot_characterisation
+        from perfros_bag.report.characterisation_plots import plot_characterisation
 
         if not plot_characterisation(result.rows, plot):
             err.print(f"no node with two or more settings: {plot} not written", highlight=False)

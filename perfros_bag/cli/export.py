@@ -20,7 +20,7 @@ def export(
         "--system", help="system.yaml: launch: fields (package, type, param, name, namespace) and machines:.")] = None,
 ) -> None:
     """Write a plan as a ROS 1 launch file or a ROS 2 parameters file."""
-    from perfros_bag.export import export_plan
+    from perfros_bag.export.writers import export_plan
 
     export_plan(plan, fmt, out_path, system)
     err.print(f"wrote {escape(str(out_path))} ({escape(fmt)})", highlight=False)

@@ -22,13 +22,13 @@ def fit(
     """Fit parameter -> CPU/performance/frequency/bandwidth and CPU -> performance per configurable node."""
     from rich.table import Table
 
-    from perfros_bag.modelfile import build_model, write_model
+    from perfros_bag.fitting.build import build_model, write_model
 
     result = build_model(system, characterisation)
     write_model(out_path, result)
     written: list[Path] = []
     if plots is not None:
-        from perfros_bag.plots import plot_model
+        from perfros_bag.report.fit_plots import plot_model
 
         written = plot_model(result.system.node, result.fits, plots)
 

@@ -25,7 +25,7 @@ def record_cpu_cmd(
 
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from perfros_bag.ingest.cpurecord import record_cpu
+    from perfros_bag.cpu.record import record_cpu
 
     seen = [0]
     columns = [TextColumn("record-cpu"), BarColumn() if duration else TextColumn(""), TimeElapsedColumn(),

@@ -22,7 +22,7 @@ def report(
         "--validation", help="The JSON of validate --json.")] = None,
 ) -> None:
     """Write an HTML report; anything not given is left out."""
-    from perfros_bag.report import build_report
+    from perfros_bag.report.html import build_report
 
     index = build_report(out_dir, characterisation=characterisation, model=model, plan=plan,
                          validation=validation)

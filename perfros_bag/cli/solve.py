@@ -13,15 +13,15 @@ from rich.table import Table
 
 from perfros_bag.cli._app import command, err, out
 from perfros_bag.errors import InputError, PerfrosWarning
-from perfros_bag.model import System
-from perfros_bag.plan import Plan
+from perfros_bag.system.plan import Plan
+from perfros_bag.system.types import System
 
 
 def parse_settings(system: System, text: str, resolution: float) -> dict[str, float]:
     """``--settings``: a plan.json (each node's CPU) or ``node=value,...`` (a parameter
     value) / ``node=cpu:U`` (a CPU level). Returns node -> CPU level."""
-    from perfros_bag.plan import load_plan
     from perfros_bag.solve import settings_from_plan, settings_from_values
+    from perfros_bag.system.plan import load_plan
 
     if text.lower().endswith(".json") or Path(text).is_file():
         return settings_from_plan(load_plan(text))
@@ -99,7 +99,7 @@ def solve(
     """Choose a setting and a computer for every node (the paper's Problems 1 and 2)."""
     from perfros_bag.solve import METHODS
     from perfros_bag.solve import solve as run
-    from perfros_bag.spec import load_system
+    from perfros_bag.system.systemfile import load_system
 
     if problem not in (1, 2):
         raise InputError(None, f"--problem must be 1 or 2, got {problem}")

@@ -13,7 +13,7 @@ from rich.markup import escape
 from rich.table import Table
 
 from perfros_bag.cli._app import command, err, out
-from perfros_bag.validate import DEFAULT_TOLERANCE, TopicCheck, Validation
+from perfros_bag.validation.eq10 import DEFAULT_TOLERANCE, TopicCheck, Validation
 
 
 def _f(x: float | None, fmt: str = ".3g") -> str:
@@ -99,7 +99,7 @@ def validate(
     """Compare a run with its plan (the paper's eq 10); exit 1 when the overall deviation
     exceeds --tolerance."""
     from perfros_bag.fileio import atomic_write_json
-    from perfros_bag.validate import validate_files
+    from perfros_bag.validation.eq10 import validate_files
 
     result = validate_files(run, plan, cpu=cpu, system_path=system, tolerance=tolerance, cap=cap)
     doc = result.to_dict()

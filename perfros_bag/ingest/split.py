@@ -15,7 +15,7 @@ small) is one ``whole`` part read by ``read_recording``; a part whose index turn
 damaged returns ``None`` and the caller reads the whole file instead, as the readers
 fall back to streaming.
 
-:func:`read_split` runs the parts through :func:`perfros_bag.distributed.run_distributed`
+:func:`read_split` runs the parts through :func:`perfros_bag.characterisation.distributed.run_distributed`
 (in-process, on a Dask scheduler, or on a LocalCluster of N workers).
 """
 
@@ -140,7 +140,7 @@ def merge_parts(plan: SplitPlan, parts: Sequence[RecordingStats | None]) -> Reco
 def read_split(path: str | Path, *, scheduler: str | None = None, workers: int | None = None,
                target_bytes: int = TARGET_BYTES, progress: bool = False) -> RecordingStats:
     """``read_recording(path)``, its chunk ranges read as parallel tasks."""
-    from perfros_bag.distributed import run_distributed
+    from perfros_bag.characterisation.distributed import run_distributed
 
     plan = plan_split(path)
     outcomes = run_distributed(plan.parts(target_bytes), read_part, scheduler=scheduler,

@@ -30,8 +30,8 @@ import warnings
 from collections.abc import Mapping
 
 from perfros_bag.errors import InputError, PerfrosWarning
-from perfros_bag.model import Choice, Node, System
-from perfros_bag.plan import Assignment, Plan
+from perfros_bag.system.plan import Assignment, Plan
+from perfros_bag.system.types import Choice, Node, System
 
 METHODS: tuple[str, ...] = ("greedy", "greedy+", "exact", "bruteforce")
 

@@ -10,8 +10,8 @@ from __future__ import annotations
 import math
 
 from perfros_bag.errors import InputError
-from perfros_bag.model import Choice, System
-from perfros_bag.plan import Assignment, Plan, build_plan, infeasible_plan
+from perfros_bag.system.plan import Assignment, Plan, build_plan, infeasible_plan
+from perfros_bag.system.types import Choice, System
 
 LIMIT = 1_000_000
 EPS = 1e-9

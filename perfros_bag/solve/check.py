@@ -1,9 +1,9 @@
 """An independent feasibility checker of a plan against its system (eq 1-9).
 
 It recomputes everything from the system and the plan's per-node answer (computer, CPU,
-performance), sharing no code with the solvers or with :func:`perfros_bag.plan.build_plan`:
+performance), sharing no code with the solvers or with :func:`perfros_bag.system.plan.build_plan`:
 the model's own definitions (a setting's bandwidth, the route between two computers) are
-the only things it takes from :mod:`perfros_bag.model`.
+the only things it takes from :mod:`perfros_bag.system.types`.
 """
 
 from __future__ import annotations
@@ -11,8 +11,8 @@ from __future__ import annotations
 import math
 from collections import defaultdict
 
-from perfros_bag.model import Choice, Node, System
-from perfros_bag.plan import Plan
+from perfros_bag.system.plan import Plan
+from perfros_bag.system.types import Choice, Node, System
 
 
 def _close(a: float, b: float, tol: float) -> bool:

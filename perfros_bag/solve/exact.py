@@ -40,9 +40,9 @@ from typing import Any
 import numpy as np
 
 from perfros_bag.errors import InputError
-from perfros_bag.model import Choice, Edge, System
-from perfros_bag.plan import Assignment, Plan, build_plan, infeasible_plan, link_loads
-from perfros_bag.plan import objective as plan_objective
+from perfros_bag.system.plan import Assignment, Plan, build_plan, infeasible_plan, link_loads
+from perfros_bag.system.plan import objective as plan_objective
+from perfros_bag.system.types import Choice, Edge, System
 
 __all__ = ["solve_exact"]
 

@@ -26,9 +26,9 @@ from __future__ import annotations
 import heapq
 import math
 
-from perfros_bag.model import Choice, System
-from perfros_bag.plan import Plan, infeasible_plan
 from perfros_bag.solve.state import EPS, State, _fmt
+from perfros_bag.system.plan import Plan, infeasible_plan
+from perfros_bag.system.types import Choice, System
 
 
 def solve_greedy(system: System, problem: int, choices: dict[str, list[Choice]]) -> Plan:

@@ -28,10 +28,10 @@ from collections.abc import Iterable
 
 import numpy as np
 
-from perfros_bag.model import Choice, System
-from perfros_bag.plan import Plan, infeasible_plan
 from perfros_bag.solve.greedy import run_greedy, upgrade
 from perfros_bag.solve.state import EPS, State
+from perfros_bag.system.plan import Plan, infeasible_plan
+from perfros_bag.system.types import Choice, System
 
 MAX_ROUNDS = 500
 DP_CELLS = 200_000

@@ -10,8 +10,8 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 
-from perfros_bag.model import Choice, System
-from perfros_bag.plan import Assignment, Plan, build_plan
+from perfros_bag.system.plan import Assignment, Plan, build_plan
+from perfros_bag.system.types import Choice, System
 
 EPS = 1e-9
 

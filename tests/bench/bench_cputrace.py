@@ -20,7 +20,7 @@ import pandas as pd
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from _timing import best  # tests/bench/_timing.py (this folder is on sys.path)
 
-from perfros_bag.ingest.cputrace import node_cpu, read_cpu_trace, write_cpu_trace  # noqa: E402
+from perfros_bag.cpu.trace import node_cpu, read_cpu_trace, write_cpu_trace  # noqa: E402
 
 
 def main() -> int:
@@ -37,7 +37,7 @@ def main() -> int:
         write_cpu_trace(path, rows, host="bench", logical_cpus=4, interval_s=0.5)
         size = path.stat().st_size
         fast = read_cpu_trace(path)
-        from perfros_bag.ingest.cputrace import parse_cpu_trace
+        from perfros_bag.cpu.trace import parse_cpu_trace
 
         slow = parse_cpu_trace(path.read_text(), path, fast=False)
         assert (fast.time == slow.time).all() and (fast.cpu_percent == slow.cpu_percent).all()

@@ -1,4 +1,4 @@
-"""Benchmark: model selection in perfros_bag.regression.fit_curve.
+"""Benchmark: model selection in perfros_bag.fitting.regression.fit_curve.
 
 Leave-one-out needs one refit per point per form. The library refits the folds with numpy
 (``_lstsq_form``) and keeps scikit-learn's LinearRegression for the reported fit; the
@@ -24,8 +24,8 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from perfros_bag import regression
-from perfros_bag.modelfile import build_model
+from perfros_bag.fitting import regression
+from perfros_bag.fitting.build import build_model
 
 
 def _timeit(fn: Callable[[], object], repeat: int) -> float:

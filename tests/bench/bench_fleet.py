@@ -212,7 +212,7 @@ def main() -> int:
 
         print("corpus (20 recordings):", flush=True)
         runs.append(measure("LocalCluster(2 workers) start+stop only", "-",
-                            [PY, "-c", "from perfros_bag.distributed import run_distributed as r; "
+                            [PY, "-c", "from perfros_bag.characterisation.distributed import run_distributed as r; "
                              "r([1], abs, workers=2)"]))
         measure("warm page cache: cat", "all", ["cat", *map(str, every)])
         runs.append(measure("raw read: cat > /dev/null", "all", ["cat", *map(str, every)]))

@@ -5,7 +5,7 @@ One run on this machine, every figure measured in the same run:
 1. Table II instances 1-6, both problems, 1-CPU-unit resolution: exact's time to a proven
    optimum (target < 1 s each), greedy and greedy+ as a fraction of it.
 2. 50 random case-study-like instances (1-4 robots, 1-4 cameras, varied capacities and
-   weights; ``perfros_bag.solve.instances.random_instance``), Problem 1: greedy and
+   weights; ``perfros_bag.casestudy.instances.random_instance``), Problem 1: greedy and
    greedy+ / optimum (target greedy+ >= 99.5 %). Exact gets greedy+ as its MIP start and
    ``--exact-limit`` seconds; where it stops early the ratio is against its bound (a lower
    bound on the true ratio) and the row says so.
@@ -33,13 +33,7 @@ import warnings
 from collections.abc import Callable
 from typing import Any
 
-from perfros_bag.model import Choice, System
-from perfros_bag.plan import Assignment, Plan
-from perfros_bag.solve import START_SHARE, fixed_choices, solve
-from perfros_bag.solve import exact as exact_mod
-from perfros_bag.solve.exact import solve_exact
-from perfros_bag.solve.greedy import solve_greedy
-from perfros_bag.solve.instances import (
+from perfros_bag.casestudy.instances import (
     CURVES,
     ROBOT_NODES,
     TABLE_I,
@@ -47,8 +41,14 @@ from perfros_bag.solve.instances import (
     random_instance,
     table2_instance,
 )
+from perfros_bag.solve import START_SHARE, fixed_choices, solve
+from perfros_bag.solve import exact as exact_mod
+from perfros_bag.solve.exact import solve_exact
+from perfros_bag.solve.greedy import solve_greedy
 from perfros_bag.solve.local import solve_greedy_plus
-from perfros_bag.spec import parse_system
+from perfros_bag.system.plan import Assignment, Plan
+from perfros_bag.system.systemfile import parse_system
+from perfros_bag.system.types import Choice, System
 
 
 def system_of(data: dict[str, Any], name: str) -> System:

@@ -20,8 +20,8 @@ from typing import Any
 
 from perfros_bag.errors import InputError
 from perfros_bag.fileio import atomic_open, atomic_write_text, read_json, read_text
-from perfros_bag.model import Curve
-from perfros_bag.plan import Plan
+from perfros_bag.system.plan import Plan
+from perfros_bag.system.types import Curve
 
 MAX_TABLE_ROWS = 2000
 MAX_PLOT_NODES = 40
@@ -437,7 +437,7 @@ def build_report(out_dir: str | Path, *, characterisation: str | Path | None = N
                  validation: str | Path | None = None, title: str = "perfros-bag report") -> Path:
     """Write ``out_dir/index.html`` and its PNGs; returns the page's path. Inputs are read
     (and checked) before anything is written."""
-    from perfros_bag.plan import load_plan
+    from perfros_bag.system.plan import load_plan
 
     char = read_characterisation(characterisation) if characterisation is not None else None
     fits = read_fits(model) if model is not None else None

@@ -6,7 +6,7 @@ with a weight, optional residence and coresidence constraints, and one or more s
 or a CPU -> performance :class:`Curve`) and edges (publisher -> subscriber traffic).
 
 CPU is in normalised units (the paper: 100 = one robot's on-board computer).
-Loading and validating ``system.yaml`` lives in :mod:`perfros_bag.spec`.
+Loading and validating ``system.yaml`` lives in :mod:`perfros_bag.system.systemfile`.
 """
 
 from __future__ import annotations

@@ -6,7 +6,7 @@ or MCAP file (``split_bytes`` or more), which becomes one task per group of chun
 (:mod:`perfros_bag.ingest.split`). When the last part of a split recording is done, the
 client merges the parts' statistics exactly and builds that recording's rows from them
 (the CPU trace is read there; it is small). Outcomes come back one per recording, in
-entry order, as :func:`~perfros_bag.distributed.run_distributed` gives them, and the
+entry order, as :func:`~perfros_bag.characterisation.distributed.run_distributed` gives them, and the
 progress callback is called once per finished recording.
 """
 
@@ -17,14 +17,14 @@ from dataclasses import dataclass
 from functools import partial
 from typing import TYPE_CHECKING, Any
 
-from perfros_bag.distributed import Outcome, ProgressCallback, run_distributed
+from perfros_bag.characterisation.distributed import Outcome, ProgressCallback, run_distributed
 from perfros_bag.errors import PerfrosError
 from perfros_bag.ingest.split import Part, SplitPlan, merge_parts, plan_split, read_part
 
 if TYPE_CHECKING:  # pragma: no cover
-    from perfros_bag.characterise import Row
-    from perfros_bag.manifest import RecordingEntry
-    from perfros_bag.model import System
+    from perfros_bag.characterisation.manifest import RecordingEntry
+    from perfros_bag.characterisation.table import Row
+    from perfros_bag.system.types import System
 
 #: Recordings at least this large are split; each task reads about ``PART_BYTES`` of file.
 SPLIT_BYTES = 512 << 20
@@ -63,7 +63,7 @@ def plan_units(entries: Sequence[RecordingEntry], *, fast: bool = True,
 
 def run_unit(unit: Unit, system: System | None, fast: bool) -> Any:
     """On a worker: a recording's rows, or a part's partial statistics."""
-    from perfros_bag.characterise import characterise_recording, reporting
+    from perfros_bag.characterisation.table import characterise_recording, reporting
 
     if unit.part is not None:
         return read_part(unit.part)
@@ -78,7 +78,7 @@ def characterise_on_dask(entries: Sequence[RecordingEntry], system: System | Non
                          split_bytes: int = SPLIT_BYTES,
                          part_bytes: int = PART_BYTES) -> list[Outcome[list[Row]]]:
     """One outcome (rows or error) per entry, in entry order."""
-    from perfros_bag.characterise import characterise_recording, reporting
+    from perfros_bag.characterisation.table import characterise_recording, reporting
 
     entries = list(entries)
     units, plans = plan_units(entries, fast=fast, split_bytes=split_bytes, part_bytes=part_bytes)

@@ -15,8 +15,8 @@ from typing import Any
 
 import numpy as np
 
-from perfros_bag.model import Node
-from perfros_bag.regression import Fit
+from perfros_bag.fitting.regression import Fit
+from perfros_bag.system.types import Node
 
 _PANELS = (
     ("parameter->performance", "performance", "Fig 3: parameter vs performance"),

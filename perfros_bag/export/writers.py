@@ -26,8 +26,8 @@ import yaml
 
 from perfros_bag.errors import InputError
 from perfros_bag.fileio import atomic_write_text
-from perfros_bag.model import System
-from perfros_bag.plan import Plan
+from perfros_bag.system.plan import Plan
+from perfros_bag.system.types import System
 
 FORMATS = ("roslaunch", "ros2-params")
 PLACEHOLDER_PACKAGE = "PACKAGE"
@@ -153,13 +153,13 @@ def read_placement_comments(text: str) -> dict[str, str]:
 
 def export_plan(plan_path: str | Path, fmt: str, out: str | Path, system_path: str | Path | None = None) -> str:
     """Read the plan (and system), write the export atomically; returns the text."""
-    from perfros_bag.plan import load_plan
-    from perfros_bag.spec import load_system
+    from perfros_bag.system.plan import load_plan
+    from perfros_bag.system.systemfile import load_system
 
     if fmt not in FORMATS:
         raise InputError(None, f"unknown export format {fmt!r} (one of {', '.join(FORMATS)})")
     plan = load_plan(plan_path)
-    from perfros_bag.validate import plan_system
+    from perfros_bag.validation.eq10 import plan_system
 
     system = load_system(system_path) if system_path is not None else plan_system(plan, Path(plan_path))
     if system is not None:

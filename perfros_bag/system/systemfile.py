@@ -16,7 +16,7 @@ from typing import Any
 
 from perfros_bag.errors import InputError, PerfrosWarning
 from perfros_bag.fileio import read_json, read_yaml
-from perfros_bag.model import (
+from perfros_bag.system.types import (
     CURVE_FORMS,
     Computer,
     Curve,

@@ -8,7 +8,7 @@
   force, with links, a shared medium, edges, residence and coresidence that can bind.
 
 Everything returned is plain data (lists, dicts, numbers) that
-:func:`perfros_bag.spec.parse_system` accepts and ``yaml.safe_dump`` writes.
+:func:`perfros_bag.system.systemfile.parse_system` accepts and ``yaml.safe_dump`` writes.
 """
 
 from __future__ import annotations

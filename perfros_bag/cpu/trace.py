@@ -1,6 +1,6 @@
 """psutil CPU traces, ``<stem>.cpu.csv``: reading, attribution to nodes, writing.
 
-The recorder behind ``record-cpu`` is :mod:`perfros_bag.ingest.cpurecord`.
+The recorder behind ``record-cpu`` is :mod:`perfros_bag.cpu.record`.
 
 File format (design.md contract)::
 

@@ -1,8 +1,8 @@
 """Recordings (+ CPU traces, manifest, system) -> the characterisation table.
 
 The per-recording work, :func:`characterise_recording`, is a pure top-level function of
-picklable arguments (a :class:`~perfros_bag.manifest.RecordingEntry` and a
-:class:`~perfros_bag.model.System`), so a fleet can ship it to workers; the aggregation
+picklable arguments (a :class:`~perfros_bag.characterisation.manifest.RecordingEntry` and a
+:class:`~perfros_bag.system.types.System`), so a fleet can ship it to workers; the aggregation
 (:func:`characterise`, :func:`table_one`, :func:`write_csv`) is separate.
 
 Rows are one per (recording, node, topic), design.md's ``characterisation.csv``:
@@ -28,11 +28,16 @@ from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any
 
+from perfros_bag.characterisation.manifest import (
+    RecordingEntry,
+    SettingValue,
+    default_cpu_path,
+    load_manifest,
+)
+from perfros_bag.cpu.trace import NodeCpu, match_label, node_cpu, read_cpu_trace
 from perfros_bag.errors import InputError, PerfrosError, PerfrosWarning
-from perfros_bag.ingest.cputrace import NodeCpu, match_label, node_cpu, read_cpu_trace
 from perfros_bag.ingest.stats import RecordingStats
-from perfros_bag.manifest import RecordingEntry, SettingValue, default_cpu_path, load_manifest
-from perfros_bag.model import System
+from perfros_bag.system.types import System
 
 #: CPU units of a computer that the system does not describe: 100 = the whole machine.
 DEFAULT_CAPACITY = 100.0
@@ -94,7 +99,7 @@ UNFORESEEN: tuple[type[Exception], ...] = (OSError, ValueError, KeyError, IndexE
 def reporting(entry: RecordingEntry) -> Iterator[None]:
     """Turn an unforeseen exception raised while characterising ``entry`` into the
     :class:`PerfrosError` the user sees. The one conversion: the local loop and the Dask
-    tasks (perfros_bag/fleet.py, on the workers) both run inside it, so a recording fails
+    tasks (perfros_bag/characterisation/cluster.py, on the workers) both run inside it, so a recording fails
     with the same words whether or not ``--workers``/``--scheduler`` is given."""
     try:
         yield
@@ -109,7 +114,7 @@ def characterise_recording(entry: RecordingEntry, system: System | None = None, 
     """The rows of one recording. Raises :class:`PerfrosError` when it cannot be read.
 
     ``stats``: the recording's statistics when already read (the fleet merges a large
-    recording's chunk-range parts, perfros_bag/fleet.py); else read here."""
+    recording's chunk-range parts, perfros_bag/characterisation/cluster.py); else read here."""
     from perfros_bag.ingest import read_recording
 
     if not entry.path.exists():
@@ -268,7 +273,7 @@ def characterise(entries: Sequence[RecordingEntry], system: System | None = None
 
     In this process by default; with ``scheduler`` (a dask.distributed address) or
     ``workers`` (a LocalCluster of that many processes) the per-recording work runs on
-    Dask through :func:`perfros_bag.distributed.run_distributed`. Rows keep entry order.
+    Dask through :func:`perfros_bag.characterisation.distributed.run_distributed`. Rows keep entry order.
     """
     if scheduler is not None or workers is not None:
         return _characterise_dask(entries, system, fast, on_done, scheduler, workers)
@@ -291,8 +296,8 @@ def characterise(entries: Sequence[RecordingEntry], system: System | None = None
 def _characterise_dask(entries: Sequence[RecordingEntry], system: System | None, fast: bool,
                        on_done: Callable[[RecordingEntry, Failure | None], None] | None,
                        scheduler: str | None, workers: int | None) -> Result:
-    from perfros_bag.distributed import Outcome
-    from perfros_bag.fleet import characterise_on_dask
+    from perfros_bag.characterisation.cluster import characterise_on_dask
+    from perfros_bag.characterisation.distributed import Outcome
 
     by_name = {e.name: e for e in entries}
 
@@ -301,7 +306,7 @@ def _characterise_dask(entries: Sequence[RecordingEntry], system: System | None,
             fail = None if outcome.ok else Failure(outcome.label, str(outcome.error))
             on_done(by_name[outcome.label], fail)
 
-    # large ROS 1 bags / MCAP files are split into chunk-range tasks (perfros_bag/fleet.py)
+    # large ROS 1 bags / MCAP files are split into chunk-range tasks (perfros_bag/characterisation/cluster.py)
     outcomes = characterise_on_dask(entries, system, fast=fast, scheduler=scheduler,
                                     workers=workers, progress=progress)
     rows: list[Row] = []

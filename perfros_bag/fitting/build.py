@@ -4,8 +4,8 @@
 weights per setting) with the measured ``characterisation.csv`` (CPU, frequency and
 bandwidth per setting: the mean over the recordings of the same node and value, with the
 spread kept in the ``measured`` part), fits per configurable node the relations of
-:mod:`perfros_bag.regression` and fills each node's ``curve`` (CPU -> performance, what the
-solvers use) and ``relations`` in, so :func:`perfros_bag.spec.load_system` reads the
+:mod:`perfros_bag.fitting.regression` and fills each node's ``curve`` (CPU -> performance, what the
+solvers use) and ``relations`` in, so :func:`perfros_bag.system.systemfile.load_system` reads the
 ``system`` part like a system.yaml. Format: ``docs/formats.md``.
 """
 
@@ -21,9 +21,9 @@ from typing import Any
 
 from perfros_bag.errors import InputError, PerfrosWarning
 from perfros_bag.fileio import atomic_write_json, read_json, read_text, read_yaml
-from perfros_bag.model import Curve, Node, System
-from perfros_bag.regression import Fit, FitError, clip_domain, fit_curve
-from perfros_bag.spec import parse_system
+from perfros_bag.fitting.regression import Fit, FitError, clip_domain, fit_curve
+from perfros_bag.system.systemfile import parse_system
+from perfros_bag.system.types import Curve, Node, System
 
 MODEL_FORMAT = "perfros-bag/model@1"
 REQUIRED_COLUMNS = ("recording", "node", "value", "topic", "frequency_hz", "bandwidth_kBps", "cpu_units_mean")

@@ -1,6 +1,6 @@
 """The psutil recorder behind ``perfros-bag record-cpu``: samples the CPU % and RSS of
 matching processes (and of COMMAND's process tree) into a ``<stem>.cpu.csv`` trace
-(format: :mod:`perfros_bag.ingest.cputrace`)."""
+(format: :mod:`perfros_bag.cpu.trace`)."""
 
 from __future__ import annotations
 
@@ -18,8 +18,8 @@ from pathlib import Path
 from types import FrameType
 from typing import IO, Any
 
+from perfros_bag.cpu.trace import format_row, trace_header
 from perfros_bag.errors import InputError
-from perfros_bag.ingest.cputrace import format_row, trace_header
 
 _NAME_ARG = re.compile(r"^(?:__name|__node):=(.+)$")
 _INTERPRETERS = re.compile(r"^(python[0-9.]*|pypy[0-9.]*|ruby|node|perl|bash|sh)$")

@@ -35,8 +35,8 @@ from typing import Any
 
 from perfros_bag.errors import InputError, PerfrosWarning
 from perfros_bag.ingest.stats import RecordingStats, TopicStats
-from perfros_bag.model import System
-from perfros_bag.plan import Plan
+from perfros_bag.system.plan import Plan
+from perfros_bag.system.types import System
 
 VALIDATION_FORMAT = "perfros-bag/validation@1"
 DEFAULT_TOLERANCE = 5.0
@@ -230,8 +230,8 @@ def node_cpu_from_trace(path: str | Path, plan: Plan, system: System | None,
     """Mean CPU per plan node in one trace, over the samples inside the recording's window
     (the whole trace, with a warning, when none is inside it). Rows are matched to plan
     nodes by name, else by the system's ``process`` regex
-    (:func:`perfros_bag.ingest.cputrace.assign_nodes`)."""
-    from perfros_bag.ingest import cputrace
+    (:func:`perfros_bag.cpu.trace.assign_nodes`)."""
+    from perfros_bag.cpu import trace as cputrace
 
     trace = cputrace.read_cpu_trace(path)
     patterns: dict[str, str | None] = {
@@ -436,7 +436,7 @@ def plan_system(plan: Plan, plan_path: Path) -> System | None:
     beside the plan first, then from the working directory)."""
     if not plan.system:
         return None
-    from perfros_bag.spec import load_system
+    from perfros_bag.system.systemfile import load_system
 
     raw = Path(plan.system)
     for cand in ([raw] if raw.is_absolute() else [plan_path.parent / raw, raw]):
@@ -458,8 +458,8 @@ def validate_files(run: str | Path, plan_path: str | Path, *, cpu: Sequence[str 
                    cap: bool = False) -> Validation:
     """Read the recording, the plan, the CPU trace(s) and the system, then :func:`check_run`."""
     from perfros_bag.ingest import read_recording
-    from perfros_bag.plan import load_plan
-    from perfros_bag.spec import load_system
+    from perfros_bag.system.plan import load_plan
+    from perfros_bag.system.systemfile import load_system
 
     if not math.isfinite(tolerance) or tolerance < 0:
         raise InputError(None, f"--tolerance must be a number >= 0, got {tolerance}")

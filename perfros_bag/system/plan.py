@@ -1,6 +1,6 @@
 """``plan.json``: one setting and one computer per node, with expected loads.
 
-Solvers produce an :class:`Assignment` (node -> computer and :class:`~perfros_bag.model.Choice`,
+Solvers produce an :class:`Assignment` (node -> computer and :class:`~perfros_bag.system.types.Choice`,
 plus server capacities for Problem 2); :func:`build_plan` turns it into a :class:`Plan`
 with computer loads, link loads and per-topic expectations. The JSON shape is the
 contract of ``design.md`` (format ``perfros-bag/plan@1``).
@@ -14,7 +14,7 @@ from typing import Any
 
 from perfros_bag.errors import InputError
 from perfros_bag.fileio import atomic_write_json, read_json
-from perfros_bag.model import Choice, System
+from perfros_bag.system.types import Choice, System
 
 PLAN_FORMAT = "perfros-bag/plan@1"
 STATUSES = ("optimal", "feasible", "infeasible")

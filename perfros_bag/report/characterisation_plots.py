@@ -7,7 +7,7 @@ from collections import defaultdict
 from collections.abc import Sequence
 from pathlib import Path
 
-from perfros_bag.characterise import Row
+from perfros_bag.characterisation.table import Row
 
 
 def plot_characterisation(rows: Sequence[Row], path: str | Path) -> int:

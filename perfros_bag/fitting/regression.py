@@ -1,7 +1,7 @@
 """Curve fitting for the paper's regressions (section IV-B, Fig 3 and 4).
 
 Each relation (parameter -> CPU, CPU -> performance, ...) is fitted with every candidate
-form of :class:`~perfros_bag.model.Curve` (linear, log, quadratic, power) by least squares
+form of :class:`~perfros_bag.system.types.Curve` (linear, log, quadratic, power) by least squares
 on transformed features (scikit-learn's ``LinearRegression``; power in log space, then
 refined by nonlinear least squares), and the form with the smallest leave-one-out error
 is kept. A form never has as many coefficients as there are points, except that two
@@ -27,7 +27,7 @@ from typing import Any, Literal
 import numpy as np
 import numpy.typing as npt
 
-from perfros_bag.model import CURVE_FORMS, CURVE_NCOEF, Curve
+from perfros_bag.system.types import CURVE_FORMS, CURVE_NCOEF, Curve
 
 Monotone = Literal["nondecreasing", "either"] | None
 FloatArray = npt.NDArray[np.float64]
