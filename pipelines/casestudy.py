@@ -254,7 +254,7 @@ def baseline_choice(system: System, plan: Plan, name: str) -> Choice:
 
 
 def rq3(out: Path, args: argparse.Namespace) -> list[dict[str, Any]]:
-    from perfros_bag.solve import solve
+    from perfros_bag.solver import solve
 
     d = out / "rq3"
     d.mkdir(parents=True, exist_ok=True)

@@ -20,8 +20,8 @@ from rich.console import Console
 from rich.progress import Progress
 
 from perfros_bag.fileio import atomic_write_json, atomic_write_text
-from perfros_bag.solve import solve
-from perfros_bag.solve.check import check_plan
+from perfros_bag.solver import solve
+from perfros_bag.solver.check import check_plan
 from perfros_bag.casestudy.instances import TABLE_II
 from perfros_bag.system.systemfile import load_system
 
@@ -31,7 +31,7 @@ HEURISTICS = ("greedy", "greedy+")
 
 def exact_available() -> bool:
     try:
-        import perfros_bag.solve.exact  # noqa: F401
+        import perfros_bag.solver.exact  # noqa: F401
     except ImportError:
         return False
     return True

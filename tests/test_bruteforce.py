@@ -14,8 +14,8 @@ from hypothesis import strategies as st
 
 from perfros_bag.casestudy.instances import random_tiny, table2_instance
 from perfros_bag.errors import InputError
-from perfros_bag.solve import solve
-from perfros_bag.solve.check import check_plan
+from perfros_bag.solver import solve
+from perfros_bag.solver.check import check_plan
 from perfros_bag.system.systemfile import parse_system
 
 

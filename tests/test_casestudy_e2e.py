@@ -23,7 +23,7 @@ import pytest
 
 from perfros_bag.casestudy.cgroups import leftover_groups
 from perfros_bag.casestudy.launcher import leftover_processes
-from perfros_bag.solve import solve
+from perfros_bag.solver import solve
 from perfros_bag.system.systemfile import load_system
 from tests.conftest import FIXTURES
 

@@ -8,7 +8,7 @@ from typing import Any
 
 import pytest
 
-from perfros_bag.solve.check import check_plan, plan_objective
+from perfros_bag.solver.check import check_plan, plan_objective
 from perfros_bag.system.plan import Plan, parse_plan
 from perfros_bag.system.systemfile import parse_system
 

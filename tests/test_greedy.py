@@ -13,8 +13,8 @@ import pytest
 import yaml
 
 from perfros_bag.casestudy.instances import TABLE_II, casestudy_system, table2_instance
-from perfros_bag.solve import fixed_choices, solve
-from perfros_bag.solve.check import check_plan
+from perfros_bag.solver import fixed_choices, solve
+from perfros_bag.solver.check import check_plan
 from perfros_bag.system.plan import Plan
 from perfros_bag.system.systemfile import load_system, parse_system
 

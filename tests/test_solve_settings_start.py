@@ -13,13 +13,13 @@ from typing import Any
 import pytest
 from typer.testing import CliRunner
 
-import perfros_bag.solve as solve_mod
+import perfros_bag.solver as solve_mod
 from perfros_bag.casestudy.instances import table2_instance
 from perfros_bag.cli import app
 from perfros_bag.errors import InputError, PerfrosWarning
 from perfros_bag.fitting.build import read_model
-from perfros_bag.solve import fixed_choices, settings_from_values, solve
-from perfros_bag.solve.check import check_plan
+from perfros_bag.solver import fixed_choices, settings_from_values, solve
+from perfros_bag.solver.check import check_plan
 from perfros_bag.system.plan import Assignment, Plan, load_plan
 from perfros_bag.system.systemfile import parse_system
 from perfros_bag.system.types import Choice, System
@@ -137,8 +137,8 @@ def _system(instance: int) -> System:
 
 
 def _spy(monkeypatch: pytest.MonkeyPatch) -> tuple[list[Assignment | None], list[float | None]]:
-    import perfros_bag.solve.exact as exact_mod
-    import perfros_bag.solve.local as local_mod
+    import perfros_bag.solver.exact as exact_mod
+    import perfros_bag.solver.local as local_mod
 
     starts: list[Assignment | None] = []
     budgets: list[float | None] = []

@@ -20,7 +20,7 @@ from perfros_bag.system.types import System
 def parse_settings(system: System, text: str, resolution: float) -> dict[str, float]:
     """``--settings``: a plan.json (each node's CPU) or ``node=value,...`` (a parameter
     value) / ``node=cpu:U`` (a CPU level). Returns node -> CPU level."""
-    from perfros_bag.solve import settings_from_plan, settings_from_values
+    from perfros_bag.solver import settings_from_plan, settings_from_values
     from perfros_bag.system.plan import load_plan
 
     if text.lower().endswith(".json") or Path(text).is_file():
@@ -97,8 +97,8 @@ def solve(
         "--time-limit", help="exact: stop after S seconds (best plan, status feasible)")] = None,
 ) -> None:
     """Choose a setting and a computer for every node (the paper's Problems 1 and 2)."""
-    from perfros_bag.solve import METHODS
-    from perfros_bag.solve import solve as run
+    from perfros_bag.solver import METHODS
+    from perfros_bag.solver import solve as run
     from perfros_bag.system.systemfile import load_system
 
     if problem not in (1, 2):

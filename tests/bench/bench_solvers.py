@@ -13,7 +13,7 @@ One run on this machine, every figure measured in the same run:
    20 computers to a 1 % gap (target < 30 s), on a case-study-like fleet
    (:func:`fleet`): stacks of the six robot nodes spread over the robots, servers joined
    to the robots' wifi by Ethernet.
-4. Formulation and option choices behind ``perfros_bag.solve.exact`` (x-form vs the
+4. Formulation and option choices behind ``perfros_bag.solver.exact`` (x-form vs the
    compact concave form; HiGHS root heuristics on/off) on Table II instances 4-6.
 
 Wall time and CPU time are both printed: the machine is shared, so wall time includes
@@ -41,11 +41,11 @@ from perfros_bag.casestudy.instances import (
     random_instance,
     table2_instance,
 )
-from perfros_bag.solve import START_SHARE, fixed_choices, solve
-from perfros_bag.solve import exact as exact_mod
-from perfros_bag.solve.exact import solve_exact
-from perfros_bag.solve.greedy import solve_greedy
-from perfros_bag.solve.local import solve_greedy_plus
+from perfros_bag.solver import START_SHARE, fixed_choices, solve
+from perfros_bag.solver import exact as exact_mod
+from perfros_bag.solver.exact import solve_exact
+from perfros_bag.solver.greedy import solve_greedy
+from perfros_bag.solver.local import solve_greedy_plus
 from perfros_bag.system.plan import Assignment, Plan
 from perfros_bag.system.systemfile import parse_system
 from perfros_bag.system.types import Choice, System

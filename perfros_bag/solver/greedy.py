@@ -26,7 +26,7 @@ from __future__ import annotations
 import heapq
 import math
 
-from perfros_bag.solve.state import EPS, State, _fmt
+from perfros_bag.solver.state import EPS, State, _fmt
 from perfros_bag.system.plan import Plan, infeasible_plan
 from perfros_bag.system.types import Choice, System
 

@@ -743,7 +743,7 @@ def solve_exact(system: System, problem: int, choices: dict[str, list[Choice]], 
                 start: Assignment | None = None) -> Plan:
     """Solve Problem 1 (max Σ w·P) or Problem 2 (min Σ server capacity) exactly with HiGHS.
 
-    ``choices`` are each node's candidates (:func:`perfros_bag.solve.fixed_choices`).
+    ``choices`` are each node's candidates (:func:`perfros_bag.solver.fixed_choices`).
     The plan's status is ``optimal`` when proven (gap below 1e-6 relative), ``feasible``
     with the solver's ``bound`` when ``time_limit`` or a positive ``mip_gap`` stopped it
     first, or ``infeasible`` with a reason naming the constraint. ``start`` (e.g. the

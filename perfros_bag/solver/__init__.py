@@ -10,12 +10,12 @@ Every solver receives the same candidates from :func:`fixed_choices` and has the
 signature ``(system, problem, choices) -> Plan`` (the exact solver also takes
 ``time_limit``):
 
-- ``greedy``      :func:`perfros_bag.solve.greedy.solve_greedy` (the paper's Algorithms 1-3)
-- ``greedy+``     :func:`perfros_bag.solve.local.solve_greedy_plus` (greedy + local search)
-- ``exact``       ``perfros_bag.solve.exact.solve_exact(system, problem, choices, *, time_limit=None)``;
+- ``greedy``      :func:`perfros_bag.solver.greedy.solve_greedy` (the paper's Algorithms 1-3)
+- ``greedy+``     :func:`perfros_bag.solver.local.solve_greedy_plus` (greedy + local search)
+- ``exact``       ``perfros_bag.solver.exact.solve_exact(system, problem, choices, *, time_limit=None)``;
   on Problem 1 above :data:`START_COLUMNS` columns :func:`solve` first runs greedy+ for
   :data:`START_SHARE` of ``time_limit`` and passes its plan as the MIP start
-- ``bruteforce``  :func:`perfros_bag.solve.bruteforce.solve_bruteforce` (tiny instances)
+- ``bruteforce``  :func:`perfros_bag.solver.bruteforce.solve_bruteforce` (tiny instances)
 
 ``settings`` (Problem 2) maps node -> **CPU level** (units of the system's CPU scale).
 :func:`settings_from_values` converts node -> parameter value to CPU levels, and
@@ -177,19 +177,19 @@ def _dispatch(system: System, problem: int, method: str, choices: dict[str, list
               time_limit: float | None) -> Plan:
     t0 = time.perf_counter()
     if method == "greedy":
-        from perfros_bag.solve.greedy import solve_greedy
+        from perfros_bag.solver.greedy import solve_greedy
 
         return solve_greedy(system, problem, choices)
     if method == "greedy+":
-        from perfros_bag.solve.local import solve_greedy_plus
+        from perfros_bag.solver.local import solve_greedy_plus
 
         return solve_greedy_plus(system, problem, choices)
     if method == "bruteforce":
-        from perfros_bag.solve.bruteforce import solve_bruteforce
+        from perfros_bag.solver.bruteforce import solve_bruteforce
 
         return solve_bruteforce(system, problem, choices)
     try:
-        from perfros_bag.solve.exact import solve_exact
+        from perfros_bag.solver.exact import solve_exact
     except ImportError as exc:
         raise InputError(None, f"the exact solver is not available ({exc})") from None
     start = _exact_start(system, problem, choices, time_limit)
@@ -217,7 +217,7 @@ def _exact_start(system: System, problem: int, choices: dict[str, list[Choice]],
     start on big instances; None on small ones, or when greedy+ finds nothing."""
     if problem != 1 or exact_columns(system, choices) <= START_COLUMNS:
         return None
-    from perfros_bag.solve.local import solve_greedy_plus
+    from perfros_bag.solver.local import solve_greedy_plus
 
     budget = None if time_limit is None else START_SHARE * time_limit
     plan = solve_greedy_plus(system, problem, choices, time_budget=budget)

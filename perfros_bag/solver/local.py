@@ -28,8 +28,8 @@ from collections.abc import Iterable
 
 import numpy as np
 
-from perfros_bag.solve.greedy import run_greedy, upgrade
-from perfros_bag.solve.state import EPS, State
+from perfros_bag.solver.greedy import run_greedy, upgrade
+from perfros_bag.solver.state import EPS, State
 from perfros_bag.system.plan import Plan, infeasible_plan
 from perfros_bag.system.types import Choice, System
 
