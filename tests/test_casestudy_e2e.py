@@ -16,12 +16,13 @@ import signal
 import subprocess
 import sys
 import time
+import warnings
 from pathlib import Path
 
 import psutil
 import pytest
 
-from perfros_bag.casestudy.cgroups import leftover_groups
+from perfros_bag.casestudy.cgroups import CpuGroups, leftover_groups
 from perfros_bag.casestudy.launcher import leftover_processes
 from perfros_bag.solver import solve
 from perfros_bag.system.systemfile import load_system
@@ -126,6 +127,19 @@ def test_instance1_runs_validates_and_leaves_nothing(instance1: tuple[Path, Path
             assert comp["cpu_measured"] <= comp["capacity"] * 1.05, comp
 
 
+def _cgroups_work() -> bool:
+    """Whether capped cgroups can be made here, probed with a throw-away group of our own."""
+    groups = CpuGroups(run_id=f"probe{os.getpid()}", cores={"probe": 0.5})
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        groups.create(quiet=True)
+    try:
+        return groups.capped
+    finally:
+        groups.remove()
+        assert not leftover_groups(run_id=groups.run_id)
+
+
 def test_ctrl_c_stops_everything(instance1: tuple[Path, Path], tmp_path: Path) -> None:
     system, plan = instance1
     out = tmp_path / "run"
@@ -144,7 +158,9 @@ def test_ctrl_c_stops_everything(instance1: tuple[Path, Path], tmp_path: Path) -
     run_id = run_ids.pop()
     port = int(next(p.environ()["ROS_MASTER_URI"].rsplit(":", 1)[1]
                     for p in psutil.Process(proc.pid).children(recursive=True)))
-    assert leftover_processes(run_id) and leftover_groups(run_id=run_id) or not os.access("/sys/fs/cgroup", os.W_OK)
+    assert leftover_processes(run_id), "the run's processes should be running before Ctrl-C"
+    # the run made its cgroups exactly when this machine lets a process join a capped group
+    assert bool(leftover_groups(run_id=run_id)) == _cgroups_work()
     proc.send_signal(signal.SIGINT)
     _, stderr = proc.communicate(timeout=40)
     assert proc.returncode == 130, stderr
