@@ -23,14 +23,10 @@ from hypothesis import strategies as st
 from typer.testing import CliRunner
 
 from perfros_bag.casestudy.instances import TABLE_I
+from perfros_bag.characterisation.csvfile import COLUMNS
 from perfros_bag.characterisation.manifest import load_manifest
-from perfros_bag.characterisation.table import (
-    COLUMNS,
-    characterise,
-    characterise_recording,
-    find_entries,
-    table_one,
-)
+from perfros_bag.characterisation.recording import characterise_recording
+from perfros_bag.characterisation.table import characterise, find_entries, table_one
 from perfros_bag.cli import app
 from perfros_bag.errors import InputError
 from perfros_bag.system.systemfile import load_system
@@ -408,7 +404,7 @@ def test_empty_recording_is_a_correct_empty_result(tmp_path: Path) -> None:
 
 
 def test_plot_png(fixture_run: Path, tmp_path: Path) -> None:
-    from perfros_bag.characterisation.table import Row
+    from perfros_bag.characterisation.csvfile import Row
     from perfros_bag.report.characterisation_plots import plot_characterisation
 
     assert (fixture_run / "characterisation.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
