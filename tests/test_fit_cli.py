@@ -15,8 +15,8 @@ import yaml
 from typer.testing import CliRunner
 
 from perfros_bag.cli import app
-from perfros_bag.fitting.build import MODEL_FORMAT, read_model
-from perfros_bag.system.systemfile import load_system
+from perfros_bag.fitting.modelfile import MODEL_FORMAT, read_model
+from perfros_bag.system.systemfile import load_system, parse_system
 from perfros_bag.system.types import Node
 from tests.conftest import FIXTURES
 
@@ -117,7 +117,9 @@ def test_fit_writes_a_model_that_load_system_reads(table_i: tuple[Path, Path, li
     doc = json.loads(out.read_text())
     assert doc["format"] == MODEL_FORMAT and doc["characterisation"] == str(csv_path)
     system = load_system(out)
-    model_system, _ = read_model(out)
+    model = read_model(out)
+    assert model.to_json() == doc  # the typed document writes back what it read
+    model_system = parse_system(model.system, str(out))
     assert [n.name for n in model_system.nodes] == [n.name for n in system.nodes]
     for name, (_param, _t, table) in TABLE_I.items():
         node = system.node[name]

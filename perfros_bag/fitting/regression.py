@@ -22,11 +22,12 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Literal
 
 import numpy as np
 import numpy.typing as npt
 
+from perfros_bag.fitting.modelfile import FittedRelation
 from perfros_bag.system.types import CURVE_FORMS, CURVE_NCOEF, Curve
 
 Monotone = Literal["nondecreasing", "either"] | None
@@ -69,19 +70,10 @@ class Fit:
     def curve(self) -> Curve:
         return Curve(self.form, self.coef, self.domain, self.scale)
 
-    def to_dict(self) -> dict[str, Any]:
-        return {
-            "form": self.form, "coef": [float(c) for c in self.coef],
-            "domain": [float(d) for d in self.domain], "scale": self.scale,
-            "r2": _round(self.r2), "loo_rmse": None if self.loo_rmse is None else _round(self.loo_rmse),
-            "points": [[float(a), float(b)] for a, b in zip(self.x, self.y, strict=True)],
-            "candidates": {k: None if v is None else _round(v) for k, v in self.candidates.items()},
-            "warnings": list(self.warnings),
-        }
-
-
-def _round(v: float) -> float:
-    return float(f"{v:.6g}") if math.isfinite(v) else v
+    def stored(self) -> FittedRelation:
+        """The fit as model.json keeps it."""
+        return FittedRelation(self.form, self.coef, self.domain, self.scale, self.r2, self.loo_rmse,
+                              tuple(zip(self.x, self.y, strict=True)), dict(self.candidates), self.warnings)
 
 
 # --- one form ---------------------------------------------------------------------------

@@ -15,7 +15,8 @@ from pathlib import Path
 from typing import Any
 
 from perfros_bag.errors import InputError, PerfrosWarning
-from perfros_bag.fileio import read_json, read_yaml
+from perfros_bag.fileio import read_yaml
+from perfros_bag.fitting.modelfile import read_model_system
 from perfros_bag.system.types import (
     CURVE_FORMS,
     Computer,
@@ -107,17 +108,19 @@ def _kind(obj: Any) -> str:
     return "nothing" if obj is None else type(obj).__name__
 
 
+def read_system_data(path: str | Path) -> Any:
+    """The parsed, unchecked content of a ``system.yaml``, or the ``system`` part of a
+    ``model.json`` (a ``.json`` file without one is a system written as JSON)."""
+    p = Path(path)
+    if p.suffix.lower() == ".json":
+        return read_model_system(p)
+    return read_yaml(p)
+
+
 def load_system(path: str | Path) -> System:
     """Read and validate a ``system.yaml`` (or a ``model.json``, whose ``system`` part has
     the same shape)."""
-    p = Path(path)
-    if p.suffix.lower() == ".json":
-        data = read_json(p)
-        if isinstance(data, Mapping) and "system" in data:
-            data = data["system"]
-    else:
-        data = read_yaml(p)
-    return parse_system(data, str(p))
+    return parse_system(read_system_data(path), str(Path(path)))
 
 
 def parse_system(data: Any, source: str = "system.yaml") -> System:
