@@ -15,7 +15,7 @@ from typing import Any
 
 from perfros_bag.errors import InputError
 from perfros_bag.fileio import atomic_write_json, read_json
-from perfros_bag.system.types import Curve
+from perfros_bag.system.types import Curve, CurveForm, curve_form
 
 MODEL_FORMAT = "perfros-bag/model@1"
 
@@ -79,7 +79,7 @@ class FittedRelation:
     """One fitted relation as model.json keeps it: the curve (``form``, ``coef``, ``domain``,
     ``scale``), how well it fits, the points it was fitted to and why this form."""
 
-    form: str
+    form: CurveForm
     coef: tuple[float, ...]
     domain: tuple[float, float]
     scale: float
@@ -195,8 +195,12 @@ def _relation(doc: _Doc, raw: Any, where: str) -> FittedRelation:
     lo, hi = doc.numbers(m.get("domain"), f"{where}.domain", 2)
     candidates = {str(k): doc.opt_number(v, f"{where}.candidates.{k}")
                   for k, v in doc.mapping(m.get("candidates", {}), f"{where}.candidates").items()}
+    try:
+        form = curve_form(m.get("form"))
+    except ValueError as exc:
+        raise doc.fail(f"{where}.form", str(exc)) from None
     fit = FittedRelation(
-        form=doc.string(m.get("form"), f"{where}.form"),
+        form=form,
         coef=doc.numbers(m.get("coef"), f"{where}.coef"),
         domain=(lo, hi),
         scale=doc.number(m.get("scale", 1.0), f"{where}.scale"),
@@ -209,7 +213,7 @@ def _relation(doc: _Doc, raw: Any, where: str) -> FittedRelation:
                        for i, w in enumerate(doc.items(m.get("warnings", []), f"{where}.warnings"))),
     )
     try:
-        fit.curve  # noqa: B018 - the form and the number of coefficients must make a curve
+        fit.curve  # noqa: B018 - the coefficients and domain must make a curve
     except ValueError as exc:
         raise doc.fail(where, str(exc)) from None
     return fit

@@ -21,7 +21,7 @@ import numpy as np
 from perfros_bag.fitting.modelfile import FittedRelation
 from perfros_bag.fitting.regression import Fit
 from perfros_bag.report.figures import label, png_bytes, pyplot, save_png
-from perfros_bag.system.types import Node
+from perfros_bag.system.types import CurveForm, Node
 
 _PANELS = (
     ("parameter->performance", "performance", "Fig 3: parameter vs performance"),
@@ -30,7 +30,7 @@ _PANELS = (
     ("parameter->frequency", "frequency (Hz)", "parameter vs frequency / bandwidth"),
 )
 
-_FORMULA = {
+_FORMULA: dict[CurveForm, str] = {
     "linear": "{0:.4g}·x + {1:.4g}",
     "log": "{0:.4g}·ln(x) + {1:.4g}",
     "quadratic": "{0:.4g}·x² + {1:.4g}·x + {2:.4g}",
