@@ -210,11 +210,20 @@ def test_csv_missing_columns_is_one_error_line(tmp_path: Path, drop: str) -> Non
     assert "c.csv" in line and "missing column" in line and drop in line
 
 
-@pytest.mark.parametrize("content", ["", "not,a,characterisation\n1,2,3\n", ",".join(HEADER) + "\n"])
-def test_empty_or_foreign_csv_is_one_error_line(tmp_path: Path, content: str) -> None:
-    (tmp_path / "c.csv").write_text(content)
-    one_error_line(run(str(write_yaml(tmp_path / "s.yaml", table_i_system())), str(tmp_path / "c.csv"),
-                       "--out", str(tmp_path / "m.json")))
+@pytest.mark.parametrize(("content", "problem"), [
+    ("", "the file is empty (expected a characterisation.csv header)"),
+    ("not,a,characterisation\n1,2,3\n",
+     "not a characterisation.csv: missing column(s) recording, node, value, topic, frequency_hz, bandwidth_kBps, "
+     "cpu_units_mean"),
+    (",".join(HEADER) + "\n", "has a header but no rows"),
+])
+def test_empty_or_foreign_csv_is_one_error_line(tmp_path: Path, content: str, problem: str) -> None:
+    csv_path = tmp_path / "c.csv"
+    csv_path.write_text(content)
+    line = one_error_line(run(str(write_yaml(tmp_path / "s.yaml", table_i_system())), str(csv_path),
+                              "--out", str(tmp_path / "m.json")))
+    assert line == f"error: {csv_path}: {problem}"
+    assert not (tmp_path / "m.json").exists()
 
 
 def test_missing_files_are_one_error_line(tmp_path: Path, table_i: tuple[Path, Path, list[dict[str, Any]]]) -> None:
