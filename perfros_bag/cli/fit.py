@@ -43,7 +43,7 @@ def fit(
         for rel, f in fits.items():
             loo = "-" if f.loo_rmse is None else f"{f.loo_rmse:.3g}"
             r2 = f"{f.r2:.4f}" if f.r2 >= 0.9 else f"[yellow]{f.r2:.4f}[/]"
-            table.add_row(node, rel.replace("parameter", "param"), f.form, r2, loo, str(len(f.x)),
+            table.add_row(node, rel.replace("parameter", "param"), f.form, r2, loo, str(len(f.points)),
                           f"[{f.domain[0]:.4g}, {f.domain[1]:.4g}]")
     out.print(table)
     for node, n in result.system.node.items():

@@ -21,8 +21,14 @@ from typing import Any
 from perfros_bag.characterisation.csvfile import CharacterisationFile, read_characterisation
 from perfros_bag.characterisation.settings import by_setting
 from perfros_bag.errors import InputError, PerfrosWarning
-from perfros_bag.fitting.modelfile import MeasuredSetting, ModelDocument, Stat, round9
-from perfros_bag.fitting.regression import Fit, FitError, clip_domain, fit_curve
+from perfros_bag.fitting.modelfile import (
+    FittedRelation,
+    MeasuredSetting,
+    ModelDocument,
+    Stat,
+    round9,
+)
+from perfros_bag.fitting.regression import FitError, clip_domain, fit_curve
 from perfros_bag.system.systemfile import parse_system, read_system_data
 from perfros_bag.system.types import Curve, Node, System
 
@@ -34,7 +40,7 @@ class ModelResult:
     """The model.json document plus the fits (for tables and plots)."""
 
     document: ModelDocument
-    fits: dict[str, dict[str, Fit]]
+    fits: dict[str, dict[str, FittedRelation]]
     system: System
     warnings: list[str]
 
@@ -104,7 +110,7 @@ def build_model(system_path: str | Path, characterisation_path: str | Path) -> M
     warn = _Warn()
     doc_system = copy.deepcopy(dict(raw))
     raw_nodes = {str(n.get("name")): n for n in doc_system["nodes"]}
-    fits: dict[str, dict[str, Fit]] = {}
+    fits: dict[str, dict[str, FittedRelation]] = {}
     unmeasured = [n.name for n in system.nodes if n.name not in measured]
     if unmeasured:
         warn(f"{csv_path}: no rows for node(s) {', '.join(unmeasured)}: kept the numbers of {sys_path}")
@@ -115,7 +121,7 @@ def build_model(system_path: str | Path, characterisation_path: str | Path) -> M
         if fits_n:
             fits[node.name] = fits_n
     document = ModelDocument(sys_path, csv_path, doc_system,
-                             {n: {rel: f.stored() for rel, f in fs.items()} for n, fs in fits.items()},
+                             {n: dict(fs) for n, fs in fits.items()},
                              measured, warn.messages)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", PerfrosWarning)
@@ -133,7 +139,7 @@ def _match(node: Node, value: float | None, measured: list[MeasuredSetting]) -> 
 
 
 def _fit_node(node: Node, measured: list[MeasuredSetting], raw: dict[str, Any], warn: _Warn,
-              sys_path: str) -> dict[str, Fit]:
+              sys_path: str) -> dict[str, FittedRelation]:
     """Fill ``raw`` (the node's system.yaml mapping, changed in place) with measured
     numbers and fitted curves; return the fits."""
     who = f"node {node.name!r}"
@@ -194,7 +200,7 @@ def _fit_node(node: Node, measured: list[MeasuredSetting], raw: dict[str, Any], 
         sel = [p for p in source if p[ix] is not None and p[iy] is not None and math.isfinite(p[iy])]
         return [float(p[ix]) for p in sel], [float(p[iy]) for p in sel]
 
-    fits: dict[str, Fit] = {}
+    fits: dict[str, FittedRelation] = {}
     specs: list[tuple[str, int, int, list[Any], float, Any]] = [
         ("parameter->cpu", 0, 1, points, 1.0, "either"),
         ("parameter->performance", 0, 2, rated, 1.0, None),
@@ -210,7 +216,7 @@ def _fit_node(node: Node, measured: list[MeasuredSetting], raw: dict[str, Any], 
             warn(f"{who}: {rel}: fewer than 2 distinct points: the node stays discrete")
             return {}
         try:
-            fit = fit_curve(xs, ys, relation=rel, scale=scale, monotone=mono)
+            fit = fit_curve(xs, ys, scale=scale, monotone=mono)
         except FitError as exc:
             warn(f"{who}: {rel}: {exc}: the node stays discrete")
             return {}
@@ -230,12 +236,12 @@ def _fit_node(node: Node, measured: list[MeasuredSetting], raw: dict[str, Any], 
     return fits
 
 
-def _topic_fits(who: str, measured: list[MeasuredSetting], warn: _Warn) -> dict[str, Fit]:
+def _topic_fits(who: str, measured: list[MeasuredSetting], warn: _Warn) -> dict[str, FittedRelation]:
     """``parameter->frequency:<topic>`` and ``parameter->bandwidth:<topic>`` for a node that
     publishes several topics (their rates differ; the node-level relations are a mean and
     a sum). Topics measured at fewer than 2 values are skipped."""
     topics = sorted({t for m in measured for t in m.topics})
-    out: dict[str, Fit] = {}
+    out: dict[str, FittedRelation] = {}
     if len(topics) < 2:
         return out
     for t in topics:
@@ -251,7 +257,7 @@ def _topic_fits(who: str, measured: list[MeasuredSetting], warn: _Warn) -> dict[
                 continue
             rel = f"{kind}:{t}"
             try:
-                fit = fit_curve(xs, ys, relation=rel)
+                fit = fit_curve(xs, ys)
             except FitError:
                 continue
             for note in fit.warnings:
@@ -260,11 +266,11 @@ def _topic_fits(who: str, measured: list[MeasuredSetting], warn: _Warn) -> dict[
     return out
 
 
-def _with_warnings(fit: Fit, notes: tuple[str, ...]) -> Fit:
+def _with_warnings(fit: FittedRelation, notes: tuple[str, ...]) -> FittedRelation:
     return replace(fit, warnings=notes)
 
 
-def solver_curve(c2p: Fit, p2c: Fit, max_perf: float) -> tuple[Curve, list[str]]:
+def solver_curve(c2p: FittedRelation, p2c: FittedRelation, max_perf: float) -> tuple[Curve, list[str]]:
     """The node's CPU -> performance curve for the solvers: the fitted curve on the measured
     CPU range, narrowed where its performance leaves [0, max observed], with whole-CPU-unit
     ends (rounded inwards, when that leaves at least one unit). CPU levels the

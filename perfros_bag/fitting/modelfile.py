@@ -76,14 +76,15 @@ class MeasuredSetting:
 
 @dataclass(frozen=True)
 class FittedRelation:
-    """One fitted relation as model.json keeps it: the curve (``form``, ``coef``, ``domain``,
-    ``scale``), how well it fits, the points it was fitted to and why this form."""
+    """A fitted relation (what :func:`perfros_bag.fitting.regression.fit_curve` returns and
+    model.json keeps): the curve (``form``, ``coef``, ``domain``, ``scale``), how well it
+    fits, the points it was fitted to and why this form (``warnings``)."""
 
     form: CurveForm
     coef: tuple[float, ...]
     domain: tuple[float, float]
     scale: float
-    r2: float | None
+    r2: float
     loo_rmse: float | None  # None with 2 points (nothing to leave out)
     points: tuple[tuple[float, float], ...]
     candidates: dict[str, float | None] = field(default_factory=dict)  # form -> leave-one-out RMSE
@@ -97,7 +98,7 @@ class FittedRelation:
         return {
             "form": self.form, "coef": [float(c) for c in self.coef],
             "domain": [float(d) for d in self.domain], "scale": self.scale,
-            "r2": None if self.r2 is None else round6(self.r2),
+            "r2": round6(self.r2),
             "loo_rmse": None if self.loo_rmse is None else round6(self.loo_rmse),
             "points": [[float(a), float(b)] for a, b in self.points],
             "candidates": {k: None if v is None else round6(v) for k, v in self.candidates.items()},
@@ -204,7 +205,7 @@ def _relation(doc: _Doc, raw: Any, where: str) -> FittedRelation:
         coef=doc.numbers(m.get("coef"), f"{where}.coef"),
         domain=(lo, hi),
         scale=doc.number(m.get("scale", 1.0), f"{where}.scale"),
-        r2=doc.opt_number(m.get("r2"), f"{where}.r2"),
+        r2=doc.number(m.get("r2"), f"{where}.r2"),
         loo_rmse=doc.opt_number(m.get("loo_rmse"), f"{where}.loo_rmse"),
         points=tuple((x, y) for x, y in (doc.numbers(p, f"{where}.points[{i}]", 2)
                                           for i, p in enumerate(doc.items(m.get("points", []), f"{where}.points")))),

@@ -14,14 +14,13 @@ points get the (exact) line. Constraints the solver relies on are enforced here:
 - :func:`clip_domain` narrows a non-decreasing curve's domain so that its output stays
   within ``[lo, hi]`` (performance within ``[0, max observed]``).
 
-Every such decision is recorded in :attr:`Fit.warnings` (callers warn with them).
+Every such decision is recorded in :attr:`FittedRelation.warnings` (callers warn with them).
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
@@ -50,32 +49,6 @@ _GRID = 513
 class FitError(PerfrosError):
     """The points cannot be fitted at all (fewer than 2 distinct inputs, non-finite values).
     A user error like any other: uncaught, it is one line, not a traceback."""
-
-
-@dataclass(frozen=True)
-class Fit:
-    """A fitted relation: the chosen curve, how well it fits and why it was chosen."""
-
-    relation: str
-    form: CurveForm
-    coef: tuple[float, ...]
-    domain: tuple[float, float]
-    scale: float
-    r2: float
-    loo_rmse: float | None  # None with 2 points (nothing to leave out)
-    x: tuple[float, ...]
-    y: tuple[float, ...]
-    candidates: dict[str, float | None] = field(default_factory=dict)  # form -> LOO RMSE
-    warnings: tuple[str, ...] = ()
-
-    @property
-    def curve(self) -> Curve:
-        return Curve(self.form, self.coef, self.domain, self.scale)
-
-    def stored(self) -> FittedRelation:
-        """The fit as model.json keeps it."""
-        return FittedRelation(self.form, self.coef, self.domain, self.scale, self.r2, self.loo_rmse,
-                              tuple(zip(self.x, self.y, strict=True)), dict(self.candidates), self.warnings)
 
 
 # --- one form ---------------------------------------------------------------------------
@@ -288,8 +261,8 @@ def _rank(forms: list[CurveForm], loo: dict[str, float | None], tiny: float = 0.
     return [first] + [f for f in ranked if f != first]
 
 
-def fit_curve(x: Sequence[float], y: Sequence[float], *, relation: str = "", scale: float = 1.0,
-              forms: Sequence[CurveForm] = CURVE_FORMS, monotone: Monotone = None) -> Fit:
+def fit_curve(x: Sequence[float], y: Sequence[float], *, scale: float = 1.0,
+              forms: Sequence[CurveForm] = CURVE_FORMS, monotone: Monotone = None) -> FittedRelation:
     """Fit every eligible form to (x, y) and keep the one with the smallest leave-one-out
     RMSE that satisfies ``monotone`` on ``[min x, max x]``.
 
@@ -354,6 +327,5 @@ def fit_curve(x: Sequence[float], y: Sequence[float], *, relation: str = "", sca
     flat = spread <= FLAT_SPREAD * max(abs(float(ys.mean())), 1e-12)
     if r2 < R2_WARN and not flat:
         notes.append(f"R² = {r2:.3f} < {R2_WARN}: the {form} fit explains the points poorly")
-    return Fit(relation, form, tuple(float(c) for c in coef), domain, float(scale), float(r2),
-               candidates.get(form), tuple(float(v) for v in xs), tuple(float(v) for v in ys),
-               candidates, tuple(notes))
+    return FittedRelation(form, tuple(float(c) for c in coef), domain, float(scale), float(r2), candidates.get(form),
+                          tuple((float(a), float(b)) for a, b in zip(xs, ys, strict=True)), candidates, tuple(notes))

@@ -19,7 +19,6 @@ from typing import Any
 import numpy as np
 
 from perfros_bag.fitting.modelfile import FittedRelation
-from perfros_bag.fitting.regression import Fit
 from perfros_bag.report.figures import label, png_bytes, pyplot, save_png
 from perfros_bag.system.types import CurveForm, Node
 
@@ -48,15 +47,11 @@ def _safe(name: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", name).strip("_") or "node"
 
 
-def _r2(fit: FittedRelation) -> str:
-    return "" if fit.r2 is None else f"  (R² = {fit.r2:.3f})"
-
-
 def _draw(ax: Any, fit: FittedRelation, colour: str, label_prefix: str = "") -> None:
     lo, hi = fit.domain
     xs = np.linspace(lo, hi, 200) if hi > lo else np.array([lo])
     ys = [fit.curve(float(v)) for v in xs]
-    ax.plot(xs, ys, "-", color=colour, lw=2, label=f"{label_prefix}{fit.form}: {formula(fit)}{_r2(fit)}")
+    ax.plot(xs, ys, "-", color=colour, lw=2, label=f"{label_prefix}{fit.form}: {formula(fit)}  (R² = {fit.r2:.3f})")
     if fit.points:
         ax.plot([p[0] for p in fit.points], [p[1] for p in fit.points], "o", color=colour, ms=7, mec="black",
                 label=f"{label_prefix}data ({len(fit.points)} points)")
@@ -96,10 +91,11 @@ def plot_node(node: Node, fits: Mapping[str, FittedRelation], path: str | Path) 
     return save_png(fig, path)
 
 
-def plot_model(system_nodes: Mapping[str, Node], fits: Mapping[str, Mapping[str, Fit]], out_dir: str | Path) -> list[Path]:
+def plot_model(system_nodes: Mapping[str, Node], fits: Mapping[str, Mapping[str, FittedRelation]],
+               out_dir: str | Path) -> list[Path]:
     """One PNG per fitted node in ``out_dir`` (``<node>.png``)."""
     d = Path(out_dir)
-    return [plot_node(system_nodes[name], {rel: f.stored() for rel, f in node_fits.items()}, d / f"{_safe(name)}.png")
+    return [plot_node(system_nodes[name], node_fits, d / f"{_safe(name)}.png")
             for name, node_fits in fits.items()]
 
 
