@@ -265,7 +265,7 @@ def test_record_cpu_bad_arguments_are_one_line(tmp_path: Path) -> None:
     from perfros_bag.cli import app
 
     for args, needle in ((["--match", "("], "not a valid regular expression"),
-                         ([], "needs --match"),
+                         ([], "nothing to watch: no process pattern and no command"),
                          (["--", "/nonexistent/prog-xyz"], "cannot run")):
         r = CliRunner().invoke(app, ["record-cpu", "--out", str(tmp_path / "x.csv"), "--duration", "1", *args])
         assert r.exit_code == 2, (args, r.stderr)

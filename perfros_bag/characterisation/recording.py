@@ -143,7 +143,7 @@ def _capacity(entry: RecordingEntry, system: System | None) -> float:
         return DEFAULT_CAPACITY
     if system is None:
         raise InputError(entry.cpu, f"computer {entry.computer!r} given but no system.yaml to find its capacity "
-                                    "(pass --system or set 'system:' in the manifest)")
+                                    "(none was given and the manifest names none)")
     comp = system.computer.get(entry.computer)
     if comp is None:
         raise InputError(entry.cpu, f"unknown computer {entry.computer!r} (the system has "

@@ -84,7 +84,7 @@ def table(headers: Sequence[str], rows: Iterable[Sequence[Any]], *, text_cols: I
 def read_validation(path: str | Path) -> dict[str, Any]:
     data = read_json(path)
     if not isinstance(data, dict) or not isinstance(data.get("nodes"), list) or not isinstance(data.get("overall"), dict):
-        raise InputError(path, "not a validation (expected the JSON of 'perfros-bag validate --json')")
+        raise InputError(path, "not a validation (expected a JSON object with a 'nodes' list and an 'overall' object)")
     return data
 
 
