@@ -67,9 +67,11 @@ def measured_settings(table: CharacterisationFile, system: System) -> dict[str, 
         per_topic: dict[str, tuple[list[float], list[float]]] = {}
         for m in s.recordings:
             for t in m.topics:
-                lists = per_topic.setdefault(t.topic, ([], []))
-                lists[0].append(math.nan if t.frequency_hz is None else t.frequency_hz)
-                lists[1].append(math.nan if t.bandwidth_kBps is None else t.bandwidth_kBps)
+                freqs, bws = per_topic.setdefault(t.topic, ([], []))
+                if t.frequency_hz is not None:
+                    freqs.append(t.frequency_hz)
+                if t.bandwidth_kBps is not None:
+                    bws.append(t.bandwidth_kBps)
         out.setdefault(s.node, []).append(MeasuredSetting(
             None if s.value is None else float(s.value), len(s.recordings),
             Stat.of(s.cpus()), Stat.of(s.frequencies()), Stat.of(s.bandwidths()),
