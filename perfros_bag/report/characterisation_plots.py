@@ -9,7 +9,7 @@ from pathlib import Path
 
 from perfros_bag.characterisation.csvfile import Row
 from perfros_bag.characterisation.settings import by_setting, mean
-from perfros_bag.report.figures import pyplot, save_png
+from perfros_bag.report.figures import save_png, subplots
 
 
 def plot_characterisation(rows: Sequence[Row], path: str | Path) -> int:
@@ -30,32 +30,32 @@ def plot_characterisation(rows: Sequence[Row], path: str | Path) -> int:
         return 0
     cols = min(2, len(nodes))
     nrows = (len(nodes) + cols - 1) // cols
-    fig, axes = pyplot().subplots(nrows, cols, figsize=(5.5 * cols, 3.6 * nrows), squeeze=False)
-    for ax, node in zip(axes.flat, nodes, strict=False):
-        values = sorted(data[node])
-        cpu_m = [data[node][v][0] for v in values]
-        p95_m = [data[node][v][1] for v in values]
-        freq_m = [data[node][v][2] for v in values]
-        xs = range(len(values))
-        if any(c is not None for c in cpu_m):
-            heights = [c or 0.0 for c in cpu_m]
-            err = [max(0.0, (p or 0.0) - (c or 0.0)) for c, p in zip(cpu_m, p95_m, strict=True)]
-            ax.bar(xs, heights, color="#4c72b0", alpha=0.8, label="CPU (mean, bar to p95)",
-                   yerr=[[0.0] * len(err), err], capsize=3)
-        ax.set_ylabel("CPU units")
-        ax.set_xticks(list(xs), [f"{v:g}" for v in values])
-        ax.set_xlabel(params[node])
-        ax.set_title(node)
-        if any(f is not None for f in freq_m):
-            ax2 = ax.twinx()
-            ax2.plot(list(xs), [f if f is not None else float("nan") for f in freq_m], "o-", color="#dd8452",
-                     label="frequency")
-            ax2.set_ylabel("Hz", color="#dd8452")
-            ax2.set_ylim(bottom=0)
-    for ax in list(axes.flat)[len(nodes):]:
-        ax.axis("off")
-    fig.suptitle("Characterisation: CPU and frequency per setting")
-    fig.tight_layout()
-    save_png(fig, path)
+    with subplots(nrows, cols, figsize=(5.5 * cols, 3.6 * nrows), squeeze=False) as (fig, axes):
+        for ax, node in zip(axes.flat, nodes, strict=False):
+            values = sorted(data[node])
+            cpu_m = [data[node][v][0] for v in values]
+            p95_m = [data[node][v][1] for v in values]
+            freq_m = [data[node][v][2] for v in values]
+            xs = range(len(values))
+            if any(c is not None for c in cpu_m):
+                heights = [c or 0.0 for c in cpu_m]
+                err = [max(0.0, (p or 0.0) - (c or 0.0)) for c, p in zip(cpu_m, p95_m, strict=True)]
+                ax.bar(xs, heights, color="#4c72b0", alpha=0.8, label="CPU (mean, bar to p95)",
+                       yerr=[[0.0] * len(err), err], capsize=3)
+            ax.set_ylabel("CPU units")
+            ax.set_xticks(list(xs), [f"{v:g}" for v in values])
+            ax.set_xlabel(params[node])
+            ax.set_title(node)
+            if any(f is not None for f in freq_m):
+                ax2 = ax.twinx()
+                ax2.plot(list(xs), [f if f is not None else float("nan") for f in freq_m], "o-", color="#dd8452",
+                         label="frequency")
+                ax2.set_ylabel("Hz", color="#dd8452")
+                ax2.set_ylim(bottom=0)
+        for ax in list(axes.flat)[len(nodes):]:
+            ax.axis("off")
+        fig.suptitle("Characterisation: CPU and frequency per setting")
+        fig.tight_layout()
+        save_png(fig, path)
     return len(nodes)
 

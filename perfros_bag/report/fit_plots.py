@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from perfros_bag.fitting.modelfile import FittedRelation
-from perfros_bag.report.figures import label, png_bytes, pyplot, save_png
+from perfros_bag.report.figures import label, png_bytes, save_png, subplots
 from perfros_bag.system.types import CurveForm, Node
 
 _PANELS = (
@@ -61,34 +61,34 @@ def plot_node(node: Node, fits: Mapping[str, FittedRelation], path: str | Path) 
     """Write one node's figure to ``path`` (PNG); returns the path."""
     pname = node.parameter.name if node.parameter else "parameter"
     punit = f" ({node.parameter.unit})" if node.parameter and node.parameter.unit else ""
-    fig, axes = pyplot().subplots(2, 2, figsize=(12, 8.5))
-    for ax, (rel, ylabel, title) in zip(axes.flat, _PANELS, strict=True):
-        ax.set_title(title)
-        ax.set_ylabel(ylabel)
-        ax.set_xlabel("CPU units (100 = one robot)" if rel.startswith("cpu") else f"{pname}{punit}")
-        ax.grid(alpha=0.3)
-        fit = fits.get(rel)
-        if fit is None:
-            ax.text(0.5, 0.5, "not fitted", ha="center", va="center", transform=ax.transAxes)
-            continue
-        _draw(ax, fit, "tab:blue")
-        if rel == "cpu->performance" and node.curve is not None:
-            a, b = node.curve.domain
-            ax.axvspan(a, b, color="tab:green", alpha=0.12, label=f"solver's range [{a:g}, {b:g}]")
-        if rel == "parameter->frequency" and "parameter->bandwidth" in fits:
-            twin = ax.twinx()
-            twin.set_ylabel("bandwidth (kB/s)")
-            _draw(twin, fits["parameter->bandwidth"], "tab:orange", "bandwidth ")
-            ax.set_ylim(bottom=0)  # from 0: measurement noise on a flat rate looks like noise
-            twin.set_ylim(bottom=0)
-            h1, l1 = ax.get_legend_handles_labels()
-            h2, l2 = twin.get_legend_handles_labels()
-            ax.legend(h1 + h2, l1 + l2, fontsize=7, loc="best")
-            continue
-        ax.legend(fontsize=7, loc="best")
-    fig.suptitle(f"{node.name}: fitted regressions", fontsize=14)
-    fig.tight_layout()
-    return save_png(fig, path)
+    with subplots(2, 2, figsize=(12, 8.5)) as (fig, axes):
+        for ax, (rel, ylabel, title) in zip(axes.flat, _PANELS, strict=True):
+            ax.set_title(title)
+            ax.set_ylabel(ylabel)
+            ax.set_xlabel("CPU units (100 = one robot)" if rel.startswith("cpu") else f"{pname}{punit}")
+            ax.grid(alpha=0.3)
+            fit = fits.get(rel)
+            if fit is None:
+                ax.text(0.5, 0.5, "not fitted", ha="center", va="center", transform=ax.transAxes)
+                continue
+            _draw(ax, fit, "tab:blue")
+            if rel == "cpu->performance" and node.curve is not None:
+                a, b = node.curve.domain
+                ax.axvspan(a, b, color="tab:green", alpha=0.12, label=f"solver's range [{a:g}, {b:g}]")
+            if rel == "parameter->frequency" and "parameter->bandwidth" in fits:
+                twin = ax.twinx()
+                twin.set_ylabel("bandwidth (kB/s)")
+                _draw(twin, fits["parameter->bandwidth"], "tab:orange", "bandwidth ")
+                ax.set_ylim(bottom=0)  # from 0: measurement noise on a flat rate looks like noise
+                twin.set_ylim(bottom=0)
+                h1, l1 = ax.get_legend_handles_labels()
+                h2, l2 = twin.get_legend_handles_labels()
+                ax.legend(h1 + h2, l1 + l2, fontsize=7, loc="best")
+                continue
+            ax.legend(fontsize=7, loc="best")
+        fig.suptitle(f"{node.name}: fitted regressions", fontsize=14)
+        fig.tight_layout()
+        return save_png(fig, path)
 
 
 def plot_model(system_nodes: Mapping[str, Node], fits: Mapping[str, Mapping[str, FittedRelation]],
@@ -104,17 +104,17 @@ def plot_relations(node: str, fits: Mapping[str, FittedRelation]) -> bytes:
     n = len(fits)
     ncols = min(n, 3)
     nrows = (n + ncols - 1) // ncols
-    fig, axes = pyplot().subplots(nrows, ncols, figsize=(4.2 * ncols, 3.4 * nrows), squeeze=False)
-    flat = [ax for row in axes for ax in row]
-    for ax in flat[n:]:
-        ax.set_visible(False)
-    for ax, (rel, fit) in zip(flat, fits.items(), strict=False):
-        _draw(ax, fit, "tab:blue")
-        src, _, dst = rel.partition("->")
-        ax.set_xlabel(label(src or "input"))
-        ax.set_ylabel(label(dst or rel))
-        ax.set_title(label(f"{node}: {rel}", 60), fontsize=9)
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=7)
-    fig.tight_layout()
-    return png_bytes(fig)
+    with subplots(nrows, ncols, figsize=(4.2 * ncols, 3.4 * nrows), squeeze=False) as (fig, axes):
+        flat = [ax for row in axes for ax in row]
+        for ax in flat[n:]:
+            ax.set_visible(False)
+        for ax, (rel, fit) in zip(flat, fits.items(), strict=False):
+            _draw(ax, fit, "tab:blue")
+            src, _, dst = rel.partition("->")
+            ax.set_xlabel(label(src or "input"))
+            ax.set_ylabel(label(dst or rel))
+            ax.set_title(label(f"{node}: {rel}", 60), fontsize=9)
+            ax.grid(alpha=0.3)
+            ax.legend(fontsize=7)
+        fig.tight_layout()
+        return png_bytes(fig)
