@@ -15,6 +15,7 @@ import yaml
 from typer.testing import CliRunner
 
 from perfros_bag.cli import app
+from perfros_bag.errors import InputError
 from perfros_bag.fitting.modelfile import MODEL_FORMAT, read_model
 from perfros_bag.system.systemfile import load_system, parse_system
 from perfros_bag.system.types import Node
@@ -396,3 +397,30 @@ def test_a_node_with_several_topics_gets_per_topic_rates_in_the_plan(tmp_path: P
     assert node["cpu"] == pytest.approx(2 * v, abs=1e-6)
     assert node["topics"]["/scan"] == pytest.approx({"frequency_hz": v, "bandwidth_kBps": v * 0.5})
     assert node["topics"]["/cloud"] == pytest.approx({"frequency_hz": v / 10, "bandwidth_kBps": v * 3})
+
+
+def test_model_reader_names_the_broken_place_and_solve_needs_the_system_only(
+        table_i: tuple[Path, Path, list[dict[str, Any]]], tmp_path: Path) -> None:
+    """read_model checks the whole document (an error names file and place); load_system,
+    what solve reads, takes the system part only, as a system.yaml."""
+    system_path, csv_path, _ = table_i
+    out = tmp_path / "model.json"
+    assert run(str(system_path), str(csv_path), "--out", str(out)).exit_code == 0
+    doc = json.loads(out.read_text())
+    for mutate, problem in (
+            (lambda d: d.update(format="other@1"), "not a perfros-bag model (format 'other@1', expected "
+                                                   f"'{MODEL_FORMAT}')"),
+            (lambda d: d["fits"]["amcl1"]["parameter->cpu"].update(form="cubic"),
+             "fits.amcl1.parameter->cpu.form: unknown curve form 'cubic' (one of linear, log, quadratic, power)"),
+            (lambda d: d["fits"]["amcl1"]["cpu->performance"]["points"].append([1]),
+             "fits.amcl1.cpu->performance.points[3]: expected 2 numbers, got 1"),
+            (lambda d: d["measured"]["amcl1"][0].update(cpu={"mean": 1, "std": 0}),
+             "measured.amcl1[0].cpu.count: expected a whole number, got None")):
+        broken = json.loads(json.dumps(doc))
+        mutate(broken)
+        path = tmp_path / "broken.json"
+        path.write_text(json.dumps(broken))
+        with pytest.raises(InputError) as info:
+            read_model(path)
+        assert str(info.value) == f"{path}: {problem}"
+        assert load_system(path).node["amcl1"].curve == load_system(out).node["amcl1"].curve
