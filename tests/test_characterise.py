@@ -23,17 +23,19 @@ from hypothesis import strategies as st
 from typer.testing import CliRunner
 
 from perfros_bag.casestudy.instances import TABLE_I
-from perfros_bag.characterisation.manifest import load_manifest
-from perfros_bag.characterisation.table import (
+from perfros_bag.characterisation.csvfile import (
     COLUMNS,
-    characterise,
-    characterise_recording,
-    find_entries,
-    table_one,
+    Row,
+    read_characterisation,
+    write_characterisation,
 )
+from perfros_bag.characterisation.manifest import load_manifest
+from perfros_bag.characterisation.recording import characterise_recording
+from perfros_bag.characterisation.table import characterise, find_entries, table_one
 from perfros_bag.cli import app
 from perfros_bag.errors import InputError
-from perfros_bag.system.systemfile import load_system
+from perfros_bag.fitting.build import measured_settings
+from perfros_bag.system.systemfile import load_system, parse_system
 
 ROOT = Path(__file__).resolve().parent.parent
 FIX = ROOT / "fixtures" / "recordings"
@@ -408,7 +410,7 @@ def test_empty_recording_is_a_correct_empty_result(tmp_path: Path) -> None:
 
 
 def test_plot_png(fixture_run: Path, tmp_path: Path) -> None:
-    from perfros_bag.characterisation.table import Row
+    from perfros_bag.characterisation.csvfile import Row
     from perfros_bag.report.characterisation_plots import plot_characterisation
 
     assert (fixture_run / "characterisation.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
@@ -493,3 +495,46 @@ def test_no_computer_with_a_system_warns_and_uses_the_whole_machine(tmp_path: Pa
     # server trace: 4 logical CPUs; capacity 400 (server) vs 100 (whole machine): a factor 4
     assert rows[("tracker_f15", "tracker1")]["cpu_units_mean"] == pytest.approx(120 / 4)
     assert rows[("tracker_f20", "tracker1")]["cpu_units_mean"] == pytest.approx(160)
+
+
+def test_csv_reader_reads_back_what_the_writer_wrote(tmp_path: Path) -> None:
+    entries, _ = find_entries(FIX)
+    rows = characterise(entries, load_system(FIX / "system.yaml")).rows
+    write_characterisation(tmp_path / "c.csv", rows)
+    back = read_characterisation(tmp_path / "c.csv")
+    assert back.rows == rows
+    assert back.columns == COLUMNS and back.lines == list(range(2, len(rows) + 2))
+
+
+def test_table_one_and_the_fit_share_one_aggregation(tmp_path: Path) -> None:
+    """Two recordings of node n at value 5, two topics each; by hand: a recording's CPU is
+    its rows' CPU, its frequency the mean over its topics, its bandwidth their sum; Table I
+    averages the recordings; the fit keeps the declared topic only (when recorded)."""
+    def row(rec: str, topic: str, f: float, b: float, cpu: float, value: int = 5) -> Row:
+        return Row(rec, "n", "p", value, topic, "t", 10, 1.0, f, b, cpu, cpu, 4)
+
+    rows = [row("r1", "/a", 10, 1, 50), row("r1", "/b", 20, 3, 50),
+            row("r2", "/a", 12, 1.5, 60), row("r2", "/b", 22, 2.5, 60),
+            row("r3", "/a", 30, 9, 90, value=7)]
+    t = {(x.node, x.value): x for x in table_one(rows)}
+    assert list(t) == [("n", 5), ("n", 7)]
+    five = t[("n", 5)]
+    assert five.recordings == 2
+    assert five.cpu == pytest.approx((50 + 60) / 2)
+    assert five.frequency_hz == pytest.approx(((10 + 20) / 2 + (12 + 22) / 2) / 2)
+    assert five.bandwidth_kBps == pytest.approx(((1 + 3) + (1.5 + 2.5)) / 2)
+
+    system = parse_system({"computers": [{"name": "c", "kind": "server"}],
+                           "nodes": [{"name": "n", "weight": 1, "topics": ["/a"], "parameter": {"name": "p"},
+                                      "settings": [{"value": 5, "cpu": 1, "performance": 1},
+                                                   {"value": 7, "cpu": 2, "performance": 2}]}]})
+    write_characterisation(tmp_path / "c.csv", rows)
+    measured = measured_settings(read_characterisation(tmp_path / "c.csv"), system)["n"]
+    assert [m.value for m in measured] == [5.0, 7.0] and [m.recordings for m in measured] == [2, 1]
+    m5 = measured[0]
+    assert m5.cpu is not None and m5.frequency_hz is not None and m5.bandwidth_kBps is not None
+    assert (m5.cpu.mean, m5.cpu.count) == (pytest.approx(55), 2)
+    assert m5.cpu.std == pytest.approx(math.sqrt(((50 - 55) ** 2 + (60 - 55) ** 2) / 1))
+    assert m5.frequency_hz.mean == pytest.approx((10 + 12) / 2)  # /a only: the declared topic
+    assert m5.bandwidth_kBps.mean == pytest.approx((1 + 1.5) / 2)
+    assert set(m5.topics) == {"/a"}

@@ -15,8 +15,9 @@ import yaml
 from typer.testing import CliRunner
 
 from perfros_bag.cli import app
-from perfros_bag.fitting.build import MODEL_FORMAT, read_model
-from perfros_bag.system.systemfile import load_system
+from perfros_bag.errors import InputError
+from perfros_bag.fitting.modelfile import MODEL_FORMAT, read_model
+from perfros_bag.system.systemfile import load_system, parse_system
 from perfros_bag.system.types import Node
 from tests.conftest import FIXTURES
 
@@ -117,7 +118,9 @@ def test_fit_writes_a_model_that_load_system_reads(table_i: tuple[Path, Path, li
     doc = json.loads(out.read_text())
     assert doc["format"] == MODEL_FORMAT and doc["characterisation"] == str(csv_path)
     system = load_system(out)
-    model_system, _ = read_model(out)
+    model = read_model(out)
+    assert model.to_json() == doc  # the typed document writes back what it read
+    model_system = parse_system(model.system, str(out))
     assert [n.name for n in model_system.nodes] == [n.name for n in system.nodes]
     for name, (_param, _t, table) in TABLE_I.items():
         node = system.node[name]
@@ -208,11 +211,20 @@ def test_csv_missing_columns_is_one_error_line(tmp_path: Path, drop: str) -> Non
     assert "c.csv" in line and "missing column" in line and drop in line
 
 
-@pytest.mark.parametrize("content", ["", "not,a,characterisation\n1,2,3\n", ",".join(HEADER) + "\n"])
-def test_empty_or_foreign_csv_is_one_error_line(tmp_path: Path, content: str) -> None:
-    (tmp_path / "c.csv").write_text(content)
-    one_error_line(run(str(write_yaml(tmp_path / "s.yaml", table_i_system())), str(tmp_path / "c.csv"),
-                       "--out", str(tmp_path / "m.json")))
+@pytest.mark.parametrize(("content", "problem"), [
+    ("", "the file is empty (expected a characterisation.csv header)"),
+    ("not,a,characterisation\n1,2,3\n",
+     "not a characterisation.csv: missing column(s) recording, node, value, topic, frequency_hz, bandwidth_kBps, "
+     "cpu_units_mean"),
+    (",".join(HEADER) + "\n", "has a header but no rows"),
+])
+def test_empty_or_foreign_csv_is_one_error_line(tmp_path: Path, content: str, problem: str) -> None:
+    csv_path = tmp_path / "c.csv"
+    csv_path.write_text(content)
+    line = one_error_line(run(str(write_yaml(tmp_path / "s.yaml", table_i_system())), str(csv_path),
+                              "--out", str(tmp_path / "m.json")))
+    assert line == f"error: {csv_path}: {problem}"
+    assert not (tmp_path / "m.json").exists()
 
 
 def test_missing_files_are_one_error_line(tmp_path: Path, table_i: tuple[Path, Path, list[dict[str, Any]]]) -> None:
@@ -385,3 +397,30 @@ def test_a_node_with_several_topics_gets_per_topic_rates_in_the_plan(tmp_path: P
     assert node["cpu"] == pytest.approx(2 * v, abs=1e-6)
     assert node["topics"]["/scan"] == pytest.approx({"frequency_hz": v, "bandwidth_kBps": v * 0.5})
     assert node["topics"]["/cloud"] == pytest.approx({"frequency_hz": v / 10, "bandwidth_kBps": v * 3})
+
+
+def test_model_reader_names_the_broken_place_and_solve_needs_the_system_only(
+        table_i: tuple[Path, Path, list[dict[str, Any]]], tmp_path: Path) -> None:
+    """read_model checks the whole document (an error names file and place); load_system,
+    what solve reads, takes the system part only, as a system.yaml."""
+    system_path, csv_path, _ = table_i
+    out = tmp_path / "model.json"
+    assert run(str(system_path), str(csv_path), "--out", str(out)).exit_code == 0
+    doc = json.loads(out.read_text())
+    for mutate, problem in (
+            (lambda d: d.update(format="other@1"), "not a perfros-bag model (format 'other@1', expected "
+                                                   f"'{MODEL_FORMAT}')"),
+            (lambda d: d["fits"]["amcl1"]["parameter->cpu"].update(form="cubic"),
+             "fits.amcl1.parameter->cpu.form: unknown curve form 'cubic' (one of linear, log, quadratic, power)"),
+            (lambda d: d["fits"]["amcl1"]["cpu->performance"]["points"].append([1]),
+             "fits.amcl1.cpu->performance.points[3]: expected 2 numbers, got 1"),
+            (lambda d: d["measured"]["amcl1"][0].update(cpu={"mean": 1, "std": 0}),
+             "measured.amcl1[0].cpu.count: expected a whole number, got None")):
+        broken = json.loads(json.dumps(doc))
+        mutate(broken)
+        path = tmp_path / "broken.json"
+        path.write_text(json.dumps(broken))
+        with pytest.raises(InputError) as info:
+            read_model(path)
+        assert str(info.value) == f"{path}: {problem}"
+        assert load_system(path).node["amcl1"].curve == load_system(out).node["amcl1"].curve

@@ -9,6 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from perfros_bag.errors import PerfrosError
 from perfros_bag.fitting.build import solver_curve
 from perfros_bag.fitting.regression import (
     FitError,
@@ -147,8 +148,9 @@ def test_flat_noisy_data_is_not_flagged_for_r2() -> None:
 
 @pytest.mark.parametrize("x,y", [([5, 5, 5], [1, 2, 3]), ([1], [2]), ([1, 2, float("nan")], [1, 2, 3])])
 def test_unfittable_points_raise(x: list[float], y: list[float]) -> None:
-    with pytest.raises(FitError):
+    with pytest.raises(FitError) as info:
         fit_curve(x, y)
+    assert isinstance(info.value, PerfrosError)  # a user error: the CLI prints one line, never a traceback
 
 
 def _grid_nondecreasing(curve: Curve, n: int = 2001) -> bool:

@@ -15,6 +15,7 @@ from test_validate import PLAN, stats_at  # tests/ is on sys.path (no package)
 from typer.testing import CliRunner
 
 from perfros_bag.cli import app
+from perfros_bag.fitting.modelfile import MODEL_FORMAT
 from perfros_bag.report.html import build_report
 from perfros_bag.system.plan import parse_plan
 from perfros_bag.validation.eq10 import check_run
@@ -66,14 +67,13 @@ def inputs(tmp: Path) -> dict[str, Path]:
     (tmp / "plan.json").write_text(json.dumps(plan_data))
     v = check_run(stats_at(0.8, drop=("/b/y",)), parse_plan(plan_data, "plan.json"))
     (tmp / "validation.json").write_text(json.dumps(v.to_dict()))
-    model = {"fits": {
+    model = {"format": MODEL_FORMAT, "system_file": "s.yaml", "characterisation": "char.csv", "system": {}, "fits": {
         "tracker": {"parameter->cpu": {"form": "linear", "coef": [8.0, 0.0], "domain": [10, 25], "scale": 1,
                                         "r2": 1.0, "points": [[10, 80], [15, 120], [20, 160], [25, 200]]},
                     "cpu->performance": {"form": "log", "coef": [66.62, 56.308], "domain": [80, 200],
                                          "scale": 100, "r2": 0.99, "points": [[80, 40], [120, 70], [200, 100]]}},
-        EVIL: {"parameter->cpu": {"form": "no-such-form", "coef": [1], "points": {"x": [1, 2], "y": [3, 4]}},
-               "junk": 5},
-        "broken": "not a mapping",
+        EVIL: {"parameter->cpu": {"form": "linear", "coef": [1, 2], "domain": [1, 2], "r2": 1.0, "points": [[1, 3], [2, 4]]}},
+        "not_fitted": {},
     }}
     (tmp / "model.json").write_text(json.dumps(model))
     (tmp / "char.csv").write_text(
@@ -111,7 +111,7 @@ def test_report_sections_tables_and_images(full_report: Path) -> None:
     chars = c.tables["characterisation-table"]
     assert chars[0][0] == "recording" and chars[2][0] == EVIL and len(chars) == 3
     # every image is an inlined PNG, also written beside the page
-    assert len(c.images) == 4  # plan, validation, two fit figures
+    assert len(c.images) == 4  # plan, validation, two fit figures (none for the node without fits)
     for src in c.images:
         assert src.startswith("data:image/png;base64,")
         assert base64.b64decode(src.split(",", 1)[1]).startswith(PNG_MAGIC)
@@ -140,6 +140,26 @@ def test_cli_report_and_bad_input(tmp_path: Path) -> None:
         r = runner.invoke(app, ["report", opt, str(path), "--out", str(tmp_path / "bad")])
         assert r.exit_code == 2, r.output
         assert path.name in r.output and "Traceback" not in r.output
+    assert not (tmp_path / "bad").exists()
+
+
+def test_report_reads_model_and_csv_with_their_checks(tmp_path: Path) -> None:
+    """The report reads model.json and characterisation.csv with the readers fit uses: a
+    broken fit or a CSV without the required columns is one error line naming the place."""
+    files = inputs(tmp_path)
+    model = json.loads(files["model"].read_text())
+    model["fits"]["tracker"]["cpu->performance"]["coef"][1] = "x"
+    (tmp_path / "badfit.json").write_text(json.dumps(model))
+    (tmp_path / "badchar.csv").write_text("recording,node\nr.bag,a\n")
+    runner = CliRunner()
+    for opt, path, problem in (
+            ("--model", tmp_path / "badfit.json", "fits.tracker.cpu->performance.coef[1]: expected a number, got 'x'"),
+            ("--characterisation", tmp_path / "badchar.csv", "not a characterisation.csv: missing column(s) value")):
+        r = runner.invoke(app, ["report", opt, str(path), "--out", str(tmp_path / "bad")])
+        assert r.exit_code == 2, r.output
+        errors = [ln for ln in r.stderr.splitlines() if ln.startswith("error:")]
+        assert len(errors) == 1 and f"{path}: {problem}" in errors[0], r.stderr
+        assert "Traceback" not in r.output
     assert not (tmp_path / "bad").exists()
 
 
@@ -178,7 +198,7 @@ def test_report_renders_in_headless_chromium(full_report: Path, tmp_path: Path) 
 
 
 def test_validation_plot_of_many_nodes_keeps_the_largest_deviations(tmp_path: Path) -> None:
-    from perfros_bag.report import html as report
+    from perfros_bag.report import validation_plots as report
 
     nodes = [{"node": f"n{i}", "p_expected": 10.0, "p_measured": 10.0 - i % 7, "deviation_pct": 10.0 * (i % 7)}
              for i in range(300)]

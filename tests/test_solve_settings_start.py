@@ -17,17 +17,17 @@ import perfros_bag.solver as solve_mod
 from perfros_bag.casestudy.instances import table2_instance
 from perfros_bag.cli import app
 from perfros_bag.errors import InputError, PerfrosWarning
-from perfros_bag.fitting.build import read_model
+from perfros_bag.fitting.modelfile import ModelDocument, read_model
 from perfros_bag.solver import fixed_choices, settings_from_values, solve
 from perfros_bag.solver.check import check_plan
 from perfros_bag.system.plan import Assignment, Plan, load_plan
-from perfros_bag.system.systemfile import parse_system
+from perfros_bag.system.systemfile import load_system, parse_system
 from perfros_bag.system.types import Choice, System
 from tests.test_fit_cli import table_i_rows, table_i_system, write_csv, write_yaml
 
 
 @pytest.fixture(scope="module")
-def fitted(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, System, dict[str, Any]]:
+def fitted(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, System, ModelDocument]:
     """model.json built by `perfros-bag fit` from Table I numbers (1 % noise, 3 recordings)."""
     d = tmp_path_factory.mktemp("fitted")
     system_path = write_yaml(d / "system.yaml", table_i_system())
@@ -37,11 +37,11 @@ def fitted(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, System, dict
     assert result.exit_code == 0, result.stderr
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", PerfrosWarning)
-        system, doc = read_model(model)
+        system, doc = load_system(model), read_model(model)
     return model, system, doc
 
 
-def test_every_measured_setting_value_maps_into_the_curve_range(fitted: tuple[Path, System, dict[str, Any]]) -> None:
+def test_every_measured_setting_value_maps_into_the_curve_range(fitted: tuple[Path, System, ModelDocument]) -> None:
     """The reported bug: a setting's measured CPU lies just outside the fitted range, and
     fixed_choices refused it. Every measured value must now give a usable Problem 2 choice:
     the measured CPU clamped to the range, silently within one CPU unit, else with a warning."""
@@ -69,7 +69,7 @@ def test_every_measured_setting_value_maps_into_the_curve_range(fitted: tuple[Pa
     assert outside >= 2, "the fixture no longer reproduces a setting outside its fitted range"
 
 
-def test_values_between_settings_and_unusable_values(fitted: tuple[Path, System, dict[str, Any]]) -> None:
+def test_values_between_settings_and_unusable_values(fitted: tuple[Path, System, ModelDocument]) -> None:
     _, system, _ = fitted
     nav = system.node["navigation1"]
     rel = nav.relations["parameter->cpu"]
@@ -82,7 +82,7 @@ def test_values_between_settings_and_unusable_values(fitted: tuple[Path, System,
         settings_from_values(system, {"navigation1": math.nan})
 
 
-def test_cli_problem2_with_values_on_a_fitted_model(fitted: tuple[Path, System, dict[str, Any]], tmp_path: Path) -> None:
+def test_cli_problem2_with_values_on_a_fitted_model(fitted: tuple[Path, System, ModelDocument], tmp_path: Path) -> None:
     model, system, _ = fitted
     plan_path = tmp_path / "plan.json"
     args = ["solve", str(model), "--problem", "2", "--method", "exact", "--out", str(plan_path),
@@ -99,7 +99,7 @@ def test_cli_problem2_with_values_on_a_fitted_model(fitted: tuple[Path, System, 
         assert plan.nodes[name].cpu == pytest.approx(min(max(measured, lo), hi))
 
 
-def test_fitted_range_against_parameter_to_cpu(fitted: tuple[Path, System, dict[str, Any]]) -> None:
+def test_fitted_range_against_parameter_to_cpu(fitted: tuple[Path, System, ModelDocument]) -> None:
     """What docs/formats.md says about a fitted node's ``curve`` domain and its
     ``parameter->cpu`` relation: the domain is the measured CPU range of the rated
     settings, narrowed where the performance fit leaves [0, max rated], ends rounded
@@ -111,8 +111,8 @@ def test_fitted_range_against_parameter_to_cpu(fitted: tuple[Path, System, dict[
             continue
         lo, hi = node.curve.domain
         cpus = [s.cpu for s in node.settings]
-        c2p = doc["fits"][node.name]["cpu->performance"]
-        assert c2p["domain"] == pytest.approx([min(cpus), max(cpus)])
+        c2p = doc.fits[node.name]["cpu->performance"]
+        assert c2p.domain == pytest.approx((min(cpus), max(cpus)))
         # the range: inside the measured one, each end within a unit of it unless narrowed
         assert min(cpus) <= lo <= hi <= max(cpus)
         assert lo == math.ceil(lo) and hi == math.floor(hi)
@@ -122,7 +122,7 @@ def test_fitted_range_against_parameter_to_cpu(fitted: tuple[Path, System, dict[
         # parameter->cpu at the measured ends: the fit's value, within its residual of the
         # measured CPU (the points are in the model's fits)
         rel = node.relations["parameter->cpu"]
-        pts = {x: y for x, y in doc["fits"][node.name]["parameter->cpu"]["points"]}
+        pts = dict(doc.fits[node.name]["parameter->cpu"].points)
         for v in rel.domain:
             assert rel(v) == pytest.approx(pts[v], rel=0.2)
 

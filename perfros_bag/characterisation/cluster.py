@@ -18,12 +18,13 @@ from functools import partial
 from typing import TYPE_CHECKING, Any
 
 from perfros_bag.characterisation.distributed import Outcome, ProgressCallback, run_distributed
+from perfros_bag.characterisation.recording import characterise_recording, reporting
 from perfros_bag.errors import PerfrosError
 from perfros_bag.ingest.split import Part, SplitPlan, merge_parts, plan_split, read_part
 
 if TYPE_CHECKING:  # pragma: no cover
+    from perfros_bag.characterisation.csvfile import Row
     from perfros_bag.characterisation.manifest import RecordingEntry
-    from perfros_bag.characterisation.table import Row
     from perfros_bag.system.types import System
 
 #: Recordings at least this large are split; each task reads about ``PART_BYTES`` of file.
@@ -63,8 +64,6 @@ def plan_units(entries: Sequence[RecordingEntry], *, fast: bool = True,
 
 def run_unit(unit: Unit, system: System | None, fast: bool) -> Any:
     """On a worker: a recording's rows, or a part's partial statistics."""
-    from perfros_bag.characterisation.table import characterise_recording, reporting
-
     if unit.part is not None:
         return read_part(unit.part)
     with reporting(unit.entry):  # the local loop's wording for an unforeseen exception
@@ -78,8 +77,6 @@ def characterise_on_dask(entries: Sequence[RecordingEntry], system: System | Non
                          split_bytes: int = SPLIT_BYTES,
                          part_bytes: int = PART_BYTES) -> list[Outcome[list[Row]]]:
     """One outcome (rows or error) per entry, in entry order."""
-    from perfros_bag.characterisation.table import characterise_recording, reporting
-
     entries = list(entries)
     units, plans = plan_units(entries, fast=fast, split_bytes=split_bytes, part_bytes=part_bytes)
     by_label = {u.label: k for k, u in enumerate(units)}

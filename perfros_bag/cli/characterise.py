@@ -36,13 +36,13 @@ def characterise_cmd(
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
     from rich.table import Table
 
+    from perfros_bag.characterisation.csvfile import write_characterisation
     from perfros_bag.characterisation.table import (
         characterise,
         check_settings,
         find_entries,
         rows_json,
         table_one,
-        write_csv,
     )
     from perfros_bag.errors import PerfrosError
     from perfros_bag.system.systemfile import load_system
@@ -74,7 +74,7 @@ def characterise_cmd(
     if result.exit_code == 2:  # nothing could be read: the error lines only, no output file
         raise typer.Exit(2)
     if out_path is not None:  # an empty result is a header-only file
-        write_csv(out_path, result.rows)
+        write_characterisation(out_path, result.rows)
     if as_json:
         print(json.dumps(rows_json(result.rows), indent=1))
     if plot is not None and result.rows:

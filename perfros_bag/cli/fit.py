@@ -22,10 +22,11 @@ def fit(
     """Fit parameter -> CPU/performance/frequency/bandwidth and CPU -> performance per configurable node."""
     from rich.table import Table
 
-    from perfros_bag.fitting.build import build_model, write_model
+    from perfros_bag.fitting.build import build_model
+    from perfros_bag.fitting.modelfile import write_model
 
     result = build_model(system, characterisation)
-    write_model(out_path, result)
+    write_model(out_path, result.document)
     written: list[Path] = []
     if plots is not None:
         from perfros_bag.report.fit_plots import plot_model
@@ -33,7 +34,7 @@ def fit(
         written = plot_model(result.system.node, result.fits, plots)
 
     if as_json:
-        print(json.dumps(result.document))
+        print(json.dumps(result.document.to_json()))
         return
     table = Table(title=f"fits -> {out_path}")
     for col in ("node", "relation", "form", "R²", "LOO RMSE", "points", "domain"):
@@ -42,7 +43,7 @@ def fit(
         for rel, f in fits.items():
             loo = "-" if f.loo_rmse is None else f"{f.loo_rmse:.3g}"
             r2 = f"{f.r2:.4f}" if f.r2 >= 0.9 else f"[yellow]{f.r2:.4f}[/]"
-            table.add_row(node, rel.replace("parameter", "param"), f.form, r2, loo, str(len(f.x)),
+            table.add_row(node, rel.replace("parameter", "param"), f.form, r2, loo, str(len(f.points)),
                           f"[{f.domain[0]:.4g}, {f.domain[1]:.4g}]")
     out.print(table)
     for node, n in result.system.node.items():

@@ -138,12 +138,12 @@ def record_cpu(out: str | Path, patterns: Sequence[str], interval: float = 0.5, 
     from perfros_bag.fileio import atomic_open
 
     if not patterns and not command:
-        raise InputError(None, "record-cpu needs --match REGEX or a COMMAND to watch")
+        raise InputError(None, "nothing to watch: no process pattern and no command")
     for pat in patterns:
         try:
             re.compile(pat)
         except re.error as exc:
-            raise InputError(None, f"--match {pat!r} is not a valid regular expression: {exc}") from None
+            raise InputError(None, f"process pattern {pat!r} is not a valid regular expression: {exc}") from None
     if Path(out).is_dir():
         raise InputError(out, "is a directory, expected the CPU trace file to write")
     stop = stop or threading.Event()

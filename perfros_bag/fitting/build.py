@@ -14,169 +14,68 @@ from __future__ import annotations
 import copy
 import math
 import warnings
-from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
+from perfros_bag.characterisation.csvfile import CharacterisationFile, read_characterisation
+from perfros_bag.characterisation.settings import by_setting
 from perfros_bag.errors import InputError, PerfrosWarning
-from perfros_bag.fileio import atomic_write_json, read_json, read_text, read_yaml
-from perfros_bag.fitting.regression import Fit, FitError, clip_domain, fit_curve
-from perfros_bag.system.systemfile import parse_system
+from perfros_bag.fitting.modelfile import (
+    FittedRelation,
+    MeasuredSetting,
+    ModelDocument,
+    Stat,
+    round9,
+)
+from perfros_bag.fitting.regression import FitError, clip_domain, fit_curve
+from perfros_bag.system.systemfile import parse_system, read_system_data
 from perfros_bag.system.types import Curve, Node, System
 
-MODEL_FORMAT = "perfros-bag/model@1"
-REQUIRED_COLUMNS = ("recording", "node", "value", "topic", "frequency_hz", "bandwidth_kBps", "cpu_units_mean")
-RELATIONS = ("parameter->cpu", "parameter->performance", "cpu->performance",
-             "parameter->frequency", "parameter->bandwidth")
 CPU_SCALE = 100.0  # x = CPU units / 100, as the paper's Fig 4
-
-
-@dataclass
-class Stat:
-    """Mean, sample standard deviation and count of one measured quantity."""
-
-    mean: float
-    std: float
-    count: int
-
-    @staticmethod
-    def of(values: list[float]) -> Stat | None:
-        vs = [v for v in values if math.isfinite(v)]
-        if not vs:
-            return None
-        m = sum(vs) / len(vs)
-        sd = math.sqrt(sum((v - m) ** 2 for v in vs) / (len(vs) - 1)) if len(vs) > 1 else 0.0
-        return Stat(m, sd, len(vs))
-
-    def to_dict(self) -> dict[str, float | int]:
-        return {"mean": _r(self.mean), "std": _r(self.std), "count": self.count}
-
-
-@dataclass
-class Measured:
-    """What the recordings of one node at one parameter value showed."""
-
-    value: float | None
-    recordings: list[str]
-    cpu: Stat | None
-    frequency_hz: Stat | None
-    bandwidth_kBps: Stat | None
-    topics: dict[str, tuple[Stat | None, Stat | None]] = field(default_factory=dict)
-
-    def to_dict(self) -> dict[str, Any]:
-        def st(s: Stat | None) -> dict[str, float | int] | None:
-            return None if s is None else s.to_dict()
-
-        return {
-            "value": self.value, "recordings": len(self.recordings),
-            "cpu": st(self.cpu), "frequency_hz": st(self.frequency_hz), "bandwidth_kBps": st(self.bandwidth_kBps),
-            "topics": {t: {"frequency_hz": st(f), "bandwidth_kBps": st(b)} for t, (f, b) in self.topics.items()},
-        }
 
 
 @dataclass
 class ModelResult:
     """The model.json document plus the fits (for tables and plots)."""
 
-    document: dict[str, Any]
-    fits: dict[str, dict[str, Fit]]
+    document: ModelDocument
+    fits: dict[str, dict[str, FittedRelation]]
     system: System
     warnings: list[str]
 
 
-def _r(v: float) -> float:
-    return float(f"{v:.9g}") if math.isfinite(v) else v
-
-
 # --- characterisation.csv ---------------------------------------------------------------
 
-def _float(text: str) -> float:
-    text = text.strip()
-    if not text:
-        return math.nan
-    try:
-        return float(text)
-    except ValueError:
-        return math.nan
-
-
-def read_characterisation(path: str | Path) -> list[dict[str, str]]:
-    """The rows of a characterisation.csv as strings, after checking its columns."""
-    import csv
-    import io
-
-    p = Path(path)
-    text = read_text(p, "characterisation CSV", newline="")
-    lines = [ln for ln in io.StringIO(text, newline="") if not ln.startswith("#")]
-    reader = csv.DictReader(lines)
-    header = [h.strip() for h in (reader.fieldnames or [])]
-    if not header:
-        raise InputError(p, "the file is empty (expected a characterisation.csv header)")
-    missing = [c for c in REQUIRED_COLUMNS if c not in header]
-    if missing:
-        raise InputError(p, f"not a characterisation.csv: missing column(s) {', '.join(missing)}")
+def measured_settings(table: CharacterisationFile, system: System) -> dict[str, list[MeasuredSetting]]:
+    """Per node of ``system``: what was measured at each parameter value, over the
+    recordings (rows of other nodes are ignored). A value of a node in the system that is
+    not a finite number is an error."""
+    path = str(table.path)
     rows = []
-    try:
-        for row in reader:
-            rows.append({(k or "").strip(): (v if isinstance(v, str) else "") for k, v in row.items()})
-    except csv.Error as exc:
-        raise InputError(p, f"invalid CSV: {exc}") from None
-    if not rows:
-        raise InputError(p, "has a header but no rows")
-    return rows
-
-
-def aggregate(rows: list[dict[str, str]], system: System, path: str) -> dict[str, list[Measured]]:
-    """Per node of ``system``: one :class:`Measured` per parameter value (rows of other
-    nodes are ignored). A non-numeric value of a node in the system is an error."""
-    # node -> value -> recording -> rows
-    grouped: dict[str, dict[float | None, dict[str, list[dict[str, str]]]]] = {}
-    names = set(system.node)
-    for i, row in enumerate(rows):
-        node = row.get("node", "").strip()
-        if node not in names:
+    for row, cells, line in zip(table.rows, table.cells, table.lines, strict=True):
+        if row.node not in system.node:
             continue
-        raw = row.get("value", "").strip()
-        value: float | None = None
-        if raw:
-            try:
-                value = float(raw)
-            except ValueError:
-                raise InputError(path, f"line {i + 2}: node {node!r}: parameter value {raw!r} is not a number") from None
-            if not math.isfinite(value):
-                raise InputError(path, f"line {i + 2}: node {node!r}: parameter value {raw!r} is not finite")
-        rec = row.get("recording", "").strip() or f"(row {i + 2})"
-        grouped.setdefault(node, {}).setdefault(value, {}).setdefault(rec, []).append(row)
-
-    out: dict[str, list[Measured]] = {}
-    for node, by_value in grouped.items():
-        declared = set(system.node[node].topics)
-        ms = []
-        for value, by_rec in by_value.items():
-            cpus, freqs, bws = [], [], []
-            per_topic: dict[str, tuple[list[float], list[float]]] = {}
-            for rec_rows in by_rec.values():
-                c = [_float(r.get("cpu_units_mean", "")) for r in rec_rows]
-                c = [v for v in c if math.isfinite(v)]
-                cpus.append(sum(c) / len(c) if c else math.nan)
-                topic_rows = [r for r in rec_rows if r.get("topic", "").strip()]
-                if declared and any(r["topic"].strip() in declared for r in topic_rows):
-                    topic_rows = [r for r in topic_rows if r["topic"].strip() in declared]
-                f = [_float(r.get("frequency_hz", "")) for r in topic_rows]
-                b = [_float(r.get("bandwidth_kBps", "")) for r in topic_rows]
-                fv = [v for v in f if math.isfinite(v)]
-                bv = [v for v in b if math.isfinite(v)]
-                freqs.append(sum(fv) / len(fv) if fv else math.nan)
-                bws.append(sum(bv) if bv else math.nan)
-                for r, fq, bw in zip(topic_rows, f, b, strict=True):
-                    lists = per_topic.setdefault(r["topic"].strip(), ([], []))
-                    lists[0].append(fq)
-                    lists[1].append(bw)
-            ms.append(Measured(value, sorted(by_rec), Stat.of(cpus), Stat.of(freqs), Stat.of(bws),
-                               {t: (Stat.of(fl), Stat.of(bl)) for t, (fl, bl) in sorted(per_topic.items())}))
-        ms.sort(key=lambda m: (m.value is not None, m.value if m.value is not None else 0.0))
-        out[node] = ms
+        raw = cells.get("value", "").strip()
+        if isinstance(row.value, str):
+            raise InputError(path, f"line {line}: node {row.node!r}: parameter value {raw!r} is not a number")
+        if row.value is not None and not math.isfinite(row.value):
+            raise InputError(path, f"line {line}: node {row.node!r}: parameter value {raw!r} is not finite")
+        rows.append(row if row.recording else replace(row, recording=f"(row {line})"))
+    out: dict[str, list[MeasuredSetting]] = {}
+    for s in by_setting(rows, {n.name: n.topics for n in system.nodes}):
+        per_topic: dict[str, tuple[list[float], list[float]]] = {}
+        for m in s.recordings:
+            for t in m.topics:
+                freqs, bws = per_topic.setdefault(t.topic, ([], []))
+                if t.frequency_hz is not None:
+                    freqs.append(t.frequency_hz)
+                if t.bandwidth_kBps is not None:
+                    bws.append(t.bandwidth_kBps)
+        out.setdefault(s.node, []).append(MeasuredSetting(
+            None if s.value is None else float(s.value), len(s.recordings),
+            Stat.of(s.cpus()), Stat.of(s.frequencies()), Stat.of(s.bandwidths()),
+            {t: (Stat.of(fl), Stat.of(bl)) for t, (fl, bl) in sorted(per_topic.items())}))
     return out
 
 
@@ -200,22 +99,20 @@ class _Warn:
 def build_model(system_path: str | Path, characterisation_path: str | Path) -> ModelResult:
     """Fit the configurable nodes of ``system_path`` to ``characterisation_path``."""
     sys_path, csv_path = str(system_path), str(characterisation_path)
-    raw = read_yaml(system_path) if not sys_path.lower().endswith(".json") else read_json(system_path)
-    if isinstance(raw, Mapping) and "format" in raw and "system" in raw:
-        raw = raw["system"]  # refitting a model.json
+    raw = read_system_data(system_path)  # a model.json: refitted from its system part
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", PerfrosWarning)  # reported when the model is loaded
         system = parse_system(raw, sys_path)
-    rows = read_characterisation(csv_path)
-    measured = aggregate(rows, system, csv_path)
+    table = read_characterisation(csv_path)
+    measured = measured_settings(table, system)
     if not measured:
-        known = sorted({r.get("node", "").strip() for r in rows if r.get("node", "").strip()})
+        known = sorted({r.node for r in table.rows if r.node})
         raise InputError(csv_path, "no row names a node of " + sys_path
                          + (f" (its nodes: {', '.join(known[:8])}{'...' if len(known) > 8 else ''})" if known else " (the node column is empty)"))
     warn = _Warn()
     doc_system = copy.deepcopy(dict(raw))
     raw_nodes = {str(n.get("name")): n for n in doc_system["nodes"]}
-    fits: dict[str, dict[str, Fit]] = {}
+    fits: dict[str, dict[str, FittedRelation]] = {}
     unmeasured = [n.name for n in system.nodes if n.name not in measured]
     if unmeasured:
         warn(f"{csv_path}: no rows for node(s) {', '.join(unmeasured)}: kept the numbers of {sys_path}")
@@ -225,22 +122,16 @@ def build_model(system_path: str | Path, characterisation_path: str | Path) -> M
         fits_n = _fit_node(node, measured[node.name], raw_nodes[node.name], warn, sys_path)
         if fits_n:
             fits[node.name] = fits_n
-    document: dict[str, Any] = {
-        "format": MODEL_FORMAT,
-        "system_file": sys_path,
-        "characterisation": csv_path,
-        "system": doc_system,
-        "fits": {n: {rel: f.to_dict() for rel, f in fs.items()} for n, fs in fits.items()},
-        "measured": {n: [m.to_dict() for m in ms] for n, ms in measured.items()},
-        "warnings": warn.messages,
-    }
+    document = ModelDocument(sys_path, csv_path, doc_system,
+                             {n: dict(fs) for n, fs in fits.items()},
+                             measured, warn.messages)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", PerfrosWarning)
         final = parse_system(doc_system, sys_path)  # what solve will read: must load
     return ModelResult(document, fits, final, warn.messages)
 
 
-def _match(node: Node, value: float | None, measured: list[Measured]) -> Measured | None:
+def _match(node: Node, value: float | None, measured: list[MeasuredSetting]) -> MeasuredSetting | None:
     for m in measured:
         if _same(m.value, value):
             return m
@@ -249,8 +140,8 @@ def _match(node: Node, value: float | None, measured: list[Measured]) -> Measure
     return None
 
 
-def _fit_node(node: Node, measured: list[Measured], raw: dict[str, Any], warn: _Warn,
-              sys_path: str) -> dict[str, Fit]:
+def _fit_node(node: Node, measured: list[MeasuredSetting], raw: dict[str, Any], warn: _Warn,
+              sys_path: str) -> dict[str, FittedRelation]:
     """Fill ``raw`` (the node's system.yaml mapping, changed in place) with measured
     numbers and fitted curves; return the fits."""
     who = f"node {node.name!r}"
@@ -270,21 +161,21 @@ def _fit_node(node: Node, measured: list[Measured], raw: dict[str, Any], warn: _
         else:
             used.add(id(m))
             if m.cpu is not None and m.cpu.mean > 0:
-                cpu = _r(m.cpu.mean)
+                cpu = round9(m.cpu.mean)
             elif m.cpu is not None:
                 warn(f"{who}: measured CPU {m.cpu.mean:g} at value {m.value}: kept {sys_path}'s cpu {s.cpu:g}")
             else:
                 warn(f"{who}: no CPU measured at value {m.value}: kept {sys_path}'s cpu {s.cpu:g}")
             if m.frequency_hz is not None:
-                freq = _r(m.frequency_hz.mean)
+                freq = round9(m.frequency_hz.mean)
             if m.bandwidth_kBps is not None:
-                bw = _r(m.bandwidth_kBps.mean)
-            rs["cpu"] = _r(cpu)
+                bw = round9(m.bandwidth_kBps.mean)
+            rs["cpu"] = round9(cpu)
             if freq is not None:
-                rs["frequency_hz"] = _r(freq)
+                rs["frequency_hz"] = round9(freq)
             if bw is not None:
-                rs["bandwidth_kBps"] = _r(bw)
-            topics = {t: {k: _r(st.mean) for k, st in (("frequency_hz", f), ("bandwidth_kBps", b)) if st is not None}
+                rs["bandwidth_kBps"] = round9(bw)
+            topics = {t: {k: round9(st.mean) for k, st in (("frequency_hz", f), ("bandwidth_kBps", b)) if st is not None}
                       for t, (f, b) in m.topics.items()}
             if "topics" not in rs and len(topics) > 1:
                 rs["topics"] = topics
@@ -311,7 +202,7 @@ def _fit_node(node: Node, measured: list[Measured], raw: dict[str, Any], warn: _
         sel = [p for p in source if p[ix] is not None and p[iy] is not None and math.isfinite(p[iy])]
         return [float(p[ix]) for p in sel], [float(p[iy]) for p in sel]
 
-    fits: dict[str, Fit] = {}
+    fits: dict[str, FittedRelation] = {}
     specs: list[tuple[str, int, int, list[Any], float, Any]] = [
         ("parameter->cpu", 0, 1, points, 1.0, "either"),
         ("parameter->performance", 0, 2, rated, 1.0, None),
@@ -327,7 +218,7 @@ def _fit_node(node: Node, measured: list[Measured], raw: dict[str, Any], warn: _
             warn(f"{who}: {rel}: fewer than 2 distinct points: the node stays discrete")
             return {}
         try:
-            fit = fit_curve(xs, ys, relation=rel, scale=scale, monotone=mono)
+            fit = fit_curve(xs, ys, scale=scale, monotone=mono)
         except FitError as exc:
             warn(f"{who}: {rel}: {exc}: the node stays discrete")
             return {}
@@ -347,12 +238,12 @@ def _fit_node(node: Node, measured: list[Measured], raw: dict[str, Any], warn: _
     return fits
 
 
-def _topic_fits(who: str, measured: list[Measured], warn: _Warn) -> dict[str, Fit]:
+def _topic_fits(who: str, measured: list[MeasuredSetting], warn: _Warn) -> dict[str, FittedRelation]:
     """``parameter->frequency:<topic>`` and ``parameter->bandwidth:<topic>`` for a node that
     publishes several topics (their rates differ; the node-level relations are a mean and
     a sum). Topics measured at fewer than 2 values are skipped."""
     topics = sorted({t for m in measured for t in m.topics})
-    out: dict[str, Fit] = {}
+    out: dict[str, FittedRelation] = {}
     if len(topics) < 2:
         return out
     for t in topics:
@@ -368,7 +259,7 @@ def _topic_fits(who: str, measured: list[Measured], warn: _Warn) -> dict[str, Fi
                 continue
             rel = f"{kind}:{t}"
             try:
-                fit = fit_curve(xs, ys, relation=rel)
+                fit = fit_curve(xs, ys)
             except FitError:
                 continue
             for note in fit.warnings:
@@ -377,13 +268,11 @@ def _topic_fits(who: str, measured: list[Measured], warn: _Warn) -> dict[str, Fi
     return out
 
 
-def _with_warnings(fit: Fit, notes: tuple[str, ...]) -> Fit:
-    from dataclasses import replace
-
+def _with_warnings(fit: FittedRelation, notes: tuple[str, ...]) -> FittedRelation:
     return replace(fit, warnings=notes)
 
 
-def solver_curve(c2p: Fit, p2c: Fit, max_perf: float) -> tuple[Curve, list[str]]:
+def solver_curve(c2p: FittedRelation, p2c: FittedRelation, max_perf: float) -> tuple[Curve, list[str]]:
     """The node's CPU -> performance curve for the solvers: the fitted curve on the measured
     CPU range, narrowed where its performance leaves [0, max observed], with whole-CPU-unit
     ends (rounded inwards, when that leaves at least one unit). CPU levels the
@@ -407,21 +296,3 @@ def solver_curve(c2p: Fit, p2c: Fit, max_perf: float) -> tuple[Curve, list[str]]
         notes.append(f"CPU levels [{img_hi:.4g}, {hi:g}] all map to parameter value {v_hi:g} "
                      f"(the parameter->cpu fit gives {img_hi:.4g} there)")
     return Curve(curve.form, curve.coef, (lo, hi), curve.scale), notes
-
-
-# --- reading and writing ----------------------------------------------------------------
-
-def write_model(path: str | Path, result: ModelResult) -> None:
-    atomic_write_json(path, result.document)
-
-
-def read_model(path: str | Path) -> tuple[System, dict[str, Any]]:
-    """A model.json's system (validated as system.yaml is) and the whole document."""
-    p = Path(path)
-    doc = read_json(p)
-    if not isinstance(doc, dict) or doc.get("format") != MODEL_FORMAT:
-        fmt = doc.get("format") if isinstance(doc, dict) else None
-        raise InputError(p, f"not a perfros-bag model (format {fmt!r}, expected {MODEL_FORMAT!r})")
-    if not isinstance(doc.get("system"), dict):
-        raise InputError(p, "has no 'system' object")
-    return parse_system(doc["system"], str(p)), doc

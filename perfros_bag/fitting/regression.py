@@ -14,20 +14,21 @@ points get the (exact) line. Constraints the solver relies on are enforced here:
 - :func:`clip_domain` narrows a non-decreasing curve's domain so that its output stays
   within ``[lo, hi]`` (performance within ``[0, max observed]``).
 
-Every such decision is recorded in :attr:`Fit.warnings` (callers warn with them).
+Every such decision is recorded in :attr:`FittedRelation.warnings` (callers warn with them).
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Literal
 
 import numpy as np
 import numpy.typing as npt
 
-from perfros_bag.system.types import CURVE_FORMS, CURVE_NCOEF, Curve
+from perfros_bag.errors import PerfrosError
+from perfros_bag.fitting.modelfile import FittedRelation
+from perfros_bag.system.types import CURVE_FORMS, CURVE_NCOEF, Curve, CurveForm
 
 Monotone = Literal["nondecreasing", "either"] | None
 FloatArray = npt.NDArray[np.float64]
@@ -45,48 +46,14 @@ _MAX_EXPONENT = 50.0
 _GRID = 513
 
 
-class FitError(ValueError):
-    """The points cannot be fitted at all (fewer than 2 distinct inputs, non-finite values)."""
-
-
-@dataclass(frozen=True)
-class Fit:
-    """A fitted relation: the chosen curve, how well it fits and why it was chosen."""
-
-    relation: str
-    form: str
-    coef: tuple[float, ...]
-    domain: tuple[float, float]
-    scale: float
-    r2: float
-    loo_rmse: float | None  # None with 2 points (nothing to leave out)
-    x: tuple[float, ...]
-    y: tuple[float, ...]
-    candidates: dict[str, float | None] = field(default_factory=dict)  # form -> LOO RMSE
-    warnings: tuple[str, ...] = ()
-
-    @property
-    def curve(self) -> Curve:
-        return Curve(self.form, self.coef, self.domain, self.scale)
-
-    def to_dict(self) -> dict[str, Any]:
-        return {
-            "form": self.form, "coef": [float(c) for c in self.coef],
-            "domain": [float(d) for d in self.domain], "scale": self.scale,
-            "r2": _round(self.r2), "loo_rmse": None if self.loo_rmse is None else _round(self.loo_rmse),
-            "points": [[float(a), float(b)] for a, b in zip(self.x, self.y, strict=True)],
-            "candidates": {k: None if v is None else _round(v) for k, v in self.candidates.items()},
-            "warnings": list(self.warnings),
-        }
-
-
-def _round(v: float) -> float:
-    return float(f"{v:.6g}") if math.isfinite(v) else v
+class FitError(PerfrosError):
+    """The points cannot be fitted at all (fewer than 2 distinct inputs, non-finite values).
+    A user error like any other: uncaught, it is one line, not a traceback."""
 
 
 # --- one form ---------------------------------------------------------------------------
 
-def _features(form: str, x: FloatArray) -> FloatArray:
+def _features(form: CurveForm, x: FloatArray) -> FloatArray:
     if form == "linear":
         return x[:, None]
     if form == "log":
@@ -98,7 +65,7 @@ def _features(form: str, x: FloatArray) -> FloatArray:
     raise ValueError(f"unknown form {form!r}")
 
 
-def fit_form(form: str, x: Sequence[float] | FloatArray, y: Sequence[float] | FloatArray) -> tuple[float, ...]:
+def fit_form(form: CurveForm, x: Sequence[float] | FloatArray, y: Sequence[float] | FloatArray) -> tuple[float, ...]:
     """Least-squares coefficients of ``form`` (in :class:`Curve` order) for points (x, y),
     x already divided by the scale: scikit-learn's ``LinearRegression`` on the transformed
     features (power: on logs, then refined by Gauss-Newton in the original space)."""
@@ -114,7 +81,7 @@ def fit_form(form: str, x: Sequence[float] | FloatArray, y: Sequence[float] | Fl
     return (*coefs, float(reg.intercept_))
 
 
-def _lstsq_form(form: str, x: FloatArray, y: FloatArray) -> tuple[float, ...]:
+def _lstsq_form(form: CurveForm, x: FloatArray, y: FloatArray) -> tuple[float, ...]:
     """The same fit as :func:`fit_form` with numpy alone (leave-one-out refits: no
     scikit-learn overhead per fold)."""
     feats = _features(form, x)
@@ -169,7 +136,7 @@ def _refine_power(x: FloatArray, y: FloatArray, a: float, b: float) -> tuple[flo
     return a, b
 
 
-def predict(form: str, coef: Sequence[float], x: Sequence[float] | FloatArray) -> FloatArray:
+def predict(form: CurveForm, coef: Sequence[float], x: Sequence[float] | FloatArray) -> FloatArray:
     """The curve's outputs at (already scaled) inputs ``x``."""
     xa = np.asarray(x, dtype=float)
     c = coef
@@ -193,7 +160,7 @@ def r_squared(y: FloatArray, yhat: FloatArray) -> float:
     return 1.0 - ss_res / ss_tot
 
 
-def loo_rmse(form: str, x: FloatArray, y: FloatArray) -> float:
+def loo_rmse(form: CurveForm, x: FloatArray, y: FloatArray) -> float:
     """Root mean squared leave-one-out prediction error of ``form``."""
     errs = []
     idx = np.arange(len(x))
@@ -205,7 +172,7 @@ def loo_rmse(form: str, x: FloatArray, y: FloatArray) -> float:
     return float(math.sqrt(float(np.mean(e * e)))) if np.all(np.isfinite(e)) else math.inf
 
 
-def eligible_forms(x: FloatArray, y: FloatArray, forms: Sequence[str] = CURVE_FORMS) -> list[str]:
+def eligible_forms(x: FloatArray, y: FloatArray, forms: Sequence[CurveForm] = CURVE_FORMS) -> list[CurveForm]:
     """Forms that may be fitted to these points: fewer coefficients than points (the line
     alone for 2 points), positive inputs for log and power, positive outputs for power."""
     n = len(x)
@@ -269,14 +236,14 @@ def clip_domain(curve: Curve, lo_y: float, hi_y: float) -> tuple[Curve, str | No
 
 # --- model selection --------------------------------------------------------------------
 
-def _usable(form: str, coef: tuple[float, ...]) -> bool:
+def _usable(form: CurveForm, coef: tuple[float, ...]) -> bool:
     """Finite coefficients in a range where evaluating the curve cannot overflow."""
     if not all(math.isfinite(c) and abs(c) < 1e15 for c in coef):
         return False
     return not (form == "power" and abs(coef[1]) > _MAX_EXPONENT)
 
 
-def _rank(forms: list[str], loo: dict[str, float | None], tiny: float = 0.0) -> list[str]:
+def _rank(forms: list[CurveForm], loo: dict[str, float | None], tiny: float = 0.0) -> list[CurveForm]:
     """Forms by leave-one-out RMSE, except that a form with fewer coefficients whose error
     is within :data:`PARSIMONY` of the best goes first (noise alone should not buy a
     coefficient). Errors below ``tiny`` (exact fits, up to rounding) tie, and ties go to
@@ -294,8 +261,8 @@ def _rank(forms: list[str], loo: dict[str, float | None], tiny: float = 0.0) -> 
     return [first] + [f for f in ranked if f != first]
 
 
-def fit_curve(x: Sequence[float], y: Sequence[float], *, relation: str = "", scale: float = 1.0,
-              forms: Sequence[str] = CURVE_FORMS, monotone: Monotone = None) -> Fit:
+def fit_curve(x: Sequence[float], y: Sequence[float], *, scale: float = 1.0,
+              forms: Sequence[CurveForm] = CURVE_FORMS, monotone: Monotone = None) -> FittedRelation:
     """Fit every eligible form to (x, y) and keep the one with the smallest leave-one-out
     RMSE that satisfies ``monotone`` on ``[min x, max x]``.
 
@@ -319,13 +286,13 @@ def fit_curve(x: Sequence[float], y: Sequence[float], *, relation: str = "", sca
     if distinct < 3:
         notes.append(f"only {distinct} distinct points: the line through them is exact, nothing checks it")
 
-    forms_ok = eligible_forms(xn, ys, forms) if distinct > 2 else ["linear"]
+    forms_ok: list[CurveForm] = eligible_forms(xn, ys, forms) if distinct > 2 else ["linear"]
     candidates: dict[str, float | None] = {}
     for f in forms_ok:
         candidates[f] = loo_rmse(f, xn, ys) if n > 2 and distinct > 2 else None
 
     ranked = _rank(forms_ok, candidates, tiny=1e-9 * max(1.0, float(np.max(np.abs(ys)))))
-    chosen: tuple[str, tuple[float, ...]] | None = None
+    chosen: tuple[CurveForm, tuple[float, ...]] | None = None
     rejected: list[str] = []
     for f in ranked:
         coef = fit_form(f, xn, ys)
@@ -338,8 +305,9 @@ def fit_curve(x: Sequence[float], y: Sequence[float], *, relation: str = "", sca
         chosen = (f, coef)
         break
     want = "non-decreasing" if monotone == "nondecreasing" else "monotone"
+    form: CurveForm
     if chosen is None:
-        coef = fit_form("linear", xn, ys)
+        form, coef = "linear", fit_form("linear", xn, ys)
         if monotone == "nondecreasing" and coef[0] < 0:
             coef = (0.0, float(ys.mean()))
             notes.append(f"no candidate form is {want} on [{domain[0]:g}, {domain[1]:g}] "
@@ -347,11 +315,11 @@ def fit_curve(x: Sequence[float], y: Sequence[float], *, relation: str = "", sca
         else:
             notes.append(f"no candidate form is {want} on [{domain[0]:g}, {domain[1]:g}] "
                          f"({', '.join(rejected)}): fell back to linear")
-        chosen = ("linear", coef)
-    elif rejected and monotone is not None:
-        notes.append(f"{', '.join(rejected)} fitted better but {'is' if len(rejected) == 1 else 'are'} not "
-                     f"{want} on [{domain[0]:g}, {domain[1]:g}]: chose {chosen[0]}")
-    form, coef = chosen
+    else:
+        form, coef = chosen
+        if rejected and monotone is not None:
+            notes.append(f"{', '.join(rejected)} fitted better but {'is' if len(rejected) == 1 else 'are'} not "
+                         f"{want} on [{domain[0]:g}, {domain[1]:g}]: chose {form}")
     if monotone == "either" and abs(predict(form, coef, xn[-1:])[0] - predict(form, coef, xn[:1])[0]) <= 1e-12:
         notes.append("the fitted curve is flat: its inverse is not defined")
     r2 = r_squared(ys, predict(form, coef, xn))
@@ -359,6 +327,5 @@ def fit_curve(x: Sequence[float], y: Sequence[float], *, relation: str = "", sca
     flat = spread <= FLAT_SPREAD * max(abs(float(ys.mean())), 1e-12)
     if r2 < R2_WARN and not flat:
         notes.append(f"R² = {r2:.3f} < {R2_WARN}: the {form} fit explains the points poorly")
-    return Fit(relation, form, tuple(float(c) for c in coef), domain, float(scale), float(r2),
-               candidates.get(form), tuple(float(v) for v in xs), tuple(float(v) for v in ys),
-               candidates, tuple(notes))
+    return FittedRelation(form, tuple(float(c) for c in coef), domain, float(scale), float(r2), candidates.get(form),
+                          tuple((float(a), float(b)) for a, b in zip(xs, ys, strict=True)), candidates, tuple(notes))

@@ -10,12 +10,13 @@ from __future__ import annotations
 
 import math
 import warnings
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
 from perfros_bag.errors import InputError, PerfrosWarning
-from perfros_bag.fileio import read_json, read_yaml
+from perfros_bag.fileio import read_yaml
+from perfros_bag.fitting.modelfile import read_model_system
 from perfros_bag.system.types import (
     CURVE_FORMS,
     Computer,
@@ -102,22 +103,41 @@ class _Ctx:
             raise self.fail(where, f"must be a list, got {_kind(obj)}")
         return obj
 
+    def named(self, obj: Any, section: str, what: str, allowed: set[str], required: set[str], *,
+              at_least_one: bool = True) -> Iterator[tuple[str, str, Mapping[str, Any]]]:
+        """The entries of a list of named mappings as (name, ``what 'name'``, mapping);
+        a name given twice is an error, and so is an empty list when ``at_least_one``."""
+        items = self.seq(obj, section)
+        if at_least_one and not items:
+            raise self.fail(section, f"at least one {what} is needed")
+        seen: set[str] = set()
+        for i, item in enumerate(items):
+            m = self.mapping(item, f"{section}[{i}]", allowed, required)
+            name = self.string(m["name"], f"{section}[{i}].name")
+            where = f"{what} {name!r}"
+            if name in seen:
+                raise self.fail(where, "defined twice")
+            seen.add(name)
+            yield name, where, m
+
 
 def _kind(obj: Any) -> str:
     return "nothing" if obj is None else type(obj).__name__
 
 
+def read_system_data(path: str | Path) -> Any:
+    """The parsed, unchecked content of a ``system.yaml``, or the ``system`` part of a
+    ``model.json`` (a ``.json`` file without one is a system written as JSON)."""
+    p = Path(path)
+    if p.suffix.lower() == ".json":
+        return read_model_system(p)
+    return read_yaml(p)
+
+
 def load_system(path: str | Path) -> System:
     """Read and validate a ``system.yaml`` (or a ``model.json``, whose ``system`` part has
     the same shape)."""
-    p = Path(path)
-    if p.suffix.lower() == ".json":
-        data = read_json(p)
-        if isinstance(data, Mapping) and "system" in data:
-            data = data["system"]
-    else:
-        data = read_yaml(p)
-    return parse_system(data, str(p))
+    return parse_system(read_system_data(path), str(Path(path)))
 
 
 def parse_system(data: Any, source: str = "system.yaml") -> System:
@@ -163,19 +183,8 @@ def _reweight(n: Node, weight: float) -> Node:
 
 
 def _computers(ctx: _Ctx, raw: Any) -> list[Computer]:
-    items = ctx.seq(raw, "computers")
-    if not items:
-        raise ctx.fail("computers", "at least one computer is needed")
     out: list[Computer] = []
-    seen: set[str] = set()
-    for i, item in enumerate(items):
-        where = f"computers[{i}]"
-        m = ctx.mapping(item, where, COMPUTER_KEYS, {"name", "kind"})
-        name = ctx.string(m["name"], f"{where}.name")
-        where = f"computer {name!r}"
-        if name in seen:
-            raise ctx.fail(where, "defined twice")
-        seen.add(name)
+    for name, where, m in ctx.named(raw, "computers", "computer", COMPUTER_KEYS, {"name", "kind"}):
         kind = m["kind"]
         if kind not in ("robot", "server"):
             raise ctx.fail(f"{where}: kind", f"must be 'robot' or 'server', got {kind!r}")
@@ -189,12 +198,8 @@ def _computers(ctx: _Ctx, raw: Any) -> list[Computer]:
 
 def _media(ctx: _Ctx, raw: Any) -> list[Medium]:
     out: list[Medium] = []
-    for i, item in enumerate(ctx.seq(raw, "media")):
-        m = ctx.mapping(item, f"media[{i}]", MEDIUM_KEYS, {"name", "bandwidth_kBps"})
-        name = ctx.string(m["name"], f"media[{i}].name")
-        if any(x.name == name for x in out):
-            raise ctx.fail(f"medium {name!r}", "defined twice")
-        out.append(Medium(name, ctx.number(m["bandwidth_kBps"], f"medium {name!r}: bandwidth_kBps", nonneg=True)))
+    for name, where, m in ctx.named(raw, "media", "medium", MEDIUM_KEYS, {"name", "bandwidth_kBps"}, at_least_one=False):
+        out.append(Medium(name, ctx.number(m["bandwidth_kBps"], f"{where}: bandwidth_kBps", nonneg=True)))
     return out
 
 
@@ -247,18 +252,8 @@ def parse_curve(ctx_path: str, raw: Any, where: str, *, default_scale: float = 1
 
 
 def _nodes(ctx: _Ctx, raw: Any, computers: set[str]) -> list[Node]:
-    items = ctx.seq(raw, "nodes")
-    if not items:
-        raise ctx.fail("nodes", "at least one node is needed")
     out: list[Node] = []
-    seen: set[str] = set()
-    for i, item in enumerate(items):
-        m = ctx.mapping(item, f"nodes[{i}]", NODE_KEYS, {"name", "weight"})
-        name = ctx.string(m["name"], f"nodes[{i}].name")
-        where = f"node {name!r}"
-        if name in seen:
-            raise ctx.fail(where, "defined twice")
-        seen.add(name)
+    for name, where, m in ctx.named(raw, "nodes", "node", NODE_KEYS, {"name", "weight"}):
         weight = ctx.number(m["weight"], f"{where}: weight", positive=True)
 
         residence: tuple[str, ...] | None = None

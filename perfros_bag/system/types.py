@@ -18,9 +18,18 @@ from functools import cached_property
 from typing import Literal
 
 ComputerKind = Literal["robot", "server"]
+#: The closed set of curve forms (model.json's ``form``; see :class:`Curve`).
 CurveForm = Literal["linear", "log", "quadratic", "power"]
-CURVE_FORMS: tuple[str, ...] = ("linear", "log", "quadratic", "power")
-CURVE_NCOEF: dict[str, int] = {"linear": 2, "log": 2, "quadratic": 3, "power": 2}
+CURVE_FORMS: tuple[CurveForm, ...] = ("linear", "log", "quadratic", "power")
+CURVE_NCOEF: dict[CurveForm, int] = {"linear": 2, "log": 2, "quadratic": 3, "power": 2}
+
+
+def curve_form(name: object) -> CurveForm:
+    """``name`` as a :data:`CurveForm`; ValueError when it is not one."""
+    for form in CURVE_FORMS:
+        if name == form:
+            return form
+    raise ValueError(f"unknown curve form {name!r} (one of {', '.join(CURVE_FORMS)})")
 
 
 @dataclass(frozen=True)
@@ -36,14 +45,13 @@ class Curve:
     files are data: only these forms exist, nothing is ever evaluated as code.
     """
 
-    form: str
+    form: CurveForm
     coef: tuple[float, ...]
     domain: tuple[float, float]
     scale: float = 1.0
 
     def __post_init__(self) -> None:
-        if self.form not in CURVE_NCOEF:
-            raise ValueError(f"unknown curve form {self.form!r} (one of {', '.join(CURVE_FORMS)})")
+        curve_form(self.form)  # a curve read from a file is checked at run time too
         if len(self.coef) != CURVE_NCOEF[self.form]:
             raise ValueError(f"curve form {self.form!r} takes {CURVE_NCOEF[self.form]} coefficients, got {len(self.coef)}")
         lo, hi = self.domain

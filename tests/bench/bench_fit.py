@@ -49,7 +49,7 @@ def bench_fit_curve(repeat: int) -> None:
         x = np.linspace(10, 200, n)
         y = 66.62 * np.log(x / 100) + 56.3 + rng.normal(0, 1.0, n)
 
-        def run(x: np.ndarray = x, y: np.ndarray = y) -> regression.Fit:
+        def run(x: np.ndarray = x, y: np.ndarray = y) -> regression.FittedRelation:
             return regression.fit_curve(x.tolist(), y.tolist(), scale=100, monotone="nondecreasing")
 
         lib = _timeit(run, repeat)

@@ -1,0 +1,178 @@
+"""``characterisation.csv``: its row type, the writer and the (checked) reader.
+
+One row per (recording, node, topic); column order = :class:`Row`'s field order; empty
+cells are ``None``; floats are written with ``repr`` (non-finite ones as empty cells);
+whole-number setting values are written as integers. Format: ``docs/formats.md``.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, fields
+from pathlib import Path
+from typing import Any
+
+from perfros_bag.characterisation.manifest import SettingValue
+from perfros_bag.errors import InputError
+from perfros_bag.fileio import atomic_write_text, read_text
+
+
+@dataclass(frozen=True)
+class Row:
+    """One row of characterisation.csv (column order = field order)."""
+
+    recording: str
+    node: str
+    parameter: str | None
+    value: SettingValue | None
+    topic: str | None
+    msgtype: str | None
+    messages: int | None
+    duration_s: float | None
+    frequency_hz: float | None
+    bandwidth_kBps: float | None
+    cpu_units_mean: float | None
+    cpu_units_p95: float | None
+    cpu_samples: int | None
+    median_rate_hz: float | None = None
+    p95_gap_s: float | None = None
+
+
+COLUMNS: tuple[str, ...] = tuple(f.name for f in fields(Row))
+#: The columns a characterisation.csv must have (the last two came later: optional).
+REQUIRED_COLUMNS = ("recording", "node", "value", "topic", "frequency_hz", "bandwidth_kBps", "cpu_units_mean")
+_INT_COLUMNS = frozenset({"messages", "cpu_samples"})
+_TEXT_COLUMNS = frozenset({"parameter", "topic", "msgtype"})
+
+
+# --------------------------------------------------------------------------- writing
+
+
+def _cell(v: Any) -> str:
+    if v is None:
+        return ""
+    if isinstance(v, float):
+        return repr(v) if math.isfinite(v) else ""
+    return str(v)
+
+
+def rows_csv(rows: Iterable[Row]) -> str:
+    """The file's text: the header, then one line per row."""
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(COLUMNS)
+    for r in rows:
+        w.writerow([_cell(getattr(r, c)) for c in COLUMNS])
+    return buf.getvalue()
+
+
+def write_characterisation(path: str | Path, rows: Iterable[Row]) -> None:
+    """Write characterisation.csv atomically; a path that cannot be written is an InputError."""
+    if Path(path).is_dir():
+        raise InputError(path, "is a directory, expected the output CSV file")
+    try:
+        atomic_write_text(path, rows_csv(rows))
+    except OSError as exc:
+        raise InputError(path, f"cannot write: {exc.strerror or exc}") from None
+
+
+# --------------------------------------------------------------------------- reading
+
+
+@dataclass(frozen=True)
+class CharacterisationFile:
+    """A read characterisation.csv: the typed rows, and the file as written (its header
+    and string cells, for display) with each row's line number (for error messages)."""
+
+    path: Path
+    columns: tuple[str, ...]
+    cells: list[dict[str, str]]
+    lines: list[int]
+    rows: list[Row]
+
+
+def _number(text: str) -> float | None:
+    """A finite number, or None (an empty, non-numeric or non-finite cell)."""
+    try:
+        v = float(text)
+    except ValueError:
+        return None
+    return v if math.isfinite(v) else None
+
+
+def _integer(text: str) -> int | None:
+    try:
+        return int(text)
+    except ValueError:
+        v = _number(text)
+        return int(v) if v is not None and v.is_integer() else None
+
+
+def parse_value(text: str) -> SettingValue | None:
+    """A setting value cell: empty -> None, an integer, a float (non-finite kept, so the
+    fit can say it is not finite), else the text."""
+    if not text:
+        return None
+    try:
+        return int(text)
+    except ValueError:
+        pass
+    try:
+        return float(text)
+    except ValueError:
+        return text
+
+
+def _row(cells: dict[str, str]) -> Row:
+    kw: dict[str, Any] = {}
+    for name in COLUMNS:
+        text = cells.get(name, "").strip()
+        if name in ("recording", "node"):
+            kw[name] = text
+        elif name == "value":
+            kw[name] = parse_value(text)
+        elif name in _TEXT_COLUMNS:
+            kw[name] = text or None
+        elif name in _INT_COLUMNS:
+            kw[name] = _integer(text) if text else None
+        else:
+            kw[name] = _number(text) if text else None
+    return Row(**kw)
+
+
+def _uncommented(text: str, numbers: list[int]) -> Iterator[str]:
+    """The lines that are not ``#`` comments; ``numbers[0]`` follows the file line number."""
+    for n, line in enumerate(io.StringIO(text, newline=""), start=1):
+        numbers[0] = n
+        if not line.startswith("#"):
+            yield line
+
+
+def read_characterisation(path: str | Path) -> CharacterisationFile:
+    """Read and check a characterisation.csv (``#`` lines are comments): the required
+    columns must be there and at least one row. Cells that are not numbers where numbers
+    are expected read as ``None``. Every problem is an :class:`InputError` naming the file."""
+    p = Path(path)
+    text = read_text(p, "characterisation CSV", newline="")
+    line_no = [0]
+    reader = csv.DictReader(_uncommented(text, line_no))
+    try:
+        header = [h.strip() for h in (reader.fieldnames or [])]
+        if not header:
+            raise InputError(p, "the file is empty (expected a characterisation.csv header)")
+        missing = [c for c in REQUIRED_COLUMNS if c not in header]
+        if missing:
+            raise InputError(p, f"not a characterisation.csv: missing column(s) {', '.join(missing)}")
+        cells: list[dict[str, str]] = []
+        lines: list[int] = []
+        for raw in reader:
+            cells.append({(k or "").strip(): (v if isinstance(v, str) else "") for k, v in raw.items()})
+            lines.append(line_no[0])
+    except csv.Error as exc:
+        raise InputError(p, f"invalid CSV: {exc}") from None
+    if not cells:
+        raise InputError(p, "has a header but no rows")
+    return CharacterisationFile(p, tuple(header), cells, lines, [_row(c) for c in cells])

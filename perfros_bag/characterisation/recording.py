@@ -1,0 +1,172 @@
+"""One recording (+ its CPU trace, manifest entry, system) -> its characterisation.csv rows.
+
+:func:`characterise_recording` is a pure top-level function of picklable arguments (a
+:class:`~perfros_bag.characterisation.manifest.RecordingEntry` and a
+:class:`~perfros_bag.system.types.System`), so the local loop
+(:mod:`perfros_bag.characterisation.table`) and the Dask back end
+(:mod:`perfros_bag.characterisation.cluster`) both run it; :func:`reporting` gives both the
+same words for a recording that fails.
+
+Rows are one per (recording, node, topic), design.md's ``characterisation.csv``:
+
+- a topic belongs to the system node listing it in ``topics``; else to its publisher
+  (ROS 1 ``callerid``) when that names a system node; else node = publisher (or empty);
+- a node's CPU comes from the processes the CPU trace attributes to it (the node's
+  ``process`` regex on the trace's node label / process name, or its name), summed per
+  sample, aligned with the recording's window, normalised with the capacity of the
+  manifest's ``computer``;
+- a node with CPU but no topic in the recording gets one row with an empty topic.
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Iterator, Mapping, Sequence
+from contextlib import contextmanager
+
+from perfros_bag.characterisation.csvfile import Row
+from perfros_bag.characterisation.manifest import RecordingEntry, SettingValue
+from perfros_bag.cpu.trace import NodeCpu, match_label, node_cpu, read_cpu_trace
+from perfros_bag.errors import InputError, PerfrosError, PerfrosWarning
+from perfros_bag.ingest.stats import RecordingStats
+from perfros_bag.system.types import System
+
+#: CPU units of a computer that the system does not describe: 100 = the whole machine.
+DEFAULT_CAPACITY = 100.0
+
+
+#: What a reader may raise on a case it did not foresee (read_recording turns everything it
+#: knows into an InputError); the recording is reported as unreadable, never a traceback.
+UNFORESEEN: tuple[type[Exception], ...] = (OSError, ValueError, KeyError, IndexError, EOFError)
+
+
+@contextmanager
+def reporting(entry: RecordingEntry) -> Iterator[None]:
+    """Turn an unforeseen exception raised while characterising ``entry`` into the
+    :class:`PerfrosError` the user sees. The one conversion: the local loop and the Dask
+    tasks (:mod:`perfros_bag.characterisation.cluster`, on the workers) both run inside it, so a recording fails
+    with the same words whether or not ``--workers``/``--scheduler`` is given."""
+    try:
+        yield
+    except PerfrosError:
+        raise
+    except UNFORESEEN as exc:
+        raise PerfrosError(f"{entry.path}: cannot read: {type(exc).__name__}: {exc}") from None
+
+
+def characterise_recording(entry: RecordingEntry, system: System | None = None, *,
+                           fast: bool = True, stats: RecordingStats | None = None) -> list[Row]:
+    """The rows of one recording. Raises :class:`PerfrosError` when it cannot be read.
+
+    ``stats``: the recording's statistics when already read (the fleet merges a large
+    recording's chunk-range parts, perfros_bag/characterisation/cluster.py); else read here."""
+    from perfros_bag.ingest import read_recording
+
+    if not entry.path.exists():
+        raise InputError(entry.path, "recording not found")
+    if stats is None:
+        stats = read_recording(entry.path, fast=fast)
+    start, end = stats.start_ns, stats.end_ns
+    cpu: dict[str, NodeCpu] = {}
+    if entry.cpu is not None:
+        trace = read_cpu_trace(entry.cpu)
+        capacity = _capacity(entry, system)
+        patterns = None if system is None else {n.name: n.process for n in system.nodes}
+        cpu = node_cpu(trace, capacity, start_ns=start, end_ns=end, nodes=patterns)
+        if trace.time.size and start is not None and end is not None and not cpu:
+            lo, hi = float(trace.time.min()), float(trace.time.max())
+            if hi < start / 1e9 or lo > end / 1e9:  # other clocks (sim time?): the whole trace
+                warnings.warn(f"{entry.cpu}: no sample inside the recording's time window "
+                              f"({start / 1e9:.3f}-{end / 1e9:.3f} s; the trace covers {lo:.3f}-{hi:.3f} s); "
+                              "using the whole trace", PerfrosWarning, stacklevel=2)
+                cpu = node_cpu(trace, capacity, nodes=patterns)
+
+    owner: dict[str, str] = {}
+    if system is not None:
+        for n in system.nodes:
+            for t in n.topics:
+                owner.setdefault(t, n.name)
+    names = [n.name for n in system.nodes] if system is not None else []
+
+    rows: list[Row] = []
+    by_node: dict[str, list[str]] = {}
+    for topic in sorted(stats.topics):
+        ts = stats.topics[topic]
+        node = owner.get(topic)
+        if node is None:
+            pubs = list(ts.publishers)
+            node = pubs[0] if len(pubs) == 1 else ";".join(pubs)
+            if system is not None and len(pubs) == 1:
+                node = next((n for n in names if match_label(pubs[0], "", n, None)), node)
+        by_node.setdefault(node, []).append(topic)
+
+    # system nodes first (system order), then other publishers, then CPU-only trace labels
+    order = [n for n in names if n in by_node or n in cpu]
+    order += [n for n in by_node if n not in order]
+    order += [n for n in cpu if n not in order and not _cpu_owned(n, order)]
+    span = (end - start) / 1e9 if start is not None and end is not None else None
+    for node in order:
+        parameter, value = _setting(node, entry.settings, system)
+        c = cpu.get(node) or (_cpu_for_publisher(node, cpu) if system is None else None)
+        mean, p95, samples = (c.mean, c.p95, c.samples) if c is not None else (None, None, None)
+        topics = by_node.get(node, [])
+        if not topics:
+            rows.append(Row(entry.name, node, parameter, value, None, None, None, span, None, None,
+                            mean, p95, samples))
+            continue
+        for topic in topics:
+            ts = stats.topics[topic]
+            rows.append(Row(entry.name, node, parameter, value, topic, ts.msgtype, ts.messages,
+                            ts.span_s, ts.frequency_hz, ts.bandwidth_kBps, mean, p95, samples,
+                            ts.median_rate_hz, ts.p95_gap_s))
+    return rows
+
+
+def _cpu_owned(label: str, nodes: Sequence[str]) -> bool:
+    """A trace label already reported under a publisher's name (no-system mode)."""
+    return any(n and match_label(label, "", n.rsplit("/", 1)[-1], None) for n in nodes)
+
+
+def _cpu_for_publisher(publisher: str, cpu: Mapping[str, NodeCpu]) -> NodeCpu | None:
+    """No system: a ROS 1 publisher ``/ns/tracker1`` takes the CPU of trace label ``tracker1``."""
+    if not publisher:
+        return None
+    short = publisher.rsplit("/", 1)[-1]
+    return cpu.get(publisher) or cpu.get(short)
+
+
+def _capacity(entry: RecordingEntry, system: System | None) -> float:
+    if entry.computer is None:
+        if system is not None:
+            warnings.warn(f"{entry.name}: no 'computer' in the manifest: CPU normalised to "
+                          f"{DEFAULT_CAPACITY:g} = the whole traced machine", PerfrosWarning, stacklevel=3)
+        return DEFAULT_CAPACITY
+    if system is None:
+        raise InputError(entry.cpu, f"computer {entry.computer!r} given but no system.yaml to find its capacity "
+                                    "(none was given and the manifest names none)")
+    comp = system.computer.get(entry.computer)
+    if comp is None:
+        raise InputError(entry.cpu, f"unknown computer {entry.computer!r} (the system has "
+                                    f"{', '.join(c.name for c in system.computers)})")
+    if comp.capacity is None or comp.capacity <= 0:
+        raise InputError(entry.cpu, f"computer {entry.computer!r} has no capacity to normalise the CPU trace with")
+    return comp.capacity
+
+
+def _setting(node: str, settings: Mapping[str, SettingValue], system: System | None) -> tuple[str | None, SettingValue | None]:
+    value = settings.get(node)
+    parameter = None
+    if system is not None and node in system.node:
+        n = system.node[node]
+        if n.parameter is not None:
+            parameter = n.parameter.name
+        elif value is None and len(n.settings) == 1 and n.settings[0].value is not None:
+            value = n.settings[0].value
+    return parameter, _norm_value(value)
+
+
+def _norm_value(value: SettingValue | None) -> SettingValue | None:
+    """A whole number is written as one (``10``, not ``10.0``)."""
+    if isinstance(value, float) and value.is_integer() and abs(value) < 2**53:
+        return int(value)
+    return value

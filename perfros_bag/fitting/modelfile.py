@@ -1,0 +1,275 @@
+"""``model.json``: the typed document, its writer and its reader (format: ``docs/formats.md``).
+
+:func:`read_model` reads and checks the whole document; :func:`read_model_system` gives
+what ``solve`` needs, the ``system`` part (a system.yaml with fitted curves), without
+checking the rest. Light module: no numpy, no fitting.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from perfros_bag.errors import InputError
+from perfros_bag.fileio import atomic_write_json, read_json
+from perfros_bag.system.types import Curve, CurveForm, curve_form
+
+MODEL_FORMAT = "perfros-bag/model@1"
+
+
+def round9(v: float) -> float:
+    """9 significant digits (the measured numbers as written)."""
+    return float(f"{v:.9g}") if math.isfinite(v) else v
+
+
+def round6(v: float) -> float:
+    """6 significant digits (R², leave-one-out errors as written)."""
+    return float(f"{v:.6g}") if math.isfinite(v) else v
+
+
+@dataclass(frozen=True)
+class Stat:
+    """Mean, sample standard deviation and count of one measured quantity."""
+
+    mean: float
+    std: float
+    count: int
+
+    @staticmethod
+    def of(values: list[float]) -> Stat | None:
+        """The statistics of the finite values (None when there is none)."""
+        vs = [v for v in values if math.isfinite(v)]
+        if not vs:
+            return None
+        m = sum(vs) / len(vs)
+        sd = math.sqrt(sum((v - m) ** 2 for v in vs) / (len(vs) - 1)) if len(vs) > 1 else 0.0
+        return Stat(m, sd, len(vs))
+
+    def to_json(self) -> dict[str, float | int]:
+        return {"mean": round9(self.mean), "std": round9(self.std), "count": self.count}
+
+
+@dataclass(frozen=True)
+class MeasuredSetting:
+    """What the recordings of one node at one parameter value showed."""
+
+    value: float | None
+    recordings: int
+    cpu: Stat | None
+    frequency_hz: Stat | None
+    bandwidth_kBps: Stat | None
+    topics: dict[str, tuple[Stat | None, Stat | None]] = field(default_factory=dict)  # (frequency, bandwidth)
+
+    def to_json(self) -> dict[str, Any]:
+        def st(s: Stat | None) -> dict[str, float | int] | None:
+            return None if s is None else s.to_json()
+
+        return {
+            "value": self.value, "recordings": self.recordings,
+            "cpu": st(self.cpu), "frequency_hz": st(self.frequency_hz), "bandwidth_kBps": st(self.bandwidth_kBps),
+            "topics": {t: {"frequency_hz": st(f), "bandwidth_kBps": st(b)} for t, (f, b) in self.topics.items()},
+        }
+
+
+@dataclass(frozen=True)
+class FittedRelation:
+    """A fitted relation (what :func:`perfros_bag.fitting.regression.fit_curve` returns and
+    model.json keeps): the curve (``form``, ``coef``, ``domain``, ``scale``), how well it
+    fits, the points it was fitted to and why this form (``warnings``)."""
+
+    form: CurveForm
+    coef: tuple[float, ...]
+    domain: tuple[float, float]
+    scale: float
+    r2: float
+    loo_rmse: float | None  # None with 2 points (nothing to leave out)
+    points: tuple[tuple[float, float], ...]
+    candidates: dict[str, float | None] = field(default_factory=dict)  # form -> leave-one-out RMSE
+    warnings: tuple[str, ...] = ()
+
+    @property
+    def curve(self) -> Curve:
+        return Curve(self.form, self.coef, self.domain, self.scale)
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "form": self.form, "coef": [float(c) for c in self.coef],
+            "domain": [float(d) for d in self.domain], "scale": self.scale,
+            "r2": round6(self.r2),
+            "loo_rmse": None if self.loo_rmse is None else round6(self.loo_rmse),
+            "points": [[float(a), float(b)] for a, b in self.points],
+            "candidates": {k: None if v is None else round6(v) for k, v in self.candidates.items()},
+            "warnings": list(self.warnings),
+        }
+
+
+@dataclass(frozen=True)
+class ModelDocument:
+    """A model.json: the system with fitted curves (as a system.yaml mapping), and per
+    configurable node its fits and the measured numbers they came from."""
+
+    system_file: str  # where the system came from
+    characterisation: str  # the characterisation.csv fitted
+    system: dict[str, Any]
+    fits: dict[str, dict[str, FittedRelation]]
+    measured: dict[str, list[MeasuredSetting]]
+    warnings: list[str]
+    format: str = MODEL_FORMAT
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "format": self.format,
+            "system_file": self.system_file,
+            "characterisation": self.characterisation,
+            "system": self.system,
+            "fits": {n: {rel: f.to_json() for rel, f in fs.items()} for n, fs in self.fits.items()},
+            "measured": {n: [m.to_json() for m in ms] for n, ms in self.measured.items()},
+            "warnings": list(self.warnings),
+        }
+
+
+def write_model(path: str | Path, document: ModelDocument) -> None:
+    """Write model.json atomically."""
+    atomic_write_json(path, document.to_json())
+
+
+# --------------------------------------------------------------------------- reading
+
+
+class _Doc:
+    """Checks with the place in the document named in the error."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+
+    def fail(self, where: str, problem: str) -> InputError:
+        return InputError(self.path, f"{where}: {problem}")
+
+    def mapping(self, obj: Any, where: str) -> Mapping[str, Any]:
+        if not isinstance(obj, Mapping):
+            raise self.fail(where, f"expected an object, got {_kind(obj)}")
+        return obj
+
+    def items(self, obj: Any, where: str) -> list[Any]:
+        if not isinstance(obj, list):
+            raise self.fail(where, f"expected a list, got {_kind(obj)}")
+        return obj
+
+    def number(self, obj: Any, where: str) -> float:
+        if isinstance(obj, bool) or not isinstance(obj, int | float):
+            raise self.fail(where, f"expected a number, got {obj!r}")
+        return float(obj)
+
+    def opt_number(self, obj: Any, where: str) -> float | None:
+        return None if obj is None else self.number(obj, where)
+
+    def string(self, obj: Any, where: str) -> str:
+        if not isinstance(obj, str):
+            raise self.fail(where, f"expected a string, got {_kind(obj)}")
+        return obj
+
+    def numbers(self, obj: Any, where: str, n: int | None = None) -> tuple[float, ...]:
+        out = tuple(self.number(v, f"{where}[{i}]") for i, v in enumerate(self.items(obj, where)))
+        if n is not None and len(out) != n:
+            raise self.fail(where, f"expected {n} numbers, got {len(out)}")
+        return out
+
+    def stat(self, obj: Any, where: str) -> Stat | None:
+        if obj is None:
+            return None
+        m = self.mapping(obj, where)
+        count = m.get("count")
+        if isinstance(count, bool) or not isinstance(count, int):
+            raise self.fail(f"{where}.count", f"expected a whole number, got {count!r}")
+        return Stat(self.number(m.get("mean"), f"{where}.mean"), self.number(m.get("std"), f"{where}.std"), count)
+
+
+def _kind(obj: Any) -> str:
+    return "nothing" if obj is None else type(obj).__name__
+
+
+def _relation(doc: _Doc, raw: Any, where: str) -> FittedRelation:
+    m = doc.mapping(raw, where)
+    lo, hi = doc.numbers(m.get("domain"), f"{where}.domain", 2)
+    candidates = {str(k): doc.opt_number(v, f"{where}.candidates.{k}")
+                  for k, v in doc.mapping(m.get("candidates", {}), f"{where}.candidates").items()}
+    try:
+        form = curve_form(m.get("form"))
+    except ValueError as exc:
+        raise doc.fail(f"{where}.form", str(exc)) from None
+    fit = FittedRelation(
+        form=form,
+        coef=doc.numbers(m.get("coef"), f"{where}.coef"),
+        domain=(lo, hi),
+        scale=doc.number(m.get("scale", 1.0), f"{where}.scale"),
+        r2=doc.number(m.get("r2"), f"{where}.r2"),
+        loo_rmse=doc.opt_number(m.get("loo_rmse"), f"{where}.loo_rmse"),
+        points=tuple((x, y) for x, y in (doc.numbers(p, f"{where}.points[{i}]", 2)
+                                          for i, p in enumerate(doc.items(m.get("points", []), f"{where}.points")))),
+        candidates=candidates,
+        warnings=tuple(doc.string(w, f"{where}.warnings[{i}]")
+                       for i, w in enumerate(doc.items(m.get("warnings", []), f"{where}.warnings"))),
+    )
+    try:
+        fit.curve  # noqa: B018 - the coefficients and domain must make a curve
+    except ValueError as exc:
+        raise doc.fail(where, str(exc)) from None
+    return fit
+
+
+def _measured(doc: _Doc, raw: Any, where: str) -> MeasuredSetting:
+    m = doc.mapping(raw, where)
+    topics = {str(t): (doc.stat(tm.get("frequency_hz"), f"{where}.topics.{t}.frequency_hz"),
+                       doc.stat(tm.get("bandwidth_kBps"), f"{where}.topics.{t}.bandwidth_kBps"))
+              for t, tm in ((t, doc.mapping(v, f"{where}.topics.{t}"))
+                            for t, v in doc.mapping(m.get("topics", {}), f"{where}.topics").items())}
+    recordings = m.get("recordings")
+    if isinstance(recordings, bool) or not isinstance(recordings, int):
+        raise doc.fail(f"{where}.recordings", f"expected a whole number, got {recordings!r}")
+    return MeasuredSetting(doc.opt_number(m.get("value"), f"{where}.value"), recordings,
+                           doc.stat(m.get("cpu"), f"{where}.cpu"), doc.stat(m.get("frequency_hz"), f"{where}.frequency_hz"),
+                           doc.stat(m.get("bandwidth_kBps"), f"{where}.bandwidth_kBps"), topics)
+
+
+def parse_model(data: Any, path: str | Path) -> ModelDocument:
+    """Check a parsed model.json; a problem is an :class:`InputError` naming the file and
+    the place (``fits.tracker1.cpu->performance.coef[1]: expected a number``)."""
+    p = Path(path)
+    doc = _Doc(p)
+    fmt = data.get("format") if isinstance(data, Mapping) else None
+    if not isinstance(data, Mapping) or fmt != MODEL_FORMAT:
+        raise InputError(p, f"not a perfros-bag model (format {fmt!r}, expected {MODEL_FORMAT!r})")
+    if not isinstance(data.get("system"), dict):
+        raise InputError(p, "has no 'system' object")
+    fits = {str(n): {str(rel): _relation(doc, f, f"fits.{n}.{rel}")
+                     for rel, f in doc.mapping(rels, f"fits.{n}").items()}
+            for n, rels in doc.mapping(data.get("fits", {}), "fits").items()}
+    measured = {str(n): [_measured(doc, v, f"measured.{n}[{i}]") for i, v in enumerate(doc.items(ms, f"measured.{n}"))]
+                for n, ms in doc.mapping(data.get("measured", {}), "measured").items()}
+    warnings = [doc.string(w, f"warnings[{i}]") for i, w in enumerate(doc.items(data.get("warnings", []), "warnings"))]
+    return ModelDocument(doc.string(data.get("system_file", ""), "system_file"),
+                         doc.string(data.get("characterisation", ""), "characterisation"),
+                         data["system"], fits, measured, warnings, fmt)
+
+
+def read_model(path: str | Path) -> ModelDocument:
+    """Read and check a model.json (the ``system`` part is checked by
+    :func:`perfros_bag.system.systemfile.parse_system` when it is loaded)."""
+    return parse_model(read_json(path), path)
+
+
+def system_part(data: Any) -> Any:
+    """The ``system`` part of a parsed model.json; any other data unchanged (a system
+    written as JSON)."""
+    if isinstance(data, Mapping) and "system" in data:
+        return data["system"]
+    return data
+
+
+def read_model_system(path: str | Path) -> Any:
+    """What ``solve`` reads from a model.json: its ``system`` part, unchecked (the rest of
+    the document is not needed to solve)."""
+    return system_part(read_json(path))
