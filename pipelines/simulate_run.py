@@ -20,7 +20,8 @@ from mcap.writer import Writer
 from perfros_bag.errors import PerfrosError
 from perfros_bag.fileio import atomic_open
 from perfros_bag.cpu.trace import write_cpu_trace
-from perfros_bag.system.plan import Plan, load_plan
+from perfros_bag.system.plan import Plan
+from perfros_bag.system.planfile import load_plan
 
 T0_NS = 1_700_000_000_000_000_000
 

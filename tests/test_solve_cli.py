@@ -15,7 +15,7 @@ from typer.testing import CliRunner
 from perfros_bag.casestudy.instances import table2_instance
 from perfros_bag.cli import app
 from perfros_bag.solver.check import check_plan
-from perfros_bag.system.plan import load_plan
+from perfros_bag.system.planfile import load_plan
 from perfros_bag.system.systemfile import load_system
 
 ROOT = Path(__file__).resolve().parent.parent
