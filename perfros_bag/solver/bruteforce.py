@@ -11,7 +11,7 @@ import math
 
 from perfros_bag.errors import InputError
 from perfros_bag.system.plan import Assignment, Method, Plan, Status
-from perfros_bag.system.rules import build_plan, server_sizes
+from perfros_bag.system.rules import build_plan, server_sizes, weighted_performance
 from perfros_bag.system.types import Choice, Problem, System
 
 LIMIT = 1_000_000
@@ -45,7 +45,7 @@ def solve_bruteforce(system: System, problem: Problem, choices: dict[str, list[C
 
     def value() -> float:
         if problem == Problem.PERFORMANCE:
-            return sum(system.node[n].weight * pick[n].performance for n in nodes)
+            return weighted_performance(system, pick)
         return -sum(load[c.name] for c in system.computers if c.kind == "server")
 
     def visit(i: int) -> None:

@@ -240,7 +240,7 @@ def _prepare(system: System, problem: Problem, choices: dict[str, list[Choice]])
     min_cpu = {n: min(ch.cpu for ch in opts) for n, opts in choices.items()}
     groups: list[_Group] = []
     for members in system.coresidence_groups:
-        allowed = [c.name for c in system.computers if all(c.name in system.allowed(n) for n in members)]
+        allowed = system.allowed_to_all(members)
         who = ", ".join(members)
         if not allowed:
             return f"coresidence: nodes {who} have no computer allowed for all of them"
@@ -323,26 +323,37 @@ def _network_precheck(inst: _Instance) -> str | None:
         if all(system.route(a, b) is None for a in gs.allowed for b in gd.allowed):
             return (f"network: edge {e.src} -> {e.dst} joins computers with no network path between them "
                     f"({e.src} on {'/'.join(gs.allowed)}, {e.dst} on {'/'.join(gd.allowed)})")
-    forced_load = [0.0] * len(system.links)
-    forced_edges: list[list[str]] = [[] for _ in system.links]
-    for e in system.edges:
-        low = min(system.edge_bandwidth(e, ch) for ch in inst.choices[e.src])
-        if low <= 0:
-            continue
-        for li in range(len(system.links)):
-            if _crossing_always(inst, e, li):
-                forced_load[li] += low
-                forced_edges[li].append(f"{e.src}->{e.dst}")
+    forced_load, forced_edges = _load_bounds(inst, forced=True)
     for li, link in enumerate(system.links):
         if forced_load[li] > link.bandwidth_kBps + EPS:
             return (f"bandwidth: {_link_name(system, li)} carries at least {forced_load[li]:g} kB/s "
                     f"(edges {', '.join(forced_edges[li])} must cross it) but has {link.bandwidth_kBps:g}")
     for m in system.media:
-        load = sum(forced_load[li] for li in system.medium_links[m.name])
+        load = system.medium_load(forced_load, m.name)
         if load > m.bandwidth_kBps + EPS:
             return (f"bandwidth: medium {m.name} carries at least {load:g} kB/s on its links "
                     f"(edges that must cross them) but has {m.bandwidth_kBps:g}")
     return None
+
+
+def _load_bounds(inst: _Instance, *, forced: bool) -> tuple[list[float], list[list[str]]]:
+    """Per link, a bound on its load and the edges (``src->dst``) in it: with ``forced``,
+    the least load (the edges that cross it wherever their ends go, at their publishers'
+    least traffic); otherwise the most (every edge that may cross it, at the most traffic)."""
+    system = inst.system
+    bound = [0.0] * len(system.links)
+    edges: list[list[str]] = [[] for _ in system.links]
+    for e in system.edges:
+        traffic = [system.edge_bandwidth(e, ch) for ch in inst.choices[e.src]]
+        bw = min(traffic) if forced else max(traffic)
+        if bw <= 0:
+            continue
+        for li in range(len(system.links)):
+            crosses = _crossing_always(inst, e, li)
+            if crosses if forced else crosses is not False:
+                bound[li] += bw
+                edges[li].append(f"{e.src}->{e.dst}")
+    return bound, edges
 
 
 # ---------------------------------------------------------------------------------------------
@@ -364,21 +375,11 @@ def _active_links(inst: _Instance) -> set[int]:
     """Links (by index) whose bandwidth, or whose medium's, could ever be exceeded: the
     others need no rows at all."""
     system = inst.system
-    potential = [0.0] * len(system.links)
-    for e in system.edges:
-        if inst.group_of[e.src] is inst.group_of[e.dst]:
-            continue
-        big = max(system.edge_bandwidth(e, ch) for ch in inst.choices[e.src])
-        if big <= 0:
-            continue
-        for li in range(len(system.links)):
-            if _crossing_always(inst, e, li) is not False:
-                potential[li] += big
+    potential, _ = _load_bounds(inst, forced=False)
     active = {li for li, link in enumerate(system.links) if potential[li] > link.bandwidth_kBps + EPS}
     for m in system.media:
-        lis = system.medium_links[m.name]
-        if sum(potential[li] for li in lis) > m.bandwidth_kBps + EPS:
-            active.update(lis)
+        if system.medium_load(potential, m.name) > m.bandwidth_kBps + EPS:
+            active.update(system.medium_links[m.name])
     return active
 
 

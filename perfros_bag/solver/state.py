@@ -52,12 +52,7 @@ class State:
         self.members: dict[str, set[str]] = {c: set() for c in self.computers}
         self.groups: list[tuple[str, ...]] = list(system.coresidence_groups)
         self.group_of = {n: gi for gi, g in enumerate(self.groups) for n in g}
-        self.group_allowed: list[list[str]] = []
-        for g in self.groups:
-            allowed = set(self.computers)
-            for n in g:
-                allowed &= set(system.allowed(n))
-            self.group_allowed.append([c for c in self.computers if c in allowed])
+        self.group_allowed: list[list[str]] = [list(system.allowed_to_all(g)) for g in self.groups]
         # network: per edge the bandwidth at each of its publisher's ladder levels
         self.edges = list(system.edges)
         self.pub_bw = {n: [ch.bandwidth_kBps or 0.0 for ch in self.ladder[n]] for n in self.nodes}
@@ -219,7 +214,7 @@ class State:
             for name, d in dm.items():
                 if d > EPS:
                     m = self.system.medium[name]
-                    now = sum(self.link_load[li] for li in self.system.medium_links[name])
+                    now = self.system.medium_load(self.link_load, name)
                     if now + d > m.bandwidth_kBps + EPS * max(1.0, m.bandwidth_kBps):
                         return f"medium {name} would carry {_fmt(now + d)} > {_fmt(m.bandwidth_kBps)} kB/s", {}, {}
         return None, delta, dload

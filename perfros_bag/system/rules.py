@@ -54,10 +54,15 @@ def server_sizes(system: System, placement: Mapping[str, str], choice: Mapping[s
     return {c.name: load[c.name] for c in system.computers if c.kind == "server"}
 
 
+def weighted_performance(system: System, choice: Mapping[str, Choice]) -> float:
+    """Eq 1: the sum of w*P over the chosen nodes."""
+    return sum(system.node[n].weight * c.performance for n, c in choice.items())
+
+
 def objective(system: System, assignment: Assignment, problem: Problem) -> float:
     """Eq 1 (Problem 1: sum of w*P) or eq 2 (Problem 2: total server capacity)."""
     if problem == Problem.PERFORMANCE:
-        return sum(system.node[n].weight * c.performance for n, c in assignment.choice.items())
+        return weighted_performance(system, assignment.choice)
     return sum(assignment.capacities.get(c.name, c.capacity or 0.0) for c in system.computers if c.kind == "server")
 
 

@@ -336,6 +336,10 @@ class System:
         res = self.node[node].residence
         return res if res is not None else tuple(c.name for c in self.computers)
 
+    def allowed_to_all(self, nodes: Sequence[str]) -> tuple[str, ...]:
+        """Computers every one of ``nodes`` may sit on (a coresidence group's), in system order."""
+        return tuple(c.name for c in self.computers if all(c.name in self.allowed(n) for n in nodes))
+
     @cached_property
     def coresidence_groups(self) -> list[tuple[str, ...]]:
         """Nodes that must share a computer (the transitive closure of coresidence), in node
@@ -431,6 +435,10 @@ class System:
         """Per shared medium, the indices of its links."""
         return {m.name: tuple(i for i, link in enumerate(self.links) if link.medium == m.name) for m in self.media}
 
+    def medium_load(self, link_loads: Sequence[float], medium: str) -> float:
+        """kB/s on a shared medium: the sum of its links' loads."""
+        return sum(link_loads[li] for li in self.medium_links[medium])
+
     @cached_property
     def link_pairs(self) -> tuple[tuple[tuple[str, str], ...], ...]:
         """Per link, the ordered pairs of computers whose route crosses it (sorted)."""
@@ -471,7 +479,7 @@ class System:
                 return (f"link {link.between[0]}-{link.between[1]} would carry {load:.6g} "
                         f"> {link.bandwidth_kBps:.6g} kB/s")
         for m in self.media:
-            load = sum(link_loads[li] for li in self.medium_links[m.name])
+            load = self.medium_load(link_loads, m.name)
             if _exceeds(load, m.bandwidth_kBps, tol):
                 return f"medium {m.name} would carry {load:.6g} > {m.bandwidth_kBps:.6g} kB/s"
         return None
