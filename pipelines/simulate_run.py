@@ -77,8 +77,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     try:
         plan = load_plan(args.plan)
-        if plan.status == "infeasible":
-            raise PerfrosError(f"{args.plan}: the plan is infeasible, nothing to simulate")
+        plan.require_feasible(args.plan, "simulate")
         n = write_recording(plan, args.out, args.seconds, args.rate)
         write_trace(plan, args.out.with_name(f"{args.out.stem}.cpu.csv"), args.seconds, args.cores, args.cpu_scale)
     except PerfrosError as exc:
