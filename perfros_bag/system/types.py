@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import IntEnum
 from functools import cached_property
@@ -463,8 +463,12 @@ class System:
         """kB/s on every link (``links`` order) for a placement: each edge between two
         computers loads every link of their route with its bandwidth at its publisher's
         choice. An edge without a path loads nothing (see :meth:`network_violation`)."""
+        return self._loads(self.edge_routes(placement), choice)
+
+    def _loads(self, routed: Iterable[tuple[int, Edge, tuple[int, ...] | None]],
+               choice: Mapping[str, Choice]) -> list[float]:
         loads = [0.0] * len(self.links)
-        for _, edge, route in self.edge_routes(placement):
+        for _, edge, route in routed:
             if route:
                 bw = self.edge_bandwidth(edge, choice[edge.src])
                 for li in route:
@@ -488,11 +492,12 @@ class System:
                           tol: float = 1e-9) -> str | None:
         """Why the network cannot carry a (whole) placement: an edge between computers that
         no path joins, or a link or medium over its bandwidth (eq 4); None when it can."""
-        for _, edge, route in self.edge_routes(placement):
+        routed = list(self.edge_routes(placement))
+        for _, edge, route in routed:
             if route is None:
                 a, b = placement[edge.src], placement[edge.dst]
                 return f"no network path between {a} and {b} (edge {edge.src}->{edge.dst})"
-        return self.overloaded(self.link_loads(placement, choice), tol)
+        return self.overloaded(self._loads(routed, choice), tol)
 
 
 def _exceeds(load: float, limit: float, tol: float) -> bool:
