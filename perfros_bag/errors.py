@@ -26,11 +26,16 @@ class InputError(PerfrosError):
 
 
 class InfeasibleError(PerfrosError):
-    """No plan satisfies the constraints; ``reason`` names the constraint and the parties."""
+    """No plan satisfies the constraints: ``reason`` names the constraint and the parties,
+    ``path`` the system (or the infeasible plan) it is about, ``consequence`` what cannot
+    be done therefore (e.g. ``nothing to validate``)."""
 
-    def __init__(self, reason: str) -> None:
+    def __init__(self, reason: str, path: str | Path | None = None, consequence: str | None = None) -> None:
         self.reason = reason
-        super().__init__(f"infeasible: {reason}")
+        self.path = None if path is None else str(path)
+        self.consequence = consequence
+        message = f"infeasible: {reason}" + (f" ({consequence})" if consequence else "")
+        super().__init__(f"{self.path}: {message}" if self.path else message)
 
 
 class PerfrosWarning(UserWarning):

@@ -39,9 +39,11 @@ from rich.console import Console
 
 from perfros_bag.casestudy.launcher import RunConfig, run_plan
 from perfros_bag.fileio import atomic_write_json, atomic_write_text
-from perfros_bag.system.types import Choice, System
-from perfros_bag.system.plan import Assignment, Plan, build_plan, load_plan
+from perfros_bag.system.plan import Assignment, Plan
+from perfros_bag.system.planfile import load_plan, save_plan
+from perfros_bag.system.rules import build_plan
 from perfros_bag.system.systemfile import load_system
+from perfros_bag.system.types import Choice, System
 
 ROOT = Path(__file__).resolve().parent.parent
 BIN = Path(sys.executable).with_name("perfros-bag")
@@ -88,7 +90,7 @@ def deploy(system: System, system_path: Path, plan: Plan, out: Path, cfg: RunCon
         record: dict[str, Any] = json.loads((out / "run.json").read_text())
     else:
         out.parent.mkdir(parents=True, exist_ok=True)
-        plan.save(plan_path)
+        save_plan(plan, plan_path)
         err.print(f"[bold]{label}[/]: running {cfg.duration:g} s -> {out}")
         if BAR:
             BAR[0].update(BAR[1], description=label)
@@ -266,7 +268,7 @@ def rq3(out: Path, args: argparse.Namespace) -> list[dict[str, Any]]:
     atomic_write_json(model_path, model_doc)
     system = load_system(model_path)
     baseline = solve(system, 1, "greedy")
-    baseline.save(d / "plan-baseline.json")
+    save_plan(baseline, d / "plan-baseline.json")
     COMMANDS.append(f"perfros-bag solve {rel(model_path)} --problem 1 --method greedy --out {rel(d / 'plan-baseline.json')}"
                     "   # RQ3 baseline (done in-process)")
     truth_path = FIXTURES / "instance1.yaml"

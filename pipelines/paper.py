@@ -19,10 +19,10 @@ from typing import Any
 from rich.console import Console
 from rich.progress import Progress
 
+from perfros_bag.casestudy.instances import TABLE_II
 from perfros_bag.fileio import atomic_write_json, atomic_write_text
 from perfros_bag.solver import solve
 from perfros_bag.solver.check import check_plan
-from perfros_bag.casestudy.instances import TABLE_II
 from perfros_bag.system.systemfile import load_system
 
 ROOT = Path(__file__).resolve().parent.parent

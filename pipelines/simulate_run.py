@@ -17,10 +17,11 @@ from pathlib import Path
 
 from mcap.writer import Writer
 
+from perfros_bag.cpu.trace import write_cpu_trace
 from perfros_bag.errors import PerfrosError
 from perfros_bag.fileio import atomic_open
-from perfros_bag.cpu.trace import write_cpu_trace
-from perfros_bag.system.plan import Plan, load_plan
+from perfros_bag.system.plan import Plan
+from perfros_bag.system.planfile import load_plan
 
 T0_NS = 1_700_000_000_000_000_000
 
@@ -76,8 +77,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     try:
         plan = load_plan(args.plan)
-        if plan.status == "infeasible":
-            raise PerfrosError(f"{args.plan}: the plan is infeasible, nothing to simulate")
+        plan.require_feasible(args.plan, "simulate")
         n = write_recording(plan, args.out, args.seconds, args.rate)
         write_trace(plan, args.out.with_name(f"{args.out.stem}.cpu.csv"), args.seconds, args.cores, args.cpu_scale)
     except PerfrosError as exc:

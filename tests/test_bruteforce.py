@@ -53,7 +53,8 @@ def test_heuristics_bounded_by_brute_force(seed: int, problem: int) -> None:
 def independent_optimum(s, problem: int) -> float | None:  # type: ignore[no-untyped-def]
     """A second, naive enumeration (itertools.product over every node's choice and
     computer, feasibility from the checker's own rules) to cross-check brute force."""
-    from perfros_bag.system.plan import Assignment, build_plan
+    from perfros_bag.system.plan import Assignment
+    from perfros_bag.system.rules import build_plan
 
     names = [n.name for n in s.nodes]
     opts = [[(c, ch) for c in s.allowed(n) for ch in (s.node[n].choices() if problem == 1 else s.node[n].choices()[-1:])]

@@ -18,7 +18,9 @@ from perfros_bag.casestudy.launcher import computer_cores, emulated_trace, node_
 from perfros_bag.casestudy.profiles import Calibration, NodeProfile, _interp, launch_for
 from perfros_bag.cpu.trace import node_cpu, read_cpu_trace, write_cpu_trace
 from perfros_bag.errors import PerfrosWarning
-from perfros_bag.system.plan import Assignment, build_plan
+from perfros_bag.system.plan import Assignment
+from perfros_bag.system.planfile import save_plan
+from perfros_bag.system.rules import build_plan
 from perfros_bag.system.systemfile import parse_system
 
 
@@ -165,7 +167,7 @@ def test_cli_bad_input_is_one_line_exit_2(tmp_path: Path, inst1) -> None:  # typ
     place = {n.name: "server" for n in inst1.nodes}
     choice = {n.name: n.choices()[0] for n in inst1.nodes}
     plan = tmp_path / "plan.json"
-    build_plan(inst1, Assignment(place, choice), problem=1, method="t", status="feasible").save(plan)
+    save_plan(build_plan(inst1, Assignment(place, choice), problem=1, method="t", status="feasible"), plan)
     out = tmp_path / "run"
     for args, needle in [
         (["--system", str(tmp_path / "nope.yaml"), "--plan", str(plan)], "nope.yaml"),

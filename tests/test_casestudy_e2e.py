@@ -25,6 +25,7 @@ import pytest
 from perfros_bag.casestudy.cgroups import CpuGroups, leftover_groups
 from perfros_bag.casestudy.launcher import leftover_processes
 from perfros_bag.solver import solve
+from perfros_bag.system.planfile import save_plan
 from perfros_bag.system.systemfile import load_system
 from tests.conftest import FIXTURES
 
@@ -77,7 +78,7 @@ def instance1(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     d = tmp_path_factory.mktemp("cs")
     system = FIXTURES / "casestudy" / "instance1.yaml"  # Table II instance 1, Table I settings
     plan = d / "plan.json"
-    solve(load_system(system), 1, method="greedy").save(plan)
+    save_plan(solve(load_system(system), 1, method="greedy"), plan)
     return system, plan
 
 

@@ -9,7 +9,8 @@ from typing import Any
 import pytest
 
 from perfros_bag.solver.check import check_plan, plan_objective
-from perfros_bag.system.plan import Plan, parse_plan
+from perfros_bag.system.plan import Plan
+from perfros_bag.system.planfile import parse_plan
 from perfros_bag.system.systemfile import parse_system
 
 # r1, r2: robots of 50; srv: a server of 100 (Problem 2: at most 120). Links r1-srv and

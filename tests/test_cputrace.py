@@ -213,8 +213,9 @@ def test_record_cpu_measures_a_half_busy_process(tmp_path: Path) -> None:
     mine = tr.pid == child.pid
     assert mine.sum() >= 4, "the recorder must pick up a process that appears later"
     measured = float(tr.cpu_percent[mine].mean())
-    # the duty cycle caps the load at 50 % of a core; a shared machine may give it less
-    assert 15 <= reference <= 60, reference
+    # the duty cycle caps the load at 50 % of a core; a loaded machine may give it far less
+    # (9.8 % seen at load 10), but it must have run: the comparison below is the check
+    assert 3 <= reference <= 60, reference
     assert abs(measured - reference) <= 10, (measured, reference)
     assert not list(tmp_path.glob(".*.tmp")), "no temp file left behind"
 

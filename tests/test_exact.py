@@ -35,7 +35,7 @@ def system_of(data: dict[str, Any]) -> System:
 def exact(system: System, problem: int, **kw: Any) -> Plan:
     plan = solve_exact(system, problem, fixed_choices(system, problem), **kw)
     if plan.status != "infeasible":
-        assert check_plan(system, plan) == [], plan.to_dict()
+        assert check_plan(system, plan) == [], plan
         if problem == 1:
             assert plan.bound is not None and plan.bound >= plan.objective - 1e-9
         else:

@@ -14,9 +14,9 @@ import yaml
 from typer.testing import CliRunner
 
 from perfros_bag.cli import app
-from perfros_bag.errors import InputError
+from perfros_bag.errors import InfeasibleError
 from perfros_bag.export.writers import read_placement_comments, ros2_params_yaml, roslaunch_xml
-from perfros_bag.system.plan import parse_plan
+from perfros_bag.system.planfile import parse_plan
 from perfros_bag.system.systemfile import parse_system
 
 WEIRD = 'trk&<1> "q\' x'  # XML-special characters in a node name
@@ -131,8 +131,10 @@ def test_newline_in_name_cannot_break_the_comment_table() -> None:
 def test_infeasible_plan_is_refused() -> None:
     p = parse_plan({"format": "perfros-bag/plan@1", "problem": 2, "method": "x", "status": "infeasible",
                     "reason": "too big"}, "p.json")
-    with pytest.raises(InputError, match="infeasible"):
-        roslaunch_xml(p)
+    for write in (roslaunch_xml, ros2_params_yaml):
+        with pytest.raises(InfeasibleError) as caught:
+            write(p, plan_path="p.json")
+        assert str(caught.value) == "p.json: infeasible: too big (nothing to export)"
 
 
 def test_cli_writes_files_atomically(tmp_path: Path) -> None:

@@ -17,7 +17,7 @@ from typer.testing import CliRunner
 from perfros_bag.cli import app
 from perfros_bag.fitting.modelfile import MODEL_FORMAT
 from perfros_bag.report.html import build_report
-from perfros_bag.system.plan import parse_plan
+from perfros_bag.system.planfile import parse_plan
 from perfros_bag.validation.eq10 import check_run
 
 EVIL = '<script>alert("x")</script>&$\\frac{a$'  # HTML specials; $ would be mathtext

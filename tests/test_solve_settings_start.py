@@ -20,7 +20,8 @@ from perfros_bag.errors import InputError, PerfrosWarning
 from perfros_bag.fitting.modelfile import ModelDocument, read_model
 from perfros_bag.solver import fixed_choices, settings_from_values, solve
 from perfros_bag.solver.check import check_plan
-from perfros_bag.system.plan import Assignment, Plan, load_plan
+from perfros_bag.system.plan import Assignment, Plan
+from perfros_bag.system.planfile import load_plan
 from perfros_bag.system.systemfile import load_system, parse_system
 from perfros_bag.system.types import Choice, System
 from tests.test_fit_cli import table_i_rows, table_i_system, write_csv, write_yaml

@@ -11,9 +11,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from perfros_bag.errors import InputError
+from perfros_bag.errors import InfeasibleError, InputError
 from perfros_bag.ingest.stats import RecordingStats, TopicStats
-from perfros_bag.system.plan import parse_plan
+from perfros_bag.system.planfile import parse_plan
 from perfros_bag.validation.eq10 import TracedCpu, check_run, default_cpu_trace
 
 # Two computers; node a has one topic, node b two (its ratio is the mean of both).
@@ -168,11 +168,13 @@ def test_computer_without_traced_nodes_is_unknown() -> None:
     assert comp["server"].unmatched_nodes == ["b"]
 
 
-def test_infeasible_plan_is_bad_input() -> None:
+def test_infeasible_plan_is_refused() -> None:
     data = {"format": "perfros-bag/plan@1", "problem": 1, "method": "x", "status": "infeasible",
             "reason": "node 'a' fits on no computer", "nodes": {}}
-    with pytest.raises(InputError, match="infeasible"):
+    with pytest.raises(InfeasibleError) as caught:
         check_run(stats_at(1.0), parse_plan(data, "p.json"), plan_path="p.json")
+    assert str(caught.value) == "p.json: infeasible: node 'a' fits on no computer (nothing to validate)"
+    assert caught.value.exit_code == 2
 
 
 def test_default_cpu_trace(tmp_path: Path) -> None:
@@ -520,4 +522,4 @@ def test_missing_plan_system_is_said_not_skipped_silently(tmp_path: Path) -> Non
         warnings.simplefilter("always")
         assert plan_system(plan, tmp_path / "plan.json") is None
     messages = [str(w.message) for w in caught if issubclass(w.category, PerfrosWarning)]
-    assert len(messages) == 1 and "gone/system.yaml" in messages[0] and "--system" in messages[0]
+    assert len(messages) == 1 and "gone/system.yaml" in messages[0] and "links are not checked" in messages[0]

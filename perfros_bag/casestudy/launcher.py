@@ -45,6 +45,7 @@ from perfros_bag.casestudy.profiles import (
 from perfros_bag.errors import InputError, PerfrosError
 from perfros_bag.fileio import atomic_write_json, atomic_write_text
 from perfros_bag.system.plan import Plan
+from perfros_bag.system.planfile import plan_document, save_plan
 from perfros_bag.system.types import System
 
 RUN_ENV = "PERFROS_CASESTUDY_RUN"
@@ -346,7 +347,7 @@ def run_plan(system: System, plan: Plan, out: Path, cfg: RunConfig, *,
     groups = CpuGroups(run_id, cores)
     record: dict[str, Any] = {
         "format": "perfros-bag/casestudy-run@1", "run_id": run_id,
-        "plan": plan.to_dict(), "overrides": overrides or {},
+        "plan": plan_document(plan), "overrides": overrides or {},
         "duration_s": cfg.duration, "calibration": calib.to_dict(),
         "nodes": {ln.name: {"computer": ln.computer, "parameter": ln.parameter, "value": ln.value,
                             "rate_hz": ln.rate_hz, "message_bytes": ln.message_bytes,
@@ -500,7 +501,7 @@ def _write_outputs(out: Path, record: dict[str, Any], system: System, plan: Plan
                    launches: list[NodeLaunch], system_path: Path | None) -> None:
     import yaml
 
-    plan.save(out / "plan.json")
+    save_plan(plan, out / "plan.json")
     entry: dict[str, Any] = {"path": "run.bag", "cpu": "run.cpu.csv",
                              "settings": {ln.name: ln.value for ln in launches if ln.value is not None}}
     manifest: dict[str, Any] = {}

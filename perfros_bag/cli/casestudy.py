@@ -10,7 +10,6 @@ import typer
 from rich.markup import escape
 
 from perfros_bag.cli._app import app, command, err, out
-from perfros_bag.errors import PerfrosError
 
 casestudy_app = typer.Typer(help="The paper's case study on real ROS 1 nodes (roscore, rospy, rosbag).",
                             no_args_is_help=True)
@@ -54,13 +53,12 @@ def run_cmd(
     from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
     from perfros_bag.casestudy.launcher import RunConfig, run_plan
-    from perfros_bag.system.plan import load_plan
+    from perfros_bag.system.planfile import load_plan
     from perfros_bag.system.systemfile import load_system
 
     sys_ = load_system(system)
     pl = load_plan(plan)
-    if pl.status == "infeasible":
-        raise PerfrosError(f"{plan}: the plan is infeasible ({pl.reason or 'no reason given'}): nothing to deploy")
+    pl.require_feasible(plan, "deploy")
     cfg = RunConfig(duration=duration, units_per_core=units_per_core, headroom=headroom, cap=cap)
     with Progress(TextColumn("{task.description}"), BarColumn(), TimeRemainingColumn(),
                   console=err, transient=True) as bar:

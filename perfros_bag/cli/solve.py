@@ -21,7 +21,7 @@ def parse_settings(system: System, text: str, resolution: float) -> dict[str, fl
     """``--settings``: a plan.json (each node's CPU) or ``node=value,...`` (a parameter
     value) / ``node=cpu:U`` (a CPU level). Returns node -> CPU level."""
     from perfros_bag.solver import settings_from_plan, settings_from_values
-    from perfros_bag.system.plan import load_plan
+    from perfros_bag.system.planfile import load_plan
 
     if text.lower().endswith(".json") or Path(text).is_file():
         return settings_from_plan(load_plan(text))
@@ -99,6 +99,7 @@ def solve(
     """Choose a setting and a computer for every node (the paper's Problems 1 and 2)."""
     from perfros_bag.solver import METHODS
     from perfros_bag.solver import solve as run
+    from perfros_bag.system.planfile import plan_document, save_plan
     from perfros_bag.system.systemfile import load_system
 
     if problem not in (1, 2):
@@ -122,11 +123,10 @@ def solve(
     except ValueError as exc:  # a model that cannot be evaluated (e.g. a curve off its domain)
         raise InputError(system_path, str(exc)) from None
     if out_path is not None:
-        plan.save(out_path)
+        save_plan(plan, out_path)
     if as_json:
-        print(json.dumps(plan.to_dict(), indent=2))
-    if plan.status == "infeasible":
-        raise InputError(system_path, f"infeasible: {plan.reason}")
+        print(json.dumps(plan_document(plan), indent=2))
+    plan.require_feasible(system_path)
     print_plan(err if as_json else out, plan)
     if out_path is not None and not as_json:
         out.print(f"plan written to {out_path}", highlight=False)

@@ -234,7 +234,7 @@ def build_report(out_dir: str | Path, *, characterisation: str | Path | None = N
                  validation: str | Path | None = None, title: str = "perfros-bag report") -> Path:
     """Write ``out_dir/index.html`` and its PNGs; returns the page's path. Inputs are read
     (and checked) before anything is written."""
-    from perfros_bag.system.plan import load_plan
+    from perfros_bag.system.planfile import load_plan
 
     char = read_characterisation(characterisation) if characterisation is not None else None
     fits = read_model(model).fits if model is not None else None

@@ -30,10 +30,11 @@ import warnings
 from collections.abc import Mapping
 
 from perfros_bag.errors import InputError, PerfrosWarning
-from perfros_bag.system.plan import Assignment, Plan
-from perfros_bag.system.types import Choice, Node, System
+from perfros_bag.system.plan import Assignment, Method, Plan, Status
+from perfros_bag.system.types import Choice, Node, Problem, System
 
-METHODS: tuple[str, ...] = ("greedy", "greedy+", "exact", "bruteforce")
+#: the solvers' names (``Method`` values), in the order the docs list them
+METHODS: tuple[str, ...] = tuple(Method)
 
 __all__ = ["METHODS", "START_COLUMNS", "START_SHARE", "exact_columns", "fixed_choices", "settings_from_plan",
            "settings_from_values", "solve", "start_of"]
@@ -59,7 +60,7 @@ def _match_cpu(system: System, node: Node, cpu: float, resolution: float) -> Cho
     raise InputError(_where(system), f"node {node.name!r}: no setting with CPU {cpu:g} (its settings' CPU: {have})")
 
 
-def fixed_choices(system: System, problem: int, settings: Mapping[str, float] | None = None,
+def fixed_choices(system: System, problem: Problem, settings: Mapping[str, float] | None = None,
                   resolution: float = 1.0) -> dict[str, list[Choice]]:
     """Each node's candidate choices, sorted by CPU: all of them for Problem 1; for Problem 2
     the single fixed one (``settings[node]`` as a CPU level, default the maximum-CPU choice)."""
@@ -71,7 +72,7 @@ def fixed_choices(system: System, problem: int, settings: Mapping[str, float] | 
             raise InputError(_where(system), f"settings: unknown node(s) {', '.join(map(repr, unknown))}")
     out: dict[str, list[Choice]] = {}
     for node in system.nodes:
-        if problem == 1:
+        if problem == Problem.PERFORMANCE:
             out[node.name] = node.choices(resolution)
         elif settings and node.name in settings:
             out[node.name] = [_match_cpu(system, node, float(settings[node.name]), resolution)]
@@ -119,7 +120,7 @@ def settings_from_values(system: System, values: Mapping[str, float], resolution
         else:
             have = sorted({c.value for c in node.choices(resolution) if c.value is not None}
                           | {s.value for s in node.settings if s.value is not None})
-            hint = f"its values: {', '.join(f'{x:g}' for x in have)}" if have else "it has no parameter values; give a CPU level as cpu:U"
+            hint = f"its values: {', '.join(f'{x:g}' for x in have)}" if have else "it has no parameter values, only CPU levels"
             raise InputError(_where(system), f"settings: node {name!r} has no setting with value {v:g} ({hint})")
         if not math.isfinite(cpu):
             raise InputError(_where(system), f"settings: node {name!r}: value {v:g} gives no finite CPU level "
@@ -148,43 +149,41 @@ def settings_from_plan(plan: Plan) -> dict[str, float]:
 
 def solve(system: System, problem: int, method: str, *, resolution: float = 1.0,
           settings: Mapping[str, float] | None = None, time_limit: float | None = None) -> Plan:
-    """Solve Problem ``problem`` with ``method``; the returned plan carries ``solve_s``.
+    """Solve Problem ``problem`` (1 or 2) with ``method`` (a :class:`Method`); the
+    returned plan carries ``solve_s``.
 
     An infeasible instance gives a plan with status ``infeasible`` and a ``reason`` (not an
-    exception); bad input (unknown method, a Problem 1 server without capacity) raises
-    :class:`~perfros_bag.errors.InputError`.
+    exception: :meth:`Plan.require_feasible` turns it into one); bad input (unknown method,
+    a Problem 1 server without capacity) raises :class:`~perfros_bag.errors.InputError`.
     """
-    if problem not in (1, 2):
+    if isinstance(problem, bool) or problem not in tuple(Problem):
         raise InputError(_where(system), f"problem must be 1 or 2, got {problem!r}")
     if method not in METHODS:
         raise InputError(None, f"unknown method {method!r} (one of {', '.join(METHODS)})")
-    if problem == 1:
-        unsized = [c.name for c in system.computers if c.capacity is None]
-        if unsized:
-            raise InputError(_where(system), f"computer(s) {', '.join(map(repr, unsized))} have no capacity: "
-                                             "Problem 1 needs every capacity (only Problem 2 sizes servers)")
+    the_problem, the_method = Problem(problem), Method(method)
+    system.capacities(the_problem)  # every capacity the problem needs is there
     start = time.perf_counter()
-    choices = fixed_choices(system, problem, settings, resolution)
-    plan = _dispatch(system, problem, method, choices, time_limit)
+    choices = fixed_choices(system, the_problem, settings, resolution)
+    plan = _dispatch(system, the_problem, the_method, choices, time_limit)
     plan.solve_s = time.perf_counter() - start
-    plan.method = method
+    plan.method = the_method
     if plan.system is None:
         plan.system = system.source
     return plan
 
 
-def _dispatch(system: System, problem: int, method: str, choices: dict[str, list[Choice]],
+def _dispatch(system: System, problem: Problem, method: Method, choices: dict[str, list[Choice]],
               time_limit: float | None) -> Plan:
     t0 = time.perf_counter()
-    if method == "greedy":
+    if method == Method.GREEDY:
         from perfros_bag.solver.greedy import solve_greedy
 
         return solve_greedy(system, problem, choices)
-    if method == "greedy+":
+    if method == Method.GREEDY_PLUS:
         from perfros_bag.solver.local import solve_greedy_plus
 
         return solve_greedy_plus(system, problem, choices)
-    if method == "bruteforce":
+    if method == Method.BRUTEFORCE:
         from perfros_bag.solver.bruteforce import solve_bruteforce
 
         return solve_bruteforce(system, problem, choices)
@@ -211,17 +210,17 @@ def exact_columns(system: System, choices: Mapping[str, list[Choice]]) -> int:
     return sum(len(choices[n.name]) * len(system.allowed(n.name)) for n in system.nodes)
 
 
-def _exact_start(system: System, problem: int, choices: dict[str, list[Choice]],
+def _exact_start(system: System, problem: Problem, choices: dict[str, list[Choice]],
                  time_limit: float | None) -> Assignment | None:
     """greedy+'s plan (within :data:`START_SHARE` of the time limit) as the exact solver's MIP
     start on big instances; None on small ones, or when greedy+ finds nothing."""
-    if problem != 1 or exact_columns(system, choices) <= START_COLUMNS:
+    if problem != Problem.PERFORMANCE or exact_columns(system, choices) <= START_COLUMNS:
         return None
     from perfros_bag.solver.local import solve_greedy_plus
 
     budget = None if time_limit is None else START_SHARE * time_limit
     plan = solve_greedy_plus(system, problem, choices, time_budget=budget)
-    if plan.status == "infeasible":
+    if plan.status == Status.INFEASIBLE:
         return None
     return start_of(plan, choices)
 

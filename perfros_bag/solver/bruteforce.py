@@ -10,8 +10,9 @@ from __future__ import annotations
 import math
 
 from perfros_bag.errors import InputError
-from perfros_bag.system.plan import Assignment, Plan, build_plan, infeasible_plan
-from perfros_bag.system.types import Choice, System
+from perfros_bag.system.plan import Assignment, Method, Plan, Status
+from perfros_bag.system.rules import build_plan, server_sizes, weighted_performance
+from perfros_bag.system.types import Choice, Problem, System
 
 LIMIT = 1_000_000
 EPS = 1e-9
@@ -22,25 +23,19 @@ def combinations(system: System, choices: dict[str, list[Choice]]) -> int:
     return math.prod(len(choices[n.name]) * len(system.allowed(n.name)) for n in system.nodes)
 
 
-def solve_bruteforce(system: System, problem: int, choices: dict[str, list[Choice]]) -> Plan:
+def solve_bruteforce(system: System, problem: Problem, choices: dict[str, list[Choice]]) -> Plan:
     total = combinations(system, choices)
     if total > LIMIT:
         raise InputError(system.source, f"too large for bruteforce: {total:.3g} combinations (limit {LIMIT:.0e}); "
-                                        "use --method exact")
+                                        "the exact solver takes any size")
     nodes = [n.name for n in system.nodes]
     comps = system.computer
     # Problem 2 servers are sized to their load (bounded by max_capacity); Problem 1 and robots are fixed.
-    cap: dict[str, float] = {}
-    for c in system.computers:
-        if problem == 2 and c.kind == "server":
-            cap[c.name] = c.max_capacity if c.max_capacity is not None else math.inf
-        else:
-            cap[c.name] = c.capacity if c.capacity is not None else 0.0
+    cap = system.capacities(problem)
     group_of: dict[str, str] = {}
     for g in system.coresidence_groups:
         for n in g:
             group_of[n] = g[0]
-    edges = list(system.edges)
 
     load = {c: 0.0 for c in comps}
     place: dict[str, str] = {}
@@ -48,34 +43,14 @@ def solve_bruteforce(system: System, problem: int, choices: dict[str, list[Choic
     group_at: dict[str, str] = {}
     best: list[tuple[float, dict[str, str], dict[str, Choice]]] = []
 
-    def network_ok() -> bool:
-        link = [0.0] * len(system.links)
-        for e in edges:
-            a, b = place[e.src], place[e.dst]
-            if a == b:
-                continue
-            route = system.route(a, b)
-            if route is None:
-                return False
-            bw = system.edge_bandwidth(e, pick[e.src])
-            for li in route:
-                link[li] += bw
-        for i, lk in enumerate(system.links):
-            if link[i] > lk.bandwidth_kBps + EPS:
-                return False
-        for m in system.media:
-            if sum(link[i] for i, lk in enumerate(system.links) if lk.medium == m.name) > m.bandwidth_kBps + EPS:
-                return False
-        return True
-
     def value() -> float:
-        if problem == 1:
-            return sum(system.node[n].weight * pick[n].performance for n in nodes)
+        if problem == Problem.PERFORMANCE:
+            return weighted_performance(system, pick)
         return -sum(load[c.name] for c in system.computers if c.kind == "server")
 
     def visit(i: int) -> None:
         if i == len(nodes):
-            if not network_ok():
+            if system.network_violation(place, pick, EPS) is not None:
                 return
             v = value()
             if not best or v > best[0][0] + EPS:
@@ -102,16 +77,12 @@ def solve_bruteforce(system: System, problem: int, choices: dict[str, list[Choic
 
     visit(0)
     if not best:
-        return infeasible_plan(problem, "bruteforce",
+        return Plan.infeasible(problem, Method.BRUTEFORCE,
                                f"no assignment satisfies the CPU, bandwidth, residence and coresidence "
                                f"constraints ({total} combinations searched)", system=system.source)
     v, placement, choice = best[0]
-    capacities: dict[str, float] = {}
-    if problem == 2:
-        for c in system.computers:
-            if c.kind == "server":
-                capacities[c.name] = sum(choice[n].cpu for n in nodes if placement[n] == c.name)
-    plan = build_plan(system, Assignment(placement, choice, capacities), problem=problem, method="bruteforce",
-                      status="optimal")
+    capacities = server_sizes(system, placement, choice) if problem == Problem.SERVER_CAPACITY else {}
+    plan = build_plan(system, Assignment(placement, choice, capacities), problem=problem, method=Method.BRUTEFORCE,
+                      status=Status.OPTIMAL)
     plan.bound = plan.objective
     return plan

@@ -1,7 +1,7 @@
 """An independent feasibility checker of a plan against its system (eq 1-9).
 
 It recomputes everything from the system and the plan's per-node answer (computer, CPU,
-performance), sharing no code with the solvers or with :func:`perfros_bag.system.plan.build_plan`:
+performance), sharing no code with the solvers or with :func:`perfros_bag.system.rules.build_plan`:
 the model's own definitions (a setting's bandwidth, the route between two computers) are
 the only things it takes from :mod:`perfros_bag.system.types`.
 """

@@ -40,9 +40,10 @@ from typing import Any
 import numpy as np
 
 from perfros_bag.errors import InputError
-from perfros_bag.system.plan import Assignment, Plan, build_plan, infeasible_plan, link_loads
-from perfros_bag.system.plan import objective as plan_objective
-from perfros_bag.system.types import Choice, Edge, System
+from perfros_bag.system.plan import Assignment, Method, Plan, Status
+from perfros_bag.system.rules import build_plan, computer_loads, server_sizes
+from perfros_bag.system.rules import objective as plan_objective
+from perfros_bag.system.types import Choice, Edge, Problem, System
 
 __all__ = ["solve_exact"]
 
@@ -150,7 +151,7 @@ class _Group:
 @dataclass
 class _Instance:
     system: System
-    problem: int
+    problem: Problem
     original: dict[str, list[Choice]]  # the candidates as given
     choices: dict[str, list[Choice]]  # kept choices (usable, non-dominated)
     replace: dict[str, dict[int, int]]  # node -> original position -> kept position
@@ -162,31 +163,18 @@ class _Instance:
     pairs: dict[int, list[tuple[str, str]]]  # link -> ordered computer pairs routed over it
 
 
-def _capacities(system: System, problem: int) -> dict[str, float]:
-    cap: dict[str, float] = {}
-    for c in system.computers:
-        if problem == 2 and c.kind == "server":
-            cap[c.name] = c.max_capacity if c.max_capacity is not None else _INF
-        elif c.capacity is None:
-            raise InputError(system.source, f"computer {c.name!r} has no capacity: Problem 1 needs "
-                                            "every capacity (only Problem 2 sizes servers)")
-        else:
-            cap[c.name] = c.capacity
-    return cap
-
-
 def _bw_vector(system: System, node: str, choice: Choice) -> tuple[float, ...]:
     return tuple(system.edge_bandwidth(e, choice) for e in system.edges if e.src == node)
 
 
-def _prune_choices(system: System, problem: int, node: str, options: Sequence[Choice],
+def _prune_choices(system: System, problem: Problem, node: str, options: Sequence[Choice],
                    cpu_room: float) -> tuple[list[Choice], dict[int, int]]:
     """Drop choices that can never fit (``cpu > cpu_room``) and, for Problem 1, choices
     dominated by another (no more CPU, no less performance, no more traffic on any edge).
     Returns the kept choices and, for every original position, the kept position that can
     replace it (for MIP starts); unusable positions are absent."""
     usable = [i for i, ch in enumerate(options) if ch.cpu <= cpu_room + EPS]
-    if problem != 1 or len(usable) <= 1:
+    if problem != Problem.PERFORMANCE or len(usable) <= 1:
         return [options[i] for i in usable], {i: p for p, i in enumerate(usable)}
     bws = {i: _bw_vector(system, node, options[i]) for i in usable}
     order = sorted(usable, key=lambda i: (options[i].cpu, -options[i].performance, bws[i]))
@@ -216,13 +204,9 @@ def _prune_choices(system: System, problem: int, node: str, options: Sequence[Ch
 
 
 def _classify_links(system: System) -> tuple[dict[int, frozenset[str]], dict[int, list[tuple[str, str]]]]:
+    """Per link, the cut form's side when the pairs routed over it are exactly those the
+    link's removal splits, else those pairs (for the pair form)."""
     names = [c.name for c in system.computers]
-    crossing: dict[int, set[tuple[str, str]]] = {li: set() for li in range(len(system.links))}
-    for a in names:
-        for b in names:
-            route = system.route(a, b) if a != b else ()
-            for li in route or ():
-                crossing[li].add((a, b))
     cut: dict[int, frozenset[str]] = {}
     pairs: dict[int, list[tuple[str, str]]] = {}
     for li, link in enumerate(system.links):
@@ -239,23 +223,24 @@ def _classify_links(system: System) -> tuple[dict[int, frozenset[str]], dict[int
                     side.add(nxt)
                     frontier.append(nxt)
         split = {(a, b) for a in names for b in names if (a in side) != (b in side)}
-        if link.between[1] not in side and split == crossing[li]:
+        crossing = system.link_pairs[li]
+        if link.between[1] not in side and split == set(crossing):
             cut[li] = frozenset(side)
         else:
-            pairs[li] = sorted(crossing[li])
+            pairs[li] = list(crossing)
     return cut, pairs
 
 
-def _prepare(system: System, problem: int, choices: dict[str, list[Choice]]) -> _Instance | str:
+def _prepare(system: System, problem: Problem, choices: dict[str, list[Choice]]) -> _Instance | str:
     """Prune the instance; returns a reason string when it is infeasible on its face."""
-    cap = _capacities(system, problem)
+    cap = system.capacities(problem)
     missing = [n.name for n in system.nodes if not choices.get(n.name)]
     if missing:
         raise InputError(system.source, f"node(s) {', '.join(map(repr, missing))} have no choice to solve with")
     min_cpu = {n: min(ch.cpu for ch in opts) for n, opts in choices.items()}
     groups: list[_Group] = []
     for members in system.coresidence_groups:
-        allowed = [c.name for c in system.computers if all(c.name in system.allowed(n) for n in members)]
+        allowed = system.allowed_to_all(members)
         who = ", ".join(members)
         if not allowed:
             return f"coresidence: nodes {who} have no computer allowed for all of them"
@@ -338,27 +323,37 @@ def _network_precheck(inst: _Instance) -> str | None:
         if all(system.route(a, b) is None for a in gs.allowed for b in gd.allowed):
             return (f"network: edge {e.src} -> {e.dst} joins computers with no network path between them "
                     f"({e.src} on {'/'.join(gs.allowed)}, {e.dst} on {'/'.join(gd.allowed)})")
-    forced_load = [0.0] * len(system.links)
-    forced_edges: list[list[str]] = [[] for _ in system.links]
-    for e in system.edges:
-        low = min(system.edge_bandwidth(e, ch) for ch in inst.choices[e.src])
-        if low <= 0:
-            continue
-        for li in range(len(system.links)):
-            if _crossing_always(inst, e, li):
-                forced_load[li] += low
-                forced_edges[li].append(f"{e.src}->{e.dst}")
+    forced_load, forced_edges = _load_bounds(inst, forced=True)
     for li, link in enumerate(system.links):
         if forced_load[li] > link.bandwidth_kBps + EPS:
             return (f"bandwidth: {_link_name(system, li)} carries at least {forced_load[li]:g} kB/s "
                     f"(edges {', '.join(forced_edges[li])} must cross it) but has {link.bandwidth_kBps:g}")
     for m in system.media:
-        lis = [li for li, link in enumerate(system.links) if link.medium == m.name]
-        load = sum(forced_load[li] for li in lis)
+        load = system.medium_load(forced_load, m.name)
         if load > m.bandwidth_kBps + EPS:
             return (f"bandwidth: medium {m.name} carries at least {load:g} kB/s on its links "
                     f"(edges that must cross them) but has {m.bandwidth_kBps:g}")
     return None
+
+
+def _load_bounds(inst: _Instance, *, forced: bool) -> tuple[list[float], list[list[str]]]:
+    """Per link, a bound on its load and the edges (``src->dst``) in it: with ``forced``,
+    the least load (the edges that cross it wherever their ends go, at their publishers'
+    least traffic); otherwise the most (every edge that may cross it, at the most traffic)."""
+    system = inst.system
+    bound = [0.0] * len(system.links)
+    edges: list[list[str]] = [[] for _ in system.links]
+    for e in system.edges:
+        traffic = [system.edge_bandwidth(e, ch) for ch in inst.choices[e.src]]
+        bw = min(traffic) if forced else max(traffic)
+        if bw <= 0:
+            continue
+        for li in range(len(system.links)):
+            crosses = _crossing_always(inst, e, li)
+            if crosses if forced else crosses is not False:
+                bound[li] += bw
+                edges[li].append(f"{e.src}->{e.dst}")
+    return bound, edges
 
 
 # ---------------------------------------------------------------------------------------------
@@ -380,21 +375,11 @@ def _active_links(inst: _Instance) -> set[int]:
     """Links (by index) whose bandwidth, or whose medium's, could ever be exceeded: the
     others need no rows at all."""
     system = inst.system
-    potential = [0.0] * len(system.links)
-    for e in system.edges:
-        if inst.group_of[e.src] is inst.group_of[e.dst]:
-            continue
-        big = max(system.edge_bandwidth(e, ch) for ch in inst.choices[e.src])
-        if big <= 0:
-            continue
-        for li in range(len(system.links)):
-            if _crossing_always(inst, e, li) is not False:
-                potential[li] += big
+    potential, _ = _load_bounds(inst, forced=False)
     active = {li for li, link in enumerate(system.links) if potential[li] > link.bandwidth_kBps + EPS}
     for m in system.media:
-        lis = [li for li, link in enumerate(system.links) if link.medium == m.name]
-        if sum(potential[li] for li in lis) > m.bandwidth_kBps + EPS:
-            active.update(lis)
+        if system.medium_load(potential, m.name) > m.bandwidth_kBps + EPS:
+            active.update(system.medium_links[m.name])
     return active
 
 
@@ -417,7 +402,7 @@ def _grid(inst: _Instance, node: str, modelled: Sequence[int]) -> tuple[float, f
     compact form (a placement binary, an integer level and the concave envelope, which is
     the convex hull of the choices) replaces the node's x columns."""
     opts = inst.choices[node]
-    if inst.problem != 1 or len(opts) < 3:
+    if inst.problem != Problem.PERFORMANCE or len(opts) < 3:
         return None
     lo, step = opts[0].cpu, opts[1].cpu - opts[0].cpu
     if step <= EPS:
@@ -454,7 +439,7 @@ def _build(inst: _Instance, *, elastic: bool = False, compact_form: bool = False
         else:
             g.z = {}
         for n in g.members:
-            w = 0.0 if elastic or problem != 1 else system.node[n].weight
+            w = 0.0 if elastic or problem != Problem.PERFORMANCE else system.node[n].weight
             opts = inst.choices[n]
             grid = _grid(inst, n, modelled) if compact_form else None
             for c in g.allowed:
@@ -500,7 +485,7 @@ def _build(inst: _Instance, *, elastic: bool = False, compact_form: bool = False
     for comp in system.computers:
         terms = [t for g in inst.groups if comp.name in g.allowed
                  for n in g.members for t in cpu_terms[(n, comp.name)]]
-        if problem == 2 and comp.kind == "server":
+        if problem == Problem.SERVER_CAPACITY and comp.kind == "server":
             cost = 0.0 if elastic else 1.0
             server_cap[comp.name] = milp.var(0.0, inst.cap[comp.name], cost)
             terms.append((server_cap[comp.name], -1.0))
@@ -593,8 +578,7 @@ def _build(inst: _Instance, *, elastic: bool = False, compact_form: bool = False
                 terms.append((s, -1.0))
             milp.row(terms, -_INF, link.bandwidth_kBps)
         for medium in system.media:
-            on_medium = [load_cols[li] for li, link in enumerate(system.links)
-                         if link.medium == medium.name and li in load_cols]
+            on_medium = [load_cols[li] for li in system.medium_links[medium.name] if li in load_cols]
             if not on_medium:
                 continue
             terms = [(col, 1.0) for col in on_medium]
@@ -626,23 +610,12 @@ def _start_assignment(inst: _Instance, start: Assignment) -> tuple[Assignment, d
             if pos is None:
                 return None
             placement[n], choice[n], position[n] = comp, inst.choices[n][pos], pos
-    load = {c.name: 0.0 for c in system.computers}
-    for n, c in placement.items():
-        load[c] += choice[n].cpu
+    load = computer_loads(system, placement, choice)
     if any(load[c] > inst.cap[c] + 1e-9 * max(1.0, inst.cap[c]) for c in load):
         return None
-    for e in system.edges:
-        a, b = placement[e.src], placement[e.dst]
-        if a != b and system.links and system.route(a, b) is None:
-            return None
-    loads = link_loads(system, placement, choice)
-    if any(x > link.bandwidth_kBps + 1e-9 * max(1.0, link.bandwidth_kBps) for x, link in zip(loads, system.links, strict=True)):
+    if system.network_violation(placement, choice) is not None:
         return None
-    for medium in system.media:
-        total = sum(x for x, link in zip(loads, system.links, strict=True) if link.medium == medium.name)
-        if total > medium.bandwidth_kBps + 1e-9 * max(1.0, medium.bandwidth_kBps):
-            return None
-    capacities = {c.name: load[c.name] for c in system.computers if c.kind == "server"} if inst.problem == 2 else {}
+    capacities = server_sizes(system, placement, choice) if inst.problem == Problem.SERVER_CAPACITY else {}
     return Assignment(placement, choice, capacities), position
 
 
@@ -679,11 +652,8 @@ def _extract(inst: _Instance, built: _Built, values: Sequence[float]) -> Assignm
             placement[n] = c
             choice[n] = inst.choices[n][int(round(values[m]))]
     capacities: dict[str, float] = {}
-    if inst.problem == 2:
-        load = {c.name: 0.0 for c in inst.system.computers}
-        for n, c in placement.items():
-            load[c] += choice[n].cpu
-        capacities = {c.name: round(load[c.name], 9) for c in inst.system.computers if c.kind == "server"}
+    if inst.problem == Problem.SERVER_CAPACITY:
+        capacities = {c: round(size, 9) for c, size in server_sizes(inst.system, placement, choice).items()}
     return Assignment(placement, choice, capacities)
 
 
@@ -738,7 +708,7 @@ def _lp_rounding(inst: _Instance, built: _Built, values: Sequence[float], maximi
     return _extract(fixed, sub, h.getSolution().col_value)
 
 
-def solve_exact(system: System, problem: int, choices: dict[str, list[Choice]], *,
+def solve_exact(system: System, problem: Problem, choices: dict[str, list[Choice]], *,
                 time_limit: float | None = None, mip_gap: float = 0.0,
                 start: Assignment | None = None) -> Plan:
     """Solve Problem 1 (max Σ w·P) or Problem 2 (min Σ server capacity) exactly with HiGHS.
@@ -759,11 +729,12 @@ def solve_exact(system: System, problem: int, choices: dict[str, list[Choice]], 
         raise InputError(None, f"mip_gap must be >= 0, got {mip_gap!r}")
     prepared = _prepare(system, problem, choices)
     if isinstance(prepared, str):
-        return infeasible_plan(problem, "exact", prepared, solve_s=time.perf_counter() - t0, system=system.source)
+        return Plan.infeasible(problem, Method.EXACT, prepared, solve_s=time.perf_counter() - t0,
+                               system=system.source)
     inst = prepared
     built = _build(inst)
     mapped = _start_assignment(inst, start) if start is not None else None
-    maximise = problem == 1
+    maximise = problem == Problem.PERFORMANCE
     big = len(built.milp.cost) > _BIG_MODEL
 
     def remaining() -> float | None:
@@ -775,8 +746,8 @@ def solve_exact(system: System, problem: int, choices: dict[str, list[Choice]], 
             bound = value if proven else (math.inf if maximise else 0.0)
         bound = max(bound, value) if maximise else min(bound, value)
         proven = proven or abs(bound - value) <= 1e-6 * max(1.0, abs(value))
-        return build_plan(system, assignment, problem=problem, method="exact",
-                          status="optimal" if proven else "feasible",
+        return build_plan(system, assignment, problem=problem, method=Method.EXACT,
+                          status=Status.OPTIMAL if proven else Status.FEASIBLE,
                           bound=value if proven else (bound if math.isfinite(bound) else None),
                           solve_s=time.perf_counter() - t0)
 
@@ -803,12 +774,13 @@ def solve_exact(system: System, problem: int, choices: dict[str, list[Choice]], 
     if status == highspy.HighsModelStatus.kInfeasible or (not has_solution and status in (
             highspy.HighsModelStatus.kUnboundedOrInfeasible,)):
         reason = _diagnose(inst, remaining())
-        return infeasible_plan(problem, "exact", reason, solve_s=time.perf_counter() - t0, system=system.source)
+        return Plan.infeasible(problem, Method.EXACT, reason, solve_s=time.perf_counter() - t0,
+                               system=system.source)
     if not has_solution:
         limit = f"{time_limit:g} s" if time_limit is not None else "the solver's limits"
-        return infeasible_plan(problem, "exact",
+        return Plan.infeasible(problem, Method.EXACT,
                                f"no feasible plan found within {limit} (HiGHS: {h.modelStatusToString(status)}); "
-                               "infeasibility was not proven: raise --time-limit",
+                               "infeasibility was not proven: a longer time limit may find one",
                                solve_s=time.perf_counter() - t0, system=system.source)
     assignment = _extract(inst, built, h.getSolution().col_value)
     return done(assignment, float(info.mip_dual_bound), False)

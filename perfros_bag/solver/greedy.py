@@ -27,23 +27,23 @@ import heapq
 import math
 
 from perfros_bag.solver.state import EPS, State, _fmt
-from perfros_bag.system.plan import Plan, infeasible_plan
-from perfros_bag.system.types import Choice, System
+from perfros_bag.system.plan import Method, Plan
+from perfros_bag.system.types import Choice, Problem, System
 
 
-def solve_greedy(system: System, problem: int, choices: dict[str, list[Choice]]) -> Plan:
+def solve_greedy(system: System, problem: Problem, choices: dict[str, list[Choice]]) -> Plan:
     state, reason = run_greedy(system, problem, choices)
     if reason is not None:
         if not state.proven:
             reason += " (this is where the greedy got stuck: greedy+ or exact may still find a plan)"
-        return infeasible_plan(problem, "greedy", reason, system=system.source)
-    return state.plan("greedy")
+        return Plan.infeasible(problem, Method.GREEDY, reason, system=system.source)
+    return state.plan(Method.GREEDY)
 
 
-def run_greedy(system: System, problem: int, choices: dict[str, list[Choice]]) -> tuple[State, str | None]:
+def run_greedy(system: System, problem: Problem, choices: dict[str, list[Choice]]) -> tuple[State, str | None]:
     """The greedy's final state, and why it failed (None when it found a plan)."""
     state = State(system, problem, choices)
-    reason = algorithm1(state) if problem == 1 else algorithm3(state)
+    reason = algorithm1(state) if problem == Problem.PERFORMANCE else algorithm3(state)
     return state, reason
 
 
@@ -97,7 +97,7 @@ def explain(state: State, gi: int, why: dict[str, str]) -> str:
     who = " + ".join(group)
     cpu = state.group_cpu(gi)
     allowed = state.group_allowed[gi]
-    lowest = " at its lowest setting" if state.problem == 1 and any(len(state.ladder[n]) > 1 for n in group) else ""
+    lowest = " at its lowest setting" if state.problem == Problem.PERFORMANCE and any(len(state.ladder[n]) > 1 for n in group) else ""
     if len(allowed) == 1:
         c = allowed[0]
         # alone on its only computer it does not fit: no solver can do better

@@ -30,8 +30,8 @@ import numpy as np
 
 from perfros_bag.solver.greedy import run_greedy, upgrade
 from perfros_bag.solver.state import EPS, State
-from perfros_bag.system.plan import Plan, infeasible_plan
-from perfros_bag.system.types import Choice, System
+from perfros_bag.system.plan import Method, Plan
+from perfros_bag.system.types import Choice, Problem, System
 
 MAX_ROUNDS = 500
 DP_CELLS = 200_000
@@ -46,7 +46,7 @@ TIME_BUDGET_S = 60.0  # safety net: stop improving after this long (the plan sta
 SEARCH_BUDGET = 20_000
 
 
-def solve_greedy_plus(system: System, problem: int, choices: dict[str, list[Choice]], *,
+def solve_greedy_plus(system: System, problem: Problem, choices: dict[str, list[Choice]], *,
                       time_budget: float | None = None) -> Plan:
     """The greedy, then local search. ``time_budget`` (seconds, default
     :data:`TIME_BUDGET_S`) bounds the whole search: the plan found by then is returned
@@ -56,18 +56,18 @@ def solve_greedy_plus(system: System, problem: int, choices: dict[str, list[Choi
     if reason is not None:
         found = feasible_start(system, problem, choices)
         if found is None:
-            return infeasible_plan(problem, "greedy+", reason, system=system.source)
+            return Plan.infeasible(problem, Method.GREEDY_PLUS, reason, system=system.source)
         state = found
-        if problem == 1:
+        if problem == Problem.PERFORMANCE:
             upgrade(state, [n for n in state.nodes if len(state.ladder[n]) > 1])
-    if problem == 2:
+    if problem == Problem.SERVER_CAPACITY:
         for c in state.computers:
             if state.kind[c] == "server":
                 state.cap[c] = state.maxcap[c]
     improver = Improver(state, deadline=deadline)
     improver.run()
     kick(improver)
-    return state.plan("greedy+")
+    return state.plan(Method.GREEDY_PLUS)
 
 
 def kick(improver: Improver, *, seed: int = 0) -> None:
@@ -109,7 +109,7 @@ def kick(improver: Improver, *, seed: int = 0) -> None:
 def _bound(s: State) -> float:
     """A bound no plan can beat, in the improver's sense (bigger is better): every node at
     its best setting (Problem 1); minus the CPU that cannot fit on the robots (Problem 2)."""
-    if s.problem == 1:
+    if s.problem == Problem.PERFORMANCE:
         return sum(s.weight[n] * s.ladder[n][-1].performance for n in s.nodes)
     robots = [c for c in s.computers if s.kind[c] == "robot"]
     total = sum(s.cpu(n) for n in s.nodes)
@@ -118,10 +118,10 @@ def _bound(s: State) -> float:
 
 
 # ---- a feasible start when the greedy fails -------------------------------------------
-def feasible_start(system: System, problem: int, choices: dict[str, list[Choice]]) -> State | None:
+def feasible_start(system: System, problem: Problem, choices: dict[str, list[Choice]]) -> State | None:
     """Any feasible placement at the lowest settings (bounded depth-first search)."""
     state = State(system, problem, choices)
-    if problem == 2:
+    if problem == Problem.SERVER_CAPACITY:
         for c in state.computers:
             state.cap[c] = state.maxcap[c]
     order = sorted(range(len(state.groups)), key=lambda gi: (len(state.group_allowed[gi]), -state.group_cpu(gi), gi))
@@ -191,7 +191,7 @@ class Improver:
     def __init__(self, state: State, *, deadline: float | None = None) -> None:
         self.s = state
         self.deadline = deadline  # time.monotonic() after which no search starts
-        self.scale = _grid_scale(state) if state.problem == 1 else None
+        self.scale = _grid_scale(state) if state.problem == Problem.PERFORMANCE else None
         self.tables: dict[tuple[str, frozenset[str]], np.ndarray] = {}
         self.items: dict[str, tuple[np.ndarray, np.ndarray]] = {}
         self.values: dict[tuple[str, frozenset[str]], float] = {}
@@ -231,9 +231,9 @@ class Improver:
         hit = self.values.get(key)
         if hit is not None:
             return hit
-        if s.problem == 2 or self.scale is None:
+        if s.problem == Problem.SERVER_CAPACITY or self.scale is None:
             ordered = sorted(key[1], key=s.order.__getitem__)
-            if s.problem == 2:
+            if s.problem == Problem.SERVER_CAPACITY:
                 load = sum(s.ladder[n][0].cpu for n in ordered)
                 fits = load <= s.cap[comp] + EPS * max(1.0, s.cap[comp])
                 v = (-load if s.kind[comp] == "server" else 0.0) if fits else -math.inf
@@ -255,13 +255,13 @@ class Improver:
     def levels(self, comp: str, nodes: list[str]) -> dict[str, int]:
         s = self.s
         ordered = sorted(nodes, key=s.order.__getitem__)
-        if s.problem == 2:
+        if s.problem == Problem.SERVER_CAPACITY:
             return dict.fromkeys(ordered, 0)
         return best_settings(s, s.cap[comp], ordered, self.scale)[1]
 
     def current(self, nodes: Iterable[str]) -> float:
         s = self.s
-        if s.problem == 2:
+        if s.problem == Problem.SERVER_CAPACITY:
             return -sum(s.cpu(n) for n in nodes if s.kind[s.place[n] or ""] == "server")
         return sum(s.weight[n] * s.choice(n).performance for n in nodes)
 
@@ -277,7 +277,7 @@ class Improver:
         for _ in range(MAX_ROUNDS):
             if time.monotonic() > stop or not self._step():
                 break
-        if s.problem == 1:
+        if s.problem == Problem.PERFORMANCE:
             upgrade(s, [n for n in s.nodes if len(s.ladder[n]) > 1])
 
     def _apply(self, plan: Plan_) -> bool:
@@ -294,7 +294,7 @@ class Improver:
         on = {c: s.on(c) for c in s.computers}
         cur = {c: self.current(on[c]) for c in s.computers}
         out: list[tuple[float, int, Plan_]] = []
-        if s.problem == 1:
+        if s.problem == Problem.PERFORMANCE:
             for c in s.computers:
                 out.append((self.value(c, on[c]) - cur[c], len(out), {c: on[c]}))
         if len(s.groups) * len(s.computers) > MOVES_LIMIT:
@@ -450,7 +450,7 @@ class Improver:
     def _subset_values_uncached(self, comp: str, fixed: list[str], groups: list[int]) -> list[float]:
         s = self.s
         k = len(groups)
-        if s.problem == 2 or self.scale is None:
+        if s.problem == Problem.SERVER_CAPACITY or self.scale is None:
             return [self.value(comp, fixed, [n for j, gi in enumerate(groups) if m >> j & 1 for n in s.groups[gi]])
                     for m in range(1 << k)]
         tabs: list[np.ndarray] = [self.table(comp, frozenset(fixed))]

@@ -10,8 +10,9 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 
-from perfros_bag.system.plan import Assignment, Plan, build_plan
-from perfros_bag.system.types import Choice, System
+from perfros_bag.system.plan import Assignment, Method, Plan, Status
+from perfros_bag.system.rules import build_plan
+from perfros_bag.system.types import Choice, Problem, System
 
 EPS = 1e-9
 
@@ -29,38 +30,29 @@ def ladder(choices: list[Choice]) -> list[Choice]:
 
 
 class State:
-    def __init__(self, system: System, problem: int, choices: Mapping[str, list[Choice]]) -> None:
+    def __init__(self, system: System, problem: Problem, choices: Mapping[str, list[Choice]]) -> None:
         self.system = system
         self.problem = problem
         self.nodes = [n.name for n in system.nodes]
         self.order = {n: i for i, n in enumerate(self.nodes)}
         self.weight = {n.name: n.weight for n in system.nodes}
-        self.ladder = {n: (ladder(choices[n]) if problem == 1 else list(choices[n][:1])) for n in self.nodes}
+        self.ladder = {n: (ladder(choices[n]) if problem == Problem.PERFORMANCE else list(choices[n][:1]))
+                       for n in self.nodes}
         self.level = dict.fromkeys(self.nodes, 0)
         self.place: dict[str, str | None] = dict.fromkeys(self.nodes)
         self.computers = [c.name for c in system.computers]
         self.kind = {c.name: c.kind for c in system.computers}
         # Problem 2: servers start at 0 and grow up to max_capacity; robots (and Problem 1) fixed
-        self.cap: dict[str, float] = {}
-        self.maxcap: dict[str, float] = {}
-        for c in system.computers:
-            if problem == 2 and c.kind == "server":
-                self.cap[c.name] = 0.0
-                self.maxcap[c.name] = c.max_capacity if c.max_capacity is not None else math.inf
-            else:
-                self.cap[c.name] = c.capacity or 0.0
-                self.maxcap[c.name] = self.cap[c.name]
+        self.maxcap: dict[str, float] = system.capacities(problem)
+        self.cap: dict[str, float] = {
+            c: 0.0 if problem == Problem.SERVER_CAPACITY and self.kind[c] == "server" else self.maxcap[c]
+            for c in self.computers}
         self.proven = False  # set when a failure is a proof of infeasibility
         self.load = dict.fromkeys(self.computers, 0.0)
         self.members: dict[str, set[str]] = {c: set() for c in self.computers}
         self.groups: list[tuple[str, ...]] = list(system.coresidence_groups)
         self.group_of = {n: gi for gi, g in enumerate(self.groups) for n in g}
-        self.group_allowed: list[list[str]] = []
-        for g in self.groups:
-            allowed = set(self.computers)
-            for n in g:
-                allowed &= set(system.allowed(n))
-            self.group_allowed.append([c for c in self.computers if c in allowed])
+        self.group_allowed: list[list[str]] = [list(system.allowed_to_all(g)) for g in self.groups]
         # network: per edge the bandwidth at each of its publisher's ladder levels
         self.edges = list(system.edges)
         self.pub_bw = {n: [ch.bandwidth_kBps or 0.0 for ch in self.ladder[n]] for n in self.nodes}
@@ -81,9 +73,7 @@ class State:
         self.links = list(system.links)
         self.link_load = [0.0] * len(self.links)
         self.media = list(system.media)
-        self.medium_by_name = {m.name: m for m in self.media}
         self.allowed_set = {n: set(system.allowed(n)) for n in self.nodes}
-        self.medium_links = {m.name: [i for i, lk in enumerate(self.links) if lk.medium == m.name] for m in self.media}
 
     # ---- reading -------------------------------------------------------------------
     def choice(self, n: str) -> Choice:
@@ -114,7 +104,7 @@ class State:
         return sorted(self.members[c], key=self.order.__getitem__)
 
     def value(self) -> float:
-        if self.problem == 1:
+        if self.problem == Problem.PERFORMANCE:
             return sum(self.weight[n] * self.choice(n).performance for n in self.nodes)
         return sum(self.load[c] for c in self.computers if self.kind[c] == "server")
 
@@ -223,8 +213,8 @@ class State:
                     dm[med] = dm.get(med, 0.0) + d
             for name, d in dm.items():
                 if d > EPS:
-                    m = self.medium_by_name[name]
-                    now = sum(self.link_load[li] for li in self.medium_links[name])
+                    m = self.system.medium[name]
+                    now = self.system.medium_load(self.link_load, name)
                     if now + d > m.bandwidth_kBps + EPS * max(1.0, m.bandwidth_kBps):
                         return f"medium {name} would carry {_fmt(now + d)} > {_fmt(m.bandwidth_kBps)} kB/s", {}, {}
         return None, delta, dload
@@ -275,29 +265,17 @@ class State:
             c = self.place[n]
             if c is not None:
                 self.load[c] += self.cpu(n)
-        self.link_load = [0.0] * len(self.links)
-        for ei, e in enumerate(self.edges):
-            a, b = self.place[e.src], self.place[e.dst]
-            if a is None or b is None or a == b:
-                continue
-            for li in self.system.route(a, b) or ():
-                self.link_load[li] += self.edge_bw[ei][self.level[e.src]]
+        self.link_load = self.system.link_loads(self.place, {n: self.choice(n) for n in self.nodes})
 
     def network_ok(self) -> bool:
-        for li, lk in enumerate(self.links):
-            if self.link_load[li] > lk.bandwidth_kBps + EPS * max(1.0, lk.bandwidth_kBps):
-                return False
-        for m in self.media:
-            if sum(self.link_load[li] for li in self.medium_links[m.name]) > m.bandwidth_kBps + EPS * max(1.0, m.bandwidth_kBps):
-                return False
-        return True
+        return self.system.overloaded(self.link_load, EPS) is None
 
     # ---- output --------------------------------------------------------------------
-    def plan(self, method: str, status: str = "feasible") -> Plan:
+    def plan(self, method: Method, status: Status = Status.FEASIBLE) -> Plan:
         placement = {n: c for n, c in self.place.items() if c is not None}
         assert len(placement) == len(self.nodes), "every node must be placed"
         capacities: dict[str, float] = {}
-        if self.problem == 2:
+        if self.problem == Problem.SERVER_CAPACITY:
             capacities = {c: self.load[c] for c in self.computers if self.kind[c] == "server"}
         return build_plan(self.system, Assignment(placement, {n: self.choice(n) for n in self.nodes}, capacities),
                           problem=self.problem, method=method, status=status)

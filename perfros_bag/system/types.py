@@ -13,11 +13,24 @@ from __future__ import annotations
 
 import math
 from collections import deque
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
+from enum import IntEnum
 from functools import cached_property
 from typing import Literal
 
+from perfros_bag.errors import InputError
+
 ComputerKind = Literal["robot", "server"]
+
+
+class Problem(IntEnum):
+    """The paper's two problems (section II)."""
+
+    PERFORMANCE = 1  # eq 1: choose settings and computers to maximise Σ w·P
+    SERVER_CAPACITY = 2  # eq 2: settings fixed, choose computers to minimise Σ server capacity
+
+
 #: The closed set of curve forms (model.json's ``form``; see :class:`Curve`).
 CurveForm = Literal["linear", "log", "quadratic", "power"]
 CURVE_FORMS: tuple[CurveForm, ...] = ("linear", "log", "quadratic", "power")
@@ -332,6 +345,10 @@ class System:
         res = self.node[node].residence
         return res if res is not None else tuple(c.name for c in self.computers)
 
+    def allowed_to_all(self, nodes: Sequence[str]) -> tuple[str, ...]:
+        """Computers every one of ``nodes`` may sit on (a coresidence group's), in system order."""
+        return tuple(c.name for c in self.computers if all(c.name in self.allowed(n) for n in nodes))
+
     @cached_property
     def coresidence_groups(self) -> list[tuple[str, ...]]:
         """Nodes that must share a computer (the transitive closure of coresidence), in node
@@ -400,3 +417,97 @@ class System:
             if bw is not None:
                 return bw
         return publisher_choice.bandwidth_kBps or 0.0
+
+    # ---- the model's rules on a placement (every solver, the plan and the validation use
+    # these; solver/check.py keeps its own independent copy) ------------------------------
+    def capacities(self, problem: int) -> dict[str, float]:
+        """The most CPU each computer may hold (eq 3): its capacity, except a Problem 2
+        server, which is sized, up to its ``max_capacity`` (``inf`` without one). A computer
+        that needs a capacity and has none is an :class:`~perfros_bag.errors.InputError`."""
+        sized = problem == Problem.SERVER_CAPACITY
+        unsized = [c.name for c in self.computers if c.capacity is None and not (sized and c.kind == "server")]
+        if unsized:
+            needs = "Problem 1 needs every capacity" if not sized else "a robot needs a capacity"
+            raise InputError(self.source, f"computer(s) {', '.join(map(repr, unsized))} have no capacity: "
+                                          f"{needs} (only Problem 2 sizes servers)")
+        out: dict[str, float] = {}
+        for c in self.computers:
+            if sized and c.kind == "server":
+                out[c.name] = c.max_capacity if c.max_capacity is not None else math.inf
+            else:
+                assert c.capacity is not None
+                out[c.name] = c.capacity
+        return out
+
+    @cached_property
+    def medium_links(self) -> dict[str, tuple[int, ...]]:
+        """Per shared medium, the indices of its links."""
+        return {m.name: tuple(i for i, link in enumerate(self.links) if link.medium == m.name) for m in self.media}
+
+    def medium_load(self, link_loads: Sequence[float], medium: str) -> float:
+        """kB/s on a shared medium: the sum of its links' loads."""
+        return sum(link_loads[li] for li in self.medium_links[medium])
+
+    @cached_property
+    def link_pairs(self) -> tuple[tuple[tuple[str, str], ...], ...]:
+        """Per link, the ordered pairs of computers whose route crosses it (sorted)."""
+        crossing: list[set[tuple[str, str]]] = [set() for _ in self.links]
+        for (a, b), route in self._routes.items():
+            if a != b:
+                for li in route:
+                    crossing[li].add((a, b))
+        return tuple(tuple(sorted(pairs)) for pairs in crossing)
+
+    def edge_routes(self, placement: Mapping[str, str | None]) -> Iterator[tuple[int, Edge, tuple[int, ...] | None]]:
+        """Every edge (index, edge) whose two ends are placed on different computers, with
+        the links its traffic crosses (:meth:`route`; None: no path joins them). Edges with
+        an end not (yet) placed are left out."""
+        for ei, edge in enumerate(self.edges):
+            a, b = placement.get(edge.src), placement.get(edge.dst)
+            if a is None or b is None or a == b:
+                continue
+            yield ei, edge, self.route(a, b)
+
+    def link_loads(self, placement: Mapping[str, str | None], choice: Mapping[str, Choice]) -> list[float]:
+        """kB/s on every link (``links`` order) for a placement: each edge between two
+        computers loads every link of their route with its bandwidth at its publisher's
+        choice. An edge without a path loads nothing (see :meth:`network_violation`)."""
+        return self._loads(self.edge_routes(placement), choice)
+
+    def _loads(self, routed: Iterable[tuple[int, Edge, tuple[int, ...] | None]],
+               choice: Mapping[str, Choice]) -> list[float]:
+        loads = [0.0] * len(self.links)
+        for _, edge, route in routed:
+            if route:
+                bw = self.edge_bandwidth(edge, choice[edge.src])
+                for li in route:
+                    loads[li] += bw
+        return loads
+
+    def overloaded(self, link_loads: Sequence[float], tol: float = 1e-9) -> str | None:
+        """The first link, then shared medium, whose load exceeds its bandwidth by more than
+        ``tol`` (relative, at least absolute), named with both numbers; None when all fit."""
+        for link, load in zip(self.links, link_loads, strict=True):
+            if _exceeds(load, link.bandwidth_kBps, tol):
+                return (f"link {link.between[0]}-{link.between[1]} would carry {load:.6g} "
+                        f"> {link.bandwidth_kBps:.6g} kB/s")
+        for m in self.media:
+            load = self.medium_load(link_loads, m.name)
+            if _exceeds(load, m.bandwidth_kBps, tol):
+                return f"medium {m.name} would carry {load:.6g} > {m.bandwidth_kBps:.6g} kB/s"
+        return None
+
+    def network_violation(self, placement: Mapping[str, str], choice: Mapping[str, Choice],
+                          tol: float = 1e-9) -> str | None:
+        """Why the network cannot carry a (whole) placement: an edge between computers that
+        no path joins, or a link or medium over its bandwidth (eq 4); None when it can."""
+        routed = list(self.edge_routes(placement))
+        for _, edge, route in routed:
+            if route is None:
+                a, b = placement[edge.src], placement[edge.dst]
+                return f"no network path between {a} and {b} (edge {edge.src}->{edge.dst})"
+        return self.overloaded(self._loads(routed, choice), tol)
+
+
+def _exceeds(load: float, limit: float, tol: float) -> bool:
+    return load > limit + tol * max(1.0, limit)

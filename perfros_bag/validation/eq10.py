@@ -19,7 +19,7 @@ Choices documented in ``docs/formats.md`` ("validate --json"):
 
 With CPU traces (``<stem>.cpu.csv``), each computer's measured load is the sum of its
 nodes' mean CPU in normalised units (``cpu_percent / (100 * logical_cpus) * capacity``)
-and ``overloaded`` where it exceeds the capacity. With the system (``--system`` or the
+and ``overloaded`` where it exceeds the capacity. With the system (given, or the
 plan's ``system`` path), each link's measured load is the measured bandwidth of the
 publisher topics of the edges crossing it.
 """
@@ -30,6 +30,7 @@ import math
 import warnings
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
+from enum import StrEnum
 from pathlib import Path
 from typing import Any
 
@@ -46,6 +47,14 @@ DEFAULT_TOLERANCE = 5.0
 # results
 
 
+class TopicStatus(StrEnum):
+    """A planned topic in the run: compared, absent (F = 0), or nothing to compare with."""
+
+    OK = "ok"
+    MISSING = "missing"
+    NO_EXPECTATION = "no-expectation"
+
+
 @dataclass
 class TopicCheck:
     topic: str
@@ -55,11 +64,11 @@ class TopicCheck:
     deviation_pct: float | None
     bandwidth_kBps: float  # measured
     messages: int
-    status: str  # "ok" | "missing" | "no-expectation"
+    status: TopicStatus
 
     def to_dict(self) -> dict[str, Any]:
         return {
-            "topic": self.topic, "status": self.status, "f_expected": self.f_expected,
+            "topic": self.topic, "status": str(self.status), "f_expected": self.f_expected,
             "f_measured": self.f_measured, "ratio": self.ratio, "deviation_pct": self.deviation_pct,
             "bandwidth_kBps": self.bandwidth_kBps, "messages": self.messages,
         }
@@ -84,7 +93,7 @@ class NodeCheck:
 
     @property
     def flagged(self) -> bool:
-        return any(t.status == "missing" for t in self.topics)
+        return any(t.status == TopicStatus.MISSING for t in self.topics)
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -170,7 +179,7 @@ class Validation:
 
     @property
     def missing_topics(self) -> list[str]:
-        return [t.topic for n in self.nodes for t in n.topics if t.status == "missing"]
+        return [t.topic for n in self.nodes for t in n.topics if t.status == TopicStatus.MISSING]
 
     @property
     def overloaded_computers(self) -> list[str]:
@@ -271,10 +280,10 @@ def _check_topic(stats: RecordingStats, topic: str, f_expected: float | None) ->
     bw = ts.bandwidth_kBps if ts is not None else 0.0
     msgs = ts.messages if ts is not None else 0
     if not f_expected:  # 0 or None: nothing to compare with
-        status = "missing" if ts is None else "no-expectation"
+        status = TopicStatus.MISSING if ts is None else TopicStatus.NO_EXPECTATION
         return TopicCheck(topic, f_expected, f_meas, None, None, bw, msgs, status)
     ratio = f_meas / f_expected
-    status = "missing" if ts is None else "ok"
+    status = TopicStatus.MISSING if ts is None else TopicStatus.OK
     return TopicCheck(topic, f_expected, f_meas, ratio, 100.0 * abs(ratio - 1.0), bw, msgs, status)
 
 
@@ -283,8 +292,7 @@ def check_run(stats: RecordingStats, plan: Plan, *, cap: bool = False,
               node_cpu: dict[str, TracedCpu] | None = None, cpu_traces: Iterable[str] = (),
               plan_path: str | None = None) -> Validation:
     """Eq 10 for every node of ``plan`` against the recording's statistics."""
-    if plan.status == "infeasible":
-        raise InputError(plan_path, f"the plan is infeasible ({plan.reason or 'no reason given'}): nothing to validate")
+    plan.require_feasible(plan_path, "validate")
     notes: list[str] = []
     nodes: list[NodeCheck] = []
     planned: set[str] = set()
@@ -307,7 +315,7 @@ def check_run(stats: RecordingStats, plan: Plan, *, cap: bool = False,
             note = ("no planned topic: P_measured = P_expected" if not topics
                     else "no expected frequency on any topic: P_measured = P_expected")
             notes.append(f"node {name!r}: {note}")
-        missing = [t.topic for t in topics if t.status == "missing"]
+        missing = [t.topic for t in topics if t.status == TopicStatus.MISSING]
         if missing:
             notes.append(f"node {name!r}: planned topic(s) not in the recording (F = 0): {', '.join(missing)}")
         nodes.append(NodeCheck(
@@ -379,21 +387,20 @@ def _check_links(plan: Plan, stats: RecordingStats, system: System,
                  notes: list[str]) -> tuple[list[LinkCheck], list[LinkCheck]]:
     loads = [0.0] * len(system.links)
     crossing: list[list[str]] = [[] for _ in system.links]
-    for edge in system.edges:
-        if edge.src not in plan.nodes or edge.dst not in plan.nodes:
-            notes.append(f"edge {edge.src}->{edge.dst}: a node is not in the plan, edge skipped")
-            continue
-        a, b = plan.nodes[edge.src].computer, plan.nodes[edge.dst].computer
-        if a == b or a not in system.computer or b not in system.computer:
-            continue
-        route = system.route(a, b)
+    # the plan's placement on the system's computers: edges with an end elsewhere are skipped
+    placement = {n: pn.computer for n, pn in plan.nodes.items() if pn.computer in system.computer}
+    edge_notes = [(ei, f"edge {e.src}->{e.dst}: a node is not in the plan, edge skipped")
+                  for ei, e in enumerate(system.edges) if e.src not in plan.nodes or e.dst not in plan.nodes]
+    for ei, edge, route in system.edge_routes(placement):
         if route is None:
-            notes.append(f"edge {edge.src}->{edge.dst}: no network route between {a!r} and {b!r}")
+            a, b = placement[edge.src], placement[edge.dst]
+            edge_notes.append((ei, f"edge {edge.src}->{edge.dst}: no network route between {a!r} and {b!r}"))
             continue
         bw = _measured_publisher_bw(stats, plan, system, edge.src, edge.topic)
         for li in route:
             loads[li] += bw
             crossing[li].append(f"{edge.src}->{edge.dst}")
+    notes.extend(note for _, note in sorted(edge_notes))
     planned = {frozenset(pl.between): pl.load_kBps for pl in plan.links}
     links = [
         LinkCheck(link.between, link.bandwidth_kBps, planned.get(frozenset(link.between)), load,
@@ -448,7 +455,7 @@ def plan_system(plan: Plan, plan_path: Path) -> System | None:
                               PerfrosWarning, stacklevel=2)
                 return None
     warnings.warn(f"the plan's system {plan.system!r} was not found (beside the plan or here): "
-                  "links are not checked and CPU traces match nodes by name only; pass --system",
+                  "links are not checked and CPU traces match nodes by name only",
                   PerfrosWarning, stacklevel=2)
     return None
 
@@ -458,15 +465,14 @@ def validate_files(run: str | Path, plan_path: str | Path, *, cpu: Sequence[str 
                    cap: bool = False) -> Validation:
     """Read the recording, the plan, the CPU trace(s) and the system, then :func:`check_run`."""
     from perfros_bag.ingest import read_recording
-    from perfros_bag.system.plan import load_plan
+    from perfros_bag.system.planfile import load_plan
     from perfros_bag.system.systemfile import load_system
 
     if not math.isfinite(tolerance) or tolerance < 0:
-        raise InputError(None, f"--tolerance must be a number >= 0, got {tolerance}")
+        raise InputError(None, f"the tolerance must be a number >= 0, got {tolerance}")
     run_p, plan_p = Path(run), Path(plan_path)
     plan = load_plan(plan_p)
-    if plan.status == "infeasible":
-        raise InputError(plan_p, f"the plan is infeasible ({plan.reason or 'no reason given'}): nothing to validate")
+    plan.require_feasible(plan_p, "validate")  # before the recording is read
     if not run_p.exists():
         raise InputError(run_p, "recording not found")
     system = load_system(system_path) if system_path is not None else plan_system(plan, plan_p)

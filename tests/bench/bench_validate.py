@@ -42,7 +42,7 @@ def main() -> None:
     import simulate_run
 
     from perfros_bag.ingest import read_recording
-    from perfros_bag.system.plan import load_plan
+    from perfros_bag.system.planfile import load_plan
     from perfros_bag.validation.eq10 import check_run, node_cpu_from_trace, validate_files
 
     with tempfile.TemporaryDirectory() as tmp:

@@ -1,0 +1,150 @@
+"""plan.json (format ``perfros-bag/plan@1``, docs/formats.md): the one reader and writer.
+
+:func:`save_plan` / :func:`plan_document` write it, :func:`load_plan` / :func:`parse_plan`
+read it back, checking the fields validate, export and report rely on. Writing what was
+read gives the same bytes.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from perfros_bag.errors import InputError
+from perfros_bag.fileio import atomic_write_json, read_json
+from perfros_bag.system.plan import (
+    Plan,
+    PlannedComputer,
+    PlannedLink,
+    PlannedNode,
+    PlannedTopic,
+    Status,
+    method_of,
+)
+from perfros_bag.system.types import Problem
+
+PLAN_FORMAT = "perfros-bag/plan@1"
+_KNOWN = {"format", "problem", "method", "status", "objective", "bound", "solve_s", "reason", "system",
+          "computers", "links", "nodes"}
+
+
+def plan_document(plan: Plan) -> dict[str, Any]:
+    """The plan as the JSON object of plan.json (plain values, fields in their order)."""
+    out: dict[str, Any] = {
+        "format": PLAN_FORMAT, "problem": int(plan.problem), "method": str(plan.method),
+        "status": str(plan.status), "objective": plan.objective, "bound": plan.bound,
+        "solve_s": plan.solve_s,
+    }
+    if plan.reason is not None:
+        out["reason"] = plan.reason
+    if plan.system is not None:
+        out["system"] = plan.system
+    out["computers"] = {
+        name: {"kind": c.kind, "capacity": c.capacity, "cpu": c.cpu} for name, c in plan.computers.items()
+    }
+    out["links"] = [
+        {"between": list(link.between), "bandwidth_kBps": link.bandwidth_kBps, "load_kBps": link.load_kBps,
+         **({"medium": link.medium} if link.medium else {})}
+        for link in plan.links
+    ]
+    out["nodes"] = {
+        name: {
+            "computer": n.computer, "parameter": n.parameter, "value": n.value, "cpu": n.cpu,
+            "performance": n.performance, "weight": n.weight,
+            "topics": {t: {"frequency_hz": r.frequency_hz, "bandwidth_kBps": r.bandwidth_kBps}
+                       for t, r in n.topics.items()},
+        }
+        for name, n in plan.nodes.items()
+    }
+    out.update(plan.extra)
+    return out
+
+
+def save_plan(plan: Plan, path: str | Path) -> None:
+    """Write plan.json atomically."""
+    atomic_write_json(path, plan_document(plan))
+
+
+def load_plan(path: str | Path) -> Plan:
+    """Read a plan.json, checking the fields validate/export rely on."""
+    p = Path(path)
+    return parse_plan(read_json(p), str(p))
+
+
+def _num(d: dict[str, Any], key: str, where: str, path: str, *, optional: bool = True) -> float | None:
+    v = d.get(key)
+    if v is None:
+        if optional:
+            return None
+        raise InputError(path, f"{where}: missing {key!r}")
+    if isinstance(v, bool) or not isinstance(v, int | float):
+        raise InputError(path, f"{where}: {key!r} must be a number, got {v!r}")
+    return float(v)
+
+
+def parse_plan(data: Any, path: str = "plan.json") -> Plan:
+    """A plan from its JSON object (``path`` names it in errors)."""
+    if not isinstance(data, dict):
+        raise InputError(path, "not a plan: expected a JSON object")
+    fmt = data.get("format")
+    if fmt != PLAN_FORMAT:
+        raise InputError(path, f"not a perfros-bag plan (format {fmt!r}, expected {PLAN_FORMAT!r})")
+    status = data.get("status")
+    if status not in tuple(Status):
+        raise InputError(path, f"status must be one of {', '.join(Status)}, got {status!r}")
+    problem = data.get("problem")
+    if isinstance(problem, bool) or problem not in tuple(Problem):
+        raise InputError(path, f"problem must be 1 or 2, got {problem!r}")
+    plan = Plan(Problem(problem), method_of(str(data.get("method", ""))), Status(status),
+                _num(data, "objective", "plan", path), _num(data, "bound", "plan", path),
+                _num(data, "solve_s", "plan", path), reason=data.get("reason"), system=data.get("system"),
+                extra={k: v for k, v in data.items() if k not in _KNOWN})
+    comps = data.get("computers") or {}
+    if not isinstance(comps, dict):
+        raise InputError(path, "computers must be an object")
+    for name, c in comps.items():
+        if not isinstance(c, dict):
+            raise InputError(path, f"computer {name!r}: must be an object")
+        plan.computers[name] = PlannedComputer(str(c.get("kind", "server")),
+                                               _num(c, "capacity", f"computer {name!r}", path),
+                                               _num(c, "cpu", f"computer {name!r}", path) or 0.0)
+    links = data.get("links") or []
+    if not isinstance(links, list):
+        raise InputError(path, "links must be a list")
+    for i, link in enumerate(links):
+        if not isinstance(link, dict) or not isinstance(link.get("between"), list) or len(link["between"]) != 2:
+            raise InputError(path, f"links[{i}]: needs between: [a, b]")
+        plan.links.append(PlannedLink((str(link["between"][0]), str(link["between"][1])),
+                                      _num(link, "bandwidth_kBps", f"links[{i}]", path, optional=False) or 0.0,
+                                      _num(link, "load_kBps", f"links[{i}]", path) or 0.0, link.get("medium")))
+    nodes = data.get("nodes") or {}
+    if not isinstance(nodes, dict):
+        raise InputError(path, "nodes must be an object")
+    if plan.status != Status.INFEASIBLE and not nodes:
+        raise InputError(path, "the plan has no nodes")
+    for name, n in nodes.items():
+        plan.nodes[name] = _parse_node(n, f"node {name!r}", path)
+    return plan
+
+
+def _parse_node(n: Any, where: str, path: str) -> PlannedNode:
+    if not isinstance(n, dict):
+        raise InputError(path, f"{where}: must be an object")
+    if not isinstance(n.get("computer"), str):
+        raise InputError(path, f"{where}: missing 'computer'")
+    topics: dict[str, PlannedTopic] = {}
+    raw_topics = n.get("topics") or {}
+    if not isinstance(raw_topics, dict):
+        raise InputError(path, f"{where}: topics must be an object")
+    for t, r in raw_topics.items():
+        if not isinstance(r, dict):
+            raise InputError(path, f"{where}: topic {t!r} must be an object")
+        topics[t] = PlannedTopic(_num(r, "frequency_hz", f"{where} topic {t!r}", path),
+                                 _num(r, "bandwidth_kBps", f"{where} topic {t!r}", path))
+    return PlannedNode(
+        computer=n["computer"],
+        cpu=_num(n, "cpu", where, path, optional=False) or 0.0,
+        performance=_num(n, "performance", where, path, optional=False) or 0.0,
+        weight=_num(n, "weight", where, path, optional=False) or 0.0,
+        parameter=n.get("parameter"), value=_num(n, "value", where, path), topics=topics,
+    )
