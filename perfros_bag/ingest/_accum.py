@@ -103,6 +103,11 @@ class Accumulator:
         self.method = "stream"
         self._files = 0  # how many per-file accumulators were merged in by extend()
 
+    @property
+    def messages(self) -> int:
+        """Messages added so far."""
+        return sum(int(a.size) for t in self._topics.values() for a in t.times)
+
     def declare(self, topic: str, msgtype: str, publisher: str | None = None) -> None:
         t = self._topics.get(topic)
         if t is None:
