@@ -28,6 +28,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import numpy.typing as npt
 
+from perfros_bag.ingest import MCAP_MAGIC
 from perfros_bag.ingest._accum import (
     I64,
     RELEASE_STEP,
@@ -37,9 +38,10 @@ from perfros_bag.ingest._accum import (
     NoIndex,
     gather_u64,
     release,
+    zstd_size,
 )
 
-MAGIC = b"\x89MCAP0\r\n"
+MAGIC = MCAP_MAGIC
 OP_HEADER, OP_FOOTER, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_CHUNK = 1, 2, 3, 4, 5, 6
 OP_MESSAGE_INDEX, OP_CHUNK_INDEX, OP_STATISTICS, OP_DATA_END = 7, 8, 11, 15
 MSG_HEADER = 22  # channel u16 + sequence u32 + log_time u64 + publish_time u64
@@ -215,16 +217,10 @@ def decompress(compression: str, data: Buf, usize: int) -> bytes:
 
 def zstd_payload_sizes(buf: U8, data_pos: I64, data_len: I64) -> int:
     """Sum of decompressed sizes of zstd-compressed payloads (rosbag2 message compression)."""
-    import zstandard
-
     total = 0
     raw = buf.tobytes() if buf.size < 1 << 16 else None
     for p, n in zip(data_pos.tolist(), data_len.tolist(), strict=True):
-        frame = raw[p:p + n] if raw is not None else buf[p:p + n].tobytes()
-        size = zstandard.frame_content_size(frame[:18]) if n >= 6 else -1
-        if size < 0:
-            size = len(zstandard.ZstdDecompressor().decompressobj().decompress(frame))
-        total += size
+        total += zstd_size(raw[p:p + n] if raw is not None else buf[p:p + n].tobytes())
     return total
 
 
