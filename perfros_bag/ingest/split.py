@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import mmap
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 from perfros_bag.errors import InputError
@@ -64,14 +64,21 @@ class Part:
 
 @dataclass(frozen=True)
 class SplitPlan:
+    """How one file is split: its format ("ros1", "mcap", or "whole": not splittable) and,
+    when splittable, its index."""
+
     path: Path
-    format: str  # "ros1", "mcap", or "whole" (not splittable)
+    format: str
     index: Index | None = None
-    sizes: tuple[int, ...] = field(default=(), compare=False)  # bytes of each chunk in the file
 
     @property
     def chunks(self) -> tuple[Chunk, ...]:
         return chunks_of(self.index) if self.index is not None else ()
+
+    @property
+    def sizes(self) -> tuple[int, ...]:
+        """Bytes of file each chunk takes (with its index records)."""
+        return self.index.chunk_sizes() if self.index is not None else ()
 
     def parts(self, target_bytes: int = TARGET_BYTES) -> list[Part]:
         """Consecutive chunks grouped into parts of about ``target_bytes`` each."""
@@ -112,7 +119,7 @@ def plan_split(path: str | Path, *, fast: bool = True) -> SplitPlan:
             with open_mmap(p) as mm:
                 index: Index = rosbag1.read_index(mm) if fmt == "ros1" else mcapfile.read_summary(mm)
             if chunks_of(index):
-                return SplitPlan(p, fmt, index, index.chunk_sizes())
+                return SplitPlan(p, fmt, index)
     except (InputError, NoIndex, Damaged, OSError, ValueError):
         pass  # read_recording gives the user the clear error, or falls back to streaming
     return SplitPlan(p, "whole")
