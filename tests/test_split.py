@@ -2,7 +2,9 @@
 
 Checked against ``read_recording`` on the whole file (every field, every timestamp) and
 against the generator's own ground truth, on generated ROS 1 bags and MCAP files with many
-chunks (every compression) and on the real recordings that have chunks.
+chunks (every compression) and on the real recordings that have chunks; and, at the end, on
+the recordings where the split path once drifted from the whole-file readers, also against
+the ``mcap`` package or rosbags' AnyReader.
 """
 
 from __future__ import annotations
