@@ -2,7 +2,9 @@
 
 Every writer takes the same list of :class:`Msg` and writes it with a third-party writer
 (rosbags for ROS 1 and rosbag2, the ``mcap`` package for plain MCAP), so the reader under test
-is checked against the list itself (:func:`expected`), not against another reader.
+is checked against the list itself (:func:`expected`), not against another reader; where a
+test needs a file no writer makes (damaged, crafted), :func:`mcap_library_decode` and
+:func:`anyreader_decode` give the third-party readers' view of it.
 """
 
 from __future__ import annotations
@@ -13,6 +15,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
+from perfros_bag.ingest.stats import RecordingStats
 
 # (ROS 2 type, ROS 1 type, ROS 1 md5) of the types the generators use
 TYPES = {
@@ -144,6 +148,36 @@ def random_msgs(rng: np.random.Generator, n: int, topics: int = 3, max_size: int
         mtype = "sensor_msgs/msg/Image" if k == 1 else "std_msgs/msg/String"
         out.append(Msg(names[k], mtype, int(t), rng.bytes(size), caller))
     return out
+
+
+def by_topic(stats: RecordingStats) -> dict[str, tuple[int, int, list[int]]]:
+    """(messages, payload bytes, sorted times) per topic, as a reader reported them."""
+    return {t: (s.messages, s.bytes, s.times_ns.tolist()) for t, s in stats.topics.items()}
+
+
+def mcap_library_decode(path: Path) -> dict[str, tuple[int, int, list[int]]]:
+    """Counts, payload bytes and log times per topic, by the ``mcap`` package's linear reader
+    (no summary, no message index)."""
+    from mcap.reader import NonSeekingReader
+
+    out: dict[str, tuple[int, int, list[int]]] = {}
+    with path.open("rb") as f:
+        for _schema, channel, message in NonSeekingReader(f).iter_messages():
+            n, nbytes, times = out.get(channel.topic, (0, 0, []))
+            out[channel.topic] = (n + 1, nbytes + len(message.data), [*times, message.log_time])
+    return {t: (n, b, sorted(ts)) for t, (n, b, ts) in out.items()}
+
+
+def anyreader_decode(path: Path) -> dict[str, tuple[int, int, list[int]]]:
+    """The same by rosbags' AnyReader (rosbag2 message compression undone)."""
+    from rosbags.highlevel import AnyReader
+
+    out: dict[str, tuple[int, int, list[int]]] = {}
+    with AnyReader([path]) as reader:
+        for conn, ts, raw in reader.messages():
+            n, nbytes, times = out.get(conn.topic, (0, 0, []))
+            out[conn.topic] = (n + 1, nbytes + len(raw), [*times, ts])
+    return {t: (n, b, sorted(tt)) for t, (n, b, tt) in out.items()}
 
 
 def copy_tree(src: Path, dst: Path) -> Path:

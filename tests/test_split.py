@@ -2,7 +2,9 @@
 
 Checked against ``read_recording`` on the whole file (every field, every timestamp) and
 against the generator's own ground truth, on generated ROS 1 bags and MCAP files with many
-chunks (every compression) and on the real recordings that have chunks.
+chunks (every compression) and on the real recordings that have chunks; and, at the end, on
+the recordings where the split path once drifted from the whole-file readers, also against
+the ``mcap`` package or rosbags' AnyReader.
 """
 
 from __future__ import annotations
@@ -10,6 +12,8 @@ from __future__ import annotations
 import functools
 import pickle
 import shutil
+import struct
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +27,16 @@ from perfros_bag.ingest.split import Part, merge_parts, plan_split, read_part, r
 from perfros_bag.ingest.stats import RecordingStats
 from tests.bench.gen_corpus import TopicSpec, Truth, default_topics, write_recording
 from tests.conftest import REALBAGS
+from tests.ingest_gen import (
+    Msg,
+    anyreader_decode,
+    by_topic,
+    expected,
+    mcap_library_decode,
+    write_mcap,
+    write_ros1,
+    write_rosbag2,
+)
 
 GENERATED = [("ros1", "none"), ("ros1", "lz4"), ("ros1", "bz2"),
              ("mcap", "none"), ("mcap", "zstd"), ("mcap", "lz4")]
@@ -118,9 +132,9 @@ def test_parts_cover_the_file_in_target_sized_groups(
     parts = plan.parts(50_000)
     assert [c for p in parts for c in p.chunks] == list(plan.chunks)  # in order, each once
     assert 1 < len(parts) < len(plan.chunks)
-    size = dict(zip([c[0] for c in plan.chunks], plan.sizes, strict=True))
+    size = dict(zip([c.chunk_pos for c in plan.chunks], plan.sizes, strict=True))
     for p in parts[:-1]:
-        total = sum(size[c[0]] for c in p.chunks)
+        total = sum(size[c.chunk_pos] for c in p.chunks)
         assert total <= 50_000 or len(p.chunks) == 1
     with pytest.raises(ValueError, match="exactly once"):
         plan.parts_of([[0, 1], [1]])
@@ -161,7 +175,7 @@ def test_damaged_chunk_index_falls_back_to_the_whole_file(
     path = tmp_path / "damaged.bag"
     shutil.copy(src, path)
     plan = plan_split(path)
-    chunk_pos = plan.chunks[5][0]
+    chunk_pos = plan.chunks[5].chunk_pos
     raw = bytearray(path.read_bytes())
     idx = raw.index(b"op=\x04", chunk_pos)  # first index-data record after that chunk
     cnt = raw.index(b"count=", idx - 64) + len(b"count=")
@@ -176,3 +190,126 @@ def test_damaged_chunk_index_falls_back_to_the_whole_file(
     assert merged.method == "stream"
     assert {t: (s.messages, s.bytes) for t, s in merged.topics.items()} == \
            {t: (v.messages, v.bytes) for t, v in truth.items()}
+
+
+# ---------------------------------------------------------------------------------------------
+# Where the split readers once drifted from the whole-file readers (issue 13): each recording
+# below made the old split path disagree with read_recording. Both now use one index reader
+# per format (rosbag1.read_index/read_chunks, mcapfile.read_summary/read_chunks); each case is
+# checked against the whole-file read and against an independent decode.
+
+T0 = 1_700_000_000_000_000_000
+
+
+def split_per_chunk(path: Path) -> RecordingStats:
+    """``path`` split into one task per chunk (at least two chunks), merged."""
+    plan = plan_split(path)
+    assert plan.format in ("ros1", "mcap") and len(plan.chunks) >= 2
+    return merge_parts(plan, [read_part(p) for p in plan.parts(1)])
+
+
+def test_log_times_up_to_the_int64_limit_are_read_from_the_index(tmp_path: Path) -> None:
+    # The whole-file reader rejected index entries >= 2**62 (log times included) and streamed;
+    # the split reader took log times up to 2**63 from the index. Now both read log times up
+    # to 2**63 - 1 (the largest int64) from the index, and bound offsets by the chunk.
+    times = [2**62 - 5, 2**62, *(2**62 + k * 7_919_000_000 for k in range(1, 400)), 2**63 - 1]
+    msgs = [Msg(f"/t{k % 3}", "std_msgs/msg/String", t, bytes(10 + k % 13)) for k, t in enumerate(times)]
+    path = write_mcap(tmp_path / "late.mcap", msgs, compression="zstd", chunk_size=2000)
+    whole = read_recording(path)
+    assert whole.method == "index"
+    assert_same(split_per_chunk(path), whole)
+    assert by_topic(whole) == mcap_library_decode(path)
+    # one log time past int64: neither path can hold it; both give the reader's one error
+    path = write_mcap(tmp_path / "beyond.mcap", [*msgs, Msg("/t0", "std_msgs/msg/String", 2**63, b"x")],
+                      compression="zstd", chunk_size=2000)
+    with pytest.raises(InputError) as by_whole:
+        read_recording(path)
+    with pytest.raises(InputError) as by_split:
+        split_per_chunk(path)
+    assert str(by_split.value) == str(by_whole.value)
+
+
+def test_an_index_entry_listed_twice_in_a_one_channel_chunk_is_not_counted_twice(tmp_path: Path) -> None:
+    # The split reader checked that indexed message records do not overlap only across
+    # channels: a chunk of one channel whose message index lists a message twice counted it
+    # twice (no Statistics record to disagree). The whole-file reader streams such a file.
+    from mcap.writer import CompressionType, Writer
+
+    path = tmp_path / "dup.mcap"
+    with path.open("wb") as f:
+        w = Writer(f, chunk_size=2000, compression=CompressionType.NONE, use_statistics=False)
+        w.start(profile="", library="perfros-bag tests")
+        cid = w.register_channel(topic="/a", message_encoding="json",
+                                 schema_id=w.register_schema(name="s", encoding="jsonschema", data=b"{}"))
+        for k in range(200):
+            w.add_message(cid, log_time=T0 + k * 10**6, data=bytes(30 + k % 5), publish_time=0)
+        index = w._Writer__chunk_builder.message_indices[cid]  # type: ignore[attr-defined]
+        index.records.append(index.records[-1])  # the open (last) chunk lists its last message twice
+        w.finish()
+    whole = read_recording(path)
+    assert whole.method == "stream"
+    assert_same(split_per_chunk(path), whole)
+    assert by_topic(whole) == mcap_library_decode(path)
+
+
+@pytest.mark.parametrize("chunk_compression", ["", "lz4"])
+def test_message_compressed_chunks_read_as_split_parts_equal_the_whole_recording(
+        tmp_path: Path, chunk_compression: str) -> None:
+    # rosbag2 message compression (every payload a zstd frame; some frames without their
+    # content size): the payload size is the decompressed size. The old split reader had no
+    # per-message zstd; the chunk-range reader is now the whole-file reader's own.
+    import zstandard
+
+    from perfros_bag.ingest import mcapfile
+    from perfros_bag.ingest.rosbag2 import open_mmap
+
+    msgs = [Msg(f"/t{k % 2}", "std_msgs/msg/String", T0 + k * 10**6, bytes(range(k % 200)) * 3)
+            for k in range(600)]
+    root = write_rosbag2(tmp_path / "rec", msgs, "mcap", compression="message")  # metadata.yaml
+    storage = next(root.glob("*.mcap"))
+    with_size, without_size = zstandard.ZstdCompressor(), zstandard.ZstdCompressor(write_content_size=False)
+    compressed = [replace(m, payload=(with_size if k % 3 else without_size).compress(m.payload))
+                  for k, m in enumerate(msgs)]
+    write_mcap(storage, compressed, compression=chunk_compression, chunk_size=4000)  # many chunks
+    whole = read_recording(root)
+    assert whole.method == "index" and whole.format == "rosbag2-mcap"
+    plan = plan_split(storage)
+    assert plan.format == "mcap" and len(plan.chunks) >= 10
+    with open_mmap(storage) as mm:
+        parts = [mcapfile.read_chunks(mm, p.index, message_zstd=True).build(storage, "mcap")
+                 for p in plan.parts_of([[i] for i in range(len(plan.chunks))][::-1])
+                 if isinstance(p.index, mcapfile.Summary)]
+    merged = merge_parts(plan, parts)
+    assert merged.method == "index" and by_topic(merged) == by_topic(whole)
+    want = expected(msgs)
+    assert by_topic(whole) == {t: (e.count, e.nbytes, e.times) for t, e in want.items()}
+    assert by_topic(whole) == anyreader_decode(root)
+
+
+@pytest.mark.parametrize("messages", [0, 500])
+@pytest.mark.parametrize("past_end", [None, 0, 1, 1000])
+def test_ros1_index_position_at_and_past_the_end_of_the_file(
+        tmp_path: Path, messages: int, past_end: int | None) -> None:
+    # The whole-file reader took a bag header whose index position lies past the end of the
+    # file as an empty index when it declares no connection and no chunk; the split planner
+    # rejected any index position at or past the end. Now both read an index that ends the
+    # file (an empty bag) and stream a bag whose index position is past the end.
+    msgs = [Msg(f"/t{k % 2}", "std_msgs/msg/String", T0 + k * 10**6, bytes(40 + k % 9)) for k in range(messages)]
+    path = write_ros1(tmp_path / "b.bag", msgs, chunk_threshold=5000)
+    raw = bytearray(path.read_bytes())
+    field_at = raw.index(b"index_pos=") + len(b"index_pos=")
+    written = struct.unpack_from("<Q", raw, field_at)[0]
+    assert (written == len(raw)) == (messages == 0)  # an empty bag's index ends the file
+    if past_end is not None:  # None: as written
+        struct.pack_into("<Q", raw, field_at, len(raw) + past_end)
+        path.write_bytes(bytes(raw))
+    indexed = past_end is None or (messages == 0 and past_end == 0)
+    whole = read_recording(path)
+    assert whole.method == ("index" if indexed else "stream")
+    plan = plan_split(path)
+    assert (plan.format == "ros1") == (indexed and messages > 0)
+    assert_same(merge_parts(plan, [read_part(p) for p in plan.parts(1)]), whole)
+    want = expected(msgs, ros1=True)
+    assert by_topic(whole) == {t: (e.count, e.nbytes, e.times) for t, e in want.items()}
+    if indexed:  # rosbags reads bags whose index is where the header says
+        assert by_topic(whole) == anyreader_decode(path)

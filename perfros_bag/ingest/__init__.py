@@ -23,6 +23,23 @@ ROS1_MAGIC = b"#ROSBAG V"
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 SQLITE_MAGIC = b"SQLite format 3\0"
 ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"
+_FORMAT_OF_MAGIC = {ROS1_MAGIC: "ros1", MCAP_MAGIC: "mcap", SQLITE_MAGIC: "rosbag2-sqlite3",
+                    ZSTD_MAGIC: "zstd"}
+
+
+def read_head(path: Path) -> bytes:
+    """The first 16 bytes of the file ``path`` (enough for :func:`sniff`); an empty file is an
+    InputError."""
+    with path.open("rb") as f:
+        head = f.read(16)
+    if not head:
+        raise InputError(path, "empty file (0 bytes)")
+    return head
+
+
+def sniff(head: bytes) -> str | None:
+    """'ros1', 'mcap', 'rosbag2-sqlite3' or 'zstd' from a file's first bytes; None if unknown."""
+    return next((fmt for magic, fmt in _FORMAT_OF_MAGIC.items() if head.startswith(magic)), None)
 
 
 def detect_format(path: str | Path) -> str:
@@ -30,19 +47,10 @@ def detect_format(path: str | Path) -> str:
     p = Path(path)
     if p.is_dir():
         return "rosbag2"
-    with p.open("rb") as f:
-        head = f.read(16)
-    if not head:
-        raise InputError(p, "empty file (0 bytes)")
-    if head.startswith(ROS1_MAGIC):
-        return "ros1"
-    if head.startswith(MCAP_MAGIC):
-        return "mcap"
-    if head.startswith(SQLITE_MAGIC):
-        return "rosbag2-sqlite3"
-    if head.startswith(ZSTD_MAGIC):
-        return "zstd"
-    raise InputError(p, "unknown format: not a ROS 1 bag, MCAP file or rosbag2 recording")
+    fmt = sniff(read_head(p))
+    if fmt is None:
+        raise InputError(p, "unknown format: not a ROS 1 bag, MCAP file or rosbag2 recording")
+    return fmt
 
 
 def read_recording(path: str | Path, *, fast: bool = True) -> RecordingStats:
@@ -65,6 +73,7 @@ def read_recording(path: str | Path, *, fast: bool = True) -> RecordingStats:
 
 def _read(p: Path, fast: bool) -> RecordingStats:
     from perfros_bag.ingest import mcapfile, rosbag1, rosbag2
+    from perfros_bag.ingest.discover import storage_of
 
     if not p.exists():
         raise InputError(p, "no such file or directory")
@@ -83,7 +92,7 @@ def _read(p: Path, fast: bool) -> RecordingStats:
     if fmt == "rosbag2-sqlite3":
         return rosbag2.read_sqlite(p, fast).build(p, "rosbag2-sqlite3")
     # zstd: a file-compressed rosbag2 storage file (.db3.zstd / .mcap.zstd)
-    storage = rosbag2.storage_of(p)
+    storage = storage_of(p)
     if storage is None:
         raise InputError(p, "zstd-compressed file that is not a .db3.zstd or .mcap.zstd")
     return rosbag2.read_storage_file(p, fast).build(p, "rosbag2-" + storage)

@@ -64,6 +64,16 @@ def describe(exc: BaseException) -> str:
     return f"corrupt or unreadable recording ({type(exc).__name__}{': ' + text if text else ''})"
 
 
+def zstd_size(frame: bytes) -> int:
+    """Decompressed size of one zstd frame: from its header, else by decompressing it."""
+    import zstandard
+
+    size = zstandard.frame_content_size(frame[:18]) if len(frame) >= 6 else -1
+    if size < 0:
+        size = len(zstandard.ZstdDecompressor().decompressobj().decompress(frame))
+    return int(size)
+
+
 def gather_u32(buf: U8, pos: I64) -> I64:
     """Little-endian uint32 at every byte position ``pos`` of ``buf`` (vectorised, unaligned):
     rows of a strided 4-byte window view, no index matrix."""
@@ -102,6 +112,11 @@ class Accumulator:
         #: how the numbers were read: "index" (fast path) or "stream"; "mixed" across files
         self.method = "stream"
         self._files = 0  # how many per-file accumulators were merged in by extend()
+
+    @property
+    def messages(self) -> int:
+        """Messages added so far."""
+        return sum(int(a.size) for t in self._topics.values() for a in t.times)
 
     def declare(self, topic: str, msgtype: str, publisher: str | None = None) -> None:
         t = self._topics.get(topic)

@@ -22,12 +22,21 @@ from typing import Any
 
 from perfros_bag.errors import InputError
 
-FILE_SUFFIXES = (".bag", ".mcap", ".db3", ".mcap.zstd", ".db3.zstd")
-STORAGE_SUFFIXES = (".mcap", ".db3", ".mcap.zstd", ".db3.zstd")
+#: rosbag2 storage file suffix -> storage plugin; ``.zstd`` may follow (file compression)
+STORAGE_PLUGINS = {".db3": "sqlite3", ".mcap": "mcap"}
+STORAGE_SUFFIXES = (*STORAGE_PLUGINS, *(s + ".zstd" for s in STORAGE_PLUGINS))
+FILE_SUFFIXES = (".bag", *STORAGE_SUFFIXES)
 
 
-def _natural_key(p: Path) -> list[Any]:
+def natural_key(p: Path) -> list[Any]:
+    """Sort key of a path's name in natural order (``run2`` before ``run10``)."""
     return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", p.name)]
+
+
+def storage_of(path: Path) -> str | None:
+    """'sqlite3' / 'mcap' from the suffix (``.zstd`` file compression stripped), else None."""
+    name = path.name[:-5] if path.name.endswith(".zstd") else path.name
+    return STORAGE_PLUGINS.get(Path(name).suffix)
 
 
 def is_recording_file(p: Path) -> bool:
@@ -59,7 +68,7 @@ def find_recordings(root: str | Path) -> list[Path]:
 
 def _walk(d: Path, found: list[Path]) -> None:
     try:
-        entries = sorted(d.iterdir(), key=_natural_key)
+        entries = sorted(d.iterdir(), key=natural_key)
     except OSError as exc:
         raise InputError(d, exc.strerror or str(exc)) from None
     for e in entries:

@@ -4,8 +4,10 @@ Records are ``u8 opcode, u64 length, content`` (https://mcap.dev/spec). No messa
 deserialised; only record framing is parsed.
 
 * fast path: the summary section (footer -> summary start) gives schemas, channels, chunk
-  indexes and statistics; each chunk index points at the message-index records written after
-  its chunk, which hold ``(log_time, offset)`` per message. A message's payload size is its
+  indexes and statistics (:func:`read_summary`, a :class:`Summary`); each chunk index points
+  at the message-index records written after its chunk, which hold ``(log_time, offset)`` per
+  message (:func:`read_chunks`, for any subset of the chunks: the whole file reads them all,
+  a split task some). A message's payload size is its
   record length minus 22 (channel id, sequence, log and publish time), gathered (numpy) at the
   indexed offsets: straight from the mmapped file for an uncompressed chunk, after one
   decompression for a zstd/lz4 chunk. Statistics' message count cross-checks the indexes.
@@ -20,11 +22,13 @@ from __future__ import annotations
 
 import mmap
 import struct
-from dataclasses import dataclass, field
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import numpy.typing as npt
 
+from perfros_bag.ingest import MCAP_MAGIC
 from perfros_bag.ingest._accum import (
     I64,
     RELEASE_STEP,
@@ -34,9 +38,10 @@ from perfros_bag.ingest._accum import (
     NoIndex,
     gather_u64,
     release,
+    zstd_size,
 )
 
-MAGIC = b"\x89MCAP0\r\n"
+MAGIC = MCAP_MAGIC
 OP_HEADER, OP_FOOTER, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_CHUNK = 1, 2, 3, 4, 5, 6
 OP_MESSAGE_INDEX, OP_CHUNK_INDEX, OP_STATISTICS, OP_DATA_END = 7, 8, 11, 15
 MSG_HEADER = 22  # channel u16 + sequence u32 + log_time u64 + publish_time u64
@@ -76,27 +81,63 @@ class _Cursor:
         return self._take(n), n
 
 
-@dataclass
-class _Channel:
+@dataclass(frozen=True)
+class Channel:
+    """A channel record: its topic, its schema's id and (ROS 1 profile) the publisher."""
+
     topic: str
     schema_id: int
     callerid: str = ""  # ROS 1 profile: the publisher, from the channel metadata
 
 
-@dataclass
-class _ChunkIndex:
-    chunk_start: int
+@dataclass(frozen=True)
+class ChunkIndex:
+    """A chunk-index record of the summary: where the chunk and its message-index records
+    are, and the message-index record of each channel (channel id -> file offset)."""
+
+    chunk_start_offset: int
     chunk_length: int
-    index_offsets: dict[int, int]
-    index_length: int
+    message_index_offsets: Mapping[int, int]
+    message_index_length: int
     compression: str
     uncompressed_size: int
+
+    @property
+    def end(self) -> int:
+        """File offset just after the chunk's message-index records."""
+        return self.chunk_start_offset + self.chunk_length + self.message_index_length
+
+
+@dataclass(frozen=True)
+class Summary:
+    """The summary section: schema names and channels by id, the chunk indexes (in file
+    order as recorded) and the Statistics record's message count (None without one)."""
+
+    schemas: Mapping[int, str]
+    channels: Mapping[int, Channel]
+    chunk_indexes: tuple[ChunkIndex, ...]
+    message_count: int | None
+
+    def chunk_sizes(self) -> tuple[int, ...]:
+        """Bytes of file each chunk takes with its message indexes (at least 1)."""
+        return tuple(max(ci.end - ci.chunk_start_offset, 1) for ci in self.chunk_indexes)
+
+    def select(self, positions: Sequence[int]) -> Summary:
+        """This summary restricted to the chunk indexes at ``positions`` (what
+        :func:`read_chunks` reads)."""
+        return replace(self, chunk_indexes=tuple(self.chunk_indexes[i] for i in positions))
+
+    def check_message_count(self, messages: int) -> None:
+        """Raises :class:`NoIndex` when ``messages`` read from all chunk indexes disagrees
+        with the Statistics record."""
+        if self.message_count is not None and messages != self.message_count:
+            raise NoIndex(f"statistics count {self.message_count} disagrees with the indexes ({messages})")
 
 
 @dataclass
 class _State:
     schemas: dict[int, str] = field(default_factory=dict)
-    channels: dict[int, _Channel] = field(default_factory=dict)
+    channels: dict[int, Channel] = field(default_factory=dict)
     times: dict[int, list[I64]] = field(default_factory=dict)
     nbytes: dict[int, int] = field(default_factory=dict)
 
@@ -147,7 +188,7 @@ def _channel(buf: Buf, start: int, length: int, st: _State) -> None:
             key, value = m.string(), m.string()
             if key == "callerid":
                 callerid = value
-    st.channels[cid] = _Channel(topic, schema_id, callerid)
+    st.channels[cid] = Channel(topic, schema_id, callerid)
 
 
 def decompress(compression: str, data: Buf, usize: int) -> bytes:
@@ -176,16 +217,10 @@ def decompress(compression: str, data: Buf, usize: int) -> bytes:
 
 def zstd_payload_sizes(buf: U8, data_pos: I64, data_len: I64) -> int:
     """Sum of decompressed sizes of zstd-compressed payloads (rosbag2 message compression)."""
-    import zstandard
-
     total = 0
     raw = buf.tobytes() if buf.size < 1 << 16 else None
     for p, n in zip(data_pos.tolist(), data_len.tolist(), strict=True):
-        frame = raw[p:p + n] if raw is not None else buf[p:p + n].tobytes()
-        size = zstandard.frame_content_size(frame[:18]) if n >= 6 else -1
-        if size < 0:
-            size = len(zstandard.ZstdDecompressor().decompressobj().decompress(frame))
-        total += size
+        total += zstd_size(raw[p:p + n] if raw is not None else buf[p:p + n].tobytes())
     return total
 
 
@@ -262,7 +297,14 @@ def read_stream(mm: mmap.mmap, message_zstd: bool = False) -> Accumulator:
     return st.accumulator()
 
 
-def _summary(mm: mmap.mmap, st: _State) -> tuple[list[_ChunkIndex], int | None]:
+def read_summary(mm: mmap.mmap) -> Summary:
+    """The summary section of the MCAP file in ``mm`` (footer -> summary start).
+
+    Raises :class:`NoIndex` when there is no usable summary (the caller streams) and
+    :class:`Damaged` when a summary record is malformed.
+    """
+    if mm[:8] != MAGIC:
+        raise Damaged("not an MCAP file (no MCAP magic)")
     size = len(mm)
     if size < 8 + 29 + 8 or mm[size - 8:] != MAGIC:
         raise NoIndex("no trailing magic")
@@ -277,7 +319,8 @@ def _summary(mm: mmap.mmap, st: _State) -> tuple[list[_ChunkIndex], int | None]:
     end = summary_offset_start or fpos
     if not 8 <= summary_start <= end <= fpos:
         raise NoIndex("summary offsets out of range")
-    chunks: list[_ChunkIndex] = []
+    st = _State()
+    chunks: list[ChunkIndex] = []
     count: int | None = None
     pos = summary_start
     while pos < end:
@@ -301,39 +344,49 @@ def _summary(mm: mmap.mmap, st: _State) -> tuple[list[_ChunkIndex], int | None]:
             compression = c.string()
             c.u64()
             usize = c.u64()
-            chunks.append(_ChunkIndex(cstart, clen, offsets, ilen, compression, usize))
+            chunks.append(ChunkIndex(cstart, clen, offsets, ilen, compression, usize))
         elif op == OP_STATISTICS:
             count = _Cursor(mm, start, start + length).u64()
-    return chunks, count
+    return Summary(st.schemas, st.channels, tuple(chunks), count)
 
 
-def read_fast(mm: mmap.mmap, message_zstd: bool = False) -> Accumulator:
-    if mm[:8] != MAGIC:
-        raise Damaged("not an MCAP file (no MCAP magic)")
-    st = _State()
-    chunks, count = _summary(mm, st)
-    if not chunks and count != 0:
-        raise NoIndex("no chunk index")
-    total = 0
-    for ci in chunks:
+def read_chunks(mm: mmap.mmap, summary: Summary, message_zstd: bool = False) -> Accumulator:
+    """Counts, log times and payload bytes of the messages in ``summary.chunk_indexes``
+    (every channel of the summary declared), from their message indexes; method "index".
+
+    The whole-file fast path reads all chunks, a split task some of them
+    (:meth:`Summary.select`). Raises :class:`NoIndex` when a message index disagrees
+    with its chunk (the caller streams instead).
+    """
+    st = _State(dict(summary.schemas), dict(summary.channels))
+    for ci in summary.chunk_indexes:
         buf, base, blen = _load_chunk(mm, ci)
-        total += _index_chunk(mm, ci, buf, base, blen, st, message_zstd)
-        # keep the resident set small however large the file (see _accum.release)
-        release(mm, ci.chunk_start, ci.chunk_start + ci.chunk_length + ci.index_length)
-    if count is not None and count != total:
-        raise NoIndex(f"statistics count {count} disagrees with the indexes ({total})")
+        _index_chunk(mm, ci, buf, base, blen, st, message_zstd)
+        del buf
+        release(mm, ci.chunk_start_offset, ci.end)  # keep the resident set small (see _accum.release)
     acc = st.accumulator()
     acc.method = "index"
     return acc
 
 
-def _load_chunk(mm: mmap.mmap, ci: _ChunkIndex) -> tuple[U8, int, int]:
+def read_fast(mm: mmap.mmap, message_zstd: bool = False) -> Accumulator:
+    """The whole file from its summary: :func:`read_chunks` over every chunk index,
+    cross-checked with the Statistics record."""
+    summary = read_summary(mm)
+    if not summary.chunk_indexes and summary.message_count != 0:
+        raise NoIndex("no chunk index")
+    acc = read_chunks(mm, summary, message_zstd)
+    summary.check_message_count(acc.messages)
+    return acc
+
+
+def _load_chunk(mm: mmap.mmap, ci: ChunkIndex) -> tuple[U8, int, int]:
     """(buffer, records start in it, records length) of an indexed chunk."""
-    op, start, length = _record(mm, ci.chunk_start, len(mm))
+    op, start, length = _record(mm, ci.chunk_start_offset, len(mm))
     if op != OP_CHUNK:
-        raise NoIndex(f"chunk index points at a non-chunk record (byte {ci.chunk_start})")
+        raise NoIndex(f"chunk index points at a non-chunk record (byte {ci.chunk_start_offset})")
     compression, rstart, rlen, usize = _chunk_records(mm, start, length)
-    if usize and not ci.index_offsets:
+    if usize and not ci.message_index_offsets:
         raise NoIndex("chunk without message indexes")
     if compression == "":
         return np.frombuffer(mm, dtype=np.uint8), rstart, rlen
@@ -341,13 +394,13 @@ def _load_chunk(mm: mmap.mmap, ci: _ChunkIndex) -> tuple[U8, int, int]:
     return np.frombuffer(raw, dtype=np.uint8), 0, len(raw)
 
 
-def _index_chunk(mm: mmap.mmap, ci: _ChunkIndex, buf: U8, base: int, blen: int, st: _State,
-                 message_zstd: bool) -> int:
-    """Adds one chunk's indexed messages to ``st``; returns their number."""
+def _index_chunk(mm: mmap.mmap, ci: ChunkIndex, buf: U8, base: int, blen: int, st: _State,
+                 message_zstd: bool) -> None:
+    """Adds one chunk's indexed messages to ``st``."""
     size = len(mm)
     cids: list[int] = []
     parts: list[npt.NDArray[np.uint64]] = []
-    for cid, ipos in ci.index_offsets.items():
+    for cid, ipos in ci.message_index_offsets.items():
         op, istart, ilen = _record(mm, ipos, size)
         if op != OP_MESSAGE_INDEX:
             raise NoIndex("message-index offset does not point at a message index")
@@ -362,13 +415,15 @@ def _index_chunk(mm: mmap.mmap, ci: _ChunkIndex, buf: U8, base: int, blen: int, 
     counts = np.array([len(p) for p in parts], dtype=np.int64)
     n = int(counts.sum())
     if n == 0:
-        return 0
+        return
     pairs = np.concatenate(parts)
-    if int(pairs.max()) >= 2**62:
-        raise NoIndex("log time or offset out of range")
-    offs = pairs[:, 1].astype(np.int64)
-    if int(offs.max()) + 9 + MSG_HEADER > blen:
+    del parts
+    # bounds checked on the unsigned values, before any cast to int64 could wrap them
+    if int(pairs[:, 0].max()) >= 2**63:
+        raise NoIndex("log time out of range")
+    if int(pairs[:, 1].max()) + 9 + MSG_HEADER > blen:
         raise NoIndex("message-index offset outside its chunk")
+    offs = pairs[:, 1].astype(np.int64)
     at = base + offs
     if not np.all(buf[at] == OP_MESSAGE):
         raise NoIndex("message-index offset does not point at a message")
@@ -386,16 +441,15 @@ def _index_chunk(mm: mmap.mmap, ci: _ChunkIndex, buf: U8, base: int, blen: int, 
         per = [zstd_payload_sizes(buf, base + o + 9 + MSG_HEADER, ln - MSG_HEADER)
                for o, ln in zip(np.split(offs, np.cumsum(counts)[:-1]),
                                 np.split(lengths, np.cumsum(counts)[:-1]), strict=True)]
-    else:
-        starts = np.cumsum(counts) - counts
-        sums = np.add.reduceat(lengths, starts) if n else np.zeros(len(cids), np.int64)
-        per = [int(x) - MSG_HEADER * int(k) if k else 0 for x, k in zip(sums.tolist(), counts.tolist(), strict=True)]
+    else:  # record lengths summed per channel (a channel's index may be empty)
+        bounds = np.concatenate(([0], np.cumsum(counts)))
+        cum = np.concatenate(([0], np.cumsum(lengths)))
+        per = (cum[bounds[1:]] - cum[bounds[:-1]] - MSG_HEADER * counts).tolist()
     times = pairs[:, 0].astype(np.int64)
     k = 0
     for cid, cnt, nbytes in zip(cids, counts.tolist(), per, strict=True):
         st.add(cid, times[k:k + cnt], nbytes)
         k += cnt
-    return n
 
 
 def read(mm: mmap.mmap, fast: bool = True, message_zstd: bool = False) -> Accumulator:

@@ -6,10 +6,12 @@ Record layout (http://wiki.ros.org/Bags/Format/2.0): ``u32 header_len, header fi
 index-data record per connection with ``(time, offset)`` for every message of that connection
 in the chunk, the offset being the message data record's position in the *uncompressed* chunk.
 
-* fast path: connections and chunk infos from the index section, counts and times from the
-  index-data records; the payload size of each message is its data record's ``data_len``,
-  gathered (numpy) at the indexed offsets: for an uncompressed chunk straight from the mmapped
-  file (touching one page per message), for a bz2/lz4 chunk after decompressing it.
+* fast path: connections and chunk infos from the index section (:func:`read_index`, a
+  :class:`BagIndex`), counts and times from the index-data records (:func:`read_chunks`, for
+  any subset of the chunks: the whole file reads them all, a split task some); the payload
+  size of each message is its data record's ``data_len``, gathered (numpy) at the indexed
+  offsets: for an uncompressed chunk straight from the mmapped file (touching one page per
+  message), for a bz2/lz4 chunk after decompressing it.
 * streaming path: walk every record from the start (also for unindexed bags, e.g. from a
   recorder that was killed): connection and message data records, inside chunks too.
 """
@@ -19,8 +21,8 @@ from __future__ import annotations
 import bz2
 import mmap
 import struct
-from collections.abc import Iterator
-from dataclasses import dataclass, field
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -52,11 +54,43 @@ class Record:
     end: int
 
 
-@dataclass
+@dataclass(frozen=True)
 class Connection:
+    """A connection record: the topic, its message type and the publishing node."""
+
     topic: str
     msgtype: str
     callerid: str
+
+
+@dataclass(frozen=True)
+class ChunkInfo:
+    """A chunk-info record of the index section: where its chunk record starts and how many
+    messages of each connection (by id) the chunk holds."""
+
+    chunk_pos: int
+    connection_counts: Mapping[int, int]
+
+
+@dataclass(frozen=True)
+class BagIndex:
+    """The index section of a bag: connections by id and the chunk infos, in file order as
+    recorded, and the position of the index section (the end of the chunk area)."""
+
+    connections: Mapping[int, Connection]
+    chunks: tuple[ChunkInfo, ...]
+    index_pos: int
+
+    def chunk_sizes(self) -> tuple[int, ...]:
+        """Bytes of file each chunk takes with its index-data records (to the next chunk or
+        the index section; at least 1)."""
+        starts = sorted(c.chunk_pos for c in self.chunks)
+        end_of = dict(zip(starts, [*starts[1:], self.index_pos], strict=True))
+        return tuple(max(end_of[c.chunk_pos] - c.chunk_pos, 1) for c in self.chunks)
+
+    def select(self, positions: Sequence[int]) -> BagIndex:
+        """This index restricted to the chunks at ``positions`` (what :func:`read_chunks` reads)."""
+        return replace(self, chunks=tuple(self.chunks[i] for i in positions))
 
 
 @dataclass
@@ -194,15 +228,21 @@ def _message_sizes(buf: U8, base: int, offs: I64, usize: int) -> I64:
     return dlen
 
 
-def read_fast(path: Path, mm: mmap.mmap) -> RecordingStats:
-    """Counts and times from the index; payload sizes gathered at the indexed offsets."""
+def read_index(mm: mmap.mmap) -> BagIndex:
+    """The index section of the bag in ``mm``, checked against the bag header.
+
+    Raises :class:`NoIndex` when the bag has no usable index (not closed cleanly, or the
+    index disagrees with the header) and :class:`Damaged` when it is not a readable bag.
+    """
     _check_magic(mm)
     size = len(mm)
     index_pos, conn_count, chunk_count = _bag_header(mm)
-    if index_pos == 0 or (index_pos >= size and (conn_count or chunk_count)):
+    if index_pos == 0:
         raise NoIndex("bag has no index (not closed cleanly)")
+    if index_pos > size:
+        raise NoIndex("index position beyond the end of the file (truncated?)")
     conns: dict[int, Connection] = {}
-    chunks: list[tuple[int, dict[int, int]]] = []
+    chunks: list[ChunkInfo] = []
     for rec in _records(mm, index_pos, size):
         if rec.op == OP_CONNECTION:
             cid, conn = _connection(mm, rec)
@@ -214,15 +254,29 @@ def read_fast(path: Path, mm: mmap.mmap) -> RecordingStats:
             if rec.data_len != 8 * n:
                 raise NoIndex("chunk-info record size mismatch")
             pairs = np.frombuffer(mm, dtype="<u4", count=2 * n, offset=rec.data_start).reshape(-1, 2)
-            chunks.append((_u64(rec.header, "chunk_pos"), {int(c): int(k) for c, k in pairs}))
+            chunks.append(ChunkInfo(_u64(rec.header, "chunk_pos"),
+                                    {int(c): int(k) for c, k in pairs.tolist()}))
+            del pairs  # no view of the mmap outlives the loop
         else:
             raise NoIndex(f"unexpected record op {rec.op} in the index section")
     if len(conns) != conn_count or len(chunks) != chunk_count:
         raise NoIndex("index section disagrees with the bag header")
+    return BagIndex(conns, tuple(chunks), index_pos)
 
-    accs: dict[int, _ConnAcc] = {cid: _ConnAcc() for cid in conns}
+
+def read_chunks(mm: mmap.mmap, index: BagIndex) -> Accumulator:
+    """Counts, times and payload bytes of the messages in ``index.chunks`` (every connection
+    of the index declared), from their index-data records; method "index".
+
+    The whole-file fast path reads all chunks, a split task some of them
+    (:meth:`BagIndex.select`). Raises :class:`NoIndex` when an index-data record
+    disagrees with its chunk (the caller streams instead).
+    """
+    size = len(mm)
+    accs: dict[int, _ConnAcc] = {cid: _ConnAcc() for cid in index.connections}
     whole: U8 = np.frombuffer(mm, dtype=np.uint8)
-    for chunk_pos, expected in chunks:
+    for info in index.chunks:
+        chunk_pos, expected = info.chunk_pos, info.connection_counts
         crec = read_record(mm, chunk_pos, size)
         if crec.op != OP_CHUNK:
             raise NoIndex(f"chunk-info points at a non-chunk record (byte {chunk_pos})")
@@ -248,6 +302,7 @@ def read_fast(path: Path, mm: mmap.mmap) -> RecordingStats:
             entries = np.frombuffer(mm, dtype=_IDX_DT, count=n, offset=irec.data_start)
             times = entries["sec"].astype(np.int64) * 1_000_000_000 + entries["nsec"].astype(np.int64)
             parts.append((cid, times, entries["offset"].astype(np.int64)))
+            del entries
             seen.add(cid)
             pos = irec.end
         offs = np.concatenate([p[2] for p in parts]) if parts else np.empty(0, dtype=np.int64)
@@ -258,15 +313,21 @@ def read_fast(path: Path, mm: mmap.mmap) -> RecordingStats:
             acc.times.append(times)
             acc.nbytes += int(dlen[k:k + o.size].sum())
             k += o.size
+        del buf
         release(mm, chunk_pos, pos)  # keep the resident set small however large the file
-
+    del whole
     out = Accumulator()
-    for cid, conn in conns.items():
+    for cid, conn in index.connections.items():
         acc = accs[cid]
         times = np.concatenate(acc.times) if acc.times else np.empty(0, dtype=np.int64)
         out.add(conn.topic, conn.msgtype, times, acc.nbytes, conn.callerid)
     out.method = "index"
-    return out.build(path, "ros1")
+    return out
+
+
+def read_fast(path: Path, mm: mmap.mmap) -> RecordingStats:
+    """The whole bag from its index: :func:`read_chunks` over every chunk of :func:`read_index`."""
+    return read_chunks(mm, read_index(mm)).build(path, "ros1")
 
 
 def _scan_chunk(raw: bytes, conns: dict[int, Connection], times: dict[int, list[int]],

@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import itertools
 import mmap
-import re
 import shutil
 import sqlite3
 import tempfile
@@ -41,11 +40,17 @@ import numpy as np
 
 from perfros_bag.errors import InputError, PerfrosWarning
 from perfros_bag.fileio import read_yaml
-from perfros_bag.ingest import mcapfile, sqlitepages
-from perfros_bag.ingest._accum import I64, Accumulator, Damaged, NoIndex, close_mmap, describe
-
-STORAGE_SUFFIXES = {".db3": "sqlite3", ".mcap": "mcap"}
-ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"
+from perfros_bag.ingest import mcapfile, read_head, sniff, sqlitepages
+from perfros_bag.ingest._accum import (
+    I64,
+    Accumulator,
+    Damaged,
+    NoIndex,
+    close_mmap,
+    describe,
+    zstd_size,
+)
+from perfros_bag.ingest.discover import natural_key, storage_of
 
 
 @dataclass
@@ -55,16 +60,6 @@ class Metadata:
     compression_mode: str = ""  # "", "FILE", "MESSAGE"
     compression_format: str = ""  # "", "zstd"
     topics: list[tuple[str, str]] = field(default_factory=list)  # (name, type)
-
-
-def storage_of(path: Path) -> str | None:
-    """'sqlite3' / 'mcap' from the suffix (``.zstd`` file compression stripped), else None."""
-    name = path.name[:-5] if path.name.endswith(".zstd") else path.name
-    return STORAGE_SUFFIXES.get(Path(name).suffix)
-
-
-def _natural_key(p: Path) -> list[Any]:
-    return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", p.name)]
 
 
 def parse_metadata(path: Path) -> Metadata:
@@ -94,7 +89,7 @@ def parse_metadata(path: Path) -> Metadata:
 def resolve_files(root: Path, meta: Metadata | None) -> list[Path]:
     """The storage files of a rosbag2 directory: those the metadata lists (tolerating stale
     prefixes), plus any other storage file present (with a warning)."""
-    present = sorted((p for p in root.iterdir() if p.is_file() and storage_of(p)), key=_natural_key)
+    present = sorted((p for p in root.iterdir() if p.is_file() and storage_of(p)), key=natural_key)
     if meta is None or not meta.files:
         return present
     listed: list[Path] = []
@@ -206,15 +201,6 @@ def _sql_columns(con: sqlite3.Connection) -> tuple[I64, I64, I64] | None:
     return tuple(np.concatenate([p[i] for p in parts]) for i in range(3))  # type: ignore[return-value]
 
 
-def _zstd_size(blob: bytes) -> int:
-    import zstandard
-
-    size = zstandard.frame_content_size(blob[:18]) if len(blob) >= 6 else -1
-    if size < 0:
-        size = len(zstandard.ZstdDecompressor().decompressobj().decompress(blob))
-    return int(size)
-
-
 def _rows_loop(rows: Iterable[tuple[Any, Any, Any]],
                size_of: Callable[[Any], int]) -> tuple[I64, I64, I64]:
     tid_l, time_l, size_l = [], [], []
@@ -229,7 +215,7 @@ def _columns(con: sqlite3.Connection, db: Path, fast: bool, message_zstd: bool,
              wal: bool) -> tuple[tuple[I64, I64, I64], str]:
     """(topic ids, timestamps, payload sizes) and how they were read, cheapest way first."""
     if not fast:
-        size = (lambda b: _zstd_size(bytes(b))) if message_zstd else len
+        size = (lambda b: zstd_size(bytes(b))) if message_zstd else len
         return _rows_loop(con.execute("SELECT topic_id, timestamp, data FROM messages"), size), "stream"
     if message_zstd:  # the decompressed size is in each zstd frame header
         def frame_size(row: Any) -> int:
@@ -237,7 +223,7 @@ def _columns(con: sqlite3.Connection, db: Path, fast: bool, message_zstd: bool,
             size = _zstd_frame_size(head)
             if size < 0:
                 (blob,) = con.execute("SELECT data FROM messages WHERE id = ?", (mid,)).fetchone()
-                size = _zstd_size(bytes(blob))
+                size = zstd_size(bytes(blob))
             return size
 
         cur = con.execute("SELECT topic_id, timestamp, substr(data, 1, 18), id FROM messages")
@@ -308,16 +294,13 @@ def read_storage_file(path: Path, fast: bool = True, message_zstd: bool = False)
     if path.name.endswith(".zstd"):
         with _decompressed(path) as plain:
             return read_storage_file(plain, fast, message_zstd)
-    with path.open("rb") as f:
-        head = f.read(16)
-    if not head:
-        raise InputError(path, "empty file (0 bytes)")
-    if head.startswith(b"SQLite format 3\0"):
+    fmt = sniff(read_head(path))
+    if fmt == "rosbag2-sqlite3":
         return read_sqlite(path, fast, message_zstd)
-    if head.startswith(mcapfile.MAGIC):
+    if fmt == "mcap":
         with open_mmap(path) as mm:
             return mcapfile.read(mm, fast, message_zstd)
-    if head.startswith(ZSTD_MAGIC):
+    if fmt == "zstd":
         raise InputError(path, "zstd-compressed file without a .zstd suffix")
     raise InputError(path, "not a sqlite3 or MCAP storage file")
 
