@@ -14,27 +14,16 @@ from __future__ import annotations
 
 import argparse
 import csv
-import statistics
 import sys
 import tempfile
-import time
-from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import yaml
+from _timing import median
 
 from perfros_bag.fitting import regression
 from perfros_bag.fitting.build import build_model
-
-
-def _timeit(fn: Callable[[], object], repeat: int) -> float:
-    times = []
-    for _ in range(repeat):
-        t = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t)
-    return statistics.median(times)
 
 
 def _sklearn_folds(form: str, x: np.ndarray, y: np.ndarray) -> tuple[float, ...]:
@@ -52,11 +41,11 @@ def bench_fit_curve(repeat: int) -> None:
         def run(x: np.ndarray = x, y: np.ndarray = y) -> regression.FittedRelation:
             return regression.fit_curve(x.tolist(), y.tolist(), scale=100, monotone="nondecreasing")
 
-        lib = _timeit(run, repeat)
+        lib = median(run, repeat)
         a = run()
         regression._lstsq_form = _sklearn_folds  # type: ignore[assignment]
         try:
-            base = _timeit(run, repeat)
+            base = median(run, repeat)
             b = run()
         finally:
             regression._lstsq_form = fast  # type: ignore[assignment]
@@ -89,7 +78,7 @@ def bench_build_model(nodes: int, repeat: int) -> None:
                                               "bandwidth_kBps", "cpu_units_mean"])
             w.writeheader()
             w.writerows(rows)
-        secs = _timeit(lambda: build_model(d / "system.yaml", d / "c.csv"), repeat)
+        secs = median(lambda: build_model(d / "system.yaml", d / "c.csv"), repeat)
         print(f"build_model: {nodes} configurable nodes x 5 relations, 5 values x 3 recordings: "
               f"{secs:.3f} s ({secs / nodes * 1000:.1f} ms per node)")
 
