@@ -1,0 +1,129 @@
+"""Start-up: ``--help`` loads no heavy library and no other verb; the lazy verb table matches
+the verbs' real commands.
+
+The import checks run the real entry point in a fresh interpreter and look at its
+``sys.modules`` when it exits. No timing is asserted.
+"""
+
+from __future__ import annotations
+
+import importlib
+import inspect
+import json
+import os
+import pkgutil
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import pytest
+import typer
+
+import perfros_bag
+import perfros_bag.cli
+from perfros_bag.cli._app import app
+from perfros_bag.cli._lazy import VERBS
+
+ROOT = Path(__file__).resolve().parent.parent
+#: never imported for --help (nor by ``import perfros_bag``)
+HEAVY = {"numpy", "pandas", "matplotlib", "highspy", "sklearn", "scipy", "dask", "distributed"}
+CLI_PACKAGE = "perfros_bag.cli"
+
+
+def _env(**extra: str) -> dict[str, str]:
+    env = dict(os.environ, **extra)
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [extra.get("PYTHONPATH"), str(ROOT),
+                                                      os.environ.get("PYTHONPATH")]))
+    return env
+
+
+#: runs the real entry point (``python -m perfros_bag``), then writes ``sys.modules`` to a file
+_PROBE = """\
+import json, runpy, sys
+out, sys.argv = sys.argv[1], ["perfros-bag", *sys.argv[2:]]
+try:
+    {run}
+finally:
+    with open(out, "w") as f:
+        json.dump(sorted(sys.modules), f)
+"""
+
+
+def imported_by(*args: str, code: str = "runpy.run_module('perfros_bag', run_name='__main__')",
+                ) -> tuple[subprocess.CompletedProcess[str], set[str]]:
+    """Run ``code`` (the CLI) with ``ARGS`` in a fresh interpreter: the process and the names
+    of every module it imported."""
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "modules.json"
+        proc = subprocess.run([sys.executable, "-c", _PROBE.format(run=code), str(out), *args],
+                              capture_output=True, text=True, env=_env(COLUMNS="120"), timeout=120)
+        modules = set(json.loads(out.read_text()))
+    return proc, modules
+
+
+def _verb_modules(modules: set[str]) -> set[str]:
+    return {m for m in modules if m.startswith(CLI_PACKAGE + ".") and not m.split(".")[-1].startswith("_")}
+
+
+def test_top_level_help_imports_no_verb_and_lists_every_verb() -> None:
+    proc, modules = imported_by("--help")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "perfros_bag.cli._app" in modules  # the parse of -X importtime works
+    assert not modules & HEAVY, sorted(modules & HEAVY)
+    assert not _verb_modules(modules), sorted(_verb_modules(modules))
+    rows = [line[2:] for line in proc.stdout.splitlines() if line.startswith("│ ") and line[2] not in " -"]
+    assert [row.split()[0] for row in rows] == list(VERBS)  # every verb, in the table's order
+    for row, verb in zip(rows, VERBS.values(), strict=True):
+        assert verb.help.splitlines()[0] in row
+
+
+@pytest.mark.parametrize("args", [[v] for v in VERBS] + [["casestudy", "run"], ["casestudy", "cleanup"]],
+                         ids=" ".join)
+def test_verb_help_imports_only_that_verb_and_nothing_heavy(args: list[str]) -> None:
+    proc, modules = imported_by(*args, "--help")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert f"Usage: perfros-bag {' '.join(args)}" in proc.stdout
+    assert not modules & HEAVY, sorted(modules & HEAVY)
+    assert _verb_modules(modules) == {VERBS[args[0]].module}
+
+
+def _all_real_commands() -> dict[str, typer.core.TyperCommand | typer.core.TyperGroup]:
+    """Import every verb module of the package (as the eager CLI did): name -> command."""
+    for mod in pkgutil.iter_modules(perfros_bag.cli.__path__):
+        if not mod.name.startswith("_"):
+            importlib.import_module(f"{CLI_PACKAGE}.{mod.name}")
+    return dict(typer.main.get_group(app).commands)
+
+
+def test_verb_table_matches_the_real_commands() -> None:
+    real = _all_real_commands()
+    assert set(real) == set(VERBS)
+    modules = {m.name for m in pkgutil.iter_modules(perfros_bag.cli.__path__) if not m.name.startswith("_")}
+    assert {v.module for v in VERBS.values()} == {f"{CLI_PACKAGE}.{m}" for m in modules}
+    for name, command in real.items():
+        # what typer shows in the verb list: the docstring's first paragraph
+        assert VERBS[name].help == inspect.cleandoc(command.help or "").split("\n\n")[0], name
+    for name, verb in VERBS.items():
+        callback = real[name].callback
+        if callback is not None:  # a group (casestudy) has none; its sub-commands live in its module
+            assert inspect.unwrap(callback).__module__ == verb.module, name
+
+
+def test_lazy_help_is_the_eager_help() -> None:
+    """The verb list drawn from the table is the one drawn from the loaded verb modules."""
+    proc, _ = imported_by("--help")
+    load_all = ("import importlib; from perfros_bag.cli._lazy import VERBS; "
+                "[importlib.import_module(v.module) for v in VERBS.values()]; "
+                "runpy.run_module('perfros_bag', run_name='__main__')")
+    eager, modules = imported_by("--help", code=load_all)
+    assert _verb_modules(modules) == {v.module for v in VERBS.values()}
+    assert proc.returncode == eager.returncode == 0, eager.stderr[-2000:]
+    assert proc.stdout == eager.stdout
+
+
+def test_unknown_verb_suggests_a_verb_not_loaded_yet() -> None:
+    proc, modules = imported_by("solv")
+    assert proc.returncode == 2
+    assert "No such command 'solv'" in proc.stderr and "'solve'" in proc.stderr
+    assert not _verb_modules(modules)
