@@ -1,5 +1,5 @@
 """Start-up: ``--help`` loads no heavy library and no other verb; the lazy verb table matches
-the verbs' real commands.
+the verbs' real commands; ``import perfros_bag`` stays light; the public API.
 
 The import checks run the real entry point in a fresh interpreter and look at its
 ``sys.modules`` when it exits. No timing is asserted.
@@ -127,3 +127,47 @@ def test_unknown_verb_suggests_a_verb_not_loaded_yet() -> None:
     assert proc.returncode == 2
     assert "No such command 'solv'" in proc.stderr and "'solve'" in proc.stderr
     assert not _verb_modules(modules)
+
+
+def test_import_perfros_bag_is_light() -> None:
+    proc, modules = imported_by(code="import perfros_bag; perfros_bag.__version__; perfros_bag.PerfrosError")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    ours = {m for m in modules if m.startswith("perfros_bag")}
+    assert ours == {"perfros_bag", "perfros_bag.errors"}
+    assert not modules & (HEAVY | {"yaml", "rosbags", "mcap", "typer", "rich"})
+
+
+def test_public_api_names_are_the_library_objects() -> None:
+    from perfros_bag import errors
+    from perfros_bag.characterisation import table
+    from perfros_bag.export import writers
+    from perfros_bag.ingest import read_recording, stats
+    from perfros_bag.report import html
+    from perfros_bag.solver import solve
+    from perfros_bag.system import plan, systemfile, types
+    from perfros_bag.validation import eq10
+
+    expected = {
+        "read_recording": read_recording, "RecordingStats": stats.RecordingStats,
+        "TopicStats": stats.TopicStats, "load_system": systemfile.load_system, "System": types.System,
+        "load_plan": plan.load_plan, "Plan": plan.Plan, "find_entries": table.find_entries,
+        "characterise": table.characterise, "solve": solve, "validate": eq10.validate_files,
+        "Validation": eq10.Validation, "export_plan": writers.export_plan,
+        "build_report": html.build_report, "PerfrosError": errors.PerfrosError,
+        "InputError": errors.InputError, "InfeasibleError": errors.InfeasibleError,
+        "PerfrosWarning": errors.PerfrosWarning,
+    }
+    assert set(perfros_bag.__all__) == set(expected) | {"__version__"}
+    for name, obj in expected.items():
+        assert getattr(perfros_bag, name) is obj, name
+    assert set(perfros_bag.__all__) <= set(dir(perfros_bag))
+    with pytest.raises(AttributeError, match="no attribute 'nonexistent'"):
+        perfros_bag.nonexistent  # noqa: B018
+    namespace: dict[str, object] = {}
+    exec("from perfros_bag import *", namespace)  # noqa: S102 - the star import resolves every name
+    assert namespace["validate"] is eq10.validate_files
+
+
+def test_version_matches_the_package_metadata() -> None:
+    text = (ROOT / "pyproject.toml").read_text()
+    assert f'\nversion = "{perfros_bag.__version__}"\n' in text
