@@ -1,5 +1,5 @@
 """Start-up: ``--help`` loads no heavy library and no other verb; the lazy verb table matches
-the verbs' real commands; ``import perfros_bag`` stays light; the public API.
+the verbs' real commands; ``import perfros_bag`` stays light; the public API; no Dask.
 
 The import checks run the real entry point in a fresh interpreter and look at its
 ``sys.modules`` when it exits. No timing is asserted.
@@ -171,3 +171,24 @@ def test_public_api_names_are_the_library_objects() -> None:
 def test_version_matches_the_package_metadata() -> None:
     text = (ROOT / "pyproject.toml").read_text()
     assert f'\nversion = "{perfros_bag.__version__}"\n' in text
+
+
+def test_workers_without_dask_says_how_to_install_it(tmp_path: Path) -> None:
+    shim = tmp_path / "shim"
+    shim.mkdir()  # dask and distributed made unimportable, as in an install without the extra
+    (shim / "sitecustomize.py").write_text("import sys\nsys.modules['dask'] = None\n"
+                                           "sys.modules['distributed'] = None\n")
+    recordings = ROOT / "fixtures" / "recordings"
+    for extra in (["--workers", "2"], ["--scheduler", "tcp://127.0.0.1:8786"]):
+        out = tmp_path / "out.csv"
+        proc = subprocess.run([sys.executable, "-m", "perfros_bag", "characterise", str(recordings),
+                               "--out", str(out), *extra], capture_output=True, text=True, timeout=120,
+                              env=_env(PYTHONPATH=str(shim)))
+        assert proc.returncode == 2, proc.stderr
+        lines = proc.stderr.strip().splitlines()
+        assert len(lines) == 1, proc.stderr
+        assert lines[0].startswith("error: ") and "pip install 'perfros-bag[dask]'" in lines[0]
+        assert not out.exists()
+    check = subprocess.run([sys.executable, "-c", "import dask"], env=_env(PYTHONPATH=str(shim)),
+                           capture_output=True, text=True, timeout=60)
+    assert check.returncode != 0 and "dask" in check.stderr  # the shim did hide it

@@ -61,7 +61,8 @@ def characterise_cmd(
         raise PerfrosError(f"{directory}: no recordings found")
 
     with Progress(TextColumn("characterise"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                  TextColumn("{task.description}"), console=err, transient=True) as progress:
+                  TextColumn("{task.description}"), console=err, transient=True,
+                  disable=not err.is_terminal) as progress:  # else it leaves a blank line on stderr
         task = progress.add_task("", total=len(entries))
 
         def done(entry: RecordingEntry, failure: Failure | None) -> None:
