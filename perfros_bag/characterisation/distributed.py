@@ -4,7 +4,8 @@
 in this process; dask is not even imported then. With ``scheduler="tcp://HOST:PORT"``
 the tasks go to an existing dask.distributed cluster; with ``workers=N`` a
 ``LocalCluster`` of N single-threaded worker processes is started for the run and
-closed afterwards.
+closed afterwards. Dask is an optional extra (``perfros-bag[dask]``): without it those two
+raise a :class:`~perfros_bag.errors.PerfrosError` saying how to install it.
 
 Either way the caller gets one :class:`Outcome` per task, in task order: the value,
 or the :class:`~perfros_bag.errors.PerfrosError` the task raised (a bad recording is
@@ -184,8 +185,13 @@ def _safe(name: str) -> str:
 
 @contextmanager
 def _client(scheduler: str | None, workers: int | None) -> Iterator[Client]:
-    import dask
-    from distributed import Client, LocalCluster
+    try:
+        import dask
+        from distributed import Client, LocalCluster
+    except ImportError as exc:  # Dask is an optional extra
+        missing = f" ({exc.name} is missing)" if exc.name else ""
+        raise PerfrosError(f"running on Dask needs dask.distributed{missing}; "
+                           "install it with: pip install 'perfros-bag[dask]'") from None
 
     if scheduler is not None:
         try:

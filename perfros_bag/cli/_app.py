@@ -11,10 +11,19 @@ import typer
 from rich.console import Console
 from rich.markup import escape
 
+from perfros_bag.cli._lazy import LazyVerbGroup
 from perfros_bag.errors import PerfrosError
 
+
+def _no_group_options() -> None:
+    """No options before the verb (a callback keeps the app a group with 0 or 1 verbs loaded)."""
+
+
+#: The verbs register here (:func:`command`); ``--help`` lists them all without importing them.
 app = typer.Typer(
     name="perfros-bag",
+    cls=LazyVerbGroup,
+    callback=_no_group_options,
     help="Characterise ROS recordings, fit regressions, solve placement and settings, validate runs.",
     no_args_is_help=True,
     pretty_exceptions_enable=False,

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -13,6 +15,25 @@ from perfros_bag.cli._app import command, err, out
 if TYPE_CHECKING:
     from perfros_bag.characterisation.manifest import RecordingEntry
     from perfros_bag.characterisation.table import Failure
+
+
+@contextmanager
+def _progress_bar(total: int) -> Iterator[Callable[[RecordingEntry, Failure | None], None] | None]:
+    """A progress bar on stderr when it is a terminal; elsewhere none (no blank line left on a
+    pipe, and rich.progress is not even imported)."""
+    if not err.is_terminal:
+        yield None
+        return
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    with Progress(TextColumn("characterise"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                  TextColumn("{task.description}"), console=err, transient=True) as progress:
+        task = progress.add_task("", total=total)
+
+        def done(entry: RecordingEntry, failure: Failure | None) -> None:
+            progress.update(task, advance=1, description=entry.name)
+
+        yield done
 
 
 def _fmt(v: float | None, digits: int = 1) -> str:
@@ -33,7 +54,6 @@ def characterise_cmd(
 ) -> None:
     """Characterise every recording in DIR: per node and topic, frequency, bandwidth and CPU."""
     from rich.markup import escape
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
     from rich.table import Table
 
     from perfros_bag.characterisation.csvfile import write_characterisation
@@ -45,7 +65,6 @@ def characterise_cmd(
         table_one,
     )
     from perfros_bag.errors import PerfrosError
-    from perfros_bag.system.systemfile import load_system
 
     if out_path is None and not as_json:
         raise PerfrosError("characterise needs --out FILE or --json")
@@ -54,19 +73,17 @@ def characterise_cmd(
             raise PerfrosError(f"{target}: is a directory, expected a file to write")
     entries, manifest_system = find_entries(directory, manifest)
     sys_file = system_path or manifest_system
-    system = load_system(sys_file) if sys_file is not None else None
+    system = None
+    if sys_file is not None:
+        from perfros_bag.system.systemfile import load_system
+
+        system = load_system(sys_file)
     if system is not None and entries:
         check_settings(entries, system, manifest or directory / "manifest.yaml")
     if not entries:
         raise PerfrosError(f"{directory}: no recordings found")
 
-    with Progress(TextColumn("characterise"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                  TextColumn("{task.description}"), console=err, transient=True) as progress:
-        task = progress.add_task("", total=len(entries))
-
-        def done(entry: RecordingEntry, failure: Failure | None) -> None:
-            progress.update(task, advance=1, description=entry.name)
-
+    with _progress_bar(len(entries)) as done:
         result = characterise(entries, system, fast=not slow, on_done=done, scheduler=scheduler, workers=workers)
 
     for f in result.failures:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 import warnings
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 from rich.console import Console
@@ -13,8 +13,10 @@ from rich.table import Table
 
 from perfros_bag.cli._app import command, err, out
 from perfros_bag.errors import InputError, PerfrosWarning
-from perfros_bag.system.plan import Plan
-from perfros_bag.system.types import System
+
+if TYPE_CHECKING:
+    from perfros_bag.system.plan import Plan
+    from perfros_bag.system.types import System
 
 
 def parse_settings(system: System, text: str, resolution: float) -> dict[str, float]:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 from rich import box
@@ -13,7 +13,10 @@ from rich.markup import escape
 from rich.table import Table
 
 from perfros_bag.cli._app import command, err, out
-from perfros_bag.validation.eq10 import DEFAULT_TOLERANCE, TopicCheck, Validation
+from perfros_bag.validation import DEFAULT_TOLERANCE
+
+if TYPE_CHECKING:
+    from perfros_bag.validation.eq10 import TopicCheck, Validation
 
 
 def _f(x: float | None, fmt: str = ".3g") -> str:

@@ -38,9 +38,9 @@ from perfros_bag.errors import InputError, PerfrosWarning
 from perfros_bag.ingest.stats import RecordingStats, TopicStats
 from perfros_bag.system.plan import Plan
 from perfros_bag.system.types import System
+from perfros_bag.validation import DEFAULT_TOLERANCE
 
 VALIDATION_FORMAT = "perfros-bag/validation@1"
-DEFAULT_TOLERANCE = 5.0
 
 
 # ---------------------------------------------------------------------------------------
