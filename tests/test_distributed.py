@@ -175,7 +175,7 @@ def test_characterise_on_the_cluster_gives_the_same_csv(cluster: str, tmp_path: 
 
 
 def test_bad_options_and_unreachable_scheduler(monkeypatch: pytest.MonkeyPatch) -> None:
-    with pytest.raises(PerfrosError, match="either --scheduler or --workers"):
+    with pytest.raises(PerfrosError, match="both a Dask scheduler address and a number of local workers"):
         run_distributed([1], abs, scheduler="tcp://127.0.0.1:1", workers=2)
     with pytest.raises(PerfrosError, match="at least 1"):
         run_distributed([1], abs, workers=0)

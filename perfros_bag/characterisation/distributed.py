@@ -103,9 +103,9 @@ def run_distributed(
     is called with each :class:`Outcome` as it completes instead.
     """
     if scheduler is not None and workers is not None:
-        raise InputError(None, "give either --scheduler or --workers, not both")
+        raise InputError(None, "both a Dask scheduler address and a number of local workers were given: use one")
     if workers is not None and workers < 1:
-        raise InputError(None, f"--workers must be at least 1, got {workers}")
+        raise InputError(None, f"the number of local workers must be at least 1, got {workers}")
     items = list(tasks)
     labels = [label(item) for item in items]
     if scheduler is None and workers is None:
