@@ -39,9 +39,16 @@ class _TimeoutTransport(xmlrpc.client.Transport):
 def _call(uri: str, method: str, *args: Any) -> Any:
     try:
         proxy = xmlrpc.client.ServerProxy(uri, transport=_TimeoutTransport())
-        reply: Any = getattr(proxy, method)(CALLER_ID, *args)
-        code, _msg, value = reply
+        return getattr(proxy, method)(CALLER_ID, *args)
     except Exception:  # noqa: BLE001 - whatever answers on the port, it is not a ROS peer
+        return None
+
+
+def _value(reply: Any) -> Any:
+    """The value of a ``[code, message, value]`` reply; None unless code is 1 (success)."""
+    try:
+        code, _msg, value = reply
+    except (TypeError, ValueError):
         return None
     return value if code == 1 else None
 
@@ -49,12 +56,21 @@ def _call(uri: str, method: str, *args: Any) -> Any:
 def master_call(uri: str, method: str, *args: Any) -> Any:
     """One ROS master XML-RPC call; None on any failure (not up yet, or not a ROS master:
     another program may have taken the port)."""
-    return _call(uri, method, *args)
+    return _value(_call(uri, method, *args))
 
 
 def node_call(uri: str, method: str, *args: Any) -> Any:
-    """One call of a node's XML-RPC API (``getPid``, ``getBusStats``...); None on failure."""
-    return _call(uri, method, *args)
+    """One call of a node's XML-RPC API (``getPid``...); None on failure."""
+    return _value(_call(uri, method, *args))
+
+
+def bus_stats(uri: str) -> Any:
+    """A node's ``getBusStats``: ``[publish, subscribe, service]`` statistics. roscpp
+    answers them bare, not as ``[code, message, value]``; both are accepted."""
+    reply = _call(uri, "getBusStats")
+    if isinstance(reply, list) and len(reply) == 3 and isinstance(reply[0], int):
+        return _value(reply)
+    return reply
 
 
 def master_state(uri: str) -> tuple[list[Any], list[Any]] | None:
