@@ -73,7 +73,7 @@ def check_space(launch: LaunchFile, space: Space) -> None:
 
 
 def launch_argv(launch: LaunchFile, args: Mapping[str, str]) -> list[str]:
-    return [str(launch.path), *(f"{k}:={v}" for k, v in args.items())]
+    return [str(launch.path.absolute()), *(f"{k}:={v}" for k, v in args.items())]
 
 
 def launch_nodes(launch: LaunchFile, args: Mapping[str, str], env: Mapping[str, str], timeout: float) -> list[str]:

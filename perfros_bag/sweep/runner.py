@@ -63,6 +63,7 @@ OWN_NODES = frozenset({f"/{PROBE_NODE}", f"/{RECORD_NODE}"})
 #: Topics that need not carry a message for a run to start (roscore's log topics).
 QUIET_TOPICS = frozenset({"/rosout", "/rosout_agg"})
 _DIED = re.compile(r"\[([^\]\s]+)-\d+\] process has died \[pid (\d+), exit code (-?\d+)")
+_NOT_LAUNCHED = re.compile(r"ERROR: cannot launch node of type \[([^\]]+)\]: ?(.*)")
 
 #: progress(run index, runs, run name, stage, fraction of the run's recording done)
 Progress = Callable[[int, int, str, str, float], None]
@@ -105,6 +106,9 @@ def sweep(launch_path: str | Path, space_path: str | Path, out: str | Path, *, d
         raise InputError(outdir, "is not a directory, expected the folder to record into")
     outdir.mkdir(parents=True, exist_ok=True)
     manifest_path = outdir / "manifest.yaml"
+    copy = outdir / "space.yaml"  # what was varied, for init (parameter names and units)
+    if not copy.exists() or not copy.samefile(space.path):
+        atomic_write_text(copy, space.path.read_text(encoding="utf-8"))
     entries = _finished_entries(manifest_path)
     result = SweepResult([r.name for r in runs])
     note = progress or (lambda i, n, name, stage, frac: None)
@@ -170,7 +174,8 @@ class _Watch:
         if died:
             return died
         if self.launcher.popen.poll() is not None:
-            return f"roslaunch (exit code {self.launcher.popen.returncode}; see {self.log})"
+            cause = _last_error(self.log)
+            return f"roslaunch ({cause + '; ' if cause else ''}exit code {self.launcher.popen.returncode}; see {self.log})"
         for st in self.others:
             if st.popen.poll() is not None:
                 return f"{st.name} (exit code {st.popen.returncode}; see {st.log.name})"
@@ -185,15 +190,30 @@ class _Watch:
         return None
 
 
-def _died_line(log: Path) -> str | None:
+def _log_text(log: Path) -> str:
+    """A log's text without terminal colour codes ('' when unreadable)."""
     try:
-        text = log.read_text(errors="replace")
+        return re.sub(r"\x1b\[[0-9;]*m", "", log.read_text(errors="replace"))
     except OSError:
-        return None
+        return ""
+
+
+def _last_error(log: Path) -> str | None:
+    """roslaunch's last error line."""
+    lines = [x.strip() for x in _log_text(log).splitlines()]
+    return next((x for x in reversed(lines) if re.search(r"error|exception", x, re.IGNORECASE)), None)
+
+
+def _died_line(log: Path) -> str | None:
+    text = _log_text(log)
     m = _DIED.search(text)
-    if m is None:
-        return None
-    return f"node {m.group(1)} (pid {m.group(2)}, exit code {m.group(3)}; see {log})"
+    if m is not None:
+        return f"node {m.group(1)} (pid {m.group(2)}, exit code {m.group(3)}; see {log})"
+    m = _NOT_LAUNCHED.search(text)
+    if m is not None:  # roslaunch goes on without it
+        cause = m.group(2).strip().rstrip(".")
+        return f"node of type {m.group(1)} ({cause or 'roslaunch cannot start it'}; see {log})"
+    return None
 
 
 def record_run(launch: LaunchFile, space: Space, run: Run, out: Path, *, interval: float = 0.5,
