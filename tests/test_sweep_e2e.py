@@ -12,6 +12,7 @@ master's port, no cgroup.
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import signal
@@ -30,22 +31,16 @@ from perfros_bag.characterisation.manifest import load_manifest
 from perfros_bag.rosrun.cgroups import leftover_groups
 from perfros_bag.rosrun.processes import RUN_ENV, leftover_processes
 from tests.conftest import FIXTURES
+from tests.test_casestudy_e2e import (  # the case study's independent checks
+    BAG_RATES,
+    ROS_PY,
+    _processes_on,
+)
 
 pytestmark = pytest.mark.ros
 
 BIN = Path(sys.executable).with_name("perfros-bag")
-ROS_PY = "/usr/bin/python3"
 APP = FIXTURES / "app" / "app.launch"
-
-# Independent rates: Debian's rosbag reader, not the project's.
-BAG_RATES = r"""
-import json, sys, rosbag
-times = {}
-with rosbag.Bag(sys.argv[1]) as bag:
-    for topic, _msg, t in bag.read_messages():
-        times.setdefault(topic, []).append(t.to_sec())
-print(json.dumps({k: (len(v) - 1) / (v[-1] - v[0]) for k, v in times.items() if len(v) > 1}))
-"""
 
 
 def _require_ros() -> None:
@@ -84,29 +79,16 @@ def _ours(out: Path) -> list[psutil.Process]:
     return found
 
 
-def _on_port(port: int) -> list[str]:
-    found = []
-    for p in psutil.process_iter(["pid", "cmdline"]):
-        try:
-            cmd = " ".join(p.info["cmdline"] or [])
-            env = p.environ()
-        except (psutil.Error, OSError):
-            continue
-        if f":{port}" in env.get("ROS_MASTER_URI", "") or f"-p {port}" in cmd:
-            found.append(f"{p.pid} {cmd}")
-    return found
-
-
 def _nothing_left(out: Path, tags: set[str], ports: set[int]) -> None:
     deadline = time.monotonic() + 5
-    while (_ours(out) or any(_on_port(p) for p in ports)) and time.monotonic() < deadline:
+    while (_ours(out) or any(_processes_on(p) for p in ports)) and time.monotonic() < deadline:
         time.sleep(0.2)
     assert _ours(out) == []
     for tag in tags:
         assert leftover_processes(tag) == [], tag
         assert leftover_groups(run_id=tag) == [], tag
     for port in ports:
-        assert _on_port(port) == [], port
+        assert _processes_on(port) == [], port
 
 
 def _launch_nodes(launch: Path) -> dict[str, dict[str, str]]:
@@ -116,7 +98,9 @@ def _launch_nodes(launch: Path) -> dict[str, dict[str, str]]:
             for n in root.iter("node")}
 
 
+@functools.cache
 def _bag_rates(bag: Path) -> dict[str, float]:
+    """Per-topic rates by Debian's rosbag API (each bag read once)."""
     done = subprocess.run([ROS_PY, "-c", BAG_RATES, str(bag)], capture_output=True, text=True, timeout=60,
                           check=True, env={k: v for k, v in os.environ.items() if k != "PYTHONPATH"})
     rates: dict[str, float] = json.loads(done.stdout)

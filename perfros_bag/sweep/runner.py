@@ -29,6 +29,7 @@ import socket
 import time
 import uuid
 from collections.abc import Callable, Mapping
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -258,10 +259,11 @@ def record_run(launch: LaunchFile, space: Space, run: Run, out: Path, *, interva
 
 def _record(launch: LaunchFile, space: Space, run: Run, work: Path, procs: Processes, timeout: float,
             interval: float, note: Callable[[str, float], None]) -> Graph:
-    note("roslaunch --nodes", 0.0)
-    nodes = launch_nodes(launch, run.args, procs.env, timeout)
     note("roscore", 0.0)
-    uri = start_roscore(procs, work, timeout)
+    with ThreadPoolExecutor(max_workers=1) as pool:  # roslaunch --nodes while roscore starts
+        listing = pool.submit(launch_nodes, launch, run.args, dict(procs.env), timeout)
+        uri = start_roscore(procs, work, timeout)
+        nodes = listing.result()
     for name, value in run.params.items():
         if master_call(uri, "setParam", name, value) is None:
             raise PerfrosError(f"the master did not take the parameter {name}={value!r}")
