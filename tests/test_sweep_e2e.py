@@ -202,6 +202,25 @@ def test_init_characterise_fit_solve_with_no_hand_written_file(swept: tuple[Path
     assert step.returncode == 0, step.stderr
 
 
+def test_init_without_graph_yaml_takes_the_nodes_from_the_recordings(swept: tuple[Path, Path, Any],
+                                                                      tmp_path: Path) -> None:
+    _d, out, done = swept
+    assert done.returncode == 0, done.stderr
+    bare = tmp_path / "rec"
+    bare.mkdir()
+    for f in out.iterdir():
+        if f.name != "graph.yaml":
+            (bare / f.name).symlink_to(f)
+    system = tmp_path / "system.yaml"
+    drafted = _cli("init", str(bare), "--out", str(system))
+    assert drafted.returncode == 0, drafted.stderr
+    doc = yaml.safe_load(system.read_text())
+    assert {n["name"] for n in doc["nodes"]} == {n.lstrip("/") for n in _launch_nodes(APP)}
+    assert "edges" not in doc and "no graph.yaml: no edges" in system.read_text()
+    step = _cli("solve", str(system), "--problem", "1", "--method", "greedy", "--out", str(tmp_path / "plan.json"))
+    assert step.returncode == 0, step.stderr
+
+
 def _wait(cond: Any, proc: subprocess.Popen[str], timeout: float, what: str) -> None:
     deadline = time.monotonic() + timeout
     while not cond():

@@ -61,10 +61,10 @@ def draft_system(directory: str | Path, out: str | Path) -> str:
 
     d = Path(directory)
     manifest = _manifest(d)
+    values = _values(manifest)
     graph_path = d / "graph.yaml"
     graph = read_graph(graph_path) if graph_path.exists() else _graph_from_recordings(manifest)
     parameters = _parameters(d)
-    values = _values(manifest)
     computer, cores = _computer(manifest)
     app = [n for n in graph.nodes if n.launched and not NOT_APP.match(n.name)]
     if not app:
