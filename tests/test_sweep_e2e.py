@@ -1,6 +1,6 @@
 """``sweep`` on Debian's real, unmodified C++ nodes (image_publisher + opencv_apps'
 hough_circles, fixtures/app/app.launch), then ``init`` -> ``characterise`` -> ``fit`` ->
-``solve`` with no file written by hand.
+``solve`` -> ``deploy`` (which validates) with no file written by hand.
 
 Checked against independent sources: the nodes and the subscription of the drafted system
 against the launch file's own XML; every recorded rate against Debian's rosbag API (under
@@ -31,9 +31,10 @@ from perfros_bag.characterisation.manifest import load_manifest
 from perfros_bag.rosrun.cgroups import leftover_groups
 from perfros_bag.rosrun.processes import RUN_ENV, leftover_processes
 from tests.conftest import FIXTURES
-from tests.test_casestudy_e2e import (  # the case study's independent checks
+from tests.test_casestudy_e2e import (
     BAG_RATES,
     ROS_PY,
+    _cgroups_work,  # the case study's independent checks
     _processes_on,
 )
 
@@ -160,7 +161,7 @@ def test_sweep_records_every_setting_and_leaves_nothing(swept: tuple[Path, Path,
     assert "0 run(s) recorded, 4 already there" in again.stderr
 
 
-def test_init_characterise_fit_solve_with_no_hand_written_file(swept: tuple[Path, Path, Any]) -> None:
+def test_init_characterise_fit_solve_deploy_with_no_hand_written_file(swept: tuple[Path, Path, Any]) -> None:
     d, out, done = swept
     assert done.returncode == 0, done.stderr
     system = d / "system.yaml"
@@ -200,6 +201,27 @@ def test_init_characterise_fit_solve_with_no_hand_written_file(swept: tuple[Path
     assert solved["status"] in ("optimal", "feasible") and set(solved["nodes"]) == {"camera", "detector"}
     step = _cli("solve", str(system), "--problem", "1", "--method", "greedy", "--out", str(d / "plan2.json"))
     assert step.returncode == 0, step.stderr
+
+    # deploy the plan on this machine (its computer a cgroup when cgroups work here), validate it
+    run = d / "deployed"
+    step = _cli("deploy", str(plan), str(APP), "--space", str(d / "space.yaml"), "--out", str(run),
+                "--duration", "3")
+    assert step.returncode in (0, 1), step.stderr  # 1: the run deviates from the plan by more than 5 %
+    assert "Traceback" not in step.stderr
+    record = json.loads((run / "deploy.json").read_text())
+    _nothing_left(run, {record["run_id"]}, set())
+    assert record["leftover_cgroups"] == []
+    assert (record["cpu_cap"]["mode"] != "uncapped") == _cgroups_work()
+    assert record["values"] == {n: solved["nodes"][n]["value"] for n in ("camera", "detector")}
+    assert {n: v["computer"] for n, v in record["nodes"].items()} == {
+        f"/{n}": v["computer"] for n, v in solved["nodes"].items()}
+    validation = json.loads((run / "validation.json").read_text())
+    assert (step.returncode == 0) == (validation["overall"]["deviation_pct"] <= 5.0)
+    measured = _bag_rates(run / "run.bag")[image]
+    assert abs(measured / solved["nodes"]["camera"]["value"] - 1) < 0.1  # the camera ran at the planned rate
+    camera = next(n for n in validation["nodes"] if n["node"] == "camera")
+    checked = next(t for t in camera["topics"] if t["topic"] == image)
+    assert abs(checked["f_measured"] / measured - 1) < 0.01
 
 
 def test_init_without_graph_yaml_takes_the_nodes_from_the_recordings(swept: tuple[Path, Path, Any],

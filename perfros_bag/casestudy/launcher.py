@@ -35,6 +35,7 @@ from perfros_bag.casestudy.profiles import (
 )
 from perfros_bag.errors import InputError, PerfrosError
 from perfros_bag.fileio import atomic_write_json, atomic_write_text
+from perfros_bag.rosrun.cgroups import emulated_trace
 from perfros_bag.rosrun.master import ROSCORE, master_call, master_state, start_roscore
 from perfros_bag.rosrun.processes import (
     RUN_ENV,
@@ -51,7 +52,7 @@ from perfros_bag.system.types import System
 
 Progress = Callable[[str, float, float], None]  # (stage, done, total)
 
-# RUN_ENV, kill_stale, leftover_processes and the master calls moved to perfros_bag.rosrun;
+# RUN_ENV, kill_stale, leftover_processes, emulated_trace and the master calls moved to perfros_bag.rosrun;
 # they stay importable from here under their former names
 __all__ = ["RUN_ENV", "RunConfig", "computer_cores", "emulated_trace", "kill_stale", "leftover_processes",
            "measured_loads", "node_launches", "run_plan"]
@@ -261,32 +262,6 @@ def measured_loads(trace: Path, launches: list[NodeLaunch], units_per_core: floa
     return {"computers": {c: {"cpu": mean(per_time.get(c, {})), "capacity": round(cores[c] * units_per_core, 3)}
                           for c in cores},
             "nodes": {n: mean(d) for n, d in node_time.items()}}
-
-
-def emulated_trace(raw: Path, dest: Path, where: dict[str, str], capacity: dict[str, float],
-                   units_per_core: float) -> None:
-    """Rewrite the host's psutil trace for the emulated computers.
-
-    The contract normalises a trace as ``cpu_percent / (100 N) * R`` (N = the host's logical
-    CPUs, R = the computer's capacity). An emulated computer of capacity R is
-    ``R / units_per_core`` cores, so each row of a node on it is scaled by
-    ``N * units_per_core / R``: then the contract's formula gives
-    ``cpu_percent / 100 * units_per_core`` CPU units, as it should. Rows of processes that
-    are not plan nodes are dropped. The raw trace stays beside it (``run.host.cpu.csv``).
-    """
-    from perfros_bag.cpu.trace import read_cpu_trace, write_cpu_trace
-
-    tr = read_cpu_trace(raw)
-    rows = []
-    for t, pid, label, proc, cpu, rss in zip(tr.time.tolist(), tr.pid.tolist(), tr.node, tr.process,
-                                             tr.cpu_percent.tolist(), tr.rss_bytes.tolist(), strict=True):
-        comp = where.get(label)
-        if comp is None:
-            continue
-        rows.append((t, pid, label, proc, cpu * tr.logical_cpus * units_per_core / capacity[comp], rss))
-    write_cpu_trace(dest, rows, host=f"{tr.host or 'host'} (emulated computers: cpu_percent scaled by "
-                    f"N*{units_per_core:g}/capacity; raw psutil trace: {raw.name})",
-                    logical_cpus=tr.logical_cpus, interval_s=tr.interval_s or 0.5)
 
 
 def _write_outputs(out: Path, record: dict[str, Any], system: System, plan: Plan,

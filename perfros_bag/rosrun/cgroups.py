@@ -9,6 +9,7 @@ its whole life is capped.
 Where cgroups cannot be created (no root, read-only cgroupfs, no cpu controller), the
 groups fall back to ``uncapped``: a clear warning, processes run without a cap, and the
 run is marked uncapped. :meth:`CpuGroups.remove` deletes every group it created.
+:func:`emulated_trace` rescales a host's CPU trace to the emulated computers' units.
 """
 
 from __future__ import annotations
@@ -172,3 +173,29 @@ def leftover_groups(root: Path = CGROUP_ROOT, run_id: str | None = None) -> list
         if base.is_dir():
             found += sorted(base.glob(pattern))
     return found
+
+
+def emulated_trace(raw: Path, dest: Path, where: dict[str, str], capacity: dict[str, float],
+                   units_per_core: float) -> None:
+    """Rewrite the host's psutil trace for the emulated computers.
+
+    The contract normalises a trace as ``cpu_percent / (100 N) * R`` (N = the host's logical
+    CPUs, R = the computer's capacity). An emulated computer of capacity R is
+    ``R / units_per_core`` cores, so each row of a node on it is scaled by
+    ``N * units_per_core / R``: then the contract's formula gives
+    ``cpu_percent / 100 * units_per_core`` CPU units, as it should. Rows of processes that
+    are not plan nodes are dropped. The raw trace stays beside it (``run.host.cpu.csv``).
+    """
+    from perfros_bag.cpu.trace import read_cpu_trace, write_cpu_trace
+
+    tr = read_cpu_trace(raw)
+    rows = []
+    for t, pid, label, proc, cpu, rss in zip(tr.time.tolist(), tr.pid.tolist(), tr.node, tr.process,
+                                             tr.cpu_percent.tolist(), tr.rss_bytes.tolist(), strict=True):
+        comp = where.get(label)
+        if comp is None:
+            continue
+        rows.append((t, pid, label, proc, cpu * tr.logical_cpus * units_per_core / capacity[comp], rss))
+    write_cpu_trace(dest, rows, host=f"{tr.host or 'host'} (emulated computers: cpu_percent scaled by "
+                    f"N*{units_per_core:g}/capacity; raw psutil trace: {raw.name})",
+                    logical_cpus=tr.logical_cpus, interval_s=tr.interval_s or 0.5)

@@ -5,4 +5,5 @@
 - :mod:`~perfros_bag.sweep.graph` - ``graph.yaml``: the ROS graph the master saw.
 - :mod:`~perfros_bag.sweep.runner` - ``sweep``: one roscore + roslaunch + recorders per run.
 - :mod:`~perfros_bag.sweep.draft` - ``init``: a system.yaml drafted from a sweep's folder.
+- :mod:`~perfros_bag.sweep.deploy` - ``deploy``: a plan run here, computers as cgroups, validated.
 """

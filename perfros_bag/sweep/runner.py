@@ -218,22 +218,25 @@ def _died_line(log: Path) -> str | None:
 
 
 def record_run(launch: LaunchFile, space: Space, run: Run, out: Path, *, interval: float = 0.5,
-               progress: Callable[[str, float], None] | None = None) -> Graph:
-    """Record one run into ``out/<run>.bag`` and ``out/<run>.cpu.csv``; returns its graph."""
+               progress: Callable[[str, float], None] | None = None, run_id: str | None = None,
+               on_graph: Callable[[Graph], None] | None = None) -> Graph:
+    """Record one run into ``out/<run>.bag`` and ``out/<run>.cpu.csv``; returns its graph.
+    ``on_graph`` is called with the graph (every node up, with its PID) before recording
+    starts; ``run_id`` tags the run's processes (default: a new one)."""
     note = progress or (lambda stage, frac: None)
     work = out / WORK / run.name
     if work.exists():
         shutil.rmtree(work)
     ros_home = work / "ros"
     ros_home.mkdir(parents=True)
-    run_id = uuid.uuid4().hex[:10]
+    run_id = run_id or uuid.uuid4().hex[:10]
     procs = Processes(run_id, ros_env(run_id, ros_home))
     timeout = space.startup_timeout_s
     interrupted = False
     try:
         with sigterm_as_interrupt():
             try:
-                graph = _record(launch, space, run, work, procs, timeout, interval, note)
+                graph = _record(launch, space, run, work, procs, timeout, interval, note, on_graph)
             except PerfrosError as exc:
                 raise PerfrosError(f"run {run.name}: {exc}") from None
     except KeyboardInterrupt:
@@ -258,7 +261,8 @@ def record_run(launch: LaunchFile, space: Space, run: Run, out: Path, *, interva
 
 
 def _record(launch: LaunchFile, space: Space, run: Run, work: Path, procs: Processes, timeout: float,
-            interval: float, note: Callable[[str, float], None]) -> Graph:
+            interval: float, note: Callable[[str, float], None],
+            on_graph: Callable[[Graph], None] | None = None) -> Graph:
     note("roscore", 0.0)
     with ThreadPoolExecutor(max_workers=1) as pool:  # roslaunch --nodes while roscore starts
         listing = pool.submit(launch_nodes, launch, run.args, dict(procs.env), timeout)
@@ -308,6 +312,8 @@ def _record(launch: LaunchFile, space: Space, run: Run, work: Path, procs: Proce
     missing = [n.name for n in graph.nodes if n.launched and n.pid is None]
     if missing:
         raise PerfrosError(f"node(s) {', '.join(missing)} did not answer getPid")
+    if on_graph is not None:
+        on_graph(graph)
     labels = sorted({n.rsplit("/", 1)[-1] for n in nodes})
     pattern = "(^| )__name:=(" + "|".join(re.escape(x) for x in labels) + ")( |$)"
     cpu = start_record_cpu(procs, [pattern], interval, work / "host.cpu.csv", work / "record-cpu.log", work)

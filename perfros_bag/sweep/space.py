@@ -218,7 +218,7 @@ def plan_runs(space: Space, arg_defaults: Mapping[str, str | None]) -> list[Run]
     (``default:``, else the launch file's ``<arg>`` default, else the first value); a
     setting that repeats an earlier one (all at default) runs once. ``grid``: every
     combination. ``arg_defaults``: the launch file's declared args and their defaults."""
-    defaults = {v.node: _default(v, arg_defaults) for v in space.vary}
+    defaults = {v.node: default_value(v, arg_defaults) for v in space.vary}
     settings: list[dict[str, Value]] = []
     if space.design is Design.GRID:
         for combo in itertools.product(*(v.values for v in space.vary)):
@@ -251,7 +251,9 @@ def plan_runs(space: Space, arg_defaults: Mapping[str, str | None]) -> list[Run]
     return runs
 
 
-def _default(v: Varied, arg_defaults: Mapping[str, str | None]) -> Value:
+def default_value(v: Varied, arg_defaults: Mapping[str, str | None]) -> Value:
+    """An entry's value while another varies: ``default``, else the launch file's ``<arg>``
+    default, else its first value."""
     if v.default is not None:
         return v.default
     if v.arg is not None and arg_defaults.get(v.arg) is not None:
