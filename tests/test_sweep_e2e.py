@@ -351,3 +351,69 @@ def test_bad_input_is_one_line_before_anything_runs(tmp_path: Path) -> None:
     missing = _cli("sweep", str(tmp_path / "nope.launch"), "--space", str(space), "--out", str(out))
     assert missing.returncode == 2 and "launch file not found" in missing.stderr
     assert not out.exists() or not any(out.iterdir())
+
+
+# a ROS package of our own for the cases Debian's nodes do not show: a node that advertises
+# a topic and never publishes on it
+QUIET_NODE = """#!/usr/bin/python3
+import rospy
+from std_msgs.msg import String
+rospy.init_node("quiet")
+pub = rospy.Publisher("~never", String, queue_size=1)
+rospy.spin()
+"""
+
+
+def test_a_topic_that_never_publishes_is_one_line(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    _require_ros()
+    pkg = tmp_path / "pkgs" / "perfros_quiet"
+    pkg.mkdir(parents=True)
+    (pkg / "package.xml").write_text('<?xml version="1.0"?><package format="2"><name>perfros_quiet</name>'
+                                     '<version>0.0.1</version><description>test</description>'
+                                     '<maintainer email="t@t">t</maintainer><license>MIT</license></package>')
+    script = pkg / "quiet.py"
+    script.write_text(QUIET_NODE)
+    script.chmod(0o755)
+    launch = tmp_path / "quiet.launch"
+    launch.write_text('<launch><arg name="rate" default="5"/>'
+                      '<node name="quiet" pkg="perfros_quiet" type="quiet.py"/></launch>')
+    space = _space(tmp_path / "space.yaml", startup_timeout_s=4,
+                   vary=[{"node": "quiet", "parameter": {"name": "rate"}, "arg": "rate", "values": [5]}])
+    monkeypatch.setenv("ROS_PACKAGE_PATH", str(tmp_path / "pkgs"))
+    out = tmp_path / "rec"
+    done = _cli("sweep", str(launch), "--space", str(space), "--out", str(out))
+    assert done.returncode == 2, done.stderr
+    lines = [x for x in done.stderr.splitlines() if x.strip()]
+    assert lines == ["error: run quiet-rate-5: topic(s) /quiet/never never published within 4 s"], done.stderr
+    _nothing_left(out, set(), set())
+    assert not (out / "manifest.yaml").exists()
+
+
+# Debian's rosbag reader: the value of an int parameter in a node's dynamic_reconfigure
+# parameter_updates (what the node itself runs with)
+BAG_INT_PARAM = r"""
+import sys, rosbag
+with rosbag.Bag(sys.argv[1]) as bag:
+    for _topic, msg, _t in bag.read_messages(topics=[sys.argv[2]]):
+        print([p.value for p in msg.ints if p.name == sys.argv[3]][0])
+        break
+"""
+
+
+def test_a_param_entry_reaches_the_node(tmp_path: Path) -> None:
+    """``param:`` sets a private parameter the launch file does not set; the node's own
+    dynamic_reconfigure report, recorded in the bag, shows the value of each run."""
+    _require_ros()
+    space = _space(tmp_path / "space.yaml", duration_s=2, settle_s=0,
+                   vary=[{"node": "detector", "parameter": {"name": "gaussian_blur_size"},
+                          "param": "gaussian_blur_size", "values": [5, 11]}])
+    out = tmp_path / "rec"
+    done = _cli("sweep", str(APP), "--space", str(space), "--out", str(out))
+    assert done.returncode == 0, done.stderr
+    manifest = load_manifest(out / "manifest.yaml")
+    assert [e.settings["detector"] for e in manifest.recordings] == [5, 11]
+    for e in manifest.recordings:
+        shown = subprocess.run([ROS_PY, "-c", BAG_INT_PARAM, str(e.path), "/detector/parameter_updates",
+                                "gaussian_blur_size"], capture_output=True, text=True, timeout=60, check=True,
+                               env={k: v for k, v in os.environ.items() if k != "PYTHONPATH"})
+        assert int(shown.stdout) == e.settings["detector"], (e.name, shown.stdout)

@@ -374,20 +374,21 @@ def _silent_topics(uri: str, graph: Graph, nodes: list[str]) -> list[str]:
 
 
 def _published_bytes(stats: Any) -> dict[str, int]:
-    """Bytes sent per published topic from a node's ``getBusStats`` (roscpp: ``[topic,
-    [[id, bytes, ...], ...]]``; rospy: ``[topic, bytes, [[id, bytes, ...], ...]]``)."""
+    """Message bytes sent per published topic, from a node's ``getBusStats`` (handshake
+    headers not counted). roscpp: ``[topic, [[id, bytes, message_bytes, messages, _], ...]]``
+    (``bytes`` already without headers); rospy: ``[topic, message_bytes, [[id, bytes with
+    headers, messages, connected], ...]]``."""
     out: dict[str, int] = {}
     if not isinstance(stats, list) or not stats or not isinstance(stats[0], list):
         return out
     for entry in stats[0]:
-        if not isinstance(entry, list) or not entry or not isinstance(entry[0], str):
+        if not isinstance(entry, list) or len(entry) < 2 or not isinstance(entry[0], str):
             continue
-        conns = next((x for x in reversed(entry[1:]) if isinstance(x, list)), [])
-        total = 0
-        for conn in conns:
-            if isinstance(conn, list) and len(conn) > 1 and isinstance(conn[1], int):
-                total += conn[1]
-        out[entry[0]] = total
+        if isinstance(entry[1], int) and not isinstance(entry[1], bool):  # rospy
+            out[entry[0]] = entry[1]
+        elif isinstance(entry[1], list):  # roscpp
+            out[entry[0]] = sum(c[2] for c in entry[1] if isinstance(c, list) and len(c) > 2
+                                and isinstance(c[2], int))
     return out
 
 
