@@ -107,6 +107,7 @@ def sweep(launch_path: str | Path, space_path: str | Path, out: str | Path, *, d
         raise InputError(outdir, "is not a directory, expected the folder to record into")
     outdir.mkdir(parents=True, exist_ok=True)
     manifest_path = outdir / "manifest.yaml"
+    system_ref = _manifest_system(manifest_path)
     copy = outdir / "space.yaml"  # what was varied, for init (parameter names and units)
     if not copy.exists() or not copy.samefile(space.path):
         atomic_write_text(copy, space.path.read_text(encoding="utf-8"))
@@ -127,7 +128,7 @@ def sweep(launch_path: str | Path, space_path: str | Path, out: str | Path, *, d
         graph = record_run(launch, space, run, outdir, interval=interval, progress=stage)
         entries[f"{run.name}.bag"] = {"path": f"{run.name}.bag", "cpu": f"{run.name}.cpu.csv",
                                       "computer": computer_name(), "settings": dict(run.values)}
-        write_manifest(manifest_path, list(entries.values()))
+        write_manifest(manifest_path, list(entries.values()), system_ref)
         write_graph(outdir / "graph.yaml", graph)
         result.recorded.append(run.name)
         note(i, len(runs), run.name, "done", 1.0)
@@ -152,11 +153,21 @@ def _finished_entries(manifest_path: Path) -> dict[str, dict[str, Any]]:
     return kept
 
 
-def write_manifest(path: Path, entries: list[dict[str, Any]]) -> None:
+def _manifest_system(manifest_path: Path) -> str | None:
+    """The ``system:`` a manifest already names (kept when sweep rewrites it)."""
+    if not manifest_path.exists():
+        return None
+    data = read_yaml(manifest_path)
+    system = data.get("system") if isinstance(data, dict) else None
+    return system if isinstance(system, str) else None
+
+
+def write_manifest(path: Path, entries: list[dict[str, Any]], system: str | None = None) -> None:
     import yaml
 
-    text = yaml.safe_dump({"recordings": entries}, sort_keys=False, default_flow_style=None, width=100)
-    atomic_write_text(path, text)
+    doc: dict[str, Any] = {} if system is None else {"system": system}
+    doc["recordings"] = entries
+    atomic_write_text(path, yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=100))
 
 
 @dataclass
