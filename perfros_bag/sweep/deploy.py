@@ -122,7 +122,7 @@ def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Pat
             groups.apply()
 
     groups.create(capped=False, quiet=not cap)
-    mode, reason = (groups.mode, groups.reason) if cap else ("uncapped", "disabled (--no-cap)")
+    mode, reason = (groups.mode, groups.reason) if cap else ("uncapped", "capping not asked for")
     try:
         graph = record_run(launch, space, run, outdir, interval=interval, progress=progress, run_id=run_id,
                            on_graph=place)

@@ -92,7 +92,7 @@ def _manifest(d: Path) -> Manifest:
         raise InputError(d, "not a directory (expected the folder sweep recorded into)")
     path = d / "manifest.yaml"
     if not path.exists():
-        raise InputError(d, "no manifest.yaml (record the runs with `perfros-bag sweep` first)")
+        raise InputError(d, "no manifest.yaml: not a folder of recorded runs (a sweep writes one)")
     manifest = load_manifest(path)
     if not manifest.recordings:
         raise InputError(path, "lists no recording")
