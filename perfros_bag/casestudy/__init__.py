@@ -4,7 +4,8 @@
   ``/usr/bin/python3``) that plays any of the eight node types.
 - :mod:`~perfros_bag.casestudy.profiles` - a node's rate, message size and CPU work at a
   parameter value, interpolated from the system's Table I settings, and the calibration.
-- :mod:`~perfros_bag.casestudy.cgroups` - computers emulated as CPU-capped cgroups.
+- :mod:`~perfros_bag.casestudy.cgroups` - computers emulated as CPU-capped cgroups (the
+  implementation, shared with ``sweep``, is :mod:`perfros_bag.rosrun`).
 - :mod:`~perfros_bag.casestudy.launcher` - deploy a plan: roscore, nodes, rosbag record,
   CPU trace, clean shutdown.
 """

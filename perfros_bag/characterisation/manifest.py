@@ -61,6 +61,19 @@ def default_cpu_path(recording: Path) -> Path | None:
     return next((c for c in candidates if c.is_file()), None)
 
 
+def write_manifest(path: str | Path, entries: list[dict[str, Any]], system: str | None = None) -> None:
+    """Write a manifest (atomically) from plain entries (``path``, ``cpu``, ``computer``,
+    ``settings``), checking them with the reader first: a bad entry is never written."""
+    import yaml
+
+    from perfros_bag.fileio import atomic_write_text
+
+    doc: dict[str, Any] = {} if system is None else {"system": system}
+    doc["recordings"] = entries
+    parse_manifest(doc, Path(path))
+    atomic_write_text(path, yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=100))
+
+
 def load_manifest(path: str | Path) -> Manifest:
     p = Path(path)
     data = read_yaml(p)

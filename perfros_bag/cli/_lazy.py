@@ -44,6 +44,12 @@ VERBS: Mapping[str, Verb] = {
     "validate": Verb("perfros_bag.cli.validate", "Compare a run with its plan (the paper's eq 10); exit 1 when "
                      "the overall deviation\nexceeds --tolerance."),
     "version": Verb("perfros_bag.cli.version", "Print perfros-bag's version."),
+    "sweep": Verb("perfros_bag.cli.sweep", "Run APP.launch once per setting of space.yaml; record every topic "
+                  "and the nodes' CPU."),
+    "init": Verb("perfros_bag.cli.init", "Draft system.yaml from DIR's graph.yaml, manifest and recordings "
+                 "(loads, fits and solves as it is)."),
+    "deploy": Verb("perfros_bag.cli.deploy", "Run PLAN on this machine (each computer a CPU-capped cgroup), "
+                   "record it and validate it (eq 10)."),
     "casestudy": Verb("perfros_bag.cli.casestudy", "The paper's case study on real ROS 1 nodes (roscore, rospy, "
                       "rosbag)."),
 }

@@ -1,0 +1,43 @@
+"""``perfros-bag sweep APP.launch --space space.yaml --out DIR``: record one run per setting."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from perfros_bag.cli._app import command, err
+
+
+@command("sweep", interrupted="interrupted: finished runs are kept in the manifest; nothing is left running")
+def sweep_cmd(
+    launch: Path = typer.Argument(..., metavar="APP.launch", help="Your ROS 1 launch file."),  # noqa: B008
+    space: Path = typer.Option(..., "--space", help="space.yaml: what to vary and how it reaches the launch file."),  # noqa: B008
+    out_dir: Path = typer.Option(..., "--out", "-o", help="Folder for <run>.bag, <run>.cpu.csv, manifest.yaml, graph.yaml."),  # noqa: B008
+    duration: float | None = typer.Option(None, "--duration", "-d", help="Seconds recorded per run (default: space.yaml's duration_s)."),
+    interval: float = typer.Option(0.5, "--interval", "-i", min=0.05, help="Seconds between CPU samples."),
+) -> None:
+    """Run APP.launch once per setting of space.yaml; record every topic and the nodes' CPU."""
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
+
+    from perfros_bag.sweep.runner import sweep
+
+    columns = [TextColumn("sweep"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), TextColumn("ETA"),
+               TimeRemainingColumn(), TextColumn("{task.description}")]
+    with Progress(*columns, console=err, transient=True) as progress:
+        task = progress.add_task("", total=None)
+
+        def show(i: int, runs: int, name: str, stage: str, frac: float) -> None:
+            progress.update(task, total=runs, completed=i + frac, description=f"{name}: {stage}")
+
+        result = sweep(launch, space, out_dir, duration=duration, interval=interval, progress=show)
+    done = len(result.recorded)
+    err.print(f"{done} run(s) recorded, {len(result.skipped)} already there -> {out_dir}/manifest.yaml, "
+              f"{out_dir}/graph.yaml", highlight=False)

@@ -1,0 +1,201 @@
+"""Computers emulated as Linux cgroups: one CPU-capped group per computer.
+
+A computer of capacity R CPU units gets ``R / units_per_core`` cores of CPU time
+(CFS bandwidth: ``cpu.cfs_quota_us`` on cgroup v1, ``cpu.max`` on cgroup v2) and a large
+CPU weight, so the emulated computers are not starved by unrelated load on the host.
+A process joins its computer's group before it execs (see :meth:`CpuGroups.wrap`), so
+its whole life is capped.
+
+Where cgroups cannot be created (no root, read-only cgroupfs, no cpu controller), the
+groups fall back to ``uncapped``: a clear warning, processes run without a cap, and the
+run is marked uncapped. :meth:`CpuGroups.remove` deletes every group it created.
+:func:`emulated_trace` rescales a host's CPU trace to the emulated computers' units.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from perfros_bag.errors import PerfrosWarning
+
+CGROUP_ROOT = Path(os.environ.get("PERFROS_CGROUP_ROOT", "/sys/fs/cgroup"))
+PREFIX = "perfros-"
+PERIOD_US = 100_000
+WEIGHT_V1 = 10240  # cpu.shares (default 1024)
+WEIGHT_V2 = 1000  # cpu.weight (default 100)
+
+
+def cgroup_version(root: Path = CGROUP_ROOT) -> str:
+    """``v2`` (unified), ``v1`` (a ``cpu`` controller hierarchy) or ``none``."""
+    if (root / "cgroup.controllers").exists():
+        return "v2"
+    if (root / "cpu" / "cpu.cfs_quota_us").exists():
+        return "v1"
+    return "none"
+
+
+@dataclass
+class CpuGroups:
+    """One cgroup per computer for the run ``run_id`` (names ``perfros-<run_id>-<computer>``)."""
+
+    run_id: str
+    cores: dict[str, float]  # computer -> cores of CPU time
+    root: Path = CGROUP_ROOT
+    mode: str = "uncapped"  # "cgroup-v1" | "cgroup-v2" | "uncapped"
+    reason: str = ""
+    dirs: dict[str, Path] = field(default_factory=dict)
+
+    @property
+    def capped(self) -> bool:
+        return self.mode != "uncapped"
+
+    def create(self, *, capped: bool = True, quiet: bool = False) -> None:
+        """Create the groups; with ``capped=False`` without a quota yet (see :meth:`apply`).
+        ``quiet``: no warning when that fails (a run that was not going to cap anyway)."""
+        version = cgroup_version(self.root)
+        try:
+            if version == "v1":
+                base = self.root / "cpu"
+                for comp, cores in self.cores.items():
+                    d = base / f"{PREFIX}{self.run_id}-{comp}"
+                    d.mkdir()
+                    self.dirs[comp] = d
+                    (d / "cpu.cfs_period_us").write_text(str(PERIOD_US))
+                    (d / "cpu.cfs_quota_us").write_text(str(_quota_us(cores)) if capped else "-1")
+                    (d / "cpu.shares").write_text(str(WEIGHT_V1))
+                self.mode = "cgroup-v1"
+            elif version == "v2":
+                ctl = self.root / "cgroup.subtree_control"
+                if "cpu" not in ctl.read_text().split():
+                    ctl.write_text("+cpu")
+                for comp, cores in self.cores.items():
+                    d = self.root / f"{PREFIX}{self.run_id}-{comp}"
+                    d.mkdir()
+                    self.dirs[comp] = d
+                    (d / "cpu.max").write_text(f"{_quota_us(cores) if capped else 'max'} {PERIOD_US}")
+                    (d / "cpu.weight").write_text(str(WEIGHT_V2))
+                self.mode = "cgroup-v2"
+            else:
+                raise OSError(f"no cgroup cpu controller under {self.root}")
+            self._probe()
+        except OSError as exc:
+            self.remove()
+            self.mode = "uncapped"
+            self.reason = str(exc)
+            if quiet:
+                return
+            warnings.warn(f"cannot create CPU-capped cgroups ({exc}); the computers run UNCAPPED "
+                          "(results are marked uncapped: overloads will not show)", PerfrosWarning,
+                          stacklevel=2)
+
+    def _probe(self) -> None:
+        """A process can join each group (the same shell step :meth:`wrap` uses)."""
+        import subprocess
+
+        for comp in self.dirs:
+            argv = self.wrap(comp, ["/bin/true"])
+            done = subprocess.run(argv, capture_output=True, text=True, timeout=10, check=False)
+            if done.returncode != 0:
+                raise OSError(f"cannot move a process into {self.dirs[comp]}: {done.stderr.strip() or done.returncode}")
+
+    def apply(self) -> None:
+        """Set every group's CPU quota (the nodes start uncapped: rospy's imports are slow)."""
+        for comp, d in self.dirs.items():
+            if self.mode == "cgroup-v1":
+                (d / "cpu.cfs_quota_us").write_text(str(_quota_us(self.cores[comp])))
+            elif self.mode == "cgroup-v2":
+                (d / "cpu.max").write_text(f"{_quota_us(self.cores[comp])} {PERIOD_US}")
+
+    def procs_file(self, computer: str) -> Path | None:
+        d = self.dirs.get(computer)
+        return None if d is None else d / "cgroup.procs"
+
+    def wrap(self, computer: str, argv: list[str]) -> list[str]:
+        """``argv`` prefixed so the process joins ``computer``'s group, then execs."""
+        procs = self.procs_file(computer)
+        if procs is None:
+            return argv
+        return ["/bin/sh", "-c", 'echo $$ > "$0" && exec "$@"', str(procs), *argv]
+
+    def throttled(self, computer: str) -> dict[str, float]:
+        """CFS throttling counters of the group (nr_periods, nr_throttled, throttled seconds)."""
+        d = self.dirs.get(computer)
+        out: dict[str, float] = {}
+        if d is None:
+            return out
+        try:
+            for line in (d / "cpu.stat").read_text().splitlines():
+                key, _, val = line.partition(" ")
+                if key in ("nr_periods", "nr_throttled"):
+                    out[key] = float(val)
+                elif key == "throttled_time":  # v1, ns
+                    out["throttled_s"] = float(val) / 1e9
+                elif key == "throttled_usec":  # v2
+                    out["throttled_s"] = float(val) / 1e6
+        except (OSError, ValueError):
+            pass
+        return out
+
+    def remove(self, timeout: float = 5.0) -> list[Path]:
+        """Delete the groups (waiting for their processes to be gone); returns those left."""
+        left: list[Path] = []
+        for comp, d in list(self.dirs.items()):
+            deadline = time.monotonic() + timeout
+            while True:
+                try:
+                    d.rmdir()
+                    break
+                except FileNotFoundError:
+                    break
+                except OSError:
+                    if time.monotonic() > deadline:
+                        left.append(d)
+                        break
+                    time.sleep(0.05)
+            if d not in left:
+                del self.dirs[comp]
+        return left
+
+
+def _quota_us(cores: float) -> int:
+    return max(1000, int(round(cores * PERIOD_US)))
+
+
+def leftover_groups(root: Path = CGROUP_ROOT, run_id: str | None = None) -> list[Path]:
+    """perfros cgroups still present (of one run, or of any)."""
+    pattern = f"{PREFIX}{run_id}-*" if run_id else f"{PREFIX}*"
+    found: list[Path] = []
+    for base in (root / "cpu", root):
+        if base.is_dir():
+            found += sorted(base.glob(pattern))
+    return found
+
+
+def emulated_trace(raw: Path, dest: Path, where: dict[str, str], capacity: dict[str, float],
+                   units_per_core: float) -> None:
+    """Rewrite the host's psutil trace for the emulated computers.
+
+    The contract normalises a trace as ``cpu_percent / (100 N) * R`` (N = the host's logical
+    CPUs, R = the computer's capacity). An emulated computer of capacity R is
+    ``R / units_per_core`` cores, so each row of a node on it is scaled by
+    ``N * units_per_core / R``: then the contract's formula gives
+    ``cpu_percent / 100 * units_per_core`` CPU units, as it should. Rows of processes that
+    are not plan nodes are dropped. The raw trace stays beside it (``run.host.cpu.csv``).
+    """
+    from perfros_bag.cpu.trace import read_cpu_trace, write_cpu_trace
+
+    tr = read_cpu_trace(raw)
+    rows = []
+    for t, pid, label, proc, cpu, rss in zip(tr.time.tolist(), tr.pid.tolist(), tr.node, tr.process,
+                                             tr.cpu_percent.tolist(), tr.rss_bytes.tolist(), strict=True):
+        comp = where.get(label)
+        if comp is None:
+            continue
+        rows.append((t, pid, label, proc, cpu * tr.logical_cpus * units_per_core / capacity[comp], rss))
+    write_cpu_trace(dest, rows, host=f"{tr.host or 'host'} (emulated computers: cpu_percent scaled by "
+                    f"N*{units_per_core:g}/capacity; raw psutil trace: {raw.name})",
+                    logical_cpus=tr.logical_cpus, interval_s=tr.interval_s or 0.5)

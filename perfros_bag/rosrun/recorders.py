@@ -1,0 +1,32 @@
+"""The recorders of a run: ``rosbag record`` (Debian's) and ``perfros-bag record-cpu``."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+from perfros_bag.rosrun.processes import Processes, Started
+
+ROSBAG = "rosbag"
+# Debian's rosbag C++ recorder: what `rosbag record` (a Python wrapper) runs; starting it
+# directly saves the wrapper's ~1 s of imports.
+RECORD_BIN = Path("/usr/lib/rosbag/record")
+
+
+def start_rosbag(procs: Processes, name: str, bag: Path, topics: list[str] | None, node_name: str,
+                 log: Path, cwd: Path) -> Started:
+    """``rosbag record -O bag`` of ``topics`` (None: every topic, ``-a``) as ROS node
+    ``node_name``."""
+    recorder = [str(RECORD_BIN)] if RECORD_BIN.exists() else [ROSBAG, "record"]
+    which = ["-a"] if topics is None else topics
+    return procs.start(name, [*recorder, "-O", str(bag), *which, f"__name:={node_name}"], log, cwd=cwd)
+
+
+def start_record_cpu(procs: Processes, patterns: list[str], interval: float, trace: Path, log: Path,
+                     cwd: Path) -> Started:
+    """``perfros-bag record-cpu`` (this interpreter) of the processes matching ``patterns``."""
+    argv = [sys.executable, "-m", "perfros_bag", "record-cpu", "--quiet"]
+    for pattern in patterns:
+        argv += ["--match", pattern]
+    argv += ["--interval", f"{interval:g}", "--out", str(trace)]
+    return procs.start("record-cpu", argv, log, cwd=cwd)

@@ -1,0 +1,151 @@
+"""``deploy``: run a plan on this machine, with the user's launch file, before it goes to the robots.
+
+Each computer of the plan becomes a cgroup of ``capacity / units_per_core`` cores
+(:mod:`perfros_bag.rosrun.cgroups`: v1 or v2; ``uncapped``, stated, where cgroups cannot be
+made). The launch file runs once with the plan's parameter values (through the ``arg`` or
+``param`` of space.yaml that reaches each node), exactly as a ``sweep`` run
+(:func:`perfros_bag.sweep.runner.record_run`); once every node is up, each one's process is
+moved into its computer's group and the caps are set. The run is recorded (``run.bag``, a
+CPU trace rescaled to the emulated computers, ``manifest.yaml``) and validated against
+the plan (eq 10, ``validation.json``); ``deploy.json`` says what ran, where, capped or not.
+"""
+
+from __future__ import annotations
+
+import shutil
+import uuid
+import warnings
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from perfros_bag.errors import InputError, PerfrosWarning
+from perfros_bag.fileio import atomic_write_json
+from perfros_bag.sweep.graph import Graph, write_graph
+from perfros_bag.sweep.launchfile import check_space, read_launch
+from perfros_bag.sweep.space import Run, Space, Value, arg_text, default_value, load_space
+
+if TYPE_CHECKING:
+    from perfros_bag.system.plan import Plan
+    from perfros_bag.validation.eq10 import Validation
+
+DEPLOY_FORMAT = "perfros-bag/deploy-run@1"
+
+
+@dataclass
+class DeployResult:
+    record: dict[str, Any]  # deploy.json
+    validation: Validation
+
+
+def plan_run(plan: Plan, space: Space, arg_defaults: dict[str, str | None]) -> Run:
+    """The run that sets every varied node to its plan value (its default when the plan
+    does not set it); a parameter whose values are all whole numbers gets a whole number."""
+    values: dict[str, Value] = {}
+    for v in space.vary:
+        planned = plan.nodes.get(v.system_name)
+        value: Value
+        if planned is not None and planned.value is not None:
+            value = planned.value
+            if all(isinstance(x, int) for x in v.values):
+                value = int(round(value))
+        else:
+            value = default_value(v, arg_defaults)
+        values[v.node] = value
+    return Run("run", {v.system_name: values[v.node] for v in space.vary},
+               {v.arg: arg_text(values[v.node]) for v in space.vary if v.arg is not None},
+               {v.param: values[v.node] for v in space.vary if v.param is not None}, 1)
+
+
+def computer_cores(plan: Plan, units_per_core: float) -> dict[str, float]:
+    """Cores per computer the plan uses: its capacity / ``units_per_core``."""
+    cores: dict[str, float] = {}
+    for name in sorted({pn.computer for pn in plan.nodes.values()}):
+        pc = plan.computers.get(name)
+        if pc is None or pc.capacity is None or pc.capacity <= 0:
+            raise InputError(None, f"the plan's computer {name!r} has no capacity to emulate")
+        cores[name] = pc.capacity / units_per_core
+    return cores
+
+
+def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Path, out: str | Path, *,
+           duration: float | None = None, units_per_core: float = 100.0, cap: bool = True,
+           tolerance: float | None = None, interval: float = 0.5,
+           progress: Callable[[str, float], None] | None = None) -> DeployResult:
+    from perfros_bag.characterisation.manifest import write_manifest
+    from perfros_bag.rosrun.cgroups import CpuGroups, emulated_trace
+    from perfros_bag.sweep.runner import record_run, require_ros_tools
+    from perfros_bag.system.planfile import load_plan
+    from perfros_bag.validation.eq10 import DEFAULT_TOLERANCE, validate_files
+
+    plan = load_plan(plan_path)
+    plan.require_feasible(plan_path, "deploy")
+    if units_per_core <= 0:
+        raise InputError(None, f"CPU units per core must be > 0, got {units_per_core:g}")
+    space = load_space(space_path)
+    if duration is not None:
+        if duration <= 0:
+            raise InputError(None, f"the recording duration must be > 0 s, got {duration:g}")
+        space = Space(space.path, duration, space.settle_s, 1, space.design, space.vary, space.startup_timeout_s)
+    launch = read_launch(launch_path)
+    check_space(launch, space)
+    unknown = sorted(v.system_name for v in space.vary if v.system_name not in plan.nodes)
+    if unknown:
+        warnings.warn(f"{space.path}: node(s) {', '.join(unknown)} not in the plan: run at their default",
+                      PerfrosWarning, stacklevel=2)
+    require_ros_tools()
+    run = plan_run(plan, space, dict(launch.args))
+    cores = computer_cores(plan, units_per_core)
+    outdir = Path(out).absolute()
+    outdir.mkdir(parents=True, exist_ok=True)
+    for stale in ("run.bag", "run.cpu.csv", "run.host.cpu.csv", "manifest.yaml", "graph.yaml", "deploy.json",
+                  "validation.json"):
+        (outdir / stale).unlink(missing_ok=True)
+    run_id = uuid.uuid4().hex[:10]
+    groups = CpuGroups(run_id, cores)
+    where = {f"/{name}": pn.computer for name, pn in plan.nodes.items()}
+    placed: dict[str, str] = {}
+
+    def place(graph: Graph) -> None:
+        """Move every planned node into its computer's group, then cap the groups."""
+        for node in graph.nodes:
+            procs_file = groups.procs_file(where.get(node.name, ""))
+            if procs_file is None or node.pid is None:
+                continue
+            try:
+                procs_file.write_text(str(node.pid))
+            except OSError as exc:
+                raise InputError(None, f"cannot move node {node.name} into {procs_file.parent}: {exc}") from None
+            placed[node.name] = where[node.name]
+        if cap:
+            groups.apply()
+
+    groups.create(capped=False, quiet=not cap)
+    mode, reason = (groups.mode, groups.reason) if cap else ("uncapped", "capping not asked for")
+    try:
+        graph = record_run(launch, space, run, outdir, interval=interval, progress=progress, run_id=run_id,
+                           on_graph=place)
+    finally:
+        left = groups.remove()
+    host_trace = outdir / "run.host.cpu.csv"
+    shutil.move(outdir / "run.cpu.csv", host_trace)
+    emulated_trace(host_trace, outdir / "run.cpu.csv", where, {c: n * units_per_core for c, n in cores.items()},
+                   units_per_core)
+    write_graph(outdir / "graph.yaml", graph)
+    write_manifest(outdir / "manifest.yaml", [{"path": "run.bag", "cpu": "run.cpu.csv", "settings": dict(run.values)}])
+    validation = validate_files(outdir / "run.bag", plan_path, cpu=[outdir / "run.cpu.csv"],
+                                tolerance=DEFAULT_TOLERANCE if tolerance is None else tolerance)
+    atomic_write_json(outdir / "validation.json", validation.to_dict())
+    record: dict[str, Any] = {
+        "format": DEPLOY_FORMAT, "run_id": run_id, "plan": str(plan_path), "launch": str(launch.path),
+        "duration_s": space.duration_s, "values": dict(run.values), "args": dict(run.args),
+        "params": dict(run.params),
+        "cpu_cap": {"mode": mode, "reason": reason, "cgroups": groups.mode, "cores": cores,
+                    "units_per_core": units_per_core},
+        "nodes": {n.name: {"pid": n.pid, "computer": placed.get(n.name, where.get(n.name))}
+                  for n in graph.nodes if n.launched},
+        "leftover_cgroups": [str(p) for p in left],
+    }
+    atomic_write_json(outdir / "deploy.json", record)
+    return DeployResult(record, validation)

@@ -1,0 +1,335 @@
+"""``init``: draft a system.yaml from a sweep's folder (graph.yaml, manifest.yaml, recordings).
+
+- one node per ROS node the launch file started (``/rosout`` and the tool's recorders left
+  out), named without the leading slash, with the topics it publishes at a rate
+  (``/rosout``, ``dynamic_reconfigure`` and latched one-message topics left out), a
+  ``process`` pattern matching its label in the sweep's CPU traces, and, when the sweep
+  varied it, its parameter (name and unit from the sweep's copy of space.yaml);
+- edges from the subscriptions the master saw (graph.yaml); without graph.yaml the nodes and
+  topics come from the recordings' ROS 1 ``callerid`` and there are no edges;
+- one setting per measured value: CPU, frequency and bandwidth measured (the mean over the
+  runs at that value; the characterisation of every run with a skeleton of this system);
+- what only the user knows, as a stated default and a comment: weights equal; performance
+  ``100 x`` the node's measured output frequency ``/`` its highest (eq 10 measures
+  performance through the output frequency);
+- this machine as one computer of ``cores x 100`` units (100 = one core), a commented robot +
+  server example.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import warnings
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from perfros_bag.errors import InputError, PerfrosWarning
+from perfros_bag.fileio import atomic_write_text
+from perfros_bag.sweep.graph import Graph, GraphNode, GraphTopic, read_graph
+from perfros_bag.sweep.space import load_space
+
+if TYPE_CHECKING:
+    from perfros_bag.characterisation.manifest import Manifest
+    from perfros_bag.characterisation.table import Row
+
+#: Nodes that are not the application's: roscore's and the tool's own recorders.
+NOT_APP = re.compile(r"^/(rosout|perfros_[a-z_]+)$")
+#: Message types that are not a node's output (logs, reconfiguration).
+NOT_OUTPUT = re.compile(r"^(rosgraph_msgs|dynamic_reconfigure)/")
+MIN_CPU = 0.1  # a setting's CPU must be > 0: what a node measured at 0 gets
+
+
+@dataclass(frozen=True)
+class DraftNode:
+    name: str  # system.yaml name (no leading slash)
+    ros_name: str
+    executable: str | None
+    topics: tuple[str, ...]
+    parameter: tuple[str, str | None] | None  # (name, unit)
+
+
+def node_name(ros_name: str) -> str:
+    return ros_name.lstrip("/")
+
+
+def draft_system(directory: str | Path, out: str | Path) -> str:
+    """Write the drafted system.yaml to ``out``; returns its text."""
+    from perfros_bag.characterisation.table import characterise, check_settings
+
+    d = Path(directory)
+    manifest = _manifest(d)
+    values = _values(manifest)
+    graph_path = d / "graph.yaml"
+    graph = read_graph(graph_path) if graph_path.exists() else _graph_from_recordings(manifest)
+    parameters = _parameters(d)
+    computer, cores = _computer(manifest)
+    app = [n for n in graph.nodes if n.launched and not NOT_APP.match(n.name)]
+    if not app:
+        raise InputError(graph_path, "no node of the application in the graph")
+    unknown = sorted(set(values) - {node_name(n.name) for n in app})
+    if unknown:
+        raise InputError(manifest.path, f"settings name node(s) {', '.join(unknown)} that the graph does not have")
+    skeleton = _skeleton(app, graph, values, parameters, computer, cores)
+    check_settings(manifest.recordings, skeleton, manifest.path)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", PerfrosWarning)
+        result = characterise(manifest.recordings, skeleton)
+    if result.failures:
+        raise InputError(result.failures[0].recording, result.failures[0].message)
+    text = _render(d, graph, skeleton, result.rows, values, computer, cores, graph_path.exists())
+    _check_loads(text, Path(out))
+    atomic_write_text(out, text)
+    return text
+
+
+def _manifest(d: Path) -> Manifest:
+    from perfros_bag.characterisation.manifest import load_manifest
+
+    if not d.is_dir():
+        raise InputError(d, "not a directory (expected the folder sweep recorded into)")
+    path = d / "manifest.yaml"
+    if not path.exists():
+        raise InputError(d, "no manifest.yaml: not a folder of recorded runs (a sweep writes one)")
+    manifest = load_manifest(path)
+    if not manifest.recordings:
+        raise InputError(path, "lists no recording")
+    return manifest
+
+
+def _values(manifest: Manifest) -> dict[str, list[float]]:
+    """node -> the numeric values the runs set, in ascending order."""
+    out: dict[str, set[float]] = {}
+    for e in manifest.recordings:
+        for node, value in e.settings.items():
+            if isinstance(value, str):
+                raise InputError(manifest.path, f"recording {e.name!r}: node {node}: value {value!r} is not a "
+                                 "number (system.yaml settings are numbers)")
+            out.setdefault(node, set()).add(value)
+    return {n: sorted(v) for n, v in out.items()}
+
+
+def _computer(manifest: Manifest) -> tuple[str, int]:
+    """This machine's name (the manifest's computer) and its logical CPUs (the CPU traces')."""
+    from perfros_bag.cpu.trace import read_cpu_trace
+    from perfros_bag.sweep.runner import computer_name
+
+    names = {e.computer for e in manifest.recordings if e.computer}
+    if len(names) > 1:
+        raise InputError(manifest.path, f"the runs name several computers ({', '.join(sorted(names))}): "
+                         "init drafts one machine")
+    name = names.pop() if names else computer_name()
+    trace = next((e.cpu for e in manifest.recordings if e.cpu is not None and e.cpu.exists()), None)
+    if trace is None:
+        raise InputError(manifest.path, "no CPU trace beside the recordings (expected <run>.cpu.csv)")
+    return name, read_cpu_trace(trace).logical_cpus
+
+
+def _parameters(d: Path) -> dict[str, tuple[str, str | None]]:
+    """node -> (parameter name, unit) from the sweep's copy of space.yaml (when there)."""
+    path = d / "space.yaml"
+    if not path.exists():
+        return {}
+    return {v.system_name: (v.parameter.name, v.parameter.unit) for v in load_space(path).vary}
+
+
+def _graph_from_recordings(manifest: Manifest) -> Graph:
+    """Nodes and topics from the first recording's ROS 1 ``callerid``s (no subscriptions)."""
+    from perfros_bag.ingest import read_recording
+
+    stats = read_recording(manifest.recordings[0].path)
+    topics = tuple(GraphTopic(t.topic, t.msgtype, tuple(sorted(t.publishers)), ())
+                   for t in sorted(stats.topics.values(), key=lambda t: t.topic))
+    names = sorted({p for t in topics for p in t.publishers})
+    if not names:
+        raise InputError(manifest.recordings[0].path, "no graph.yaml beside it and no publisher (callerid) in it")
+    return Graph(tuple(GraphNode(n, None, None, True) for n in names), topics)
+
+
+def _output_topics(node: GraphNode, graph: Graph) -> tuple[str, ...]:
+    return tuple(t.name for t in graph.topics
+                 if node.name in t.publishers and t.name not in ("/rosout", "/rosout_agg")
+                 and not NOT_OUTPUT.match(t.type or ""))
+
+
+def _skeleton(app: Sequence[GraphNode], graph: Graph, values: Mapping[str, list[float]],
+              parameters: Mapping[str, tuple[str, str | None]], computer: str, cores: int) -> Any:
+    """The system the runs are characterised with: the nodes, their topics and patterns."""
+    from perfros_bag.system.systemfile import parse_system
+
+    nodes = []
+    for n in app:
+        name = node_name(n.name)
+        entry: dict[str, Any] = {"name": name, "weight": 1.0, "process": f"^{re.escape(n.name)}$",
+                                 "settings": [{"cpu": 1, "performance": 1}]}
+        topics = _output_topics(n, graph)
+        if topics:
+            entry["topics"] = list(topics)
+        if name in values:
+            pname, unit = parameters.get(name, ("value", None))
+            entry["parameter"] = {"name": pname} if unit is None else {"name": pname, "unit": unit}
+        nodes.append(entry)
+    doc = {"computers": [{"name": computer, "kind": "robot", "capacity": cores * 100}], "nodes": nodes}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", PerfrosWarning)
+        return parse_system(doc, "<skeleton>")
+
+
+def _topic_means(rows: Sequence[Row]) -> dict[tuple[str, str, str], tuple[float | None, float | None]]:
+    """(node, value, topic) -> mean frequency and bandwidth over the recordings."""
+    acc: dict[tuple[str, str, str], list[tuple[float | None, float | None]]] = {}
+    for r in rows:
+        if r.node and r.topic:
+            acc.setdefault((r.node, repr(r.value), r.topic), []).append((r.frequency_hz, r.bandwidth_kBps))
+    out = {}
+    for key, pairs in acc.items():
+        f = [p[0] for p in pairs if p[0] is not None]
+        b = [p[1] for p in pairs if p[1] is not None]
+        out[key] = (sum(f) / len(f) if f else None, sum(b) / len(b) if b else None)
+    return out
+
+
+def _r(x: float, digits: int = 4) -> float:
+    return float(f"{x:.{digits}g}")
+
+
+def _render(d: Path, graph: Graph, skeleton: Any, rows: Sequence[Row], values: Mapping[str, list[float]],
+            computer: str, cores: int, from_graph: bool) -> str:
+    import yaml
+
+    from perfros_bag.characterisation.table import table_one
+
+    def flow(obj: Any) -> str:  # one line of YAML, names quoted where YAML needs it
+        return yaml.safe_dump([obj], default_flow_style=True, sort_keys=False, width=1 << 20).strip()[1:-1]
+
+    per_value = {(t.node, repr(t.value)): t for t in table_one(rows)}
+    topic_means = _topic_means(rows)
+    nodes = skeleton.nodes
+    weight = 1.0 / len(nodes)
+    runs = len({r.recording for r in rows})
+    lines = [
+        f"# system.yaml drafted by `perfros-bag init` from {d}: "
+        + ("graph.yaml, " if from_graph else "the recordings' callerids (no graph.yaml: no edges), ")
+        + f"manifest.yaml and {runs} run(s).",
+        "# It loads, fits and solves as it is. Lines marked REPLACE hold stated defaults that only you",
+        "# can know better: the nodes' weights and performance.",
+        f"cpu_unit: {flow(f'100 = one core of {computer} (the machine the sweep ran on)')}",
+        "computers:",
+        f"  # this machine: {cores} logical CPUs x 100",
+        f"  - {flow({'name': computer, 'kind': 'robot', 'capacity': cores * 100})}",
+        "  # where the nodes may run instead, e.g. a robot and a server on Wi-Fi (then add links:)",
+        "  # - {name: robot1, kind: robot, capacity: 100}",
+        "  # - {name: server, kind: server, capacity: 400}",
+        "# links:",
+        "#   - {between: [robot1, server], bandwidth_kBps: 37500, medium: wifi}",
+        "# media:",
+        "#   - {name: wifi, bandwidth_kBps: 37500}",
+        "nodes:",
+    ]
+    for node in nodes:
+        ros = graph.node("/" + node.name)
+        exe = ros.executable if ros is not None and ros.executable else "executable unknown"
+        keys = [_norm(v) for v in values.get(node.name, [])] if node.parameter else [None]
+        measured = [_measured(node, key, per_value, topic_means) for key in keys]
+        freqs = [m.frequency_hz for m in measured if m.frequency_hz]
+        top = max(freqs) if freqs else None
+        lines.append(f"  # /{node.name} ({exe})")
+        lines.append(f"  - name: {flow(node.name)}")
+        lines.append(f"    weight: {weight!r}  # REPLACE: every node weighs the same (a stated default)")
+        if node.parameter is not None:
+            lines.append(f"    parameter: {flow(_parameter(node.parameter))}")
+        if node.topics:
+            lines.append(f"    topics: {flow(list(node.topics))}")
+        lines.append(f"    process: {flow(node.process)}  # its ROS name in the sweep's CPU traces")
+        if top:
+            lines.append(f"    # performance: REPLACE. A stated default: 100 x the measured output frequency / "
+                         f"its highest ({_r(top)} Hz)")
+        else:
+            lines.append("    # performance: REPLACE. A stated default: 100 (the node publishes no output at a rate)")
+        lines.append("    settings:")
+        lines += [f"      - {flow(_setting(m, top))}" for m in measured]
+    edges = _edges(graph, nodes)
+    if edges:
+        lines.append("edges:")
+        lines += [f"  - {flow(e)}" for e in edges]
+    elif not from_graph:
+        lines.append("# edges: unknown without graph.yaml: add {from: NODE, to: NODE, topic: TOPIC} per subscription")
+    return "\n".join(lines) + "\n"
+
+
+def _norm(v: float) -> float | int:
+    return int(v) if float(v).is_integer() else v
+
+
+def _parameter(p: Any) -> dict[str, Any]:
+    return {"name": p.name} if p.unit is None else {"name": p.name, "unit": p.unit}
+
+
+@dataclass(frozen=True)
+class _Measured:
+    """A node at one value: CPU (mean over the runs), and over its output topics the mean
+    frequency, the summed bandwidth and each topic's own."""
+
+    value: int | float | None
+    cpu: float
+    frequency_hz: float | None
+    bandwidth_kBps: float | None
+    topics: dict[str, dict[str, float]]
+
+
+def _measured(node: Any, value: int | float | None, per_value: Mapping[tuple[str, str], Any],
+              topic_means: Mapping[tuple[str, str, str], tuple[float | None, float | None]]) -> _Measured:
+    row = per_value.get((node.name, repr(value)))
+    if row is None:
+        raise InputError(None, f"node {node.name}: no run measured it at value {value}")
+    cpu = row.cpu if row.cpu is not None and math.isfinite(row.cpu) else 0.0
+    topics: dict[str, dict[str, float]] = {}
+    for t in node.topics:
+        f, b = topic_means.get((node.name, repr(value), t), (None, None))
+        rate = {k: x for k, x in (("frequency_hz", f), ("bandwidth_kBps", b)) if x is not None}
+        if rate:
+            topics[t] = rate
+    freqs = [r["frequency_hz"] for r in topics.values() if "frequency_hz" in r]
+    bws = [r["bandwidth_kBps"] for r in topics.values() if "bandwidth_kBps" in r]
+    return _Measured(value, cpu, sum(freqs) / len(freqs) if freqs else None, sum(bws) if bws else None, topics)
+
+
+def _setting(m: _Measured, top: float | None) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    if m.value is not None:
+        out["value"] = m.value
+    out["cpu"] = max(MIN_CPU, _r(m.cpu))
+    out["performance"] = _r(100.0 * (m.frequency_hz or 0.0) / top) if top else 100.0
+    if m.frequency_hz is not None:
+        out["frequency_hz"] = _r(m.frequency_hz)
+    if m.bandwidth_kBps is not None:
+        out["bandwidth_kBps"] = _r(m.bandwidth_kBps)
+    if m.topics:
+        out["topics"] = {t: {k: _r(x) for k, x in rate.items()} for t, rate in m.topics.items()}
+    return out
+
+
+def _edges(graph: Graph, nodes: Sequence[Any]) -> list[dict[str, str]]:
+    names = {n.name for n in nodes}
+    out = []
+    for n in nodes:
+        for t in n.topics:
+            topic = next((g for g in graph.topics if g.name == t), None)
+            for sub in topic.subscribers if topic is not None else ():
+                dst = node_name(sub)
+                if dst in names and dst != n.name:
+                    out.append({"from": n.name, "to": dst, "topic": t})
+    return out
+
+
+def _check_loads(text: str, out: Path) -> None:
+    """The draft must load as a system.yaml (a bug here, not the user's input)."""
+    import yaml
+
+    from perfros_bag.system.systemfile import parse_system
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", PerfrosWarning)
+        parse_system(yaml.safe_load(text), str(out))

@@ -1,0 +1,150 @@
+"""``graph.yaml``: the ROS graph as the master saw it during a run (format
+``perfros-bag/graph@1``)::
+
+    format: perfros-bag/graph@1
+    run: camera-publish_rate-5__detector-canny_threshold-100   # the run it was taken in
+    nodes:
+      - {name: /detector, pid: 4242, executable: /usr/lib/opencv_apps/hough_circles, launched: true}
+    topics:
+      - {name: /detector/circles, type: opencv_apps/CircleArrayStamped,
+         publishers: [/detector], subscribers: [/viewer]}
+
+``launched``: the node is one of the launch file's (``/rosout``, started by roscore, is not).
+:func:`capture_graph` asks the master (getSystemState, getTopicTypes, lookupNode) and each
+node (getPid); the tool's own nodes are left out.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Collection
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from perfros_bag.errors import InputError, PerfrosError
+from perfros_bag.fileio import atomic_write_text, read_yaml
+from perfros_bag.rosrun.master import master_call, master_state, node_call
+
+GRAPH_FORMAT = "perfros-bag/graph@1"
+_INTERPRETERS = ("python", "python3", "sh", "bash", "perl", "ruby", "node")
+
+
+@dataclass(frozen=True)
+class GraphNode:
+    name: str
+    pid: int | None
+    executable: str | None
+    launched: bool = True
+
+
+@dataclass(frozen=True)
+class GraphTopic:
+    name: str
+    type: str | None
+    publishers: tuple[str, ...]
+    subscribers: tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class Graph:
+    nodes: tuple[GraphNode, ...]
+    topics: tuple[GraphTopic, ...]
+    run: str | None = None
+
+    def node(self, name: str) -> GraphNode | None:
+        return next((n for n in self.nodes if n.name == name), None)
+
+    def to_dict(self) -> dict[str, Any]:
+        doc: dict[str, Any] = {"format": GRAPH_FORMAT}
+        if self.run is not None:
+            doc["run"] = self.run
+        doc["nodes"] = [{"name": n.name, "pid": n.pid, "executable": n.executable, "launched": n.launched}
+                        for n in self.nodes]
+        doc["topics"] = [{"name": t.name, "type": t.type, "publishers": list(t.publishers),
+                          "subscribers": list(t.subscribers)} for t in self.topics]
+        return doc
+
+
+def executable_of(pid: int) -> str | None:
+    """The program a process runs: the script for an interpreter, else the binary."""
+    import psutil
+
+    try:
+        proc = psutil.Process(pid)
+        cmdline = proc.cmdline()
+        exe = proc.exe()
+    except (psutil.Error, OSError):
+        return None
+    if cmdline and Path(cmdline[0]).name.rstrip("0123456789.") in _INTERPRETERS:
+        script = next((a for a in cmdline[1:] if not a.startswith("-")), None)
+        if script is not None:
+            return script
+    return exe or (cmdline[0] if cmdline else None)
+
+
+def capture_graph(uri: str, launched: Collection[str], own: Collection[str], run: str | None = None) -> Graph:
+    """The graph the master at ``uri`` knows, without the nodes named in ``own``.
+    ``launched``: the launch file's node names."""
+    state = master_state(uri)
+    types_reply = master_call(uri, "getTopicTypes")
+    if state is None or types_reply is None:
+        raise PerfrosError(f"the ROS master at {uri} did not answer")
+    types = {str(t): str(ty) for t, ty in types_reply}
+    pubs = {str(t): sorted(str(n) for n in who if n not in own) for t, who in state[0]}
+    subs = {str(t): sorted(str(n) for n in who if n not in own) for t, who in state[1]}
+    names = set(launched)
+    for who in (*pubs.values(), *subs.values()):
+        names.update(who)
+    nodes = []
+    for name in sorted(names - set(own)):
+        node_uri = master_call(uri, "lookupNode", name)
+        pid = node_call(node_uri, "getPid") if isinstance(node_uri, str) else None
+        pid = pid if isinstance(pid, int) and not isinstance(pid, bool) else None
+        nodes.append(GraphNode(name, pid, executable_of(pid) if pid else None, name in launched))
+    topics = []
+    for topic in sorted(set(pubs) | set(subs)):
+        p, s = pubs.get(topic, []), subs.get(topic, [])
+        if p or s:
+            topics.append(GraphTopic(topic, types.get(topic), tuple(p), tuple(s)))
+    return Graph(tuple(nodes), tuple(topics), run)
+
+
+def write_graph(path: str | Path, graph: Graph) -> None:
+    import yaml
+
+    atomic_write_text(path, yaml.safe_dump(graph.to_dict(), sort_keys=False, default_flow_style=None, width=100))
+
+
+def read_graph(path: str | Path) -> Graph:
+    p = Path(path)
+    data = read_yaml(p)
+
+    def fail(problem: str) -> InputError:
+        return InputError(p, problem)
+
+    if not isinstance(data, dict) or data.get("format") != GRAPH_FORMAT:
+        got = data.get("format") if isinstance(data, dict) else type(data).__name__
+        raise fail(f"not a graph.yaml (format {got!r}, expected {GRAPH_FORMAT!r})")
+    nodes = []
+    for i, raw in enumerate(data.get("nodes") or []):
+        if not isinstance(raw, dict) or not isinstance(raw.get("name"), str) or not raw["name"]:
+            raise fail(f"nodes[{i}]: expected {{name, pid, executable}}, got {raw!r}")
+        pid = raw.get("pid")
+        if pid is not None and (isinstance(pid, bool) or not isinstance(pid, int)):
+            raise fail(f"nodes[{i}].pid: must be a whole number, got {pid!r}")
+        exe = raw.get("executable")
+        nodes.append(GraphNode(raw["name"], pid, None if exe is None else str(exe), bool(raw.get("launched", True))))
+    topics = []
+    for i, raw in enumerate(data.get("topics") or []):
+        if not isinstance(raw, dict) or not isinstance(raw.get("name"), str) or not raw["name"]:
+            raise fail(f"topics[{i}]: expected {{name, type, publishers, subscribers}}, got {raw!r}")
+        lists = {}
+        for key in ("publishers", "subscribers"):
+            val = raw.get(key) or []
+            if not isinstance(val, list) or not all(isinstance(x, str) for x in val):
+                raise fail(f"topics[{i}].{key}: must be a list of node names, got {val!r}")
+            lists[key] = tuple(val)
+        ty = raw.get("type")
+        topics.append(GraphTopic(raw["name"], None if ty is None else str(ty), lists["publishers"], lists["subscribers"]))
+    run = data.get("run")
+    return Graph(tuple(nodes), tuple(topics), None if run is None else str(run))

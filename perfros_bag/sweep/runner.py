@@ -1,0 +1,415 @@
+"""``sweep``: run the user's launch file once per setting of ``space.yaml`` and record each run.
+
+Per run (:func:`record_run`), in ``DIR/.sweep/<run>/`` (removed once the run is done): a
+roscore of its own (free loopback port, own ``ROS_HOME``), the ROS parameters of the run
+set on it, Debian's ``roslaunch -p PORT APP.launch arg:=value ...``; then
+
+1. every node ``roslaunch --nodes`` lists registers with the master;
+2. a probe ``rosbag record -a`` subscribes to everything (nodes that publish only when
+   someone listens start working), and every topic the launch's nodes advertise must carry
+   a message (the publishers' ``getBusStats``);
+3. ``settle_s`` later the graph is taken from the master (``graph.yaml``), ``record-cpu``
+   starts on the nodes and a second ``rosbag record -a`` replaces the probe for
+   ``duration_s`` seconds;
+4. everything is stopped (SIGINT, then SIGTERM, SIGKILL; every process carries the run tag,
+   see :mod:`perfros_bag.rosrun.processes`); the CPU trace is relabelled with the ROS node
+   names by PID; ``<run>.bag`` and ``<run>.cpu.csv`` are moved into ``DIR``.
+
+:func:`sweep` does every run not yet in ``DIR/manifest.yaml`` and rewrites the manifest
+(atomically) after each one, so Ctrl-C or an error keeps every finished run. A failing run
+raises a :class:`PerfrosError` ``run NAME: cause``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import re
+import shutil
+import socket
+import time
+import uuid
+from collections.abc import Callable, Mapping
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from perfros_bag.characterisation.manifest import parse_manifest, write_manifest
+from perfros_bag.errors import InputError, PerfrosError
+from perfros_bag.fileio import atomic_write_text, read_yaml
+from perfros_bag.rosrun.master import bus_stats, master_call, master_state, port_of, start_roscore
+from perfros_bag.rosrun.processes import (
+    Processes,
+    Started,
+    kill_stale,
+    ros_env,
+    sigterm_as_interrupt,
+    wait_for,
+)
+from perfros_bag.rosrun.recorders import start_record_cpu, start_rosbag
+from perfros_bag.sweep.graph import Graph, capture_graph, write_graph
+from perfros_bag.sweep.launchfile import (
+    ROSLAUNCH,
+    LaunchFile,
+    check_space,
+    launch_argv,
+    launch_nodes,
+    read_launch,
+)
+from perfros_bag.sweep.space import Run, Space, load_space, plan_runs
+
+WORK = ".sweep"
+PROBE_NODE = "perfros_probe"
+RECORD_NODE = "perfros_record"
+OWN_NODES = frozenset({f"/{PROBE_NODE}", f"/{RECORD_NODE}"})
+#: Topics that need not carry a message for a run to start (roscore's log topics).
+QUIET_TOPICS = frozenset({"/rosout", "/rosout_agg"})
+_DIED = re.compile(r"\[([^\]\s]+)-\d+\] process has died \[pid (\d+), exit code (-?\d+)")
+_NOT_LAUNCHED = re.compile(r"ERROR: cannot launch node of type \[([^\]]+)\]: ?(.*)")
+
+#: progress(run index, runs, run name, stage, fraction of the run's recording done)
+Progress = Callable[[int, int, str, str, float], None]
+
+
+@dataclass
+class SweepResult:
+    runs: list[str]  # every run of the space, in order
+    recorded: list[str] = field(default_factory=list)
+    skipped: list[str] = field(default_factory=list)
+
+
+def computer_name() -> str:
+    """This machine's name as a system.yaml computer."""
+    return re.sub(r"[^A-Za-z0-9_-]+", "_", socket.gethostname()) or "host"
+
+
+def require_ros_tools() -> None:
+    for tool in ("roscore", ROSLAUNCH, "rosbag"):
+        if shutil.which(tool) is None:
+            raise PerfrosError(f"{tool} not found: install Debian's ROS 1 "
+                               "(apt-get install ros-core python3-rospy python3-rosbag)")
+
+
+def sweep(launch_path: str | Path, space_path: str | Path, out: str | Path, *, duration: float | None = None,
+          interval: float = 0.5, progress: Progress | None = None) -> SweepResult:
+    """Record every run of ``space_path`` not yet recorded in ``out``."""
+    space = load_space(space_path)
+    if duration is not None:
+        if duration <= 0:
+            raise InputError(None, f"the recording duration must be > 0 s, got {duration:g}")
+        space = Space(space.path, duration, space.settle_s, space.repeats, space.design, space.vary,
+                      space.startup_timeout_s)
+    launch = read_launch(launch_path)
+    check_space(launch, space)
+    require_ros_tools()
+    runs = plan_runs(space, launch.args)
+    outdir = Path(out).absolute()
+    if outdir.exists() and not outdir.is_dir():
+        raise InputError(outdir, "is not a directory, expected the folder to record into")
+    outdir.mkdir(parents=True, exist_ok=True)
+    manifest_path = outdir / "manifest.yaml"
+    system_ref = _manifest_system(manifest_path)
+    copy = outdir / "space.yaml"  # what was varied, for init (parameter names and units)
+    if not copy.exists() or not copy.samefile(space.path):
+        atomic_write_text(copy, space.path.read_text(encoding="utf-8"))
+    entries = _finished_entries(manifest_path)
+    result = SweepResult([r.name for r in runs])
+    note = progress or (lambda i, n, name, stage, frac: None)
+    for i, run in enumerate(runs):
+        if f"{run.name}.bag" in entries:
+            result.skipped.append(run.name)
+            note(i, len(runs), run.name, "skipped", 1.0)
+            continue
+        for stale in (f"{run.name}.bag", f"{run.name}.cpu.csv"):
+            (outdir / stale).unlink(missing_ok=True)
+
+        def stage(name: str, frac: float, i: int = i, run: Run = run) -> None:
+            note(i, len(runs), run.name, name, frac)
+
+        graph = record_run(launch, space, run, outdir, interval=interval, progress=stage)
+        entries[f"{run.name}.bag"] = {"path": f"{run.name}.bag", "cpu": f"{run.name}.cpu.csv",
+                                      "computer": computer_name(), "settings": dict(run.values)}
+        write_manifest(manifest_path, list(entries.values()), system_ref)
+        write_graph(outdir / "graph.yaml", graph)
+        result.recorded.append(run.name)
+        note(i, len(runs), run.name, "done", 1.0)
+    with contextlib.suppress(OSError):
+        (outdir / WORK).rmdir()  # only when empty: a failed run's logs stay
+    return result
+
+
+def _finished_entries(manifest_path: Path) -> dict[str, dict[str, Any]]:
+    """The manifest's entries whose recording is still there (by path), in order."""
+    if not manifest_path.exists():
+        return {}
+
+    data = read_yaml(manifest_path)
+    parse_manifest(data, manifest_path)  # a damaged manifest is an error, never overwritten
+    kept: dict[str, dict[str, Any]] = {}
+    for item in data.get("recordings") or []:
+        entry = {"path": item} if isinstance(item, str) else dict(item)
+        if (manifest_path.parent / entry["path"]).exists():
+            kept[entry["path"]] = entry
+    return kept
+
+
+def _manifest_system(manifest_path: Path) -> str | None:
+    """The ``system:`` a manifest already names (kept when sweep rewrites it)."""
+    if not manifest_path.exists():
+        return None
+    data = read_yaml(manifest_path)
+    system = data.get("system") if isinstance(data, dict) else None
+    return system if isinstance(system, str) else None
+
+
+@dataclass
+class _Watch:
+    """What must stay alive during a run, and how to say what died."""
+
+    launcher: Started
+    log: Path
+    others: list[Started] = field(default_factory=list)
+    pids: dict[str, tuple[int, float]] = field(default_factory=dict)  # node -> (pid, create_time)
+
+    def failure(self) -> str | None:
+        import psutil
+
+        died = _died_line(self.log)
+        if died:
+            return died
+        if self.launcher.popen.poll() is not None:
+            cause = _last_error(self.log)
+            return f"roslaunch ({cause + '; ' if cause else ''}exit code {self.launcher.popen.returncode}; see {self.log})"
+        for st in self.others:
+            if st.popen.poll() is not None:
+                return f"{st.name} (exit code {st.popen.returncode}; see {st.log.name})"
+        for node, (pid, created) in self.pids.items():
+            try:
+                p = psutil.Process(pid)
+                alive = abs(p.create_time() - created) < 0.01 and p.status() != psutil.STATUS_ZOMBIE
+            except psutil.Error:
+                alive = False
+            if not alive:
+                return f"node {node} (pid {pid}; see {self.log})"
+        return None
+
+
+def _log_text(log: Path) -> str:
+    """A log's text without terminal colour codes ('' when unreadable)."""
+    try:
+        return re.sub(r"\x1b\[[0-9;]*m", "", log.read_text(errors="replace"))
+    except OSError:
+        return ""
+
+
+def _last_error(log: Path) -> str | None:
+    """roslaunch's last error line."""
+    lines = [x.strip() for x in _log_text(log).splitlines()]
+    return next((x for x in reversed(lines) if re.search(r"error|exception", x, re.IGNORECASE)), None)
+
+
+def _died_line(log: Path) -> str | None:
+    text = _log_text(log)
+    m = _DIED.search(text)
+    if m is not None:
+        return f"node {m.group(1)} (pid {m.group(2)}, exit code {m.group(3)}; see {log})"
+    m = _NOT_LAUNCHED.search(text)
+    if m is not None:  # roslaunch goes on without it
+        cause = m.group(2).strip().rstrip(".")
+        return f"node of type {m.group(1)} ({cause or 'roslaunch cannot start it'}; see {log})"
+    return None
+
+
+def record_run(launch: LaunchFile, space: Space, run: Run, out: Path, *, interval: float = 0.5,
+               progress: Callable[[str, float], None] | None = None, run_id: str | None = None,
+               on_graph: Callable[[Graph], None] | None = None) -> Graph:
+    """Record one run into ``out/<run>.bag`` and ``out/<run>.cpu.csv``; returns its graph.
+    ``on_graph`` is called with the graph (every node up, with its PID) before recording
+    starts; ``run_id`` tags the run's processes (default: a new one)."""
+    note = progress or (lambda stage, frac: None)
+    work = out / WORK / run.name
+    if work.exists():
+        shutil.rmtree(work)
+    ros_home = work / "ros"
+    ros_home.mkdir(parents=True)
+    run_id = run_id or uuid.uuid4().hex[:10]
+    procs = Processes(run_id, ros_env(run_id, ros_home))
+    timeout = space.startup_timeout_s
+    interrupted = False
+    try:
+        with sigterm_as_interrupt():
+            try:
+                graph = _record(launch, space, run, work, procs, timeout, interval, note, on_graph)
+            except PerfrosError as exc:
+                raise PerfrosError(f"run {run.name}: {exc}") from None
+    except KeyboardInterrupt:
+        interrupted = True
+        raise
+    finally:
+        note("stopping", 1.0)
+        procs.stop()
+        procs.kill_leftovers()
+        kill_stale(run_id)
+        if interrupted:  # an error keeps the logs the message points to
+            shutil.rmtree(work, ignore_errors=True)
+    try:
+        trace = _node_trace(work / "host.cpu.csv", graph)
+        shutil.move(work / "run.bag", out / f"{run.name}.bag")
+        shutil.move(trace, out / f"{run.name}.cpu.csv")
+    except OSError as exc:
+        (out / f"{run.name}.bag").unlink(missing_ok=True)
+        raise PerfrosError(f"run {run.name}: cannot keep the recording in {out}: {exc.strerror or exc}") from None
+    shutil.rmtree(work, ignore_errors=True)
+    return graph
+
+
+def _record(launch: LaunchFile, space: Space, run: Run, work: Path, procs: Processes, timeout: float,
+            interval: float, note: Callable[[str, float], None],
+            on_graph: Callable[[Graph], None] | None = None) -> Graph:
+    note("roscore", 0.0)
+    with ThreadPoolExecutor(max_workers=1) as pool:  # roslaunch --nodes while roscore starts
+        listing = pool.submit(launch_nodes, launch, run.args, dict(procs.env), timeout)
+        uri = start_roscore(procs, work, timeout)
+        nodes = listing.result()
+    for name, value in run.params.items():
+        if master_call(uri, "setParam", name, value) is None:
+            raise PerfrosError(f"the master did not take the parameter {name}={value!r}")
+    log = work / "roslaunch.log"
+    launcher = procs.start("roslaunch", [ROSLAUNCH, "-p", str(port_of(uri)), *launch_argv(launch, run.args)],
+                           log, cwd=work)
+    watch = _Watch(launcher, log)
+
+    def registered() -> bool:
+        return all(isinstance(master_call(uri, "lookupNode", n), str) for n in nodes)
+
+    note("nodes", 0.0)
+    wait_for(f"the nodes {', '.join(nodes)} to register", registered, timeout, watch.failure)
+    procs.remember()
+    probe = start_rosbag(procs, "rosbag probe", work / "probe.bag", None, PROBE_NODE, work / "probe.log", work)
+    watch.others.append(probe)
+    waiting: list[str] = []
+
+    def publishing() -> bool:
+        graph = capture_graph(uri, nodes, OWN_NODES)
+        quiet = _silent_topics(uri, graph, nodes)
+        waiting[:] = quiet
+        return not quiet
+
+    note("topics", 0.0)
+    try:
+        wait_for("every topic to publish", publishing, timeout, watch.failure)
+    except PerfrosError as exc:
+        if waiting and "timed out" in str(exc):
+            raise PerfrosError(f"topic(s) {', '.join(waiting)} never published within {timeout:g} s") from None
+        raise
+    procs.remember()
+    deadline = time.monotonic() + space.settle_s
+    while time.monotonic() < deadline:
+        _check(watch, "settling")
+        note("settling", 0.0)
+        time.sleep(min(0.2, max(0.0, deadline - time.monotonic())))
+    graph = capture_graph(uri, nodes, OWN_NODES, run.name)
+    for n in graph.nodes:
+        if n.launched and n.pid is not None:
+            watch.pids[n.name] = (n.pid, _create_time(n.pid))
+    missing = [n.name for n in graph.nodes if n.launched and n.pid is None]
+    if missing:
+        raise PerfrosError(f"node(s) {', '.join(missing)} did not answer getPid")
+    if on_graph is not None:
+        on_graph(graph)
+    labels = sorted({n.rsplit("/", 1)[-1] for n in nodes})
+    pattern = "(^| )__name:=(" + "|".join(re.escape(x) for x in labels) + ")( |$)"
+    cpu = start_record_cpu(procs, [pattern], interval, work / "host.cpu.csv", work / "record-cpu.log", work)
+    rec = start_rosbag(procs, "rosbag record", work / "run.bag", None, RECORD_NODE, work / "rosbag.log", work)
+    watch.others += [cpu, rec]
+    advertised = [t.name for t in graph.topics if t.name not in QUIET_TOPICS and set(t.publishers) & set(nodes)]
+
+    def recording() -> bool:
+        state = master_state(uri)
+        if state is None:
+            return False
+        subs = {t: set(who) for t, who in state[1]}
+        return all(f"/{RECORD_NODE}" in subs.get(t, set()) for t in advertised)
+
+    wait_for("rosbag record to subscribe", recording, timeout, watch.failure)
+    procs.stop(["rosbag probe"])
+    watch.others.remove(probe)
+    t0 = time.monotonic()
+    while (elapsed := time.monotonic() - t0) < space.duration_s:
+        _check(watch, "the recording")
+        note("recording", elapsed / space.duration_s)
+        time.sleep(min(0.25, space.duration_s - elapsed))
+    _check(watch, "the recording")
+    note("recording", 1.0)
+    procs.stop(["rosbag record", "record-cpu"], timeout=15.0)
+    if not (work / "run.bag").exists():
+        raise PerfrosError(f"rosbag record did not write its bag (see {work / 'rosbag.log'})")
+    if not (work / "host.cpu.csv").exists():
+        raise PerfrosError(f"record-cpu did not write its trace (see {work / 'record-cpu.log'})")
+    return graph
+
+
+def _check(watch: _Watch, during: str) -> None:
+    dead = watch.failure()
+    if dead:
+        raise PerfrosError(f"{dead} exited during {during}")
+
+
+def _create_time(pid: int) -> float:
+    import psutil
+
+    try:
+        return float(psutil.Process(pid).create_time())
+    except psutil.Error:
+        return 0.0
+
+
+def _silent_topics(uri: str, graph: Graph, nodes: list[str]) -> list[str]:
+    """Topics the launch's nodes advertise on which no message was sent yet."""
+    sent: dict[str, bool] = {}
+    for node in nodes:
+        node_uri = master_call(uri, "lookupNode", node)
+        stats = bus_stats(node_uri) if isinstance(node_uri, str) else None
+        for topic, bytes_sent in _published_bytes(stats).items():
+            sent[topic] = sent.get(topic, False) or bytes_sent > 0
+    return sorted(t.name for t in graph.topics
+                  if t.name not in QUIET_TOPICS and set(t.publishers) & set(nodes) and not sent.get(t.name, False))
+
+
+def _published_bytes(stats: Any) -> dict[str, int]:
+    """Message bytes sent per published topic, from a node's ``getBusStats`` (handshake
+    headers not counted). roscpp: ``[topic, [[id, bytes, message_bytes, messages, _], ...]]``
+    (``bytes`` already without headers); rospy: ``[topic, message_bytes, [[id, bytes with
+    headers, messages, connected], ...]]``."""
+    out: dict[str, int] = {}
+    if not isinstance(stats, list) or not stats or not isinstance(stats[0], list):
+        return out
+    for entry in stats[0]:
+        if not isinstance(entry, list) or len(entry) < 2 or not isinstance(entry[0], str):
+            continue
+        if isinstance(entry[1], int) and not isinstance(entry[1], bool):  # rospy
+            out[entry[0]] = entry[1]
+        elif isinstance(entry[1], list):  # roscpp
+            out[entry[0]] = sum(c[2] for c in entry[1] if isinstance(c, list) and len(c) > 2
+                                and isinstance(c[2], int))
+    return out
+
+
+def _node_trace(raw: Path, graph: Graph) -> Path:
+    """The CPU trace with each row labelled with its ROS node (matched by PID); rows of
+    other processes are dropped. Written beside ``raw`` as ``node.cpu.csv``."""
+    from perfros_bag.cpu.trace import read_cpu_trace, write_cpu_trace
+
+    by_pid: Mapping[int, str] = {n.pid: n.name for n in graph.nodes if n.launched and n.pid is not None}
+    tr = read_cpu_trace(raw)
+    rows: list[tuple[float, int, str, str, float, int]] = []
+    for t, pid, proc, cpu, rss in zip(tr.time.tolist(), tr.pid.tolist(), tr.process, tr.cpu_percent.tolist(),
+                                      tr.rss_bytes.tolist(), strict=True):
+        node = by_pid.get(int(pid))
+        if node is not None:
+            rows.append((t, int(pid), node, proc, cpu, int(rss)))
+    dest = raw.with_name("node.cpu.csv")
+    write_cpu_trace(dest, rows, host=tr.host or socket.gethostname(), logical_cpus=tr.logical_cpus,
+                    interval_s=tr.interval_s or 0.5)
+    return dest
+

@@ -1,0 +1,277 @@
+"""``space.yaml``: what ``sweep`` varies in the user's launch file, and the runs that follow.
+
+::
+
+    duration_s: 20                 # recording length per run
+    settle_s: 5                    # wait after every node publishes, before recording
+    repeats: 1                     # runs per setting
+    design: one-at-a-time          # | grid
+    startup_timeout_s: 30          # optional: how long nodes and topics may take to come up
+    vary:
+      - node: detector             # ROS node name as launched (leading slash optional)
+        parameter: {name: rate, unit: Hz}
+        arg: detector_rate         # the roslaunch <arg> that sets it ...
+        # param: /detector/rate    # ... or a ROS parameter set before the node starts
+        values: [2, 5, 10]
+        default: 5                 # optional: its value while another entry varies
+
+Every problem is one :class:`~perfros_bag.errors.InputError` naming the file and the field.
+"""
+
+from __future__ import annotations
+
+import enum
+import hashlib
+import itertools
+import json
+import math
+import re
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from perfros_bag.errors import InputError
+from perfros_bag.fileio import read_yaml
+
+Value = int | float | str
+
+TOP_KEYS = {"duration_s", "settle_s", "repeats", "design", "startup_timeout_s", "vary"}
+VARY_KEYS = {"node", "parameter", "arg", "param", "values", "default"}
+PARAMETER_KEYS = {"name", "unit"}
+_ROS_NAME = re.compile(r"^/?[A-Za-z~][A-Za-z0-9_/]*$")
+
+
+class Design(enum.Enum):
+    ONE_AT_A_TIME = "one-at-a-time"
+    GRID = "grid"
+
+
+@dataclass(frozen=True)
+class Parameter:
+    name: str
+    unit: str | None
+
+
+@dataclass(frozen=True)
+class Varied:
+    """One thing to vary: a node's parameter, reached through a launch ``<arg>`` or a ROS
+    parameter."""
+
+    node: str  # the ROS node name, with its leading slash
+    parameter: Parameter
+    arg: str | None
+    param: str | None
+    values: tuple[Value, ...]
+    default: Value | None = None
+
+    @property
+    def system_name(self) -> str:
+        """The node's name in manifest.yaml and system.yaml (no leading slash)."""
+        return self.node.lstrip("/")
+
+
+@dataclass(frozen=True)
+class Space:
+    path: Path
+    duration_s: float
+    settle_s: float
+    repeats: int
+    design: Design
+    vary: tuple[Varied, ...]
+    startup_timeout_s: float = 30.0
+
+
+@dataclass(frozen=True)
+class Run:
+    """One run of the sweep: its name (the recording's stem) and what it sets."""
+
+    name: str
+    values: Mapping[str, Value]  # system node name -> value (every varied node)
+    args: Mapping[str, str]  # roslaunch arg -> value
+    params: Mapping[str, Value]  # ROS parameter -> value
+    repeat: int
+
+
+def load_space(path: str | Path) -> Space:
+    p = Path(path)
+    return parse_space(read_yaml(p), p)
+
+
+def parse_space(data: Any, path: Path) -> Space:
+    def fail(where: str, problem: str) -> InputError:
+        return InputError(path, f"{where}: {problem}" if where else problem)
+
+    if data is None:
+        raise fail("", "the file is empty (expected 'vary:')")
+    if not isinstance(data, Mapping):
+        raise fail("", f"expected a mapping with 'vary:', got {_kind(data)}")
+    unknown = sorted(str(k) for k in data if k not in TOP_KEYS)
+    if unknown:
+        raise fail("", f"unknown key(s) {', '.join(map(repr, unknown))} (allowed: {', '.join(sorted(TOP_KEYS))})")
+    duration = _number(data.get("duration_s", 20), "duration_s", fail, positive=True)
+    settle = _number(data.get("settle_s", 5), "settle_s", fail, positive=False)
+    timeout = _number(data.get("startup_timeout_s", 30), "startup_timeout_s", fail, positive=True)
+    repeats = data.get("repeats", 1)
+    if isinstance(repeats, bool) or not isinstance(repeats, int) or repeats < 1:
+        raise fail("repeats", f"must be a whole number >= 1, got {repeats!r}")
+    raw_design = data.get("design", Design.ONE_AT_A_TIME.value)
+    try:
+        design = Design(raw_design)
+    except ValueError:
+        raise fail("design", f"must be 'one-at-a-time' or 'grid', got {raw_design!r}") from None
+    raw_vary = data.get("vary")
+    if raw_vary is None:
+        raise fail("", "missing 'vary:' (a list of {node, parameter, arg or param, values})")
+    if not isinstance(raw_vary, list) or not raw_vary:
+        raise fail("vary", f"must be a non-empty list, got {raw_vary!r}")
+    vary = tuple(_varied(item, f"vary[{i}]", fail) for i, item in enumerate(raw_vary))
+    nodes = [v.node for v in vary]
+    for node in nodes:
+        if nodes.count(node) > 1:
+            raise fail("vary", f"node {node} is listed twice (a node has one parameter)")
+    for what in ("arg", "param"):
+        reached = [getattr(v, what) for v in vary if getattr(v, what) is not None]
+        for r in reached:
+            if reached.count(r) > 1:
+                raise fail("vary", f"{what} {r!r} is set by two entries")
+    return Space(path, duration, settle, repeats, design, vary, timeout)
+
+
+def _varied(item: Any, where: str, fail: Any) -> Varied:
+    if not isinstance(item, Mapping):
+        raise fail(where, f"expected a mapping {{node, parameter, arg, values}}, got {_kind(item)}")
+    bad = sorted(str(k) for k in item if k not in VARY_KEYS)
+    if bad:
+        raise fail(where, f"unknown key(s) {', '.join(map(repr, bad))} (allowed: {', '.join(sorted(VARY_KEYS))})")
+    node = item.get("node")
+    if not isinstance(node, str) or not _ROS_NAME.match(node) or node.endswith("/"):
+        raise fail(f"{where}.node", f"must be a ROS node name, got {node!r}")
+    node = "/" + node.lstrip("/")
+    where = f"{where} (node {node})"
+    pm = item.get("parameter")
+    if not isinstance(pm, Mapping) or not isinstance(pm.get("name"), str) or not pm["name"].strip():
+        raise fail(f"{where}.parameter", f"must be {{name: NAME, unit: UNIT}}, got {pm!r}")
+    pbad = sorted(str(k) for k in pm if k not in PARAMETER_KEYS)
+    if pbad:
+        raise fail(f"{where}.parameter", f"unknown key(s) {', '.join(map(repr, pbad))} (allowed: name, unit)")
+    unit = pm.get("unit")
+    if unit is not None and not isinstance(unit, str | int | float):
+        raise fail(f"{where}.parameter.unit", f"must be a string, got {unit!r}")
+    parameter = Parameter(pm["name"].strip(), None if unit is None else str(unit))
+    arg, param = item.get("arg"), item.get("param")
+    if (arg is None) == (param is None):
+        raise fail(where, "needs exactly one of 'arg' (a roslaunch <arg>) or 'param' (a ROS parameter)")
+    if arg is not None and (not isinstance(arg, str) or not re.match(r"^[A-Za-z_][A-Za-z0-9_.\-]*$", arg)):
+        raise fail(f"{where}.arg", f"must be a roslaunch arg name, got {arg!r}")
+    if param is not None and (not isinstance(param, str) or not _ROS_NAME.match(param) or param.endswith("/")):
+        raise fail(f"{where}.param", f"must be a ROS parameter name, got {param!r}")
+    if param is not None and not param.startswith("/"):
+        param = f"{node}/{param}"  # a private parameter of the node
+    values = item.get("values")
+    if not isinstance(values, list) or not values:
+        raise fail(f"{where}.values", f"must be a non-empty list, got {values!r}")
+    kinds = set()
+    for v in values:
+        if isinstance(v, bool) or not isinstance(v, int | float | str):
+            raise fail(f"{where}.values", f"must be numbers or strings, got {v!r}")
+        if isinstance(v, float) and not math.isfinite(v):
+            raise fail(f"{where}.values", f"must be finite, got {v!r}")
+        kinds.add("string" if isinstance(v, str) else "number")
+    if len(kinds) > 1:
+        raise fail(f"{where}.values", f"mixes numbers and strings: {values!r}")
+    if len({_key(v) for v in values}) < len(values):
+        raise fail(f"{where}.values", f"lists a value twice: {values!r}")
+    default = item.get("default")
+    if default is not None and (isinstance(default, bool) or not isinstance(default, int | float | str)
+                                or ("string" if isinstance(default, str) else "number") not in kinds):
+        raise fail(f"{where}.default", f"must be of the same type as the values, got {default!r}")
+    return Varied(node, parameter, arg, param, tuple(values), default)
+
+
+def _number(raw: Any, where: str, fail: Any, *, positive: bool) -> float:
+    if isinstance(raw, bool) or not isinstance(raw, int | float) or not math.isfinite(raw) \
+            or raw < 0 or (positive and raw == 0):
+        raise fail(where, f"must be a number {'> 0' if positive else '>= 0'} (seconds), got {raw!r}")
+    return float(raw)
+
+
+def _kind(obj: Any) -> str:
+    return "nothing" if obj is None else type(obj).__name__
+
+
+def _key(v: Value) -> str:
+    return repr(float(v)) if isinstance(v, int | float) else repr(v)
+
+
+def arg_text(v: Value) -> str:
+    """A value as a roslaunch ``name:=value`` argument."""
+    if isinstance(v, float) and v.is_integer():
+        return repr(v)  # 5.0 stays a float for roslaunch's type guessing
+    return str(v)
+
+
+def plan_runs(space: Space, arg_defaults: Mapping[str, str | None]) -> list[Run]:
+    """The runs of the design, each ``repeats`` times, in order.
+
+    ``one-at-a-time``: each entry takes its values while the others stay at their default
+    (``default:``, else the launch file's ``<arg>`` default, else the first value); a
+    setting that repeats an earlier one (all at default) runs once. ``grid``: every
+    combination. ``arg_defaults``: the launch file's declared args and their defaults."""
+    defaults = {v.node: default_value(v, arg_defaults) for v in space.vary}
+    settings: list[dict[str, Value]] = []
+    if space.design is Design.GRID:
+        for combo in itertools.product(*(v.values for v in space.vary)):
+            settings.append({v.node: x for v, x in zip(space.vary, combo, strict=True)})
+    else:
+        seen: set[str] = set()
+        for v in space.vary:
+            for x in v.values:
+                s = {**defaults, v.node: x}
+                key = json.dumps({k: _key(val) for k, val in s.items()}, sort_keys=True)
+                if key not in seen:
+                    seen.add(key)
+                    settings.append(s)
+    runs: list[Run] = []
+    names: set[str] = set()
+    for s in settings:
+        stem = _stem(space, s)
+        for rep in range(space.repeats):
+            name = stem if space.repeats == 1 else f"{stem}_r{rep + 1}"
+            if name in names:  # two values that read the same once made file-safe
+                name += "_" + hashlib.sha1(json.dumps(s, sort_keys=True, default=str).encode()).hexdigest()[:6]
+            names.add(name)
+            runs.append(Run(
+                name,
+                {v.system_name: s[v.node] for v in space.vary},
+                {v.arg: arg_text(s[v.node]) for v in space.vary if v.arg is not None},
+                {v.param: s[v.node] for v in space.vary if v.param is not None},
+                rep + 1,
+            ))
+    return runs
+
+
+def default_value(v: Varied, arg_defaults: Mapping[str, str | None]) -> Value:
+    """An entry's value while another varies: ``default``, else the launch file's ``<arg>``
+    default, else its first value."""
+    if v.default is not None:
+        return v.default
+    if v.arg is not None and arg_defaults.get(v.arg) is not None:
+        text = str(arg_defaults[v.arg])
+        if all(isinstance(x, str) for x in v.values):
+            return text
+        try:
+            number = float(text)
+        except ValueError:
+            return v.values[0]
+        return int(number) if number.is_integer() and all(isinstance(x, int) for x in v.values) else number
+    return v.values[0]
+
+
+def _stem(space: Space, s: Mapping[str, Value]) -> str:
+    parts = []
+    for v in space.vary:
+        x = s[v.node]
+        text = arg_text(x) if not isinstance(x, float) else f"{x:g}"
+        parts.append(f"{v.system_name}-{v.parameter.name}-{text}")
+    return re.sub(r"[^A-Za-z0-9._=-]+", "_", "__".join(parts))

@@ -1,0 +1,419 @@
+"""``sweep`` on Debian's real, unmodified C++ nodes (image_publisher + opencv_apps'
+hough_circles, fixtures/app/app.launch), then ``init`` -> ``characterise`` -> ``fit`` ->
+``solve`` -> ``deploy`` (which validates) with no file written by hand.
+
+Checked against independent sources: the nodes and the subscription of the drafted system
+against the launch file's own XML; every recorded rate against Debian's rosbag API (under
+/usr/bin/python3) and against the rate the run asked the camera for. Ctrl-C in the middle of
+a run, and a node killed during a recording, leave every finished run, a manifest that lists
+exactly those, and nothing running: no process carrying the run's tag, nothing on its
+master's port, no cgroup.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+import xml.etree.ElementTree as ET
+from pathlib import Path
+from typing import Any
+
+import psutil
+import pytest
+import yaml
+
+from perfros_bag.characterisation.manifest import load_manifest
+from perfros_bag.rosrun.cgroups import leftover_groups
+from perfros_bag.rosrun.processes import RUN_ENV, leftover_processes
+from tests.conftest import FIXTURES
+from tests.test_casestudy_e2e import (
+    BAG_RATES,
+    ROS_PY,
+    _cgroups_work,  # the case study's independent checks
+    _processes_on,
+)
+
+pytestmark = pytest.mark.ros
+
+BIN = Path(sys.executable).with_name("perfros-bag")
+APP = FIXTURES / "app" / "app.launch"
+
+
+def _require_ros() -> None:
+    for tool in ("/usr/bin/roscore", "/usr/bin/roslaunch", "/usr/bin/rosbag", ROS_PY,
+                 "/usr/lib/image_publisher/image_publisher", "/usr/lib/opencv_apps/hough_circles",
+                 "/usr/share/nodelet/package.xml"):
+        assert os.path.exists(tool), f"{tool} missing: make setup-debs (see the Makefile's DEBS)"
+
+
+def _space(path: Path, **top: Any) -> Path:
+    doc = {"duration_s": 4, "settle_s": 1, "repeats": 1, "design": "grid", "startup_timeout_s": 30,
+           "vary": [{"node": "camera", "parameter": {"name": "publish_rate", "unit": "Hz"},
+                     "arg": "camera_rate", "values": [5, 10]},
+                    {"node": "detector", "parameter": {"name": "canny_threshold"},
+                     "arg": "canny_threshold", "values": [100, 200]}]}
+    doc.update(top)
+    path.write_text(yaml.safe_dump(doc, sort_keys=False))
+    return path
+
+
+def _cli(*args: str, timeout: float = 120) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([str(BIN), *args], capture_output=True, text=True, timeout=timeout)
+
+
+def _ours(out: Path) -> list[psutil.Process]:
+    """Live processes a sweep into ``out`` started: tagged, with their ROS_HOME under ``out``."""
+    found = []
+    for p in psutil.process_iter(["pid"]):
+        try:
+            env = p.environ()
+            alive = p.status() != psutil.STATUS_ZOMBIE
+        except (psutil.Error, OSError):
+            continue
+        if alive and RUN_ENV in env and env.get("ROS_HOME", "").startswith(str(out)):
+            found.append(p)
+    return found
+
+
+def _nothing_left(out: Path, tags: set[str], ports: set[int]) -> None:
+    deadline = time.monotonic() + 5
+    while (_ours(out) or any(_processes_on(p) for p in ports)) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert _ours(out) == []
+    for tag in tags:
+        assert leftover_processes(tag) == [], tag
+        assert leftover_groups(run_id=tag) == [], tag
+    for port in ports:
+        assert _processes_on(port) == [], port
+
+
+def _launch_nodes(launch: Path) -> dict[str, dict[str, str]]:
+    """The launch file's nodes by ROS name, with their remappings, read from its XML."""
+    root = ET.parse(launch).getroot()
+    return {"/" + n.get("name", ""): {r.get("from", ""): r.get("to", "") for r in n.iter("remap")}
+            for n in root.iter("node")}
+
+
+@functools.cache
+def _bag_rates(bag: Path) -> dict[str, float]:
+    """Per-topic rates by Debian's rosbag API (each bag read once)."""
+    done = subprocess.run([ROS_PY, "-c", BAG_RATES, str(bag)], capture_output=True, text=True, timeout=60,
+                          check=True, env={k: v for k, v in os.environ.items() if k != "PYTHONPATH"})
+    rates: dict[str, float] = json.loads(done.stdout)
+    return rates
+
+
+@pytest.fixture(scope="module")
+def swept(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, subprocess.CompletedProcess[str]]:
+    _require_ros()
+    d = tmp_path_factory.mktemp("sweep")
+    out = d / "rec"
+    done = _cli("sweep", str(APP), "--space", str(_space(d / "space.yaml")), "--out", str(out), timeout=150)
+    return d, out, done
+
+
+def test_sweep_records_every_setting_and_leaves_nothing(swept: tuple[Path, Path, Any]) -> None:
+    d, out, done = swept
+    assert done.returncode == 0, done.stderr
+    assert "Traceback" not in done.stderr
+    _nothing_left(out, set(), set())
+    manifest = load_manifest(out / "manifest.yaml")
+    settings = sorted((e.settings["camera"], e.settings["detector"]) for e in manifest.recordings)
+    assert settings == [(5, 100), (5, 200), (10, 100), (10, 200)]
+    for e in manifest.recordings:
+        assert e.path.is_file() and e.cpu is not None and e.cpu.is_file()
+    assert not (out / ".sweep").exists()
+
+    # graph.yaml: the launch file's nodes with their PIDs and programs, and its remapping
+    graph = yaml.safe_load((out / "graph.yaml").read_text())
+    assert graph["format"] == "perfros-bag/graph@1"
+    launched = {n["name"]: n for n in graph["nodes"] if n["launched"]}
+    declared = _launch_nodes(APP)
+    assert set(launched) == set(declared)
+    assert launched["/camera"]["executable"].endswith("image_publisher")
+    assert launched["/detector"]["executable"].endswith("hough_circles")
+    assert all(isinstance(n["pid"], int) and n["pid"] > 0 for n in launched.values())
+    topics = {t["name"]: t for t in graph["topics"]}
+    image = "/" + declared["/detector"]["image"]  # the detector's input, remapped in the launch file
+    assert topics[image]["publishers"] == ["/camera"] and topics[image]["subscribers"] == ["/detector"]
+    assert topics[image]["type"] == "sensor_msgs/Image"
+
+    # rates: Debian's rosbag reader against what each run asked the camera for
+    for e in manifest.recordings:
+        rates = _bag_rates(e.path)
+        assert abs(rates[image] / e.settings["camera"] - 1) < 0.1, (e.name, rates[image])
+        assert rates["/detector/circles"] > 0  # the detector worked on the camera's images
+
+    # the CPU traces name the ROS nodes, and only them
+    for e in manifest.recordings:
+        assert e.cpu is not None
+        rows = [line.split(",") for line in e.cpu.read_text().splitlines() if line and not line.startswith("#")]
+        assert {r[2] for r in rows[1:]} == set(declared), e.cpu
+
+    # again: every run is already there
+    again = _cli("sweep", str(APP), "--space", str(d / "space.yaml"), "--out", str(out))
+    assert again.returncode == 0, again.stderr
+    assert "0 run(s) recorded, 4 already there" in again.stderr
+
+
+def test_init_characterise_fit_solve_deploy_with_no_hand_written_file(swept: tuple[Path, Path, Any]) -> None:
+    d, out, done = swept
+    assert done.returncode == 0, done.stderr
+    system = d / "system.yaml"
+    drafted = _cli("init", str(out), "--out", str(system))
+    assert drafted.returncode == 0, drafted.stderr
+    doc = yaml.safe_load(system.read_text())
+    declared = _launch_nodes(APP)
+    assert {n["name"] for n in doc["nodes"]} == {n.lstrip("/") for n in declared}
+    image = "/" + declared["/detector"]["image"]
+    assert doc["edges"] == [{"from": "camera", "to": "detector", "topic": image}]
+    nodes = {n["name"]: n for n in doc["nodes"]}
+    assert nodes["camera"]["parameter"] == {"name": "publish_rate", "unit": "Hz"}
+    assert [s["value"] for s in nodes["camera"]["settings"]] == [5, 10]
+    assert [s["value"] for s in nodes["detector"]["settings"]] == [100, 200]
+    assert image in nodes["camera"]["topics"] and "/rosout" not in nodes["camera"]["topics"]
+    assert doc["computers"][0]["capacity"] == 100 * int(
+        next(line for line in load_manifest(out / "manifest.yaml").recordings[0].cpu.read_text().splitlines()  # type: ignore[union-attr]
+             if line.startswith("# logical_cpus=")).split("=")[1])
+    # the drafted camera rates are the recorded ones (Debian's reader, averaged over the runs)
+    manifest = load_manifest(out / "manifest.yaml")
+    for s in nodes["camera"]["settings"]:
+        bags = [e.path for e in manifest.recordings if e.settings["camera"] == s["value"]]
+        expected = sum(_bag_rates(b)[image] for b in bags) / len(bags)
+        assert abs(s["topics"][image]["frequency_hz"] / expected - 1) < 0.01, (s, expected)
+    assert "REPLACE" in system.read_text()
+
+    char = d / "characterisation.csv"
+    step = _cli("characterise", str(out), "--system", str(system), "--out", str(char))
+    assert step.returncode == 0, step.stderr
+    model = d / "model.json"
+    step = _cli("fit", str(system), str(char), "--out", str(model))
+    assert step.returncode == 0, step.stderr
+    plan = d / "plan.json"
+    step = _cli("solve", str(model), "--problem", "1", "--method", "exact", "--out", str(plan))
+    assert step.returncode == 0, step.stderr
+    solved = json.loads(plan.read_text())
+    assert solved["status"] in ("optimal", "feasible") and set(solved["nodes"]) == {"camera", "detector"}
+    step = _cli("solve", str(system), "--problem", "1", "--method", "greedy", "--out", str(d / "plan2.json"))
+    assert step.returncode == 0, step.stderr
+
+    # deploy the plan on this machine (its computer a cgroup when cgroups work here), validate it
+    run = d / "deployed"
+    step = _cli("deploy", str(plan), str(APP), "--space", str(d / "space.yaml"), "--out", str(run),
+                "--duration", "3")
+    assert step.returncode in (0, 1), step.stderr  # 1: the run deviates from the plan by more than 5 %
+    assert "Traceback" not in step.stderr
+    record = json.loads((run / "deploy.json").read_text())
+    _nothing_left(run, {record["run_id"]}, set())
+    assert record["leftover_cgroups"] == []
+    assert (record["cpu_cap"]["mode"] != "uncapped") == _cgroups_work()
+    assert record["values"] == {n: solved["nodes"][n]["value"] for n in ("camera", "detector")}
+    assert {n: v["computer"] for n, v in record["nodes"].items()} == {
+        f"/{n}": v["computer"] for n, v in solved["nodes"].items()}
+    validation = json.loads((run / "validation.json").read_text())
+    assert (step.returncode == 0) == (validation["overall"]["deviation_pct"] <= 5.0)
+    measured = _bag_rates(run / "run.bag")[image]
+    assert abs(measured / solved["nodes"]["camera"]["value"] - 1) < 0.1  # the camera ran at the planned rate
+    camera = next(n for n in validation["nodes"] if n["node"] == "camera")
+    checked = next(t for t in camera["topics"] if t["topic"] == image)
+    assert abs(checked["f_measured"] / measured - 1) < 0.01
+
+
+def test_init_without_graph_yaml_takes_the_nodes_from_the_recordings(swept: tuple[Path, Path, Any],
+                                                                      tmp_path: Path) -> None:
+    _d, out, done = swept
+    assert done.returncode == 0, done.stderr
+    bare = tmp_path / "rec"
+    bare.mkdir()
+    for f in out.iterdir():
+        if f.name != "graph.yaml":
+            (bare / f.name).symlink_to(f)
+    system = tmp_path / "system.yaml"
+    drafted = _cli("init", str(bare), "--out", str(system))
+    assert drafted.returncode == 0, drafted.stderr
+    doc = yaml.safe_load(system.read_text())
+    assert {n["name"] for n in doc["nodes"]} == {n.lstrip("/") for n in _launch_nodes(APP)}
+    assert "edges" not in doc and "no graph.yaml: no edges" in system.read_text()
+    step = _cli("solve", str(system), "--problem", "1", "--method", "greedy", "--out", str(tmp_path / "plan.json"))
+    assert step.returncode == 0, step.stderr
+
+
+def _wait(cond: Any, proc: subprocess.Popen[str], timeout: float, what: str) -> None:
+    deadline = time.monotonic() + timeout
+    while not cond():
+        assert proc.poll() is None, f"sweep ended before {what}: {proc.communicate()[1]}"
+        assert time.monotonic() < deadline, f"timed out waiting for {what}"
+        time.sleep(0.1)
+
+
+def _tags_and_ports(out: Path) -> tuple[set[str], set[int]]:
+    tags, ports = set(), set()
+    for p in _ours(out):
+        try:
+            env = p.environ()
+        except (psutil.Error, OSError):
+            continue
+        tags.add(env[RUN_ENV])
+        if "ROS_MASTER_URI" in env:
+            ports.add(int(env["ROS_MASTER_URI"].rstrip("/").rsplit(":", 1)[1]))
+    return tags, ports
+
+
+def _running(out: Path, program: str) -> list[psutil.Process]:
+    found = []
+    for p in _ours(out):
+        try:
+            if any(program in a for a in p.cmdline()):
+                found.append(p)
+        except psutil.Error:
+            continue
+    return found
+
+
+def _recorded(out: Path) -> list[str]:
+    path = out / "manifest.yaml"
+    return [e.name for e in load_manifest(path).recordings] if path.exists() else []
+
+
+def _one_line_then_consistent(out: Path, first: list[str]) -> None:
+    manifest = load_manifest(out / "manifest.yaml")
+    assert [e.name for e in manifest.recordings] == first
+    for e in manifest.recordings:
+        assert _bag_rates(e.path), e.path  # Debian's reader opens it: a finished bag
+    assert sorted(p.name for p in out.glob("*.bag")) == first
+
+
+def test_ctrl_c_mid_run_keeps_finished_runs_and_leaves_nothing(tmp_path: Path) -> None:
+    _require_ros()
+    out = tmp_path / "rec"
+    space = _space(tmp_path / "space.yaml", duration_s=3, settle_s=0,
+                   vary=[{"node": "camera", "parameter": {"name": "publish_rate"}, "arg": "camera_rate",
+                          "values": [5, 10, 20]}])
+    proc = subprocess.Popen([str(BIN), "sweep", str(APP), "--space", str(space), "--out", str(out)],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        _wait(lambda: len(_recorded(out)) == 1, proc, 60, "the first run")
+        _wait(lambda: bool(_running(out, "hough_circles")), proc, 30, "the second run's nodes")
+        tags, ports = _tags_and_ports(out)
+        assert len(tags) == 1 and len(ports) == 1
+        proc.send_signal(signal.SIGINT)
+        _, stderr = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130, stderr
+    assert "Traceback" not in stderr and "interrupted" in stderr
+    _nothing_left(out, tags, ports)
+    _one_line_then_consistent(out, ["camera-publish_rate-5.bag"])
+    assert not any((out / ".sweep").glob("*")), "the interrupted run's work folder is removed"
+
+
+def test_a_node_dying_mid_run_is_one_line_and_leaves_nothing(tmp_path: Path) -> None:
+    _require_ros()
+    out = tmp_path / "rec"
+    space = _space(tmp_path / "space.yaml", duration_s=8, settle_s=0,
+                   vary=[{"node": "camera", "parameter": {"name": "publish_rate"}, "arg": "camera_rate",
+                          "values": [5, 10]}])
+    proc = subprocess.Popen([str(BIN), "sweep", str(APP), "--space", str(space), "--out", str(out),
+                             "--duration", "3"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        _wait(lambda: len(_recorded(out)) == 1, proc, 60, "the first run")
+        _wait(lambda: bool(_running(out, "__name:=perfros_record")), proc, 30, "the second run's recording")
+        tags, ports = _tags_and_ports(out)
+        victims = _running(out, "hough_circles")
+        assert len(victims) == 1
+        victims[0].kill()  # the detector dies during the recording
+        _, stderr = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 2, stderr
+    lines = [x for x in stderr.splitlines() if x.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: run camera-publish_rate-10: "), stderr
+    assert "detector" in lines[0] and "during the recording" in lines[0], lines[0]
+    _nothing_left(out, tags, ports)
+    _one_line_then_consistent(out, ["camera-publish_rate-5.bag"])
+
+
+def test_bad_input_is_one_line_before_anything_runs(tmp_path: Path) -> None:
+    _require_ros()
+    space = _space(tmp_path / "space.yaml", vary=[{"node": "camera", "parameter": {"name": "publish_rate"},
+                                                   "arg": "frame_rate", "values": [5]}])
+    out = tmp_path / "rec"
+    done = _cli("sweep", str(APP), "--space", str(space), "--out", str(out))
+    assert done.returncode == 2
+    assert done.stderr.strip().count("\n") == 0 and "arg 'frame_rate' is not declared" in done.stderr
+    missing = _cli("sweep", str(tmp_path / "nope.launch"), "--space", str(space), "--out", str(out))
+    assert missing.returncode == 2 and "launch file not found" in missing.stderr
+    assert not out.exists() or not any(out.iterdir())
+
+
+# a ROS package of our own for the cases Debian's nodes do not show: a node that advertises
+# a topic and never publishes on it
+QUIET_NODE = """#!/usr/bin/python3
+import rospy
+from std_msgs.msg import String
+rospy.init_node("quiet")
+pub = rospy.Publisher("~never", String, queue_size=1)
+rospy.spin()
+"""
+
+
+def test_a_topic_that_never_publishes_is_one_line(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    _require_ros()
+    pkg = tmp_path / "pkgs" / "perfros_quiet"
+    pkg.mkdir(parents=True)
+    (pkg / "package.xml").write_text('<?xml version="1.0"?><package format="2"><name>perfros_quiet</name>'
+                                     '<version>0.0.1</version><description>test</description>'
+                                     '<maintainer email="t@t">t</maintainer><license>MIT</license></package>')
+    script = pkg / "quiet.py"
+    script.write_text(QUIET_NODE)
+    script.chmod(0o755)
+    launch = tmp_path / "quiet.launch"
+    launch.write_text('<launch><arg name="rate" default="5"/>'
+                      '<node name="quiet" pkg="perfros_quiet" type="quiet.py"/></launch>')
+    space = _space(tmp_path / "space.yaml", startup_timeout_s=4,
+                   vary=[{"node": "quiet", "parameter": {"name": "rate"}, "arg": "rate", "values": [5]}])
+    monkeypatch.setenv("ROS_PACKAGE_PATH", str(tmp_path / "pkgs"))
+    out = tmp_path / "rec"
+    done = _cli("sweep", str(launch), "--space", str(space), "--out", str(out))
+    assert done.returncode == 2, done.stderr
+    lines = [x for x in done.stderr.splitlines() if x.strip()]
+    assert lines == ["error: run quiet-rate-5: topic(s) /quiet/never never published within 4 s"], done.stderr
+    _nothing_left(out, set(), set())
+    assert not (out / "manifest.yaml").exists()
+
+
+# Debian's rosbag reader: the value of an int parameter in a node's dynamic_reconfigure
+# parameter_updates (what the node itself runs with)
+BAG_INT_PARAM = r"""
+import sys, rosbag
+with rosbag.Bag(sys.argv[1]) as bag:
+    for _topic, msg, _t in bag.read_messages(topics=[sys.argv[2]]):
+        print([p.value for p in msg.ints if p.name == sys.argv[3]][0])
+        break
+"""
+
+
+def test_a_param_entry_reaches_the_node(tmp_path: Path) -> None:
+    """``param:`` sets a private parameter the launch file does not set; the node's own
+    dynamic_reconfigure report, recorded in the bag, shows the value of each run."""
+    _require_ros()
+    space = _space(tmp_path / "space.yaml", duration_s=2, settle_s=0,
+                   vary=[{"node": "detector", "parameter": {"name": "gaussian_blur_size"},
+                          "param": "gaussian_blur_size", "values": [5, 11]}])
+    out = tmp_path / "rec"
+    done = _cli("sweep", str(APP), "--space", str(space), "--out", str(out))
+    assert done.returncode == 0, done.stderr
+    manifest = load_manifest(out / "manifest.yaml")
+    assert [e.settings["detector"] for e in manifest.recordings] == [5, 11]
+    for e in manifest.recordings:
+        shown = subprocess.run([ROS_PY, "-c", BAG_INT_PARAM, str(e.path), "/detector/parameter_updates",
+                                "gaussian_blur_size"], capture_output=True, text=True, timeout=60, check=True,
+                               env={k: v for k, v in os.environ.items() if k != "PYTHONPATH"})
+        assert int(shown.stdout) == e.settings["detector"], (e.name, shown.stdout)
