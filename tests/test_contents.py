@@ -325,3 +325,22 @@ def test_characterise_writes_the_metric_on_the_node_rows(generated: dict[str, Pa
     assert all(r.metric_value == pytest.approx(mean_score) for r in detector)
     assert all(r.metric_value is None for r in rows if r.node != "detector")
     assert all(r.latency_p50_s is None for r in rows)  # not asked for
+
+
+def test_validate_puts_the_measured_metric_beside_eq10(generated: dict[str, Path], tmp_path: Path) -> None:
+    system = tmp_path / "system.yaml"
+    system.write_text((SYSTEM_YAML % ("score", "mean")).replace(
+        "performance: 50}", "performance: 50, frequency_hz: 33.3}").replace(
+        "performance: 80}", "performance: 80, frequency_hz: 33.3}"))
+    plan = tmp_path / "plan.json"
+    runner = CliRunner()
+    res = runner.invoke(app, ["solve", str(system), "--problem", "1", "--method", "exact", "--out", str(plan)])
+    assert res.exit_code == 0, res.output
+    res = runner.invoke(app, ["validate", str(generated["rosbag2-mcap"]), str(plan), "--json", "--tolerance", "100"])
+    assert res.exit_code == 0, res.output
+    node = json.loads(res.stdout)["nodes"][0]
+    mean_score = float(np.mean([s.score for s in SENT if s.topic == "/detector/scored"]))
+    assert node["metric_value"] == pytest.approx(mean_score)
+    assert node["p_metric"] == pytest.approx(100 * mean_score / 10)  # range [0, 10], higher is better
+    assert node["metric_deviation_pct"] == pytest.approx(100 * abs(node["p_metric"] - node["p_expected"]) / node["p_expected"])
+    assert "measured metric" in res.stderr  # the table beside eq 10
