@@ -336,7 +336,9 @@ def test_validate_puts_the_measured_metric_beside_eq10(generated: dict[str, Path
     runner = CliRunner()
     res = runner.invoke(app, ["solve", str(system), "--problem", "1", "--method", "exact", "--out", str(plan)])
     assert res.exit_code == 0, res.output
-    res = runner.invoke(app, ["validate", str(generated["rosbag2-mcap"]), str(plan), "--json", "--tolerance", "100"])
+    saved = tmp_path / "validation.json"
+    res = runner.invoke(app, ["validate", str(generated["rosbag2-mcap"]), str(plan), "--json", "--tolerance", "100",
+                              "--out", str(saved)])
     assert res.exit_code == 0, res.output
     node = json.loads(res.stdout)["nodes"][0]
     mean_score = float(np.mean([s.score for s in SENT if s.topic == "/detector/scored"]))
@@ -344,3 +346,36 @@ def test_validate_puts_the_measured_metric_beside_eq10(generated: dict[str, Path
     assert node["p_metric"] == pytest.approx(100 * mean_score / 10)  # range [0, 10], higher is better
     assert node["metric_deviation_pct"] == pytest.approx(100 * abs(node["p_metric"] - node["p_expected"]) / node["p_expected"])
     assert "measured metric" in res.stderr  # the table beside eq 10
+    from perfros_bag.report.html import build_report, fmt
+
+    page = build_report(tmp_path / "report", validation=saved).read_text()
+    section = page.split('id="validation-metric"', 1)[1].split("</table>", 1)[0]
+    assert f">{fmt(node['p_metric'])}<" in section
+
+
+def test_report_shows_metric_and_latency(generated: dict[str, Path], tmp_path: Path) -> None:
+    from perfros_bag.report.html import build_report, fmt
+
+    d = tmp_path / "recs"
+    d.mkdir()
+    shutil.copy(generated["ros1"], d / "run.bag")
+    out = tmp_path / "c.csv"
+    res = CliRunner().invoke(app, ["characterise", str(d), "--system", str(_system(tmp_path)), "--latency",
+                                   "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    page = build_report(tmp_path / "report", characterisation=out).read_text()
+    assert 'id="contents-table"' in page
+    section = page.split('id="contents-table"', 1)[1].split("</table>", 1)[0]
+    lat = read_latency(generated["ros1"])["/imu"]
+    mean_score = float(np.mean([s.score for s in SENT if s.topic == "/detector/scored"]))
+    assert lat is not None and f">{fmt(lat.max_s)}<" in section
+    assert f">{fmt(mean_score)}<" in section
+    assert "/detector/plain" in section  # the node's metric is on its every row
+    plain = build_report(tmp_path / "r2", characterisation=write_plain_csv(tmp_path)).read_text()
+    assert "contents-table" not in plain
+
+
+def write_plain_csv(tmp_path: Path) -> Path:
+    path = tmp_path / "plain.csv"
+    path.write_text("recording,node,value,topic,frequency_hz,bandwidth_kBps,cpu_units_mean\nr,n,1,/t,1.0,2.0,3.0\n")
+    return path
