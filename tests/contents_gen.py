@@ -120,3 +120,87 @@ def write_mcap(path: Path, sent: list[Sent], *, big_endian_every: int = 0, compr
             w.add_message(chans[s.topic], log_time=s.time_ns, data=bytes(data), publish_time=s.time_ns)
         w.finish()
     return path
+
+
+# --------------------------------------------------------------------------- node names, parameters
+
+#: (log time offset s, node, parameter, value): what /parameter_events says, in order
+PARAMETER_EVENTS = [
+    (0.0, "/detector", "rate", 2), (0.0, "/detector", "mode", "fast"), (0.0, "/tracker", "gain", 1.0),
+    (8.0, "/tracker", "gain", 2.5),  # changed at 80 % of the recording: 1.0 is held longest
+]
+ROSOUT_NAMES = ["detector", "tracker", "lonely"]  # ROS 2 /rosout spells names without a slash
+GRAPH_SPAN_NS = 10_000_000_000
+
+
+def _parameter_value(ts: Any, value: Any) -> Any:
+    kind = {bool: 1, int: 2, float: 3, str: 4}[type(value)]
+    fields = {"bool_value": False, "integer_value": 0, "double_value": 0.0, "string_value": ""}
+    fields[{1: "bool_value", 2: "integer_value", 3: "double_value", 4: "string_value"}[kind]] = value
+    empty = np.array([], dtype=np.int64)
+    return ts.types["rcl_interfaces/msg/ParameterValue"](
+        type=kind, **fields, byte_array_value=np.array([], dtype=np.uint8), bool_array_value=np.array([], dtype=np.bool_),
+        integer_array_value=empty, double_array_value=np.array([], dtype=np.float64), string_array_value=[])
+
+
+def graph_messages(ts: Any, t0: int = 1_700_000_000_000_000_000) -> list[tuple[str, str, int, Any]]:
+    """(topic, type, log time, message): /parameter_events, /rosout and a data topic that
+    spans the whole recording."""
+    time_t = ts.types["builtin_interfaces/msg/Time"]
+    out: list[tuple[str, str, int, Any]] = []
+    new_seen: set[tuple[str, str]] = set()
+    for offset, node, name, value in PARAMETER_EVENTS:
+        t = t0 + int(offset * 1e9)
+        param = ts.types["rcl_interfaces/msg/Parameter"](name=name, value=_parameter_value(ts, value))
+        is_new = (node, name) not in new_seen
+        new_seen.add((node, name))
+        out.append(("/parameter_events", "rcl_interfaces/msg/ParameterEvent", t, ts.types["rcl_interfaces/msg/ParameterEvent"](
+            stamp=time_t(sec=t // 10**9, nanosec=t % 10**9), node=node,
+            new_parameters=[param] if is_new else [], changed_parameters=[] if is_new else [param],
+            deleted_parameters=[])))
+    for i, name in enumerate(ROSOUT_NAMES):
+        t = t0 + (i + 1) * 1_000_000_000
+        out.append(("/rosout", "rcl_interfaces/msg/Log", t, ts.types["rcl_interfaces/msg/Log"](
+            stamp=time_t(sec=t // 10**9, nanosec=t % 10**9), level=20, name=name, msg="hello",
+            file="x.cpp", function="f", line=1)))
+    for k in range(11):
+        t = t0 + k * GRAPH_SPAN_NS // 10
+        out.append(("/detector/plain", PLAIN, t, ts.types[PLAIN](score=float(k))))
+    return sorted(out, key=lambda m: m[2])
+
+
+def write_graph_rosbag2(path: Path, storage: str = "sqlite3") -> Path:
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    ts = typestore()
+    w = Writer(path, version=9, storage_plugin=StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3)
+    with w:
+        conns: dict[str, Any] = {}
+        for topic, mtype, t, msg in graph_messages(ts):
+            if topic not in conns:
+                conns[topic] = w.add_connection(topic, mtype, typestore=ts)
+            w.write(conns[topic], t, ts.serialize_cdr(msg, mtype))
+    return path
+
+
+def write_graph_ros1(path: Path) -> Path:
+    """A ROS 1 bag: /rosout (rosgraph_msgs/Log, names with a slash) from /logger and a data
+    topic published by /detector and /helper (their callerids)."""
+    from rosbags.rosbag1 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    ts = get_typestore(Stores.ROS1_NOETIC)
+    t0 = 1_700_000_000_000_000_000
+    header = ts.types["std_msgs/msg/Header"](seq=0, stamp=ts.types["builtin_interfaces/msg/Time"](sec=1, nanosec=0),
+                                             frame_id="")
+    with Writer(path) as w:
+        rosout = w.add_connection("/rosout", "rosgraph_msgs/msg/Log", typestore=ts, callerid="/logger")
+        data = {c: w.add_connection("/data", "std_msgs/msg/String", typestore=ts, callerid=c)
+                for c in ("/detector", "/helper")}
+        for i, name in enumerate(["/detector", "/planner"]):
+            log = ts.types["rosgraph_msgs/msg/Log"](header=header, level=2, name=name, msg="hi", file="a.py",
+                                                    function="f", line=1, topics=["/data"])
+            w.write(rosout, t0 + i, ts.serialize_ros1(log, "rosgraph_msgs/msg/Log"))
+        for i, conn in enumerate(data.values()):
+            w.write(conn, t0 + 10 + i, ts.serialize_ros1(ts.types["std_msgs/msg/String"](data="x"), "std_msgs/msg/String"))
+    return path

@@ -16,6 +16,8 @@ Rows are one per (recording, node, topic), design.md's ``characterisation.csv``:
   sample, aligned with the recording's window, normalised with the capacity of the
   manifest's ``computer``;
 - a node with CPU but no topic in the recording gets one row with an empty topic;
+- settings the manifest does not give (no manifest, or silent about a node) come from the
+  recording's ``/parameter_events`` (ROS 2; :mod:`perfros_bag.ingest.rosgraph`);
 - a system node with a ``metric`` carries its value (:func:`perfros_bag.ingest.contents.read_metric`)
   in ``metric_value`` on every one of its rows; ``latency_*`` only when asked for.
 """
@@ -120,8 +122,9 @@ def characterise_recording(entry: RecordingEntry, system: System | None = None, 
     order += [n for n in cpu if n not in order and not _cpu_owned(n, order)]
     span = (end - start) / 1e9 if start is not None and end is not None else None
     metrics = _metrics(entry, system, stats)
+    settings = _recorded_settings(entry, system, stats)
     for node in order:
-        parameter, value = _setting(node, entry.settings, system)
+        parameter, value = _setting(node, settings, system)
         metric = metrics.get(node)
         c = cpu.get(node) or (_cpu_for_publisher(node, cpu) if system is None else None)
         mean, p95, samples = (c.mean, c.p95, c.samples) if c is not None else (None, None, None)
@@ -150,6 +153,26 @@ def _metrics(entry: RecordingEntry, system: System | None, stats: RecordingStats
     from perfros_bag.ingest.contents import read_metric
 
     return {n.name: read_metric(entry.path, n.metric, stats) for n in system.nodes if n.metric is not None}
+
+
+def _recorded_settings(entry: RecordingEntry, system: System | None,
+                       stats: RecordingStats) -> Mapping[str, SettingValue]:
+    """The manifest's settings, completed from the recording's ``/parameter_events`` (ROS 2)
+    for the system nodes with a parameter that the manifest does not set."""
+    from perfros_bag.ingest.rosgraph import PARAMETER_EVENTS
+
+    events = stats.topics.get(PARAMETER_EVENTS)
+    if system is None or events is None or not events.messages:
+        return entry.settings
+    wanted = [(n.name, n.parameter.name, n.process) for n in system.nodes
+              if n.parameter is not None and n.name not in entry.settings]
+    if not wanted:
+        return entry.settings
+    from perfros_bag.ingest.rosgraph import read_graph, settings_from_graph
+
+    found = settings_from_graph(read_graph(entry.path, stats), wanted, f"{entry.name}: ")
+    recorded = {n: (int(v) if isinstance(v, bool) else v) for n, v in found.items()}
+    return {**recorded, **entry.settings}
 
 
 def _cpu_owned(label: str, nodes: Sequence[str]) -> bool:

@@ -1,11 +1,12 @@
 """Message contents decoded by the recording libraries (rosbags, mcap): never by our code.
 
-* ROS 1 bags and rosbag2 directories with a ``metadata.yaml``: rosbags' ``AnyReader``, whose
+* ROS 1 bags and rosbag2 sqlite3 (or compressed) directories with a ``metadata.yaml``:
+  rosbags' ``AnyReader``, whose
   typestore is built from the definitions stored in the recording itself (ROS 1 connection
   records, rosbag2 ``message_definitions`` / MCAP schemas); a rosbag2 recording that stores no
   definition at all (older sqlite3 bags) falls back to rosbags' standard ROS 2 typestore, so
   standard types decode and custom ones are reported as undecodable.
-* plain MCAP files (and the storage files of a rosbag2 directory without metadata): the
+* plain MCAP files (and the storage files of rosbag2 MCAP directories): the
   ``mcap`` reader for the records, a rosbags typestore built from the file's schemas
   (``ros2msg``, ``ros2idl``, ``ros1msg``) for ``cdr`` and ``ros1`` payloads, ``json.loads``
   for ``json`` payloads.
@@ -110,7 +111,19 @@ def _standard_typestore() -> Typestore:
 
 
 def _anyreader_usable(path: Path) -> bool:
-    return path.suffix == ".bag" if path.is_file() else (path / "metadata.yaml").is_file()
+    """ROS 1 bags, and rosbag2 directories with metadata whose storage is sqlite3 or that
+    are compressed; MCAP storage goes to the mcap reader (rosbags' own MCAP storage reader
+    yields no message at all for some valid files, e.g. shared/realbags/rosbag2_mcap_talker)."""
+    if path.is_file():
+        return path.suffix == ".bag"
+    meta = path / "metadata.yaml"
+    if not meta.is_file():
+        return False
+    if any(p.suffix in (".db3", ".zstd") for p in path.iterdir()):
+        return True
+    from perfros_bag.ingest.rosbag2 import parse_metadata
+
+    return parse_metadata(meta).compression_mode in ("FILE", "MESSAGE")
 
 
 @contextmanager
@@ -228,7 +241,7 @@ def _mcap_messages(path: Path, topics: Collection[str]) -> Iterator[tuple[str, i
 
 def _mcap_files(path: Path) -> list[Path]:
     """The MCAP files read with the mcap reader: the file itself, or a rosbag2 directory's
-    storage files when rosbags cannot open the directory."""
+    MCAP storage files."""
     if path.is_file():
         if path.suffix != ".mcap":
             raise Undecodable("message contents are read from .bag and .mcap files and rosbag2 directories")
@@ -237,7 +250,7 @@ def _mcap_files(path: Path) -> list[Path]:
 
     files = sorted((p for p in path.iterdir() if p.is_file() and p.suffix == ".mcap"), key=natural_key)
     if not files:
-        raise Undecodable("rosbag2 directory that rosbags cannot open and without .mcap storage files")
+        raise Undecodable("rosbag2 directory that rosbags cannot open, without .mcap storage files")
     return files
 
 
