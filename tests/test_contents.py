@@ -379,3 +379,47 @@ def write_plain_csv(tmp_path: Path) -> Path:
     path = tmp_path / "plain.csv"
     path.write_text("recording,node,value,topic,frequency_hz,bandwidth_kBps,cpu_units_mean\nr,n,1,/t,1.0,2.0,3.0\n")
     return path
+
+
+def _damaged_copies(src: Path, dst: Path) -> list[Path]:
+    """Truncated at 60 % and with 4 KB of zeros in the middle: every storage file."""
+    out = []
+    for kind, cut in (("cut", True), ("zeroed", False)):
+        target = dst / f"{kind}-{src.name}"
+        if src.is_dir():
+            shutil.copytree(src, target)
+            files = [p for p in target.iterdir() if p.suffix in (".db3", ".mcap")]
+        else:
+            shutil.copy(src, target)
+            files = [target]
+        for f in files:
+            data = bytearray(f.read_bytes())
+            if cut:
+                data = data[:len(data) * 6 // 10]
+            else:
+                mid = len(data) // 2
+                data[mid:mid + 4096] = bytes(min(4096, len(data) - mid))
+            f.write_bytes(bytes(data))
+        out.append(target)
+    return out
+
+
+@pytest.mark.parametrize("kind", ["ros1", "ros1-bz2", "rosbag2-sqlite3", "rosbag2-mcap", "mcap-zstd-some-big-endian"])
+def test_damaged_recordings_warn_never_raise(generated: dict[str, Path], tmp_path: Path, kind: str) -> None:
+    from perfros_bag.ingest.contents import read_metric
+    from perfros_bag.ingest.rosgraph import read_graph
+    from perfros_bag.system.systemfile import load_system
+
+    metric = load_system(_system(tmp_path)).node["detector"].metric
+    assert metric is not None
+    for path in _damaged_copies(generated[kind], tmp_path):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", PerfrosWarning)
+            latency = read_latency(path)
+            read_metric(path, metric)
+            read_graph(path)
+        assert set(latency) <= {"/detector/scored", "/imu"}
+        res = CliRunner().invoke(app, ["info", str(path), "--latency", "--json"])
+        assert res.exit_code in (0, 2) and "Traceback" not in res.output, res.output
+        if res.exit_code == 2:
+            assert res.stderr.startswith("error: ") and len(res.stderr.strip().splitlines()) == 1

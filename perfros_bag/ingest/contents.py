@@ -37,8 +37,8 @@ from perfros_bag.ingest.stamps import Stamps
 from perfros_bag.ingest.stats import RecordingStats
 from perfros_bag.system.types import Aggregate, Metric
 
-#: the fast path failed for a reason the library path may not share
-_FALLBACK = (NoIndex, Damaged, Undecodable, OSError, ValueError, IndexError, KeyError)
+#: what reading the contents may raise on a damaged or unusual recording: a warning
+_UNREADABLE = (PerfrosError, Undecodable, NoIndex, Damaged, OSError, ValueError, IndexError, KeyError)
 
 
 @dataclass(frozen=True)
@@ -157,7 +157,7 @@ def read_stamps(path: str | Path, *, fast: bool = True) -> tuple[Stamps, dict[st
     if fast:
         try:
             return fast_stamps(p)
-        except _FALLBACK:
+        except Exception:  # noqa: S110 - any failure of the fast path: the libraries decode instead
             pass
     types = topic_types(p)
     return library_stamps(p, types), types
@@ -171,7 +171,7 @@ def read_latency(path: str | Path, *, fast: bool = True) -> dict[str, TopicLaten
     p = Path(path)
     try:
         stamps, types = read_stamps(p, fast=fast)
-    except (PerfrosError, *_FALLBACK) as exc:  # e.g. an empty file: the index reader says so
+    except _UNREADABLE as exc:  # e.g. an empty file: the index reader says so
         warnings.warn(f"{p}: latency not read: {exc}", PerfrosWarning, stacklevel=2)
         return {}
     out: dict[str, TopicLatency | None] = {}

@@ -275,7 +275,17 @@ def topic_types(path: Path) -> dict[str, TopicType]:
 
 def decoded_messages(path: Path, topics: Collection[str]) -> Iterator[tuple[str, int, Any]]:
     """(topic, receive/log time ns, decoded message) of every message on ``topics``, in the
-    libraries' order. Typestore messages are rosbags objects; ``json`` payloads are dicts."""
+    libraries' order. Typestore messages are rosbags objects; ``json`` payloads are dicts.
+    Whatever the libraries raise on a damaged file becomes :class:`Undecodable`."""
+    try:
+        yield from _decoded_messages(path, topics)
+    except Undecodable:
+        raise
+    except Exception as exc:  # the libraries' own errors on damaged data: a reason, never a traceback
+        raise Undecodable(f"the recording library cannot read the messages: {type(exc).__name__}: {exc}") from None
+
+
+def _decoded_messages(path: Path, topics: Collection[str]) -> Iterator[tuple[str, int, Any]]:
     if _anyreader_usable(path):
         try:
             reader_cm = _any_reader(path)

@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from perfros_bag.cpu.trace import match_label
-from perfros_bag.errors import PerfrosWarning
+from perfros_bag.errors import PerfrosError, PerfrosWarning
 from perfros_bag.ingest.decode import Undecodable, decoded_messages
 from perfros_bag.ingest.stats import RecordingStats
 
@@ -98,7 +98,7 @@ def read_graph(path: str | Path, stats: RecordingStats | None = None) -> Recordi
                     value = _scalar(param.value)
                     if value is not None:
                         params.setdefault(str(param.name), []).append((log_ns, value))
-        except Undecodable as exc:
+        except (Undecodable, PerfrosError) as exc:
             warnings.warn(f"{p}: node names and parameters not read: {exc}", PerfrosWarning, stacklevel=2)
     graph.nodes = [n for n in names if n]
     return graph
