@@ -53,9 +53,10 @@ def sent_messages(n: int, seed: int = 7, t0: int = 1_700_000_000_000_000_000) ->
 
 
 def _message(ts: Any, s: Sent) -> Any:
+    seq = {"seq": 7} if ts.fielddefs["std_msgs/msg/Header"][1][0][0] == "seq" else {}  # ROS 1 Header
     header = ts.types["std_msgs/msg/Header"](
-        stamp=ts.types["builtin_interfaces/msg/Time"](sec=s.stamp_ns // 1_000_000_000,
-                                                      nanosec=s.stamp_ns % 1_000_000_000),
+        **seq, stamp=ts.types["builtin_interfaces/msg/Time"](sec=s.stamp_ns // 1_000_000_000,
+                                                             nanosec=s.stamp_ns % 1_000_000_000),
         frame_id="base")
     kind = TOPICS[s.topic]
     if kind == SCORED:
@@ -203,4 +204,48 @@ def write_graph_ros1(path: Path) -> Path:
             w.write(rosout, t0 + i, ts.serialize_ros1(log, "rosgraph_msgs/msg/Log"))
         for i, conn in enumerate(data.values()):
             w.write(conn, t0 + 10 + i, ts.serialize_ros1(ts.types["std_msgs/msg/String"](data="x"), "std_msgs/msg/String"))
+    return path
+
+
+def write_mcap_ros1(path: Path, sent: list[Sent]) -> Path:
+    """Plain MCAP of the ROS 1 profile: ``ros1msg`` schemas (ROS 1 definitions with Noetic's
+    Header, which has ``seq``), ``ros1`` payloads."""
+    from mcap.writer import Writer
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+    ts = get_typestore(Stores.ROS1_NOETIC)
+    for name, text in CUSTOM_MSGS.items():
+        ts.register(get_types_from_msg(text, name))
+    with path.open("wb") as f:
+        w = Writer(f, chunk_size=4096)
+        w.start(profile="ros1", library="perfros-bag tests")
+        chans = {}
+        for topic, mtype in TOPICS.items():
+            text, _ = ts.generate_msgdef(mtype, ros_version=1)
+            sid = w.register_schema(name=mtype.replace("/msg/", "/"), encoding="ros1msg", data=text.encode())
+            chans[topic] = w.register_channel(topic=topic, message_encoding="ros1", schema_id=sid)
+        for s in sent:
+            data = ts.serialize_ros1(_message(ts, s), TOPICS[s.topic])
+            w.add_message(chans[s.topic], log_time=s.time_ns, data=bytes(data), publish_time=s.time_ns)
+        w.finish()
+    return path
+
+
+def write_mcap_json(path: Path, sent: list[Sent]) -> Path:
+    """Plain MCAP with ``json`` payloads (``jsonschema`` schemas): {"score": ..., "header": ...}."""
+    import json
+
+    from mcap.writer import Writer
+
+    with path.open("wb") as f:
+        w = Writer(f)
+        w.start(profile="", library="perfros-bag tests")
+        sid = w.register_schema(name="Scored", encoding="jsonschema", data=b'{"type": "object"}')
+        chan = w.register_channel(topic="/detector/scored", message_encoding="json", schema_id=sid)
+        for s in sent:
+            if s.topic == "/detector/scored":
+                doc = {"header": {"stamp": {"sec": s.stamp_ns // 10**9, "nsec": s.stamp_ns % 10**9}},
+                       "score": s.score, "boxes": [1] * int(abs(s.score))}
+                w.add_message(chan, log_time=s.time_ns, data=json.dumps(doc).encode(), publish_time=s.time_ns)
+        w.finish()
     return path

@@ -423,3 +423,28 @@ def test_damaged_recordings_warn_never_raise(generated: dict[str, Path], tmp_pat
         assert res.exit_code in (0, 2) and "Traceback" not in res.output, res.output
         if res.exit_code == 2:
             assert res.stderr.startswith("error: ") and len(res.stderr.strip().splitlines()) == 1
+
+
+def test_ros1_profile_mcap_stamps_after_seq(tmp_path: Path) -> None:
+    from contents_gen import write_mcap_ros1
+
+    path = write_mcap_ros1(tmp_path / "ros1.mcap", SENT)
+    fast, types = fast_stamps(path)  # the ROS 1 layout inside MCAP: the stamp after seq
+    assert types["/imu"].stamp_offset == 4
+    _assert_same_stamps(fast, library_stamps(path))
+    for topic in ("/detector/scored", "/imu"):
+        np.testing.assert_array_equal(_sorted_pairs(*fast[topic]), _sorted_pairs(*_sent_stamps(topic)))
+
+
+def test_metric_of_json_payloads_through_the_mcap_reader(tmp_path: Path) -> None:
+    from contents_gen import write_mcap_json
+
+    from perfros_bag.ingest.contents import read_metric
+    from perfros_bag.system.types import Aggregate, Metric
+
+    path = write_mcap_json(tmp_path / "json.mcap", SENT)
+    scores = [s.score for s in SENT if s.topic == "/detector/scored"]
+    assert read_metric(path, Metric("/detector/scored", "score", Aggregate.MEDIAN)) == pytest.approx(float(np.median(scores)))
+    assert read_metric(path, Metric("/detector/scored", "boxes", Aggregate.MEAN)) == pytest.approx(
+        float(np.mean([int(abs(s)) for s in scores])))
+    assert read_latency(path) == {}  # json: no definition says it has a Header
