@@ -448,3 +448,51 @@ def test_metric_of_json_payloads_through_the_mcap_reader(tmp_path: Path) -> None
     assert read_metric(path, Metric("/detector/scored", "boxes", Aggregate.MEAN)) == pytest.approx(
         float(np.mean([int(abs(s)) for s in scores])))
     assert read_latency(path) == {}  # json: no definition says it has a Header
+
+
+def _db3_files(generated: dict[str, Path]) -> list[Path]:
+    dirs = [generated["rosbag2-sqlite3"]]
+    if REALBAGS.is_dir():
+        dirs += [REALBAGS / "plotjuggler_rosbag2_test", REALBAGS / "event_camera_test_events_1_db3"]
+    return [f for d in dirs for f in sorted(d.glob("*.db3"))]
+
+
+def test_blob_heads_from_the_pages_equal_sqlite(generated: dict[str, Path]) -> None:
+    """sqlitepages.read_blob_heads against SQLite's own substr() on every row."""
+    import mmap
+    import sqlite3
+
+    from perfros_bag.ingest import sqlitepages
+
+    for db in _db3_files(generated):
+        con = sqlite3.connect(f"file:{db}?mode=ro&immutable=1", uri=True)
+        ids = [tid for (tid,) in con.execute("SELECT id FROM topics")]
+        wanted = [tid for (tid,) in con.execute("SELECT DISTINCT topic_id FROM messages WHERE length(data) >= 12")]
+        wanted = [t for t in wanted if con.execute("SELECT min(length(data)) FROM messages WHERE topic_id = ?",
+                                                   (t,)).fetchone()[0] >= 12]
+        rows = con.execute(f"SELECT topic_id, timestamp, substr(data, 1, 12) FROM messages WHERE topic_id IN "
+                           f"({','.join('?' * len(wanted))}) ORDER BY rowid", wanted).fetchall()
+        (count,) = con.execute("SELECT count(*) FROM messages").fetchone()
+        root = sqlitepages.messages_root(con)
+        con.close()
+        assert ids and root is not None
+        with db.open("rb") as f, mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as mm:
+            tids, times, heads = sqlitepages.read_blob_heads(mm, root, count, wanted, 12)
+            got = list(zip(tids.tolist(), times.tolist(), [bytes(h) for h in heads], strict=True))
+            del tids, times, heads
+        assert got == [(t, ts, bytes(h)) for t, ts, h in rows], db
+
+
+def test_sqlite_sql_fallback_equals_the_page_path(generated: dict[str, Path]) -> None:
+    import sqlite3
+
+    from perfros_bag.ingest import stamps
+
+    for db in _db3_files(generated):
+        pages, types = stamps.sqlite_stamps(db)
+        con = sqlite3.connect(f"file:{db}?mode=ro&immutable=1", uri=True)
+        wanted = {tid: t.topic for tid, t in stamps.sqlite_types(con).items() if t.stamped}
+        sql = stamps._sql_stamps(con, wanted)
+        con.close()
+        _assert_same_stamps(pages, sql)
+        assert sorted(pages) == sorted(t for t, tt in types.items() if tt.stamped)

@@ -113,20 +113,18 @@ def _rosbag2_stamps(root: Path) -> tuple[Stamps, dict[str, TopicType]]:
     if meta is not None and meta.compression_mode in ("FILE", "MESSAGE"):
         raise NoIndex("compressed rosbag2 recording")
     files = rosbag2.resolve_files(root, meta)
-    # sqlite3 files: types from rosbags (the definitions table, else its standard typestore);
-    # MCAP files: from their own schemas
-    types = topic_types(root) if any(f.suffix == ".db3" for f in files) else {}
+    types: dict[str, TopicType] = {}
     out = stamps.StampParts()
-    for f in files:
+    for f in files:  # each file's types from its own definitions (schemas, definitions table)
         if f.suffix == ".mcap":
             with _mapped(f) as mm:
                 part, file_types = stamps.mcap_stamps(mm, f)
-            for topic, tt in file_types.items():
-                types.setdefault(topic, tt)
         elif f.suffix == ".db3":
-            part = stamps.sqlite_stamps(f, types)
+            part, file_types = stamps.sqlite_stamps(f)
         else:
             raise NoIndex(f"{f.name}: compressed storage file")
+        for topic, tt in file_types.items():
+            types.setdefault(topic, tt)
         out.extend(part)
     return out.stamps(), types
 

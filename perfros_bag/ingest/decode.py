@@ -19,7 +19,7 @@ only the chunks (or sqlite rows) holding them. Anything that cannot be decoded r
 from __future__ import annotations
 
 import json
-from collections.abc import Collection, Iterator
+from collections.abc import Collection, Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -164,24 +164,37 @@ def _anyreader_messages(reader: Any, topics: Collection[str]) -> Iterator[tuple[
 # --------------------------------------------------------------------------- mcap reader
 
 
-def _mcap_typestore(schemas: Collection[Any]) -> Typestore:
+def typestore_from_definitions(definitions: Iterable[tuple[str, str, str]]) -> Typestore:
+    """A rosbags typestore of the ``(type name, encoding, text)`` definitions stored in a
+    recording (MCAP schemas, rosbag2's ``message_definitions``): ``ros2msg``/``ros1msg``
+    (with their ``MSG:`` sub-definitions) and ``ros2idl``; a definition rosbags cannot parse
+    is left out (its topics are then undecodable)."""
     from rosbags.typesys import get_types_from_idl, get_types_from_msg, get_typestore
     from rosbags.typesys.msg import normalize_msgtype
     from rosbags.typesys.stores import Stores
 
     typestore = get_typestore(Stores.EMPTY)
-    for schema in schemas:
-        text = bytes(schema.data).decode("utf-8", "replace")
+    for name, encoding, text in definitions:
         try:
-            if schema.encoding in ("ros2msg", "ros1msg"):
-                typestore.register(get_types_from_msg(text, normalize_msgtype(schema.name)))
-            elif schema.encoding == "ros2idl":  # one IDL, or several after "=" * 80 + "IDL: name" lines
+            if encoding in ("ros2msg", "ros1msg"):
+                typestore.register(get_types_from_msg(text, normalize_msgtype(name)))
+            elif encoding == "ros2idl":  # one IDL, or several after "=" * 80 + "IDL: name" lines
                 parts = text.split(IDL_SEPARATOR)[1:] if text.startswith(IDL_SEPARATOR) else [text]
                 for part in parts:
                     typestore.register(get_types_from_idl(part.split("\n", 1)[1] if part.startswith("IDL: ") else part))
-        except Exception:  # noqa: S112 - a schema rosbags cannot parse: its topics are undecodable
+        except Exception:  # noqa: S112 - a definition rosbags cannot parse: its topics are undecodable
             continue
     return typestore
+
+
+def _mcap_typestore(schemas: Collection[Any]) -> Typestore:
+    return typestore_from_definitions(
+        (schema.name, schema.encoding, bytes(schema.data).decode("utf-8", "replace")) for schema in schemas)
+
+
+def standard_typestore() -> Typestore:
+    """rosbags' standard ROS 2 types: for rosbag2 recordings that store no definition."""
+    return _standard_typestore()
 
 
 def _mcap_summary(path: Path) -> tuple[Any, Typestore]:

@@ -2,14 +2,16 @@
 
 A message whose type starts with ``std_msgs/Header`` has its stamp at a fixed place:
 
-* ROS 1 serialisation: ``uint32 seq, uint32 sec, uint32 nsec`` -> bytes 4-12 of the payload;
+* ROS 1 serialisation: after the recorded Header's leading fixed-size fields (ROS 1's
+  ``uint32 seq``: bytes 4-12 of the payload; :func:`~perfros_bag.ingest.decode.stamp_offset`);
 * CDR (ROS 2): a 4-byte encapsulation header (``00 01`` little-endian, ``00 00`` big-endian),
   then ``int32 sec, uint32 nanosec`` -> bytes 4-12.
 
 Which topics are stamped is decided by rosbags from the definitions stored in the recording
-(:func:`perfros_bag.ingest.decode.starts_with_header`); only the chunks (or sqlite rows) of
-those topics are touched, through the existing readers' index access
-(:func:`perfros_bag.ingest.rosbag1.read_index`, :func:`perfros_bag.ingest.mcapfile.read_summary`).
+(:func:`perfros_bag.ingest.decode.starts_with_header`); only the chunks of those topics are
+touched, through the existing readers' index access (:func:`perfros_bag.ingest.rosbag1.read_index`,
+:func:`perfros_bag.ingest.mcapfile.read_summary`); rosbag2 sqlite3 files give each blob's first
+bytes from their B-tree pages (:func:`perfros_bag.ingest.sqlitepages.read_blob_heads`).
 Every structural fact is checked; anything unexpected (another CDR encapsulation, a payload
 shorter than a header, an index that disagrees with its chunk) raises
 :class:`~perfros_bag.ingest._accum.NoIndex` and the caller decodes with the libraries instead
@@ -245,27 +247,64 @@ def mcap_stamps(mm: mmap.mmap, path: Path) -> tuple[Stamps, dict[str, TopicType]
 # --------------------------------------------------------------------------- rosbag2 sqlite3
 
 
-def sqlite_stamps(db: Path, types: Mapping[str, TopicType]) -> Stamps:
-    """Stamps of the stamped topics of one rosbag2 sqlite3 file (CDR payloads): one SQL pass
-    over their rows returning the first 12 bytes of each blob as hex text."""
-    from perfros_bag.ingest.rosbag2 import _connect, _parse_ints
+def sqlite_types(con: sqlite3.Connection) -> dict[int, TopicType]:
+    """Topic id -> :class:`TopicType` of a rosbag2 sqlite3 file: rosbags parses the
+    ``message_definitions`` table (rosbag2 >= Iron); a file without one uses rosbags'
+    standard ROS 2 types (as its AnyReader does)."""
+    from rosbags.typesys.msg import normalize_msgtype
 
-    with _connect(db) as (con, _wal):
+    from perfros_bag.ingest.decode import standard_typestore, typestore_from_definitions
+
+    try:
+        stored = [(str(t), str(e), str(d)) for t, e, d in con.execute(
+            "SELECT topic_type, encoding, encoded_message_definition FROM message_definitions") if d]
+    except sqlite3.Error:  # older rosbag2: no such table
+        stored = []
+    typestore = typestore_from_definitions(stored) if stored else standard_typestore()
+    return {int(tid): topic_type(typestore, str(name), normalize_msgtype(str(mtype or "")), str(fmt or "cdr"))
+            for tid, name, mtype, fmt in con.execute("SELECT id, name, type, serialization_format FROM topics")}
+
+
+def sqlite_stamps(db: Path) -> tuple[Stamps, dict[str, TopicType]]:
+    """Stamps of the stamped topics of one rosbag2 sqlite3 file (CDR payloads) and every
+    topic's type: the first 12 bytes of each of their blobs from the B-tree pages
+    (:func:`perfros_bag.ingest.sqlitepages.read_blob_heads`), else (a WAL, an unusual table)
+    one SQL pass returning them as hex text."""
+    from perfros_bag.ingest import sqlitepages
+    from perfros_bag.ingest.rosbag2 import _connect, open_mmap
+
+    with _connect(db) as (con, wal):
         try:
-            topic_ids = {int(tid): str(name) for tid, name in con.execute("SELECT id, name FROM topics")}
-            wanted = {tid: name for tid, name in topic_ids.items()
-                      if name in types and types[name].stamped}
+            by_id = sqlite_types(con)
+            types = {t.topic: t for t in by_id.values()}
+            wanted = {tid: t.topic for tid, t in by_id.items() if t.stamped}
             if not wanted:
-                return {}
+                return {}, types
             if any(_offset(types[name]) != 4 for name in wanted.values()):
                 raise NoIndex("header.stamp not right after the CDR encapsulation")
-            marks = ",".join("?" * len(wanted))
-            n, tids_text, times_text, heads, shortest = con.execute(
-                "SELECT count(*), group_concat(topic_id), group_concat(timestamp), "
-                "group_concat(hex(substr(data, 1, 12)), ''), min(length(data)) "
-                f"FROM messages WHERE topic_id IN ({marks})", tuple(wanted)).fetchone()  # noqa: S608 - only '?'
+            root = None if wal else sqlitepages.messages_root(con)
+            if root is not None:
+                (count,) = con.execute("SELECT count(*) FROM messages").fetchone()
+                try:
+                    with open_mmap(db) as mm:
+                        tids, times, heads = sqlitepages.read_blob_heads(mm, root, int(count), list(wanted), 12)
+                    stamps = cdr_stamps(heads.reshape(-1), np.arange(tids.size, dtype=np.int64) * 12)
+                    return {name: (times[tids == tid], stamps[tids == tid]) for tid, name in wanted.items()}, types
+                except NoIndex:
+                    pass  # the SQL pass below
+            return _sql_stamps(con, wanted), types
         except (sqlite3.Error, ValueError) as exc:
             raise Damaged(f"cannot read the messages table: {exc}") from None
+
+
+def _sql_stamps(con: sqlite3.Connection, wanted: Mapping[int, str]) -> Stamps:
+    from perfros_bag.ingest.rosbag2 import _parse_ints
+
+    marks = ",".join("?" * len(wanted))
+    n, tids_text, times_text, heads, shortest = con.execute(
+        "SELECT count(*), group_concat(topic_id), group_concat(timestamp), "
+        "group_concat(hex(substr(data, 1, 12)), ''), min(length(data)) "
+        f"FROM messages WHERE topic_id IN ({marks})", tuple(wanted)).fetchone()  # noqa: S608 - only '?'
     if n == 0:
         return {}
     if shortest is None or int(shortest) < 4 + STAMP_SIZE:
