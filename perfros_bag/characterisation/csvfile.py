@@ -39,10 +39,15 @@ class Row:
     cpu_samples: int | None
     median_rate_hz: float | None = None
     p95_gap_s: float | None = None
+    # message contents (perfros_bag/ingest/contents.py): empty unless read
+    metric_value: float | None = None
+    latency_p50_s: float | None = None
+    latency_p95_s: float | None = None
+    latency_max_s: float | None = None
 
 
 COLUMNS: tuple[str, ...] = tuple(f.name for f in fields(Row))
-#: The columns a characterisation.csv must have (the last two came later: optional).
+#: The columns a characterisation.csv must have (the others came later: optional).
 REQUIRED_COLUMNS = ("recording", "node", "value", "topic", "frequency_hz", "bandwidth_kBps", "cpu_units_mean")
 _INT_COLUMNS = frozenset({"messages", "cpu_samples"})
 _TEXT_COLUMNS = frozenset({"parameter", "topic", "msgtype"})

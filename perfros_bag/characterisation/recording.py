@@ -15,7 +15,11 @@ Rows are one per (recording, node, topic), design.md's ``characterisation.csv``:
   ``process`` regex on the trace's node label / process name, or its name), summed per
   sample, aligned with the recording's window, normalised with the capacity of the
   manifest's ``computer``;
-- a node with CPU but no topic in the recording gets one row with an empty topic.
+- a node with CPU but no topic in the recording gets one row with an empty topic;
+- settings the manifest does not give (no manifest, or silent about a node) come from the
+  recording's ``/parameter_events`` (ROS 2; :mod:`perfros_bag.ingest.rosgraph`);
+- a system node with a ``metric`` carries its value (:func:`perfros_bag.ingest.contents.read_metric`)
+  in ``metric_value`` on every one of its rows; ``latency_*`` only when asked for.
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ from __future__ import annotations
 import warnings
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
+from typing import TYPE_CHECKING
 
 from perfros_bag.characterisation.csvfile import Row
 from perfros_bag.characterisation.manifest import RecordingEntry, SettingValue
@@ -30,6 +35,9 @@ from perfros_bag.cpu.trace import NodeCpu, match_label, node_cpu, read_cpu_trace
 from perfros_bag.errors import InputError, PerfrosError, PerfrosWarning
 from perfros_bag.ingest.stats import RecordingStats
 from perfros_bag.system.types import System
+
+if TYPE_CHECKING:
+    from perfros_bag.ingest.contents import TopicLatency
 
 #: CPU units of a computer that the system does not describe: 100 = the whole machine.
 DEFAULT_CAPACITY = 100.0
@@ -55,17 +63,25 @@ def reporting(entry: RecordingEntry) -> Iterator[None]:
 
 
 def characterise_recording(entry: RecordingEntry, system: System | None = None, *,
-                           fast: bool = True, stats: RecordingStats | None = None) -> list[Row]:
+                           fast: bool = True, stats: RecordingStats | None = None,
+                           latency: bool = False) -> list[Row]:
     """The rows of one recording. Raises :class:`PerfrosError` when it cannot be read.
 
     ``stats``: the recording's statistics when already read (the fleet merges a large
-    recording's chunk-range parts, perfros_bag/characterisation/cluster.py); else read here."""
+    recording's chunk-range parts, perfros_bag/characterisation/cluster.py); else read here.
+    ``latency``: also read the headers of the stamped topics (the ``latency_*`` columns;
+    :func:`perfros_bag.ingest.contents.read_latency`)."""
     from perfros_bag.ingest import read_recording
 
     if not entry.path.exists():
         raise InputError(entry.path, "recording not found")
     if stats is None:
         stats = read_recording(entry.path, fast=fast)
+    delays: Mapping[str, TopicLatency | None] = {}
+    if latency:
+        from perfros_bag.ingest.contents import read_latency
+
+        delays = read_latency(entry.path, fast=fast)
     start, end = stats.start_ns, stats.end_ns
     cpu: dict[str, NodeCpu] = {}
     if entry.cpu is not None:
@@ -105,21 +121,58 @@ def characterise_recording(entry: RecordingEntry, system: System | None = None, 
     order += [n for n in by_node if n not in order]
     order += [n for n in cpu if n not in order and not _cpu_owned(n, order)]
     span = (end - start) / 1e9 if start is not None and end is not None else None
+    metrics = _metrics(entry, system, stats)
+    settings = _recorded_settings(entry, system, stats)
     for node in order:
-        parameter, value = _setting(node, entry.settings, system)
+        parameter, value = _setting(node, settings, system)
+        metric = metrics.get(node)
         c = cpu.get(node) or (_cpu_for_publisher(node, cpu) if system is None else None)
         mean, p95, samples = (c.mean, c.p95, c.samples) if c is not None else (None, None, None)
         topics = by_node.get(node, [])
         if not topics:
             rows.append(Row(entry.name, node, parameter, value, None, None, None, span, None, None,
-                            mean, p95, samples))
+                            mean, p95, samples, metric_value=metric))
             continue
         for topic in topics:
             ts = stats.topics[topic]
+            delay = delays.get(topic)
             rows.append(Row(entry.name, node, parameter, value, topic, ts.msgtype, ts.messages,
                             ts.span_s, ts.frequency_hz, ts.bandwidth_kBps, mean, p95, samples,
-                            ts.median_rate_hz, ts.p95_gap_s))
+                            ts.median_rate_hz, ts.p95_gap_s, metric_value=metric,
+                            latency_p50_s=delay.p50_s if delay else None,
+                            latency_p95_s=delay.p95_s if delay else None,
+                            latency_max_s=delay.max_s if delay else None))
     return rows
+
+
+def _metrics(entry: RecordingEntry, system: System | None, stats: RecordingStats) -> dict[str, float | None]:
+    """The value of each system node's ``metric`` in this recording (decoded only for the
+    nodes that have one)."""
+    if system is None or not any(n.metric for n in system.nodes):
+        return {}
+    from perfros_bag.ingest.contents import read_metric
+
+    return {n.name: read_metric(entry.path, n.metric, stats) for n in system.nodes if n.metric is not None}
+
+
+def _recorded_settings(entry: RecordingEntry, system: System | None,
+                       stats: RecordingStats) -> Mapping[str, SettingValue]:
+    """The manifest's settings, completed from the recording's ``/parameter_events`` (ROS 2)
+    for the system nodes with a parameter that the manifest does not set."""
+    from perfros_bag.ingest.rosgraph import PARAMETER_EVENTS
+
+    events = stats.topics.get(PARAMETER_EVENTS)
+    if system is None or events is None or not events.messages:
+        return entry.settings
+    wanted = [(n.name, n.parameter.name, n.process) for n in system.nodes
+              if n.parameter is not None and n.name not in entry.settings]
+    if not wanted:
+        return entry.settings
+    from perfros_bag.ingest.rosgraph import read_graph, settings_from_graph
+
+    found = settings_from_graph(read_graph(entry.path, stats), wanted, f"{entry.name}: ")
+    recorded = {n: (int(v) if isinstance(v, bool) else v) for n, v in found.items()}
+    return {**recorded, **entry.settings}
 
 
 def _cpu_owned(label: str, nodes: Sequence[str]) -> bool:

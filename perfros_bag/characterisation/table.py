@@ -9,6 +9,7 @@ over the entries, in this process or on Dask (:mod:`perfros_bag.characterisation
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -23,7 +24,7 @@ from perfros_bag.characterisation.manifest import (
 )
 from perfros_bag.characterisation.recording import characterise_recording, reporting
 from perfros_bag.characterisation.settings import by_setting, mean
-from perfros_bag.errors import InputError, PerfrosError
+from perfros_bag.errors import InputError, PerfrosError, PerfrosWarning
 from perfros_bag.system.types import System
 
 
@@ -89,14 +90,19 @@ def check_settings(entries: Iterable[RecordingEntry], system: System, source: st
 
 def characterise(entries: Sequence[RecordingEntry], system: System | None = None, *, fast: bool = True,
                  on_done: Callable[[RecordingEntry, Failure | None], None] | None = None,
-                 scheduler: str | None = None, workers: int | None = None) -> Result:
+                 scheduler: str | None = None, workers: int | None = None,
+                 latency: bool = False) -> Result:
     """Characterise every entry; a failing recording becomes a :class:`Failure`, not an abort.
 
     In this process by default; with ``scheduler`` (a dask.distributed address) or
     ``workers`` (a LocalCluster of that many processes) the per-recording work runs on
     Dask through :func:`perfros_bag.characterisation.distributed.run_distributed`. Rows keep entry order.
+    ``latency``: also the ``latency_*`` columns (in this process only, not on Dask yet).
     """
     if scheduler is not None or workers is not None:
+        if latency:
+            warnings.warn("latency is not read on Dask yet: the latency columns stay empty",
+                          PerfrosWarning, stacklevel=2)
         return _characterise_dask(entries, system, fast, on_done, scheduler, workers)
     rows: list[Row] = []
     failures: list[Failure] = []
@@ -104,7 +110,7 @@ def characterise(entries: Sequence[RecordingEntry], system: System | None = None
         failure = None
         try:
             with reporting(entry):
-                rows.extend(characterise_recording(entry, system, fast=fast))
+                rows.extend(characterise_recording(entry, system, fast=fast, latency=latency))
         except PerfrosError as exc:
             failure = Failure(entry.name, str(exc))
         if failure is not None:

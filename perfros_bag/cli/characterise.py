@@ -50,6 +50,7 @@ def characterise_cmd(
     slow: bool = typer.Option(False, "--slow", help="Stream every message instead of reading the indexes."),
     scheduler: str | None = typer.Option(None, "--scheduler", help="Run on a dask.distributed cluster (tcp://HOST:PORT)."),
     workers: int | None = typer.Option(None, "--workers", help="Run on a local Dask cluster of N worker processes."),
+    latency: bool = typer.Option(False, "--latency", help="Also the latency_* columns: receive time - header.stamp of the topics with a std_msgs/Header."),
     plot: Path | None = typer.Option(None, "--plot", help="Also write a PNG: CPU and frequency per setting of each configurable node."),  # noqa: B008
 ) -> None:
     """Characterise every recording in DIR: per node and topic, frequency, bandwidth and CPU."""
@@ -84,7 +85,8 @@ def characterise_cmd(
         raise PerfrosError(f"{directory}: no recordings found")
 
     with _progress_bar(len(entries)) as done:
-        result = characterise(entries, system, fast=not slow, on_done=done, scheduler=scheduler, workers=workers)
+        result = characterise(entries, system, fast=not slow, on_done=done, scheduler=scheduler, workers=workers,
+                               latency=latency)
 
     for f in result.failures:
         err.print(f"[red]error:[/] {escape(f.message)}", highlight=False, soft_wrap=True)

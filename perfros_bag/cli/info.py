@@ -27,6 +27,7 @@ def info(
     recording: Annotated[Path, typer.Argument(help="A .bag, .mcap or .db3 file or a rosbag2 directory.")],
     as_json: Annotated[bool, typer.Option("--json", help="Print the perfros-bag/info@1 JSON document on stdout.")] = False,
     slow: Annotated[bool, typer.Option("--slow", help="Stream every record instead of reading the indexes (same numbers, slower).")] = False,
+    latency: Annotated[bool, typer.Option("--latency", help="Also read header.stamp of the topics with a std_msgs/Header: receive time - stamp, p50/p95/max.")] = False,
 ) -> None:
     """Per-topic table like `rosbag info` / `ros2 bag info`, with rates and bandwidth."""
     from rich.console import Console
@@ -37,7 +38,12 @@ def info(
 
     with err.status(f"reading {recording}", spinner="dots"):  # animates on a terminal only
         rec = read_recording(recording, fast=not slow)
-    doc = recording_document(rec)
+        lat = None
+        if latency:
+            from perfros_bag.ingest.contents import read_latency
+
+            lat = read_latency(recording, fast=not slow)
+    doc = recording_document(rec, lat)
     if as_json:
         print(json.dumps(doc, indent=2))
         return
@@ -50,19 +56,22 @@ def info(
                   f"[bold]messages[/]:  {rec.messages}   [bold]payload[/]: {doc['bytes']} bytes",
                   highlight=False)
     table = Table(show_edge=False, header_style="bold")
-    for name, justify in [("topic", "left"), ("type", "left"), ("msgs", "right"), ("freq Hz", "right"),
-                          ("median Hz", "right"), ("p95 gap s", "right"), ("kB/s", "right"),
-                          ("first s", "right"), ("last s", "right"), ("publishers", "left")]:
+    columns = [("topic", "left"), ("type", "left"), ("msgs", "right"), ("freq Hz", "right"),
+               ("median Hz", "right"), ("p95 gap s", "right"), ("kB/s", "right"),
+               ("first s", "right"), ("last s", "right"), ("publishers", "left")]
+    for name, justify in columns + [("latency p50/p95/max s", "right")] * latency:
         table.add_column(name, justify=justify, no_wrap=name != "publishers")  # type: ignore[arg-type]
     start = rec.start_ns or 0
 
     def rel(ns: int | None) -> str:
         return "-" if ns is None else f"{(ns - start) / 1e9:.3f}"
 
-    for t in rec.topics.values():
+    for t, td in zip(rec.topics.values(), doc["topics"], strict=True):
+        delays = [td[k] for k in ("latency_p50_s", "latency_p95_s", "latency_max_s")]
         table.add_row(t.topic, t.msgtype, str(t.messages), f"{t.frequency_hz:.3f}",
                       f"{t.median_rate_hz:.3f}", f"{t.p95_gap_s:.4f}", f"{t.bandwidth_kBps:.3f}",
-                      rel(t.first_ns), rel(t.last_ns), ", ".join(t.publishers))
+                      rel(t.first_ns), rel(t.last_ns), ", ".join(t.publishers),
+                      *["/".join("-" if d is None else f"{d:.4f}" for d in delays)] * latency)
     console.print(table)
     if not rec.topics:
         err.print("(no topics)")

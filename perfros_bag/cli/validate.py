@@ -77,6 +77,15 @@ def render(v: Validation, console: Console) -> None:
             lt.add_row(f"medium {escape(m.between[0])}", _f(m.capacity_kBps), _f(m.expected_kBps),
                        _f(m.measured_kBps), "[red]overloaded[/]" if m.overloaded else "ok")
         console.print(lt)
+    if any(n.metric_value is not None for n in v.nodes):
+        mt = Table(title="measured metric (system.yaml metric) beside eq 10")
+        for col in ("node", "metric", "P metric", "P exp", "P eq 10", "dev%"):
+            mt.add_column(col, justify="left" if col == "node" else "right")
+        for n in v.nodes:
+            if n.metric_value is not None:
+                mt.add_row(escape(n.node), _f(n.metric_value, ".4g"), _f(n.p_metric), _f(n.p_expected),
+                           _f(n.p_measured), _f(n.metric_deviation_pct, ".1f"))
+        console.print(mt)
     if v.unplanned_topics:
         console.print("topics not in the plan (not counted): "
                       + ", ".join(f"{escape(u.topic)} ({u.f_measured:.3g} Hz)" for u in v.unplanned_topics))

@@ -6,7 +6,10 @@ bandwidth per setting: the mean over the recordings of the same node and value, 
 spread kept in the ``measured`` part), fits per configurable node the relations of
 :mod:`perfros_bag.fitting.regression` and fills each node's ``curve`` (CPU -> performance, what the
 solvers use) and ``relations`` in, so :func:`perfros_bag.system.systemfile.load_system` reads the
-``system`` part like a system.yaml. Format: ``docs/formats.md``.
+``system`` part like a system.yaml. A node with a ``metric`` measured at two or more
+values takes its performance from the measurements instead of the expert's levels
+(:func:`metric_means`, :func:`metric_performance`); each performance fit says which in
+its ``source``. Format: ``docs/formats.md``.
 """
 
 from __future__ import annotations
@@ -79,6 +82,36 @@ def measured_settings(table: CharacterisationFile, system: System) -> dict[str, 
     return out
 
 
+def metric_means(table: CharacterisationFile, system: System) -> dict[str, dict[float, float]]:
+    """Per node of ``system`` with a ``metric``: parameter value -> its ``metric_value``,
+    the mean over the recordings at that value (one value per recording: characterise
+    writes it on each of the node's rows)."""
+    per: dict[str, dict[float, dict[str, float]]] = {}
+    for row, line in zip(table.rows, table.lines, strict=True):
+        node = system.node.get(row.node)
+        if (node is None or node.metric is None or row.metric_value is None
+                or not isinstance(row.value, int | float) or not math.isfinite(row.value)):
+            continue
+        per.setdefault(row.node, {}).setdefault(float(row.value), {}).setdefault(
+            row.recording or f"(row {line})", row.metric_value)
+    return {n: {v: sum(by_rec.values()) / len(by_rec) for v, by_rec in by_value.items()}
+            for n, by_value in per.items()}
+
+
+def metric_performance(node: Node, means: dict[float, float]) -> dict[float, float]:
+    """Parameter value -> performance 0-100 from the node's metric: over its ``range``, else
+    over the range of ``means`` (empty when that range is a single value)."""
+    if node.metric is None or not means:
+        return {}
+    measured = (min(means.values()), max(means.values()))
+    out = {}
+    for value, mean in means.items():
+        perf = node.metric.performance(mean, measured)
+        if perf is not None:
+            out[value] = perf
+    return out
+
+
 # --- building the model -----------------------------------------------------------------
 
 def _same(a: float | None, b: float | None) -> bool:
@@ -105,6 +138,7 @@ def build_model(system_path: str | Path, characterisation_path: str | Path) -> M
         system = parse_system(raw, sys_path)
     table = read_characterisation(csv_path)
     measured = measured_settings(table, system)
+    metrics = metric_means(table, system)
     if not measured:
         known = sorted({r.node for r in table.rows if r.node})
         raise InputError(csv_path, "no row names a node of " + sys_path
@@ -119,7 +153,8 @@ def build_model(system_path: str | Path, characterisation_path: str | Path) -> M
     for node in system.nodes:
         if node.name not in measured:
             continue
-        fits_n = _fit_node(node, measured[node.name], raw_nodes[node.name], warn, sys_path)
+        perf = _performance_source(node, metrics.get(node.name, {}), warn)
+        fits_n = _fit_node(node, measured[node.name], raw_nodes[node.name], warn, sys_path, perf)
         if fits_n:
             fits[node.name] = fits_n
     document = ModelDocument(sys_path, csv_path, doc_system,
@@ -140,10 +175,29 @@ def _match(node: Node, value: float | None, measured: list[MeasuredSetting]) -> 
     return None
 
 
+def _performance_source(node: Node, means: dict[float, float], warn: _Warn) -> dict[float, float] | None:
+    """The measured performance per value when the node's metric was measured at two or
+    more values (the fit then uses it instead of system.yaml's levels); else None."""
+    if node.metric is None:
+        return None
+    perf = metric_performance(node, means)
+    if len(perf) < 2:
+        warn(f"node {node.name!r}: metric {node.metric.topic} measured at {len(means)} value(s)"
+             + (" (all equal, no range given)" if means and not perf else "")
+             + ": performance from the settings of the system instead")
+        return None
+    return perf
+
+
+def _measured_perf(perf: dict[float, float], value: float | None) -> float | None:
+    return next((p for v, p in perf.items() if _same(v, value)), None)
+
+
 def _fit_node(node: Node, measured: list[MeasuredSetting], raw: dict[str, Any], warn: _Warn,
-              sys_path: str) -> dict[str, FittedRelation]:
+              sys_path: str, perf: dict[float, float] | None = None) -> dict[str, FittedRelation]:
     """Fill ``raw`` (the node's system.yaml mapping, changed in place) with measured
-    numbers and fitted curves; return the fits."""
+    numbers and fitted curves; return the fits. ``perf``: performance per value from the
+    node's metric, replacing the settings' levels (:func:`_performance_source`)."""
     who = f"node {node.name!r}"
     new_settings: list[dict[str, Any]] = []
     # Points: (value, cpu, performance, frequency, bandwidth); performance None when unrated.
@@ -179,14 +233,20 @@ def _fit_node(node: Node, measured: list[MeasuredSetting], raw: dict[str, Any], 
                       for t, (f, b) in m.topics.items()}
             if "topics" not in rs and len(topics) > 1:
                 rs["topics"] = topics
+        performance: float | None = s.performance
+        if perf is not None:
+            performance = _measured_perf(perf, s.value)
+            if performance is not None:
+                rs["performance"] = round9(performance)
         new_settings.append(rs)
-        points.append((s.value, cpu, s.performance, freq, bw))
+        points.append((s.value, cpu, performance, freq, bw))
     if raw_settings:
         raw["settings"] = new_settings
     for m in measured:  # measured values the expert did not rate: CPU/frequency/bandwidth only
         if id(m) not in used and m.value is not None and m.cpu is not None and m.cpu.mean > 0:
             points.append((m.value, m.cpu.mean,
-                           None, None if m.frequency_hz is None else m.frequency_hz.mean,
+                           None if perf is None else _measured_perf(perf, m.value),
+                           None if m.frequency_hz is None else m.frequency_hz.mean,
                            None if m.bandwidth_kBps is None else m.bandwidth_kBps.mean))
 
     if node.parameter is None:
@@ -224,6 +284,8 @@ def _fit_node(node: Node, measured: list[MeasuredSetting], raw: dict[str, Any], 
             return {}
         for note in fit.warnings:
             warn(f"{who}: {rel}: {note}")
+        if rel.endswith("->performance"):
+            fit = replace(fit, source="settings" if perf is None else "metric")
         fits[rel] = fit
 
     fits.update(_topic_fits(who, measured, warn))

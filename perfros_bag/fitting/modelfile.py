@@ -89,6 +89,9 @@ class FittedRelation:
     points: tuple[tuple[float, float], ...]
     candidates: dict[str, float | None] = field(default_factory=dict)  # form -> leave-one-out RMSE
     warnings: tuple[str, ...] = ()
+    #: where a performance relation's performance came from: "metric" (measured, the node's
+    #: system.yaml ``metric``) or "settings" (the expert's levels); None for the others
+    source: str | None = None
 
     @property
     def curve(self) -> Curve:
@@ -103,6 +106,7 @@ class FittedRelation:
             "points": [[float(a), float(b)] for a, b in self.points],
             "candidates": {k: None if v is None else round6(v) for k, v in self.candidates.items()},
             "warnings": list(self.warnings),
+            **({} if self.source is None else {"source": self.source}),
         }
 
 
@@ -212,6 +216,7 @@ def _relation(doc: _Doc, raw: Any, where: str) -> FittedRelation:
         candidates=candidates,
         warnings=tuple(doc.string(w, f"{where}.warnings[{i}]")
                        for i, w in enumerate(doc.items(m.get("warnings", []), f"{where}.warnings"))),
+        source=None if m.get("source") is None else doc.string(m.get("source"), f"{where}.source"),
     )
     try:
         fit.curve  # noqa: B018 - the coefficients and domain must make a curve

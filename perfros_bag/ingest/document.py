@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from perfros_bag.ingest.stats import RecordingStats, TopicStats
+
+if TYPE_CHECKING:
+    from perfros_bag.ingest.contents import TopicLatency
 
 FORMAT = "perfros-bag/info@1"
 
@@ -14,7 +18,12 @@ def _num(x: float) -> float:
     return round(float(x), 6)
 
 
-def topic_document(t: TopicStats) -> dict[str, Any]:
+def _opt(x: float | None) -> float | None:
+    return None if x is None else _num(x)
+
+
+def topic_document(t: TopicStats, latency: TopicLatency | None = None) -> dict[str, Any]:
+    """One topic; ``latency_*`` are null when the topic has no header (or was not read)."""
     return {
         "topic": t.topic,
         "msgtype": t.msgtype,
@@ -28,6 +37,9 @@ def topic_document(t: TopicStats) -> dict[str, Any]:
         "median_rate_hz": _num(t.median_rate_hz),
         "p95_gap_s": _num(t.p95_gap_s),
         "publishers": list(t.publishers),
+        "latency_p50_s": _opt(latency.p50_s if latency else None),
+        "latency_p95_s": _opt(latency.p95_s if latency else None),
+        "latency_max_s": _opt(latency.max_s if latency else None),
     }
 
 
@@ -38,8 +50,12 @@ def file_bytes(path: Path) -> int:
     return path.stat().st_size if path.exists() else 0
 
 
-def recording_document(rec: RecordingStats) -> dict[str, Any]:
+def recording_document(rec: RecordingStats,
+                       latency: Mapping[str, TopicLatency | None] | None = None) -> dict[str, Any]:
+    """The document; ``latency`` (:func:`perfros_bag.ingest.contents.read_latency`) when the
+    headers were read (``latency_read`` says whether they were)."""
     start, end = rec.start_ns, rec.end_ns
+    lat = latency or {}
     return {
         "format": FORMAT,
         "path": str(rec.path),
@@ -51,5 +67,6 @@ def recording_document(rec: RecordingStats) -> dict[str, Any]:
         "start_ns": start,
         "end_ns": end,
         "duration_s": _num((end - start) / 1e9) if start is not None and end is not None else 0.0,
-        "topics": [topic_document(t) for t in rec.topics.values()],
+        "latency_read": latency is not None,
+        "topics": [topic_document(t, lat.get(t.topic)) for t in rec.topics.values()],
     }

@@ -158,7 +158,7 @@ class _State:
         return acc
 
 
-def _record(buf: Buf, pos: int, end: int) -> tuple[int, int, int]:
+def record_at(buf: Buf, pos: int, end: int) -> tuple[int, int, int]:
     """(opcode, content start, content length) of the record at ``pos``."""
     if pos + 9 > end:
         raise Damaged(f"truncated record at byte {pos}")
@@ -247,7 +247,7 @@ def _scan_records(buf: Buf, pos: int, end: int, st: _State, message_zstd: bool,
     released = 0
     while pos < end:
         try:
-            op, start, length = _record(buf, pos, end)
+            op, start, length = record_at(buf, pos, end)
         except Damaged:
             if data_end:  # summary cut off after the data section: every message was read
                 break
@@ -309,7 +309,7 @@ def read_summary(mm: mmap.mmap) -> Summary:
     if size < 8 + 29 + 8 or mm[size - 8:] != MAGIC:
         raise NoIndex("no trailing magic")
     fpos = size - 8 - 29
-    op, start, length = _record(mm, fpos, size - 8)
+    op, start, length = record_at(mm, fpos, size - 8)
     if op != OP_FOOTER or length != 20:
         raise NoIndex("no footer")
     c = _Cursor(mm, start, start + length)
@@ -324,7 +324,7 @@ def read_summary(mm: mmap.mmap) -> Summary:
     count: int | None = None
     pos = summary_start
     while pos < end:
-        op, start, length = _record(mm, pos, end)
+        op, start, length = record_at(mm, pos, end)
         pos = start + length
         if op == OP_SCHEMA:
             _schema(mm, start, length, st)
@@ -360,7 +360,7 @@ def read_chunks(mm: mmap.mmap, summary: Summary, message_zstd: bool = False) -> 
     """
     st = _State(dict(summary.schemas), dict(summary.channels))
     for ci in summary.chunk_indexes:
-        buf, base, blen = _load_chunk(mm, ci)
+        buf, base, blen = load_chunk(mm, ci)
         _index_chunk(mm, ci, buf, base, blen, st, message_zstd)
         del buf
         release(mm, ci.chunk_start_offset, ci.end)  # keep the resident set small (see _accum.release)
@@ -380,9 +380,9 @@ def read_fast(mm: mmap.mmap, message_zstd: bool = False) -> Accumulator:
     return acc
 
 
-def _load_chunk(mm: mmap.mmap, ci: ChunkIndex) -> tuple[U8, int, int]:
+def load_chunk(mm: mmap.mmap, ci: ChunkIndex) -> tuple[U8, int, int]:
     """(buffer, records start in it, records length) of an indexed chunk."""
-    op, start, length = _record(mm, ci.chunk_start_offset, len(mm))
+    op, start, length = record_at(mm, ci.chunk_start_offset, len(mm))
     if op != OP_CHUNK:
         raise NoIndex(f"chunk index points at a non-chunk record (byte {ci.chunk_start_offset})")
     compression, rstart, rlen, usize = _chunk_records(mm, start, length)
@@ -401,7 +401,7 @@ def _index_chunk(mm: mmap.mmap, ci: ChunkIndex, buf: U8, base: int, blen: int, s
     cids: list[int] = []
     parts: list[npt.NDArray[np.uint64]] = []
     for cid, ipos in ci.message_index_offsets.items():
-        op, istart, ilen = _record(mm, ipos, size)
+        op, istart, ilen = record_at(mm, ipos, size)
         if op != OP_MESSAGE_INDEX:
             raise NoIndex("message-index offset does not point at a message index")
         c = _Cursor(mm, istart, istart + ilen)

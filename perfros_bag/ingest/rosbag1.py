@@ -42,7 +42,7 @@ from perfros_bag.ingest.stats import RecordingStats
 MAGIC = b"#ROSBAG V2.0\n"
 OP_MSG, OP_BAG_HEADER, OP_INDEX, OP_CHUNK, OP_CHUNK_INFO, OP_CONNECTION = 2, 3, 4, 5, 6, 7
 _U32 = struct.Struct("<I")
-_IDX_DT = np.dtype([("sec", "<u4"), ("nsec", "<u4"), ("offset", "<u4")])
+INDEX_ENTRY_DT = np.dtype([("sec", "<u4"), ("nsec", "<u4"), ("offset", "<u4")])
 
 
 @dataclass
@@ -207,7 +207,7 @@ def _records(buf: bytes | memoryview | mmap.mmap, pos: int, end: int) -> Iterato
         pos = rec.end
 
 
-def _message_sizes(buf: U8, base: int, offs: I64, usize: int) -> I64:
+def message_sizes(buf: U8, base: int, offs: I64, usize: int) -> I64:
     """``data_len`` of the message data records at chunk offsets ``offs`` (vectorised).
 
     The records must lie inside the chunk and must not overlap: a damaged index fails here
@@ -299,14 +299,14 @@ def read_chunks(mm: mmap.mmap, index: BagIndex) -> Accumulator:
             cid, n = _u32(irec.header, "conn"), _u32(irec.header, "count")
             if cid not in accs or irec.data_len != 12 * n or expected.get(cid) != n or cid in seen:
                 raise NoIndex("index-data record disagrees with its chunk info")
-            entries = np.frombuffer(mm, dtype=_IDX_DT, count=n, offset=irec.data_start)
+            entries = np.frombuffer(mm, dtype=INDEX_ENTRY_DT, count=n, offset=irec.data_start)
             times = entries["sec"].astype(np.int64) * 1_000_000_000 + entries["nsec"].astype(np.int64)
             parts.append((cid, times, entries["offset"].astype(np.int64)))
             del entries
             seen.add(cid)
             pos = irec.end
         offs = np.concatenate([p[2] for p in parts]) if parts else np.empty(0, dtype=np.int64)
-        dlen = _message_sizes(buf, base, offs, usize)
+        dlen = message_sizes(buf, base, offs, usize)
         k = 0
         for cid, times, o in parts:
             acc = accs[cid]

@@ -139,7 +139,7 @@ def open_mmap(path: Path) -> Iterator[mmap.mmap]:
 
 
 @contextmanager
-def _connect(db: Path) -> Iterator[tuple[sqlite3.Connection, bool]]:
+def connect_db(db: Path) -> Iterator[tuple[sqlite3.Connection, bool]]:
     """Read-only, immutable connection; a database with a non-empty WAL is copied with it first
     (immutable would ignore the WAL's committed messages). Yields (connection, WAL in use)."""
     wal = db.with_name(db.name + "-wal")
@@ -165,7 +165,7 @@ def _connect(db: Path) -> Iterator[tuple[sqlite3.Connection, bool]]:
 SQL_BATCH = 1_000_000  # rowids per query: bounds the size of the concatenated strings
 
 
-def _parse_ints(text: str | None, n: int) -> I64:
+def parse_ints(text: str | None, n: int) -> I64:
     if n == 0:
         return np.empty(0, dtype=np.int64)
     with warnings.catch_warnings():
@@ -195,7 +195,7 @@ def _sql_columns(con: sqlite3.Connection) -> tuple[I64, I64, I64] | None:
                 "SELECT count(*), group_concat(topic_id), group_concat(timestamp), "
                 "group_concat(length(data)) FROM messages WHERE rowid >= ? AND rowid < ?",
                 (a, a + SQL_BATCH)).fetchone()
-            parts.append((_parse_ints(t, n), _parse_ints(ts, n), _parse_ints(ln, n)))
+            parts.append((parse_ints(t, n), parse_ints(ts, n), parse_ints(ln, n)))
     except (ValueError, TypeError, Warning, sqlite3.Error):
         return None
     return tuple(np.concatenate([p[i] for p in parts]) for i in range(3))  # type: ignore[return-value]
@@ -245,7 +245,7 @@ def read_sqlite(db: Path, fast: bool = True, message_zstd: bool = False) -> Accu
     """One rosbag2 sqlite3 file. Method: "sqlite-pages" (B-tree pages, the fast path), "sql"
     (one SQL pass: WAL present, message compression or an unexpected table) or "stream"."""
     acc = Accumulator()
-    with _connect(db) as (con, wal):
+    with connect_db(db) as (con, wal):
         try:
             topic_rows = con.execute("SELECT id, name, type FROM topics").fetchall()
         except sqlite3.DatabaseError as exc:

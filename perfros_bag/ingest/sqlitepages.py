@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import functools
 import mmap
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -283,6 +284,13 @@ def _cells(buf: U8, cell: I64, page_end: I64) -> tuple[I64, I64, I64]:
 
 def _cells_general(m2: U8, cell: I64, page_end: I64) -> tuple[I64, I64, I64]:
     """:func:`_cells` for any layout, from the cells' (cells, W) byte matrix."""
+    topic, time, sizes, _data, _payload_start, _payload = _records(m2, cell, page_end)
+    return topic, time, sizes
+
+
+def _records(m2: U8, cell: I64, page_end: I64) -> tuple[I64, I64, I64, I64, I64, I64]:
+    """Every checked field of the cells' records: (topic ids, timestamps, blob sizes, where
+    each blob starts in the file, where each record (the cell's payload) starts, its size)."""
     m = m2.reshape(-1)
     rowbase = np.arange(cell.size, dtype=np.int64) * W
     payload, n1 = _mvarint(m, rowbase, np.zeros(cell.size, dtype=np.int64))
@@ -309,11 +317,21 @@ def _cells_general(m2: U8, cell: I64, page_end: I64) -> tuple[I64, I64, I64]:
     sizes = (t_data - 12) // 2
     if np.any(payload != hsize + w_topic + w_time + sizes):
         raise NoIndex("payload size disagrees with the record")
-    return _mint(m, rowbase, body, t_topic), _mint(m, rowbase, body + w_topic, t_time), sizes
+    return (_mint(m, rowbase, body, t_topic), _mint(m, rowbase, body + w_topic, t_time), sizes,
+            cell + body + w_topic + w_time, cell + rec, payload)
 
 
-def read_messages(mm: mmap.mmap, root: int, expected_rows: int) -> tuple[I64, I64, I64]:
-    """(topic ids, timestamps, payload sizes) of every row of the messages table."""
+def _local(payload: I64, usable: int) -> I64:
+    """Bytes of a table leaf cell's payload stored on its page (SQLite file format, B-tree
+    pages): all of it up to X = U - 35, else K when K <= X, else M."""
+    x = usable - 35
+    m = ((usable - 12) * 32 // 255) - 23
+    k = m + (payload - m) % (usable - 4)
+    return np.where(payload <= x, payload, np.where(k <= x, k, m))
+
+
+def _page_geometry(mm: mmap.mmap) -> tuple[int, int]:
+    """(page size, usable bytes per page) from the database header."""
     if len(mm) < 100 or mm[:16] != b"SQLite format 3\0":
         raise NoIndex("not an SQLite database")
     page_size = int.from_bytes(mm[16:18], "big")
@@ -323,6 +341,12 @@ def read_messages(mm: mmap.mmap, root: int, expected_rows: int) -> tuple[I64, I6
     usable = page_size - mm[20]
     if usable < 480:
         raise NoIndex("bad reserved space per page")
+    return page_size, usable
+
+
+def read_messages(mm: mmap.mmap, root: int, expected_rows: int) -> tuple[I64, I64, I64]:
+    """(topic ids, timestamps, payload sizes) of every row of the messages table."""
+    page_size, usable = _page_geometry(mm)
     if DECODER == "c":
         return _read_c(mm, root, expected_rows, page_size, usable)
     return _read_numpy(mm, root, expected_rows, page_size, usable)
@@ -362,6 +386,24 @@ def _read_numpy(mm: mmap.mmap, root: int, expected_rows: int, page_size: int,
                 usable: int) -> tuple[I64, I64, I64]:
     """:func:`read_messages` by whole-array numpy passes."""
     buf: U8 = np.frombuffer(mm, dtype=np.uint8)
+    cell, page_end = _leaf_cells(mm, buf, root, expected_rows, page_size, usable)
+    if cell.size == 0:
+        empty = np.empty(0, dtype=np.int64)
+        return empty, empty.copy(), empty.copy()
+    parts = []
+    for a in range(0, cell.size, BATCH):
+        parts.append(_cells(buf, cell[a:a + BATCH], page_end[a:a + BATCH]))
+        release(mm, int(cell[a:a + BATCH].min()), int(cell[a:a + BATCH].max()) + W)
+    if len(parts) == 1:
+        return parts[0]
+    return (np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]),
+            np.concatenate([p[2] for p in parts]))
+
+
+def _leaf_cells(mm: mmap.mmap, buf: U8, root: int, expected_rows: int, page_size: int,
+                usable: int) -> tuple[I64, I64]:
+    """Where every cell of the messages table starts in the file, and the end of its page's
+    usable area, in rowid order; the cell count must equal ``expected_rows``."""
     n_pages = buf.size // page_size
     leaves = _leaves(buf, root, page_size, n_pages, mm)
     off = (leaves - 1) * page_size
@@ -372,8 +414,7 @@ def _read_numpy(mm: mmap.mmap, root: int, expected_rows: int, page_size: int,
     if total != expected_rows:
         raise NoIndex(f"{total} cells in the B-tree, count(*) says {expected_rows}")
     if total == 0:
-        empty = np.empty(0, dtype=np.int64)
-        return empty, empty.copy(), empty.copy()
+        return np.empty(0, dtype=np.int64), np.empty(0, dtype=np.int64)
     base = np.repeat(off, ncells)
     u16 = buf[:buf.size & ~1].view(">u2")  # cell pointers sit at even offsets of a page
     # u16 index of cell pointer j of a page: (page offset + 8) / 2 + j, with j = i - first(i)
@@ -385,14 +426,33 @@ def _read_numpy(mm: mmap.mmap, root: int, expected_rows: int, page_size: int,
         release(mm, int(part.min()), int(part.max()) + page_size)
     if int(ptr.min()) < 8 or int(ptr.max()) + 4 > usable:
         raise NoIndex("leaf cell outside its page")
-    cell = base + ptr
-    page_end = base + usable
+    return base + ptr, base + usable
+
+
+def read_blob_heads(mm: mmap.mmap, root: int, expected_rows: int, topic_ids: Sequence[int],
+                    nbytes: int) -> tuple[I64, I64, U8]:
+    """(topic ids, timestamps, the first ``nbytes`` of the ``data`` blob as a (rows, nbytes)
+    matrix) of the rows of the messages table whose topic is in ``topic_ids``, in rowid
+    order, from the B-tree pages (numpy; every record checked as in :func:`_cells_general`).
+    NoIndex when such a blob is shorter than ``nbytes`` or its first bytes are not on the
+    leaf page (the caller uses SQL)."""
+    page_size, usable = _page_geometry(mm)
+    buf: U8 = np.frombuffer(mm, dtype=np.uint8)
+    cell, page_end = _leaf_cells(mm, buf, root, expected_rows, page_size, usable)
+    wanted = np.asarray(list(topic_ids), dtype=np.int64)
     parts = []
-    for a in range(0, total, BATCH):
-        parts.append(_cells(buf, cell[a:a + BATCH], page_end[a:a + BATCH]))
-        release(mm, int(cell[a:a + BATCH].min()), int(cell[a:a + BATCH].max()) + W)
-    if len(parts) == 1:
-        return parts[0]
+    for a in range(0, cell.size, BATCH):
+        c, e = cell[a:a + BATCH], page_end[a:a + BATCH]
+        topic, time, sizes, data, start, payload = _records(_window(buf, c), c, e)
+        keep = np.isin(topic, wanted)
+        topic, time, sizes, data, start, payload, e = (x[keep] for x in (topic, time, sizes, data, start, payload, e))
+        if sizes.size and (int(sizes.min()) < nbytes
+                           or np.any(data + nbytes > np.minimum(start + _local(payload, usable), e))):
+            raise NoIndex("a blob shorter than asked, or its first bytes off the leaf page")
+        parts.append((topic, time, np.lib.stride_tricks.sliding_window_view(buf, nbytes)[data].copy()))
+        release(mm, int(c.min()), int(c.max()) + W)
+    if not parts:
+        return np.empty(0, np.int64), np.empty(0, np.int64), np.empty((0, nbytes), np.uint8)
     return (np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]),
             np.concatenate([p[2] for p in parts]))
 

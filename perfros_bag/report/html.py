@@ -121,7 +121,24 @@ def section_characterisation(char: CharacterisationFile) -> str:
     body = table(columns, ([cell(r.get(c)) for c in columns] for r in shown), text_cols=text,
                  table_id="characterisation-table")
     more = (f'<p class="muted">first {MAX_TABLE_ROWS} of {len(rows)} rows</p>' if len(rows) > MAX_TABLE_ROWS else "")
-    return f'<h2 id="characterisation">Characterisation</h2><p>{len(rows)} rows.</p>{body}{more}'
+    return (f'<h2 id="characterisation">Characterisation</h2><p>{len(rows)} rows.</p>'
+            f"{section_contents(char)}{body}{more}")
+
+
+CONTENTS_COLUMNS = ("metric_value", "latency_p50_s", "latency_p95_s", "latency_max_s")
+
+
+def section_contents(char: CharacterisationFile) -> str:
+    """What the messages held: each row's metric and header-stamp latency (only the rows
+    that have either); empty when the file has none."""
+    rows = [r for r in char.rows if any(getattr(r, c) is not None for c in CONTENTS_COLUMNS)]
+    if not rows:
+        return ""
+    body = table(("recording", "node", "value", "topic", "metric", "latency p50 s", "latency p95 s", "latency max s"),
+                 [(r.recording, r.node, r.value, r.topic, *(getattr(r, c) for c in CONTENTS_COLUMNS))
+                  for r in rows[:MAX_TABLE_ROWS]],
+                 text_cols=(0, 1, 3), table_id="contents-table")
+    return f"<h3>Message contents: metric and latency</h3>{body}"
 
 
 def section_fits(fits: dict[str, dict[str, FittedRelation]], images: list[Image]) -> str:
@@ -199,6 +216,13 @@ def section_validation(v: dict[str, Any], images: list[Image]) -> str:
     img = Image("validation.png", plot_validation(v), "expected vs measured performance")
     images.append(img)
     parts = [f'<h2 id="validation">Validation (eq 10)</h2>{head}{_img(img)}{nodes}']
+    metric_nodes = [n for n in v["nodes"] if isinstance(n, dict) and n.get("metric_value") is not None]
+    if metric_nodes:
+        parts.append("<h3>Measured metric beside eq 10</h3>" + table(
+            ("node", "metric", "P metric", "P expected", "P eq 10", "deviation %"),
+            [(n.get("node"), number(n.get("metric_value")), number(n.get("p_metric")), number(n.get("p_expected")),
+              number(n.get("p_measured")), number(n.get("metric_deviation_pct"))) for n in metric_nodes],
+            table_id="validation-metric"))
     comps = [c for c in v.get("computers", []) if isinstance(c, dict)]
     if comps:
         parts.append("<h3>CPU per computer</h3>" + table(

@@ -19,11 +19,14 @@ from perfros_bag.fileio import read_yaml
 from perfros_bag.fitting.modelfile import read_model_system
 from perfros_bag.system.types import (
     CURVE_FORMS,
+    Aggregate,
+    Better,
     Computer,
     Curve,
     Edge,
     Link,
     Medium,
+    Metric,
     Node,
     Parameter,
     Setting,
@@ -37,8 +40,9 @@ LINK_KEYS = {"between", "bandwidth_kBps", "medium"}
 MEDIUM_KEYS = {"name", "bandwidth_kBps"}
 NODE_KEYS = {
     "name", "weight", "residence", "coresidence", "parameter", "topics", "process",
-    "settings", "curve", "launch", "relations",
+    "settings", "curve", "launch", "relations", "metric",
 }
+METRIC_KEYS = {"topic", "field", "aggregate", "better", "range"}
 SETTING_KEYS = {"value", "cpu", "performance", "frequency_hz", "bandwidth_kBps", "topics"}
 TOPIC_RATE_KEYS = {"frequency_hz", "bandwidth_kBps"}
 PARAMETER_KEYS = {"name", "unit", "type"}
@@ -311,9 +315,34 @@ def _nodes(ctx: _Ctx, raw: Any, computers: set[str]) -> list[Node]:
             lm = ctx.mapping(m["launch"], f"{where}: launch", LAUNCH_KEYS)
             launch = {k: ctx.string(v, f"{where}: launch.{k}") for k, v in lm.items()}
 
+        metric = _metric(ctx, m["metric"], f"{where}: metric") if m.get("metric") is not None else None
         out.append(Node(name, weight, settings, curve, residence, coresidence, parameter,
-                        topics, process, launch, relations))
+                        topics, process, launch, relations, metric))
     return out
+
+
+def _metric(ctx: _Ctx, raw: Any, where: str) -> Metric:
+    m = ctx.mapping(raw, where, METRIC_KEYS, {"topic"})
+    topic = ctx.string(m["topic"], f"{where}.topic")
+    aggregate = m.get("aggregate", "mean")
+    if aggregate not in {a.value for a in Aggregate}:
+        raise ctx.fail(f"{where}.aggregate", f"must be one of {', '.join(a.value for a in Aggregate)}, got {aggregate!r}")
+    better = m.get("better", "higher")
+    if better not in {b.value for b in Better}:
+        raise ctx.fail(f"{where}.better", f"must be 'higher' or 'lower', got {better!r}")
+    if m.get("field") is None and aggregate != Aggregate.RATE:
+        raise ctx.fail(where, "needs a 'field' (only aggregate 'rate' does without)")
+    field = "" if m.get("field") is None else ctx.string(m["field"], f"{where}.field")
+    bounds = None
+    if m.get("range") is not None:
+        rr = m["range"]
+        if not isinstance(rr, list) or len(rr) != 2:
+            raise ctx.fail(f"{where}.range", f"must be [low, high], got {rr!r}")
+        lo, hi = (ctx.number(x, f"{where}.range") for x in rr)
+        if not hi > lo:
+            raise ctx.fail(f"{where}.range", f"high must be above low, got {rr!r}")
+        bounds = (lo, hi)
+    return Metric(topic, field, Aggregate(aggregate), Better(better), bounds)
 
 
 def _setting(ctx: _Ctx, raw: Any, where: str) -> Setting:

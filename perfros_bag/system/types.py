@@ -15,7 +15,7 @@ import math
 from collections import deque
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
-from enum import IntEnum
+from enum import IntEnum, StrEnum
 from functools import cached_property
 from typing import Literal
 
@@ -192,6 +192,43 @@ class Parameter:
     type: Literal["int", "float"] = "float"
 
 
+class Aggregate(StrEnum):
+    """How a node's metric is summarised over a recording."""
+
+    MEAN = "mean"
+    MEDIAN = "median"
+    P5 = "p5"
+    P95 = "p95"
+    RATE = "rate"  # messages per second on the metric's topic
+
+
+class Better(StrEnum):
+    HIGHER = "higher"
+    LOWER = "lower"
+
+
+@dataclass(frozen=True)
+class Metric:
+    """What measures a node's performance in a recording: a field of the messages of
+    ``topic`` (a path such as ``pose.covariance[0]``; a list field counts its elements),
+    aggregated over the run, mapped to 0-100 over ``range`` (``better`` end = 100) or, without
+    it, over the range measured across the settings."""
+
+    topic: str
+    field: str
+    aggregate: Aggregate = Aggregate.MEAN
+    better: Better = Better.HIGHER
+    range: tuple[float, float] | None = None
+
+    def performance(self, value: float, measured: tuple[float, float] | None = None) -> float | None:
+        """``value`` on the 0-100 scale (clipped); None without a range with two ends."""
+        lo, hi = self.range if self.range is not None else measured if measured is not None else (0.0, 0.0)
+        if not hi > lo:
+            return None
+        share = min(max((value - lo) / (hi - lo), 0.0), 1.0)
+        return 100.0 * (share if self.better is Better.HIGHER else 1.0 - share)
+
+
 @dataclass(frozen=True)
 class Computer:
     name: str
@@ -245,6 +282,7 @@ class Node:
     # "cpu->performance", "parameter->frequency", "parameter->bandwidth", and per topic
     # "parameter->frequency:<topic>", "parameter->bandwidth:<topic>".
     relations: dict[str, Curve] = field(default_factory=dict)
+    metric: Metric | None = None  # measured performance (system.yaml ``metric``)
 
     @property
     def configurable(self) -> bool:

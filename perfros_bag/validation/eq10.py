@@ -21,14 +21,15 @@ With CPU traces (``<stem>.cpu.csv``), each computer's measured load is the sum o
 nodes' mean CPU in normalised units (``cpu_percent / (100 * logical_cpus) * capacity``)
 and ``overloaded`` where it exceeds the capacity. With the system (given, or the
 plan's ``system`` path), each link's measured load is the measured bandwidth of the
-publisher topics of the edges crossing it.
+publisher topics of the edges crossing it, and a node with a ``metric`` gets its measured
+value, on the 0-100 scale of the metric's ``range``, beside P_measured (``p_metric``).
 """
 
 from __future__ import annotations
 
 import math
 import warnings
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import StrEnum
 from pathlib import Path
@@ -90,6 +91,10 @@ class NodeCheck:
     cpu_expected: float | None = None
     cpu_measured: float | None = None  # normalised units, from the CPU trace
     note: str | None = None
+    # the node's metric (system.yaml ``metric``) measured in the run, beside eq 10
+    metric_value: float | None = None
+    p_metric: float | None = None  # metric_value on the 0-100 scale of the metric's range
+    metric_deviation_pct: float | None = None  # p_metric against p_expected
 
     @property
     def flagged(self) -> bool:
@@ -102,6 +107,8 @@ class NodeCheck:
             "p_expected": self.p_expected, "p_measured": self.p_measured, "ratio": self.ratio,
             "deviation_pct": self.deviation_pct, "counted": self.counted, "flagged": self.flagged,
             "cpu_expected": self.cpu_expected, "cpu_measured": self.cpu_measured, "note": self.note,
+            "metric_value": self.metric_value, "p_metric": self.p_metric,
+            "metric_deviation_pct": self.metric_deviation_pct,
             "topics": [t.to_dict() for t in self.topics],
         }
 
@@ -290,8 +297,10 @@ def _check_topic(stats: RecordingStats, topic: str, f_expected: float | None) ->
 def check_run(stats: RecordingStats, plan: Plan, *, cap: bool = False,
               tolerance: float = DEFAULT_TOLERANCE, system: System | None = None,
               node_cpu: dict[str, TracedCpu] | None = None, cpu_traces: Iterable[str] = (),
-              plan_path: str | None = None) -> Validation:
-    """Eq 10 for every node of ``plan`` against the recording's statistics."""
+              plan_path: str | None = None, metrics: Mapping[str, float | None] | None = None) -> Validation:
+    """Eq 10 for every node of ``plan`` against the recording's statistics. ``metrics``: the
+    measured value of each node's ``metric`` in the run (:func:`measured_metrics`), compared
+    with the plan's performance beside eq 10 (it does not change eq 10's numbers)."""
     plan.require_feasible(plan_path, "validate")
     notes: list[str] = []
     nodes: list[NodeCheck] = []
@@ -325,6 +334,10 @@ def check_run(stats: RecordingStats, plan: Plan, *, cap: bool = False,
             cpu_expected=pn.cpu, note=note,
         ))
 
+    for n in nodes:
+        if metrics and n.node in metrics:
+            _compare_metric(n, metrics[n.node], system, notes)
+
     if nodes and not any(n.counted for n in nodes):
         raise InputError(plan_path, "no node of the plan has a topic with an expected frequency: eq 10 has "
                                     "nothing to compare (the plan's topics need frequency_hz)")
@@ -342,6 +355,35 @@ def check_run(stats: RecordingStats, plan: Plan, *, cap: bool = False,
         links=links, media=media, unplanned_topics=unplanned, cpu_traces=list(cpu_traces),
         system=system.source if system is not None else None, notes=notes,
     )
+
+
+def _compare_metric(n: NodeCheck, value: float | None, system: System | None, notes: list[str]) -> None:
+    """The node's measured metric on the 0-100 scale of its ``range`` against P_expected."""
+    n.metric_value = value
+    metric = system.node[n.node].metric if system is not None and n.node in system.node else None
+    if value is None or metric is None:
+        return
+    if metric.range is None:
+        notes.append(f"node {n.node!r}: metric {metric.topic} = {value:.6g}: no 'range' in the system "
+                     "to put it on the performance scale, not compared")
+        return
+    n.p_metric = metric.performance(value)
+    if n.p_metric is not None:
+        n.metric_deviation_pct = _deviation(n.p_metric, n.p_expected)
+
+
+def measured_metrics(run: Path, plan: Plan, system: System | None,
+                     stats: RecordingStats) -> dict[str, float | None]:
+    """The run's value of the ``metric`` of every plan node that has one (decoded by the
+    libraries: :func:`perfros_bag.ingest.contents.read_metric`)."""
+    if system is None:
+        return {}
+    wanted = {n: system.node[n].metric for n in plan.nodes if n in system.node and system.node[n].metric}
+    if not wanted:
+        return {}
+    from perfros_bag.ingest.contents import read_metric
+
+    return {n: read_metric(run, m, stats) for n, m in wanted.items() if m is not None}
 
 
 def _check_computers(plan: Plan, nodes: list[NodeCheck], node_cpu: dict[str, TracedCpu],
@@ -497,4 +539,5 @@ def validate_files(run: str | Path, plan_path: str | Path, *, cpu: Sequence[str 
                                   PerfrosWarning, stacklevel=2)
                 node_cpu[node] = nc
     return check_run(stats, plan, cap=cap, tolerance=tolerance, system=system, node_cpu=node_cpu,
-                     cpu_traces=[str(t) for t in traces], plan_path=str(plan_p))
+                     cpu_traces=[str(t) for t in traces], plan_path=str(plan_p),
+                     metrics=measured_metrics(run_p, plan, system, stats))

@@ -1,0 +1,269 @@
+"""What is inside the messages: per-topic latency (receive/log time - ``header.stamp``) and
+nodes' metrics (a field of a topic's messages, aggregated).
+
+Entry points: :func:`read_latency` (what ``info --latency`` and ``characterise --latency``
+use), :func:`read_stamps` (the stamps themselves) and :func:`read_metric` (system.yaml's
+``metric:``, decoded by the libraries). One fast path per container format
+(:mod:`perfros_bag.ingest.stamps`: ROS 1 index, MCAP summary + message indexes, rosbag2
+sqlite3 rows) reads the stamp at its known offset in the payload; where it cannot (no index,
+message compression, an encapsulation it does not know, a loose .db3) the recording
+libraries decode the messages (:func:`library_stamps`, :mod:`perfros_bag.ingest.decode`).
+Both give the same stamps: tests/test_contents.py checks it on every stamped message of
+shared/realbags and of generated recordings.
+
+Only topics whose type starts with a ``std_msgs/Header`` (rosbags decides, from the
+definitions stored in the recording) have a latency; messages stamped 0 (header left unset)
+are left out. A topic that cannot be decoded gets no latency and one
+:class:`~perfros_bag.errors.PerfrosWarning` naming it and why; the rest is unaffected.
+"""
+
+from __future__ import annotations
+
+import mmap
+import re
+import warnings
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from perfros_bag.errors import PerfrosError, PerfrosWarning
+from perfros_bag.ingest._accum import I64, Damaged, NoIndex
+from perfros_bag.ingest.decode import TopicType, Undecodable, decoded_messages, topic_types
+from perfros_bag.ingest.stamps import Stamps
+from perfros_bag.ingest.stats import RecordingStats
+from perfros_bag.system.types import Aggregate, Metric
+
+#: what reading the contents may raise on a damaged or unusual recording: a warning
+_UNREADABLE = (PerfrosError, Undecodable, NoIndex, Damaged, OSError, ValueError, IndexError, KeyError)
+
+
+@dataclass(frozen=True)
+class TopicLatency:
+    """Receive/log time minus ``header.stamp`` over a topic's messages with a non-zero stamp."""
+
+    messages: int
+    p50_s: float
+    p95_s: float
+    max_s: float
+
+
+def latency_of(times_ns: I64, stamps_ns: I64) -> TopicLatency | None:
+    """p50/p95/max of ``times - stamps`` in seconds (numpy's linear percentiles); messages
+    stamped 0 are left out; None when none is left."""
+    keep = stamps_ns != 0
+    if not np.any(keep):
+        return None
+    delay = (times_ns[keep] - stamps_ns[keep]).astype(np.float64) / 1e9
+    p50, p95 = np.percentile(delay, [50, 95])
+    return TopicLatency(int(delay.size), float(p50), float(p95), float(delay.max()))
+
+
+# --------------------------------------------------------------------------- library path
+
+
+def _stamp_of(msg: Any) -> int:
+    stamp = msg.header.stamp
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def library_stamps(path: Path, types: dict[str, TopicType] | None = None) -> Stamps:
+    """The stamps of every stamped topic, each message deserialised by the libraries. A topic
+    that does not decode is left out with a warning."""
+    types = topic_types(path) if types is None else types
+    topics = {t for t, tt in types.items() if tt.stamped}
+    while topics:
+        times: dict[str, list[int]] = {t: [] for t in topics}
+        stamps: dict[str, list[int]] = {t: [] for t in topics}
+        try:
+            for topic, log_ns, msg in decoded_messages(path, topics):
+                times[topic].append(log_ns)
+                stamps[topic].append(_stamp_of(msg))
+        except Undecodable as exc:
+            bad = next((t for t in topics if str(exc).startswith(f"{t}: ")), None)
+            if bad is None:
+                raise
+            warnings.warn(f"{path}: {exc}: no latency for it", PerfrosWarning, stacklevel=2)
+            topics.discard(bad)
+            continue
+        return {t: (np.asarray(times[t], dtype=np.int64), np.asarray(stamps[t], dtype=np.int64))
+                for t in sorted(topics)}
+    return {}
+
+
+# --------------------------------------------------------------------------- fast paths
+
+
+@contextmanager
+def _mapped(path: Path) -> Iterator[mmap.mmap]:
+    from perfros_bag.ingest.rosbag2 import open_mmap
+
+    with open_mmap(path) as mm:
+        yield mm
+
+
+def _rosbag2_stamps(root: Path) -> tuple[Stamps, dict[str, TopicType]]:
+    from perfros_bag.ingest import rosbag2, stamps
+
+    meta_path = root / "metadata.yaml"
+    meta = rosbag2.parse_metadata(meta_path) if meta_path.is_file() else None
+    if meta is not None and meta.compression_mode in ("FILE", "MESSAGE"):
+        raise NoIndex("compressed rosbag2 recording")
+    files = rosbag2.resolve_files(root, meta)
+    types: dict[str, TopicType] = {}
+    out = stamps.StampParts()
+    for f in files:  # each file's types from its own definitions (schemas, definitions table)
+        if f.suffix == ".mcap":
+            with _mapped(f) as mm:
+                part, file_types = stamps.mcap_stamps(mm, f)
+        elif f.suffix == ".db3":
+            part, file_types = stamps.sqlite_stamps(f)
+        else:
+            raise NoIndex(f"{f.name}: compressed storage file")
+        for topic, tt in file_types.items():
+            types.setdefault(topic, tt)
+        out.extend(part)
+    return out.stamps(), types
+
+
+def fast_stamps(path: Path) -> tuple[Stamps, dict[str, TopicType]]:
+    """The stamps read at their offset (no deserialisation), and every topic's type; raises
+    when the fast path cannot read this recording (the caller decodes instead)."""
+    from perfros_bag.ingest import detect_format, stamps
+
+    if path.is_dir():
+        return _rosbag2_stamps(path)
+    fmt = detect_format(path)
+    if fmt == "ros1":
+        with _mapped(path) as mm:
+            return stamps.ros1_stamps(mm)
+    if fmt == "mcap":
+        with _mapped(path) as mm:
+            return stamps.mcap_stamps(mm, path)
+    raise Undecodable("message contents are read from .bag and .mcap files and rosbag2 directories")
+
+
+def read_stamps(path: str | Path, *, fast: bool = True) -> tuple[Stamps, dict[str, TopicType]]:
+    """(stamps of every stamped topic, every topic's type): the fast path, else the libraries.
+    Raises :class:`Undecodable` when neither can read the recording's contents."""
+    p = Path(path)
+    if p.is_file() and p.name == "metadata.yaml":
+        p = p.parent
+    if fast:
+        try:
+            return fast_stamps(p)
+        except Exception:  # noqa: S110 - any failure of the fast path: the libraries decode instead
+            pass
+    types = topic_types(p)
+    return library_stamps(p, types), types
+
+
+def read_latency(path: str | Path, *, fast: bool = True) -> dict[str, TopicLatency | None]:
+    """Per topic of the recording with a header: its :class:`TopicLatency` (None when no
+    message carries a non-zero stamp or it does not decode). Topics without a header are
+    absent. Never raises on contents: a recording or topic that cannot be decoded is a
+    warning."""
+    p = Path(path)
+    try:
+        stamps, types = read_stamps(p, fast=fast)
+    except _UNREADABLE as exc:  # e.g. an empty file: the index reader says so
+        warnings.warn(f"{p}: latency not read: {exc}", PerfrosWarning, stacklevel=2)
+        return {}
+    out: dict[str, TopicLatency | None] = {}
+    for topic, tt in sorted(types.items()):
+        if tt.stamped is None and tt.encoding in ("cdr", "ros1"):
+            warnings.warn(f"{p}: {topic}: no definition of {tt.msgtype or 'its type'} that rosbags can parse "
+                          "in the recording: "
+                          "no latency for it", PerfrosWarning, stacklevel=2)
+        if not tt.stamped:
+            continue
+        t, s = stamps.get(topic, (np.empty(0, np.int64), np.empty(0, np.int64)))
+        out[topic] = latency_of(t, s)
+        if t.size and out[topic] is None:
+            warnings.warn(f"{p}: {topic}: every header.stamp is 0 (unset): no latency for it",
+                          PerfrosWarning, stacklevel=2)
+    return out
+
+
+# --------------------------------------------------------------------------- metrics
+
+_STEP = re.compile(r"([A-Za-z_][A-Za-z0-9_]*)((?:\[\d+\])*)$")
+
+
+def _path(field: str) -> list[str | int]:
+    """``pose.covariance[0]`` -> ["pose", "covariance", 0]; ValueError on anything else."""
+    steps: list[str | int] = []
+    for part in field.split("."):
+        m = _STEP.match(part)
+        if m is None:
+            raise ValueError(f"field {field!r}: {part!r} is not a name with optional [index]")
+        steps.append(m.group(1))
+        steps += [int(i) for i in re.findall(r"\[(\d+)\]", m.group(2))]
+    return steps
+
+
+def field_value(msg: Any, field: str) -> float:
+    """The number at ``field`` in a decoded message (a rosbags object or, for ``json``
+    payloads, a dict); a list, array or string counts its elements. Raises ValueError when
+    the path does not lead to a number."""
+    value = msg
+    for step in _path(field):
+        try:
+            if isinstance(step, int):
+                value = value[step]
+            elif isinstance(value, dict):
+                value = value[step]
+            else:
+                value = getattr(value, step)
+        except (AttributeError, KeyError, IndexError, TypeError):
+            raise ValueError(f"field {field!r}: no {step!r} in the message") from None
+    if isinstance(value, bool | int | float | np.integer | np.floating | np.bool_):
+        return float(value)
+    if isinstance(value, list | tuple | str | bytes | np.ndarray):
+        return float(len(value))
+    raise ValueError(f"field {field!r} is a {type(value).__name__}, not a number or a list")
+
+
+def aggregate(values: Sequence[float], how: Aggregate) -> float:
+    """mean, median, p5 or p95 (numpy's linear percentiles) of ``values`` (not empty)."""
+    arr = np.asarray(values, dtype=np.float64)
+    if how is Aggregate.MEAN:
+        return float(arr.mean())
+    if how is Aggregate.MEDIAN:
+        return float(np.median(arr))
+    if how in (Aggregate.P5, Aggregate.P95):
+        return float(np.percentile(arr, 5 if how is Aggregate.P5 else 95))
+    raise ValueError(f"aggregate {how.value!r} is not over field values")
+
+
+def read_metric(path: str | Path, metric: Metric, stats: RecordingStats | None = None) -> float | None:
+    """A node's metric in one recording: its field over the messages of its topic (decoded by
+    the libraries, only that topic's chunks read), aggregated; ``rate`` is the topic's
+    frequency (``stats`` when given: no decoding). None, with one warning naming the topic
+    and why, when the topic is absent, empty or does not decode."""
+    p = Path(path)
+    where = f"{p}: metric {metric.topic}"
+    if metric.aggregate is Aggregate.RATE:
+        if stats is None:
+            from perfros_bag.ingest import read_recording
+
+            stats = read_recording(p)
+        ts = stats.topics.get(metric.topic)
+        if ts is None or ts.messages < 2:
+            warnings.warn(f"{where}: fewer than 2 messages: no rate", PerfrosWarning, stacklevel=2)
+            return None
+        return ts.frequency_hz
+    values: list[float] = []
+    try:
+        for _topic, _t, msg in decoded_messages(p, [metric.topic]):
+            values.append(field_value(msg, metric.field))
+    except (PerfrosError, Undecodable, ValueError, OSError) as exc:
+        warnings.warn(f"{where}: not read: {exc}", PerfrosWarning, stacklevel=2)
+        return None
+    if not values:
+        warnings.warn(f"{where}: no message on the topic", PerfrosWarning, stacklevel=2)
+        return None
+    return aggregate(values, metric.aggregate)
