@@ -170,7 +170,7 @@ def read_placement_comments(text: str) -> dict[str, str]:
 
 def export_plan(plan_path: str | Path, fmt: str, out: str | Path, system_path: str | Path | None = None) -> str:
     """Read the plan (and system), write the export atomically; returns the text."""
-    from perfros_bag.system.planfile import load_plan
+    from perfros_bag.system.planfile import check_against_system, load_plan
     from perfros_bag.system.systemfile import load_system
 
     if fmt not in FORMATS:
@@ -180,9 +180,7 @@ def export_plan(plan_path: str | Path, fmt: str, out: str | Path, system_path: s
 
     system = load_system(system_path) if system_path is not None else plan_system(plan, Path(plan_path))
     if system is not None:
-        unknown = [n for n in plan.nodes if n not in system.node]
-        if unknown:
-            raise InputError(system.source, f"plan node(s) {', '.join(map(repr, unknown))} are not in the system")
+        check_against_system(plan, system)
     if fmt == "roslaunch":
         text = roslaunch_xml(plan, system, plan_path=str(plan_path))
     else:

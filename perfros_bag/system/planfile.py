@@ -22,7 +22,7 @@ from perfros_bag.system.plan import (
     Status,
     method_of,
 )
-from perfros_bag.system.types import Problem
+from perfros_bag.system.types import Problem, System
 
 PLAN_FORMAT = "perfros-bag/plan@1"
 _KNOWN = {"format", "problem", "method", "status", "objective", "bound", "solve_s", "reason", "system",
@@ -192,3 +192,16 @@ def _parse_node(n: Any, where: str, path: str) -> PlannedNode:
         weight=_num(n, "weight", where, path, optional=False, nonneg=True) or 0.0,
         parameter=_text(n, "parameter", where, path), value=_num(n, "value", where, path), topics=topics,
     )
+
+
+def check_against_system(plan: Plan, system: System) -> None:
+    """Every node of the plan must be a node of ``system`` and every computer of the plan
+    one of its computers (an :class:`InputError` naming the system otherwise): a plan
+    for another system cannot be validated or deployed with this one."""
+    unknown = [n for n in plan.nodes if n not in system.node]
+    if unknown:
+        raise InputError(system.source, f"plan node(s) {', '.join(map(repr, unknown))} are not in the system")
+    strange = [c for c in plan.computers if c not in system.computer]
+    if strange:
+        raise InputError(system.source, f"plan computer(s) {', '.join(map(repr, strange))} are not in the system "
+                                        f"(its computers: {', '.join(map(repr, system.computer))})")
