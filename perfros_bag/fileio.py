@@ -66,24 +66,25 @@ CSV_KINDS: dict[str, str] = {"recording,node,": "a characterisation table (chara
 
 def file_kind(path: str | Path) -> str | None:
     """What a ``.json``, ``.yaml``/``.yml`` or ``.csv`` file is when it is one of the tool's
-    own files (:func:`text_kind`, :data:`CSV_KINDS`); None for anything else (a recording)."""
+    own files (:func:`text_kind`); None for anything else (a recording)."""
     p = Path(path)
-    suffix = p.suffix.lower()
-    if suffix not in (".json", ".yaml", ".yml", ".csv") or not p.is_file():
+    if p.suffix.lower() not in (".json", ".yaml", ".yml", ".csv") or not p.is_file():
         return None
     try:
         text = p.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError):
         return None
-    if suffix == ".csv":
-        header = next((ln for ln in text.splitlines() if not ln.startswith("#")), "")
-        return next((kind for start, kind in CSV_KINDS.items() if header.startswith(start)), None)
     return text_kind(text)
 
 
 def text_kind(text: str) -> str | None:
-    """What a file's text is when it is one of the tool's JSON documents or a YAML system or
-    manifest (for the message when a reader of another format is given it), else None."""
+    """What a file's text is when it is one of the tool's CSV tables (:data:`CSV_KINDS`),
+    JSON documents or YAML systems or manifests (:func:`document_kind`), else None: for the
+    message when the reader of another format is given it."""
+    header = next((ln for ln in text.splitlines() if not ln.startswith("#")), "")
+    csv_kind = next((kind for start, kind in CSV_KINDS.items() if header.startswith(start)), None)
+    if csv_kind is not None:
+        return csv_kind
     head = text.lstrip()[:1]
     try:
         if head in ("{", "["):
@@ -181,6 +182,9 @@ def read_json(path: str | Path) -> Any:
     try:
         return json.loads(text)
     except json.JSONDecodeError as exc:
+        kind = text_kind(text) if text.lstrip()[:1] not in ("{", "[") else None  # clearly not JSON: what is it?
+        if kind is not None:
+            raise InputError(p, f"this is {kind}, not a JSON document") from None
         raise InputError(p, f"invalid JSON at line {exc.lineno}, column {exc.colno}: {exc.msg}") from None
     except RecursionError:
         raise InputError(p, "invalid JSON: nested too deeply") from None

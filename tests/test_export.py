@@ -15,7 +15,12 @@ from typer.testing import CliRunner
 
 from perfros_bag.cli import app
 from perfros_bag.errors import InfeasibleError, InputError
-from perfros_bag.export.writers import export_plan, read_placement_comments, ros2_params_yaml, roslaunch_xml
+from perfros_bag.export.writers import (
+    export_plan,
+    read_placement_comments,
+    ros2_params_yaml,
+    roslaunch_xml,
+)
 from perfros_bag.system.planfile import parse_plan
 from perfros_bag.system.systemfile import parse_system
 

@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from perfros_bag.errors import InputError, PerfrosWarning
-from perfros_bag.fileio import SYSTEM_KIND, expect_kind, read_yaml
+from perfros_bag.fileio import SYSTEM_KIND, expect_kind, file_kind, read_yaml
 from perfros_bag.fitting.modelfile import read_model_system
 from perfros_bag.limits import MAX_COEFFICIENT, MAX_MAGNITUDE, number_problem
 from perfros_bag.system.names import (
@@ -156,7 +156,11 @@ def read_system_data(path: str | Path) -> Any:
     p = Path(path)
     if p.suffix.lower() == ".json":
         return read_model_system(p)
-    return read_yaml(p)
+    data = read_yaml(p)
+    kind = file_kind(p) if not isinstance(data, Mapping) else None  # a CSV table reads as one string
+    if kind is not None:
+        raise InputError(p, f"this is {kind}, expected a system.yaml or model.json")
+    return data
 
 
 def load_system(path: str | Path) -> System:
