@@ -37,6 +37,12 @@ def round6(v: float) -> float:
     return float(f"{v:.6g}") if math.isfinite(v) else v
 
 
+def _finite_or_none(v: float | None) -> float | None:
+    """A leave-one-out error as written: None when there is none or it is not finite (a
+    form whose predictions overflowed; the fit ranked it last)."""
+    return None if v is None or not math.isfinite(v) else round6(v)
+
+
 @dataclass(frozen=True)
 class Stat:
     """Mean, sample standard deviation and count of one measured quantity."""
@@ -106,9 +112,9 @@ class FittedRelation:
             "form": self.form, "coef": [float(c) for c in self.coef],
             "domain": [float(d) for d in self.domain], "scale": self.scale,
             "r2": round6(self.r2),
-            "loo_rmse": None if self.loo_rmse is None else round6(self.loo_rmse),
+            "loo_rmse": _finite_or_none(self.loo_rmse),
             "points": [[float(a), float(b)] for a, b in self.points],
-            "candidates": {k: None if v is None else round6(v) for k, v in self.candidates.items()},
+            "candidates": {k: _finite_or_none(v) for k, v in self.candidates.items()},
             "warnings": list(self.warnings),
         }
 
@@ -265,6 +271,7 @@ def parse_model(data: Any, path: str | Path) -> ModelDocument:
         raise InputError(p, f"not a perfros-bag model (format {fmt!r}, expected {MODEL_FORMAT!r})")
     if not isinstance(data.get("system"), dict):
         raise InputError(p, "has no 'system' object")
+    _check_system(data["system"], p)
     fits = {str(n): {str(rel): _relation(doc, f, f"fits.{n}.{rel}")
                      for rel, f in doc.mapping(rels, f"fits.{n}").items()}
             for n, rels in doc.mapping(data.get("fits", {}), "fits").items()}
@@ -276,9 +283,22 @@ def parse_model(data: Any, path: str | Path) -> ModelDocument:
                          data["system"], fits, measured, warnings, fmt)
 
 
+def _check_system(system: dict[str, Any], path: Path) -> None:
+    """The ``system`` part must load as a system.yaml (its warnings are given when the
+    system is loaded to be solved)."""
+    import warnings
+
+    from perfros_bag.errors import PerfrosWarning
+    from perfros_bag.system.systemfile import parse_system  # systemfile imports this module
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", PerfrosWarning)
+        parse_system(system, str(path))
+
+
 def read_model(path: str | Path) -> ModelDocument:
-    """Read and check a model.json (the ``system`` part is checked by
-    :func:`perfros_bag.system.systemfile.parse_system` when it is loaded)."""
+    """Read and check a model.json, its ``system`` part as a system.yaml
+    (:func:`perfros_bag.system.systemfile.parse_system`)."""
     return parse_model(read_json(path), path)
 
 

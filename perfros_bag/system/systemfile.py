@@ -89,6 +89,14 @@ class _Ctx:
             raise self.fail(where, problem)
         return float(obj)
 
+    def label(self, obj: Any, where: str) -> str | None:
+        """A free-text label (a unit): text, or a finite number taken as text; None stays None."""
+        if obj is None or isinstance(obj, str):
+            return obj
+        if number_problem(obj, limit=math.inf) is not None:
+            raise self.fail(where, f"must be text, got {_kind(obj)} {obj!r}"[:200])
+        return str(obj)
+
     def opt_number(self, obj: Any, where: str, **kw: bool) -> float | None:
         return None if obj is None else self.number(obj, where, **kw)
 
@@ -184,9 +192,7 @@ def parse_system(data: Any, source: str = "system.yaml") -> System:
     node_names = {n.name for n in nodes}
     edges = _edges(ctx, top.get("edges"), node_names)
     machines = _machines(ctx, top.get("machines"), names)
-    cpu_unit = top.get("cpu_unit")
-    if cpu_unit is not None and not isinstance(cpu_unit, str):
-        cpu_unit = str(cpu_unit)
+    cpu_unit = ctx.label(top.get("cpu_unit"), "cpu_unit")
 
     for n in nodes:
         for m in n.coresidence:
@@ -333,7 +339,7 @@ def _nodes(ctx: _Ctx, raw: Any, computers: set[str]) -> list[Node]:
                 raise ctx.fail(f"{where}: parameter.type", f"must be 'int' or 'float', got {ptype!r}")
             unit = pm.get("unit")
             parameter = Parameter(ctx.name(pm["name"], f"{where}: parameter.name", NameKind.PARAMETER),
-                                  None if unit is None else str(unit), ptype)
+                                  ctx.label(unit, f"{where}: parameter.unit"), ptype)
 
         topics = ctx.str_list(m["topics"], f"{where}: topics", NameKind.TOPIC) if m.get("topics") else ()
         process = m.get("process")
