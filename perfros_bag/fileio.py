@@ -61,7 +61,8 @@ def expect_kind(path: str | Path | None, data: Any, expected: str, accept: Colle
 
 
 #: the tool's own CSV tables, recognised by how their header starts
-CSV_KINDS: dict[str, str] = {"recording,node,": "a characterisation table (characterisation.csv)"}
+CHARACTERISATION_KIND = "a characterisation table (characterisation.csv)"
+CSV_KINDS: dict[str, str] = {"recording,node,": CHARACTERISATION_KIND}
 
 
 def file_kind(path: str | Path) -> str | None:

@@ -17,7 +17,7 @@ from typing import Any
 
 from perfros_bag.characterisation.manifest import SettingValue
 from perfros_bag.errors import InputError
-from perfros_bag.fileio import atomic_write_text, read_text, text_kind
+from perfros_bag.fileio import CHARACTERISATION_KIND, atomic_write_text, read_text, text_kind
 from perfros_bag.limits import number_problem
 
 
@@ -191,7 +191,7 @@ def read_characterisation(path: str | Path) -> CharacterisationFile:
         missing = [c for c in REQUIRED_COLUMNS if c not in header]
         if missing:
             kind = text_kind(text)
-            if kind is not None:
+            if kind is not None and kind != CHARACTERISATION_KIND:
                 raise InputError(p, f"this is {kind}, expected a characterisation.csv")
             raise InputError(p, f"not a characterisation.csv: missing column(s) {', '.join(missing)}")
         cells: list[dict[str, str]] = []

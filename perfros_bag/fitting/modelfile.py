@@ -271,7 +271,6 @@ def parse_model(data: Any, path: str | Path) -> ModelDocument:
         raise InputError(p, f"not a perfros-bag model (format {fmt!r}, expected {MODEL_FORMAT!r})")
     if not isinstance(data.get("system"), dict):
         raise InputError(p, "has no 'system' object")
-    _check_system(data["system"], p)
     fits = {str(n): {str(rel): _relation(doc, f, f"fits.{n}.{rel}")
                      for rel, f in doc.mapping(rels, f"fits.{n}").items()}
             for n, rels in doc.mapping(data.get("fits", {}), "fits").items()}
@@ -283,22 +282,9 @@ def parse_model(data: Any, path: str | Path) -> ModelDocument:
                          data["system"], fits, measured, warnings, fmt)
 
 
-def _check_system(system: dict[str, Any], path: Path) -> None:
-    """The ``system`` part must load as a system.yaml (its warnings are given when the
-    system is loaded to be solved)."""
-    import warnings
-
-    from perfros_bag.errors import PerfrosWarning
-    from perfros_bag.system.systemfile import parse_system  # systemfile imports this module
-
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", PerfrosWarning)
-        parse_system(system, str(path))
-
-
 def read_model(path: str | Path) -> ModelDocument:
-    """Read and check a model.json, its ``system`` part as a system.yaml
-    (:func:`perfros_bag.system.systemfile.parse_system`)."""
+    """Read and check a model.json (the ``system`` part is checked by
+    :func:`perfros_bag.system.systemfile.parse_system` when it is loaded)."""
     return parse_model(read_json(path), path)
 
 

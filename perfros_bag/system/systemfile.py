@@ -256,7 +256,7 @@ def _links(ctx: _Ctx, raw: Any, computers: set[str], media: set[str]) -> list[Li
         if key in pairs:
             raise ctx.fail(where, f"a second link between {between[0]!r} and {between[1]!r}")
         pairs.add(key)
-        medium = m.get("medium")
+        medium = None if m.get("medium") is None else ctx.string(m["medium"], f"{where}.medium")
         if medium is not None and medium not in media:
             raise ctx.fail(f"{where}.medium", f"unknown medium {medium!r} (declare it under media:)")
         bw = ctx.number(m["bandwidth_kBps"], f"{where}.bandwidth_kBps", nonneg=True)
@@ -437,7 +437,7 @@ def _machine_attr(ctx: _Ctx, where: str, key: str, raw: Any) -> str:
     characters; ``address`` a host name, IP address or substitution."""
     if isinstance(raw, Mapping | list) or raw is None:
         raise ctx.fail(where, f"must be a single value, got {_kind(raw)}")
-    text = str(raw)
+    text = raw if isinstance(raw, str) else ctx.label(raw, where) or ""
     problem = text_problem(text) or (address_problem(text) if key == "address" else None)
     if problem is not None:
         raise ctx.fail(where, f"{text!r} {problem}")
