@@ -76,7 +76,11 @@ def _stdout_silenced(silence: bool = True) -> Iterator[None]:
         return
     sys.stdout.flush()
     libc = ctypes.CDLL(None)
-    saved = os.dup(1)
+    try:
+        saved = os.dup(1)
+    except OSError:  # no stdout at all: nothing to protect
+        yield
+        return
     devnull = os.open(os.devnull, os.O_WRONLY)
     try:
         os.dup2(devnull, 1)
