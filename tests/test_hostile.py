@@ -110,6 +110,12 @@ def _wrong_kinds() -> list[tuple[str, list[str], str]]:
         cases.append((f"report-plan<-{kind}", ["report", "--plan", f"{{{kind}}}", "--out", "{out}"], ""))
     for kind in ("plan", "validation"):
         cases.append((f"report-model<-{kind}", ["report", "--model", f"{{{kind}}}", "--out", "{out}"], ""))
+    for kind in ("plan", "model", "info"):
+        cases.append((f"report-validation<-{kind}", ["report", "--validation", f"{{{kind}}}", "--out", "{out}"],
+                      "expected a perfros-bag validation"))
+    for kind in ("plan", "model", "system"):
+        cases.append((f"report-characterisation<-{kind}", ["report", "--characterisation", f"{{{kind}}}",
+                                                           "--out", "{out}"], "expected a characterisation.csv"))
     for kind in ("plan", "model", "system", "manifest"):
         cases.append((f"fit-csv<-{kind}", ["fit", "{system}", f"{{{kind}}}", "--out", "{out}"],
                       "a characterisation.csv"))
