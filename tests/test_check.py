@@ -128,7 +128,11 @@ def test_unplaced_and_unknown_computer() -> None:
     data = copy.deepcopy(GOOD)
     del data["nodes"]["d"]
     one(check_plan(system(), parse_plan(data)), "node d: not placed")
-    one(check_plan(system(), plan(c={"computer": "mars"}, d={"computer": "mars"})), "node c: on unknown computer mars")
+    # plan.json's reader refuses a node on a computer the plan does not list (issue 16), so
+    # the checker's own guard is exercised on a Plan built in memory
+    p = plan()
+    p.nodes["c"].computer = p.nodes["d"].computer = "mars"
+    one(check_plan(system(), p), "node c: on unknown computer mars")
 
 
 def test_reported_loads_must_match() -> None:

@@ -14,12 +14,18 @@ import yaml
 from typer.testing import CliRunner
 
 from perfros_bag.cli import app
-from perfros_bag.errors import InfeasibleError
-from perfros_bag.export.writers import read_placement_comments, ros2_params_yaml, roslaunch_xml
+from perfros_bag.errors import InfeasibleError, InputError
+from perfros_bag.export.writers import (
+    export_plan,
+    read_placement_comments,
+    ros2_params_yaml,
+    roslaunch_xml,
+)
 from perfros_bag.system.planfile import parse_plan
 from perfros_bag.system.systemfile import parse_system
 
-WEIRD = 'trk&<1> "q\' x'  # XML-special characters in a node name
+TRACKER = "tracker_1"
+WEIRD = 'trk&<1> "q\' x'  # XML-special characters: no ROS name, refused (issue 16)
 
 PLAN: dict[str, Any] = {
     "format": "perfros-bag/plan@1", "problem": 1, "method": "test", "status": "optimal",
@@ -31,7 +37,7 @@ PLAN: dict[str, Any] = {
                  "performance": 50, "weight": 0.4, "topics": {}},
         "nav": {"computer": "robot1", "parameter": "controller_frequency", "value": 12.5, "cpu": 19,
                 "performance": 70, "weight": 0.3, "topics": {}},
-        WEIRD: {"computer": "server", "parameter": "out<freq>&", "value": 22.0, "cpu": 176,
+        TRACKER: {"computer": "server", "parameter": "out_freq", "value": 22.0, "cpu": 176,
                 "performance": 95, "weight": 0.2, "topics": {}},
         "core": {"computer": "robot1", "parameter": None, "value": None, "cpu": 16,
                  "performance": 100, "weight": 0.1, "topics": {}},
@@ -41,7 +47,7 @@ PLAN: dict[str, Any] = {
 SYSTEM: dict[str, Any] = {
     "computers": [{"name": "robot1", "kind": "robot", "capacity": 100},
                   {"name": "server", "kind": "server", "capacity": 400}],
-    "machines": {"robot1": {"address": "10.0.0.2", "user": "ro&bot", "env_loader": "/opt/env.sh"}},
+    "machines": {"robot1": {"address": "10.0.0.2", "user": "ro&b\"o<t>'", "env_loader": "/opt/env.sh"}},
     "nodes": [
         {"name": "amcl", "weight": 0.4, "parameter": {"name": "particles", "type": "int"},
          "launch": {"package": "amcl", "type": "amcl", "param": "max_particles", "namespace": "robot1"},
@@ -49,8 +55,8 @@ SYSTEM: dict[str, Any] = {
         {"name": "nav", "weight": 0.3, "parameter": {"name": "controller_frequency"},
          "launch": {"package": "move_base", "type": "move_base", "name": "move_base"},
          "settings": [{"value": 2, "cpu": 25, "performance": 10}, {"value": 20, "cpu": 50, "performance": 100}]},
-        {"name": WEIRD, "weight": 0.2, "parameter": {"name": "out<freq>&"},
-         "launch": {"package": 'pk"g&', "type": "t<r>ack"},
+        {"name": TRACKER, "weight": 0.2, "parameter": {"name": "out_freq"},
+         "launch": {"package": "pk-g", "type": "track.py"},
          "settings": [{"value": 10, "cpu": 80, "performance": 40}, {"value": 25, "cpu": 200, "performance": 100}]},
         {"name": "core", "weight": 0.1, "settings": [{"cpu": 16, "performance": 100}]},
     ],
@@ -92,18 +98,47 @@ def test_launch_with_system_fields_and_escaping(tmp_path: Path) -> None:
     assert "&amp;" in text and "&lt;" in text and "&quot;" in text  # escaped, not raw
     root = ET.fromstring(text)
     m = {e.get("name"): e.attrib for e in root.iter("machine")}
-    assert m["robot1"] == {"name": "robot1", "address": "10.0.0.2", "user": "ro&bot", "env-loader": "/opt/env.sh"}
+    assert m["robot1"] == {"name": "robot1", "address": "10.0.0.2", "user": "ro&b\"o<t>'", "env-loader": "/opt/env.sh"}
     nodes = {n.get("name"): n for n in root.iter("node")}
-    assert set(nodes) == {"amcl", "move_base", WEIRD, "core"}
+    assert set(nodes) == {"amcl", "move_base", TRACKER, "core"}
     assert nodes["amcl"].attrib == {"name": "amcl", "pkg": "amcl", "type": "amcl", "machine": "robot1", "ns": "robot1"}
     assert [(p.get("name"), p.get("value"), p.get("type")) for p in nodes["amcl"].iter("param")] == [
         ("max_particles", "500", "int")]
     assert nodes["move_base"].find("param").attrib["value"] == "12.5"  # type: ignore[union-attr]
-    weird = nodes[WEIRD]
-    assert (weird.get("pkg"), weird.get("type"), weird.get("machine")) == ('pk"g&', "t<r>ack", "server")
+    tracker = nodes[TRACKER]
+    assert (tracker.get("pkg"), tracker.get("type"), tracker.get("machine")) == ("pk-g", "track.py", "server")
     # the system says float: 22.0 stays a double
-    assert [(p.get("name"), p.get("value"), p.get("type")) for p in weird.iter("param")] == [
-        ("out<freq>&", "22.0", "double")]
+    assert [(p.get("name"), p.get("value"), p.get("type")) for p in tracker.iter("param")] == [
+        ("out_freq", "22.0", "double")]
+
+
+@pytest.mark.parametrize(("field", "value"), [
+    ("node", WEIRD), ("node", "nul\x00node"), ("parameter", "out<freq>&"), ("computer", "srv\"><script>"),
+    ("computer", "esc\x1bhost"), ("package", 'pk"g&'), ("type", "t<r>ack"),
+])
+def test_export_refuses_names_ros_cannot_run(tmp_path: Path, field: str, value: str) -> None:
+    """A plan-only export checks every name it writes by ROS's rules (issue 16): one line,
+    exit 2, the file names the entry and the rule, nothing written."""
+    data = json.loads(json.dumps(PLAN))
+    system_data = json.loads(json.dumps(SYSTEM))
+    if field == "node":
+        data["nodes"][value] = data["nodes"].pop("core")
+    elif field == "parameter":
+        data["nodes"]["core"]["parameter"], data["nodes"]["core"]["value"] = value, 1.0
+    elif field == "computer":
+        data["computers"][value] = data["computers"].pop("server")
+        for n in data["nodes"].values():
+            n["computer"] = value if n["computer"] == "server" else n["computer"]
+    else:
+        system_data["nodes"][2]["launch"][field] = value
+    plan_path, sys_path, out = tmp_path / "plan.json", tmp_path / "system.yaml", tmp_path / "x.launch"
+    plan_path.write_text(json.dumps(data))
+    sys_path.write_text(json.dumps(system_data))
+    args = ["export", str(plan_path), "--format", "roslaunch", "--out", str(out)]
+    r = CliRunner().invoke(app, args + (["--system", str(sys_path)] if field in ("package", "type") else []))
+    assert r.exit_code == 2, r.output
+    assert "Traceback" not in r.output and "is not a valid" in r.output
+    assert not out.exists()
 
 
 def test_ros2_params_round_trip() -> None:
@@ -112,20 +147,22 @@ def test_ros2_params_round_trip() -> None:
     assert data == {
         "/robot1/amcl": {"ros__parameters": {"max_particles": 500}},
         "move_base": {"ros__parameters": {"controller_frequency": 12.5}},
-        WEIRD: {"ros__parameters": {"out<freq>&": 22.0}},
+        TRACKER: {"ros__parameters": {"out_freq": 22.0}},
         "core": {"ros__parameters": {}},
     }
     assert isinstance(data["/robot1/amcl"]["ros__parameters"]["max_particles"], int)
     assert read_placement_comments(text) == {"/robot1/amcl": "robot1", "move_base": "robot1",
-                                             WEIRD: "server", "core": "robot1"}
+                                             TRACKER: "server", "core": "robot1"}
 
 
-def test_newline_in_name_cannot_break_the_comment_table() -> None:
+def test_newline_in_name_cannot_break_the_comment_table(tmp_path: Path) -> None:
     data = json.loads(json.dumps(PLAN))
     data["nodes"]["evil\nkey: 1"] = data["nodes"].pop("core")
-    text = ros2_params_yaml(parse_plan(data, "p.json"))
-    assert "key" not in yaml.safe_load(text)
-    assert read_placement_comments(text)["evil\nkey: 1"] == "robot1"
+    plan_path = tmp_path / "p.json"
+    plan_path.write_text(json.dumps(data))
+    with pytest.raises(InputError, match="control character"):
+        export_plan(plan_path, "ros2-params", tmp_path / "params.yaml")
+    assert not (tmp_path / "params.yaml").exists()
 
 
 def test_infeasible_plan_is_refused() -> None:
@@ -168,7 +205,7 @@ def test_roslaunch_loads_the_file(tmp_path: Path) -> None:
     if shutil.which("roslaunch") is None or not Path("/usr/bin/python3").exists():
         pytest.fail("Debian ROS 1 (roslaunch) is not installed: run make setup-debs")
     data = json.loads(json.dumps(PLAN))
-    data["nodes"]["tracker"] = data["nodes"].pop(WEIRD)
+    data["nodes"]["tracker"] = data["nodes"].pop(TRACKER)
     data["nodes"]["tracker"]["parameter"] = "output_freq"
     path = tmp_path / "sys.launch"
     path.write_text(roslaunch_xml(parse_plan(data, "p.json")))

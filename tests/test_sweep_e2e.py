@@ -212,7 +212,9 @@ def test_init_characterise_fit_solve_deploy_with_no_hand_written_file(swept: tup
     _nothing_left(run, {record["run_id"]}, set())
     assert record["leftover_cgroups"] == []
     assert (record["cpu_cap"]["mode"] != "uncapped") == _cgroups_work()
-    assert record["values"] == {n: solved["nodes"][n]["value"] for n in ("camera", "detector")}
+    # the plan's value, made whole where space.yaml's values are all whole numbers (the fit's
+    # inverse gives e.g. 9.999999999999995 for 10)
+    assert record["values"] == {n: int(round(solved["nodes"][n]["value"])) for n in ("camera", "detector")}
     assert {n: v["computer"] for n, v in record["nodes"].items()} == {
         f"/{n}": v["computer"] for n, v in solved["nodes"].items()}
     validation = json.loads((run / "validation.json").read_text())

@@ -17,7 +17,8 @@ from typing import Any
 
 from perfros_bag.characterisation.manifest import SettingValue
 from perfros_bag.errors import InputError
-from perfros_bag.fileio import atomic_write_text, read_text
+from perfros_bag.fileio import CHARACTERISATION_KIND, atomic_write_text, read_text, text_kind
+from perfros_bag.limits import number_problem
 
 
 @dataclass(frozen=True)
@@ -99,52 +100,73 @@ class CharacterisationFile:
     rows: list[Row]
 
 
-def _number(text: str) -> float | None:
-    """A finite number, or None (an empty, non-numeric or non-finite cell)."""
+class _BadCell(ValueError):
+    """A cell that is not what its column holds (the reader adds file, line and column)."""
+
+
+def _number(text: str) -> float:
+    """A numeric cell: a finite number >= 0 within :data:`~perfros_bag.limits.MAX_MAGNITUDE`."""
     try:
         v = float(text)
     except ValueError:
-        return None
-    return v if math.isfinite(v) else None
+        raise _BadCell(f"{text!r} is not a number") from None
+    problem = number_problem(v, nonneg=True)
+    if problem is not None:
+        raise _BadCell(f"{text!r}: {problem}")
+    return v
 
 
-def _integer(text: str) -> int | None:
+def _integer(text: str) -> int:
     try:
-        return int(text)
+        v = int(text)
     except ValueError:
-        v = _number(text)
-        return int(v) if v is not None and v.is_integer() else None
+        f = _number(text)
+        if not f.is_integer():
+            raise _BadCell(f"{text!r} is not a whole number") from None
+        return int(f)
+    problem = number_problem(v, nonneg=True)
+    if problem is not None:
+        raise _BadCell(f"{text[:40]!r}: {problem}")
+    return v
 
 
 def parse_value(text: str) -> SettingValue | None:
-    """A setting value cell: empty -> None, an integer, a float (non-finite kept, so the
-    fit can say it is not finite), else the text."""
+    """A setting value cell: empty -> None, an integer, a float, else the text (a setting
+    may be named). A number that is not finite or beyond
+    :data:`~perfros_bag.limits.MAX_MAGNITUDE` is a ``ValueError``."""
     if not text:
         return None
+    number: int | float
     try:
-        return int(text)
+        number = int(text)
     except ValueError:
-        pass
-    try:
-        return float(text)
-    except ValueError:
-        return text
+        try:
+            number = float(text)
+        except ValueError:
+            return text
+    problem = number_problem(number)
+    if problem is not None:
+        raise _BadCell(f"{text[:40]!r}: {problem}")
+    return number
 
 
 def _row(cells: dict[str, str]) -> Row:
     kw: dict[str, Any] = {}
     for name in COLUMNS:
         text = cells.get(name, "").strip()
-        if name in ("recording", "node"):
-            kw[name] = text
-        elif name == "value":
-            kw[name] = parse_value(text)
-        elif name in _TEXT_COLUMNS:
-            kw[name] = text or None
-        elif name in _INT_COLUMNS:
-            kw[name] = _integer(text) if text else None
-        else:
-            kw[name] = _number(text) if text else None
+        try:
+            if name in ("recording", "node"):
+                kw[name] = text
+            elif name == "value":
+                kw[name] = parse_value(text)
+            elif name in _TEXT_COLUMNS:
+                kw[name] = text or None
+            elif name in _INT_COLUMNS:
+                kw[name] = _integer(text) if text else None
+            else:
+                kw[name] = _number(text) if text else None
+        except _BadCell as exc:
+            raise _BadCell(f"column {name}: {exc}") from None
     return Row(**kw)
 
 
@@ -159,7 +181,10 @@ def _uncommented(text: str, numbers: list[int]) -> Iterator[str]:
 def read_characterisation(path: str | Path) -> CharacterisationFile:
     """Read and check a characterisation.csv (``#`` lines are comments): the required
     columns must be there and at least one row. Cells that are not numbers where numbers
-    are expected read as ``None``. Every problem is an :class:`InputError` naming the file."""
+    are expected are an error, and so are numbers that are not finite, below 0 (all measured columns)
+    or beyond :data:`~perfros_bag.limits.MAX_MAGNITUDE` (the ``value`` column may hold
+    text, and any finite number within that limit). Every problem is an
+    :class:`InputError` naming the file (and the line and column)."""
     p = Path(path)
     text = read_text(p, "characterisation CSV", newline="")
     line_no = [0]
@@ -170,6 +195,9 @@ def read_characterisation(path: str | Path) -> CharacterisationFile:
             raise InputError(p, "the file is empty (expected a characterisation.csv header)")
         missing = [c for c in REQUIRED_COLUMNS if c not in header]
         if missing:
+            kind = text_kind(text)
+            if kind is not None and kind != CHARACTERISATION_KIND:
+                raise InputError(p, f"this is {kind}, expected a characterisation.csv")
             raise InputError(p, f"not a characterisation.csv: missing column(s) {', '.join(missing)}")
         cells: list[dict[str, str]] = []
         lines: list[int] = []
@@ -180,4 +208,10 @@ def read_characterisation(path: str | Path) -> CharacterisationFile:
         raise InputError(p, f"invalid CSV: {exc}") from None
     if not cells:
         raise InputError(p, "has a header but no rows")
-    return CharacterisationFile(p, tuple(header), cells, lines, [_row(c) for c in cells])
+    rows: list[Row] = []
+    for c, line in zip(cells, lines, strict=True):
+        try:
+            rows.append(_row(c))
+        except _BadCell as exc:
+            raise InputError(p, f"line {line}: {exc}") from None
+    return CharacterisationFile(p, tuple(header), cells, lines, rows)

@@ -8,7 +8,8 @@ settings (design.md contract)::
         computer: robot1             # whose capacity normalises the CPU trace
         settings: {tracker1: 10}     # node -> parameter value in this run
 
-Structural problems are :class:`InputError` naming the manifest and the entry; a missing
+Node and computer names follow ROS's rules (:mod:`perfros_bag.system.names`). Structural
+problems are :class:`InputError` naming the manifest and the entry; a missing
 recording file is left to the per-recording work (one bad recording must not stop the rest).
 """
 
@@ -21,7 +22,8 @@ from pathlib import Path
 from typing import Any
 
 from perfros_bag.errors import InputError
-from perfros_bag.fileio import read_yaml
+from perfros_bag.fileio import MANIFEST_KIND, expect_kind, read_yaml
+from perfros_bag.system.names import NameKind, name_problem
 
 TOP_KEYS = {"system", "recordings"}
 ENTRY_KEYS = {"path", "cpu", "computer", "settings"}
@@ -86,6 +88,7 @@ def parse_manifest(data: Any, path: Path) -> Manifest:
 
     if data is None:
         raise fail("", "the manifest is empty (expected 'recordings:')")
+    expect_kind(path, data, MANIFEST_KIND, {MANIFEST_KIND})
     if not isinstance(data, Mapping):
         raise fail("", f"expected a mapping with 'recordings:', got {type(data).__name__}")
     unknown = sorted(str(k) for k in data if k not in TOP_KEYS)
@@ -130,6 +133,8 @@ def parse_manifest(data: Any, path: Path) -> Manifest:
         computer = item.get("computer")
         if computer is not None and (not isinstance(computer, str) or not computer.strip()):
             raise fail(f"{where}.computer", f"must be a computer's name, got {computer!r}")
+        if computer is not None and name_problem(NameKind.COMPUTER, computer) is not None:
+            raise fail(f"{where}.computer", f"{computer!r} {name_problem(NameKind.COMPUTER, computer)}")
         settings = _settings(item.get("settings"), f"{where}.settings", fail)
         entries.append(RecordingEntry(rec, rel, cpu, computer, settings))
     return Manifest(path, system, tuple(entries))
@@ -144,6 +149,9 @@ def _settings(raw: Any, where: str, fail: Any) -> dict[str, SettingValue]:
     for node, value in raw.items():
         if not isinstance(node, str) or not node:
             raise fail(where, f"node names must be strings, got {node!r}")
+        problem = name_problem(NameKind.NODE, node)
+        if problem is not None:
+            raise fail(where, f"{node!r} {problem}")
         if isinstance(value, bool) or value is None:
             raise fail(f"{where}.{node}", f"must be a number or a string, got {value!r}")
         if isinstance(value, int | float):

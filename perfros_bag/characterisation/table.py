@@ -25,6 +25,7 @@ from perfros_bag.characterisation.manifest import (
 from perfros_bag.characterisation.recording import characterise_recording, reporting
 from perfros_bag.characterisation.settings import by_setting, mean
 from perfros_bag.errors import InputError, PerfrosError, PerfrosWarning
+from perfros_bag.fileio import file_kind
 from perfros_bag.system.types import System
 
 
@@ -61,6 +62,9 @@ def find_entries(directory: str | Path, manifest: str | Path | None = None) -> t
     if not d.exists():
         raise InputError(d, "directory not found")
     mpath = Path(manifest) if manifest is not None else None
+    kind = file_kind(d) if mpath is None else None
+    if kind is not None:
+        raise InputError(d, f"this is {kind}, expected a folder of recordings or one recording")
     if mpath is None and d.is_dir() and (d / "manifest.yaml").is_file():
         mpath = d / "manifest.yaml"
     if mpath is not None:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
 
@@ -75,7 +74,9 @@ def run_cmd(
         record = run_plan(sys_, pl, out_dir, cfg, overrides=_parse_overrides(override or []),
                           progress=progress, system_path=system)
     if as_json:
-        print(json.dumps(record))
+        from perfros_bag.fileio import json_text  # strict: no NaN/Infinity
+
+        print(json_text(record, indent=None))
         return
     _summary(record, out_dir)
 

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -95,7 +94,9 @@ def characterise_cmd(
     if out_path is not None:  # an empty result is a header-only file
         write_characterisation(out_path, result.rows)
     if as_json:
-        print(json.dumps(rows_json(result.rows), indent=1))
+        from perfros_bag.fileio import json_text  # strict: no NaN/Infinity
+
+        print(json_text(rows_json(result.rows), indent=1))
     if plot is not None and result.rows:
         from perfros_bag.report.characterisation_plots import plot_characterisation
 

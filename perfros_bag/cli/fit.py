@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Annotated
 
@@ -34,7 +33,9 @@ def fit(
         written = plot_model(result.system.node, result.fits, plots)
 
     if as_json:
-        print(json.dumps(result.document.to_json()))
+        from perfros_bag.fileio import json_text  # strict: no NaN/Infinity
+
+        print(json_text(result.document.to_json(), indent=None))
         return
     table = Table(title=f"fits -> {out_path}")
     for col in ("node", "relation", "form", "R²", "LOO RMSE", "points", "domain"):

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Annotated
@@ -45,7 +44,9 @@ def info(
             lat = read_latency(recording, fast=not slow)
     doc = recording_document(rec, lat)
     if as_json:
-        print(json.dumps(doc, indent=2))
+        from perfros_bag.fileio import json_text  # strict: no NaN/Infinity
+
+        print(json_text(doc, indent=2))
         return
     # piped output is not cut to 80 columns: the table is for reading and for grep
     console = out if out.is_terminal else Console(width=240, highlight=False)

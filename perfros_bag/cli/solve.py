@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import warnings
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
@@ -127,7 +126,9 @@ def solve(
     if out_path is not None:
         save_plan(plan, out_path)
     if as_json:
-        print(json.dumps(plan_document(plan), indent=2))
+        from perfros_bag.fileio import json_text  # strict: no NaN/Infinity
+
+        print(json_text(plan_document(plan), indent=2))
     plan.require_feasible(system_path)
     print_plan(err if as_json else out, plan)
     if out_path is not None and not as_json:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
 
@@ -119,7 +118,9 @@ def validate(
         atomic_write_json(save, doc)
     if as_json:
         render(result, err)
-        print(json.dumps(doc, indent=2))
+        from perfros_bag.fileio import json_text  # strict: no NaN/Infinity
+
+        print(json_text(doc, indent=2))
     else:
         render(result, out)
     if not result.passed:

@@ -53,7 +53,7 @@ class ModelResult:
 def measured_settings(table: CharacterisationFile, system: System) -> dict[str, list[MeasuredSetting]]:
     """Per node of ``system``: what was measured at each parameter value, over the
     recordings (rows of other nodes are ignored). A value of a node in the system that is
-    not a finite number is an error."""
+    not a number is an error (the reader refuses non-finite ones)."""
     path = str(table.path)
     rows = []
     for row, cells, line in zip(table.rows, table.cells, table.lines, strict=True):
@@ -62,8 +62,6 @@ def measured_settings(table: CharacterisationFile, system: System) -> dict[str, 
         raw = cells.get("value", "").strip()
         if isinstance(row.value, str):
             raise InputError(path, f"line {line}: node {row.node!r}: parameter value {raw!r} is not a number")
-        if row.value is not None and not math.isfinite(row.value):
-            raise InputError(path, f"line {line}: node {row.node!r}: parameter value {raw!r} is not finite")
         rows.append(row if row.recording else replace(row, recording=f"(row {line})"))
     out: dict[str, list[MeasuredSetting]] = {}
     for s in by_setting(rows, {n.name: n.topics for n in system.nodes}):

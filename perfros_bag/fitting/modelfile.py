@@ -14,7 +14,14 @@ from pathlib import Path
 from typing import Any
 
 from perfros_bag.errors import InputError
-from perfros_bag.fileio import atomic_write_json, read_json
+from perfros_bag.fileio import (
+    DOCUMENT_KINDS,
+    SYSTEM_KIND,
+    atomic_write_json,
+    expect_kind,
+    read_json,
+)
+from perfros_bag.limits import MAX_COEFFICIENT, MAX_MAGNITUDE, number_problem, short_repr
 from perfros_bag.system.types import Curve, CurveForm, curve_form
 
 MODEL_FORMAT = "perfros-bag/model@1"
@@ -28,6 +35,12 @@ def round9(v: float) -> float:
 def round6(v: float) -> float:
     """6 significant digits (R², leave-one-out errors as written)."""
     return float(f"{v:.6g}") if math.isfinite(v) else v
+
+
+def _finite_or_none(v: float | None) -> float | None:
+    """A leave-one-out error as written: None when there is none or it is not finite (a
+    form whose predictions overflowed; the fit ranked it last)."""
+    return None if v is None or not math.isfinite(v) else round6(v)
 
 
 @dataclass(frozen=True)
@@ -102,9 +115,9 @@ class FittedRelation:
             "form": self.form, "coef": [float(c) for c in self.coef],
             "domain": [float(d) for d in self.domain], "scale": self.scale,
             "r2": round6(self.r2),
-            "loo_rmse": None if self.loo_rmse is None else round6(self.loo_rmse),
+            "loo_rmse": _finite_or_none(self.loo_rmse),
             "points": [[float(a), float(b)] for a, b in self.points],
-            "candidates": {k: None if v is None else round6(v) for k, v in self.candidates.items()},
+            "candidates": {k: _finite_or_none(v) for k, v in self.candidates.items()},
             "warnings": list(self.warnings),
             **({} if self.source is None else {"source": self.source}),
         }
@@ -162,21 +175,26 @@ class _Doc:
             raise self.fail(where, f"expected a list, got {_kind(obj)}")
         return obj
 
-    def number(self, obj: Any, where: str) -> float:
+    def number(self, obj: Any, where: str, *, nonneg: bool = False, positive: bool = False,
+               limit: float = MAX_MAGNITUDE) -> float:
+        """A finite number within ``limit`` (:mod:`perfros_bag.limits`)."""
         if isinstance(obj, bool) or not isinstance(obj, int | float):
             raise self.fail(where, f"expected a number, got {obj!r}")
+        problem = number_problem(obj, nonneg=nonneg, positive=positive, limit=limit)
+        if problem is not None:
+            raise self.fail(where, problem)
         return float(obj)
 
-    def opt_number(self, obj: Any, where: str) -> float | None:
-        return None if obj is None else self.number(obj, where)
+    def opt_number(self, obj: Any, where: str, *, nonneg: bool = False) -> float | None:
+        return None if obj is None else self.number(obj, where, nonneg=nonneg)
 
     def string(self, obj: Any, where: str) -> str:
         if not isinstance(obj, str):
             raise self.fail(where, f"expected a string, got {_kind(obj)}")
         return obj
 
-    def numbers(self, obj: Any, where: str, n: int | None = None) -> tuple[float, ...]:
-        out = tuple(self.number(v, f"{where}[{i}]") for i, v in enumerate(self.items(obj, where)))
+    def numbers(self, obj: Any, where: str, n: int | None = None, *, limit: float = MAX_MAGNITUDE) -> tuple[float, ...]:
+        out = tuple(self.number(v, f"{where}[{i}]", limit=limit) for i, v in enumerate(self.items(obj, where)))
         if n is not None and len(out) != n:
             raise self.fail(where, f"expected {n} numbers, got {len(out)}")
         return out
@@ -186,9 +204,18 @@ class _Doc:
             return None
         m = self.mapping(obj, where)
         count = m.get("count")
-        if isinstance(count, bool) or not isinstance(count, int):
-            raise self.fail(f"{where}.count", f"expected a whole number, got {count!r}")
-        return Stat(self.number(m.get("mean"), f"{where}.mean"), self.number(m.get("std"), f"{where}.std"), count)
+        count = _whole(self, count, f"{where}.count")
+        return Stat(self.number(m.get("mean"), f"{where}.mean"),
+                    self.number(m.get("std"), f"{where}.std", nonneg=True), count)
+
+
+def _whole(doc: _Doc, obj: Any, where: str) -> int:
+    """``obj`` must be a count: a whole number in [0, MAX_MAGNITUDE]."""
+    if isinstance(obj, bool) or not isinstance(obj, int):
+        raise doc.fail(where, f"expected a whole number, got {obj!r}")
+    if not 0 <= obj <= MAX_MAGNITUDE:
+        raise doc.fail(where, f"must be a whole number in [0, {MAX_MAGNITUDE:g}], got {short_repr(obj)}")
+    return obj
 
 
 def _kind(obj: Any) -> str:
@@ -198,7 +225,7 @@ def _kind(obj: Any) -> str:
 def _relation(doc: _Doc, raw: Any, where: str) -> FittedRelation:
     m = doc.mapping(raw, where)
     lo, hi = doc.numbers(m.get("domain"), f"{where}.domain", 2)
-    candidates = {str(k): doc.opt_number(v, f"{where}.candidates.{k}")
+    candidates = {str(k): doc.opt_number(v, f"{where}.candidates.{k}", nonneg=True)
                   for k, v in doc.mapping(m.get("candidates", {}), f"{where}.candidates").items()}
     try:
         form = curve_form(m.get("form"))
@@ -206,11 +233,11 @@ def _relation(doc: _Doc, raw: Any, where: str) -> FittedRelation:
         raise doc.fail(f"{where}.form", str(exc)) from None
     fit = FittedRelation(
         form=form,
-        coef=doc.numbers(m.get("coef"), f"{where}.coef"),
+        coef=doc.numbers(m.get("coef"), f"{where}.coef", limit=MAX_COEFFICIENT),
         domain=(lo, hi),
-        scale=doc.number(m.get("scale", 1.0), f"{where}.scale"),
+        scale=doc.number(m.get("scale", 1.0), f"{where}.scale", positive=True),
         r2=doc.number(m.get("r2"), f"{where}.r2"),
-        loo_rmse=doc.opt_number(m.get("loo_rmse"), f"{where}.loo_rmse"),
+        loo_rmse=doc.opt_number(m.get("loo_rmse"), f"{where}.loo_rmse", nonneg=True),
         points=tuple((x, y) for x, y in (doc.numbers(p, f"{where}.points[{i}]", 2)
                                           for i, p in enumerate(doc.items(m.get("points", []), f"{where}.points")))),
         candidates=candidates,
@@ -232,8 +259,7 @@ def _measured(doc: _Doc, raw: Any, where: str) -> MeasuredSetting:
               for t, tm in ((t, doc.mapping(v, f"{where}.topics.{t}"))
                             for t, v in doc.mapping(m.get("topics", {}), f"{where}.topics").items())}
     recordings = m.get("recordings")
-    if isinstance(recordings, bool) or not isinstance(recordings, int):
-        raise doc.fail(f"{where}.recordings", f"expected a whole number, got {recordings!r}")
+    recordings = _whole(doc, recordings, f"{where}.recordings")
     return MeasuredSetting(doc.opt_number(m.get("value"), f"{where}.value"), recordings,
                            doc.stat(m.get("cpu"), f"{where}.cpu"), doc.stat(m.get("frequency_hz"), f"{where}.frequency_hz"),
                            doc.stat(m.get("bandwidth_kBps"), f"{where}.bandwidth_kBps"), topics)
@@ -244,6 +270,7 @@ def parse_model(data: Any, path: str | Path) -> ModelDocument:
     the place (``fits.tracker1.cpu->performance.coef[1]: expected a number``)."""
     p = Path(path)
     doc = _Doc(p)
+    expect_kind(p, data, DOCUMENT_KINDS[MODEL_FORMAT], {DOCUMENT_KINDS[MODEL_FORMAT]})
     fmt = data.get("format") if isinstance(data, Mapping) else None
     if not isinstance(data, Mapping) or fmt != MODEL_FORMAT:
         raise InputError(p, f"not a perfros-bag model (format {fmt!r}, expected {MODEL_FORMAT!r})")
@@ -276,5 +303,8 @@ def system_part(data: Any) -> Any:
 
 def read_model_system(path: str | Path) -> Any:
     """What ``solve`` reads from a model.json: its ``system`` part, unchecked (the rest of
-    the document is not needed to solve)."""
-    return system_part(read_json(path))
+    the document is not needed to solve). Another of the tool's documents (a plan, ...) is
+    an :class:`InputError` saying what it is."""
+    data = read_json(path)
+    expect_kind(path, data, "a system.yaml or model.json", {SYSTEM_KIND, DOCUMENT_KINDS[MODEL_FORMAT]})
+    return system_part(data)

@@ -28,6 +28,7 @@ import numpy.typing as npt
 
 from perfros_bag.errors import PerfrosError
 from perfros_bag.fitting.modelfile import FittedRelation
+from perfros_bag.limits import MAX_COEFFICIENT
 from perfros_bag.system.types import CURVE_FORMS, CURVE_NCOEF, Curve, CurveForm
 
 Monotone = Literal["nondecreasing", "either"] | None
@@ -238,7 +239,7 @@ def clip_domain(curve: Curve, lo_y: float, hi_y: float) -> tuple[Curve, str | No
 
 def _usable(form: CurveForm, coef: tuple[float, ...]) -> bool:
     """Finite coefficients in a range where evaluating the curve cannot overflow."""
-    if not all(math.isfinite(c) and abs(c) < 1e15 for c in coef):
+    if not all(math.isfinite(c) and abs(c) <= MAX_COEFFICIENT for c in coef):
         return False
     return not (form == "power" and abs(coef[1]) > _MAX_EXPONENT)
 

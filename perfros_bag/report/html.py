@@ -19,7 +19,13 @@ from typing import Any
 
 from perfros_bag.characterisation.csvfile import CharacterisationFile, read_characterisation
 from perfros_bag.errors import InputError
-from perfros_bag.fileio import atomic_open, atomic_write_text, read_json
+from perfros_bag.fileio import (
+    DOCUMENT_KINDS,
+    atomic_open,
+    atomic_write_text,
+    expect_kind,
+    read_json,
+)
 from perfros_bag.fitting.modelfile import FittedRelation, read_model
 from perfros_bag.report.fit_plots import plot_relations
 from perfros_bag.report.plan_plots import plot_plan_loads
@@ -83,6 +89,8 @@ def table(headers: Sequence[str], rows: Iterable[Sequence[Any]], *, text_cols: I
 
 def read_validation(path: str | Path) -> dict[str, Any]:
     data = read_json(path)
+    validation = DOCUMENT_KINDS["perfros-bag/validation@1"]  # validation/eq10.py VALIDATION_FORMAT
+    expect_kind(path, data, validation, {validation})
     if not isinstance(data, dict) or not isinstance(data.get("nodes"), list) or not isinstance(data.get("overall"), dict):
         raise InputError(path, "not a validation (expected a JSON object with a 'nodes' list and an 'overall' object)")
     return data

@@ -36,7 +36,7 @@ from perfros_bag.system.types import Choice, Node, Problem, System
 #: the solvers' names (``Method`` values), in the order the docs list them
 METHODS: tuple[str, ...] = tuple(Method)
 
-__all__ = ["METHODS", "START_COLUMNS", "START_SHARE", "exact_columns", "fixed_choices", "settings_from_plan",
+__all__ = ["MAX_CHOICES", "METHODS", "START_COLUMNS", "check_resolution", "choice_count", "START_SHARE", "exact_columns", "fixed_choices", "settings_from_plan",
            "settings_from_values", "solve", "start_of"]
 
 
@@ -60,12 +60,46 @@ def _match_cpu(system: System, node: Node, cpu: float, resolution: float) -> Cho
     raise InputError(_where(system), f"node {node.name!r}: no setting with CPU {cpu:g} (its settings' CPU: {have})")
 
 
+#: the most candidate choices (summed over the nodes) a solve may create. A curve node has
+#: one choice per ``resolution`` CPU units of its domain; each choice costs the solvers time
+#: and memory (measured, docs/formats.md: 23,500 choices solve exactly in ~17 s).
+MAX_CHOICES = 100_000
+
+
+def choice_count(system: System, resolution: float) -> int:
+    """How many candidate choices the nodes have at ``resolution`` (computed, not built)."""
+    total = 0
+    for node in system.nodes:
+        if node.curve is None:
+            total += len(node.settings)
+        else:
+            lo, hi = node.curve.domain
+            total += math.floor((hi - lo) / resolution + 1e-9) + 2
+    return total
+
+
+def check_resolution(system: System, resolution: float) -> None:
+    """Raise an :class:`InputError` when ``resolution`` is not a finite number > 0 or would
+    create more than :data:`MAX_CHOICES` choices."""
+    if isinstance(resolution, bool) or not isinstance(resolution, int | float) or not math.isfinite(resolution) \
+            or resolution <= 0:
+        raise InputError(_where(system), f"resolution must be > 0, got {resolution!r}")
+    count = choice_count(system, resolution)
+    if count > MAX_CHOICES:
+        widest = max((n for n in system.nodes if n.curve is not None),
+                     key=lambda n: n.curve.domain[1] - n.curve.domain[0] if n.curve else 0.0)
+        assert widest.curve is not None
+        lo, hi = widest.curve.domain
+        raise InputError(_where(system), f"resolution {resolution:g} gives {count:.3g} choices over the curves' CPU "
+                                         f"ranges (node {widest.name!r}: [{lo:g}, {hi:g}]), more than the "
+                                         f"{MAX_CHOICES:,} the solvers take: use a coarser resolution")
+
+
 def fixed_choices(system: System, problem: Problem, settings: Mapping[str, float] | None = None,
                   resolution: float = 1.0) -> dict[str, list[Choice]]:
     """Each node's candidate choices, sorted by CPU: all of them for Problem 1; for Problem 2
     the single fixed one (``settings[node]`` as a CPU level, default the maximum-CPU choice)."""
-    if resolution <= 0 or not math.isfinite(resolution):
-        raise InputError(_where(system), f"resolution must be > 0, got {resolution!r}")
+    check_resolution(system, resolution)
     if settings:
         unknown = sorted(set(settings) - set(system.node))
         if unknown:
@@ -95,6 +129,7 @@ def settings_from_values(system: System, values: Mapping[str, float], resolution
     may lie just outside that range, which a fitted model narrows (whole CPU units, and
     where the performance fit leaves [0, max], see docs/formats.md). Beyond
     :data:`ROUNDING_UNITS` the clamp is reported with a :class:`PerfrosWarning`."""
+    check_resolution(system, resolution)
     out: dict[str, float] = {}
     for name, v in values.items():
         node = system.node.get(name)

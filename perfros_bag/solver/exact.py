@@ -31,9 +31,13 @@ always cross a link), then, when the MILP itself is infeasible, an elastic copy 
 
 from __future__ import annotations
 
+import contextlib
+import ctypes
 import math
+import os
+import sys
 import time
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -60,6 +64,32 @@ _HIGHS_OPTIONS: dict[str, Any] = {
     "mip_heuristic_run_rens": False,
     "mip_heuristic_run_root_reduced_cost": False,
 }
+
+
+@contextlib.contextmanager
+def _stdout_silenced(silence: bool = True) -> Iterator[None]:
+    """File descriptor 1 points to /dev/null inside (C and C++ code writing to stdout, such as
+    HiGHS's banner, write nothing there); stdout is restored, C stdio flushed, on exit.
+    ``--json`` output must be the document only."""
+    if not silence:
+        yield
+        return
+    sys.stdout.flush()
+    libc = ctypes.CDLL(None)
+    try:
+        saved = os.dup(1)
+    except OSError:  # no stdout at all: nothing to protect
+        yield
+        return
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, 1)
+        yield
+    finally:
+        libc.fflush(None)  # what the C library buffered goes to /dev/null, not the restored stdout
+        os.dup2(saved, 1)
+        os.close(saved)
+        os.close(devnull)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -103,7 +133,8 @@ class _Milp:
         """Run HiGHS (``relax``: the LP relaxation); returns the Highs object."""
         import highspy  # lazy: keeps the CLI's start-up fast
 
-        h = highspy.Highs()
+        with _stdout_silenced(not _LOG):
+            h = highspy.Highs()  # HiGHS >= 1.12 prints its banner here, before any option is set
         h.setOptionValue("output_flag", _LOG)
         h.setOptionValue("mip_rel_gap", float(mip_gap))
         h.setOptionValue("mip_abs_gap", 1e-7)

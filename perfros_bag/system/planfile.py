@@ -11,7 +11,8 @@ from pathlib import Path
 from typing import Any
 
 from perfros_bag.errors import InputError
-from perfros_bag.fileio import atomic_write_json, read_json
+from perfros_bag.fileio import DOCUMENT_KINDS, atomic_write_json, expect_kind, read_json
+from perfros_bag.limits import number_problem
 from perfros_bag.system.plan import (
     Plan,
     PlannedComputer,
@@ -21,7 +22,7 @@ from perfros_bag.system.plan import (
     Status,
     method_of,
 )
-from perfros_bag.system.types import Problem
+from perfros_bag.system.types import Problem, System
 
 PLAN_FORMAT = "perfros-bag/plan@1"
 _KNOWN = {"format", "problem", "method", "status", "objective", "bound", "solve_s", "reason", "system",
@@ -71,19 +72,36 @@ def load_plan(path: str | Path) -> Plan:
     return parse_plan(read_json(p), str(p))
 
 
-def _num(d: dict[str, Any], key: str, where: str, path: str, *, optional: bool = True) -> float | None:
+#: a node's CPU may exceed its computer's capacity by this much (relative) and still fit:
+#: the solvers' rounding
+CAPACITY_SLACK = 1e-6
+
+
+def _num(d: dict[str, Any], key: str, where: str, path: str, *, optional: bool = True,
+         nonneg: bool = False, positive: bool = False) -> float | None:
+    """``d[key]``: a finite number within :mod:`perfros_bag.limits` (>= 0 / > 0 when
+    asked); None when absent and ``optional``."""
     v = d.get(key)
     if v is None:
         if optional:
             return None
         raise InputError(path, f"{where}: missing {key!r}")
-    if isinstance(v, bool) or not isinstance(v, int | float):
-        raise InputError(path, f"{where}: {key!r} must be a number, got {v!r}")
+    problem = number_problem(v, nonneg=nonneg, positive=positive)
+    if problem is not None:
+        raise InputError(path, f"{where}: {key!r} {problem}")
     return float(v)
+
+
+def _text(d: dict[str, Any], key: str, where: str, path: str) -> str | None:
+    v = d.get(key)
+    if v is not None and not isinstance(v, str):
+        raise InputError(path, f"{where}: {key!r} must be a string, got {type(v).__name__}")
+    return v
 
 
 def parse_plan(data: Any, path: str = "plan.json") -> Plan:
     """A plan from its JSON object (``path`` names it in errors)."""
+    expect_kind(path, data, DOCUMENT_KINDS[PLAN_FORMAT], {DOCUMENT_KINDS[PLAN_FORMAT]})
     if not isinstance(data, dict):
         raise InputError(path, "not a plan: expected a JSON object")
     fmt = data.get("format")
@@ -95,9 +113,13 @@ def parse_plan(data: Any, path: str = "plan.json") -> Plan:
     problem = data.get("problem")
     if isinstance(problem, bool) or problem not in tuple(Problem):
         raise InputError(path, f"problem must be 1 or 2, got {problem!r}")
-    plan = Plan(Problem(problem), method_of(str(data.get("method", ""))), Status(status),
+    method = data.get("method", "")
+    if not isinstance(method, str):
+        raise InputError(path, f"plan: 'method' must be a string, got {type(method).__name__}")
+    plan = Plan(Problem(problem), method_of(method), Status(status),
                 _num(data, "objective", "plan", path), _num(data, "bound", "plan", path),
-                _num(data, "solve_s", "plan", path), reason=data.get("reason"), system=data.get("system"),
+                _num(data, "solve_s", "plan", path, nonneg=True), reason=_text(data, "reason", "plan", path),
+                system=_text(data, "system", "plan", path),
                 extra={k: v for k, v in data.items() if k not in _KNOWN})
     comps = data.get("computers") or {}
     if not isinstance(comps, dict):
@@ -105,26 +127,48 @@ def parse_plan(data: Any, path: str = "plan.json") -> Plan:
     for name, c in comps.items():
         if not isinstance(c, dict):
             raise InputError(path, f"computer {name!r}: must be an object")
-        plan.computers[name] = PlannedComputer(str(c.get("kind", "server")),
-                                               _num(c, "capacity", f"computer {name!r}", path),
-                                               _num(c, "cpu", f"computer {name!r}", path) or 0.0)
+        kind = c.get("kind", "server")
+        if kind not in ("robot", "server"):
+            raise InputError(path, f"computer {name!r}: 'kind' must be 'robot' or 'server', got {kind!r}")
+        plan.computers[name] = PlannedComputer(kind, _num(c, "capacity", f"computer {name!r}", path, nonneg=True),
+                                               _num(c, "cpu", f"computer {name!r}", path, nonneg=True) or 0.0)
     links = data.get("links") or []
     if not isinstance(links, list):
         raise InputError(path, "links must be a list")
     for i, link in enumerate(links):
         if not isinstance(link, dict) or not isinstance(link.get("between"), list) or len(link["between"]) != 2:
             raise InputError(path, f"links[{i}]: needs between: [a, b]")
-        plan.links.append(PlannedLink((str(link["between"][0]), str(link["between"][1])),
-                                      _num(link, "bandwidth_kBps", f"links[{i}]", path, optional=False) or 0.0,
-                                      _num(link, "load_kBps", f"links[{i}]", path) or 0.0, link.get("medium")))
+        if not all(isinstance(c, str) for c in link["between"]):
+            raise InputError(path, f"links[{i}]: between must name two computers")
+        plan.links.append(PlannedLink((link["between"][0], link["between"][1]),
+                                      _num(link, "bandwidth_kBps", f"links[{i}]", path, optional=False,
+                                           nonneg=True) or 0.0,
+                                      _num(link, "load_kBps", f"links[{i}]", path, nonneg=True) or 0.0,
+                                      _text(link, "medium", f"links[{i}]", path)))
     nodes = data.get("nodes") or {}
     if not isinstance(nodes, dict):
         raise InputError(path, "nodes must be an object")
     if plan.status != Status.INFEASIBLE and not nodes:
         raise InputError(path, "the plan has no nodes")
+    if plan.status != Status.INFEASIBLE and not plan.computers:
+        raise InputError(path, "the plan has no computers")
     for name, n in nodes.items():
         plan.nodes[name] = _parse_node(n, f"node {name!r}", path)
+        _check_placed(plan, name, path)
     return plan
+
+
+def _check_placed(plan: Plan, name: str, path: str) -> None:
+    """The node's computer is one of the plan's, and the node's CPU fits its capacity."""
+    node = plan.nodes[name]
+    computer = plan.computers.get(node.computer)
+    if computer is None:
+        raise InputError(path, f"node {name!r}: placed on {node.computer!r}, which is not among the plan's computers "
+                               f"({', '.join(map(repr, plan.computers)) or 'none'})")
+    cap = computer.capacity
+    if cap is not None and node.cpu > cap * (1 + CAPACITY_SLACK) + CAPACITY_SLACK:
+        raise InputError(path, f"node {name!r}: 'cpu' {node.cpu:g} exceeds the capacity {cap:g} of its computer "
+                               f"{node.computer!r}")
 
 
 def _parse_node(n: Any, where: str, path: str) -> PlannedNode:
@@ -139,12 +183,25 @@ def _parse_node(n: Any, where: str, path: str) -> PlannedNode:
     for t, r in raw_topics.items():
         if not isinstance(r, dict):
             raise InputError(path, f"{where}: topic {t!r} must be an object")
-        topics[t] = PlannedTopic(_num(r, "frequency_hz", f"{where} topic {t!r}", path),
-                                 _num(r, "bandwidth_kBps", f"{where} topic {t!r}", path))
+        topics[t] = PlannedTopic(_num(r, "frequency_hz", f"{where} topic {t!r}", path, nonneg=True),
+                                 _num(r, "bandwidth_kBps", f"{where} topic {t!r}", path, nonneg=True))
     return PlannedNode(
         computer=n["computer"],
-        cpu=_num(n, "cpu", where, path, optional=False) or 0.0,
-        performance=_num(n, "performance", where, path, optional=False) or 0.0,
-        weight=_num(n, "weight", where, path, optional=False) or 0.0,
-        parameter=n.get("parameter"), value=_num(n, "value", where, path), topics=topics,
+        cpu=_num(n, "cpu", where, path, optional=False, nonneg=True) or 0.0,
+        performance=_num(n, "performance", where, path, optional=False, nonneg=True) or 0.0,
+        weight=_num(n, "weight", where, path, optional=False, nonneg=True) or 0.0,
+        parameter=_text(n, "parameter", where, path), value=_num(n, "value", where, path), topics=topics,
     )
+
+
+def check_against_system(plan: Plan, system: System) -> None:
+    """Every node of the plan must be a node of ``system`` and every computer of the plan
+    one of its computers (an :class:`InputError` naming the system otherwise): a plan
+    for another system cannot be validated or deployed with this one."""
+    unknown = [n for n in plan.nodes if n not in system.node]
+    if unknown:
+        raise InputError(system.source, f"plan node(s) {', '.join(map(repr, unknown))} are not in the system")
+    strange = [c for c in plan.computers if c not in system.computer]
+    if strange:
+        raise InputError(system.source, f"plan computer(s) {', '.join(map(repr, strange))} are not in the system "
+                                        f"(its computers: {', '.join(map(repr, system.computer))})")

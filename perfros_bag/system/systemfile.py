@@ -15,8 +15,16 @@ from pathlib import Path
 from typing import Any
 
 from perfros_bag.errors import InputError, PerfrosWarning
-from perfros_bag.fileio import read_yaml
+from perfros_bag.fileio import SYSTEM_KIND, expect_kind, file_kind, read_yaml
 from perfros_bag.fitting.modelfile import read_model_system
+from perfros_bag.limits import MAX_COEFFICIENT, MAX_MAGNITUDE, number_problem
+from perfros_bag.system.names import (
+    NameKind,
+    address_problem,
+    name_problem,
+    ros2_problem,
+    text_problem,
+)
 from perfros_bag.system.types import (
     CURVE_FORMS,
     Aggregate,
@@ -53,6 +61,9 @@ RELATION_KEYS = {"parameter->cpu", "parameter->performance", "cpu->performance",
                  "parameter->frequency", "parameter->bandwidth"}
 # ... and per topic: "parameter->frequency:<topic>", "parameter->bandwidth:<topic>"
 TOPIC_RELATIONS = {"parameter->frequency", "parameter->bandwidth"}
+#: the ROS rule each ``launch:`` field follows
+LAUNCH_NAME_KINDS = {"package": NameKind.PACKAGE, "type": NameKind.EXECUTABLE, "param": NameKind.PARAMETER,
+                     "name": NameKind.NODE, "namespace": NameKind.NAMESPACE}
 
 
 class _Ctx:
@@ -75,15 +86,20 @@ class _Ctx:
             raise self.fail(where, f"missing required field(s) {', '.join(repr(k) for k in missing)}")
         return obj
 
-    def number(self, obj: Any, where: str, *, positive: bool = False, nonneg: bool = False) -> float:
-        if isinstance(obj, bool) or not isinstance(obj, int | float) or not math.isfinite(float(obj)):
-            raise self.fail(where, f"must be a finite number, got {obj!r}")
-        value = float(obj)
-        if positive and value <= 0:
-            raise self.fail(where, f"must be > 0, got {obj!r}")
-        if nonneg and value < 0:
-            raise self.fail(where, f"must be >= 0, got {obj!r}")
-        return value
+    def number(self, obj: Any, where: str, *, positive: bool = False, nonneg: bool = False,
+               limit: float = MAX_MAGNITUDE) -> float:
+        problem = number_problem(obj, positive=positive, nonneg=nonneg, limit=limit)
+        if problem is not None:
+            raise self.fail(where, problem)
+        return float(obj)
+
+    def label(self, obj: Any, where: str) -> str | None:
+        """A free-text label (a unit): text, or a finite number taken as text; None stays None."""
+        if obj is None or isinstance(obj, str):
+            return obj
+        if number_problem(obj, limit=math.inf) is not None:
+            raise self.fail(where, f"must be text, got {_kind(obj)} {obj!r}"[:200])
+        return str(obj)
 
     def opt_number(self, obj: Any, where: str, **kw: bool) -> float | None:
         return None if obj is None else self.number(obj, where, **kw)
@@ -93,11 +109,26 @@ class _Ctx:
             raise self.fail(where, f"must be a non-empty string, got {obj!r}")
         return obj
 
-    def str_list(self, obj: Any, where: str) -> tuple[str, ...]:
+    def name(self, obj: Any, where: str, kind: NameKind) -> str:
+        """A name ROS can use (:mod:`perfros_bag.system.names`); one valid for ROS 1 only
+        is kept with a warning."""
+        name = self.string(obj, where)
+        problem = name_problem(kind, name)
+        if problem is not None:
+            raise self.fail(where, f"{name!r} {problem}")
+        ros2 = ros2_problem(kind, name)
+        if ros2 is not None:
+            warnings.warn(f"{self.path}: {where}: {name!r} is a valid ROS 1 {kind} but not a ROS 2 one ({ros2})",
+                          PerfrosWarning, stacklevel=3)
+        return name
+
+    def str_list(self, obj: Any, where: str, kind: NameKind | None = None) -> tuple[str, ...]:
         if isinstance(obj, str):
             obj = [obj]
         if not isinstance(obj, list):
             raise self.fail(where, f"must be a list of names, got {_kind(obj)}")
+        if kind is not None:
+            return tuple(self.name(x, f"{where}[{i}]", kind) for i, x in enumerate(obj))
         return tuple(self.string(x, f"{where}[{i}]") for i, x in enumerate(obj))
 
     def seq(self, obj: Any, where: str) -> list[Any]:
@@ -108,16 +139,18 @@ class _Ctx:
         return obj
 
     def named(self, obj: Any, section: str, what: str, allowed: set[str], required: set[str], *,
-              at_least_one: bool = True) -> Iterator[tuple[str, str, Mapping[str, Any]]]:
+              at_least_one: bool = True, kind: NameKind | None = None) -> Iterator[tuple[str, str, Mapping[str, Any]]]:
         """The entries of a list of named mappings as (name, ``what 'name'``, mapping);
-        a name given twice is an error, and so is an empty list when ``at_least_one``."""
+        a name given twice is an error, and so is an empty list when ``at_least_one``;
+        with ``kind``, each name must follow that kind's ROS rule."""
         items = self.seq(obj, section)
         if at_least_one and not items:
             raise self.fail(section, f"at least one {what} is needed")
         seen: set[str] = set()
         for i, item in enumerate(items):
             m = self.mapping(item, f"{section}[{i}]", allowed, required)
-            name = self.string(m["name"], f"{section}[{i}].name")
+            name = (self.string(m["name"], f"{section}[{i}].name") if kind is None
+                    else self.name(m["name"], f"{section}[{i}].name", kind))
             where = f"{what} {name!r}"
             if name in seen:
                 raise self.fail(where, "defined twice")
@@ -135,7 +168,11 @@ def read_system_data(path: str | Path) -> Any:
     p = Path(path)
     if p.suffix.lower() == ".json":
         return read_model_system(p)
-    return read_yaml(p)
+    data = read_yaml(p)
+    kind = file_kind(p) if not isinstance(data, Mapping) else None  # a CSV table reads as one string
+    if kind is not None:
+        raise InputError(p, f"this is {kind}, expected a system.yaml or model.json")
+    return data
 
 
 def load_system(path: str | Path) -> System:
@@ -148,6 +185,7 @@ def parse_system(data: Any, source: str = "system.yaml") -> System:
     ctx = _Ctx(source)
     if data is None:
         raise ctx.fail("", "the file is empty")
+    expect_kind(source, data, "a system.yaml or model.json", {SYSTEM_KIND})
     top = ctx.mapping(data, "", TOP_KEYS, {"computers", "nodes"})
 
     computers = _computers(ctx, top["computers"])
@@ -158,9 +196,7 @@ def parse_system(data: Any, source: str = "system.yaml") -> System:
     node_names = {n.name for n in nodes}
     edges = _edges(ctx, top.get("edges"), node_names)
     machines = _machines(ctx, top.get("machines"), names)
-    cpu_unit = top.get("cpu_unit")
-    if cpu_unit is not None and not isinstance(cpu_unit, str):
-        cpu_unit = str(cpu_unit)
+    cpu_unit = ctx.label(top.get("cpu_unit"), "cpu_unit")
 
     for n in nodes:
         for m in n.coresidence:
@@ -188,7 +224,8 @@ def _reweight(n: Node, weight: float) -> Node:
 
 def _computers(ctx: _Ctx, raw: Any) -> list[Computer]:
     out: list[Computer] = []
-    for name, where, m in ctx.named(raw, "computers", "computer", COMPUTER_KEYS, {"name", "kind"}):
+    for name, where, m in ctx.named(raw, "computers", "computer", COMPUTER_KEYS, {"name", "kind"},
+                                      kind=NameKind.COMPUTER):
         kind = m["kind"]
         if kind not in ("robot", "server"):
             raise ctx.fail(f"{where}: kind", f"must be 'robot' or 'server', got {kind!r}")
@@ -223,7 +260,7 @@ def _links(ctx: _Ctx, raw: Any, computers: set[str], media: set[str]) -> list[Li
         if key in pairs:
             raise ctx.fail(where, f"a second link between {between[0]!r} and {between[1]!r}")
         pairs.add(key)
-        medium = m.get("medium")
+        medium = None if m.get("medium") is None else ctx.string(m["medium"], f"{where}.medium")
         if medium is not None and medium not in media:
             raise ctx.fail(f"{where}.medium", f"unknown medium {medium!r} (declare it under media:)")
         bw = ctx.number(m["bandwidth_kBps"], f"{where}.bandwidth_kBps", nonneg=True)
@@ -240,7 +277,7 @@ def parse_curve(ctx_path: str, raw: Any, where: str, *, default_scale: float = 1
     coef_raw = m["coef"]
     if not isinstance(coef_raw, list):
         raise ctx.fail(f"{where}.coef", "must be a list of numbers")
-    coef = tuple(ctx.number(c, f"{where}.coef[{i}]") for i, c in enumerate(coef_raw))
+    coef = tuple(ctx.number(c, f"{where}.coef[{i}]", limit=MAX_COEFFICIENT) for i, c in enumerate(coef_raw))
     dom_raw = m.get("domain", m.get("cpu"))
     if dom_raw is None:
         raise ctx.fail(where, "needs its domain: cpu: [min, max]")
@@ -250,14 +287,42 @@ def parse_curve(ctx_path: str, raw: Any, where: str, *, default_scale: float = 1
     hi = ctx.number(dom_raw[1], f"{where}.cpu[1]")
     scale = ctx.number(m.get("scale", default_scale), f"{where}.scale", positive=True)
     try:
-        return Curve(form, coef, (lo, hi), scale)
+        curve = Curve(form, coef, (lo, hi), scale)
     except ValueError as exc:
         raise ctx.fail(where, str(exc)) from None
+    _check_outputs(ctx, curve, where)
+    return curve
+
+
+def curve_output_problem(curve: Curve) -> str | None:
+    """Why ``curve`` cannot be used over its domain (an output that is not a finite number
+    within :data:`~perfros_bag.limits.MAX_MAGNITUDE` at the domain's ends or, for a
+    quadratic, at its vertex), or None."""
+    lo, hi = curve.domain
+    xs = [lo, hi]
+    a, b = (curve.coef[0], curve.coef[1]) if curve.form == "quadratic" else (0.0, 0.0)
+    if a != 0 and lo < -b / (2 * a) * curve.scale < hi:
+        xs.append(-b / (2 * a) * curve.scale)
+    for x in xs:
+        try:
+            y: Any = curve(x)
+        except (OverflowError, ValueError, ZeroDivisionError):
+            y = math.inf
+        if isinstance(y, complex) or number_problem(y) is not None:
+            return (f"gives {y!r} at {x:g}: a curve's values over its domain must be finite numbers "
+                    f"at most {MAX_MAGNITUDE:g} in magnitude")
+    return None
+
+
+def _check_outputs(ctx: _Ctx, curve: Curve, where: str) -> None:
+    problem = curve_output_problem(curve)
+    if problem is not None:
+        raise ctx.fail(where, problem)
 
 
 def _nodes(ctx: _Ctx, raw: Any, computers: set[str]) -> list[Node]:
     out: list[Node] = []
-    for name, where, m in ctx.named(raw, "nodes", "node", NODE_KEYS, {"name", "weight"}):
+    for name, where, m in ctx.named(raw, "nodes", "node", NODE_KEYS, {"name", "weight"}, kind=NameKind.NODE):
         weight = ctx.number(m["weight"], f"{where}: weight", positive=True)
 
         residence: tuple[str, ...] | None = None
@@ -277,10 +342,10 @@ def _nodes(ctx: _Ctx, raw: Any, computers: set[str]) -> list[Node]:
             if ptype not in ("int", "float"):
                 raise ctx.fail(f"{where}: parameter.type", f"must be 'int' or 'float', got {ptype!r}")
             unit = pm.get("unit")
-            parameter = Parameter(ctx.string(pm["name"], f"{where}: parameter.name"),
-                                  None if unit is None else str(unit), ptype)
+            parameter = Parameter(ctx.name(pm["name"], f"{where}: parameter.name", NameKind.PARAMETER),
+                                  ctx.label(unit, f"{where}: parameter.unit"), ptype)
 
-        topics = ctx.str_list(m["topics"], f"{where}: topics") if m.get("topics") else ()
+        topics = ctx.str_list(m["topics"], f"{where}: topics", NameKind.TOPIC) if m.get("topics") else ()
         process = m.get("process")
         if process is not None:
             process = ctx.string(process, f"{where}: process")
@@ -308,12 +373,14 @@ def _nodes(ctx: _Ctx, raw: Any, computers: set[str]) -> list[Node]:
                          and k.partition(":")[2]} if isinstance(m["relations"], Mapping) else set()
             rm = ctx.mapping(m["relations"], f"{where}: relations", RELATION_KEYS | per_topic)
             for key, rv in rm.items():
+                if key in per_topic:
+                    ctx.name(key.partition(":")[2], f"{where}: relations.{key}", NameKind.TOPIC)
                 relations[key] = parse_curve(ctx.path, rv, f"{where}: relations.{key}")
 
         launch: dict[str, str] = {}
         if m.get("launch") is not None:
             lm = ctx.mapping(m["launch"], f"{where}: launch", LAUNCH_KEYS)
-            launch = {k: ctx.string(v, f"{where}: launch.{k}") for k, v in lm.items()}
+            launch = {k: ctx.name(v, f"{where}: launch.{k}", LAUNCH_NAME_KINDS[k]) for k, v in lm.items()}
 
         metric = _metric(ctx, m["metric"], f"{where}: metric") if m.get("metric") is not None else None
         out.append(Node(name, weight, settings, curve, residence, coresidence, parameter,
@@ -351,6 +418,7 @@ def _setting(ctx: _Ctx, raw: Any, where: str) -> Setting:
     if m.get("topics") is not None:
         tm = ctx.mapping(m["topics"], f"{where}.topics", set(m["topics"]) if isinstance(m["topics"], Mapping) else set())
         for topic, rate in tm.items():
+            ctx.name(topic, f"{where}.topics", NameKind.TOPIC)
             rm = ctx.mapping(rate, f"{where}.topics.{topic}", TOPIC_RATE_KEYS)
             topics[str(topic)] = TopicRate(
                 ctx.opt_number(rm.get("frequency_hz"), f"{where}.topics.{topic}.frequency_hz", nonneg=True),
@@ -377,7 +445,7 @@ def _edges(ctx: _Ctx, raw: Any, nodes: set[str]) -> list[Edge]:
             if end not in nodes:
                 raise ctx.fail(where, f"unknown node {end!r}")
         topic = m.get("topic")
-        out.append(Edge(src, dst, None if topic is None else ctx.string(topic, f"{where}.topic"),
+        out.append(Edge(src, dst, None if topic is None else ctx.name(topic, f"{where}.topic", NameKind.TOPIC),
                         ctx.opt_number(m.get("bandwidth_kBps"), f"{where}.bandwidth_kBps", nonneg=True)))
     return out
 
@@ -389,8 +457,20 @@ def _machines(ctx: _Ctx, raw: Any, computers: set[str]) -> dict[str, dict[str, s
     out: dict[str, dict[str, str]] = {}
     for name, attrs in m.items():
         am = ctx.mapping(attrs, f"machines.{name}", {"address", "user", "env_loader", "ssh_port", "password", "default"})
-        out[str(name)] = {str(k): str(v) for k, v in am.items()}
+        out[str(name)] = {str(k): _machine_attr(ctx, f"machines.{name}.{k}", str(k), v) for k, v in am.items()}
     return out
+
+
+def _machine_attr(ctx: _Ctx, where: str, key: str, raw: Any) -> str:
+    """A ``machines:`` attribute as the text roslaunch gets: a scalar, no control
+    characters; ``address`` a host name, IP address or substitution."""
+    if isinstance(raw, Mapping | list) or raw is None:
+        raise ctx.fail(where, f"must be a single value, got {_kind(raw)}")
+    text = raw if isinstance(raw, str) else ctx.label(raw, where) or ""
+    problem = text_problem(text) or (address_problem(text) if key == "address" else None)
+    if problem is not None:
+        raise ctx.fail(where, f"{text!r} {problem}")
+    return text
 
 
 def _check_groups(ctx: _Ctx, system: System) -> None:

@@ -507,7 +507,7 @@ def validate_files(run: str | Path, plan_path: str | Path, *, cpu: Sequence[str 
                    cap: bool = False) -> Validation:
     """Read the recording, the plan, the CPU trace(s) and the system, then :func:`check_run`."""
     from perfros_bag.ingest import read_recording
-    from perfros_bag.system.planfile import load_plan
+    from perfros_bag.system.planfile import check_against_system, load_plan
     from perfros_bag.system.systemfile import load_system
 
     if not math.isfinite(tolerance) or tolerance < 0:
@@ -518,6 +518,8 @@ def validate_files(run: str | Path, plan_path: str | Path, *, cpu: Sequence[str 
     if not run_p.exists():
         raise InputError(run_p, "recording not found")
     system = load_system(system_path) if system_path is not None else plan_system(plan, plan_p)
+    if system is not None:
+        check_against_system(plan, system)
     stats = read_recording(run_p)
     if not stats.topics or stats.messages == 0:
         raise InputError(run_p, "the recording has no messages")
