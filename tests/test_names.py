@@ -29,11 +29,13 @@ NODE = st.from_regex(r"[A-Za-z][A-Za-z0-9_]{0,30}", fullmatch=True)
 GRAPH = st.builds(lambda lead, tokens: lead + "/".join(tokens), st.sampled_from(["", "/", "~/"]),
                   st.lists(TOKEN, min_size=1, max_size=4))
 LABEL = st.from_regex(r"[A-Za-z0-9]([A-Za-z0-9_-]{0,12}[A-Za-z0-9])?", fullmatch=True)
+GRAPH_NODE = st.builds(lambda lead, tokens: lead + "/".join(tokens), st.sampled_from(["", "/"]),
+                       st.lists(TOKEN, min_size=1, max_size=4))
 COMPUTER = st.lists(LABEL, min_size=1, max_size=3).map(".".join)
 PACKAGE = st.from_regex(r"[A-Za-z][A-Za-z0-9_-]{0,20}", fullmatch=True)
 EXECUTABLE = st.from_regex(r"[A-Za-z0-9_][A-Za-z0-9_.+-]{0,20}", fullmatch=True)
 VALID = {NameKind.NODE: NODE, NameKind.TOPIC: GRAPH, NameKind.PARAMETER: GRAPH, NameKind.NAMESPACE: GRAPH,
-         NameKind.COMPUTER: COMPUTER, NameKind.PACKAGE: PACKAGE, NameKind.EXECUTABLE: EXECUTABLE}
+         NameKind.GRAPH_NODE: GRAPH_NODE, NameKind.COMPUTER: COMPUTER, NameKind.PACKAGE: PACKAGE, NameKind.EXECUTABLE: EXECUTABLE}
 #: characters no rule allows anywhere (XML specials, spaces, controls, non-ASCII)
 FORBIDDEN = st.sampled_from(list('"<>&\' \t\n\x00\x1b\x7f;:!?*$()[]{}|\\,=@#%^`é→'))
 
@@ -222,3 +224,15 @@ def test_manifest_refuses_names(tmp_path: Path, entry: dict[str, Any], where: st
     with pytest.raises(InputError) as caught:
         parse_manifest({"recordings": [entry]}, tmp_path / "manifest.yaml")
     assert where in str(caught.value)
+
+
+def test_a_launched_node_gets_a_valid_system_name() -> None:
+    from perfros_bag.system.names import system_node_name
+
+    assert system_node_name("/robot1/amcl") == "robot1_amcl"
+    assert system_node_name("/camera") == "camera"
+    for ros_name in ("/robot1/amcl", "/a/b/c_d", "camera"):
+        assert name_problem(NameKind.GRAPH_NODE, ros_name) is None
+        assert name_problem(NameKind.NODE, system_node_name(ros_name)) is None
+    assert name_problem(NameKind.GRAPH_NODE, "/camera/") is not None
+    assert name_problem(NameKind.GRAPH_NODE, "my camera") is not None

@@ -30,6 +30,7 @@ from perfros_bag.errors import InputError, PerfrosWarning
 from perfros_bag.fileio import atomic_write_text
 from perfros_bag.sweep.graph import Graph, GraphNode, GraphTopic, read_graph
 from perfros_bag.sweep.space import load_space
+from perfros_bag.system.names import NameKind, name_problem, system_node_name
 
 if TYPE_CHECKING:
     from perfros_bag.characterisation.manifest import Manifest
@@ -52,7 +53,13 @@ class DraftNode:
 
 
 def node_name(ros_name: str) -> str:
-    return ros_name.lstrip("/")
+    """``ros_name`` as system.yaml names it; an error when no valid name can be made of it
+    (names from a recording or graph are checked before they go into a system.yaml)."""
+    name = system_node_name(ros_name)
+    problem = name_problem(NameKind.NODE, name)
+    if problem is not None:
+        raise InputError(None, f"ROS node {ros_name!r} cannot be a system.yaml node: {name!r} {problem}")
+    return name
 
 
 def draft_system(directory: str | Path, out: str | Path) -> str:
@@ -69,6 +76,12 @@ def draft_system(directory: str | Path, out: str | Path) -> str:
     app = [n for n in graph.nodes if n.launched and not NOT_APP.match(n.name)]
     if not app:
         raise InputError(graph_path, "no node of the application in the graph")
+    named: dict[str, str] = {}
+    for n in app:
+        other = named.setdefault(node_name(n.name), n.name)
+        if other != n.name:
+            raise InputError(graph_path, f"ROS nodes {other} and {n.name} would both be named "
+                             f"{node_name(n.name)!r} in system.yaml: rename one of them")
     unknown = sorted(set(values) - {node_name(n.name) for n in app})
     if unknown:
         raise InputError(manifest.path, f"settings name node(s) {', '.join(unknown)} that the graph does not have")

@@ -33,13 +33,13 @@ from typing import Any
 
 from perfros_bag.errors import InputError
 from perfros_bag.fileio import read_yaml
+from perfros_bag.system.names import NameKind, name_problem
 
 Value = int | float | str
 
 TOP_KEYS = {"duration_s", "settle_s", "repeats", "design", "startup_timeout_s", "vary"}
 VARY_KEYS = {"node", "parameter", "arg", "param", "values", "default"}
 PARAMETER_KEYS = {"name", "unit"}
-_ROS_NAME = re.compile(r"^/?[A-Za-z~][A-Za-z0-9_/]*$")
 
 
 class Design(enum.Enum):
@@ -67,8 +67,10 @@ class Varied:
 
     @property
     def system_name(self) -> str:
-        """The node's name in manifest.yaml and system.yaml (no leading slash)."""
-        return self.node.lstrip("/")
+        """The node's name in manifest.yaml and system.yaml (see :func:`system_node_name`)."""
+        from perfros_bag.system.names import system_node_name
+
+        return system_node_name(self.node)
 
 
 @dataclass(frozen=True)
@@ -145,8 +147,9 @@ def _varied(item: Any, where: str, fail: Any) -> Varied:
     if bad:
         raise fail(where, f"unknown key(s) {', '.join(map(repr, bad))} (allowed: {', '.join(sorted(VARY_KEYS))})")
     node = item.get("node")
-    if not isinstance(node, str) or not _ROS_NAME.match(node) or node.endswith("/"):
-        raise fail(f"{where}.node", f"must be a ROS node name, got {node!r}")
+    problem = name_problem(NameKind.GRAPH_NODE, node)
+    if problem is not None or not isinstance(node, str):
+        raise fail(f"{where}.node", f"{node!r} {problem}")
     node = "/" + node.lstrip("/")
     where = f"{where} (node {node})"
     pm = item.get("parameter")
@@ -164,7 +167,7 @@ def _varied(item: Any, where: str, fail: Any) -> Varied:
         raise fail(where, "needs exactly one of 'arg' (a roslaunch <arg>) or 'param' (a ROS parameter)")
     if arg is not None and (not isinstance(arg, str) or not re.match(r"^[A-Za-z_][A-Za-z0-9_.\-]*$", arg)):
         raise fail(f"{where}.arg", f"must be a roslaunch arg name, got {arg!r}")
-    if param is not None and (not isinstance(param, str) or not _ROS_NAME.match(param) or param.endswith("/")):
+    if param is not None and (name_problem(NameKind.PARAMETER, param) is not None or param.endswith("/")):
         raise fail(f"{where}.param", f"must be a ROS parameter name, got {param!r}")
     if param is not None and not param.startswith("/"):
         param = f"{node}/{param}"  # a private parameter of the node

@@ -41,6 +41,7 @@ class NameKind(StrEnum):
     """What a name names (each kind has one rule)."""
 
     NODE = "node name"
+    GRAPH_NODE = "ROS node graph name"  # a launched node's full name, e.g. /robot1/amcl
     TOPIC = "topic name"
     PARAMETER = "parameter name"
     NAMESPACE = "namespace"
@@ -60,6 +61,8 @@ _EXECUTABLE = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.+-]*")
 _SUBSTITUTION = re.compile(r"\$\((?:arg|env|optenv) [A-Za-z_][A-Za-z0-9_]*\)")
 _RULES: dict[NameKind, str] = {
     NameKind.NODE: "a letter, then letters, digits and '_' (a ROS 1 base name, a ROS 2 node name)",
+    NameKind.GRAPH_NODE: "ROS graph name: a letter, '/' or '~', then letters, digits, '_' and '/', no '//', "
+                         "not ending with '/'",
     NameKind.TOPIC: "ROS graph name: a letter, '/' or '~', then letters, digits, '_' and '/', no '//'",
     NameKind.PARAMETER: "ROS graph name: a letter, '/' or '~', then letters, digits, '_' and '/', no '//'",
     NameKind.NAMESPACE: "ROS graph name: a letter, '/' or '~', then letters, digits, '_' and '/', no '//'",
@@ -104,9 +107,18 @@ def name_problem(kind: NameKind, name: object) -> str | None:
         ok = _EXECUTABLE.fullmatch(name) is not None
     else:
         ok = _GRAPH.fullmatch(name) is not None and "//" not in name
+        if kind == NameKind.GRAPH_NODE:
+            ok = ok and not name.endswith("/") and "~" not in name
     if ok:
         return None
     return f"is not a valid {kind}{_first_bad(kind, name)} ({rule(kind)})"
+
+
+def system_node_name(ros_name: str) -> str:
+    """A ROS node's name as system.yaml and manifest.yaml name it: the graph name without
+    its leading slash, namespaces joined by ``_`` (``/robot1/amcl`` -> ``robot1_amcl``), so
+    it is a valid :attr:`NameKind.NODE` name whenever the ROS name is a valid graph name."""
+    return ros_name.strip("/").replace("/", "_")
 
 
 def _first_bad(kind: NameKind, name: str) -> str:
