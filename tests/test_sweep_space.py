@@ -15,6 +15,8 @@ from perfros_bag.sweep.launchfile import check_space, read_launch
 from perfros_bag.sweep.space import Design, load_space, plan_runs
 from tests.conftest import FIXTURES
 
+APP = FIXTURES / "app" / "app.launch"
+
 GOOD: dict[str, Any] = {
     "duration_s": 4, "settle_s": 1, "repeats": 1, "design": "grid",
     "vary": [
@@ -164,3 +166,34 @@ def test_bad_launch_files(tmp_path: Path, text: str | None, expected: str) -> No
     with pytest.raises(InputError, match=expected) as info:
         read_launch(path)
     assert str(info.value).startswith(str(path))
+
+
+@pytest.mark.ros
+@pytest.mark.parametrize("verb", ["sweep", "deploy"])
+def test_a_disk_too_full_for_rosbag_is_one_line_before_anything_starts(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, verb: str) -> None:
+    """rosbag record stops recording below 1 GiB free (its --min-space default): say so up
+    front instead of failing mid-run. The disk's free space is faked at 600 kB."""
+    import collections
+    import shutil
+
+    from perfros_bag.rosrun.processes import leftover_processes
+    from perfros_bag.sweep.deploy import deploy
+    from perfros_bag.sweep.runner import sweep
+
+    usage = collections.namedtuple("usage", "total used free")
+    monkeypatch.setattr(shutil, "disk_usage", lambda _p: usage(10**6, 4 * 10**5, 6 * 10**5))
+    before = set(leftover_processes())
+    out = tmp_path / "runs"
+    with pytest.raises(InputError, match=r"runs: only 0\.6 MB free on its disk; rosbag record refuses"):
+        if verb == "sweep":
+            sweep(APP, APP.with_name("space.yaml"), out)
+        else:
+            plan = tmp_path / "plan.json"
+            plan.write_text('{"format": "perfros-bag/plan@1", "problem": 1, "method": "greedy", '
+                            '"status": "feasible", "objective": 1.0, "computers": {"here": {"kind": "robot", '
+                            '"capacity": 100, "cpu": 10}}, "links": [], "nodes": {"camera": {"computer": '
+                            '"here", "value": 5, "cpu": 10, "performance": 1, "weight": 1}}}')
+            deploy(plan, APP, APP.with_name("space.yaml"), out)
+    assert set(leftover_processes()) == before  # nothing was started
+    assert not list(out.glob("*.bag")) and not (out / "manifest.yaml").exists()

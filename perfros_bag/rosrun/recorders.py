@@ -5,12 +5,29 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+from perfros_bag.errors import InputError
 from perfros_bag.rosrun.processes import Processes, Started
 
 ROSBAG = "rosbag"
 # Debian's rosbag C++ recorder: what `rosbag record` (a Python wrapper) runs; starting it
 # directly saves the wrapper's ~1 s of imports.
 RECORD_BIN = Path("/usr/lib/rosbag/record")
+
+
+#: ``rosbag record`` stops recording (it keeps running) when less than this is free on the
+#: recording's disk: its ``--min-space`` default, 1 GB.
+ROSBAG_MIN_FREE_BYTES = 1 << 30
+
+
+def require_free_space(directory: Path) -> None:
+    """An :class:`InputError` when ``directory``'s disk has less room than ``rosbag record``
+    needs to record at all (checked before anything starts)."""
+    import shutil
+
+    free = shutil.disk_usage(directory).free
+    if free < ROSBAG_MIN_FREE_BYTES:
+        raise InputError(directory, f"only {free / 1e6:.1f} MB free on its disk; rosbag record refuses to "
+                         f"record with less than {ROSBAG_MIN_FREE_BYTES / 2**30:g} GiB free")
 
 
 def start_rosbag(procs: Processes, name: str, bag: Path, topics: list[str] | None, node_name: str,

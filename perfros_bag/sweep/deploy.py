@@ -75,6 +75,7 @@ def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Pat
            progress: Callable[[str, float], None] | None = None) -> DeployResult:
     from perfros_bag.characterisation.manifest import write_manifest
     from perfros_bag.rosrun.cgroups import CpuGroups, emulated_trace
+    from perfros_bag.rosrun.recorders import require_free_space
     from perfros_bag.sweep.runner import record_run, require_ros_tools
     from perfros_bag.system.planfile import load_plan
     from perfros_bag.validation.eq10 import DEFAULT_TOLERANCE, validate_files
@@ -99,6 +100,7 @@ def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Pat
     cores = computer_cores(plan, units_per_core)
     outdir = Path(out).absolute()
     outdir.mkdir(parents=True, exist_ok=True)
+    require_free_space(outdir)
     for stale in ("run.bag", "run.cpu.csv", "run.host.cpu.csv", "manifest.yaml", "graph.yaml", "deploy.json",
                   "validation.json"):
         (outdir / stale).unlink(missing_ok=True)

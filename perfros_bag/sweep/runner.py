@@ -46,7 +46,7 @@ from perfros_bag.rosrun.processes import (
     sigterm_as_interrupt,
     wait_for,
 )
-from perfros_bag.rosrun.recorders import start_record_cpu, start_rosbag
+from perfros_bag.rosrun.recorders import require_free_space, start_record_cpu, start_rosbag
 from perfros_bag.sweep.graph import Graph, capture_graph, write_graph
 from perfros_bag.sweep.launchfile import (
     ROSLAUNCH,
@@ -107,6 +107,7 @@ def sweep(launch_path: str | Path, space_path: str | Path, out: str | Path, *, d
     if outdir.exists() and not outdir.is_dir():
         raise InputError(outdir, "is not a directory, expected the folder to record into")
     outdir.mkdir(parents=True, exist_ok=True)
+    require_free_space(outdir)
     manifest_path = outdir / "manifest.yaml"
     system_ref = _manifest_system(manifest_path)
     copy = outdir / "space.yaml"  # what was varied, for init (parameter names and units)
@@ -182,7 +183,8 @@ class _Watch:
             return f"roslaunch ({cause + '; ' if cause else ''}exit code {self.launcher.popen.returncode}; see {self.log})"
         for st in self.others:
             if st.popen.poll() is not None:
-                return f"{st.name} (exit code {st.popen.returncode}; see {st.log.name})"
+                cause = _last_error(Path(st.log.name))
+                return f"{st.name} ({cause + '; ' if cause else ''}exit code {st.popen.returncode}; see {st.log.name})"
         for node, (pid, created) in self.pids.items():
             try:
                 p = psutil.Process(pid)
@@ -203,9 +205,10 @@ def _log_text(log: Path) -> str:
 
 
 def _last_error(log: Path) -> str | None:
-    """roslaunch's last error line."""
+    """A log's last error line, without ROS's ``[ERROR] [stamp]:`` prefix."""
     lines = [x.strip() for x in _log_text(log).splitlines()]
-    return next((x for x in reversed(lines) if re.search(r"error|exception", x, re.IGNORECASE)), None)
+    last = next((x for x in reversed(lines) if re.search(r"error|exception", x, re.IGNORECASE)), None)
+    return None if last is None else re.sub(r"^\[ERROR\] \[[0-9.]+\]:\s*", "", last)
 
 
 def _died_line(log: Path) -> str | None:
