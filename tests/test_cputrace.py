@@ -81,6 +81,8 @@ def test_assign_nodes_by_name_then_regex() -> None:
     (HEADER + "1,1.5,a,a,1,0\n", "line 5: pid '1.5' is not an integer"),
     (HEADER + "1,1,a,a,nan,0\n", "not a finite number"),
     (HEADER + "1,1,a,a,-3,0\n", "must be >= 0"),
+    (HEADER + "1,1,a,a,1e308,0\n", "line 5: cpu_percent must be at most 1e+12 in magnitude, got 1e+308"),
+    (HEADER + "1e300,1,a,a,1,0\n", "line 5: time must be at most 1e+12 in magnitude"),
 ])
 def test_malformed_traces_name_file_and_line(tmp_path: Path, text: str, needle: str) -> None:
     p = tmp_path / "bad.cpu.csv"

@@ -32,6 +32,7 @@ import numpy.typing as npt
 
 from perfros_bag.errors import InputError
 from perfros_bag.fileio import read_text
+from perfros_bag.limits import number_problem
 
 TRACE_COLUMNS: tuple[str, ...] = ("time", "pid", "node", "process", "cpu_percent", "rss_bytes")
 
@@ -204,6 +205,9 @@ def _num(p: Path, lineno: int, name: str, raw: str, kind: Callable[[str], Any]) 
         raise InputError(p, f"line {lineno}: {name} {raw!r} is not a{'n integer' if kind is int else ' number'}") from None
     if kind is float and not math.isfinite(value):
         raise InputError(p, f"line {lineno}: {name} {raw!r} is not a finite number")
+    problem = number_problem(value)  # the stated magnitude limit of every number read from a file
+    if problem is not None:
+        raise InputError(p, f"line {lineno}: {name} {problem}")
     return value
 
 
