@@ -32,7 +32,7 @@ import numpy.typing as npt
 
 from perfros_bag.errors import InputError
 from perfros_bag.fileio import read_text
-from perfros_bag.limits import number_problem
+from perfros_bag.limits import MAX_MAGNITUDE, number_problem
 
 TRACE_COLUMNS: tuple[str, ...] = ("time", "pid", "node", "process", "cpu_percent", "rss_bytes")
 
@@ -156,8 +156,9 @@ def _rows_fast(body: str) -> _Rows | None:
         return None
     times = df["c0"].to_numpy(dtype=np.float64)
     cpus = df["c4"].to_numpy(dtype=np.float64)
-    if not (np.isfinite(times).all() and np.isfinite(cpus).all() and (cpus >= 0).all()):
-        return None
+    if not (np.isfinite(times).all() and np.isfinite(cpus).all() and (cpus >= 0).all()
+            and (np.abs(times) <= MAX_MAGNITUDE).all() and (cpus <= MAX_MAGNITUDE).all()):
+        return None  # the careful parser names the line and the problem
     return (times, df["c1"].to_numpy(dtype=np.int64), [str(x) for x in df["c2"].tolist()],
             [str(x) for x in df["c3"].tolist()], cpus, df["c5"].to_numpy(dtype=np.int64))
 
