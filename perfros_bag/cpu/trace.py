@@ -206,7 +206,7 @@ def _num(p: Path, lineno: int, name: str, raw: str, kind: Callable[[str], Any]) 
         raise InputError(p, f"line {lineno}: {name} {raw!r} is not a{'n integer' if kind is int else ' number'}") from None
     if kind is float and not math.isfinite(value):
         raise InputError(p, f"line {lineno}: {name} {raw!r} is not a finite number")
-    problem = number_problem(value)  # the stated magnitude limit of every number read from a file
+    problem = number_problem(value) if kind is float else None  # time and CPU %: the stated limit
     if problem is not None:
         raise InputError(p, f"line {lineno}: {name} {problem}")
     return value
