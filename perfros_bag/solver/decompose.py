@@ -58,6 +58,8 @@ CG_SHARE = 0.5  # share of the time limit column generation may take
 PLAN_SHARE = 0.05  # share kept for building the plan (the --time-limit promise is 5 %)
 NO_LIMIT_S = 120.0  # the MILP's limit when no time limit is given
 REL_TOL = 1e-6  # "optimal": bound - objective within this (relative), as exact.py
+FIRST_MIP_SHARE = 0.5  # of the time left, for the MILP over the generated columns
+NEAR_LIMIT = 20_000  # columns the reduced-cost enumeration may add (else it is not tried)
 CG_TOL = 1e-7  # column generation stops when the LP is this close to the bound (relative)
 
 
@@ -298,6 +300,70 @@ def _column_of(model: _Model, assignment: Assignment, position: dict[str, int]) 
     return out
 
 
+def _offload_options(it: _Item, lam: np.ndarray, floor: float) -> list[tuple[float, int, tuple[int, ...]]]:
+    """Every (reduced value, relaxed computer, member levels) of an offloaded item whose
+    reduced value at ``lam`` is at least ``floor``."""
+    out: list[tuple[float, int, tuple[int, ...]]] = []
+    prices = lam[it.relaxed]
+    reds = [val[None, :] - prices[:, None] * cpu[None, :] for cpu, val in zip(it.member_cpu, it.member_val,
+                                                                              strict=True)]
+    for ri, r in enumerate(it.relaxed):
+        rows = [red[ri] for red in reds]
+        rest = np.concatenate([np.cumsum([row.max() for row in rows][::-1])[::-1][1:], [0.0]])
+        stack: list[tuple[int, float, tuple[int, ...]]] = [(0, 0.0, ())]
+        while stack:
+            m, acc, levels = stack.pop()
+            if m == len(rows):
+                out.append((acc, int(r), levels))
+                continue
+            for k in np.nonzero(acc + rows[m] + rest[m] >= floor)[0]:
+                stack.append((m + 1, acc + float(rows[m][k]), (*levels, int(k))))
+    return out
+
+
+def _near_columns(model: _Model, lam: np.ndarray, priced: Sequence[tuple[float, _Column]], slack: float,
+                  limit: int) -> tuple[list[_Column], bool]:
+    """Every column whose reduced value at ``lam`` is within ``slack`` of its class's best.
+    With ``slack`` = the Lagrangian bound at ``lam`` minus the incumbent, these are the only
+    columns a better plan can use (a plan's value is the bound minus Σ over its columns of
+    (best - reduced value)). A private robot's are enumerated through its knapsack tables.
+    Returns the columns and whether the list is complete (at most ``limit`` of them)."""
+    out: list[_Column] = []
+    for ci, cl in enumerate(model.classes):
+        floor = priced[ci][0] - slack - 1e-9 * max(1.0, abs(priced[ci][0]))
+        if cl.home is None:
+            for _, r, levels in _offload_options(cl.items[0], lam, floor):
+                out.append(_column(model, ci, ((r, levels),)))
+            if len(out) > limit:
+                return out[:limit], False
+            continue
+        tables = [np.zeros(cl.cap_units + 1)]
+        options: list[list[tuple[int, float, tuple[int, tuple[int, ...]]]]] = []
+        for it in cl.items:
+            best_off = _offload(it, lam)[0]
+            offs = _offload_options(it, lam, best_off - slack - 1e-9) if len(it.relaxed) else []
+            opts = [(0, red, (r, levels)) for red, r, levels in offs]
+            opts += [(int(u), float(v), (-1, lv)) for u, v, lv in zip(it.home_units, it.home_values, it.home_levels,
+                                                                      strict=True)]
+            options.append(opts)
+            units = np.concatenate([[0], it.home_units]).astype(np.int64)
+            values = np.concatenate([[best_off], it.home_values])
+            tables.append(_combine(tables[-1], units, values)[0])
+        stack: list[tuple[int, int, float, tuple[tuple[int, tuple[int, ...]], ...]]] = [
+            (len(cl.items) - 1, cl.cap_units, 0.0, ())]
+        while stack:
+            q, x, acc, parts = stack.pop()
+            if q < 0:
+                out.append(_column(model, ci, parts))
+                if len(out) > limit:
+                    return out[:limit], False
+                continue
+            for u, v, part in options[q]:
+                if u <= x and acc + v + tables[q][x - u] >= floor:
+                    stack.append((q - 1, x - u, acc + v, (part, *parts)))
+    return out, True
+
+
 # ---- the master ---------------------------------------------------------------------------
 class _Master:
     """The restricted master LP/MILP on HiGHS, grown column by column."""
@@ -325,6 +391,7 @@ class _Master:
         self.n_over = n_rel
         self.columns: list[_Column] = []
         self.keys: set[tuple[int, tuple[tuple[int, tuple[int, ...]], ...]]] = set()
+        self.subscribed = False
 
     def add(self, cols: Sequence[_Column]) -> int:
         fresh = []
@@ -363,9 +430,10 @@ class _Master:
         return float(self.h.getInfo().objective_function_value), duals[:self.n_cls], np.maximum(duals[self.n_cls:], 0.0)
 
     def solve_mip(self, time_limit: float, start: dict[int, float] | None,
-                  improved: Callable[[float], None] | None = None) -> list[float] | None:
-        """The columns made integer (overflow off); the count of each column, or None.
-        ``improved(objective)`` is called on every better plan HiGHS finds."""
+                  improved: Callable[[float], None] | None = None) -> tuple[list[float], bool] | None:
+        """The columns made integer (overflow off): the count of each column and whether HiGHS
+        proved it the best over these columns, or None when it found none. ``improved(objective)``
+        is called on every better plan HiGHS finds."""
         n = self.n_over + len(self.columns)
         self.h.changeColsIntegrality(len(self.columns), np.arange(self.n_over, n, dtype=np.int32),
                                      np.full(len(self.columns), self.hs.HighsVarType.kInteger))
@@ -378,12 +446,14 @@ class _Master:
             full = {j: 0.0 for j in range(n)}
             full.update({self.n_over + j: v for j, v in start.items()})
             self.h.setSolution(n, np.array(list(full), dtype=np.int32), np.array(list(full.values())))
-        if improved is not None:
+        if improved is not None and not self.subscribed:
             self.h.cbMipImprovingSolution.subscribe(lambda event: improved(float(event.data_out.objective_function_value)))
+            self.subscribed = True
         self.h.run()
         if self.h.getInfo().primal_solution_status != 2:
             return None
-        return list(self.h.getSolution().col_value)[self.n_over:]
+        proven = self.h.getModelStatus() == self.hs.HighsModelStatus.kOptimal
+        return list(self.h.getSolution().col_value)[self.n_over:], proven
 
 
 def _lagrangian(model: _Model, lam: np.ndarray) -> tuple[float, list[tuple[float, _Column]]]:
@@ -411,6 +481,23 @@ def _assignment(model: _Model, counts: Sequence[float], columns: Sequence[_Colum
                 for n, k in zip(members, levels, strict=True):
                     placement[n], choice[n] = comp, inst.choices[n][k]
     return Assignment(placement, choice, {})
+
+
+def _start(master: _Master, model: _Model, inst: Any, incumbent: Assignment) -> dict[int, float]:
+    """The incumbent as counts of the master's columns (its columns added when missing)."""
+    cols = _column_of(model, incumbent, _positions(inst, incumbent))
+    master.add(cols)
+    index = {(c.cls, c.parts): j for j, c in enumerate(master.columns)}
+    start: dict[int, float] = {}
+    for c in cols:
+        j = index[(c.cls, c.parts)]
+        start[j] = start.get(j, 0.0) + 1.0
+    return start
+
+
+def _positions(inst: Any, assignment: Assignment) -> dict[str, int]:
+    """Each node's position among its kept choices (the assignment uses kept choices)."""
+    return {n: next(i for i, c in enumerate(inst.choices[n]) if c is ch) for n, ch in assignment.choice.items()}
 
 
 def _fits(model: _Model, assignment: Assignment) -> bool:
@@ -454,14 +541,12 @@ def solve_decomposed(system: System, problem: Problem, choices: dict[str, list[C
     # the paper's greedy: the first columns, and the MILP's start
     greedy = solve_greedy(system, problem, choices)
     incumbent: Assignment | None = None
-    start_cols: list[_Column] = []
     if greedy.status != Status.INFEASIBLE:
         raw = start_of(greedy, choices)
         mapped = exact_mod._start_assignment(inst, raw) if raw is not None else None
         if mapped is not None:
             incumbent = mapped[0]
-            start_cols = _column_of(model, *mapped)
-            master.add(start_cols)
+            master.add(_column_of(model, *mapped))
     best_value = weighted_performance(system, incumbent.choice) if incumbent is not None else None
     bound = ceiling
     lam = np.zeros(len(model.relaxed))
@@ -482,28 +567,42 @@ def solve_decomposed(system: System, problem: Problem, choices: dict[str, list[C
         lp_value, _, lam = lp
     if progress is not None:
         progress(best_value, bound, elapsed())
-    # the columns, made integer
-    start: dict[int, float] | None = None
-    if start_cols:
-        index = {(c.cls, c.parts): j for j, c in enumerate(master.columns)}
-        start = {}
-        for c in start_cols:
-            j = index[(c.cls, c.parts)]
-            start[j] = start.get(j, 0.0) + 1.0
+    # the columns, made integer; then, while a gap is left, every lone group's column that a
+    # better plan could use (reduced-cost argument), and the MILP again
     def improved(objective: float) -> None:
         if progress is not None:
             progress(objective if best_value is None else max(objective, best_value), bound, elapsed())
 
-    counts = master.solve_mip(budget - elapsed(), start, improved if progress is not None else None)
-    if counts is not None:
-        found = _assignment(model, counts, master.columns)
-        value = weighted_performance(system, found.choice)
-        if _fits(model, found) and (best_value is None or value > best_value):
-            incumbent, best_value = found, value
+    proven = complete = False
+    for attempt in range(2):
+        if attempt == 1:
+            if incumbent is None or best_value is None or elapsed() > budget * 0.9:
+                break
+            lam_value, priced = _lagrangian(model, lam)
+            slack = lam_value - best_value
+            if slack <= REL_TOL * max(1.0, abs(best_value)):
+                break
+            near, complete = _near_columns(model, lam, priced, slack, NEAR_LIMIT)
+            if complete:  # else too many to prove anything with, and HiGHS slows down (measured)
+                master.add(near)
+        start = _start(master, model, inst, incumbent) if incumbent is not None else None
+        share = FIRST_MIP_SHARE if attempt == 0 else 1.0
+        result = master.solve_mip(share * (budget - elapsed()), start, improved if progress is not None else None)
+        if result is not None:
+            counts, optimal_here = result
+            found = _assignment(model, counts, master.columns)
+            value = weighted_performance(system, found.choice)
+            fits = _fits(model, found)
+            if fits and (best_value is None or value > best_value + 1e-12):
+                incumbent, best_value = found, value
+            # all columns a better plan could use were there, and HiGHS proved none better
+            proven = attempt == 1 and complete and optimal_here and fits and value == best_value
     if incumbent is None:
         return None
     assert best_value is not None
     bound = max(min(bound, ceiling), best_value)
+    if proven:
+        bound = best_value
     proven = bound - best_value <= REL_TOL * max(1.0, abs(best_value))
     if progress is not None:
         progress(best_value, bound, elapsed())
