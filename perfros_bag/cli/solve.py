@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import warnings
+from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated
 
@@ -95,6 +96,9 @@ def solve(
         "--settings", help="Problem 2: plan.json, or node=value,... (parameter values) / node=cpu:U")] = None,
     time_limit: Annotated[float | None, typer.Option(
         "--time-limit", help="exact: stop after S seconds (best plan, status feasible)")] = None,
+    pareto: Annotated[str | None, typer.Option(
+        "--pareto", metavar="RANGE", help="Problem 1 per total server capacity: auto, LO:HI or LO:HI:POINTS "
+                                          "(-o writes frontier.json and a PNG beside it)")] = None,
 ) -> None:
     """Choose a setting and a computer for every node (the paper's Problems 1 and 2)."""
     from perfros_bag.solver import METHODS
@@ -118,8 +122,14 @@ def solve(
         if problem != 2:
             raise InputError(None, "--settings applies to Problem 2 (Problem 1 chooses the settings)")
         fixed = parse_settings(system, settings, resolution)
+    if pareto is not None:
+        if problem != 1 or fixed is not None:
+            raise InputError(None, "--pareto solves Problem 1 at each server capacity (no --problem 2, no --settings)")
+        _frontier(system, pareto, method, resolution, time_limit, out_path, as_json)
+        return
     try:
-        plan = run(system, problem, method, resolution=resolution, settings=fixed, time_limit=time_limit)
+        plan = run(system, problem, method, resolution=resolution, settings=fixed, time_limit=time_limit,
+                   progress=_live_progress() if method == "exact" else None)
     except ValueError as exc:  # a model that cannot be evaluated (e.g. a curve off its domain)
         raise InputError(system_path, str(exc)) from None
     if out_path is not None:
@@ -130,3 +140,49 @@ def solve(
     print_plan(err if as_json else out, plan)
     if out_path is not None and not as_json:
         out.print(f"plan written to {out_path}", highlight=False)
+
+
+def _live_progress() -> Callable[[float | None, float, float], None] | None:
+    """The exact method's incumbent and bound on stderr, one line rewritten in place, when
+    stderr is a terminal."""
+    if not err.is_terminal:
+        return None
+
+    def show(incumbent: float | None, bound: float, seconds: float) -> None:
+        gap = "" if not incumbent else f"  gap {100 * max(bound - incumbent, 0.0) / abs(incumbent):.3f} %"
+        err.print(f"\r{seconds:7.1f} s  plan {_num(incumbent, 4)}  bound {_num(bound, 4)}{gap}   ", end="",
+                  highlight=False, soft_wrap=True)
+
+    return show
+
+
+def _frontier(system: System, spec: str, method: str, resolution: float, time_limit: float | None,
+              out_path: Path | None, as_json: bool) -> None:
+    """``--pareto``: Problem 1 at each total server capacity of the range; a table, the
+    frontier JSON (``--json`` / ``-o``) and, with ``-o``, a PNG beside it."""
+    from perfros_bag.fileio import atomic_open
+    from perfros_bag.report.frontier_plots import plot_frontier
+    from perfros_bag.solver.frontier import frontier, frontier_document, parse_range
+
+    low, high, points = parse_range(spec)
+    found = frontier(system, low=low, high=high, points=points, resolution=resolution, method=method,
+                     time_limit=time_limit)
+    doc = frontier_document(system, found, method)
+    if out_path is not None:
+        png = plot_frontier(doc["points"])  # type: ignore[arg-type]
+        with atomic_open(out_path, "w") as fh:
+            fh.write(json.dumps(doc, indent=2) + "\n")
+        with atomic_open(out_path.with_suffix(".png"), "wb", encoding=None) as fh:
+            fh.write(png)
+    if as_json:
+        print(json.dumps(doc, indent=2))
+    table = Table(title=f"Problem 1 per total server capacity · {method}", title_justify="left")
+    for col in ("server capacity", "Σ w·P", "bound", "gap", "status", "s"):
+        table.add_column(col, justify="left" if col == "status" else "right")
+    for p in found:
+        gap = "-" if p.gap is None else f"{100 * p.gap:.3f} %"
+        table.add_row(_num(p.capacity), _num(p.objective, 4), _num(p.bound, 4), gap, str(p.status), f"{p.solve_s:.2f}")
+    console = err if as_json else out
+    console.print(table)
+    if out_path is not None and not as_json:
+        out.print(f"frontier written to {out_path} and {out_path.with_suffix('.png')}", highlight=False)
