@@ -98,3 +98,30 @@ def test_cli_pareto_bad_range_is_one_line(tmp_path: Path, spec: str) -> None:
     assert not out.exists()
     result = runner.invoke(app, ["solve", str(path), "--problem", "2", "--pareto", "auto"])
     assert result.exit_code == 2 and result.stderr.startswith("error:")
+
+
+def test_report_frontier_section_and_reader(tmp_path: Path) -> None:
+    from perfros_bag.report.html import build_report
+    from perfros_bag.solver.frontier import read_frontier
+
+    path = tmp_path / "inst1.yaml"
+    path.write_text(yaml.safe_dump(table2_instance(1)))
+    out = tmp_path / "frontier.json"
+    result = runner.invoke(app, ["solve", str(path), "--method", "exact", "--pareto", "::3", "-o", str(out)])
+    assert result.exit_code == 0, result.output
+    doc = read_frontier(out)
+    result = runner.invoke(app, ["report", "--out", str(tmp_path / "rep"), "--frontier", str(out)])
+    assert result.exit_code == 0, result.output
+    page = (tmp_path / "rep" / "index.html").read_text()
+    assert 'id="frontier"' in page and (tmp_path / "rep" / "frontier.png").read_bytes().startswith(b"\x89PNG")
+    assert page.count("<tr>") >= len(doc["points"])
+    # the reader names the broken place
+    doc["points"][1]["status"] = "great"
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps(doc))
+    with pytest.raises(InputError, match=r"points\[1\]\.status"):
+        read_frontier(bad)
+    bad.write_text(json.dumps({"format": "perfros-bag frontier 1", "points": [{"server_capacity": "<b>"}]}))
+    with pytest.raises(InputError, match="server_capacity"):
+        build_report(tmp_path / "rep2", frontier=bad)
+    assert not (tmp_path / "rep2").exists()

@@ -162,16 +162,15 @@ def _frontier(system: System, spec: str, method: str, resolution: float, time_li
     frontier JSON (``--json`` / ``-o``) and, with ``-o``, a PNG beside it."""
     from perfros_bag.fileio import atomic_open
     from perfros_bag.report.frontier_plots import plot_frontier
-    from perfros_bag.solver.frontier import frontier, frontier_document, parse_range
+    from perfros_bag.solver.frontier import frontier, frontier_document, parse_range, write_frontier
 
     low, high, points = parse_range(spec)
     found = frontier(system, low=low, high=high, points=points, resolution=resolution, method=method,
                      time_limit=time_limit)
     doc = frontier_document(system, found, method)
     if out_path is not None:
-        png = plot_frontier(doc["points"])  # type: ignore[arg-type]
-        with atomic_open(out_path, "w") as fh:
-            fh.write(json.dumps(doc, indent=2) + "\n")
+        png = plot_frontier(doc["points"])
+        write_frontier(out_path, doc)
         with atomic_open(out_path.with_suffix(".png"), "wb", encoding=None) as fh:
             fh.write(png)
     if as_json:

@@ -13,16 +13,21 @@ server capacity, from the Problem 2 minimum up to where performance stops rising
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import time
 from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
 
 from perfros_bag.errors import InputError
 from perfros_bag.system.plan import Status
 from perfros_bag.system.types import Problem, System
 
-__all__ = ["DEFAULT_POINTS", "FrontierPoint", "capacity_range", "frontier", "frontier_document", "parse_range",
-           "with_server_capacity"]
+__all__ = ["DEFAULT_POINTS", "FORMAT", "FrontierPoint", "capacity_range", "frontier", "frontier_document",
+           "parse_range", "read_frontier", "with_server_capacity", "write_frontier"]
+
+FORMAT = "perfros-bag frontier 1"
 
 DEFAULT_POINTS = 21
 
@@ -135,13 +140,47 @@ def frontier(system: System, *, low: float | None = None, high: float | None = N
     return out
 
 
-def frontier_document(system: System, points: list[FrontierPoint], method: str) -> dict[str, object]:
+def frontier_document(system: System, points: list[FrontierPoint], method: str) -> dict[str, Any]:
     """The frontier as JSON-ready data (docs/formats.md, frontier.json)."""
     return {
-        "format": "perfros-bag frontier 1",
+        "format": FORMAT,
         "system": system.source,
         "method": method,
         "servers": _servers(system),
         "points": [{"server_capacity": round(p.capacity, 9), "status": str(p.status), "objective": p.objective,
                     "bound": p.bound, "gap": p.gap, "solve_s": round(p.solve_s, 6)} for p in points],
     }
+
+
+def write_frontier(path: str | Path, doc: dict[str, Any]) -> None:
+    """frontier.json, written atomically (the one writer)."""
+    from perfros_bag.fileio import atomic_write_text
+
+    atomic_write_text(path, json.dumps(doc, indent=2) + "\n")
+
+
+def read_frontier(path: str | Path) -> dict[str, Any]:
+    """frontier.json, checked field by field (the one reader): an :class:`InputError` naming
+    the broken place otherwise."""
+    from perfros_bag.fileio import read_json
+
+    doc = read_json(path)
+    if not isinstance(doc, dict) or doc.get("format") != FORMAT:
+        raise InputError(path, f"not a frontier (expected a JSON object with format {FORMAT!r})")
+    points = doc.get("points")
+    if not isinstance(points, list) or not points:
+        raise InputError(path, "frontier: 'points' must be a non-empty list")
+    for i, p in enumerate(points):
+        where = f"frontier: points[{i}]"
+        if not isinstance(p, dict):
+            raise InputError(path, f"{where}: not an object")
+        cap = p.get("server_capacity")
+        if isinstance(cap, bool) or not isinstance(cap, int | float) or not math.isfinite(cap):
+            raise InputError(path, f"{where}.server_capacity: not a finite number")
+        if p.get("status") not in tuple(Status):
+            raise InputError(path, f"{where}.status: one of {', '.join(Status)}")
+        for key in ("objective", "bound", "gap", "solve_s"):
+            v = p.get(key)
+            if v is not None and (isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v)):
+                raise InputError(path, f"{where}.{key}: not a finite number or null")
+    return doc
