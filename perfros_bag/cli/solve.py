@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import json
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Annotated
 
@@ -128,8 +129,9 @@ def solve(
         _frontier(system, pareto, method, resolution, time_limit, out_path, as_json)
         return
     try:
-        plan = run(system, problem, method, resolution=resolution, settings=fixed, time_limit=time_limit,
-                   progress=_live_progress() if method == "exact" else None)
+        with _live_progress(method == "exact") as progress:
+            plan = run(system, problem, method, resolution=resolution, settings=fixed, time_limit=time_limit,
+                       progress=progress)
     except ValueError as exc:  # a model that cannot be evaluated (e.g. a curve off its domain)
         raise InputError(system_path, str(exc)) from None
     if out_path is not None:
@@ -142,18 +144,24 @@ def solve(
         out.print(f"plan written to {out_path}", highlight=False)
 
 
-def _live_progress() -> Callable[[float | None, float, float], None] | None:
-    """The exact method's incumbent and bound on stderr, one line rewritten in place, when
-    stderr is a terminal."""
-    if not err.is_terminal:
-        return None
+@contextmanager
+def _live_progress(enabled: bool) -> Iterator[Callable[[float | None, float, float], None] | None]:
+    """The exact method's incumbent, bound and gap as a rich live line on stderr while it
+    solves, when stderr is a terminal (else no callback)."""
+    if not enabled or not err.is_terminal:
+        yield None
+        return
+    from rich.live import Live
+    from rich.text import Text
 
-    def show(incumbent: float | None, bound: float, seconds: float) -> None:
-        gap = "" if not incumbent else f"  gap {100 * max(bound - incumbent, 0.0) / abs(incumbent):.3f} %"
-        err.print(f"\r{seconds:7.1f} s  plan {_num(incumbent, 4)}  bound {_num(bound, 4)}{gap}   ", end="",
-                  highlight=False, soft_wrap=True)
+    with Live(Text("solving ..."), console=err, auto_refresh=False, transient=True) as live:
 
-    return show
+        def show(incumbent: float | None, bound: float, seconds: float) -> None:
+            gap = "" if not incumbent else f"  gap {100 * max(bound - incumbent, 0.0) / abs(incumbent):.3f} %"
+            live.update(Text(f"{seconds:7.1f} s  plan {_num(incumbent, 4)}  bound {_num(bound, 4)}{gap}"),
+                        refresh=True)
+
+        yield show
 
 
 def _frontier(system: System, spec: str, method: str, resolution: float, time_limit: float | None,
