@@ -36,13 +36,14 @@ import itertools
 import math
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from perfros_bag.solver import Progress
 from perfros_bag.solver import exact as exact_mod
+from perfros_bag.solver.exact import _Group, _Instance
 from perfros_bag.solver.local import _combine
 from perfros_bag.system.plan import Assignment, Method, Plan, Status
 from perfros_bag.system.rules import build_plan, computer_loads, weighted_performance
@@ -102,12 +103,10 @@ class _Column:
 
 @dataclass
 class _Model:
-    inst: Any  # exact._Instance
+    inst: _Instance
     relaxed: list[str]
     cap: np.ndarray  # per relaxed computer
     classes: list[_Class]
-    columns: list[_Column] = field(default_factory=list)
-    keys: set[tuple[int, tuple[tuple[int, tuple[int, ...]], ...]]] = field(default_factory=set)
 
 
 def _scale(cpus: Sequence[float]) -> int | None:
@@ -117,7 +116,7 @@ def _scale(cpus: Sequence[float]) -> int | None:
     return None
 
 
-def _home_options(inst: Any, members: tuple[str, ...], scale: int) -> tuple[np.ndarray, np.ndarray,
+def _home_options(inst: _Instance, members: tuple[str, ...], scale: int) -> tuple[np.ndarray, np.ndarray,
                                                                             list[tuple[int, ...]]] | None:
     """A group's settings on its robot: every combination of its members' choices, keeping
     for each CPU the best value (and nothing dominated)."""
@@ -142,7 +141,7 @@ def _home_options(inst: Any, members: tuple[str, ...], scale: int) -> tuple[np.n
     return (np.array(keep, dtype=np.int64), np.array([best[u][0] for u in keep]), [best[u][1] for u in keep])
 
 
-def _model(system: System, inst: Any) -> _Model | str:
+def _model(system: System, inst: _Instance) -> _Model | str:
     """The blocks and classes of a prepared instance, or why it does not decompose."""
     kind = {c.name: c.kind for c in system.computers}
     robots_of = {g.members: [c for c in g.allowed if kind[c] == "robot"] for g in inst.groups}
@@ -152,8 +151,8 @@ def _model(system: System, inst: Any) -> _Model | str:
             private -= set(robots_of[g.members])
     relaxed = [c.name for c in system.computers if c.name not in private]
     rindex = {c: i for i, c in enumerate(relaxed)}
-    blocks: dict[str, list[Any]] = {c: [] for c in private}
-    lone: list[Any] = []
+    blocks: dict[str, list[_Group]] = {c: [] for c in private}
+    lone: list[_Group] = []
     for g in inst.groups:
         home = robots_of[g.members][0] if len(robots_of[g.members]) == 1 else None
         (blocks[home] if home in private else lone).append(g)
@@ -164,7 +163,7 @@ def _model(system: System, inst: Any) -> _Model | str:
     if any(inst.cap[c] * scale > MAX_CELLS for c in private):
         return f"a robot's capacity exceeds {MAX_CELLS} grid cells"
 
-    def item(g: Any, home: str | None) -> _Item | None:
+    def item(g: _Group, home: str | None) -> _Item | None:
         relaxed_ok = np.array([rindex[c] for c in g.allowed if c in rindex], dtype=np.int64)
         mc = [np.array([ch.cpu for ch in inst.choices[n]]) for n in g.members]
         mv = [np.array([system.node[n].weight * ch.performance for ch in inst.choices[n]]) for n in g.members]
@@ -175,7 +174,7 @@ def _model(system: System, inst: Any) -> _Model | str:
             return None
         return _Item(g.members, relaxed_ok, opts[0], opts[1], opts[2], mc, mv)
 
-    def signature(g: Any) -> tuple[Any, ...]:
+    def signature(g: _Group) -> tuple[Any, ...]:
         return tuple((system.node[n].weight, tuple((ch.cpu, ch.performance) for ch in inst.choices[n]))
                      for n in g.members) + (tuple(c for c in g.allowed if c in rindex),)
 
@@ -483,7 +482,7 @@ def _assignment(model: _Model, counts: Sequence[float], columns: Sequence[_Colum
     return Assignment(placement, choice, {})
 
 
-def _start(master: _Master, model: _Model, inst: Any, incumbent: Assignment) -> dict[int, float]:
+def _start(master: _Master, model: _Model, inst: _Instance, incumbent: Assignment) -> dict[int, float]:
     """The incumbent as counts of the master's columns (its columns added when missing)."""
     cols = _column_of(model, incumbent, _positions(inst, incumbent))
     master.add(cols)
@@ -495,7 +494,7 @@ def _start(master: _Master, model: _Model, inst: Any, incumbent: Assignment) -> 
     return start
 
 
-def _positions(inst: Any, assignment: Assignment) -> dict[str, int]:
+def _positions(inst: _Instance, assignment: Assignment) -> dict[str, int]:
     """Each node's position among its kept choices (the assignment uses kept choices)."""
     return {n: next(i for i, c in enumerate(inst.choices[n]) if c is ch) for n, ch in assignment.choice.items()}
 
