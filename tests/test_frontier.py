@@ -125,3 +125,24 @@ def test_report_frontier_section_and_reader(tmp_path: Path) -> None:
     with pytest.raises(InputError, match="server_capacity"):
         build_report(tmp_path / "rep2", frontier=bad)
     assert not (tmp_path / "rep2").exists()
+
+
+def test_range_with_several_servers_in_proportion() -> None:
+    from perfros_bag.casestudy.instances import fleet_instance
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        system = parse_system(fleet_instance(40, 20, seed=2, continuous=False), "fleet.yaml")
+    servers = [c for c in system.computers if c.kind == "server"]
+    assert len(servers) == 2
+    low, high = capacity_range(system)
+    scaled = with_server_capacity(system, low)
+    total = sum(c.capacity or 0 for c in servers)
+    for c in servers:  # each server keeps its share
+        assert scaled.computer[c.name].capacity == pytest.approx(low * (c.capacity or 0) / total)
+    at_low = solve(scaled, 1, "exact")
+    assert at_low.status == "optimal" and check_plan(scaled, at_low) == []
+    choices = fixed_choices(system, Problem.PERFORMANCE)
+    best = sum(system.node[n].weight * max(c.performance for c in opts) for n, opts in choices.items())
+    at_high = solve(with_server_capacity(system, high), 1, "exact")
+    assert at_high.objective == pytest.approx(best, rel=1e-9)

@@ -1,12 +1,13 @@
 """The performance / server-capacity frontier: the best Problem 1 value for each total
 server capacity, from the Problem 2 minimum up to where performance stops rising.
 
-- The lowest capacity worth asking about is Problem 2's minimum with every node at its
-  lowest setting (below it no plan exists); the highest is Problem 2's minimum with every
-  node at its highest setting (there every node can run at its best: Σ w·P cannot rise).
 - At a total capacity ``C`` every server gets ``C`` times its share of the system's
   server capacities (equal shares when a server has none): with one server, ``C`` is its
-  capacity. Each point is Problem 1 solved by ``method`` (default ``exact``: a proven
+  capacity.
+- The lowest capacity worth asking about is where Problem 2's plan with every node at its
+  lowest setting fits those shares (one server: Problem 2's minimum, below which no plan
+  exists); the highest is where Problem 2's plan with every node at its highest setting
+  fits them (every node can run at its best: Σ w·P cannot rise further). Each point is Problem 1 solved by ``method`` (default ``exact``: a proven
   optimum, or a plan with its bound and gap when a time limit stops it).
 """
 
@@ -79,28 +80,32 @@ def _servers(system: System) -> list[str]:
     return servers
 
 
-def with_server_capacity(system: System, total: float) -> System:
-    """The system with its servers' capacities summing to ``total``, in proportion to their
-    capacities (equal shares when one has none)."""
+def _shares(system: System) -> dict[str, float]:
+    """Each server's share of the total server capacity (equal when one has none)."""
     servers = _servers(system)
     caps = [system.computer[s].capacity for s in servers]
     known = [c for c in caps if c is not None]
     if len(known) == len(caps) and sum(known) > 0:
-        shares = [c / sum(known) for c in known]
-    else:
-        shares = [1 / len(servers)] * len(servers)
-    share = dict(zip(servers, shares, strict=True))
+        return {s: c / sum(known) for s, c in zip(servers, known, strict=True)}
+    return {s: 1 / len(servers) for s in servers}
+
+
+def with_server_capacity(system: System, total: float) -> System:
+    """The system with its servers' capacities summing to ``total``, in proportion to their
+    capacities (equal shares when one has none)."""
+    share = _shares(system)
     computers = tuple(dataclasses.replace(c, capacity=total * share[c.name]) if c.name in share else c
                       for c in system.computers)
     return dataclasses.replace(system, computers=computers)
 
 
 def capacity_range(system: System, *, resolution: float = 1.0, time_limit: float | None = None) -> tuple[float, float]:
-    """Problem 2's minimum total server capacity with every node at its lowest setting, and
-    with every node at its highest (exact solver)."""
+    """The total server capacities at which Problem 2's plan fits the servers' shares, with
+    every node at its lowest setting and with every node at its highest (exact solver).
+    With one server: Problem 2's minimum in both cases."""
     from perfros_bag.solver import fixed_choices, solve
 
-    _servers(system)
+    share = _shares(system)
     lowest = {n: opts[0].cpu for n, opts in fixed_choices(system, Problem.PERFORMANCE, resolution=resolution).items()}
     ends = []
     for settings in (lowest, None):
@@ -110,7 +115,8 @@ def capacity_range(system: System, *, resolution: float = 1.0, time_limit: float
             which = "lowest" if settings is not None else "highest"
             raise InputError(system.source, f"frontier: Problem 2 at every node's {which} setting has no plan: "
                                             f"{plan.reason}")
-        ends.append(plan.objective)
+        sizes = {s: plan.computers[s].capacity or 0.0 for s in share}
+        ends.append(max(sizes[s] / share[s] for s in share))
     return ends[0], ends[1]
 
 
