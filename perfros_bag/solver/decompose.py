@@ -550,6 +550,7 @@ def solve_decomposed(system: System, problem: Problem, choices: dict[str, list[C
     bound = ceiling
     lam = np.zeros(len(model.relaxed))
     lp_value: float | None = None
+    cg_until = elapsed() + CG_SHARE * max(budget - elapsed(), 0.0)  # what the set-up left, shared
     # column generation: the Lagrangian bound and new columns at the master's prices
     while True:
         value, priced = _lagrangian(model, lam)
@@ -558,9 +559,9 @@ def solve_decomposed(system: System, problem: Problem, choices: dict[str, list[C
             progress(best_value, bound, elapsed())
         if lp_value is not None and bound - lp_value <= CG_TOL * max(1.0, abs(lp_value)):
             break  # the LP is the Lagrangian dual: no column can improve it
-        if elapsed() > CG_SHARE * budget or (master.add([col for _, col in priced]) == 0 and lp_value is not None):
+        if elapsed() > cg_until or (master.add([col for _, col in priced]) == 0 and lp_value is not None):
             break
-        lp = master.solve_lp(budget - elapsed())
+        lp = master.solve_lp(max(budget - elapsed(), 0.1))
         if lp is None:
             break
         lp_value, _, lam = lp
