@@ -364,6 +364,26 @@ def _near_columns(model: _Model, lam: np.ndarray, priced: Sequence[tuple[float, 
 
 
 # ---- the master ---------------------------------------------------------------------------
+def _quiet_highs() -> Any:
+    """A ``highspy.Highs()``: HiGHS writes its banner to the process's stdout (file
+    descriptor 1) when the first one is made, which would break ``--json``. (The exact
+    solver gets the same treatment in its own change; the merger keeps one of the two.)"""
+    import os
+    import sys
+
+    import highspy
+
+    sys.stdout.flush()
+    saved = os.dup(1)
+    try:
+        with open(os.devnull, "wb") as null:
+            os.dup2(null.fileno(), 1)
+            return highspy.Highs()
+    finally:
+        os.dup2(saved, 1)
+        os.close(saved)
+
+
 class _Master:
     """The restricted master LP/MILP on HiGHS, grown column by column."""
 
@@ -371,7 +391,7 @@ class _Master:
         import highspy
 
         self.hs = highspy
-        self.h = highspy.Highs()
+        self.h = _quiet_highs()
         self.h.setOptionValue("output_flag", False)
         self.h.setOptionValue("random_seed", 0)
         self.h.changeObjectiveSense(highspy.ObjSense.kMaximize)
