@@ -146,3 +146,29 @@ def test_range_with_several_servers_in_proportion() -> None:
     best = sum(system.node[n].weight * max(c.performance for c in opts) for n, opts in choices.items())
     at_high = solve(with_server_capacity(system, high), 1, "exact")
     assert at_high.objective == pytest.approx(best, rel=1e-9)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 3, 6])
+def test_enumerated_frontier_matches_the_milp_point_by_point(seed: int) -> None:
+    import math
+    import random
+
+    from perfros_bag.casestudy.instances import random_instance
+    from perfros_bag.solver.frontier_dp import frontier_values
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        system = parse_system(random_instance(random.Random(seed), robots=(1, 2)), "random.yaml")
+    low, high = capacity_range(system)
+    table = frontier_values(system, high)  # Table II-sized: (2 robots + 1) ** 10 groups at most
+    assert table is not None
+    values, scale = table
+    rng = random.Random(seed)
+    for capacity in [low - 1, low, high, *(rng.randint(int(low), int(high)) for _ in range(3))]:
+        plan = solve(with_server_capacity(system, capacity), 1, "exact", time_limit=60)
+        v = values[int(math.floor(capacity * scale + 1e-6))] if capacity >= 0 else -math.inf
+        if plan.status == "infeasible":
+            assert v == -math.inf
+        else:
+            assert plan.status == "optimal"
+            assert v == pytest.approx(plan.objective, rel=1e-9, abs=1e-9)

@@ -136,6 +136,21 @@ def frontier(system: System, *, low: float | None = None, high: float | None = N
     if not (math.isfinite(low) and math.isfinite(high)) or low < 0 or high <= low:
         raise InputError(system.source, f"frontier: the capacity range {low:g} to {high:g} is empty or inverted")
     out: list[FrontierPoint] = []
+    if method == "exact":
+        from perfros_bag.solver.frontier_dp import frontier_values
+
+        t0 = time.perf_counter()
+        table = frontier_values(system, high, resolution)
+        if table is not None:
+            values, scale = table
+            each = (time.perf_counter() - t0) / points
+            for i in range(points):
+                capacity = low + (high - low) * i / (points - 1)
+                v = float(values[min(int(math.floor(capacity * scale + 1e-6)), len(values) - 1)])
+                found = math.isfinite(v)
+                out.append(FrontierPoint(capacity, Status.OPTIMAL if found else Status.INFEASIBLE,
+                                         v if found else None, v if found else None, each))
+            return out
     for i in range(points):
         capacity = low + (high - low) * i / (points - 1)
         t0 = time.perf_counter()
