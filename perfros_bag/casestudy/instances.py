@@ -4,6 +4,8 @@
   on a shared wifi channel, the reference curves of Fig. 4 with x = CPU/100).
 - :func:`table2_instance`: Table II instances 1-6.
 - :func:`random_instance`: case-study-like with varied capacities, weights and network.
+- :func:`fleet_instance`: many robots running the robot stack and camera trackers sharing
+  a few servers over one wifi (the fleet benchmarks, 200 x 20 to 1,000 x 100).
 - :func:`random_tiny`: at most 5 nodes on at most 3 computers, small enough for brute
   force, with links, a shared medium, edges, residence and coresidence that can bind.
 
@@ -81,6 +83,21 @@ def _node(kind: str, name: str, weight: float, *, continuous: bool, residence: l
     return node
 
 
+def stack_edges(r: int) -> list[dict[str, Any]]:
+    """The edges of robot stack ``r`` (its six nodes, suffix ``r``) and the experiment's
+    edge to its model."""
+    return [
+        {"from": f"environment{r}", "to": f"model{r}"},
+        {"from": f"model{r}", "to": f"planner{r}"},
+        {"from": f"planner{r}", "to": f"navigation{r}"},
+        {"from": f"amcl{r}", "to": f"environment{r}"},
+        {"from": f"amcl{r}", "to": f"navigation{r}"},
+        {"from": f"navigation{r}", "to": f"youbot_core{r}"},
+        {"from": f"youbot_core{r}", "to": f"amcl{r}"},
+        {"from": "experiment", "to": f"model{r}"},
+    ]
+
+
 def casestudy_system(robots: int, cameras: int, *, robot_capacity: float = 100, server_capacity: float = 400,
                      continuous: bool = True, weights: dict[str, float] | None = None,
                      wifi_kBps: float = WIFI_kBps) -> dict[str, Any]:
@@ -116,16 +133,7 @@ def casestudy_system(robots: int, cameras: int, *, robot_capacity: float = 100, 
     for r in range(1, robots + 1):
         for k in range(1, cameras + 1):
             edges.append({"from": f"tracker{k}", "to": f"environment{r}"})
-        edges += [
-            {"from": f"environment{r}", "to": f"model{r}"},
-            {"from": f"model{r}", "to": f"planner{r}"},
-            {"from": f"planner{r}", "to": f"navigation{r}"},
-            {"from": f"amcl{r}", "to": f"environment{r}"},
-            {"from": f"amcl{r}", "to": f"navigation{r}"},
-            {"from": f"navigation{r}", "to": f"youbot_core{r}"},
-            {"from": f"youbot_core{r}", "to": f"amcl{r}"},
-            {"from": "experiment", "to": f"model{r}"},
-        ]
+        edges += stack_edges(r)
     computers = [{"name": f"robot{r}", "kind": "robot", "capacity": robot_capacity} for r in range(1, robots + 1)]
     computers.append({"name": "server", "kind": "server", "capacity": server_capacity})
     return {
@@ -222,3 +230,71 @@ def random_tiny(rng: random.Random, n_nodes: int | None = None, n_computers: int
     if use_medium:
         data["media"] = [{"name": "air", "bandwidth_kBps": rng.choice([3, 6, 20])}]
     return data
+
+
+def fleet_instance(n_nodes: int, n_computers: int, *, seed: int = 0, continuous: bool = True,
+                   offload_only: bool = True, stacks: int | None = None,
+                   server_capacity: tuple[int, int] | None = None) -> dict[str, Any]:
+    """A fleet: robots running the paper's robot stack sharing a few servers over one wifi.
+
+    ``n_computers`` computers, one in ten a server (at least one). Every robot runs one
+    stack of the six robot nodes (environment, model, planner, amcl, navigation,
+    youbot_core; fewer stacks when ``n_nodes`` is too small); ``youbot_core<s>`` stays on
+    its robot, and with ``offload_only`` the other five may run on their robot or on any
+    server (FogROS2-like offloading), otherwise on any computer. The rest of ``n_nodes``
+    are one ``experiment`` node on the first server and camera ``tracker<k>`` nodes on the
+    servers, each feeding one stack's environment. Robots (capacity 60-160) reach the
+    first server over one shared wifi (every robot's link on it); the other servers hang off
+    the first by Ethernet. Server capacities are drawn so that the trackers at mid settings
+    plus some offloaded robot nodes fill them: server CPU binds. Weights are Table I's
+    times a factor in [1/2, 2] per node kind (seeded), renormalised to sum 1.
+
+    ``stacks`` (more stacks than robots: round robin over the robots) and
+    ``server_capacity`` (each server's a random integer in that range) reproduce the
+    earlier benchmark fleet: ``stacks=(n_nodes - 1) // 6, server_capacity=(400, 1600),
+    offload_only=False``."""
+    if n_computers < 2 or n_nodes < 7:
+        raise ValueError("a fleet needs at least 2 computers and 7 nodes")
+    rng = random.Random(seed)
+    n_servers = max(1, n_computers // 10)
+    n_robots = n_computers - n_servers
+    servers = [f"server{k}" for k in range(1, n_servers + 1)]
+    robots = [f"robot{r}" for r in range(1, n_robots + 1)]
+    stacks = min(n_robots, (n_nodes - 1) // 6) if stacks is None else min(stacks, (n_nodes - 1) // 6)
+    trackers = n_nodes - 1 - 6 * stacks
+    weights = {kind: v[0] * rng.uniform(0.5, 2.0) for kind, v in TABLE_I.items()}
+    nodes: list[dict[str, Any]] = [_node("experiment", "experiment", weights["experiment"], continuous=continuous,
+                                         residence=[servers[0]])]
+    for k in range(1, trackers + 1):
+        nodes.append(_node("tracker", f"tracker{k}", weights["tracker"], continuous=continuous, residence=servers))
+    edges: list[dict[str, Any]] = []
+    for s in range(1, stacks + 1):
+        robot = robots[(s - 1) % n_robots]
+        for kind in ROBOT_NODES:
+            extra: dict[str, Any] = {}
+            if kind == "youbot_core":
+                extra["residence"] = [robot]
+            elif offload_only:
+                extra["residence"] = [robot, *servers]
+            if kind == "planner":
+                extra["coresidence"] = [f"navigation{s}"]
+            nodes.append(_node(kind, f"{kind}{s}", weights[kind], continuous=continuous, **extra))
+        edges += stack_edges(s)
+        if trackers:
+            edges.append({"from": f"tracker{1 + (s - 1) % trackers}", "to": f"environment{s}"})
+    total = sum(n["weight"] for n in nodes)
+    for n in nodes:
+        n["weight"] /= total
+    computers = [{"name": r, "kind": "robot", "capacity": rng.randint(60, 160)} for r in robots]
+    per_server_trackers = trackers / n_servers
+    per_server_stacks = stacks / n_servers
+    for name in servers:
+        if server_capacity is not None:
+            cap = float(rng.randint(*server_capacity))
+        else:
+            cap = per_server_trackers * rng.uniform(110, 170) + per_server_stacks * rng.uniform(20, 80) + 20
+        computers.append({"name": name, "kind": "server", "capacity": int(round(cap))})
+    links = [{"between": [r, servers[0]], "bandwidth_kBps": WIFI_kBps, "medium": "wifi"} for r in robots]
+    links += [{"between": [servers[0], s], "bandwidth_kBps": 125000.0} for s in servers[1:]]
+    return {"cpu_unit": "100 = one robot on-board computer (1.6 GHz dual-core Atom)", "computers": computers,
+            "links": links, "media": [{"name": "wifi", "bandwidth_kBps": WIFI_kBps}], "nodes": nodes, "edges": edges}

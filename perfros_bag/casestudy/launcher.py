@@ -217,7 +217,9 @@ def run_plan(system: System, plan: Plan, out: Path, cfg: RunConfig, *,
     finally:
         note("stopping", 0, 1)
         procs.stop()
-        record["killed"] = procs.kill_leftovers()
+        # remembered descendants, then anything else carrying the run's tag (a process whose
+        # Popen returned just as Ctrl-C arrived is not in procs.started yet)
+        record["killed"] = procs.kill_leftovers() + kill_stale(procs.run_id)
         left = groups.remove()
         record["leftover_cgroups"] = [str(p) for p in left]
     if not bag.exists():

@@ -20,10 +20,11 @@ def report(
     plan: Annotated[Path | None, typer.Option("--plan", help="plan.json from solve.")] = None,
     validation: Annotated[Path | None, typer.Option(
         "--validation", help="The JSON of validate --json.")] = None,
+    frontier: Annotated[Path | None, typer.Option("--frontier", help="frontier.json from solve --pareto.")] = None,
 ) -> None:
     """Write an HTML report; anything not given is left out."""
     from perfros_bag.report.html import build_report
 
     index = build_report(out_dir, characterisation=characterisation, model=model, plan=plan,
-                         validation=validation)
+                         validation=validation, frontier=frontier)
     err.print(f"wrote {escape(str(index))}", highlight=False)

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import warnings
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
 
@@ -96,6 +98,9 @@ def solve(
         "--settings", help="Problem 2: plan.json, or node=value,... (parameter values) / node=cpu:U")] = None,
     time_limit: Annotated[float | None, typer.Option(
         "--time-limit", help="exact: stop after S seconds (best plan, status feasible)")] = None,
+    pareto: Annotated[str | None, typer.Option(
+        "--pareto", metavar="RANGE", help="Problem 1 per total server capacity: auto, LO:HI or LO:HI:POINTS "
+                                          "(-o writes frontier.json and a PNG beside it)")] = None,
 ) -> None:
     """Choose a setting and a computer for every node (the paper's Problems 1 and 2)."""
     from perfros_bag.solver import METHODS
@@ -119,8 +124,15 @@ def solve(
         if problem != 2:
             raise InputError(None, "--settings applies to Problem 2 (Problem 1 chooses the settings)")
         fixed = parse_settings(system, settings, resolution)
+    if pareto is not None:
+        if problem != 1 or fixed is not None:
+            raise InputError(None, "--pareto solves Problem 1 at each server capacity (no --problem 2, no --settings)")
+        _frontier(system, pareto, method, resolution, time_limit, out_path, as_json)
+        return
     try:
-        plan = run(system, problem, method, resolution=resolution, settings=fixed, time_limit=time_limit)
+        with _live_progress(method == "exact") as progress:
+            plan = run(system, problem, method, resolution=resolution, settings=fixed, time_limit=time_limit,
+                       progress=progress)
     except ValueError as exc:  # a model that cannot be evaluated (e.g. a curve off its domain)
         raise InputError(system_path, str(exc)) from None
     if out_path is not None:
@@ -133,3 +145,56 @@ def solve(
     print_plan(err if as_json else out, plan)
     if out_path is not None and not as_json:
         out.print(f"plan written to {out_path}", highlight=False)
+
+
+@contextmanager
+def _live_progress(enabled: bool) -> Iterator[Callable[[float | None, float, float], None] | None]:
+    """The exact method's incumbent, bound and gap as a rich live line on stderr while it
+    solves, when stderr is a terminal (else no callback)."""
+    if not enabled or not err.is_terminal:
+        yield None
+        return
+    from rich.live import Live
+    from rich.text import Text
+
+    with Live(Text("solving ..."), console=err, auto_refresh=False, transient=True) as live:
+
+        def show(incumbent: float | None, bound: float, seconds: float) -> None:
+            gap = "" if not incumbent else f"  gap {100 * max(bound - incumbent, 0.0) / abs(incumbent):.3f} %"
+            live.update(Text(f"{seconds:7.1f} s  plan {_num(incumbent, 4)}  bound {_num(bound, 4)}{gap}"),
+                        refresh=True)
+
+        yield show
+
+
+def _frontier(system: System, spec: str, method: str, resolution: float, time_limit: float | None,
+              out_path: Path | None, as_json: bool) -> None:
+    """``--pareto``: Problem 1 at each total server capacity of the range; a table, the
+    frontier JSON (``--json`` / ``-o``) and, with ``-o``, a PNG beside it."""
+    from perfros_bag.fileio import atomic_open
+    from perfros_bag.report.frontier_plots import plot_frontier
+    from perfros_bag.solver.frontier import frontier, frontier_document, parse_range, write_frontier
+
+    low, high, points = parse_range(spec)
+    found = frontier(system, low=low, high=high, points=points, resolution=resolution, method=method,
+                     time_limit=time_limit)
+    doc = frontier_document(system, found, method)
+    if out_path is not None:
+        png = plot_frontier(doc["points"])
+        write_frontier(out_path, doc)
+        with atomic_open(out_path.with_suffix(".png"), "wb", encoding=None) as fh:
+            fh.write(png)
+    if as_json:
+        from perfros_bag.fileio import json_text  # strict: no NaN/Infinity
+
+        print(json_text(doc, indent=2))
+    table = Table(title=f"Problem 1 per total server capacity · {method}", title_justify="left")
+    for col in ("server capacity", "Σ w·P", "bound", "gap", "status", "s"):
+        table.add_column(col, justify="left" if col == "status" else "right")
+    for p in found:
+        gap = "-" if p.gap is None else f"{100 * p.gap:.3f} %"
+        table.add_row(_num(p.capacity), _num(p.objective, 4), _num(p.bound, 4), gap, str(p.status), f"{p.solve_s:.2f}")
+    console = err if as_json else out
+    console.print(table)
+    if out_path is not None and not as_json:
+        out.print(f"frontier written to {out_path} and {out_path.with_suffix('.png')}", highlight=False)

@@ -28,6 +28,7 @@ from perfros_bag.fileio import (
 )
 from perfros_bag.fitting.modelfile import FittedRelation, read_model
 from perfros_bag.report.fit_plots import plot_relations
+from perfros_bag.report.frontier_plots import plot_frontier
 from perfros_bag.report.plan_plots import plot_plan_loads
 from perfros_bag.report.validation_plots import number, plot_validation
 from perfros_bag.system.plan import Plan
@@ -257,21 +258,46 @@ def section_validation(v: dict[str, Any], images: list[Image]) -> str:
     return "".join(parts)
 
 
+def section_frontier(doc: dict[str, Any], images: list[Image]) -> str:
+    """The performance / server-capacity frontier (``solve --pareto``): the plot and the points."""
+    points = doc["points"]
+    rows = [(p["server_capacity"], p["objective"], p["bound"],
+             "–" if p.get("gap") is None else f"{100 * p['gap']:.3f} %", p["status"]) for p in points]
+    solved = [p for p in points if p.get("objective") is not None]
+    gains = ""
+    if len(solved) >= 2:
+        first, last = solved[0], solved[-1]
+        per_unit = (last["objective"] - first["objective"]) / max(last["server_capacity"] - first["server_capacity"], 1e-12)
+        gains = (f'<p class="summary">From {esc(fmt(first["server_capacity"]))} to '
+                 f'{esc(fmt(last["server_capacity"]))} CPU units of server capacity Σ w·P rises from '
+                 f'{esc(fmt(first["objective"]))} to {esc(fmt(last["objective"]))} '
+                 f"({esc(fmt(per_unit, 3))} per unit on average; the table shows where it flattens).</p>")
+    img = Image("frontier.png", plot_frontier(points), "Σ w·P per total server capacity")
+    images.append(img)
+    tab = table(("server capacity", "Σ w·P", "bound", "gap", "status"), rows, text_cols=(4,), table_id="frontier")
+    return (f'<h2 id="frontier">What server capacity buys</h2><p class="muted">servers: '
+            f'{esc(", ".join(map(str, doc.get("servers", []))))}; method {esc(doc.get("method"))}</p>'
+            f"{gains}{_img(img)}{tab}")
+
+
 # ---------------------------------------------------------------------------------------
 # the page
 
 
 def build_report(out_dir: str | Path, *, characterisation: str | Path | None = None,
                  model: str | Path | None = None, plan: str | Path | None = None,
-                 validation: str | Path | None = None, title: str = "perfros-bag report") -> Path:
+                 validation: str | Path | None = None, frontier: str | Path | None = None,
+                 title: str = "perfros-bag report") -> Path:
     """Write ``out_dir/index.html`` and its PNGs; returns the page's path. Inputs are read
     (and checked) before anything is written."""
+    from perfros_bag.solver.frontier import read_frontier
     from perfros_bag.system.planfile import load_plan
 
     char = read_characterisation(characterisation) if characterisation is not None else None
     fits = read_model(model).fits if model is not None else None
     the_plan = load_plan(plan) if plan is not None else None
     val = read_validation(validation) if validation is not None else None
+    front = read_frontier(frontier) if frontier is not None else None
 
     images: list[Image] = []
     sections: list[str] = []
@@ -279,12 +305,14 @@ def build_report(out_dir: str | Path, *, characterisation: str | Path | None = N
         sections.append(section_plan(the_plan, images))
     if val is not None:
         sections.append(section_validation(val, images))
+    if front is not None:
+        sections.append(section_frontier(front, images))
     if fits and any(fits.values()):
         sections.append(section_fits(fits, images))
     if char is not None:
         sections.append(section_characterisation(char))
     sources = [(k, p) for k, p in (("characterisation", characterisation), ("model", model), ("plan", plan),
-                                   ("validation", validation)) if p is not None]
+                                   ("validation", validation), ("frontier", frontier)) if p is not None]
     src = "".join(f"<li>{esc(k)}: <code>{esc(p)}</code></li>" for k, p in sources)
     body = "".join(sections) or '<p class="muted">Nothing to report: no input was given.</p>'
     page = (f'<!DOCTYPE html><html lang="en"><head><meta charset="utf-8"><title>{esc(title)}</title>'

@@ -13,7 +13,10 @@ signature ``(system, problem, choices) -> Plan`` (the exact solver also takes
 - ``greedy``      :func:`perfros_bag.solver.greedy.solve_greedy` (the paper's Algorithms 1-3)
 - ``greedy+``     :func:`perfros_bag.solver.local.solve_greedy_plus` (greedy + local search)
 - ``exact``       ``perfros_bag.solver.exact.solve_exact(system, problem, choices, *, time_limit=None)``;
-  on Problem 1 above :data:`START_COLUMNS` columns :func:`solve` first runs greedy+ for
+  on Problem 1 above :data:`DECOMPOSE_COLUMNS` columns :func:`solve` uses
+  :func:`perfros_bag.solver.decompose.solve_decomposed` (column generation over the
+  fleet's structure, a plan and a proven bound) when the instance qualifies (its network
+  can never overflow, CPU on a grid); otherwise, above :data:`START_COLUMNS`, it first runs greedy+ for
   :data:`START_SHARE` of ``time_limit`` and passes its plan as the MIP start
 - ``bruteforce``  :func:`perfros_bag.solver.bruteforce.solve_bruteforce` (tiny instances)
 
@@ -27,16 +30,21 @@ from __future__ import annotations
 import math
 import time
 import warnings
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 
 from perfros_bag.errors import InputError, PerfrosWarning
 from perfros_bag.system.plan import Assignment, Method, Plan, Status
 from perfros_bag.system.types import Choice, Node, Problem, System
 
+#: ``progress(incumbent or None, bound, elapsed seconds)``: the exact method's fleet solver
+#: (:mod:`perfros_bag.solver.decompose`) calls it as its plan or its bound improves
+Progress = Callable[[float | None, float, float], None]
+
 #: the solvers' names (``Method`` values), in the order the docs list them
 METHODS: tuple[str, ...] = tuple(Method)
 
-__all__ = ["MAX_CHOICES", "METHODS", "START_COLUMNS", "check_resolution", "choice_count", "START_SHARE", "exact_columns", "fixed_choices", "settings_from_plan",
+__all__ = ["DECOMPOSE_COLUMNS", "MAX_CHOICES", "METHODS", "Progress", "START_COLUMNS", "START_SHARE",
+           "check_resolution", "choice_count", "exact_columns", "fixed_choices", "settings_from_plan",
            "settings_from_values", "solve", "start_of"]
 
 
@@ -183,7 +191,8 @@ def settings_from_plan(plan: Plan) -> dict[str, float]:
 
 
 def solve(system: System, problem: int, method: str, *, resolution: float = 1.0,
-          settings: Mapping[str, float] | None = None, time_limit: float | None = None) -> Plan:
+          settings: Mapping[str, float] | None = None, time_limit: float | None = None,
+          progress: Progress | None = None) -> Plan:
     """Solve Problem ``problem`` (1 or 2) with ``method`` (a :class:`Method`); the
     returned plan carries ``solve_s``.
 
@@ -199,7 +208,7 @@ def solve(system: System, problem: int, method: str, *, resolution: float = 1.0,
     system.capacities(the_problem)  # every capacity the problem needs is there
     start = time.perf_counter()
     choices = fixed_choices(system, the_problem, settings, resolution)
-    plan = _dispatch(system, the_problem, the_method, choices, time_limit)
+    plan = _dispatch(system, the_problem, the_method, choices, time_limit, progress)
     plan.solve_s = time.perf_counter() - start
     plan.method = the_method
     if plan.system is None:
@@ -208,7 +217,7 @@ def solve(system: System, problem: int, method: str, *, resolution: float = 1.0,
 
 
 def _dispatch(system: System, problem: Problem, method: Method, choices: dict[str, list[Choice]],
-              time_limit: float | None) -> Plan:
+              time_limit: float | None, progress: Progress | None) -> Plan:
     t0 = time.perf_counter()
     if method == Method.GREEDY:
         from perfros_bag.solver.greedy import solve_greedy
@@ -226,9 +235,30 @@ def _dispatch(system: System, problem: Problem, method: Method, choices: dict[st
         from perfros_bag.solver.exact import solve_exact
     except ImportError as exc:
         raise InputError(None, f"the exact solver is not available ({exc})") from None
+    if problem == Problem.PERFORMANCE and exact_columns(system, choices) > DECOMPOSE_COLUMNS:
+        from perfros_bag.solver.decompose import solve_decomposed
+
+        decomposed = solve_decomposed(system, problem, choices, time_limit=time_limit, progress=progress)
+        if decomposed is not None:
+            return decomposed
     start = _exact_start(system, problem, choices, time_limit)
     remaining = None if time_limit is None else max(time_limit - (time.perf_counter() - t0), 0.01)
-    return solve_exact(system, problem, choices, time_limit=remaining, start=start)
+    return _within_trivial_bound(system, problem, choices,
+                                 solve_exact(system, problem, choices, time_limit=remaining, start=start))
+
+
+def _within_trivial_bound(system: System, problem: Problem, choices: Mapping[str, list[Choice]], plan: Plan) -> Plan:
+    """A plan's bound never looser than the trivial one (Problem 1: Σ w·max P; Problem 2:
+    no server capacity at all): HiGHS reports its dual bound as it stands, which before its
+    root LP is solved can be anything (29250.5 beside an objective of 75.6 was seen)."""
+    if plan.bound is None or plan.objective is None:
+        return plan
+    if problem == Problem.PERFORMANCE:
+        trivial = sum(system.node[n].weight * max(c.performance for c in opts) for n, opts in choices.items())
+        plan.bound = max(min(plan.bound, trivial), plan.objective)
+    else:
+        plan.bound = min(max(plan.bound, 0.0), plan.objective)
+    return plan
 
 
 #: above this many (node, choice, computer) columns the exact solver gets a MIP start from
@@ -238,6 +268,12 @@ def _dispatch(system: System, problem: Problem, method: Method, choices: dict[st
 START_COLUMNS = 20_000
 #: the share of ``time_limit`` greedy+ may spend on that start.
 START_SHARE = 0.25
+#: above this many columns, Problem 1 goes to the decomposition
+#: (:mod:`perfros_bag.solver.decompose`) when the instance qualifies. Measured
+#: (docs/solvers.md): it proves the 200 x 20 fleet optimal in 0.4 s where the whole MILP
+#: takes 24 s; below this size the MILP proves Table II in < 1 s and the decomposition's
+#: plans on small instances can be up to a few % off its bound.
+DECOMPOSE_COLUMNS = 20_000
 
 
 def exact_columns(system: System, choices: Mapping[str, list[Choice]]) -> int:

@@ -92,6 +92,16 @@ def _stdout_silenced(silence: bool = True) -> Iterator[None]:
         os.close(devnull)
 
 
+def quiet_highs() -> Any:
+    """A new ``highspy.Highs()`` with nothing written to stdout: HiGHS >= 1.12 prints its
+    banner when one is made, before any option can be set (every HiGHS model of the solvers
+    is made here)."""
+    import highspy  # lazy: keeps the CLI's start-up fast
+
+    with _stdout_silenced(not _LOG):
+        return highspy.Highs()
+
+
 # ---------------------------------------------------------------------------------------------
 # A tiny sparse model builder (rows kept row-wise, passed to HiGHS in one call)
 
@@ -133,8 +143,7 @@ class _Milp:
         """Run HiGHS (``relax``: the LP relaxation); returns the Highs object."""
         import highspy  # lazy: keeps the CLI's start-up fast
 
-        with _stdout_silenced(not _LOG):
-            h = highspy.Highs()  # HiGHS >= 1.12 prints its banner here, before any option is set
+        h = quiet_highs()
         h.setOptionValue("output_flag", _LOG)
         h.setOptionValue("mip_rel_gap", float(mip_gap))
         h.setOptionValue("mip_abs_gap", 1e-7)

@@ -33,14 +33,7 @@ import warnings
 from collections.abc import Callable
 from typing import Any
 
-from perfros_bag.casestudy.instances import (
-    CURVES,
-    ROBOT_NODES,
-    TABLE_I,
-    _node,
-    random_instance,
-    table2_instance,
-)
+from perfros_bag.casestudy.instances import fleet_instance, random_instance, table2_instance
 from perfros_bag.solver import START_SHARE, fixed_choices, solve
 from perfros_bag.solver import exact as exact_mod
 from perfros_bag.solver.exact import solve_exact
@@ -155,49 +148,13 @@ def random_set(results: dict[str, Any], count: int, limit: float) -> None:
 
 
 def fleet(n_nodes: int, n_computers: int, *, seed: int = 0, continuous: bool = True) -> dict[str, Any]:
-    """A case-study-like fleet: ``n_computers`` computers (one in ten a server), stacks of the
-    six robot nodes (environment, model, planner, amcl, navigation, youbot_core) spread over
-    the robots round-robin, one experiment node and trackers on the servers to make up
-    ``n_nodes``. Robots (capacity 60-160) reach the first server over one shared wifi;
-    the other servers hang off it by Ethernet."""
-    rng = random.Random(seed)
-    n_servers = max(1, n_computers // 10)
-    n_robots = n_computers - n_servers
-    servers = [f"server{k}" for k in range(1, n_servers + 1)]
-    robots = [f"robot{r}" for r in range(1, n_robots + 1)]
-    stacks = (n_nodes - 1) // 6
-    trackers = n_nodes - 1 - 6 * stacks
-    weights = {kind: v[0] * rng.uniform(0.5, 2.0) for kind, v in TABLE_I.items()}
-    nodes: list[dict[str, Any]] = [_node("experiment", "experiment", weights["experiment"], continuous=continuous,
-                                         residence=[servers[0]])]
-    for k in range(1, trackers + 1):
-        nodes.append(_node("tracker", f"tracker{k}", weights["tracker"], continuous=continuous, residence=servers))
-    edges: list[dict[str, Any]] = []
-    for s in range(1, stacks + 1):
-        robot = robots[(s - 1) % n_robots]
-        for kind in ROBOT_NODES:
-            extra: dict[str, Any] = {}
-            if kind == "youbot_core":
-                extra["residence"] = [robot]
-            if kind == "planner":
-                extra["coresidence"] = [f"navigation{s}"]
-            nodes.append(_node(kind, f"{kind}{s}", weights[kind], continuous=continuous, **extra))
-        edges += [{"from": f"environment{s}", "to": f"model{s}"}, {"from": f"model{s}", "to": f"planner{s}"},
-                  {"from": f"planner{s}", "to": f"navigation{s}"}, {"from": f"amcl{s}", "to": f"environment{s}"},
-                  {"from": f"navigation{s}", "to": f"youbot_core{s}"}, {"from": f"youbot_core{s}", "to": f"amcl{s}"},
-                  {"from": "experiment", "to": f"model{s}"}]
-        if trackers:
-            edges.append({"from": f"tracker{1 + (s - 1) % trackers}", "to": f"environment{s}"})
-    total = sum(n["weight"] for n in nodes)
-    for n in nodes:
-        n["weight"] /= total
-    computers = [{"name": r, "kind": "robot", "capacity": rng.randint(60, 160)} for r in robots]
-    computers += [{"name": s, "kind": "server", "capacity": rng.randint(400, 1600)} for s in servers]
-    links = [{"between": [r, servers[0]], "bandwidth_kBps": 37500.0, "medium": "wifi"} for r in robots]
-    links += [{"between": [servers[0], s], "bandwidth_kBps": 125000.0} for s in servers[1:]]
-    assert set(CURVES) <= set(TABLE_I)
-    return {"computers": computers, "links": links, "media": [{"name": "wifi", "bandwidth_kBps": 37500.0}],
-            "nodes": nodes, "edges": edges}
+    """The case-study-like fleet of this benchmark's earlier figures: ``n_computers``
+    computers (one in ten a server, capacity 400-1600), stacks of the six robot nodes spread
+    over the robots round-robin and allowed anywhere, one experiment node and trackers on the
+    servers to make up ``n_nodes`` (``fleet_instance`` with the earlier layout; issue 15's
+    benchmark, bench_fleet_plan.py, uses one stack per robot, offloaded to servers only)."""
+    return fleet_instance(n_nodes, n_computers, seed=seed, continuous=continuous, offload_only=False,
+                          stacks=(n_nodes - 1) // 6, server_capacity=(400, 1600))
 
 
 def scale(results: dict[str, Any], exact_limit: float) -> None:

@@ -1,0 +1,611 @@
+"""Problem 1 on fleets: column generation over the fleet's structure (Dantzig-Wolfe, i.e.
+the Lagrangian dual of the shared CPU capacities), then a MILP over the columns found.
+
+A robot's nodes interact with the rest of a fleet only through the computers they may
+share (the servers) and the network. This solver splits the instance that way:
+
+- A robot is *private* when every node group (a coresidence group, or a lone node)
+  allowed on it has it as its only allowed robot (the fleet: a robot's stack runs on
+  its robot or on a server). Its block is those groups; its own capacity stays inside the
+  block's subproblem. Every other computer (the servers, robots shared between blocks)
+  is *relaxed*: its capacity becomes a price.
+- Each block's subproblem, given prices ``λ`` per relaxed computer, is a multiple-choice
+  knapsack on its robot (each group: a setting on the robot, or "offloaded": its best
+  relaxed computer and settings at value ``w·P - λ·U``), solved exactly by dynamic
+  programming on the CPU grid (``local._combine``, greedy+'s knapsack step). A group
+  that belongs to no block (a camera tracker) is its own subproblem. Identical
+  subproblems (same nodes' choices, weights, computers, capacity: identical trackers,
+  robots of equal capacity) are aggregated into one class with a count.
+- The master LP (HiGHS) chooses a convex combination of each class's columns under the
+  relaxed capacities; its duals are the next prices; the subproblems price new columns.
+  For any prices ``λ >= 0``, ``Σ_class count·max(subproblem) + Σ λ·capacity`` is an upper
+  bound on Problem 1 (the Lagrangian bound, at least as tight as the x form's LP bound:
+  the robot knapsacks are solved integrally); the best one seen is the plan's ``bound``.
+- The columns found, made integer (a count per column), are a small MILP that HiGHS
+  solves with the paper's greedy's plan as its start: its answer is the plan.
+
+The network is not in the decomposition: it is used only when no link or medium could
+ever overflow (``exact._active_links`` is empty: the fleet's wifi carries a few kB/s per
+robot), and the plan is checked against it all the same. :func:`decomposable` says
+whether an instance qualifies; otherwise ``solve --method exact`` uses the MILP.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from perfros_bag.solver import Progress
+from perfros_bag.solver import exact as exact_mod
+from perfros_bag.solver.exact import _Group, _Instance, quiet_highs
+from perfros_bag.solver.local import _combine
+from perfros_bag.system.plan import Assignment, Method, Plan, Status
+from perfros_bag.system.rules import build_plan, computer_loads, weighted_performance
+from perfros_bag.system.types import Choice, Problem, System
+
+__all__ = ["decomposable", "solve_decomposed", "trivial_bound"]
+
+
+GRID_SCALES = (1, 2, 4, 5, 10)  # CPU grid factors tried (CPU x factor must be integers)
+MAX_CELLS = 5_000  # CPU cells of one private computer's knapsack table
+MAX_GROUP_OPTIONS = 20_000  # setting combinations of one coresidence group
+CG_SHARE = 0.5  # share of the time limit column generation may take
+PLAN_SHARE = 0.05  # share kept for building the plan (the --time-limit promise is 5 %)
+NO_LIMIT_S = 120.0  # the MILP's limit when no time limit is given
+REL_TOL = 1e-6  # "optimal": bound - objective within this (relative), as exact.py
+FIRST_MIP_SHARE = 0.5  # of the time left, for the MILP over the generated columns
+NEAR_LIMIT = 20_000  # columns the reduced-cost enumeration may add (else it is not tried)
+CG_TOL = 1e-7  # column generation stops when the LP is this close to the bound (relative)
+
+
+def trivial_bound(system: System, choices: dict[str, list[Choice]]) -> float:
+    """Σ w·(best performance): no plan can do better (Problem 1)."""
+    return sum(system.node[n].weight * max(c.performance for c in opts) for n, opts in choices.items())
+
+
+@dataclass
+class _Item:
+    """One node group: its home options (on its private robot) and its members' choices."""
+
+    members: tuple[str, ...]
+    relaxed: np.ndarray  # indices of the relaxed computers it may go to
+    home_units: np.ndarray  # per home option: CPU in grid units
+    home_values: np.ndarray  # per home option: Σ w·P
+    home_levels: list[tuple[int, ...]]  # per home option: each member's kept position
+    member_cpu: list[np.ndarray]  # per member: CPU of each kept choice
+    member_val: list[np.ndarray]  # per member: w·P of each kept choice
+
+
+@dataclass
+class _Class:
+    """Identical subproblems: a private robot and its groups, or one lone group."""
+
+    home: str | None
+    cap_units: int
+    items: list[_Item]
+    instances: list[list[tuple[str, ...]]]  # per instance, the member names of each item
+    home_of: list[str | None]  # per instance, its private robot
+
+
+@dataclass
+class _Column:
+    cls: int
+    value: float  # Σ w·P
+    use: dict[int, float]  # relaxed computer -> CPU
+    parts: tuple[tuple[int, tuple[int, ...]], ...]  # per item: (relaxed computer or -1: home, levels)
+
+
+@dataclass
+class _Model:
+    inst: _Instance
+    relaxed: list[str]
+    cap: np.ndarray  # per relaxed computer
+    classes: list[_Class]
+
+
+def _scale(cpus: Sequence[float]) -> int | None:
+    for s in GRID_SCALES:
+        if all(abs(u * s - round(u * s)) < 1e-6 for u in cpus):
+            return s
+    return None
+
+
+def _home_options(inst: _Instance, members: tuple[str, ...], scale: int) -> tuple[np.ndarray, np.ndarray,
+                                                                            list[tuple[int, ...]]] | None:
+    """A group's settings on its robot: every combination of its members' choices, keeping
+    for each CPU the best value (and nothing dominated)."""
+    lists = [inst.choices[n] for n in members]
+    if math.prod(len(x) for x in lists) > MAX_GROUP_OPTIONS:
+        return None
+    weight = {n: inst.system.node[n].weight for n in members}
+    best: dict[int, tuple[float, tuple[int, ...]]] = {}
+    for levels in itertools.product(*(range(len(x)) for x in lists)):
+        cpu = sum(lists[i][k].cpu for i, k in enumerate(levels))
+        value = sum(weight[n] * lists[i][k].performance for i, (n, k) in enumerate(zip(members, levels, strict=True)))
+        units = int(round(cpu * scale))
+        if units not in best or value > best[units][0] + 1e-12:
+            best[units] = (value, levels)
+    units_sorted = sorted(best)
+    keep: list[int] = []
+    top = -math.inf
+    for u in units_sorted:
+        if best[u][0] > top + 1e-12:
+            keep.append(u)
+            top = best[u][0]
+    return (np.array(keep, dtype=np.int64), np.array([best[u][0] for u in keep]), [best[u][1] for u in keep])
+
+
+def _model(system: System, inst: _Instance) -> _Model | str:
+    """The blocks and classes of a prepared instance, or why it does not decompose."""
+    kind = {c.name: c.kind for c in system.computers}
+    robots_of = {g.members: [c for c in g.allowed if kind[c] == "robot"] for g in inst.groups}
+    private = {c.name for c in system.computers if c.kind == "robot"}
+    for g in inst.groups:
+        if len(robots_of[g.members]) != 1:
+            private -= set(robots_of[g.members])
+    relaxed = [c.name for c in system.computers if c.name not in private]
+    rindex = {c: i for i, c in enumerate(relaxed)}
+    blocks: dict[str, list[_Group]] = {c: [] for c in private}
+    lone: list[_Group] = []
+    for g in inst.groups:
+        home = robots_of[g.members][0] if len(robots_of[g.members]) == 1 else None
+        (blocks[home] if home in private else lone).append(g)
+    cpus = [ch.cpu for g in inst.groups for n in g.members for ch in inst.choices[n]]
+    scale = _scale(cpus)
+    if scale is None:
+        return "CPU levels are not on a grid of at most 1/10 unit"
+    if any(inst.cap[c] * scale > MAX_CELLS for c in private):
+        return f"a robot's capacity exceeds {MAX_CELLS} grid cells"
+
+    def item(g: _Group, home: str | None) -> _Item | None:
+        relaxed_ok = np.array([rindex[c] for c in g.allowed if c in rindex], dtype=np.int64)
+        mc = [np.array([ch.cpu for ch in inst.choices[n]]) for n in g.members]
+        mv = [np.array([system.node[n].weight * ch.performance for ch in inst.choices[n]]) for n in g.members]
+        if home is None:
+            return _Item(g.members, relaxed_ok, np.zeros(0, dtype=np.int64), np.zeros(0), [], mc, mv)
+        opts = _home_options(inst, g.members, scale)
+        if opts is None:
+            return None
+        return _Item(g.members, relaxed_ok, opts[0], opts[1], opts[2], mc, mv)
+
+    def signature(g: _Group) -> tuple[Any, ...]:
+        return tuple((system.node[n].weight, tuple((ch.cpu, ch.performance) for ch in inst.choices[n]))
+                     for n in g.members) + (tuple(c for c in g.allowed if c in rindex),)
+
+    classes: list[_Class] = []
+    by_sig: dict[tuple[Any, ...], int] = {}
+    for home in [c.name for c in system.computers if c.name in private]:
+        gs = blocks[home]
+        if not gs:
+            continue
+        cap_units = int(math.floor(inst.cap[home] * scale + 1e-6))
+        sig: tuple[Any, ...] = (cap_units, tuple(sorted((signature(g) for g in gs), key=repr)))
+        gs = sorted(gs, key=lambda g: repr(signature(g)))
+        if sig in by_sig:
+            cl = classes[by_sig[sig]]
+            cl.instances.append([g.members for g in gs])
+            cl.home_of.append(home)
+            continue
+        items = [item(g, home) for g in gs]
+        if any(it is None for it in items):
+            return "a coresidence group has too many setting combinations"
+        by_sig[sig] = len(classes)
+        classes.append(_Class(home, cap_units, [it for it in items if it is not None], [[g.members for g in gs]],
+                              [home]))
+    for g in lone:
+        sig = ("lone", signature(g))
+        if sig in by_sig:
+            classes[by_sig[sig]].instances.append([g.members])
+            classes[by_sig[sig]].home_of.append(None)
+            continue
+        it = item(g, None)
+        assert it is not None
+        by_sig[sig] = len(classes)
+        classes.append(_Class(None, 0, [it], [[g.members]], [None]))
+    cap = np.array([inst.cap[c] for c in relaxed], dtype=float)
+    return _Model(inst, relaxed, cap, classes)
+
+
+def decomposable(system: System, problem: Problem, choices: dict[str, list[Choice]]) -> bool:
+    """Whether :func:`solve_decomposed` applies: Problem 1, a network that can never
+    overflow, CPU levels on a grid; an instance infeasible on its face is left to the
+    exact solver (which names the constraint)."""
+    if problem != Problem.PERFORMANCE:
+        return False
+    inst = exact_mod._prepare(system, problem, choices)
+    if isinstance(inst, str) or exact_mod._active_links(inst):
+        return False
+    return not isinstance(_model(system, inst), str)
+
+
+# ---- pricing ----------------------------------------------------------------------------
+def _offload(it: _Item, lam: np.ndarray) -> tuple[float, int, tuple[int, ...]]:
+    """The item's best relaxed computer at prices ``lam``: reduced value, computer, levels."""
+    if len(it.relaxed) == 0:
+        return -math.inf, -1, ()
+    prices = lam[it.relaxed]
+    total = np.zeros(len(it.relaxed))
+    picks = []
+    for cpu, val in zip(it.member_cpu, it.member_val, strict=True):
+        red = val[None, :] - prices[:, None] * cpu[None, :]
+        arg = np.argmax(red, axis=1)
+        total += red[np.arange(len(prices)), arg]
+        picks.append(arg)
+    r = int(np.argmax(total))
+    return float(total[r]), int(it.relaxed[r]), tuple(int(p[r]) for p in picks)
+
+
+def _price(model: _Model, ci: int, lam: np.ndarray) -> tuple[float, _Column]:
+    """The class's best column at prices ``lam`` and its reduced value (before the
+    convexity dual)."""
+    cl = model.classes[ci]
+    offs = [_offload(it, lam) for it in cl.items]
+    if cl.home is None:
+        red, r, levels = offs[0]
+        return red, _column(model, ci, ((r, levels),))
+    table = np.zeros(cl.cap_units + 1)
+    steps = []
+    for it, (off, _, _) in zip(cl.items, offs, strict=True):
+        if len(it.home_units):
+            units = np.concatenate([[0], it.home_units])
+            values = np.concatenate([[off], it.home_values])
+            table, arg = _combine(table, units, values)
+        else:
+            table, arg = table + off, np.zeros(len(table), dtype=np.int64)
+        steps.append((it, arg))
+    parts: list[tuple[int, tuple[int, ...]]] = []
+    x = cl.cap_units
+    for (it, arg), (_, r, levels) in zip(reversed(steps), reversed(offs), strict=True):
+        k = int(arg[x])
+        if k == 0:
+            parts.append((r, levels))
+        else:
+            parts.append((-1, it.home_levels[k - 1]))
+            x -= int(it.home_units[k - 1])
+    parts.reverse()
+    return float(table[-1]), _column(model, ci, tuple(parts))
+
+
+def _column(model: _Model, ci: int, parts: tuple[tuple[int, tuple[int, ...]], ...]) -> _Column:
+    cl = model.classes[ci]
+    value = 0.0
+    use: dict[int, float] = {}
+    for it, (r, levels) in zip(cl.items, parts, strict=True):
+        for cpu, val, k in zip(it.member_cpu, it.member_val, levels, strict=True):
+            value += float(val[k])
+            if r >= 0:
+                use[r] = use.get(r, 0.0) + float(cpu[k])
+    return _Column(ci, value, use, parts)
+
+
+def _column_of(model: _Model, assignment: Assignment, position: dict[str, int]) -> list[_Column]:
+    """The columns of a feasible plan (one per class instance)."""
+    rindex = {c: i for i, c in enumerate(model.relaxed)}
+    out = []
+    for ci, cl in enumerate(model.classes):
+        for inst_members, home in zip(cl.instances, cl.home_of, strict=True):
+            parts = []
+            for members in inst_members:
+                comp = assignment.placement[members[0]]
+                r = -1 if comp == home else rindex[comp]
+                parts.append((r, tuple(position[n] for n in members)))
+            out.append(_column(model, ci, tuple(parts)))
+    return out
+
+
+def _offload_options(it: _Item, lam: np.ndarray, floor: float) -> list[tuple[float, int, tuple[int, ...]]]:
+    """Every (reduced value, relaxed computer, member levels) of an offloaded item whose
+    reduced value at ``lam`` is at least ``floor``."""
+    out: list[tuple[float, int, tuple[int, ...]]] = []
+    prices = lam[it.relaxed]
+    reds = [val[None, :] - prices[:, None] * cpu[None, :] for cpu, val in zip(it.member_cpu, it.member_val,
+                                                                              strict=True)]
+    for ri, r in enumerate(it.relaxed):
+        rows = [red[ri] for red in reds]
+        rest = np.concatenate([np.cumsum([row.max() for row in rows][::-1])[::-1][1:], [0.0]])
+        stack: list[tuple[int, float, tuple[int, ...]]] = [(0, 0.0, ())]
+        while stack:
+            m, acc, levels = stack.pop()
+            if m == len(rows):
+                out.append((acc, int(r), levels))
+                continue
+            for k in np.nonzero(acc + rows[m] + rest[m] >= floor)[0]:
+                stack.append((m + 1, acc + float(rows[m][k]), (*levels, int(k))))
+    return out
+
+
+def _near_columns(model: _Model, lam: np.ndarray, priced: Sequence[tuple[float, _Column]], slack: float,
+                  limit: int) -> tuple[list[_Column], bool]:
+    """Every column whose reduced value at ``lam`` is within ``slack`` of its class's best.
+    With ``slack`` = the Lagrangian bound at ``lam`` minus the incumbent, these are the only
+    columns a better plan can use (a plan's value is the bound minus Σ over its columns of
+    (best - reduced value)). A private robot's are enumerated through its knapsack tables.
+    Returns the columns and whether the list is complete (at most ``limit`` of them)."""
+    out: list[_Column] = []
+    for ci, cl in enumerate(model.classes):
+        floor = priced[ci][0] - slack - 1e-9 * max(1.0, abs(priced[ci][0]))
+        if cl.home is None:
+            for _, r, levels in _offload_options(cl.items[0], lam, floor):
+                out.append(_column(model, ci, ((r, levels),)))
+            if len(out) > limit:
+                return out[:limit], False
+            continue
+        tables = [np.zeros(cl.cap_units + 1)]
+        options: list[list[tuple[int, float, tuple[int, tuple[int, ...]]]]] = []
+        for it in cl.items:
+            best_off = _offload(it, lam)[0]
+            offs = _offload_options(it, lam, best_off - slack - 1e-9) if len(it.relaxed) else []
+            opts = [(0, red, (r, levels)) for red, r, levels in offs]
+            opts += [(int(u), float(v), (-1, lv)) for u, v, lv in zip(it.home_units, it.home_values, it.home_levels,
+                                                                      strict=True)]
+            options.append(opts)
+            units = np.concatenate([[0], it.home_units]).astype(np.int64)
+            values = np.concatenate([[best_off], it.home_values])
+            tables.append(_combine(tables[-1], units, values)[0])
+        stack: list[tuple[int, int, float, tuple[tuple[int, tuple[int, ...]], ...]]] = [
+            (len(cl.items) - 1, cl.cap_units, 0.0, ())]
+        while stack:
+            q, x, acc, parts = stack.pop()
+            if q < 0:
+                out.append(_column(model, ci, parts))
+                if len(out) > limit:
+                    return out[:limit], False
+                continue
+            for u, v, part in options[q]:
+                if u <= x and acc + v + tables[q][x - u] >= floor:
+                    stack.append((q - 1, x - u, acc + v, (part, *parts)))
+    return out, True
+
+
+# ---- the master ---------------------------------------------------------------------------
+class _Master:
+    """The restricted master LP/MILP on HiGHS, grown column by column."""
+
+    def __init__(self, model: _Model, penalty: float) -> None:
+        import highspy
+
+        self.hs = highspy
+        self.h = quiet_highs()
+        self.h.setOptionValue("output_flag", False)
+        self.h.setOptionValue("random_seed", 0)
+        self.h.changeObjectiveSense(highspy.ObjSense.kMaximize)
+        self.model = model
+        inf = highspy.kHighsInf
+        n_cls, n_rel = len(model.classes), len(model.relaxed)
+        counts = np.array([len(cl.instances) for cl in model.classes], dtype=float)
+        lower = np.concatenate([counts, np.full(n_rel, -inf)])
+        upper = np.concatenate([counts, model.cap])
+        self.h.addRows(n_cls + n_rel, lower, upper, 0, np.zeros(n_cls + n_rel, dtype=np.int32),
+                       np.zeros(0, dtype=np.int32), np.zeros(0))
+        self.n_cls = n_cls
+        # overflow of each relaxed capacity at a penalty: keeps the LP feasible from the start
+        self.h.addCols(n_rel, np.full(n_rel, -penalty), np.zeros(n_rel), np.full(n_rel, inf), n_rel,
+                       np.arange(n_rel, dtype=np.int32), (n_cls + np.arange(n_rel)).astype(np.int32), -np.ones(n_rel))
+        self.n_over = n_rel
+        self.columns: list[_Column] = []
+        self.keys: set[tuple[int, tuple[tuple[int, tuple[int, ...]], ...]]] = set()
+        self.subscribed = False
+
+    def add(self, cols: Sequence[_Column]) -> int:
+        fresh = []
+        for c in cols:
+            key = (c.cls, c.parts)
+            if key not in self.keys:
+                self.keys.add(key)
+                fresh.append(c)
+        if not fresh:
+            return 0
+        starts: list[int] = []
+        index: list[int] = []
+        value: list[float] = []
+        for c in fresh:
+            starts.append(len(index))
+            index.append(c.cls)
+            value.append(1.0)
+            for r, u in sorted(c.use.items()):
+                if u:
+                    index.append(self.n_cls + r)
+                    value.append(u)
+        counts = [float(len(self.model.classes[c.cls].instances)) for c in fresh]
+        self.h.addCols(len(fresh), np.array([c.value for c in fresh]), np.zeros(len(fresh)), np.array(counts),
+                       len(index), np.array(starts, dtype=np.int32), np.array(index, dtype=np.int32),
+                       np.array(value))
+        self.columns.extend(fresh)
+        return len(fresh)
+
+    def solve_lp(self, time_limit: float) -> tuple[float, np.ndarray, np.ndarray] | None:
+        self.h.setOptionValue("time_limit", max(time_limit, 0.01))
+        self.h.run()
+        if self.h.getModelStatus() != self.hs.HighsModelStatus.kOptimal:
+            return None
+        sol = self.h.getSolution()
+        duals = np.asarray(sol.row_dual)
+        return float(self.h.getInfo().objective_function_value), duals[:self.n_cls], np.maximum(duals[self.n_cls:], 0.0)
+
+    def solve_mip(self, time_limit: float, start: dict[int, float] | None,
+                  improved: Callable[[float], None] | None = None) -> tuple[list[float], bool] | None:
+        """The columns made integer (overflow off): the count of each column and whether HiGHS
+        proved it the best over these columns, or None when it found none. ``improved(objective)``
+        is called on every better plan HiGHS finds."""
+        n = self.n_over + len(self.columns)
+        self.h.changeColsIntegrality(len(self.columns), np.arange(self.n_over, n, dtype=np.int32),
+                                     np.full(len(self.columns), self.hs.HighsVarType.kInteger))
+        self.h.changeColsBounds(self.n_over, np.arange(self.n_over, dtype=np.int32), np.zeros(self.n_over),
+                                np.zeros(self.n_over))
+        self.h.setOptionValue("time_limit", max(time_limit, 0.01))
+        self.h.setOptionValue("mip_rel_gap", 0.0)
+        self.h.setOptionValue("mip_abs_gap", 1e-7)
+        if start:
+            full = {j: 0.0 for j in range(n)}
+            full.update({self.n_over + j: v for j, v in start.items()})
+            self.h.setSolution(n, np.array(list(full), dtype=np.int32), np.array(list(full.values())))
+        if improved is not None and not self.subscribed:
+            self.h.cbMipImprovingSolution.subscribe(lambda event: improved(float(event.data_out.objective_function_value)))
+            self.subscribed = True
+        self.h.run()
+        if self.h.getInfo().primal_solution_status != 2:
+            return None
+        proven = self.h.getModelStatus() == self.hs.HighsModelStatus.kOptimal
+        return list(self.h.getSolution().col_value)[self.n_over:], proven
+
+
+def _lagrangian(model: _Model, lam: np.ndarray) -> tuple[float, list[tuple[float, _Column]]]:
+    """The Lagrangian bound at ``lam`` and each class's best column (reduced value, column)."""
+    priced = [_price(model, ci, lam) for ci in range(len(model.classes))]
+    total = sum(len(cl.instances) * red for cl, (red, _) in zip(model.classes, priced, strict=True))
+    return float(total + float(lam @ model.cap)), priced
+
+
+def _assignment(model: _Model, counts: Sequence[float], columns: Sequence[_Column]) -> Assignment:
+    inst = model.inst
+    placement: dict[str, str] = {}
+    choice: dict[str, Choice] = {}
+    per_class: dict[int, list[tuple[_Column, int]]] = {}
+    for col, v in zip(columns, counts, strict=True):
+        k = int(round(v))
+        if k > 0:
+            per_class.setdefault(col.cls, []).append((col, k))
+    for ci, cl in enumerate(model.classes):
+        queue = [c for c, k in per_class.get(ci, []) for _ in range(k)]
+        for (members_list, home), col in zip(zip(cl.instances, cl.home_of, strict=True), queue, strict=True):
+            for members, (r, levels) in zip(members_list, col.parts, strict=True):
+                comp = home if r < 0 else model.relaxed[r]
+                assert comp is not None
+                for n, k in zip(members, levels, strict=True):
+                    placement[n], choice[n] = comp, inst.choices[n][k]
+    return Assignment(placement, choice, {})
+
+
+def _start(master: _Master, model: _Model, inst: _Instance, incumbent: Assignment) -> dict[int, float]:
+    """The incumbent as counts of the master's columns (its columns added when missing)."""
+    cols = _column_of(model, incumbent, _positions(inst, incumbent))
+    master.add(cols)
+    index = {(c.cls, c.parts): j for j, c in enumerate(master.columns)}
+    start: dict[int, float] = {}
+    for c in cols:
+        j = index[(c.cls, c.parts)]
+        start[j] = start.get(j, 0.0) + 1.0
+    return start
+
+
+def _positions(inst: _Instance, assignment: Assignment) -> dict[str, int]:
+    """Each node's position among its kept choices (the assignment uses kept choices)."""
+    return {n: next(i for i, c in enumerate(inst.choices[n]) if c is ch) for n, ch in assignment.choice.items()}
+
+
+def _fits(model: _Model, assignment: Assignment) -> bool:
+    system = model.inst.system
+    load = computer_loads(system, assignment.placement, assignment.choice)
+    if any(load[c] > model.inst.cap[c] + 1e-9 * max(1.0, model.inst.cap[c]) for c in load):
+        return False
+    return system.network_violation(assignment.placement, assignment.choice) is None
+
+
+def solve_decomposed(system: System, problem: Problem, choices: dict[str, list[Choice]], *,
+                     time_limit: float | None = None, progress: Progress | None = None) -> Plan | None:
+    """Problem 1 by column generation and a MILP over the columns (module docstring).
+
+    Returns the best plan found with ``bound`` the best Lagrangian bound (never above
+    Σ w·max P); ``status`` is ``optimal`` only when they agree within 1e-6 (relative),
+    else ``feasible``. ``time_limit`` covers the whole call: column generation gets at most
+    half of it, the MILP over the columns what is left but 5 %. Returns None when the
+    instance does not qualify (:func:`decomposable`: the caller then uses the MILP on the
+    whole model) or when no plan was found."""
+    from perfros_bag.solver import start_of
+    from perfros_bag.solver.greedy import solve_greedy
+
+    t0 = time.perf_counter()
+
+    def elapsed() -> float:
+        return time.perf_counter() - t0
+
+    if problem != Problem.PERFORMANCE:
+        return None
+    inst = exact_mod._prepare(system, problem, choices)
+    if isinstance(inst, str) or exact_mod._active_links(inst):
+        return None
+    model = _model(system, inst)
+    if isinstance(model, str):
+        return None
+    ceiling = trivial_bound(system, inst.choices)
+    budget = NO_LIMIT_S if time_limit is None else time_limit * (1 - PLAN_SHARE)
+    master = _Master(model, penalty=ceiling + 1.0)
+
+    # the paper's greedy: the first columns, and the MILP's start
+    greedy = solve_greedy(system, problem, choices)
+    incumbent: Assignment | None = None
+    if greedy.status != Status.INFEASIBLE:
+        raw = start_of(greedy, choices)
+        mapped = exact_mod._start_assignment(inst, raw) if raw is not None else None
+        if mapped is not None:
+            incumbent = mapped[0]
+            master.add(_column_of(model, *mapped))
+    best_value = weighted_performance(system, incumbent.choice) if incumbent is not None else None
+    bound = ceiling
+    lam = np.zeros(len(model.relaxed))
+    lp_value: float | None = None
+    cg_until = elapsed() + CG_SHARE * max(budget - elapsed(), 0.0)  # what the set-up left, shared
+    # column generation: the Lagrangian bound and new columns at the master's prices
+    while True:
+        value, priced = _lagrangian(model, lam)
+        bound = min(bound, value)
+        if progress is not None:
+            progress(best_value, bound, elapsed())
+        if lp_value is not None and bound - lp_value <= CG_TOL * max(1.0, abs(lp_value)):
+            break  # the LP is the Lagrangian dual: no column can improve it
+        if elapsed() > cg_until or (master.add([col for _, col in priced]) == 0 and lp_value is not None):
+            break
+        lp = master.solve_lp(max(budget - elapsed(), 0.1))
+        if lp is None:
+            break
+        lp_value, _, lam = lp
+    if progress is not None:
+        progress(best_value, bound, elapsed())
+    # the columns, made integer; then, while a gap is left, every lone group's column that a
+    # better plan could use (reduced-cost argument), and the MILP again
+    def improved(objective: float) -> None:
+        if progress is not None:
+            progress(objective if best_value is None else max(objective, best_value), bound, elapsed())
+
+    proven = complete = False
+    for attempt in range(2):
+        if attempt == 1:
+            if incumbent is None or best_value is None or elapsed() > budget * 0.9:
+                break
+            lam_value, priced = _lagrangian(model, lam)
+            slack = lam_value - best_value
+            if slack <= REL_TOL * max(1.0, abs(best_value)):
+                break
+            near, complete = _near_columns(model, lam, priced, slack, NEAR_LIMIT)
+            if complete:  # else too many to prove anything with, and HiGHS slows down (measured)
+                master.add(near)
+        start = _start(master, model, inst, incumbent) if incumbent is not None else None
+        share = FIRST_MIP_SHARE if attempt == 0 else 1.0
+        result = master.solve_mip(share * (budget - elapsed()), start, improved if progress is not None else None)
+        if result is not None:
+            counts, optimal_here = result
+            found = _assignment(model, counts, master.columns)
+            value = weighted_performance(system, found.choice)
+            fits = _fits(model, found)
+            if fits and (best_value is None or value > best_value + 1e-12):
+                incumbent, best_value = found, value
+            # all columns a better plan could use were there, and HiGHS proved none better
+            proven = attempt == 1 and complete and optimal_here and fits and value == best_value
+    if incumbent is None:
+        return None
+    assert best_value is not None
+    bound = max(min(bound, ceiling), best_value)
+    if proven:
+        bound = best_value
+    proven = bound - best_value <= REL_TOL * max(1.0, abs(best_value))
+    if progress is not None:
+        progress(best_value, bound, elapsed())
+    return build_plan(system, incumbent, problem=problem, method=Method.EXACT,
+                      status=Status.OPTIMAL if proven else Status.FEASIBLE,
+                      bound=best_value if proven else bound, solve_s=elapsed())

@@ -1,0 +1,207 @@
+"""The performance / server-capacity frontier: the best Problem 1 value for each total
+server capacity, from the Problem 2 minimum up to where performance stops rising.
+
+- At a total capacity ``C`` every server gets ``C`` times its share of the system's
+  server capacities (equal shares when a server has none): with one server, ``C`` is its
+  capacity.
+- The lowest capacity worth asking about is where Problem 2's plan with every node at its
+  lowest setting fits those shares (one server: Problem 2's minimum, below which no plan
+  exists); the highest is where Problem 2's plan with every node at its highest setting
+  fits them (every node can run at its best: Σ w·P cannot rise further). Each point is Problem 1 solved by ``method`` (default ``exact``: a proven
+  optimum, or a plan with its bound and gap when a time limit stops it).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from perfros_bag.errors import InputError
+from perfros_bag.system.plan import Status
+from perfros_bag.system.types import Problem, System
+
+__all__ = ["DEFAULT_POINTS", "FORMAT", "FrontierPoint", "capacity_range", "frontier", "frontier_document",
+           "parse_range", "read_frontier", "with_server_capacity", "write_frontier"]
+
+FORMAT = "perfros-bag frontier 1"
+
+DEFAULT_POINTS = 21
+
+
+def parse_range(text: str) -> tuple[float | None, float | None, int]:
+    """``auto``, ``LO:HI`` or ``LO:HI:POINTS`` (an empty end: its default from
+    :func:`capacity_range`) -> (low, high, points). An unreadable, empty or inverted range
+    is an :class:`InputError`."""
+    if text.strip().lower() == "auto":
+        return None, None, DEFAULT_POINTS
+    parts = [p.strip() for p in text.split(":")]
+    if len(parts) not in (2, 3):
+        raise InputError(None, f"frontier range {text!r}: expected auto, LO:HI or LO:HI:POINTS")
+    try:
+        low = float(parts[0]) if parts[0] else None
+        high = float(parts[1]) if parts[1] else None
+        points = int(parts[2]) if len(parts) == 3 and parts[2] else DEFAULT_POINTS
+    except ValueError:
+        raise InputError(None, f"frontier range {text!r}: not numbers") from None
+    if any(v is not None and (not math.isfinite(v) or v < 0) for v in (low, high)):
+        raise InputError(None, f"frontier range {text!r}: capacities must be finite and >= 0")
+    if low is not None and high is not None and high <= low:
+        raise InputError(None, f"frontier range {text!r} is empty or inverted")
+    if points < 2:
+        raise InputError(None, f"frontier range {text!r}: at least 2 points")
+    return low, high, points
+
+
+@dataclass
+class FrontierPoint:
+    capacity: float  # total server capacity
+    status: Status
+    objective: float | None  # Σ w·P of the best plan found
+    bound: float | None  # no plan at this capacity does better
+    solve_s: float
+
+    @property
+    def gap(self) -> float | None:
+        """(bound - objective) / objective; 0 when proven optimal."""
+        if self.objective is None or self.bound is None:
+            return None
+        return max(self.bound - self.objective, 0.0) / max(abs(self.objective), 1e-12)
+
+
+def _servers(system: System) -> list[str]:
+    servers = [c.name for c in system.computers if c.kind == "server"]
+    if not servers:
+        raise InputError(system.source, "the frontier needs at least one server (its capacity is what varies)")
+    return servers
+
+
+def _shares(system: System) -> dict[str, float]:
+    """Each server's share of the total server capacity (equal when one has none)."""
+    servers = _servers(system)
+    caps = [system.computer[s].capacity for s in servers]
+    known = [c for c in caps if c is not None]
+    if len(known) == len(caps) and sum(known) > 0:
+        return {s: c / sum(known) for s, c in zip(servers, known, strict=True)}
+    return {s: 1 / len(servers) for s in servers}
+
+
+def with_server_capacity(system: System, total: float) -> System:
+    """The system with its servers' capacities summing to ``total``, in proportion to their
+    capacities (equal shares when one has none)."""
+    share = _shares(system)
+    computers = tuple(dataclasses.replace(c, capacity=total * share[c.name]) if c.name in share else c
+                      for c in system.computers)
+    return dataclasses.replace(system, computers=computers)
+
+
+def capacity_range(system: System, *, resolution: float = 1.0, time_limit: float | None = None) -> tuple[float, float]:
+    """The total server capacities at which Problem 2's plan fits the servers' shares, with
+    every node at its lowest setting and with every node at its highest (exact solver).
+    With one server: Problem 2's minimum in both cases."""
+    from perfros_bag.solver import fixed_choices, solve
+
+    share = _shares(system)
+    lowest = {n: opts[0].cpu for n, opts in fixed_choices(system, Problem.PERFORMANCE, resolution=resolution).items()}
+    ends = []
+    for settings in (lowest, None):
+        plan = solve(system, Problem.SERVER_CAPACITY, "exact", resolution=resolution, settings=settings,
+                     time_limit=time_limit)
+        if plan.status == Status.INFEASIBLE or plan.objective is None:
+            which = "lowest" if settings is not None else "highest"
+            raise InputError(system.source, f"frontier: Problem 2 at every node's {which} setting has no plan: "
+                                            f"{plan.reason}")
+        sizes = {s: plan.computers[s].capacity or 0.0 for s in share}
+        ends.append(max(sizes[s] / share[s] for s in share))
+    return ends[0], ends[1]
+
+
+def frontier(system: System, *, low: float | None = None, high: float | None = None, points: int = 21,
+             resolution: float = 1.0, method: str = "exact",
+             time_limit: float | None = None) -> list[FrontierPoint]:
+    """Problem 1 at ``points`` total server capacities evenly spaced from ``low`` to
+    ``high`` (default :func:`capacity_range`); ``time_limit`` is per point."""
+    from perfros_bag.solver import solve
+
+    if points < 2:
+        raise InputError(None, f"a frontier needs at least 2 points, got {points}")
+    if low is None or high is None:
+        lo, hi = capacity_range(system, resolution=resolution, time_limit=time_limit)
+        low = lo if low is None else low
+        high = hi if high is None else high
+    if not (math.isfinite(low) and math.isfinite(high)) or low < 0 or high <= low:
+        raise InputError(system.source, f"frontier: the capacity range {low:g} to {high:g} is empty or inverted")
+    out: list[FrontierPoint] = []
+    if method == "exact":
+        from perfros_bag.solver.frontier_dp import frontier_values
+
+        t0 = time.perf_counter()
+        table = frontier_values(system, high, resolution)
+        if table is not None:
+            values, scale = table
+            each = (time.perf_counter() - t0) / points
+            for i in range(points):
+                capacity = low + (high - low) * i / (points - 1)
+                v = float(values[min(int(math.floor(capacity * scale + 1e-6)), len(values) - 1)])
+                found = math.isfinite(v)
+                out.append(FrontierPoint(capacity, Status.OPTIMAL if found else Status.INFEASIBLE,
+                                         v if found else None, v if found else None, each))
+            return out
+    for i in range(points):
+        capacity = low + (high - low) * i / (points - 1)
+        t0 = time.perf_counter()
+        plan = solve(with_server_capacity(system, capacity), Problem.PERFORMANCE, method, resolution=resolution,
+                     time_limit=time_limit)
+        bound = plan.bound if plan.bound is not None else plan.objective
+        out.append(FrontierPoint(capacity, plan.status, plan.objective, bound, time.perf_counter() - t0))
+    return out
+
+
+def frontier_document(system: System, points: list[FrontierPoint], method: str) -> dict[str, Any]:
+    """The frontier as JSON-ready data (docs/formats.md, frontier.json)."""
+    return {
+        "format": FORMAT,
+        "system": system.source,
+        "method": method,
+        "servers": _servers(system),
+        "points": [{"server_capacity": round(p.capacity, 9), "status": str(p.status), "objective": p.objective,
+                    "bound": p.bound, "gap": p.gap, "solve_s": round(p.solve_s, 6)} for p in points],
+    }
+
+
+def write_frontier(path: str | Path, doc: dict[str, Any]) -> None:
+    """frontier.json, written atomically (the one writer)."""
+    from perfros_bag.fileio import atomic_write_text
+
+    atomic_write_text(path, json.dumps(doc, indent=2) + "\n")
+
+
+def read_frontier(path: str | Path) -> dict[str, Any]:
+    """frontier.json, checked field by field (the one reader): an :class:`InputError` naming
+    the broken place otherwise."""
+    from perfros_bag.fileio import read_json
+
+    doc = read_json(path)
+    if not isinstance(doc, dict) or doc.get("format") != FORMAT:
+        raise InputError(path, f"not a frontier (expected a JSON object with format {FORMAT!r})")
+    points = doc.get("points")
+    if not isinstance(points, list) or not points:
+        raise InputError(path, "frontier: 'points' must be a non-empty list")
+    for i, p in enumerate(points):
+        where = f"frontier: points[{i}]"
+        if not isinstance(p, dict):
+            raise InputError(path, f"{where}: not an object")
+        cap = p.get("server_capacity")
+        if isinstance(cap, bool) or not isinstance(cap, int | float) or not math.isfinite(cap):
+            raise InputError(path, f"{where}.server_capacity: not a finite number")
+        if p.get("status") not in tuple(Status):
+            raise InputError(path, f"{where}.status: one of {', '.join(Status)}")
+        for key in ("objective", "bound", "gap", "solve_s"):
+            v = p.get(key)
+            if v is not None and (isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v)):
+                raise InputError(path, f"{where}.{key}: not a finite number or null")
+    return doc

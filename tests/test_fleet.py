@@ -1,0 +1,134 @@
+"""Fleet instances and the decomposition solver (solver/decompose.py) against the exact
+MILP on the whole model and the independent checker."""
+
+from __future__ import annotations
+
+import random
+import warnings
+from typing import Any
+
+import pytest
+
+from perfros_bag.casestudy.instances import fleet_instance, random_instance
+from perfros_bag.solver import (
+    DECOMPOSE_COLUMNS,
+    _within_trivial_bound,
+    exact_columns,
+    fixed_choices,
+    solve,
+)
+from perfros_bag.solver.check import check_plan
+from perfros_bag.solver.decompose import decomposable, solve_decomposed, trivial_bound
+from perfros_bag.solver.exact import solve_exact
+from perfros_bag.system.plan import Method, Plan, Status
+from perfros_bag.system.systemfile import parse_system
+from perfros_bag.system.types import Problem, System
+
+
+def system_of(data: dict[str, Any], name: str = "fleet.yaml") -> System:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return parse_system(data, name)
+
+
+def test_fleet_instance_shape() -> None:
+    data = fleet_instance(200, 20, seed=3)
+    system = system_of(data)
+    assert len(system.nodes) == 200 and len(system.computers) == 20
+    servers = [c.name for c in system.computers if c.kind == "server"]
+    robots = [c.name for c in system.computers if c.kind == "robot"]
+    assert len(servers) == 2 and len(robots) == 18
+    assert abs(sum(n.weight for n in system.nodes) - 1) < 1e-9
+    # one stack per robot: its nodes run on that robot or a server, youbot_core on the robot
+    for r, robot in enumerate(robots, start=1):
+        assert system.allowed(f"youbot_core{r}") == (robot,)
+        assert set(system.allowed(f"amcl{r}")) == {robot, *servers}
+    trackers = [n for n in system.nodes if n.name.startswith("tracker")]
+    assert len(trackers) == 200 - 1 - 6 * 18 and all(set(system.allowed(n.name)) == set(servers) for n in trackers)
+    assert {lk.medium for lk in system.links if robots[0] in lk.between} == {"wifi"}
+    assert fleet_instance(200, 20, seed=3) == data  # seeded
+    anywhere = system_of(fleet_instance(60, 6, offload_only=False))
+    assert len(anywhere.allowed("amcl1")) == 6
+
+
+def assert_bounds(system: System, plan: Plan, optimum: float) -> None:
+    """bound >= the exact optimum >= the plan's objective, and the plan passes the checker."""
+    assert check_plan(system, plan) == [], plan
+    assert plan.objective is not None and plan.bound is not None
+    assert plan.bound >= optimum - 1e-7 * optimum
+    assert optimum >= plan.objective - 1e-7 * optimum
+    assert plan.bound <= trivial_bound(system, fixed_choices(system, Problem.PERFORMANCE)) + 1e-9
+    if plan.status == Status.OPTIMAL:
+        assert plan.objective == pytest.approx(optimum, rel=1e-6)
+        assert plan.bound == plan.objective
+
+
+CASES = ([(f"fleet-{seed}-{'curves' if c else 'settings'}", fleet_instance(40, 5, seed=seed, continuous=c))
+          for seed in (1, 2) for c in (False, True)]
+         + [("fleet-anywhere", fleet_instance(27, 4, seed=3, offload_only=False, continuous=False))]
+         + [(f"random-{seed}", random_instance(random.Random(seed))) for seed in (1, 2, 3, 5)])
+
+
+@pytest.mark.parametrize(("name", "data"), CASES, ids=[c[0] for c in CASES])
+def test_decomposition_against_the_exact_milp(name: str, data: dict[str, Any]) -> None:
+    system = system_of(data, name)
+    choices = fixed_choices(system, Problem.PERFORMANCE)
+    assert decomposable(system, Problem.PERFORMANCE, choices)
+    exact = solve_exact(system, Problem.PERFORMANCE, choices, time_limit=60)
+    assert exact.status == Status.OPTIMAL and exact.objective is not None
+    plan = solve_decomposed(system, Problem.PERFORMANCE, choices)
+    assert plan is not None and plan.method == Method.EXACT
+    assert_bounds(system, plan, exact.objective)
+    # with no time limit, the reduced-cost enumeration closes these small instances
+    assert plan.status == Status.OPTIMAL
+
+
+def test_progress_reports_incumbent_and_bound() -> None:
+    system = system_of(fleet_instance(40, 5, seed=1))
+    seen: list[tuple[float | None, float, float]] = []
+    plan = solve_decomposed(system, Problem.PERFORMANCE, fixed_choices(system, Problem.PERFORMANCE),
+                            progress=lambda inc, bound, t: seen.append((inc, bound, t)))
+    assert plan is not None and seen
+    bounds = [b for _, b, _ in seen]
+    assert all(b >= plan.objective - 1e-9 for b in bounds)  # type: ignore[operator]
+    assert seen[-1][0] == pytest.approx(plan.objective) and seen[-1][1] == pytest.approx(plan.bound)
+
+
+def test_not_decomposable_when_the_network_can_bind() -> None:
+    system = system_of(random_instance(random.Random(4), tight_network=True))
+    choices = fixed_choices(system, Problem.PERFORMANCE)
+    assert not decomposable(system, Problem.PERFORMANCE, choices)
+    assert solve_decomposed(system, Problem.PERFORMANCE, choices) is None
+    assert not decomposable(system, Problem.SERVER_CAPACITY, fixed_choices(system, Problem.SERVER_CAPACITY))
+
+
+def test_solve_exact_uses_the_decomposition_on_a_fleet() -> None:
+    system = system_of(fleet_instance(200, 20, seed=0))
+    choices = fixed_choices(system, Problem.PERFORMANCE)
+    assert exact_columns(system, choices) > DECOMPOSE_COLUMNS
+    seen: list[float] = []
+    plan = solve(system, 1, "exact", time_limit=60, progress=lambda inc, bound, t: seen.append(bound))
+    assert seen  # the decomposition ran (the MILP reports no progress)
+    assert plan.method == Method.EXACT and plan.status != Status.INFEASIBLE
+    assert check_plan(system, plan) == []
+    assert plan.bound is not None and plan.objective is not None
+    assert plan.objective - 1e-9 <= plan.bound <= trivial_bound(system, choices) + 1e-9
+    # the LP relaxation of the whole model is a bound too; the Lagrangian one is at least as tight
+    from perfros_bag.solver import exact as exact_mod
+
+    inst = exact_mod._prepare(system, Problem.PERFORMANCE, choices)
+    assert not isinstance(inst, str)
+    lp = exact_mod._build(inst).milp.solve(True, time_limit=None, mip_gap=0.0, relax=True)
+    assert plan.bound <= lp.getInfo().objective_function_value + 1e-6
+
+
+def test_a_bound_is_never_looser_than_the_trivial_one() -> None:
+    system = system_of(fleet_instance(40, 5, seed=1))
+    choices = fixed_choices(system, Problem.PERFORMANCE)
+    plan = solve_exact(system, Problem.PERFORMANCE, choices)
+    plan.bound, plan.status = 29250.5, Status.FEASIBLE  # what HiGHS reported before its root LP
+    fixed = _within_trivial_bound(system, Problem.PERFORMANCE, choices, plan)
+    assert fixed.bound == pytest.approx(trivial_bound(system, choices))
+    plan2 = solve_exact(system, Problem.SERVER_CAPACITY, fixed_choices(system, Problem.SERVER_CAPACITY))
+    plan2.bound = -5.0
+    assert _within_trivial_bound(system, Problem.SERVER_CAPACITY, {}, plan2).bound == 0.0

@@ -1,0 +1,174 @@
+"""The performance / server-capacity frontier (``solve --pareto``): its range from Problem 2,
+each point against the exact solver and the checker, and the CLI's files and errors."""
+
+from __future__ import annotations
+
+import json
+import warnings
+from pathlib import Path
+
+import pytest
+import yaml
+from typer.testing import CliRunner
+
+from perfros_bag.casestudy.instances import table2_instance
+from perfros_bag.cli import app
+from perfros_bag.errors import InputError
+from perfros_bag.solver import fixed_choices, solve
+from perfros_bag.solver.check import check_plan
+from perfros_bag.solver.frontier import capacity_range, frontier, parse_range, with_server_capacity
+from perfros_bag.system.systemfile import parse_system
+from perfros_bag.system.types import Problem, System
+
+runner = CliRunner()
+
+
+def table2(i: int) -> System:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return parse_system(table2_instance(i), f"table2-{i}.yaml")
+
+
+def test_parse_range() -> None:
+    assert parse_range("auto") == (None, None, 21)
+    assert parse_range("300:600") == (300.0, 600.0, 21)
+    assert parse_range(":600:5") == (None, 600.0, 5)
+    for bad in ("600:300", "300:300", "a:b", "300", "300:600:1", "-1:5", "1:inf"):
+        with pytest.raises(InputError):
+            parse_range(bad)
+
+
+def test_range_ends_are_where_plans_start_and_performance_stops_rising() -> None:
+    system = table2(2)
+    low, high = capacity_range(system)
+    assert low < high
+    # below the Problem 2 minimum at the lowest settings no plan exists; at it one does
+    below = solve(with_server_capacity(system, low - 1), 1, "exact")
+    assert below.status == "infeasible"
+    at_low = solve(with_server_capacity(system, low), 1, "exact")
+    assert at_low.status == "optimal"
+    # at the top every node runs its best setting: Σ w·max P, the most there is
+    choices = fixed_choices(system, Problem.PERFORMANCE)
+    best = sum(system.node[n].weight * max(c.performance for c in opts) for n, opts in choices.items())
+    at_high = solve(with_server_capacity(system, high), 1, "exact")
+    assert at_high.objective == pytest.approx(best, rel=1e-9)
+    # and one unit less cannot reach it
+    just_below = solve(with_server_capacity(system, high - 1), 1, "exact")
+    assert just_below.objective is not None and just_below.objective < best - 1e-9
+
+
+def test_frontier_points_are_proven_and_rise() -> None:
+    system = table2(4)
+    points = frontier(system, points=5)
+    values = [p.objective for p in points]
+    assert all(p.status == "optimal" and p.gap == 0 for p in points)
+    assert all(a is not None and b is not None and a <= b + 1e-9 for a, b in zip(values, values[1:], strict=False))
+    for p in points[1:4]:
+        scaled = with_server_capacity(system, p.capacity)
+        assert scaled.computer["server"].capacity == pytest.approx(p.capacity)
+        plan = solve(scaled, 1, "exact")
+        assert check_plan(scaled, plan) == []
+        assert plan.objective == pytest.approx(p.objective)
+
+
+def test_cli_pareto_writes_json_and_png(tmp_path: Path) -> None:
+    path = tmp_path / "inst2.yaml"
+    path.write_text(yaml.safe_dump(table2_instance(2)))
+    out = tmp_path / "frontier.json"
+    result = runner.invoke(app, ["solve", str(path), "--method", "exact", "--pareto", "::6", "-o", str(out)])
+    assert result.exit_code == 0, result.output
+    doc = json.loads(out.read_text())
+    assert len(doc["points"]) == 6 and doc["servers"] == ["server"]
+    assert all(p["status"] == "optimal" and p["gap"] == 0 for p in doc["points"])
+    assert (tmp_path / "frontier.png").read_bytes().startswith(b"\x89PNG")
+    low, high = capacity_range(table2(2))
+    assert doc["points"][0]["server_capacity"] == pytest.approx(low)
+    assert doc["points"][-1]["server_capacity"] == pytest.approx(high)
+
+
+@pytest.mark.parametrize("spec", ["500:400", "400:400", "x:5"])
+def test_cli_pareto_bad_range_is_one_line(tmp_path: Path, spec: str) -> None:
+    path = tmp_path / "inst1.yaml"
+    path.write_text(yaml.safe_dump(table2_instance(1)))
+    out = tmp_path / "frontier.json"
+    result = runner.invoke(app, ["solve", str(path), "--method", "exact", "--pareto", spec, "-o", str(out)])
+    assert result.exit_code == 2
+    lines = [ln for ln in result.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error:") and "Traceback" not in result.output
+    assert not out.exists()
+    result = runner.invoke(app, ["solve", str(path), "--problem", "2", "--pareto", "auto"])
+    assert result.exit_code == 2 and result.stderr.startswith("error:")
+
+
+def test_report_frontier_section_and_reader(tmp_path: Path) -> None:
+    from perfros_bag.report.html import build_report
+    from perfros_bag.solver.frontier import read_frontier
+
+    path = tmp_path / "inst1.yaml"
+    path.write_text(yaml.safe_dump(table2_instance(1)))
+    out = tmp_path / "frontier.json"
+    result = runner.invoke(app, ["solve", str(path), "--method", "exact", "--pareto", "::3", "-o", str(out)])
+    assert result.exit_code == 0, result.output
+    doc = read_frontier(out)
+    result = runner.invoke(app, ["report", "--out", str(tmp_path / "rep"), "--frontier", str(out)])
+    assert result.exit_code == 0, result.output
+    page = (tmp_path / "rep" / "index.html").read_text()
+    assert 'id="frontier"' in page and (tmp_path / "rep" / "frontier.png").read_bytes().startswith(b"\x89PNG")
+    assert page.count("<tr>") >= len(doc["points"])
+    # the reader names the broken place
+    doc["points"][1]["status"] = "great"
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps(doc))
+    with pytest.raises(InputError, match=r"points\[1\]\.status"):
+        read_frontier(bad)
+    bad.write_text(json.dumps({"format": "perfros-bag frontier 1", "points": [{"server_capacity": "<b>"}]}))
+    with pytest.raises(InputError, match="server_capacity"):
+        build_report(tmp_path / "rep2", frontier=bad)
+    assert not (tmp_path / "rep2").exists()
+
+
+def test_range_with_several_servers_in_proportion() -> None:
+    from perfros_bag.casestudy.instances import fleet_instance
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        system = parse_system(fleet_instance(40, 20, seed=2, continuous=False), "fleet.yaml")
+    servers = [c for c in system.computers if c.kind == "server"]
+    assert len(servers) == 2
+    low, high = capacity_range(system)
+    scaled = with_server_capacity(system, low)
+    total = sum(c.capacity or 0 for c in servers)
+    for c in servers:  # each server keeps its share
+        assert scaled.computer[c.name].capacity == pytest.approx(low * (c.capacity or 0) / total)
+    at_low = solve(scaled, 1, "exact")
+    assert at_low.status == "optimal" and check_plan(scaled, at_low) == []
+    choices = fixed_choices(system, Problem.PERFORMANCE)
+    best = sum(system.node[n].weight * max(c.performance for c in opts) for n, opts in choices.items())
+    at_high = solve(with_server_capacity(system, high), 1, "exact")
+    assert at_high.objective == pytest.approx(best, rel=1e-9)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 3, 6])
+def test_enumerated_frontier_matches_the_milp_point_by_point(seed: int) -> None:
+    import math
+    import random
+
+    from perfros_bag.casestudy.instances import random_instance
+    from perfros_bag.solver.frontier_dp import frontier_values
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        system = parse_system(random_instance(random.Random(seed), robots=(1, 2)), "random.yaml")
+    low, high = capacity_range(system)
+    table = frontier_values(system, high)  # Table II-sized: (2 robots + 1) ** 10 groups at most
+    assert table is not None
+    values, scale = table
+    rng = random.Random(seed)
+    for capacity in [low - 1, low, high, *(rng.randint(int(low), int(high)) for _ in range(3))]:
+        plan = solve(with_server_capacity(system, capacity), 1, "exact", time_limit=60)
+        v = values[int(math.floor(capacity * scale + 1e-6))] if capacity >= 0 else -math.inf
+        if plan.status == "infeasible":
+            assert v == -math.inf
+        else:
+            assert plan.status == "optimal"
+            assert v == pytest.approx(plan.objective, rel=1e-9, abs=1e-9)
