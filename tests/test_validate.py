@@ -423,7 +423,7 @@ def test_real_recordings_against_expected_tsv(realbags: Path, tmp_path: Path, na
     nodes = {f"n{i}": {"computer": "c", "cpu": 1, "performance": 10.0 * (i + 1), "weight": 1 / len(rows),
                        "topics": {r["topic"]: {"frequency_hz": float(r["mean_hz"]) / 0.8, "bandwidth_kBps": None}}}
              for i, r in enumerate(rows)}
-    nodes["ghost"] = {"computer": "c", "cpu": 1, "performance": 5.0, "weight": 0.0,
+    nodes["ghost"] = {"computer": "c", "cpu": 1, "performance": 5.0, "weight": 1e-12,  # weights are > 0
                       "topics": {"/not/recorded": {"frequency_hz": 1.0, "bandwidth_kBps": None}}}
     plan_path = tmp_path / "plan.json"
     plan_path.write_text(json.dumps({"format": "perfros-bag/plan@1", "problem": 1, "method": "t",

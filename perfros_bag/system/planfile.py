@@ -189,7 +189,7 @@ def _parse_node(n: Any, where: str, path: str) -> PlannedNode:
         computer=n["computer"],
         cpu=_num(n, "cpu", where, path, optional=False, nonneg=True) or 0.0,
         performance=_num(n, "performance", where, path, optional=False, nonneg=True) or 0.0,
-        weight=_num(n, "weight", where, path, optional=False, nonneg=True) or 0.0,
+        weight=_num(n, "weight", where, path, optional=False, positive=True) or 0.0,
         parameter=_text(n, "parameter", where, path), value=_num(n, "value", where, path), topics=topics,
     )
 
