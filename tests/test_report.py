@@ -15,6 +15,7 @@ from test_validate import PLAN, stats_at  # tests/ is on sys.path (no package)
 from typer.testing import CliRunner
 
 from perfros_bag.cli import app
+from perfros_bag.errors import InputError
 from perfros_bag.fitting.modelfile import MODEL_FORMAT
 from perfros_bag.report.html import build_report
 from perfros_bag.system.planfile import parse_plan
@@ -209,3 +210,20 @@ def test_validation_plot_of_many_nodes_keeps_the_largest_deviations(tmp_path: Pa
 
     width = struct.unpack(">I", png[16:20])[0]
     assert width < 100 * (0.8 * report.MAX_PLOT_NODES + 4) * 1.1  # capped, not 300 bars wide
+
+
+@pytest.mark.parametrize(("number", "needle"), [
+    ("NaN", "must be a finite number"), ("Infinity", "must be a finite number"),
+    ("1e308", "must be at most 1e+12 in magnitude"),
+])
+def test_a_validation_with_unprintable_numbers_is_refused_with_the_place(
+        tmp_path: Path, number: str, needle: str) -> None:
+    files = inputs(tmp_path)
+    doc = json.loads(files["validation"].read_text())
+    doc["nodes"][0]["p_measured"] = "__N__"
+    bad = tmp_path / "bad-validation.json"
+    bad.write_text(json.dumps(doc).replace('"__N__"', number))
+    with pytest.raises(InputError) as info:
+        build_report(tmp_path / "out", validation=bad)
+    assert str(info.value).startswith(f"{bad}: nodes[0].p_measured: {needle}")
+    assert not (tmp_path / "out" / "index.html").exists()
