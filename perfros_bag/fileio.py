@@ -173,6 +173,15 @@ def read_yaml(path: str | Path) -> Any:
         raise InputError(p, f"invalid YAML{where}: {problem}") from None
 
 
+def unknown_keys(mapping: Mapping[Any, Any], allowed: Collection[str]) -> str | None:
+    """The one wording of a YAML/JSON mapping's keys that its format does not know (None
+    when every key is allowed): ``unknown key(s) 'x', 'y' (allowed: a, b)``."""
+    unknown = sorted(str(k) for k in mapping if k not in allowed)
+    if not unknown:
+        return None
+    return f"unknown key(s) {', '.join(map(repr, unknown))} (allowed: {', '.join(sorted(allowed))})"
+
+
 def read_json(path: str | Path) -> Any:
     """Parse a JSON file; invalid JSON, nesting too deep for Python and integers too long
     for it (more than ``sys.get_int_max_str_digits()`` digits) are :class:`InputError`s.

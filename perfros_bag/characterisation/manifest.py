@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from perfros_bag.errors import InputError
-from perfros_bag.fileio import MANIFEST_KIND, expect_kind, read_yaml
+from perfros_bag.fileio import MANIFEST_KIND, expect_kind, read_yaml, unknown_keys
 from perfros_bag.system.names import NameKind, name_problem
 
 TOP_KEYS = {"system", "recordings"}
@@ -91,9 +91,9 @@ def parse_manifest(data: Any, path: Path) -> Manifest:
     expect_kind(path, data, MANIFEST_KIND, {MANIFEST_KIND})
     if not isinstance(data, Mapping):
         raise fail("", f"expected a mapping with 'recordings:', got {type(data).__name__}")
-    unknown = sorted(str(k) for k in data if k not in TOP_KEYS)
+    unknown = unknown_keys(data, TOP_KEYS)
     if unknown:
-        raise fail("", f"unknown key(s) {', '.join(map(repr, unknown))} (allowed: recordings, system)")
+        raise fail("", unknown)
     base = path.parent
     system: Path | None = None
     if data.get("system") is not None:
@@ -113,9 +113,9 @@ def parse_manifest(data: Any, path: Path) -> Manifest:
             item = {"path": item}
         if not isinstance(item, Mapping):
             raise fail(where, f"expected a mapping with 'path:', got {type(item).__name__}")
-        bad = sorted(str(k) for k in item if k not in ENTRY_KEYS)
+        bad = unknown_keys(item, ENTRY_KEYS)
         if bad:
-            raise fail(where, f"unknown key(s) {', '.join(map(repr, bad))} (allowed: {', '.join(sorted(ENTRY_KEYS))})")
+            raise fail(where, bad)
         rel = item.get("path")
         if not isinstance(rel, str) or not rel.strip():
             raise fail(f"{where}.path", f"must be a file or directory name, got {rel!r}")

@@ -32,7 +32,7 @@ from pathlib import Path
 from typing import Any
 
 from perfros_bag.errors import InputError
-from perfros_bag.fileio import read_yaml
+from perfros_bag.fileio import read_yaml, unknown_keys
 from perfros_bag.system.names import NameKind, name_problem
 
 Value = int | float | str
@@ -108,9 +108,9 @@ def parse_space(data: Any, path: Path) -> Space:
         raise fail("", "the file is empty (expected 'vary:')")
     if not isinstance(data, Mapping):
         raise fail("", f"expected a mapping with 'vary:', got {_kind(data)}")
-    unknown = sorted(str(k) for k in data if k not in TOP_KEYS)
+    unknown = unknown_keys(data, TOP_KEYS)
     if unknown:
-        raise fail("", f"unknown key(s) {', '.join(map(repr, unknown))} (allowed: {', '.join(sorted(TOP_KEYS))})")
+        raise fail("", unknown)
     duration = _number(data.get("duration_s", 20), "duration_s", fail, positive=True)
     settle = _number(data.get("settle_s", 5), "settle_s", fail, positive=False)
     timeout = _number(data.get("startup_timeout_s", 30), "startup_timeout_s", fail, positive=True)
@@ -143,9 +143,9 @@ def parse_space(data: Any, path: Path) -> Space:
 def _varied(item: Any, where: str, fail: Any) -> Varied:
     if not isinstance(item, Mapping):
         raise fail(where, f"expected a mapping {{node, parameter, arg, values}}, got {_kind(item)}")
-    bad = sorted(str(k) for k in item if k not in VARY_KEYS)
+    bad = unknown_keys(item, VARY_KEYS)
     if bad:
-        raise fail(where, f"unknown key(s) {', '.join(map(repr, bad))} (allowed: {', '.join(sorted(VARY_KEYS))})")
+        raise fail(where, bad)
     node = item.get("node")
     problem = name_problem(NameKind.GRAPH_NODE, node)
     if problem is not None or not isinstance(node, str):
@@ -155,9 +155,9 @@ def _varied(item: Any, where: str, fail: Any) -> Varied:
     pm = item.get("parameter")
     if not isinstance(pm, Mapping) or not isinstance(pm.get("name"), str) or not pm["name"].strip():
         raise fail(f"{where}.parameter", f"must be {{name: NAME, unit: UNIT}}, got {pm!r}")
-    pbad = sorted(str(k) for k in pm if k not in PARAMETER_KEYS)
+    pbad = unknown_keys(pm, PARAMETER_KEYS)
     if pbad:
-        raise fail(f"{where}.parameter", f"unknown key(s) {', '.join(map(repr, pbad))} (allowed: name, unit)")
+        raise fail(f"{where}.parameter", pbad)
     unit = pm.get("unit")
     if unit is not None and not isinstance(unit, str | int | float):
         raise fail(f"{where}.parameter.unit", f"must be a string, got {unit!r}")

@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from perfros_bag.errors import InputError, PerfrosWarning
-from perfros_bag.fileio import SYSTEM_KIND, expect_kind, file_kind, read_yaml
+from perfros_bag.fileio import SYSTEM_KIND, expect_kind, file_kind, read_yaml, unknown_keys
 from perfros_bag.fitting.modelfile import read_model_system
 from perfros_bag.limits import MAX_COEFFICIENT, MAX_MAGNITUDE, number_problem
 from perfros_bag.system.names import (
@@ -78,9 +78,9 @@ class _Ctx:
     def mapping(self, obj: Any, where: str, allowed: set[str], required: set[str] = frozenset()) -> Mapping[str, Any]:  # type: ignore[assignment]
         if not isinstance(obj, Mapping):
             raise self.fail(where, f"expected a mapping, got {_kind(obj)}")
-        unknown = sorted(str(k) for k in obj if k not in allowed)
+        unknown = unknown_keys(obj, allowed)
         if unknown:
-            raise self.fail(where, f"unknown key(s) {', '.join(repr(k) for k in unknown)} (allowed: {', '.join(sorted(allowed))})")
+            raise self.fail(where, unknown)
         missing = sorted(k for k in required if k not in obj)
         if missing:
             raise self.fail(where, f"missing required field(s) {', '.join(repr(k) for k in missing)}")
