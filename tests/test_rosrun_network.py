@@ -14,6 +14,7 @@ from __future__ import annotations
 import ipaddress
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -33,6 +34,7 @@ from perfros_bag.rosrun.network import (
     leftover_namespaces,
     plan_ends,
     plan_routes,
+    remove_leftover_namespaces,
 )
 from perfros_bag.system.types import Computer, Link, System
 
@@ -200,6 +202,8 @@ def _ip_json(*args: str) -> list[dict[str, object]]:
 
 
 def _host_state() -> tuple[list[str], str]:
+    if shutil.which("ip") is None:  # no iproute2: the network falls back (asserted by _create)
+        return [], ""
     links = sorted(str(x["ifname"]) for x in _ip_json("link", "show"))
     routes = subprocess.run(["ip", "route", "show", "table", "all"], capture_output=True, text=True,
                             timeout=10).stdout
@@ -359,7 +363,8 @@ with warnings.catch_warnings(record=True) as caught:
     warnings.simplefilter("always")
     with Network(sys.argv[1], system) as net:
         net.create()
-        sleeper = subprocess.Popen(net.wrap("robot2", ["sleep", "60"]))
+        sleeper = subprocess.Popen(net.wrap("robot2", ["sleep", "60"]), stdout=subprocess.DEVNULL,
+                                   stderr=subprocess.DEVNULL)
         print(("ready " if net.emulated else "unshaped ") + str(sleeper.pid), flush=True)
         print("\n".join(str(w.message) for w in caught), file=sys.stderr, flush=True)
         time.sleep(60)
@@ -394,4 +399,35 @@ def test_sigint_to_the_process_that_made_them_removes_everything() -> None:
     while psutil.pid_exists(int(pid)) and time.monotonic() < deadline:
         time.sleep(0.05)
     assert not psutil.pid_exists(int(pid)) or psutil.Process(int(pid)).status() == psutil.STATUS_ZOMBIE
+    _nothing_left(run_id, inodes, before)
+
+
+@pytest.mark.net
+def test_namespaces_of_a_killed_run_are_found_and_removed() -> None:
+    before = _host_state()
+    run_id = _run_id()
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    proc = subprocess.Popen([sys.executable, "-c", CHILD, run_id], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, env=env)
+    try:
+        assert proc.stdout is not None
+        state, pid = proc.stdout.readline().split()
+        proc.kill()  # SIGKILL: no cleanup runs
+        _, err = proc.communicate(timeout=20)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    if state == "unshaped":
+        assert "UNSHAPED" in err
+        return
+    made = leftover_namespaces(run_id)
+    assert made == sorted(f"pfr-{run_id}-{c}" for c in ("robot1", "server", "robot2"))
+    inodes = {os.stat(NETNS_DIR / ns).st_ino for ns in made}
+    assert int(pid) in _processes_in(inodes)  # the sleeper outlived its parent, inside robot2
+    assert remove_leftover_namespaces(run_id) == made
+    deadline = time.monotonic() + 5
+    while psutil.pid_exists(int(pid)) and psutil.Process(int(pid)).status() != psutil.STATUS_ZOMBIE \
+            and time.monotonic() < deadline:
+        time.sleep(0.05)
     _nothing_left(run_id, inodes, before)
