@@ -1,0 +1,433 @@
+"""Computers as network namespaces joined by tc-shaped links (perfros_bag/rosrun/network.py).
+
+The plan (addresses, routes) is checked without privileges against an independent
+simulation of IP forwarding. The tests marked ``net`` make real namespaces (root, as on
+CI): the addresses and routes the kernel holds (``ip -j``) against the plan, a TCP stream
+across two links, the shaped rate measured by a receiver in another namespace against the
+link's bandwidth and an unshaped control, and nothing left - no namespace, no process in one,
+no interface on the host - after success, an exception, and SIGINT to the process that made
+them. Where namespaces cannot be made here, each test asserts that the fallback is reported.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+import uuid
+import warnings
+from collections import deque
+from pathlib import Path
+
+import psutil
+import pytest
+
+from perfros_bag.errors import PerfrosWarning
+from perfros_bag.rosrun.network import (
+    SUBNET,
+    Network,
+    leftover_namespaces,
+    plan_ends,
+    plan_routes,
+    remove_leftover_namespaces,
+)
+from perfros_bag.system.types import Computer, Link, System
+
+ROOT = Path(__file__).resolve().parent.parent
+NETNS_DIR = Path("/run/netns")
+
+RECEIVER = r"""
+import json, socket, sys, time
+srv = socket.socket()
+srv.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+srv.bind((sys.argv[1], int(sys.argv[2])))
+srv.listen(1)
+srv.settimeout(10)
+print("ready", flush=True)
+conn, peer = srv.accept()
+conn.settimeout(10)
+got, first, first_len, last = 0, None, 0, None
+while True:
+    chunk = conn.recv(65536)
+    if not chunk:
+        break
+    now = time.monotonic()
+    if first is None:
+        first, first_len = now, len(chunk)
+    got += len(chunk)
+    last = now
+print(json.dumps({"bytes": got, "after_first": got - first_len, "seconds": last - first, "peer": peer[0]}))
+"""
+
+SENDER = r"""
+import socket, sys
+s = socket.create_connection((sys.argv[1], int(sys.argv[2])), timeout=10)
+s.sendall(b"x" * int(sys.argv[3]))
+s.close()
+"""
+
+
+def chain(bandwidths: tuple[float, ...] = (500.0, 2000.0), lonely: bool = False) -> System:
+    """robot1 - server - robot2 (- robot3 ...), plus a computer without links if ``lonely``."""
+    names = ["robot1", "server"] + [f"robot{k}" for k in range(2, len(bandwidths) + 1)]
+    computers = [Computer(n, "server" if n == "server" else "robot", 100.0) for n in names]
+    if lonely:
+        computers.append(Computer("lonely", "robot", 100.0))
+    links = tuple(Link((a, b), bw) for a, b, bw in zip(names, names[1:], bandwidths, strict=False))
+    return System(tuple(computers), (), links)
+
+
+def triangle_with_tail() -> System:
+    comps = tuple(Computer(n, "robot", 100.0) for n in ("a", "b", "c", "d", "e"))
+    links = (Link(("a", "b"), 100.0), Link(("b", "c"), 100.0), Link(("c", "a"), 100.0),
+             Link(("c", "d"), 100.0), Link(("d", "e"), 100.0))
+    return System(comps, (), links)
+
+
+def _run_id() -> str:
+    return "t" + uuid.uuid4().hex[:8]
+
+
+# ---- the plan, without privileges ------------------------------------------------------------
+@pytest.mark.parametrize("system", [chain(lonely=True), chain((1.0, 2.0, 3.0, 4.0)), triangle_with_tail()])
+def test_planned_addresses_and_routes_reach_exactly_the_connected_computers(system: System) -> None:
+    ends = plan_ends(system)
+    assert len(ends) == 2 * len(system.links)
+    addresses = [e.address.ip for e in ends]
+    assert len(set(addresses)) == len(addresses)
+    for i, link in enumerate(system.links):
+        a, b = (e for e in ends if e.link == i)
+        assert (a.computer, b.computer) == link.between
+        assert a.address.network == b.address.network and a.address.network.subnet_of(SUBNET)
+        assert a.peer == b.address.ip and b.peer == a.address.ip
+    assert len({e.address.network for e in ends}) == len(system.links)
+
+    # forward hop by hop through the planned tables (connected /30s, then /32 routes)
+    routes = plan_routes(system, ends)
+    owner = {e.address.ip: e.computer for e in ends}
+
+    def deliver(src: str, dst: ipaddress.IPv4Address) -> str | None:
+        at, hops = src, 0
+        while owner[dst] != at and hops <= len(system.computers):
+            mine = [e for e in ends if e.computer == at]
+            on_link = [e for e in mine if dst in e.address.network]
+            if on_link:
+                at = owner[dst]
+                break
+            via = [r for r in routes[at] if r.destination == dst]
+            if not via:
+                return None
+            assert any(r.ifname == e.ifname and r.via in e.address.network for e in mine for r in via)
+            at, hops = owner[via[0].via], hops + 1
+        return at if owner[dst] == at else None
+
+    # independent reachability: breadth-first over the links
+    def reachable(src: str) -> set[str]:
+        seen, queue = {src}, deque([src])
+        while queue:
+            cur = queue.popleft()
+            for link in system.links:
+                if cur in link.between:
+                    nxt = link.between[1] if link.between[0] == cur else link.between[0]
+                    if nxt not in seen:
+                        seen.add(nxt)
+                        queue.append(nxt)
+        return seen
+
+    for comp in system.computers:
+        for dst in addresses:
+            if owner[dst] == comp.name:
+                continue
+            expected = owner[dst] if owner[dst] in reachable(comp.name) else None
+            assert deliver(comp.name, dst) == expected, (comp.name, dst)
+
+
+def _fake_ip(tmp_path: Path) -> str:
+    fake = tmp_path / "ip"
+    fake.write_text("#!/bin/sh\necho 'mount --make-shared /run/netns failed: Operation not permitted' >&2\nexit 1\n")
+    fake.chmod(0o755)
+    return str(fake)
+
+
+def test_namespaces_refused_fall_back_to_unshaped_with_a_warning(tmp_path: Path) -> None:
+    net = Network(_run_id(), chain(), ip=_fake_ip(tmp_path))
+    with pytest.warns(PerfrosWarning, match="UNSHAPED"):
+        net.create()
+    assert not net.emulated and "Operation not permitted" in net.reason
+    assert net.wrap("robot1", ["/bin/true"]) == ["/bin/true"]
+    assert net.address("robot1") == "127.0.0.1"
+    assert net.ros_addresses("robot1", "server", 11311) == {"ROS_IP": "127.0.0.1",
+                                                           "ROS_MASTER_URI": "http://127.0.0.1:11311"}
+    assert net.describe()["mode"] == "unshaped"
+    assert net.remove() == []
+
+
+def test_missing_iproute2_falls_back_with_a_warning() -> None:
+    net = Network(_run_id(), chain(), ip="/nonexistent/ip")
+    with pytest.warns(PerfrosWarning, match="iproute2"):
+        net.create()
+    assert not net.emulated and net.namespaces == {}
+
+
+def test_a_system_without_links_has_nothing_to_emulate() -> None:
+    net = Network(_run_id(), System((Computer("r", "robot", 100.0),), ()))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        net.create()
+    assert not net.emulated and "no links" in net.reason
+
+
+# ---- real namespaces (root) --------------------------------------------------------------------
+def _create(net: Network, *, shaped: bool = True) -> bool:
+    """Create; True when namespaces were made. Otherwise the fallback must have said why."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        net.create(shaped=shaped)
+    if net.emulated:
+        return True
+    assert net.reason, "an unshaped network must say why"
+    assert any("UNSHAPED" in str(w.message) for w in caught), [str(w.message) for w in caught]
+    assert leftover_namespaces(net.run_id) == []
+    return False
+
+
+def _ip_json(*args: str) -> list[dict[str, object]]:
+    done = subprocess.run(["ip", "-j", *args], capture_output=True, text=True, timeout=10, check=True)
+    return json.loads(done.stdout or "[]")  # type: ignore[no-any-return]
+
+
+def _host_state() -> tuple[list[str], str]:
+    if shutil.which("ip") is None:  # no iproute2: the network falls back (asserted by _create)
+        return [], ""
+    links = sorted(str(x["ifname"]) for x in _ip_json("link", "show"))
+    routes = subprocess.run(["ip", "route", "show", "table", "all"], capture_output=True, text=True,
+                            timeout=10).stdout
+    return links, routes
+
+
+def _ns_inodes(net: Network) -> set[int]:
+    return {os.stat(NETNS_DIR / ns).st_ino for ns in net.namespaces.values() if (NETNS_DIR / ns).exists()}
+
+
+def _processes_in(inodes: set[int]) -> list[int]:
+    found = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                if os.stat(entry / "ns" / "net").st_ino in inodes:
+                    found.append(int(entry.name))
+            except OSError:
+                continue
+    return found
+
+
+def _nothing_left(run_id: str, inodes: set[int], host_before: tuple[list[str], str]) -> None:
+    assert leftover_namespaces(run_id) == []
+    assert _processes_in(inodes) == [], "a process still holds a namespace of the run"
+    links, routes = _host_state()
+    assert not any(name.startswith("pfr") for name in links), links
+    assert (links, routes) == host_before
+
+
+@pytest.mark.net
+def test_namespaces_hold_the_planned_addresses_and_routes_only() -> None:
+    system = chain((500.0, 2000.0), lonely=True)
+    before = _host_state()
+    with Network(_run_id(), system) as net:
+        if not _create(net):
+            return
+        inodes = _ns_inodes(net)
+        assert len(inodes) == len(system.computers)
+        assert set(net.namespaces) == {c.name for c in system.computers}
+        for comp, ns in net.namespaces.items():
+            mine = {e.ifname: e for e in net.ends if e.computer == comp}
+            held = {str(x["ifname"]): x for x in _ip_json("-n", ns, "addr", "show")}
+            assert set(held) == {"lo", *mine}
+            assert "UP" in held["lo"]["flags"]  # type: ignore[operator]
+            for ifname, end in mine.items():
+                addrs = [(a["family"], a["local"], a["prefixlen"]) for a in held[ifname]["addr_info"]]  # type: ignore[union-attr]
+                assert addrs == [("inet", str(end.address.ip), 30)], (comp, ifname, addrs)  # IPv6 off
+            # routes: the connected /30s and the planned /32s, all inside the run's /16
+            table = _ip_json("-n", ns, "route", "show")
+            assert all(r["dst"] != "default" for r in table)
+            dests = {ipaddress.ip_network(str(r["dst"])) for r in table}
+            assert all(d.subnet_of(SUBNET) for d in dests), dests
+            assert dests == ({e.address.network for e in mine.values()}
+                             | {ipaddress.ip_network(f"{r.destination}/32") for r in net.routes[comp]})
+            for r in table:
+                if str(r["dst"]).count(".") == 3 and "/" not in str(r["dst"]):
+                    assert any(str(p.via) == r["gateway"] and p.ifname == r["dev"] for p in net.routes[comp])
+            # nothing else is reachable: the kernel has no route to an outside address
+            outside = subprocess.run(["ip", "-n", ns, "route", "get", "192.0.2.1"], capture_output=True, text=True,
+                                     timeout=10)
+            assert outside.returncode != 0 and "unreachable" in outside.stderr.lower()
+        assert net.routes["robot1"] and net.address("lonely") == "127.0.0.1"
+        assert net.ros_addresses("robot1", "robot2", 11311) == {
+            "ROS_IP": net.address("robot1"), "ROS_MASTER_URI": f"http://{net.address('robot2')}:11311"}
+
+        # two links away: robot1 -> robot2 through the server, seen on the server's counters
+        server = net.namespaces["server"]
+        rx0 = {str(x["ifname"]): x["stats64"]["rx"]["bytes"] for x in _ip_json("-s", "-n", server, "link")}  # type: ignore[index]
+        got = _transfer(net, "robot1", "robot2", 50_000)
+        assert got["bytes"] == 50_000 and got["peer"] == net.address("robot1")
+        rx1 = {str(x["ifname"]): x["stats64"]["rx"]["bytes"] for x in _ip_json("-s", "-n", server, "link")}  # type: ignore[index]
+        assert rx1["pfr-l0"] - rx0["pfr-l0"] >= 50_000  # robot1's data in on link 0 ...
+        assert rx1["pfr-l1"] > rx0["pfr-l1"]  # ... and robot2's acknowledgements in on link 1
+    _nothing_left(net.run_id, inodes, before)
+
+
+def _transfer(net: Network, src: str, dst: str, size: int, port: int = 5001) -> dict[str, float | str]:
+    """``size`` bytes over TCP from a sender on ``src`` to a receiver on ``dst``."""
+    recv = subprocess.Popen(net.wrap(dst, [sys.executable, "-c", RECEIVER, net.address(dst), str(port)]),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert recv.stdout is not None
+        assert recv.stdout.readline().strip() == "ready"
+        subprocess.run(net.wrap(src, [sys.executable, "-c", SENDER, net.address(dst), str(port), str(size)]),
+                       check=True, timeout=15, capture_output=True)
+        out, err = recv.communicate(timeout=15)
+        assert recv.returncode == 0, err
+    finally:
+        if recv.poll() is None:
+            recv.kill()
+            recv.wait()
+    return json.loads(out)  # type: ignore[no-any-return]
+
+
+def _tbf_sent_bytes(net: Network, comp: str, ifname: str) -> int:
+    done = subprocess.run(["tc", "-j", "-s", "-n", net.namespaces[comp], "qdisc", "show", "dev", ifname],
+                          capture_output=True, text=True, timeout=10, check=True)
+    return sum(int(q["bytes"]) for q in json.loads(done.stdout) if q["kind"] == "tbf")
+
+
+@pytest.mark.net
+def test_links_are_shaped_to_their_bandwidth_in_both_directions() -> None:
+    rate_kBps, size = 500.0, 400_000
+    system = System((Computer("robot1", "robot", 100.0), Computer("server", "server", 400.0)), (),
+                    (Link(("robot1", "server"), rate_kBps),))
+    before = _host_state()
+    with Network(_run_id(), system) as net:
+        if not _create(net, shaped=False):
+            return
+        inodes = _ns_inodes(net)
+        control = _transfer(net, "robot1", "server", size)
+        control_kBps = float(control["after_first"]) / max(float(control["seconds"]), 1e-6) / 1000
+        net.apply()
+        for src, dst in (("robot1", "server"), ("server", "robot1")):
+            sent0 = _tbf_sent_bytes(net, src, "pfr-l0")
+            got = _transfer(net, src, dst, size)
+            assert got["bytes"] == size and got["peer"] == net.address(src)
+            measured_kBps = float(got["after_first"]) / float(got["seconds"]) / 1000
+            # tbf counts whole frames: TCP payload is ~96 % of the rate
+            assert abs(measured_kBps / rate_kBps - 1) < 0.25, (src, dst, measured_kBps)
+            assert measured_kBps < control_kBps / 4, (measured_kBps, control_kBps)
+            assert _tbf_sent_bytes(net, src, "pfr-l0") - sent0 >= size  # it went through the qdisc
+    _nothing_left(net.run_id, inodes, before)
+
+
+@pytest.mark.net
+def test_an_exception_removes_everything_and_kills_what_runs_inside() -> None:
+    before = _host_state()
+    net = Network(_run_id(), chain((100.0, 100.0, 100.0)))
+    sleeper: subprocess.Popen[bytes] | None = None
+    inodes: set[int] = set()
+    with pytest.raises(RuntimeError, match="boom"), net:
+        if not _create(net):
+            raise RuntimeError("boom (unshaped)")
+        inodes = _ns_inodes(net)
+        sleeper = subprocess.Popen(net.wrap("server", ["sleep", "60"]))
+        deadline = time.monotonic() + 5
+        while not _processes_in(inodes) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert _processes_in(inodes) == [sleeper.pid]
+        raise RuntimeError("boom")
+    if sleeper is not None:
+        assert sleeper.wait(5) == -signal.SIGKILL
+        assert net.killed == [sleeper.pid]
+    _nothing_left(net.run_id, inodes, before)
+
+
+CHILD = r"""
+import subprocess, sys, time, warnings
+from perfros_bag.rosrun.network import Network
+from perfros_bag.system.types import Computer, Link, System
+system = System((Computer("robot1", "robot", 100.0), Computer("server", "server", 400.0),
+                 Computer("robot2", "robot", 100.0)), (),
+                (Link(("robot1", "server"), 500.0), Link(("server", "robot2"), 500.0)))
+with warnings.catch_warnings(record=True) as caught:
+    warnings.simplefilter("always")
+    with Network(sys.argv[1], system) as net:
+        net.create()
+        sleeper = subprocess.Popen(net.wrap("robot2", ["sleep", "60"]), stdout=subprocess.DEVNULL,
+                                   stderr=subprocess.DEVNULL)
+        print(("ready " if net.emulated else "unshaped ") + str(sleeper.pid), flush=True)
+        print("\n".join(str(w.message) for w in caught), file=sys.stderr, flush=True)
+        time.sleep(60)
+"""
+
+
+@pytest.mark.net
+def test_sigint_to_the_process_that_made_them_removes_everything() -> None:
+    before = _host_state()
+    run_id = _run_id()
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    proc = subprocess.Popen([sys.executable, "-c", CHILD, run_id], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, env=env)
+    try:
+        assert proc.stdout is not None
+        state, pid = proc.stdout.readline().split()
+        if state == "unshaped":
+            proc.send_signal(signal.SIGINT)
+            _, err = proc.communicate(timeout=20)
+            assert "UNSHAPED" in err
+            return
+        inodes = {os.stat(NETNS_DIR / ns).st_ino for ns in leftover_namespaces(run_id)}
+        assert len(inodes) == 3 and int(pid) in _processes_in(inodes)
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=20)
+        assert proc.returncode != 0 and "KeyboardInterrupt" in err
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    deadline = time.monotonic() + 5
+    while psutil.pid_exists(int(pid)) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not psutil.pid_exists(int(pid)) or psutil.Process(int(pid)).status() == psutil.STATUS_ZOMBIE
+    _nothing_left(run_id, inodes, before)
+
+
+@pytest.mark.net
+def test_namespaces_of_a_killed_run_are_found_and_removed() -> None:
+    before = _host_state()
+    run_id = _run_id()
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    proc = subprocess.Popen([sys.executable, "-c", CHILD, run_id], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, env=env)
+    try:
+        assert proc.stdout is not None
+        state, pid = proc.stdout.readline().split()
+        proc.kill()  # SIGKILL: no cleanup runs
+        _, err = proc.communicate(timeout=20)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    if state == "unshaped":
+        assert "UNSHAPED" in err
+        return
+    made = leftover_namespaces(run_id)
+    assert made == sorted(f"pfr-{run_id}-{c}" for c in ("robot1", "server", "robot2"))
+    inodes = {os.stat(NETNS_DIR / ns).st_ino for ns in made}
+    assert int(pid) in _processes_in(inodes)  # the sleeper outlived its parent, inside robot2
+    assert remove_leftover_namespaces(run_id) == made
+    deadline = time.monotonic() + 5
+    while psutil.pid_exists(int(pid)) and psutil.Process(int(pid)).status() != psutil.STATUS_ZOMBIE \
+            and time.monotonic() < deadline:
+        time.sleep(0.05)
+    _nothing_left(run_id, inodes, before)
