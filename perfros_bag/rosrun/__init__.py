@@ -6,4 +6,6 @@
   calls to the master and to nodes.
 - :mod:`~perfros_bag.rosrun.recorders` - ``rosbag record`` and ``perfros-bag record-cpu``.
 - :mod:`~perfros_bag.rosrun.cgroups` - computers emulated as CPU-capped cgroups.
+- :mod:`~perfros_bag.rosrun.network` - computers as network namespaces joined by tc-shaped
+  veth links (10.213.0.0/16; not yet used by a launcher).
 """
