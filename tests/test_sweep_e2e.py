@@ -337,7 +337,10 @@ def test_a_node_dying_mid_run_is_one_line_and_leaves_nothing(tmp_path: Path) -> 
     assert proc.returncode == 2, stderr
     lines = [x for x in stderr.splitlines() if x.strip()]
     assert len(lines) == 1 and lines[0].startswith("error: run camera-publish_rate-10: "), stderr
-    assert "detector" in lines[0] and "during the recording" in lines[0], lines[0]
+    # the recorder process is up when the detector is killed; whether rosbag had subscribed yet
+    # (the runner's last wait) or was recording is a race on a loaded machine: both are mid-run
+    assert "node /detector" in lines[0], lines[0]
+    assert "during the recording" in lines[0] or "while waiting for rosbag record" in lines[0], lines[0]
     _nothing_left(out, tags, ports)
     _one_line_then_consistent(out, ["camera-publish_rate-5.bag"])
 
