@@ -21,6 +21,8 @@ from perfros_bag.ingest.stats import RecordingStats
 from tests.ingest_gen import (
     Expected,
     Msg,
+    anyreader_decode,
+    by_topic,
     expected,
     random_msgs,
     write_mcap,
@@ -333,3 +335,23 @@ def test_sqlite_pages_every_integer_width(tmp_path: Path) -> None:
         rec = read_recording(db, fast=fast)
         assert rec.method == ("sqlite-pages" if fast else "stream")
         assert {k: (t.messages, t.bytes, t.times_ns.tolist()) for k, t in rec.topics.items()} == truth
+
+
+@pytest.mark.parametrize("compression", ["message", None])
+def test_a_loose_rosbag2_mcap_file_reports_what_its_directory_reports(tmp_path: Path, compression: str | None) -> None:
+    """A rosbag2 MCAP storage file read on its own (no metadata.yaml beside it) says in its
+    ``rosbag2`` Metadata record whether each payload is a zstd frame: the sizes are then the
+    decompressed ones, as when the directory is read, and as rosbags' AnyReader decodes them.
+    The chunk-range (split) read agrees."""
+    from perfros_bag.ingest.split import read_split
+
+    rng = np.random.default_rng(7)
+    msgs = random_msgs(rng, 300, topics=3, max_size=400)
+    bag = write_rosbag2(tmp_path / "bag", msgs, storage="mcap", compression=compression)
+    loose = tmp_path / "loose.mcap"
+    shutil.copy(next(bag.glob("*.mcap")), loose)
+    reference = anyreader_decode(bag)
+    assert by_topic(read_recording(bag)) == reference
+    for fast in (True, False):
+        assert by_topic(read_recording(loose, fast=fast)) == reference, fast
+    assert by_topic(read_split(loose, target_bytes=1)) == reference

@@ -44,6 +44,9 @@ from perfros_bag.ingest._accum import (
 MAGIC = MCAP_MAGIC
 OP_HEADER, OP_FOOTER, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_CHUNK = 1, 2, 3, 4, 5, 6
 OP_MESSAGE_INDEX, OP_CHUNK_INDEX, OP_STATISTICS, OP_DATA_END = 7, 8, 11, 15
+OP_METADATA, OP_METADATA_INDEX = 12, 13
+#: the Metadata record in which rosbag2's MCAP storage keeps the bag's metadata.yaml
+ROSBAG2_METADATA = "rosbag2"
 MSG_HEADER = 22  # channel u16 + sequence u32 + log_time u64 + publish_time u64
 _U16, _U32, _U64 = struct.Struct("<H"), struct.Struct("<I"), struct.Struct("<Q")
 Buf = bytes | memoryview | mmap.mmap
@@ -117,6 +120,8 @@ class Summary:
     channels: Mapping[int, Channel]
     chunk_indexes: tuple[ChunkIndex, ...]
     message_count: int | None
+    #: (offset, length) of the Metadata record named ``rosbag2`` (a rosbag2 MCAP file), or None
+    rosbag2_metadata: tuple[int, int] | None = None
 
     def chunk_sizes(self) -> tuple[int, ...]:
         """Bytes of file each chunk takes with its message indexes (at least 1)."""
@@ -322,6 +327,7 @@ def read_summary(mm: mmap.mmap) -> Summary:
     st = _State()
     chunks: list[ChunkIndex] = []
     count: int | None = None
+    rosbag2_metadata: tuple[int, int] | None = None
     pos = summary_start
     while pos < end:
         op, start, length = record_at(mm, pos, end)
@@ -347,7 +353,58 @@ def read_summary(mm: mmap.mmap) -> Summary:
             chunks.append(ChunkIndex(cstart, clen, offsets, ilen, compression, usize))
         elif op == OP_STATISTICS:
             count = _Cursor(mm, start, start + length).u64()
-    return Summary(st.schemas, st.channels, tuple(chunks), count)
+        elif op == OP_METADATA_INDEX:
+            c = _Cursor(mm, start, start + length)
+            moffset, mlength = c.u64(), c.u64()
+            if c.string() == ROSBAG2_METADATA:
+                rosbag2_metadata = (moffset, mlength)
+    return Summary(st.schemas, st.channels, tuple(chunks), count, rosbag2_metadata)
+
+
+def rosbag2_message_compressed(mm: mmap.mmap, summary: Summary | None = None) -> bool:
+    """Whether the MCAP file in ``mm`` is a rosbag2 storage file written with per-message
+    compression (its ``rosbag2`` Metadata record says ``compression_mode: message``): then
+    each payload is a zstd frame and the sizes to report are the decompressed ones, as for
+    the same file inside its rosbag2 directory. Found through the summary's metadata index;
+    a file without one (or with a damaged one) is taken as not compressed. ``summary``:
+    the file's summary when the caller has read it already."""
+    if summary is None:
+        try:
+            summary = read_summary(mm)
+        except (NoIndex, Damaged):
+            return False
+    if summary.rosbag2_metadata is None:
+        return False
+    offset, length = summary.rosbag2_metadata
+    try:
+        op, start, rlen = record_at(mm, offset, min(len(mm), offset + length))
+        if op != OP_METADATA:
+            return False
+        c = _Cursor(mm, start, start + rlen)
+        if c.string() != ROSBAG2_METADATA:
+            return False
+        map_end = c.u32() + c.pos
+        text = None
+        while c.pos < map_end:
+            key, value = c.string(), c.string()
+            if key == "serialized_metadata":
+                text = value
+    except (Damaged, UnicodeDecodeError):
+        return False
+    if text is None:
+        return False
+    import yaml
+
+    try:
+        meta = yaml.safe_load(text)
+    except yaml.YAMLError:
+        return False
+    if not isinstance(meta, dict):
+        return False
+    info = meta.get("rosbag2_bagfile_information", meta)  # metadata.yaml's top key, when present
+    mode = str(info.get("compression_mode") or "").lower() if isinstance(info, dict) else ""
+    fmt = str(info.get("compression_format") or "").lower() if isinstance(info, dict) else ""
+    return mode == "message" and fmt == "zstd"
 
 
 def read_chunks(mm: mmap.mmap, summary: Summary, message_zstd: bool = False) -> Accumulator:
