@@ -116,7 +116,7 @@ def test_solve_exact_uses_the_decomposition_on_a_fleet() -> None:
     # the LP relaxation of the whole model is a bound too; the Lagrangian one is at least as tight
     from perfros_bag.solver import exact as exact_mod
 
-    inst = exact_mod._prepare(system, Problem.PERFORMANCE, choices)
+    inst = exact_mod.prepare_instance(system, Problem.PERFORMANCE, choices)
     assert not isinstance(inst, str)
     lp = exact_mod._build(inst).milp.solve(True, time_limit=None, mip_gap=0.0, relax=True)
     assert plan.bound <= lp.getInfo().objective_function_value + 1e-6

@@ -210,7 +210,7 @@ def _mcap_summary(path: Path) -> tuple[Any, Typestore]:
     return summary, _mcap_typestore(summary.schemas.values())
 
 
-def _mcap_types(path: Path) -> dict[str, TopicType]:
+def mcap_types(path: Path) -> dict[str, TopicType]:
     from rosbags.typesys.msg import normalize_msgtype
 
     summary, typestore = _mcap_summary(path)
@@ -281,7 +281,7 @@ def topic_types(path: Path) -> dict[str, TopicType]:
                 raise
     out: dict[str, TopicType] = {}
     for f in _mcap_files(path):
-        for topic, tt in _mcap_types(f).items():
+        for topic, tt in mcap_types(f).items():
             out.setdefault(topic, tt)
     return out
 

@@ -196,10 +196,10 @@ def cdr_stamps(payload: U8, starts: I64) -> I64:
 def mcap_stamps(mm: mmap.mmap, path: Path) -> tuple[Stamps, dict[str, TopicType]]:
     """Stamps of the stamped channels (``cdr`` or ``ros1`` payloads) of an MCAP file from
     its summary and message indexes; only the chunks holding them are decompressed."""
-    from perfros_bag.ingest.decode import _mcap_types
+    from perfros_bag.ingest.decode import mcap_types
 
     summary = mcapfile.read_summary(mm)
-    types = _mcap_types(path)
+    types = mcap_types(path)
     wanted = {cid: ch for cid, ch in summary.channels.items()
               if types.get(ch.topic) is not None and types[ch.topic].stamped}
     encodings = {cid: types[ch.topic].encoding for cid, ch in wanted.items()}

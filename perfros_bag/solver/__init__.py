@@ -62,7 +62,7 @@ def _match_cpu(system: System, node: Node, cpu: float, resolution: float) -> Cho
     if node.curve is not None:
         lo, hi = node.curve.domain
         if lo - 1e-6 <= cpu <= hi + 1e-6:
-            return node._choice_at(0, min(max(cpu, lo), hi))
+            return node.choice_at(0, min(max(cpu, lo), hi))
         raise InputError(_where(system), f"node {node.name!r}: setting CPU {cpu:g} is outside its curve's range [{lo:g}, {hi:g}]")
     have = ", ".join(f"{c.cpu:g}" for c in choices)
     raise InputError(_where(system), f"node {node.name!r}: no setting with CPU {cpu:g} (its settings' CPU: {have})")

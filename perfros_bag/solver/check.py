@@ -33,7 +33,7 @@ def _node_choice(node: Node, cpu: float, performance: float, tol: float) -> Choi
         lo, hi = node.curve.domain
         if lo - tol * max(1.0, abs(lo)) <= cpu <= hi + tol * max(1.0, abs(hi)):
             if _close(node.curve(min(max(cpu, lo), hi)), performance, tol):
-                return node._choice_at(0, min(max(cpu, lo), hi))
+                return node.choice_at(0, min(max(cpu, lo), hi))
     return None
 
 

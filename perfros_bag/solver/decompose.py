@@ -12,7 +12,7 @@ share (the servers) and the network. This solver splits the instance that way:
 - Each block's subproblem, given prices ``λ`` per relaxed computer, is a multiple-choice
   knapsack on its robot (each group: a setting on the robot, or "offloaded": its best
   relaxed computer and settings at value ``w·P - λ·U``), solved exactly by dynamic
-  programming on the CPU grid (``local._combine``, greedy+'s knapsack step). A group
+  programming on the CPU grid (``local.combine_tables``, greedy+'s knapsack step). A group
   that belongs to no block (a camera tracker) is its own subproblem. Identical
   subproblems (same nodes' choices, weights, computers, capacity: identical trackers,
   robots of equal capacity) are aggregated into one class with a count.
@@ -25,7 +25,7 @@ share (the servers) and the network. This solver splits the instance that way:
   solves with the paper's greedy's plan as its start: its answer is the plan.
 
 The network is not in the decomposition: it is used only when no link or medium could
-ever overflow (``exact._active_links`` is empty: the fleet's wifi carries a few kB/s per
+ever overflow (``exact.active_links`` is empty: the fleet's wifi carries a few kB/s per
 robot), and the plan is checked against it all the same. :func:`decomposable` says
 whether an instance qualifies; otherwise ``solve --method exact`` uses the MILP.
 """
@@ -43,8 +43,8 @@ import numpy as np
 
 from perfros_bag.solver import Progress
 from perfros_bag.solver import exact as exact_mod
-from perfros_bag.solver.exact import _Group, _Instance, quiet_highs
-from perfros_bag.solver.local import _combine
+from perfros_bag.solver.exact import Group, Instance, quiet_highs
+from perfros_bag.solver.local import combine_tables
 from perfros_bag.system.plan import Assignment, Method, Plan, Status
 from perfros_bag.system.rules import build_plan, computer_loads, weighted_performance
 from perfros_bag.system.types import Choice, Problem, System
@@ -103,20 +103,20 @@ class _Column:
 
 @dataclass
 class _Model:
-    inst: _Instance
+    inst: Instance
     relaxed: list[str]
     cap: np.ndarray  # per relaxed computer
     classes: list[_Class]
 
 
-def _scale(cpus: Sequence[float]) -> int | None:
+def cpu_grid_scale(cpus: Sequence[float]) -> int | None:
     for s in GRID_SCALES:
         if all(abs(u * s - round(u * s)) < 1e-6 for u in cpus):
             return s
     return None
 
 
-def _home_options(inst: _Instance, members: tuple[str, ...], scale: int) -> tuple[np.ndarray, np.ndarray,
+def home_options(inst: Instance, members: tuple[str, ...], scale: int) -> tuple[np.ndarray, np.ndarray,
                                                                             list[tuple[int, ...]]] | None:
     """A group's settings on its robot: every combination of its members' choices, keeping
     for each CPU the best value (and nothing dominated)."""
@@ -141,7 +141,7 @@ def _home_options(inst: _Instance, members: tuple[str, ...], scale: int) -> tupl
     return (np.array(keep, dtype=np.int64), np.array([best[u][0] for u in keep]), [best[u][1] for u in keep])
 
 
-def _model(system: System, inst: _Instance) -> _Model | str:
+def _model(system: System, inst: Instance) -> _Model | str:
     """The blocks and classes of a prepared instance, or why it does not decompose."""
     kind = {c.name: c.kind for c in system.computers}
     robots_of = {g.members: [c for c in g.allowed if kind[c] == "robot"] for g in inst.groups}
@@ -151,30 +151,30 @@ def _model(system: System, inst: _Instance) -> _Model | str:
             private -= set(robots_of[g.members])
     relaxed = [c.name for c in system.computers if c.name not in private]
     rindex = {c: i for i, c in enumerate(relaxed)}
-    blocks: dict[str, list[_Group]] = {c: [] for c in private}
-    lone: list[_Group] = []
+    blocks: dict[str, list[Group]] = {c: [] for c in private}
+    lone: list[Group] = []
     for g in inst.groups:
         home = robots_of[g.members][0] if len(robots_of[g.members]) == 1 else None
         (blocks[home] if home in private else lone).append(g)
     cpus = [ch.cpu for g in inst.groups for n in g.members for ch in inst.choices[n]]
-    scale = _scale(cpus)
+    scale = cpu_grid_scale(cpus)
     if scale is None:
         return "CPU levels are not on a grid of at most 1/10 unit"
     if any(inst.cap[c] * scale > MAX_CELLS for c in private):
         return f"a robot's capacity exceeds {MAX_CELLS} grid cells"
 
-    def item(g: _Group, home: str | None) -> _Item | None:
+    def item(g: Group, home: str | None) -> _Item | None:
         relaxed_ok = np.array([rindex[c] for c in g.allowed if c in rindex], dtype=np.int64)
         mc = [np.array([ch.cpu for ch in inst.choices[n]]) for n in g.members]
         mv = [np.array([system.node[n].weight * ch.performance for ch in inst.choices[n]]) for n in g.members]
         if home is None:
             return _Item(g.members, relaxed_ok, np.zeros(0, dtype=np.int64), np.zeros(0), [], mc, mv)
-        opts = _home_options(inst, g.members, scale)
+        opts = home_options(inst, g.members, scale)
         if opts is None:
             return None
         return _Item(g.members, relaxed_ok, opts[0], opts[1], opts[2], mc, mv)
 
-    def signature(g: _Group) -> tuple[Any, ...]:
+    def signature(g: Group) -> tuple[Any, ...]:
         return tuple((system.node[n].weight, tuple((ch.cpu, ch.performance) for ch in inst.choices[n]))
                      for n in g.members) + (tuple(c for c in g.allowed if c in rindex),)
 
@@ -218,8 +218,8 @@ def decomposable(system: System, problem: Problem, choices: dict[str, list[Choic
     exact solver (which names the constraint)."""
     if problem != Problem.PERFORMANCE:
         return False
-    inst = exact_mod._prepare(system, problem, choices)
-    if isinstance(inst, str) or exact_mod._active_links(inst):
+    inst = exact_mod.prepare_instance(system, problem, choices)
+    if isinstance(inst, str) or exact_mod.active_links(inst):
         return False
     return not isinstance(_model(system, inst), str)
 
@@ -255,7 +255,7 @@ def _price(model: _Model, ci: int, lam: np.ndarray) -> tuple[float, _Column]:
         if len(it.home_units):
             units = np.concatenate([[0], it.home_units])
             values = np.concatenate([[off], it.home_values])
-            table, arg = _combine(table, units, values)
+            table, arg = combine_tables(table, units, values)
         else:
             table, arg = table + off, np.zeros(len(table), dtype=np.int64)
         steps.append((it, arg))
@@ -347,7 +347,7 @@ def _near_columns(model: _Model, lam: np.ndarray, priced: Sequence[tuple[float, 
             options.append(opts)
             units = np.concatenate([[0], it.home_units]).astype(np.int64)
             values = np.concatenate([[best_off], it.home_values])
-            tables.append(_combine(tables[-1], units, values)[0])
+            tables.append(combine_tables(tables[-1], units, values)[0])
         stack: list[tuple[int, int, float, tuple[tuple[int, tuple[int, ...]], ...]]] = [
             (len(cl.items) - 1, cl.cap_units, 0.0, ())]
         while stack:
@@ -482,7 +482,7 @@ def _assignment(model: _Model, counts: Sequence[float], columns: Sequence[_Colum
     return Assignment(placement, choice, {})
 
 
-def _start(master: _Master, model: _Model, inst: _Instance, incumbent: Assignment) -> dict[int, float]:
+def _start(master: _Master, model: _Model, inst: Instance, incumbent: Assignment) -> dict[int, float]:
     """The incumbent as counts of the master's columns (its columns added when missing)."""
     cols = _column_of(model, incumbent, _positions(inst, incumbent))
     master.add(cols)
@@ -494,7 +494,7 @@ def _start(master: _Master, model: _Model, inst: _Instance, incumbent: Assignmen
     return start
 
 
-def _positions(inst: _Instance, assignment: Assignment) -> dict[str, int]:
+def _positions(inst: Instance, assignment: Assignment) -> dict[str, int]:
     """Each node's position among its kept choices (the assignment uses kept choices)."""
     return {n: next(i for i, c in enumerate(inst.choices[n]) if c is ch) for n, ch in assignment.choice.items()}
 
@@ -527,8 +527,8 @@ def solve_decomposed(system: System, problem: Problem, choices: dict[str, list[C
 
     if problem != Problem.PERFORMANCE:
         return None
-    inst = exact_mod._prepare(system, problem, choices)
-    if isinstance(inst, str) or exact_mod._active_links(inst):
+    inst = exact_mod.prepare_instance(system, problem, choices)
+    if isinstance(inst, str) or exact_mod.active_links(inst):
         return None
     model = _model(system, inst)
     if isinstance(model, str):
@@ -542,7 +542,7 @@ def solve_decomposed(system: System, problem: Problem, choices: dict[str, list[C
     incumbent: Assignment | None = None
     if greedy.status != Status.INFEASIBLE:
         raw = start_of(greedy, choices)
-        mapped = exact_mod._start_assignment(inst, raw) if raw is not None else None
+        mapped = exact_mod.start_assignment(inst, raw) if raw is not None else None
         if mapped is not None:
             incumbent = mapped[0]
             master.add(_column_of(model, *mapped))

@@ -182,21 +182,21 @@ class _Milp:
 
 
 @dataclass
-class _Group:
+class Group:
     members: tuple[str, ...]
     allowed: tuple[str, ...]  # computers every member may use (eq 8) and that can hold it
     z: dict[str, int] = field(default_factory=dict)  # computer -> column (groups of >= 2)
 
 
 @dataclass
-class _Instance:
+class Instance:
     system: System
     problem: Problem
     original: dict[str, list[Choice]]  # the candidates as given
     choices: dict[str, list[Choice]]  # kept choices (usable, non-dominated)
     replace: dict[str, dict[int, int]]  # node -> original position -> kept position
-    groups: list[_Group]
-    group_of: dict[str, _Group]
+    groups: list[Group]
+    group_of: dict[str, Group]
     cap: dict[str, float]  # the most CPU a computer can ever hold (inf: unbounded server)
     min_cpu: dict[str, float]
     cut: dict[int, frozenset[str]]  # link -> one side, for links in the cut form
@@ -271,14 +271,14 @@ def _classify_links(system: System) -> tuple[dict[int, frozenset[str]], dict[int
     return cut, pairs
 
 
-def _prepare(system: System, problem: Problem, choices: dict[str, list[Choice]]) -> _Instance | str:
+def prepare_instance(system: System, problem: Problem, choices: dict[str, list[Choice]]) -> Instance | str:
     """Prune the instance; returns a reason string when it is infeasible on its face."""
     cap = system.capacities(problem)
     missing = [n.name for n in system.nodes if not choices.get(n.name)]
     if missing:
         raise InputError(system.source, f"node(s) {', '.join(map(repr, missing))} have no choice to solve with")
     min_cpu = {n: min(ch.cpu for ch in opts) for n, opts in choices.items()}
-    groups: list[_Group] = []
+    groups: list[Group] = []
     for members in system.coresidence_groups:
         allowed = system.allowed_to_all(members)
         who = ", ".join(members)
@@ -296,11 +296,11 @@ def _prepare(system: System, problem: Problem, choices: dict[str, list[Choice]])
                 return f"{who} needs {need:g} CPU on {biggest} ({why}) but {biggest} has {cap[biggest]:g}"
             return (f"{who} needs {need:g} CPU at its minimum setting but the largest computer allowed "
                     f"for it, {biggest}, has {cap[biggest]:g}")
-        groups.append(_Group(tuple(members), tuple(fits)))
+        groups.append(Group(tuple(members), tuple(fits)))
     group_of = {n: g for g in groups for n in g.members}
 
     # residence: nodes (groups) that can only go to one computer must fit on it together
-    forced: dict[str, list[_Group]] = {}
+    forced: dict[str, list[Group]] = {}
     for g in groups:
         if len(g.allowed) == 1:
             forced.setdefault(g.allowed[0], []).append(g)
@@ -325,11 +325,11 @@ def _prepare(system: System, problem: Problem, choices: dict[str, list[Choice]])
             others = sum(min_cpu[m] for m in g.members if m != n)
             kept[n], replace[n] = _prune_choices(system, problem, n, choices[n], room - others)
     cut, pairs = _classify_links(system)
-    inst = _Instance(system, problem, choices, kept, replace, groups, group_of, cap, min_cpu, cut, pairs)
+    inst = Instance(system, problem, choices, kept, replace, groups, group_of, cap, min_cpu, cut, pairs)
     return _network_precheck(inst) or inst
 
 
-def _crossing_always(inst: _Instance, edge: Edge, li: int) -> bool | None:
+def _crossing_always(inst: Instance, edge: Edge, li: int) -> bool | None:
     """True when the edge crosses link ``li`` wherever its ends go, False when it never
     can, None otherwise."""
     a_s = inst.group_of[edge.src].allowed
@@ -354,7 +354,7 @@ def _link_name(system: System, li: int) -> str:
     return f"link {a}-{b}"
 
 
-def _network_precheck(inst: _Instance) -> str | None:
+def _network_precheck(inst: Instance) -> str | None:
     system = inst.system
     for e in system.edges:
         gs, gd = inst.group_of[e.src], inst.group_of[e.dst]
@@ -376,7 +376,7 @@ def _network_precheck(inst: _Instance) -> str | None:
     return None
 
 
-def _load_bounds(inst: _Instance, *, forced: bool) -> tuple[list[float], list[list[str]]]:
+def _load_bounds(inst: Instance, *, forced: bool) -> tuple[list[float], list[list[str]]]:
     """Per link, a bound on its load and the edges (``src->dst``) in it: with ``forced``,
     the least load (the edges that cross it wherever their ends go, at their publishers'
     least traffic); otherwise the most (every edge that may cross it, at the most traffic)."""
@@ -411,7 +411,7 @@ class _Built:
     compact: dict[tuple[str, str], tuple[int, int]] = field(default_factory=dict)
 
 
-def _active_links(inst: _Instance) -> set[int]:
+def active_links(inst: Instance) -> set[int]:
     """Links (by index) whose bandwidth, or whose medium's, could ever be exceeded: the
     others need no rows at all."""
     system = inst.system
@@ -423,7 +423,7 @@ def _active_links(inst: _Instance) -> set[int]:
     return active
 
 
-def _modelled_edges(inst: _Instance, active: set[int]) -> list[int]:
+def _modelled_edges(inst: Instance, active: set[int]) -> list[int]:
     system = inst.system
     out = []
     for ei, e in enumerate(system.edges):
@@ -436,7 +436,7 @@ def _modelled_edges(inst: _Instance, active: set[int]) -> list[int]:
     return out
 
 
-def _grid(inst: _Instance, node: str, modelled: Sequence[int]) -> tuple[float, float] | None:
+def _grid(inst: Instance, node: str, modelled: Sequence[int]) -> tuple[float, float] | None:
     """``(lo, step)`` when the node's kept choices are ``lo + step·m`` (m = 0..M), with a
     concave performance sequence and constant traffic on every modelled edge: then the
     compact form (a placement binary, an integer level and the concave envelope, which is
@@ -461,13 +461,13 @@ def _grid(inst: _Instance, node: str, modelled: Sequence[int]) -> tuple[float, f
     return lo, step
 
 
-def _build(inst: _Instance, *, elastic: bool = False, compact_form: bool = False) -> _Built:
+def _build(inst: Instance, *, elastic: bool = False, compact_form: bool = False) -> _Built:
     system, problem = inst.system, inst.problem
     milp = _Milp()
     x: dict[tuple[str, int, str], int] = {}
     slack: dict[str, int] = {}
     compact: dict[tuple[str, str], tuple[int, int]] = {}
-    active = _active_links(inst) if system.links else set()
+    active = active_links(inst) if system.links else set()
     modelled = _modelled_edges(inst, active) if active else []
     # per (node, computer): terms of "node sits there" and of its CPU there
     placed_terms: dict[tuple[str, str], list[tuple[int, float]]] = {}
@@ -630,7 +630,7 @@ def _build(inst: _Instance, *, elastic: bool = False, compact_form: bool = False
     return _Built(milp, x, server_cap, slack, compact)
 
 
-def _start_assignment(inst: _Instance, start: Assignment) -> tuple[Assignment, dict[str, int]] | None:
+def start_assignment(inst: Instance, start: Assignment) -> tuple[Assignment, dict[str, int]] | None:
     """A MIP start mapped onto the pruned model (a dominated choice becomes the kept choice
     that dominates it), with each node's kept position; None when it is not feasible
     (placement, CPU, bandwidth), so that HiGHS is not handed a broken start."""
@@ -659,7 +659,7 @@ def _start_assignment(inst: _Instance, start: Assignment) -> tuple[Assignment, d
     return Assignment(placement, choice, capacities), position
 
 
-def _start_values(inst: _Instance, built: _Built, start: Assignment, position: dict[str, int]) -> dict[int, float]:
+def _start_values(inst: Instance, built: _Built, start: Assignment, position: dict[str, int]) -> dict[int, float]:
     """The integer columns of a (mapped, feasible) MIP start; HiGHS completes the
     continuous ones."""
     values = {col: 0.0 for col in built.x.values()}
@@ -680,7 +680,7 @@ def _start_values(inst: _Instance, built: _Built, start: Assignment, position: d
     return values
 
 
-def _extract(inst: _Instance, built: _Built, values: Sequence[float]) -> Assignment:
+def _extract(inst: Instance, built: _Built, values: Sequence[float]) -> Assignment:
     placement: dict[str, str] = {}
     choice: dict[str, Choice] = {}
     for (n, k, c), col in built.x.items():
@@ -697,7 +697,7 @@ def _extract(inst: _Instance, built: _Built, values: Sequence[float]) -> Assignm
     return Assignment(placement, choice, capacities)
 
 
-def _diagnose(inst: _Instance, time_limit: float | None) -> str:
+def _diagnose(inst: Instance, time_limit: float | None) -> str:
     """Why the MILP is infeasible: solve an elastic copy where capacities and bandwidths may
     overflow at a cost, and name what overflows in its best placement."""
     import highspy
@@ -729,7 +729,7 @@ def _diagnose(inst: _Instance, time_limit: float | None) -> str:
             + "; ".join(parts))
 
 
-def _lp_rounding(inst: _Instance, built: _Built, values: Sequence[float], maximise: bool, mip_gap: float,
+def _lp_rounding(inst: Instance, built: _Built, values: Sequence[float], maximise: bool, mip_gap: float,
                  time_limit: float | None) -> Assignment | None:
     """A start for big models: keep each node group only on the computers where the LP
     relaxation puts some of it (most groups: one), and solve that much smaller MILP."""
@@ -738,8 +738,8 @@ def _lp_rounding(inst: _Instance, built: _Built, values: Sequence[float], maximi
         mass = {c: sum(values[built.x[(n, k, c)]] for n in g.members for k in range(len(inst.choices[n])))
                 for c in g.allowed}
         best = max(mass, key=lambda c: mass[c])
-        groups.append(_Group(g.members, tuple(c for c in g.allowed if c == best or mass[c] >= 0.05)))
-    fixed = _Instance(inst.system, inst.problem, inst.original, inst.choices, inst.replace, groups,
+        groups.append(Group(g.members, tuple(c for c in g.allowed if c == best or mass[c] >= 0.05)))
+    fixed = Instance(inst.system, inst.problem, inst.original, inst.choices, inst.replace, groups,
                       {n: g for g in groups for n in g.members}, inst.cap, inst.min_cpu, inst.cut, inst.pairs)
     sub = _build(fixed)
     h = sub.milp.solve(maximise, time_limit=time_limit, mip_gap=mip_gap)
@@ -767,13 +767,13 @@ def solve_exact(system: System, problem: Problem, choices: dict[str, list[Choice
         raise InputError(system.source, f"problem must be 1 or 2, got {problem!r}")
     if mip_gap < 0 or not math.isfinite(mip_gap):
         raise InputError(None, f"mip_gap must be >= 0, got {mip_gap!r}")
-    prepared = _prepare(system, problem, choices)
+    prepared = prepare_instance(system, problem, choices)
     if isinstance(prepared, str):
         return Plan.infeasible(problem, Method.EXACT, prepared, solve_s=time.perf_counter() - t0,
                                system=system.source)
     inst = prepared
     built = _build(inst)
-    mapped = _start_assignment(inst, start) if start is not None else None
+    mapped = start_assignment(inst, start) if start is not None else None
     maximise = problem == Problem.PERFORMANCE
     big = len(built.milp.cost) > _BIG_MODEL
 
@@ -801,7 +801,7 @@ def solve_exact(system: System, problem: Problem, choices: dict[str, list[Choice
             lp_bound = float(lp.getInfo().objective_function_value)
             if mapped is None:
                 rounded = _lp_rounding(inst, built, lp.getSolution().col_value, maximise, mip_gap, remaining())
-                mapped = _start_assignment(inst, rounded) if rounded is not None else None
+                mapped = start_assignment(inst, rounded) if rounded is not None else None
             if mapped is not None:
                 value = plan_objective(system, mapped[0], problem)
                 if abs(lp_bound - value) <= max(mip_gap * abs(value), 1e-6 * max(1.0, abs(value))):

@@ -3,7 +3,7 @@ node groups go (``solve --pareto`` on Table II-sized instances).
 
 With one server, a plan is: for every node group that may go to more than one computer,
 a computer; then each computer's best settings are a knapsack (greedy+'s step,
-``local._combine``). So with ``M`` the movable groups, the best Σ w·P at server capacity
+``local.combine_tables``). So with ``M`` the movable groups, the best Σ w·P at server capacity
 ``C`` is ``max over S ⊆ M (groups on the server) of R(M \\ S) + T_S(C)`` where ``T_S`` is the
 server's knapsack table over its fixed groups and ``S`` (one table gives every capacity)
 and ``R`` the best split of the rest over the robots (their knapsack values). That is
@@ -19,8 +19,8 @@ import math
 import numpy as np
 
 from perfros_bag.solver import exact as exact_mod
-from perfros_bag.solver.decompose import _home_options, _scale
-from perfros_bag.solver.local import _combine
+from perfros_bag.solver.decompose import cpu_grid_scale, home_options
+from perfros_bag.solver.local import combine_tables
 from perfros_bag.system.types import Problem, System
 
 MAX_COMBINATIONS = 300_000  # (robots + 1) ** movable groups
@@ -38,12 +38,12 @@ def frontier_values(system: System, high: float, resolution: float = 1.0) -> tup
     if len(servers) != 1:
         return None
     top = with_server_capacity(system, high)
-    inst = exact_mod._prepare(top, Problem.PERFORMANCE, fixed_choices(top, Problem.PERFORMANCE, resolution=resolution))
-    if isinstance(inst, str) or exact_mod._active_links(inst):
+    inst = exact_mod.prepare_instance(top, Problem.PERFORMANCE, fixed_choices(top, Problem.PERFORMANCE, resolution=resolution))
+    if isinstance(inst, str) or exact_mod.active_links(inst):
         return None
     server = servers[0]
     robots = [c.name for c in system.computers if c.name != server]
-    scale = _scale([ch.cpu for opts in inst.choices.values() for ch in opts])
+    scale = cpu_grid_scale([ch.cpu for opts in inst.choices.values() for ch in opts])
     if scale is None or high * scale > MAX_CELLS:
         return None
     movable = [g for g in inst.groups if len(g.allowed) > 1]
@@ -51,7 +51,7 @@ def frontier_values(system: System, high: float, resolution: float = 1.0) -> tup
         return None
     items = {}
     for g in inst.groups:
-        opts = _home_options(inst, g.members, scale)
+        opts = home_options(inst, g.members, scale)
         if opts is None:
             return None
         items[g.members] = (opts[0], opts[1])
@@ -60,7 +60,7 @@ def frontier_values(system: System, high: float, resolution: float = 1.0) -> tup
         table = np.zeros(size)
         for g in inst.groups:
             if g.allowed == (comp,):
-                table = _combine(table, *items[g.members])[0]
+                table = combine_tables(table, *items[g.members])[0]
         return table
 
     def subset_tables(comp: str, size: int) -> dict[int, np.ndarray]:
@@ -72,7 +72,7 @@ def frontier_values(system: System, high: float, resolution: float = 1.0) -> tup
             rest = mask & (mask - 1)
             if comp not in movable[low].allowed or rest not in tables:
                 continue
-            tables[mask] = _combine(tables[rest], *items[movable[low].members])[0]
+            tables[mask] = combine_tables(tables[rest], *items[movable[low].members])[0]
         return tables
 
     robot_values = []

@@ -26,7 +26,7 @@ from __future__ import annotations
 import heapq
 import math
 
-from perfros_bag.solver.state import EPS, State, _fmt
+from perfros_bag.solver.state import EPS, State, fmt_units
 from perfros_bag.system.plan import Method, Plan
 from perfros_bag.system.types import Choice, Problem, System
 
@@ -104,13 +104,13 @@ def explain(state: State, gi: int, why: dict[str, str]) -> str:
         state.proven = cpu > state.maxcap[c] + EPS * max(1.0, state.maxcap[c])
         constraint = "residence" if allowed != state.computers else "the only computer"
         if why.get(c, "").startswith(f"{c} has"):
-            has = _fmt(state.free(c)) if math.isclose(state.free(c), state.cap[c]) else \
-                f"{_fmt(state.free(c))} free (of {_fmt(state.cap[c])})"
-            return f"{who} needs {_fmt(cpu)} CPU{lowest} on {c} ({constraint}) but {c} has {has}"
+            has = fmt_units(state.free(c)) if math.isclose(state.free(c), state.cap[c]) else \
+                f"{fmt_units(state.free(c))} free (of {fmt_units(state.cap[c])})"
+            return f"{who} needs {fmt_units(cpu)} CPU{lowest} on {c} ({constraint}) but {c} has {has}"
         return f"{who} cannot run on {c} ({constraint}): {why.get(c, 'no room')}"
     parts = "; ".join(f"{c}: {why.get(c, 'not tried')}" for c in allowed)
     scope = "allowed computer" if allowed != state.computers else "computer"
-    return f"no {scope} can take {who} ({_fmt(cpu)} CPU{lowest}): {parts}"
+    return f"no {scope} can take {who} ({fmt_units(cpu)} CPU{lowest}): {parts}"
 
 
 def upgrade(state: State, conf: list[str]) -> None:
@@ -179,7 +179,7 @@ def _place_p2(state: State, gi: int) -> str | None:
     for c in sorted(servers, key=lambda c: (-state.free(c), state.computers.index(c))):
         need = state.group_cpu(gi) - state.free(c)
         if state.cap[c] + need > state.maxcap[c] + EPS * max(1.0, state.maxcap[c]):
-            why[c] = f"{c} would need {_fmt(state.cap[c] + need)} CPU > max_capacity {_fmt(state.maxcap[c])}"
+            why[c] = f"{c} would need {fmt_units(state.cap[c] + need)} CPU > max_capacity {fmt_units(state.maxcap[c])}"
             continue
         old = state.cap[c]
         state.cap[c] = old + need
@@ -189,5 +189,5 @@ def _place_p2(state: State, gi: int) -> str | None:
         state.cap[c] = old
         why[c] = r
     for c in allowed:
-        why.setdefault(c, f"{c} has {_fmt(state.free(c))} CPU free")
+        why.setdefault(c, f"{c} has {fmt_units(state.free(c))} CPU free")
     return explain(state, gi, why)

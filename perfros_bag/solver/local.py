@@ -218,7 +218,7 @@ class Improver:
                 t = np.zeros(self._cap(comp) + 1)
             else:
                 last = max(nodes, key=self.s.order.__getitem__)
-                t = _combine(self.table(comp, nodes - {last}), *self.items[last])[0]
+                t = combine_tables(self.table(comp, nodes - {last}), *self.items[last])[0]
             self.tables[key] = t
         return t
 
@@ -242,7 +242,7 @@ class Improver:
         else:
             t = self.table(comp, nodes)
             for n in more[:-1]:
-                t = _combine(t, *self.items[n])[0]
+                t = combine_tables(t, *self.items[n])[0]
             if more:
                 us, vs = self.items[more[-1]]
                 ok = us <= len(t) - 1
@@ -458,12 +458,12 @@ class Improver:
             low = (m & -m).bit_length() - 1
             t = tabs[m & (m - 1)]
             for n in s.groups[groups[low]]:
-                t = _combine(t, *self.items[n])[0]
+                t = combine_tables(t, *self.items[n])[0]
             tabs.append(t)
         return [float(t[-1]) for t in tabs]
 
 
-def _combine(table: np.ndarray, us: np.ndarray, vs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def combine_tables(table: np.ndarray, us: np.ndarray, vs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Add one node (levels of CPU ``us`` and value ``vs``) to a knapsack table: the new
     table and, per budget, the level chosen (the cheapest among equals)."""
     size = len(table)
@@ -488,7 +488,7 @@ def best_settings(state: State, capacity: float, nodes: list[str], scale: float 
         lad = state.ladder[n]
         us = np.array([int(round(ch.cpu * scale)) for ch in lad])
         vs = np.array([state.weight[n] * ch.performance for ch in lad])
-        table, arg = _combine(table, us, vs)
+        table, arg = combine_tables(table, us, vs)
         steps.append((n, us, arg))
     if not np.isfinite(table[-1]):
         return -math.inf, {}

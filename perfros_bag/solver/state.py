@@ -196,15 +196,15 @@ class State:
                 dload[c] = dload.get(c, 0.0) + self.ladder[n][lvl].cpu
         for c, d in dload.items():
             if d > EPS and self.load[c] + d > self.cap[c] + EPS * max(1.0, self.cap[c]):
-                return f"{c} has {_fmt(self.free(c))} CPU free", {}, {}
+                return f"{c} has {fmt_units(self.free(c))} CPU free", {}, {}
         delta, why = self._net_delta(changes)
         if why is not None:
             return why, {}, {}
         for li, d in delta.items():
             lk = self.links[li]
             if d > EPS and self.link_load[li] + d > lk.bandwidth_kBps + EPS * max(1.0, lk.bandwidth_kBps):
-                return (f"link {lk.between[0]}-{lk.between[1]} would carry {_fmt(self.link_load[li] + d)} "
-                        f"> {_fmt(lk.bandwidth_kBps)} kB/s"), {}, {}
+                return (f"link {lk.between[0]}-{lk.between[1]} would carry {fmt_units(self.link_load[li] + d)} "
+                        f"> {fmt_units(lk.bandwidth_kBps)} kB/s"), {}, {}
         if self.media:
             dm: dict[str, float] = {}
             for li, d in delta.items():
@@ -216,7 +216,7 @@ class State:
                     m = self.system.medium[name]
                     now = self.system.medium_load(self.link_load, name)
                     if now + d > m.bandwidth_kBps + EPS * max(1.0, m.bandwidth_kBps):
-                        return f"medium {name} would carry {_fmt(now + d)} > {_fmt(m.bandwidth_kBps)} kB/s", {}, {}
+                        return f"medium {name} would carry {fmt_units(now + d)} > {fmt_units(m.bandwidth_kBps)} kB/s", {}, {}
         return None, delta, dload
 
     def change(self, changes: Mapping[str, tuple[str | None, int]]) -> str | None:
@@ -281,5 +281,5 @@ class State:
                           problem=self.problem, method=method, status=status)
 
 
-def _fmt(x: float) -> str:
+def fmt_units(x: float) -> str:
     return f"{x:.6g}"

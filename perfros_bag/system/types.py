@@ -310,9 +310,9 @@ class Node:
         levels = [lo + k * resolution for k in range(count + 1)]
         if hi > levels[-1] + 1e-9:
             levels.append(hi)
-        return [self._choice_at(i, c) for i, c in enumerate(levels)]
+        return [self.choice_at(i, c) for i, c in enumerate(levels)]
 
-    def _choice_at(self, index: int, cpu: float) -> Choice:
+    def choice_at(self, index: int, cpu: float) -> Choice:
         assert self.curve is not None
         value: float | None = None
         p2c = self.relations.get("parameter->cpu")

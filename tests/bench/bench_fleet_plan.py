@@ -59,9 +59,9 @@ def system_of(data: dict[str, Any], name: str) -> System:
 def cpsat(system: System, limit: float, python: str) -> tuple[Plan | None, float, str]:
     """CP-SAT in a subprocess on the pruned choices; the plan (checked by the caller)."""
     choices = fixed_choices(system, Problem.PERFORMANCE)
-    inst = exact_mod._prepare(system, Problem.PERFORMANCE, choices)
+    inst = exact_mod.prepare_instance(system, Problem.PERFORMANCE, choices)
     assert not isinstance(inst, str)
-    assert not exact_mod._active_links(inst), "the CP-SAT worker has no network rows"
+    assert not exact_mod.active_links(inst), "the CP-SAT worker has no network rows"
     doc = {"time_limit": limit, "workers": 2,
            "capacity": {c.name: inst.cap[c.name] for c in system.computers},
            "groups": [{"members": list(g.members), "allowed": list(g.allowed)} for g in inst.groups],

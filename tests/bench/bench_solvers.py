@@ -224,7 +224,7 @@ def formulations() -> None:
         times = []
         for i in (4, 5, 6):
             system = system_of(table2_instance(i), f"table2-{i}")
-            inst = exact_mod._prepare(system, 1, fixed_choices(system, 1))
+            inst = exact_mod.prepare_instance(system, 1, fixed_choices(system, 1))
             assert not isinstance(inst, str)
             built = exact_mod._build(inst, compact_form=compact)
             exact_mod._HIGHS_OPTIONS = opts
