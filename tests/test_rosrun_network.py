@@ -371,13 +371,18 @@ with warnings.catch_warnings(record=True) as caught:
 """
 
 
+def _start_child(run_id: str) -> subprocess.Popen[str]:
+    """CHILD in a process of its own: it makes the run's namespaces and says "ready PID"."""
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    return subprocess.Popen([sys.executable, "-c", CHILD, run_id], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, env=env)
+
+
 @pytest.mark.net
 def test_sigint_to_the_process_that_made_them_removes_everything() -> None:
     before = _host_state()
     run_id = _run_id()
-    env = dict(os.environ, PYTHONPATH=str(ROOT))
-    proc = subprocess.Popen([sys.executable, "-c", CHILD, run_id], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True, env=env)
+    proc = _start_child(run_id)
     try:
         assert proc.stdout is not None
         state, pid = proc.stdout.readline().split()
@@ -406,9 +411,7 @@ def test_sigint_to_the_process_that_made_them_removes_everything() -> None:
 def test_namespaces_of_a_killed_run_are_found_and_removed() -> None:
     before = _host_state()
     run_id = _run_id()
-    env = dict(os.environ, PYTHONPATH=str(ROOT))
-    proc = subprocess.Popen([sys.executable, "-c", CHILD, run_id], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True, env=env)
+    proc = _start_child(run_id)
     try:
         assert proc.stdout is not None
         state, pid = proc.stdout.readline().split()
