@@ -67,7 +67,8 @@ def test_bus_stats_of_both_client_libraries() -> None:
 
 
 def test_deploy_sets_each_varied_node_to_its_plan_value(tmp_path: Path) -> None:
-    from perfros_bag.sweep.deploy import computer_cores, plan_run
+    from perfros_bag.rosrun.cgroups import computer_cores
+    from perfros_bag.sweep.deploy import plan_run
     from perfros_bag.sweep.space import load_space
     from perfros_bag.system.plan import Plan, PlannedComputer, PlannedNode
 

@@ -35,6 +35,7 @@ from perfros_bag.casestudy.profiles import (
 )
 from perfros_bag.errors import InputError, PerfrosError
 from perfros_bag.fileio import atomic_write_json, atomic_write_text
+from perfros_bag.rosrun.cgroups import computer_cores as plan_cores
 from perfros_bag.rosrun.cgroups import emulated_trace
 from perfros_bag.rosrun.master import ROSCORE, master_call, master_state, start_roscore
 from perfros_bag.rosrun.processes import (
@@ -107,17 +108,9 @@ def node_launches(system: System, plan: Plan, calib: Calibration,
 
 
 def computer_cores(system: System, plan: Plan, units_per_core: float) -> dict[str, float]:
-    """Cores of CPU time per computer used by the plan (capacity / units_per_core)."""
-    caps = {c.name: c.capacity for c in system.computers}
-    cores: dict[str, float] = {}
-    for name in sorted({pn.computer for pn in plan.nodes.values()}):
-        cap = plan.computers[name].capacity if name in plan.computers else None
-        if cap is None:
-            cap = caps.get(name)
-        if cap is None or cap <= 0:
-            raise InputError(plan.system, f"computer {name!r} has no capacity to emulate")
-        cores[name] = cap / units_per_core
-    return cores
+    """Cores of CPU time per computer used by the plan (capacity / units_per_core; the
+    system's capacity where the plan states none)."""
+    return plan_cores(plan, units_per_core, {c.name: c.capacity for c in system.computers})
 
 
 def run_plan(system: System, plan: Plan, out: Path, cfg: RunConfig, *,

@@ -17,10 +17,15 @@ from __future__ import annotations
 import os
 import time
 import warnings
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from perfros_bag.errors import PerfrosWarning
+from perfros_bag.errors import InputError, PerfrosWarning
+
+if TYPE_CHECKING:
+    from perfros_bag.system.plan import Plan
 
 CGROUP_ROOT = Path(os.environ.get("PERFROS_CGROUP_ROOT", "/sys/fs/cgroup"))
 PREFIX = "perfros-"
@@ -199,3 +204,18 @@ def emulated_trace(raw: Path, dest: Path, where: dict[str, str], capacity: dict[
     write_cpu_trace(dest, rows, host=f"{tr.host or 'host'} (emulated computers: cpu_percent scaled by "
                     f"N*{units_per_core:g}/capacity; raw psutil trace: {raw.name})",
                     logical_cpus=tr.logical_cpus, interval_s=tr.interval_s or 0.5)
+
+
+def computer_cores(plan: Plan, units_per_core: float,
+                   capacities: Mapping[str, float | None] | None = None) -> dict[str, float]:
+    """Cores of CPU time per computer the plan uses: its capacity / ``units_per_core``; the
+    plan's capacity, else ``capacities[name]`` (e.g. the system's)."""
+    cores: dict[str, float] = {}
+    for name in sorted({pn.computer for pn in plan.nodes.values()}):
+        cap = plan.computers[name].capacity if name in plan.computers else None
+        if cap is None and capacities is not None:
+            cap = capacities.get(name)
+        if cap is None or cap <= 0:
+            raise InputError(plan.system, f"the plan's computer {name!r} has no capacity to emulate")
+        cores[name] = cap / units_per_core
+    return cores

@@ -58,23 +58,12 @@ def plan_run(plan: Plan, space: Space, arg_defaults: dict[str, str | None]) -> R
                {v.param: values[v.node] for v in space.vary if v.param is not None}, 1)
 
 
-def computer_cores(plan: Plan, units_per_core: float) -> dict[str, float]:
-    """Cores per computer the plan uses: its capacity / ``units_per_core``."""
-    cores: dict[str, float] = {}
-    for name in sorted({pn.computer for pn in plan.nodes.values()}):
-        pc = plan.computers.get(name)
-        if pc is None or pc.capacity is None or pc.capacity <= 0:
-            raise InputError(None, f"the plan's computer {name!r} has no capacity to emulate")
-        cores[name] = pc.capacity / units_per_core
-    return cores
-
-
 def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Path, out: str | Path, *,
            duration: float | None = None, units_per_core: float = 100.0, cap: bool = True,
            tolerance: float | None = None, interval: float = 0.5,
            progress: Callable[[str, float], None] | None = None) -> DeployResult:
     from perfros_bag.characterisation.manifest import write_manifest
-    from perfros_bag.rosrun.cgroups import CpuGroups, emulated_trace
+    from perfros_bag.rosrun.cgroups import CpuGroups, computer_cores, emulated_trace
     from perfros_bag.rosrun.recorders import require_free_space
     from perfros_bag.sweep.runner import record_run, require_ros_tools
     from perfros_bag.system.planfile import load_plan
