@@ -87,8 +87,8 @@ def _read(p: Path, fast: bool) -> RecordingStats:
         with rosbag2.open_mmap(p) as mm:
             return rosbag1.read(p, mm, fast)
     if fmt == "mcap":
-        with rosbag2.open_mmap(p) as mm:  # a loose rosbag2 storage file may say its payloads are zstd frames
-            return mcapfile.read(mm, fast, message_zstd=mcapfile.rosbag2_message_compressed(mm)).build(p, "mcap")
+        with rosbag2.open_mmap(p) as mm:  # a loose rosbag2 storage file says itself whether payloads are zstd frames
+            return mcapfile.read(mm, fast).build(p, "mcap")
     if fmt == "rosbag2-sqlite3":
         return rosbag2.read_sqlite(p, fast).build(p, "rosbag2-sqlite3")
     # zstd: a file-compressed rosbag2 storage file (.db3.zstd / .mcap.zstd)

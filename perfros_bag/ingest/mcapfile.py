@@ -120,8 +120,9 @@ class Summary:
     channels: Mapping[int, Channel]
     chunk_indexes: tuple[ChunkIndex, ...]
     message_count: int | None
-    #: (offset, length) of the Metadata record named ``rosbag2`` (a rosbag2 MCAP file), or None
-    rosbag2_metadata: tuple[int, int] | None = None
+    #: a rosbag2 storage file whose ``rosbag2`` Metadata record says each payload is a zstd
+    #: frame (``compression_mode: message``): the sizes to report are the decompressed ones
+    message_zstd: bool = False
 
     def chunk_sizes(self) -> tuple[int, ...]:
         """Bytes of file each chunk takes with its message indexes (at least 1)."""
@@ -358,24 +359,24 @@ def read_summary(mm: mmap.mmap) -> Summary:
             moffset, mlength = c.u64(), c.u64()
             if c.string() == ROSBAG2_METADATA:
                 rosbag2_metadata = (moffset, mlength)
-    return Summary(st.schemas, st.channels, tuple(chunks), count, rosbag2_metadata)
+    message_zstd = rosbag2_metadata is not None and _says_message_zstd(mm, *rosbag2_metadata)
+    return Summary(st.schemas, st.channels, tuple(chunks), count, message_zstd)
 
 
-def rosbag2_message_compressed(mm: mmap.mmap, summary: Summary | None = None) -> bool:
+def rosbag2_message_compressed(mm: mmap.mmap) -> bool:
     """Whether the MCAP file in ``mm`` is a rosbag2 storage file written with per-message
-    compression (its ``rosbag2`` Metadata record says ``compression_mode: message``): then
-    each payload is a zstd frame and the sizes to report are the decompressed ones, as for
-    the same file inside its rosbag2 directory. Found through the summary's metadata index;
-    a file without one (or with a damaged one) is taken as not compressed. ``summary``:
-    the file's summary when the caller has read it already."""
-    if summary is None:
-        try:
-            summary = read_summary(mm)
-        except (NoIndex, Damaged):
-            return False
-    if summary.rosbag2_metadata is None:
+    compression (:attr:`Summary.message_zstd`), as for the same file inside its rosbag2
+    directory. Found through the summary's metadata index; a file without a usable summary
+    is taken as not compressed."""
+    try:
+        return read_summary(mm).message_zstd
+    except (NoIndex, Damaged):
         return False
-    offset, length = summary.rosbag2_metadata
+
+
+def _says_message_zstd(mm: mmap.mmap, offset: int, length: int) -> bool:
+    """The ``rosbag2`` Metadata record at ``offset``: does its metadata say
+    ``compression_mode: message`` with zstd? (False when it cannot be read.)"""
     try:
         op, start, rlen = record_at(mm, offset, min(len(mm), offset + length))
         if op != OP_METADATA:
@@ -407,14 +408,18 @@ def rosbag2_message_compressed(mm: mmap.mmap, summary: Summary | None = None) ->
     return mode == "message" and fmt == "zstd"
 
 
-def read_chunks(mm: mmap.mmap, summary: Summary, message_zstd: bool = False) -> Accumulator:
+def read_chunks(mm: mmap.mmap, summary: Summary, message_zstd: bool | None = None) -> Accumulator:
     """Counts, log times and payload bytes of the messages in ``summary.chunk_indexes``
     (every channel of the summary declared), from their message indexes; method "index".
+    ``message_zstd``: whether payloads are zstd frames (None: as the file says,
+    :attr:`Summary.message_zstd`).
 
     The whole-file fast path reads all chunks, a split task some of them
     (:meth:`Summary.select`). Raises :class:`NoIndex` when a message index disagrees
     with its chunk (the caller streams instead).
     """
+    if message_zstd is None:
+        message_zstd = summary.message_zstd
     st = _State(dict(summary.schemas), dict(summary.channels))
     for ci in summary.chunk_indexes:
         buf, base, blen = load_chunk(mm, ci)
@@ -426,7 +431,7 @@ def read_chunks(mm: mmap.mmap, summary: Summary, message_zstd: bool = False) -> 
     return acc
 
 
-def read_fast(mm: mmap.mmap, message_zstd: bool = False) -> Accumulator:
+def read_fast(mm: mmap.mmap, message_zstd: bool | None = None) -> Accumulator:
     """The whole file from its summary: :func:`read_chunks` over every chunk index,
     cross-checked with the Statistics record."""
     summary = read_summary(mm)
@@ -509,11 +514,13 @@ def _index_chunk(mm: mmap.mmap, ci: ChunkIndex, buf: U8, base: int, blen: int, s
         k += cnt
 
 
-def read(mm: mmap.mmap, fast: bool = True, message_zstd: bool = False) -> Accumulator:
+def read(mm: mmap.mmap, fast: bool = True, message_zstd: bool | None = None) -> Accumulator:
+    """The whole file, from its indexes when ``fast`` (else, or when they are missing or
+    damaged, by streaming). ``message_zstd`` None: as the file's summary says."""
     if fast:
         try:
             return read_fast(mm, message_zstd)
         except (NoIndex, Damaged):
             pass  # summary or indexes missing or damaged: stream
-    return read_stream(mm, message_zstd)
+    return read_stream(mm, rosbag2_message_compressed(mm) if message_zstd is None else message_zstd)
 

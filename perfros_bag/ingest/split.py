@@ -143,7 +143,7 @@ def read_part(part: Part) -> RecordingStats | None:
 def _read_chunks(mm: mmap.mmap, index: Index) -> Accumulator:
     if isinstance(index, rosbag1.BagIndex):
         return rosbag1.read_chunks(mm, index)
-    return mcapfile.read_chunks(mm, index, mcapfile.rosbag2_message_compressed(mm, index))
+    return mcapfile.read_chunks(mm, index)  # payload compression: as the summary says
 
 
 def merge_parts(plan: SplitPlan, parts: Sequence[RecordingStats | None]) -> RecordingStats:
