@@ -254,8 +254,9 @@ def _within_trivial_bound(system: System, problem: Problem, choices: Mapping[str
     if plan.bound is None or plan.objective is None:
         return plan
     if problem == Problem.PERFORMANCE:
-        trivial = sum(system.node[n].weight * max(c.performance for c in opts) for n, opts in choices.items())
-        plan.bound = max(min(plan.bound, trivial), plan.objective)
+        from perfros_bag.solver.decompose import trivial_bound
+
+        plan.bound = max(min(plan.bound, trivial_bound(system, choices)), plan.objective)
     else:
         plan.bound = min(max(plan.bound, 0.0), plan.objective)
     return plan

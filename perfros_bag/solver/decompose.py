@@ -35,7 +35,7 @@ from __future__ import annotations
 import itertools
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -64,7 +64,7 @@ NEAR_LIMIT = 20_000  # columns the reduced-cost enumeration may add (else it is 
 CG_TOL = 1e-7  # column generation stops when the LP is this close to the bound (relative)
 
 
-def trivial_bound(system: System, choices: dict[str, list[Choice]]) -> float:
+def trivial_bound(system: System, choices: Mapping[str, list[Choice]]) -> float:
     """Σ w·(best performance): no plan can do better (Problem 1)."""
     return sum(system.node[n].weight * max(c.performance for c in opts) for n, opts in choices.items())
 

@@ -267,9 +267,6 @@ class State:
                 self.load[c] += self.cpu(n)
         self.link_load = self.system.link_loads(self.place, {n: self.choice(n) for n in self.nodes})
 
-    def network_ok(self) -> bool:
-        return self.system.overloaded(self.link_load, EPS) is None
-
     # ---- output --------------------------------------------------------------------
     def plan(self, method: Method, status: Status = Status.FEASIBLE) -> Plan:
         placement = {n: c for n, c in self.place.items() if c is not None}

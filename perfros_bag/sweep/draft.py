@@ -43,15 +43,6 @@ NOT_OUTPUT = re.compile(r"^(rosgraph_msgs|dynamic_reconfigure)/")
 MIN_CPU = 0.1  # a setting's CPU must be > 0: what a node measured at 0 gets
 
 
-@dataclass(frozen=True)
-class DraftNode:
-    name: str  # system.yaml name (no leading slash)
-    ros_name: str
-    executable: str | None
-    topics: tuple[str, ...]
-    parameter: tuple[str, str | None] | None  # (name, unit)
-
-
 def node_name(ros_name: str) -> str:
     """``ros_name`` as system.yaml names it; an error when no valid name can be made of it
     (names from a recording or graph are checked before they go into a system.yaml)."""

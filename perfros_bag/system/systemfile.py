@@ -476,9 +476,6 @@ def _machine_attr(ctx: _Ctx, where: str, key: str, raw: Any) -> str:
 def _check_groups(ctx: _Ctx, system: System) -> None:
     """Every coresidence group must have a computer allowed for all its members."""
     for group in system.coresidence_groups:
-        allowed = set(system.allowed(group[0]))
-        for n in group[1:]:
-            allowed &= set(system.allowed(n))
-        if not allowed:
+        if not system.allowed_to_all(group):
             who = ", ".join(repr(n) for n in group)
             raise ctx.fail(f"node {group[0]!r}: residence", f"coresident nodes {who} have no computer allowed for all of them")

@@ -451,8 +451,8 @@ def _check_links(plan: Plan, stats: RecordingStats, system: System,
     ]
     media: list[LinkCheck] = []
     for m in system.media:
-        members = [lc for lc in links if lc.medium == m.name]
-        load = sum(lc.measured_kBps for lc in members)
+        members = [links[li] for li in system.medium_links[m.name]]
+        load = system.medium_load(loads, m.name)
         exp = [lc.expected_kBps for lc in members]
         expected = None if any(e is None for e in exp) else sum(e for e in exp if e is not None)
         media.append(LinkCheck((m.name, m.name), m.bandwidth_kBps, expected, load,
