@@ -173,6 +173,11 @@ def read_yaml(path: str | Path) -> Any:
         raise InputError(p, f"invalid YAML{where}: {problem}") from None
 
 
+def kind_of(obj: Any) -> str:
+    """What a parsed YAML/JSON value is, for an error message ("nothing" for null)."""
+    return "nothing" if obj is None else type(obj).__name__
+
+
 def unknown_keys(mapping: Mapping[Any, Any], allowed: Collection[str]) -> str | None:
     """The one wording of a YAML/JSON mapping's keys that its format does not know (None
     when every key is allowed): ``unknown key(s) 'x', 'y' (allowed: a, b)``."""

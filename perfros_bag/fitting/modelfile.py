@@ -19,6 +19,7 @@ from perfros_bag.fileio import (
     SYSTEM_KIND,
     atomic_write_json,
     expect_kind,
+    kind_of,
     read_json,
 )
 from perfros_bag.limits import MAX_COEFFICIENT, MAX_MAGNITUDE, number_problem, short_repr
@@ -167,12 +168,12 @@ class _Doc:
 
     def mapping(self, obj: Any, where: str) -> Mapping[str, Any]:
         if not isinstance(obj, Mapping):
-            raise self.fail(where, f"expected an object, got {_kind(obj)}")
+            raise self.fail(where, f"expected an object, got {kind_of(obj)}")
         return obj
 
     def items(self, obj: Any, where: str) -> list[Any]:
         if not isinstance(obj, list):
-            raise self.fail(where, f"expected a list, got {_kind(obj)}")
+            raise self.fail(where, f"expected a list, got {kind_of(obj)}")
         return obj
 
     def number(self, obj: Any, where: str, *, nonneg: bool = False, positive: bool = False,
@@ -190,7 +191,7 @@ class _Doc:
 
     def string(self, obj: Any, where: str) -> str:
         if not isinstance(obj, str):
-            raise self.fail(where, f"expected a string, got {_kind(obj)}")
+            raise self.fail(where, f"expected a string, got {kind_of(obj)}")
         return obj
 
     def numbers(self, obj: Any, where: str, n: int | None = None, *, limit: float = MAX_MAGNITUDE) -> tuple[float, ...]:
@@ -217,9 +218,6 @@ def _whole(doc: _Doc, obj: Any, where: str) -> int:
         raise doc.fail(where, f"must be a whole number in [0, {MAX_MAGNITUDE:g}], got {short_repr(obj)}")
     return obj
 
-
-def _kind(obj: Any) -> str:
-    return "nothing" if obj is None else type(obj).__name__
 
 
 def _relation(doc: _Doc, raw: Any, where: str) -> FittedRelation:

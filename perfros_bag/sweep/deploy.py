@@ -73,11 +73,7 @@ def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Pat
     plan.require_feasible(plan_path, "deploy")
     if units_per_core <= 0:
         raise InputError(None, f"CPU units per core must be > 0, got {units_per_core:g}")
-    space = load_space(space_path)
-    if duration is not None:
-        if duration <= 0:
-            raise InputError(None, f"the recording duration must be > 0 s, got {duration:g}")
-        space = Space(space.path, duration, space.settle_s, 1, space.design, space.vary, space.startup_timeout_s)
+    space = load_space(space_path).with_duration(duration)
     launch = read_launch(launch_path)
     check_space(launch, space)
     unknown = sorted(v.system_name for v in space.vary if v.system_name not in plan.nodes)

@@ -93,12 +93,7 @@ def require_ros_tools() -> None:
 def sweep(launch_path: str | Path, space_path: str | Path, out: str | Path, *, duration: float | None = None,
           interval: float = 0.5, progress: Progress | None = None) -> SweepResult:
     """Record every run of ``space_path`` not yet recorded in ``out``."""
-    space = load_space(space_path)
-    if duration is not None:
-        if duration <= 0:
-            raise InputError(None, f"the recording duration must be > 0 s, got {duration:g}")
-        space = Space(space.path, duration, space.settle_s, space.repeats, space.design, space.vary,
-                      space.startup_timeout_s)
+    space = load_space(space_path).with_duration(duration)
     launch = read_launch(launch_path)
     check_space(launch, space)
     require_ros_tools()
@@ -109,11 +104,10 @@ def sweep(launch_path: str | Path, space_path: str | Path, out: str | Path, *, d
     outdir.mkdir(parents=True, exist_ok=True)
     require_free_space(outdir)
     manifest_path = outdir / "manifest.yaml"
-    system_ref = _manifest_system(manifest_path)
+    system_ref, entries = _finished_runs(manifest_path)
     copy = outdir / "space.yaml"  # what was varied, for init (parameter names and units)
     if not copy.exists() or not copy.samefile(space.path):
         atomic_write_text(copy, space.path.read_text(encoding="utf-8"))
-    entries = _finished_entries(manifest_path)
     result = SweepResult([r.name for r in runs])
     note = progress or (lambda i, n, name, stage, frac: None)
     for i, run in enumerate(runs):
@@ -139,28 +133,21 @@ def sweep(launch_path: str | Path, space_path: str | Path, out: str | Path, *, d
     return result
 
 
-def _finished_entries(manifest_path: Path) -> dict[str, dict[str, Any]]:
-    """The manifest's entries whose recording is still there (by path), in order."""
+def _finished_runs(manifest_path: Path) -> tuple[str | None, dict[str, dict[str, Any]]]:
+    """What a manifest already in the folder holds, read once: the ``system:`` it names
+    (kept when sweep rewrites it) and its entries whose recording is still there (by path,
+    in order). A damaged manifest is an error, never overwritten."""
     if not manifest_path.exists():
-        return {}
-
+        return None, {}
     data = read_yaml(manifest_path)
-    parse_manifest(data, manifest_path)  # a damaged manifest is an error, never overwritten
+    parse_manifest(data, manifest_path)
+    system = data.get("system")
     kept: dict[str, dict[str, Any]] = {}
     for item in data.get("recordings") or []:
         entry = {"path": item} if isinstance(item, str) else dict(item)
         if (manifest_path.parent / entry["path"]).exists():
             kept[entry["path"]] = entry
-    return kept
-
-
-def _manifest_system(manifest_path: Path) -> str | None:
-    """The ``system:`` a manifest already names (kept when sweep rewrites it)."""
-    if not manifest_path.exists():
-        return None
-    data = read_yaml(manifest_path)
-    system = data.get("system") if isinstance(data, dict) else None
-    return system if isinstance(system, str) else None
+    return (system if isinstance(system, str) else None), kept
 
 
 @dataclass

@@ -27,12 +27,12 @@ import json
 import math
 import re
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 from perfros_bag.errors import InputError
-from perfros_bag.fileio import read_yaml, unknown_keys
+from perfros_bag.fileio import kind_of, read_yaml, unknown_keys
 from perfros_bag.system.names import NameKind, name_problem
 
 Value = int | float | str
@@ -83,6 +83,14 @@ class Space:
     vary: tuple[Varied, ...]
     startup_timeout_s: float = 30.0
 
+    def with_duration(self, duration: float | None) -> Space:
+        """This space with its recording length overridden (``None``: as it is)."""
+        if duration is None:
+            return self
+        if duration <= 0:
+            raise InputError(None, f"the recording duration must be > 0 s, got {duration:g}")
+        return replace(self, duration_s=duration)
+
 
 @dataclass(frozen=True)
 class Run:
@@ -107,7 +115,7 @@ def parse_space(data: Any, path: Path) -> Space:
     if data is None:
         raise fail("", "the file is empty (expected 'vary:')")
     if not isinstance(data, Mapping):
-        raise fail("", f"expected a mapping with 'vary:', got {_kind(data)}")
+        raise fail("", f"expected a mapping with 'vary:', got {kind_of(data)}")
     unknown = unknown_keys(data, TOP_KEYS)
     if unknown:
         raise fail("", unknown)
@@ -142,7 +150,7 @@ def parse_space(data: Any, path: Path) -> Space:
 
 def _varied(item: Any, where: str, fail: Any) -> Varied:
     if not isinstance(item, Mapping):
-        raise fail(where, f"expected a mapping {{node, parameter, arg, values}}, got {_kind(item)}")
+        raise fail(where, f"expected a mapping {{node, parameter, arg, values}}, got {kind_of(item)}")
     bad = unknown_keys(item, VARY_KEYS)
     if bad:
         raise fail(where, bad)
@@ -198,9 +206,6 @@ def _number(raw: Any, where: str, fail: Any, *, positive: bool) -> float:
         raise fail(where, f"must be a number {'> 0' if positive else '>= 0'} (seconds), got {raw!r}")
     return float(raw)
 
-
-def _kind(obj: Any) -> str:
-    return "nothing" if obj is None else type(obj).__name__
 
 
 def _key(v: Value) -> str:

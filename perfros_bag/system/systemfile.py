@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from perfros_bag.errors import InputError, PerfrosWarning
-from perfros_bag.fileio import SYSTEM_KIND, expect_kind, file_kind, read_yaml, unknown_keys
+from perfros_bag.fileio import SYSTEM_KIND, expect_kind, file_kind, kind_of, read_yaml, unknown_keys
 from perfros_bag.fitting.modelfile import read_model_system
 from perfros_bag.limits import MAX_COEFFICIENT, MAX_MAGNITUDE, number_problem
 from perfros_bag.system.names import (
@@ -77,7 +77,7 @@ class _Ctx:
 
     def mapping(self, obj: Any, where: str, allowed: set[str], required: set[str] = frozenset()) -> Mapping[str, Any]:  # type: ignore[assignment]
         if not isinstance(obj, Mapping):
-            raise self.fail(where, f"expected a mapping, got {_kind(obj)}")
+            raise self.fail(where, f"expected a mapping, got {kind_of(obj)}")
         unknown = unknown_keys(obj, allowed)
         if unknown:
             raise self.fail(where, unknown)
@@ -98,7 +98,7 @@ class _Ctx:
         if obj is None or isinstance(obj, str):
             return obj
         if number_problem(obj, limit=math.inf) is not None:
-            raise self.fail(where, f"must be text, got {_kind(obj)} {obj!r}"[:200])
+            raise self.fail(where, f"must be text, got {kind_of(obj)} {obj!r}"[:200])
         return str(obj)
 
     def opt_number(self, obj: Any, where: str, **kw: bool) -> float | None:
@@ -126,7 +126,7 @@ class _Ctx:
         if isinstance(obj, str):
             obj = [obj]
         if not isinstance(obj, list):
-            raise self.fail(where, f"must be a list of names, got {_kind(obj)}")
+            raise self.fail(where, f"must be a list of names, got {kind_of(obj)}")
         if kind is not None:
             return tuple(self.name(x, f"{where}[{i}]", kind) for i, x in enumerate(obj))
         return tuple(self.string(x, f"{where}[{i}]") for i, x in enumerate(obj))
@@ -135,7 +135,7 @@ class _Ctx:
         if obj is None:
             return []
         if not isinstance(obj, list):
-            raise self.fail(where, f"must be a list, got {_kind(obj)}")
+            raise self.fail(where, f"must be a list, got {kind_of(obj)}")
         return obj
 
     def named(self, obj: Any, section: str, what: str, allowed: set[str], required: set[str], *,
@@ -157,9 +157,6 @@ class _Ctx:
             seen.add(name)
             yield name, where, m
 
-
-def _kind(obj: Any) -> str:
-    return "nothing" if obj is None else type(obj).__name__
 
 
 def read_system_data(path: str | Path) -> Any:
@@ -465,7 +462,7 @@ def _machine_attr(ctx: _Ctx, where: str, key: str, raw: Any) -> str:
     """A ``machines:`` attribute as the text roslaunch gets: a scalar, no control
     characters; ``address`` a host name, IP address or substitution."""
     if isinstance(raw, Mapping | list) or raw is None:
-        raise ctx.fail(where, f"must be a single value, got {_kind(raw)}")
+        raise ctx.fail(where, f"must be a single value, got {kind_of(raw)}")
     text = raw if isinstance(raw, str) else ctx.label(raw, where) or ""
     problem = text_problem(text) or (address_problem(text) if key == "address" else None)
     if problem is not None:
