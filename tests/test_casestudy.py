@@ -12,12 +12,12 @@ import yaml
 from hypothesis import given
 from hypothesis import strategies as st
 
-from perfros_bag.casestudy.cgroups import CpuGroups, cgroup_version, leftover_groups
 from perfros_bag.casestudy.instances import table2_instance
-from perfros_bag.casestudy.launcher import computer_cores, emulated_trace, node_launches
+from perfros_bag.casestudy.launcher import computer_cores, node_launches
 from perfros_bag.casestudy.profiles import Calibration, NodeProfile, _interp, launch_for
 from perfros_bag.cpu.trace import node_cpu, read_cpu_trace, write_cpu_trace
 from perfros_bag.errors import PerfrosWarning
+from perfros_bag.rosrun.cgroups import CpuGroups, cgroup_version, emulated_trace, leftover_groups
 from perfros_bag.system.plan import Assignment
 from perfros_bag.system.planfile import save_plan
 from perfros_bag.system.rules import build_plan
@@ -205,7 +205,7 @@ def test_cleanup_kills_a_runs_processes_and_groups_only(tmp_path: Path) -> None:
 
     import psutil
 
-    from perfros_bag.casestudy.launcher import RUN_ENV, leftover_processes
+    from perfros_bag.rosrun.processes import RUN_ENV, leftover_processes
 
     run_id = f"cleanup{os.getpid()}"
     started = time.monotonic()
@@ -239,7 +239,7 @@ def test_a_foreign_server_on_the_master_port_is_not_a_master() -> None:
     import socket
     import threading
 
-    from perfros_bag.casestudy.launcher import _master_call, _master_state
+    from perfros_bag.rosrun.master import master_call, master_state
 
     srv = socket.socket()
     srv.bind(("127.0.0.1", 0))
@@ -259,8 +259,8 @@ def test_a_foreign_server_on_the_master_port_is_not_a_master() -> None:
     t = threading.Thread(target=serve, daemon=True)
     t.start()
     try:
-        assert _master_call(f"http://127.0.0.1:{port}", "getPid") is None
-        assert _master_state(f"http://127.0.0.1:{port}") is None
+        assert master_call(f"http://127.0.0.1:{port}", "getPid") is None
+        assert master_state(f"http://127.0.0.1:{port}") is None
     finally:
         srv.close()
         t.join(2)

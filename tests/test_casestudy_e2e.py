@@ -22,8 +22,8 @@ from pathlib import Path
 import psutil
 import pytest
 
-from perfros_bag.casestudy.cgroups import CpuGroups, leftover_groups
-from perfros_bag.casestudy.launcher import leftover_processes
+from perfros_bag.rosrun.cgroups import CpuGroups, leftover_groups
+from perfros_bag.rosrun.processes import leftover_processes
 from perfros_bag.solver import solve
 from perfros_bag.system.planfile import save_plan
 from perfros_bag.system.systemfile import load_system

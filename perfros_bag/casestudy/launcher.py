@@ -26,7 +26,6 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from perfros_bag.casestudy.cgroups import CpuGroups
 from perfros_bag.casestudy.profiles import (
     Calibration,
     NodeLaunch,
@@ -35,14 +34,12 @@ from perfros_bag.casestudy.profiles import (
 )
 from perfros_bag.errors import InputError, PerfrosError
 from perfros_bag.fileio import atomic_write_json, atomic_write_text
+from perfros_bag.rosrun.cgroups import CpuGroups, emulated_trace
 from perfros_bag.rosrun.cgroups import computer_cores as plan_cores
-from perfros_bag.rosrun.cgroups import emulated_trace
-from perfros_bag.rosrun.master import ROSCORE, master_call, master_state, start_roscore
+from perfros_bag.rosrun.master import ROSCORE, master_state, start_roscore
 from perfros_bag.rosrun.processes import (
-    RUN_ENV,
     Processes,
     kill_stale,
-    leftover_processes,
     ros_env,
     sigterm_as_interrupt,
     wait_for,
@@ -54,12 +51,6 @@ from perfros_bag.system.types import System
 
 Progress = Callable[[str, float, float], None]  # (stage, done, total)
 
-# RUN_ENV, kill_stale, leftover_processes, emulated_trace and the master calls moved to perfros_bag.rosrun;
-# they stay importable from here under their former names
-__all__ = ["RUN_ENV", "RunConfig", "computer_cores", "emulated_trace", "kill_stale", "leftover_processes",
-           "measured_loads", "node_launches", "run_plan"]
-_master_call = master_call
-_master_state = master_state
 
 
 @dataclass

@@ -106,8 +106,8 @@ def cleanup_cmd(
     run: str | None = typer.Option(None, "--run", help="Only this run id (run.json's run_id); default: every run."),
 ) -> None:
     """Kill processes and remove cgroups left by a case-study run that was itself killed (-9)."""
-    from perfros_bag.casestudy.cgroups import leftover_groups
-    from perfros_bag.casestudy.launcher import kill_stale
+    from perfros_bag.rosrun.cgroups import leftover_groups
+    from perfros_bag.rosrun.processes import kill_stale
 
     pids, groups = kill_stale(run), leftover_groups(run_id=run)
     removed = []
