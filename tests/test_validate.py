@@ -515,7 +515,7 @@ def test_missing_plan_system_is_said_not_skipped_silently(tmp_path: Path) -> Non
     import warnings
 
     from perfros_bag.errors import PerfrosWarning
-    from perfros_bag.validation.eq10 import plan_system
+    from perfros_bag.system.planfile import plan_system
 
     plan = parse_plan({**PLAN, "system": "gone/system.yaml"})
     with warnings.catch_warnings(record=True) as caught:

@@ -170,17 +170,12 @@ def read_placement_comments(text: str) -> dict[str, str]:
 
 def export_plan(plan_path: str | Path, fmt: str, out: str | Path, system_path: str | Path | None = None) -> str:
     """Read the plan (and system), write the export atomically; returns the text."""
-    from perfros_bag.system.planfile import check_against_system, load_plan
-    from perfros_bag.system.systemfile import load_system
+    from perfros_bag.system.planfile import load_plan, plan_system
 
     if fmt not in FORMATS:
         raise InputError(None, f"unknown export format {fmt!r} (one of {', '.join(FORMATS)})")
     plan = load_plan(plan_path)
-    from perfros_bag.validation.eq10 import plan_system
-
-    system = load_system(system_path) if system_path is not None else plan_system(plan, Path(plan_path))
-    if system is not None:
-        check_against_system(plan, system)
+    system = plan_system(plan, plan_path, system_path)
     if fmt == "roslaunch":
         text = roslaunch_xml(plan, system, plan_path=str(plan_path))
     else:

@@ -7,10 +7,11 @@ read gives the same bytes.
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 from typing import Any
 
-from perfros_bag.errors import InputError
+from perfros_bag.errors import InputError, PerfrosWarning
 from perfros_bag.fileio import DOCUMENT_KINDS, atomic_write_json, expect_kind, read_json
 from perfros_bag.limits import number_problem
 from perfros_bag.system.plan import (
@@ -205,3 +206,33 @@ def check_against_system(plan: Plan, system: System) -> None:
     if strange:
         raise InputError(system.source, f"plan computer(s) {', '.join(map(repr, strange))} are not in the system "
                                         f"(its computers: {', '.join(map(repr, system.computer))})")
+
+
+def plan_system(plan: Plan, plan_path: str | Path, system_path: str | Path | None = None) -> System | None:
+    """The plan's system, checked against the plan (:func:`check_against_system`):
+    ``system_path`` when given, else the system the plan was solved from when its path
+    still exists (relative paths: beside the plan first, then from the working directory);
+    None, with a warning, when it cannot be found or read."""
+    from perfros_bag.system.systemfile import load_system
+
+    if system_path is not None:
+        system = load_system(system_path)
+        check_against_system(plan, system)
+        return system
+    if not plan.system:
+        return None
+    raw = Path(plan.system)
+    for cand in ([raw] if raw.is_absolute() else [Path(plan_path).parent / raw, raw]):
+        if cand.is_file():
+            try:
+                system = load_system(cand)
+            except InputError as exc:
+                warnings.warn(f"the plan's system could not be read ({exc}); going on without it",
+                              PerfrosWarning, stacklevel=2)
+                return None
+            check_against_system(plan, system)
+            return system
+    warnings.warn(f"the plan's system {plan.system!r} was not found (beside the plan or here): "
+                  "links are not checked and CPU traces match nodes by name only",
+                  PerfrosWarning, stacklevel=2)
+    return None

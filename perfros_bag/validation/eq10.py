@@ -480,35 +480,12 @@ def default_cpu_trace(run: str | Path) -> Path | None:
     return next((c for c in candidates if c.is_file()), None)
 
 
-def plan_system(plan: Plan, plan_path: Path) -> System | None:
-    """The system the plan was solved from, when its path still exists (relative paths:
-    beside the plan first, then from the working directory)."""
-    if not plan.system:
-        return None
-    from perfros_bag.system.systemfile import load_system
-
-    raw = Path(plan.system)
-    for cand in ([raw] if raw.is_absolute() else [plan_path.parent / raw, raw]):
-        if cand.is_file():
-            try:
-                return load_system(cand)
-            except InputError as exc:
-                warnings.warn(f"the plan's system could not be read ({exc}); going on without it",
-                              PerfrosWarning, stacklevel=2)
-                return None
-    warnings.warn(f"the plan's system {plan.system!r} was not found (beside the plan or here): "
-                  "links are not checked and CPU traces match nodes by name only",
-                  PerfrosWarning, stacklevel=2)
-    return None
-
-
 def validate_files(run: str | Path, plan_path: str | Path, *, cpu: Sequence[str | Path] | None = None,
                    system_path: str | Path | None = None, tolerance: float = DEFAULT_TOLERANCE,
                    cap: bool = False) -> Validation:
     """Read the recording, the plan, the CPU trace(s) and the system, then :func:`check_run`."""
     from perfros_bag.ingest import read_recording
-    from perfros_bag.system.planfile import check_against_system, load_plan
-    from perfros_bag.system.systemfile import load_system
+    from perfros_bag.system.planfile import load_plan, plan_system
 
     if not math.isfinite(tolerance) or tolerance < 0:
         raise InputError(None, f"the tolerance must be a number >= 0, got {tolerance}")
@@ -517,9 +494,7 @@ def validate_files(run: str | Path, plan_path: str | Path, *, cpu: Sequence[str 
     plan.require_feasible(plan_p, "validate")  # before the recording is read
     if not run_p.exists():
         raise InputError(run_p, "recording not found")
-    system = load_system(system_path) if system_path is not None else plan_system(plan, plan_p)
-    if system is not None:
-        check_against_system(plan, system)
+    system = plan_system(plan, plan_p, system_path)
     stats = read_recording(run_p)
     if not stats.topics or stats.messages == 0:
         raise InputError(run_p, "the recording has no messages")
