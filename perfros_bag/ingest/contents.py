@@ -19,11 +19,9 @@ are left out. A topic that cannot be decoded gets no latency and one
 
 from __future__ import annotations
 
-import mmap
 import re
 import warnings
-from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -33,6 +31,7 @@ import numpy as np
 from perfros_bag.errors import PerfrosError, PerfrosWarning
 from perfros_bag.ingest._accum import I64, Damaged, NoIndex
 from perfros_bag.ingest.decode import TopicType, Undecodable, decoded_messages, topic_types
+from perfros_bag.ingest.rosbag2 import open_mmap
 from perfros_bag.ingest.stamps import Stamps
 from perfros_bag.ingest.stats import RecordingStats
 from perfros_bag.system.types import Aggregate, Metric
@@ -97,14 +96,6 @@ def library_stamps(path: Path, types: dict[str, TopicType] | None = None) -> Sta
 # --------------------------------------------------------------------------- fast paths
 
 
-@contextmanager
-def _mapped(path: Path) -> Iterator[mmap.mmap]:
-    from perfros_bag.ingest.rosbag2 import open_mmap
-
-    with open_mmap(path) as mm:
-        yield mm
-
-
 def _rosbag2_stamps(root: Path) -> tuple[Stamps, dict[str, TopicType]]:
     from perfros_bag.ingest import rosbag2, stamps
 
@@ -117,7 +108,7 @@ def _rosbag2_stamps(root: Path) -> tuple[Stamps, dict[str, TopicType]]:
     out = stamps.StampParts()
     for f in files:  # each file's types from its own definitions (schemas, definitions table)
         if f.suffix == ".mcap":
-            with _mapped(f) as mm:
+            with open_mmap(f) as mm:
                 part, file_types = stamps.mcap_stamps(mm, f)
         elif f.suffix == ".db3":
             part, file_types = stamps.sqlite_stamps(f)
@@ -138,10 +129,10 @@ def fast_stamps(path: Path) -> tuple[Stamps, dict[str, TopicType]]:
         return _rosbag2_stamps(path)
     fmt = detect_format(path)
     if fmt == "ros1":
-        with _mapped(path) as mm:
+        with open_mmap(path) as mm:
             return stamps.ros1_stamps(mm)
     if fmt == "mcap":
-        with _mapped(path) as mm:
+        with open_mmap(path) as mm:
             return stamps.mcap_stamps(mm, path)
     raise Undecodable("message contents are read from .bag and .mcap files and rosbag2 directories")
 

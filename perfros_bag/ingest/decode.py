@@ -101,7 +101,8 @@ def topic_type(typestore: Typestore, topic: str, msgtype: str, encoding: str) ->
     return TopicType(topic, msgtype, encoding, stamped, offset)
 
 
-def _standard_typestore() -> Typestore:
+def standard_typestore() -> Typestore:
+    """rosbags' standard ROS 2 types: for rosbag2 recordings that store no definition."""
     from rosbags.typesys import Stores, get_typestore
 
     return get_typestore(Stores.LATEST)
@@ -131,7 +132,7 @@ def _any_reader(path: Path) -> Iterator[Any]:
     from rosbags.highlevel import AnyReader
 
     try:
-        reader = AnyReader([path], default_typestore=_standard_typestore())
+        reader = AnyReader([path], default_typestore=standard_typestore())
         reader.open()
     except Exception as exc:  # rosbags' own errors, or what a damaged file makes it raise
         raise Undecodable(f"rosbags cannot open it: {exc}") from None
@@ -190,11 +191,6 @@ def typestore_from_definitions(definitions: Iterable[tuple[str, str, str]]) -> T
 def _mcap_typestore(schemas: Collection[Any]) -> Typestore:
     return typestore_from_definitions(
         (schema.name, schema.encoding, bytes(schema.data).decode("utf-8", "replace")) for schema in schemas)
-
-
-def standard_typestore() -> Typestore:
-    """rosbags' standard ROS 2 types: for rosbag2 recordings that store no definition."""
-    return _standard_typestore()
 
 
 def _mcap_summary(path: Path) -> tuple[Any, Typestore]:
