@@ -44,7 +44,7 @@ import numpy as np
 from perfros_bag.solver import Progress
 from perfros_bag.solver import exact as exact_mod
 from perfros_bag.solver.exact import Group, Instance, quiet_highs
-from perfros_bag.solver.local import combine_tables
+from perfros_bag.solver.local import combine_tables, on_grid
 from perfros_bag.system.plan import Assignment, Method, Plan, Status
 from perfros_bag.system.rules import build_plan, computer_loads, weighted_performance
 from perfros_bag.system.types import Choice, Problem, System
@@ -111,7 +111,7 @@ class _Model:
 
 def cpu_grid_scale(cpus: Sequence[float]) -> int | None:
     for s in GRID_SCALES:
-        if all(abs(u * s - round(u * s)) < 1e-6 for u in cpus):
+        if on_grid(cpus, s):
             return s
     return None
 

@@ -158,6 +158,11 @@ def feasible_start(system: System, problem: Problem, choices: dict[str, list[Cho
 
 
 # ---- Problem 1 ------------------------------------------------------------------------
+def on_grid(cpus: Iterable[float], scale: float) -> bool:
+    """Every CPU value times ``scale`` is an integer (to 1e-6): the knapsack DP's grid."""
+    return all(abs(u * scale - round(u * scale)) < 1e-6 for u in cpus)
+
+
 def _grid_scale(state: State) -> float | None:
     """A factor that makes every CPU value an integer (None: none small enough)."""
     cpus = [ch.cpu for lad in state.ladder.values() for ch in lad]
@@ -165,7 +170,7 @@ def _grid_scale(state: State) -> float | None:
     for scale in (1, 2, 4, 5, 10, 20, 50, 100):
         if biggest * scale > DP_CELLS or biggest * scale * len(cpus) > DP_WORK:
             return None
-        if all(abs(u * scale - round(u * scale)) < 1e-6 for u in cpus):
+        if on_grid(cpus, scale):
             return float(scale)
     return None
 
