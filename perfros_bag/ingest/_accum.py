@@ -64,11 +64,24 @@ def describe(exc: BaseException) -> str:
     return f"corrupt or unreadable recording ({type(exc).__name__}{': ' + text if text else ''})"
 
 
+def zstd_header_size(head: bytes | None) -> int:
+    """Decompressed size of a zstd frame as its header (the first bytes) states it; -1 when
+    the header does not say or cannot be read."""
+    import zstandard
+
+    if head is None or len(head) < 6:
+        return -1
+    try:
+        return int(zstandard.frame_content_size(bytes(head[:18])))
+    except zstandard.ZstdError:
+        return -1
+
+
 def zstd_size(frame: bytes) -> int:
     """Decompressed size of one zstd frame: from its header, else by decompressing it."""
     import zstandard
 
-    size = zstandard.frame_content_size(frame[:18]) if len(frame) >= 6 else -1
+    size = zstd_header_size(frame)
     if size < 0:
         size = len(zstandard.ZstdDecompressor().decompressobj().decompress(frame))
     return int(size)

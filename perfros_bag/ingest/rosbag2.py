@@ -48,6 +48,7 @@ from perfros_bag.ingest._accum import (
     NoIndex,
     close_mmap,
     describe,
+    zstd_header_size,
     zstd_size,
 )
 from perfros_bag.ingest.discover import natural_key, storage_of
@@ -220,7 +221,7 @@ def _columns(con: sqlite3.Connection, db: Path, fast: bool, message_zstd: bool,
     if message_zstd:  # the decompressed size is in each zstd frame header
         def frame_size(row: Any) -> int:
             head, mid = row
-            size = _zstd_frame_size(head)
+            size = zstd_header_size(head)
             if size < 0:
                 (blob,) = con.execute("SELECT data FROM messages WHERE id = ?", (mid,)).fetchone()
                 size = zstd_size(bytes(blob))
@@ -276,17 +277,6 @@ def read_sqlite(db: Path, fast: bool = True, message_zstd: bool = False) -> Accu
         lo, hi = np.searchsorted(tids, [tid, tid + 1])
         acc.add(name, mtype, times[lo:hi], int(sizes[lo:hi].sum()))
     return acc
-
-
-def _zstd_frame_size(head: bytes | None) -> int:
-    import zstandard
-
-    if head is None or len(head) < 6:
-        return -1
-    try:
-        return int(zstandard.frame_content_size(bytes(head)))
-    except zstandard.ZstdError:
-        return -1
 
 
 def read_storage_file(path: Path, fast: bool = True, message_zstd: bool = False) -> Accumulator:
