@@ -50,7 +50,6 @@ class Part:
     path: Path
     format: str
     index: Index | None = None
-    fast: bool = True
 
     @property
     def chunks(self) -> tuple[Chunk, ...]:
@@ -108,10 +107,11 @@ def chunks_of(index: Index) -> tuple[Chunk, ...]:
     return index.chunks if isinstance(index, rosbag1.BagIndex) else index.chunk_indexes
 
 
-def plan_split(path: str | Path, *, fast: bool = True) -> SplitPlan:
-    """Read the index of ``path``; a plan with one ``whole`` part when it cannot be split."""
+def plan_split(path: str | Path) -> SplitPlan:
+    """Read the index of ``path``; a plan with one ``whole`` part when it cannot be split
+    (the fast path's split: a caller that streams reads the whole file itself)."""
     p = Path(path)
-    if not fast or not p.is_file():
+    if not p.is_file():
         return SplitPlan(p, "whole")
     try:
         fmt = detect_format(p)
@@ -128,7 +128,7 @@ def plan_split(path: str | Path, *, fast: bool = True) -> SplitPlan:
 def read_part(part: Part) -> RecordingStats | None:
     """Partial statistics of ``part`` (``None``: its index is damaged, read the whole file)."""
     if part.format == "whole" or part.index is None:
-        return read_recording(part.path, fast=part.fast)
+        return read_recording(part.path)
     try:
         with open_mmap(part.path) as mm:
             try:
