@@ -48,7 +48,7 @@ VERBS: Mapping[str, Verb] = {
                   "and the nodes' CPU."),
     "init": Verb("perfros_bag.cli.init", "Draft system.yaml from DIR's graph.yaml, manifest and recordings "
                  "(loads, fits and solves as it is)."),
-    "deploy": Verb("perfros_bag.cli.deploy", "Run PLAN on this machine (each computer a CPU-capped cgroup), "
+    "deploy": Verb("perfros_bag.cli.deploy", "Run PLAN on this machine (capped cgroups, shaped links), "
                    "record it and validate it (eq 10)."),
     "casestudy": Verb("perfros_bag.cli.casestudy", "The paper's case study on real ROS 1 nodes (roscore, rospy, "
                       "rosbag)."),

@@ -19,8 +19,10 @@ def deploy_cmd(
     units_per_core: float = typer.Option(100.0, "--units-per-core", help="CPU units of one core (init drafts 100)."),
     cap: bool = typer.Option(True, "--cap/--no-cap", help="Cap each computer's cgroup at its capacity."),
     tolerance: float | None = typer.Option(None, "--tolerance", help="Largest overall deviation in % that passes (exit 0)."),
+    net: bool = typer.Option(True, "--net/--no-net", help="Emulate the system's links: each computer a network namespace, each link a veth shaped with tc to its bandwidth (root)."),
+    system: Path | None = typer.Option(None, "--system", help="The plan's system.yaml (default: the one the plan was solved from)."),  # noqa: B008
 ) -> None:
-    """Run PLAN on this machine (each computer a CPU-capped cgroup), record it and validate it (eq 10)."""
+    """Run PLAN on this machine (capped cgroups, shaped links), record it and validate it (eq 10)."""
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
     from perfros_bag.cli.validate import render
@@ -34,9 +36,13 @@ def deploy_cmd(
             progress.update(task, completed=frac, description=stage)
 
         result = deploy(plan, launch, space, out_dir, duration=duration, units_per_core=units_per_core, cap=cap,
-                        tolerance=tolerance, progress=show)
+                        tolerance=tolerance, net=net, system_path=system, progress=show)
     render(result.validation, out)
-    capped = result.record["cpu_cap"]
+    capped, network = result.record["cpu_cap"], result.record["network"]
+    err.print(f"links: {network['mode']}{' (' + network['reason'] + ')' if network['reason'] else ''}", highlight=False)
+    for link in network["links_measured"]:
+        err.print(f"  link {link['from']} -> {link['to']}: {link['sent_kBps']:.1f} of {link['shaped_kBps']:.1f} kB/s, "
+                  f"{link['drops']} packets dropped", highlight=False)
     err.print(f"cpu cap: {capped['mode']}{' (' + capped['reason'] + ')' if capped['reason'] else ''}; "
               f"wrote {out_dir}/run.bag, run.cpu.csv, validation.json, deploy.json", highlight=False)
     if not result.validation.passed:

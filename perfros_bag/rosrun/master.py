@@ -85,15 +85,16 @@ def _exited(st: Started) -> str | None:
     return st.name if st.popen.poll() is not None else None
 
 
-def start_roscore(procs: Processes, out: Path, timeout: float) -> str:
-    """roscore on a free port (logs in ``out``); retried on another port when the port was
-    taken meanwhile. The master must be ours: its PID is a descendant of the roscore we
-    started. Sets ``ROS_MASTER_URI`` in ``procs.env`` and returns it."""
+def start_roscore(procs: Processes, out: Path, timeout: float, host: str = "127.0.0.1") -> str:
+    """roscore on a free port (logs in ``out``), reached at ``host`` (an address of the
+    calling thread's network namespace); retried on another port when the port was taken
+    meanwhile. The master must be ours: its PID is a descendant of the roscore we started.
+    Sets ``ROS_MASTER_URI`` in ``procs.env`` and returns it."""
     import psutil
 
     for attempt in range(3):
         port = free_port()
-        uri = f"http://127.0.0.1:{port}"
+        uri = f"http://{host}:{port}"
         procs.env["ROS_MASTER_URI"] = uri
         core = procs.start(f"roscore{attempt or ''}", [ROSCORE, "-p", str(port)],
                            out / f"roscore{attempt or ''}.log", cwd=out)
@@ -118,5 +119,5 @@ def start_roscore(procs: Processes, out: Path, timeout: float) -> str:
 
 
 def port_of(uri: str) -> int:
-    """The port of a master URI ``http://127.0.0.1:PORT``."""
+    """The port of a master URI ``http://HOST:PORT``."""
     return int(uri.rstrip("/").rsplit(":", 1)[1])

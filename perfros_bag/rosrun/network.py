@@ -28,16 +28,22 @@ deletes them.
 
 from __future__ import annotations
 
+import contextlib
+import ctypes
 import ipaddress
+import json
 import os
 import re
 import shutil
 import signal
 import subprocess
+import threading
 import time
 import warnings
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from enum import StrEnum
+from pathlib import Path
 from types import TracebackType
 
 from perfros_bag.errors import PerfrosError, PerfrosWarning
@@ -248,6 +254,52 @@ class Network:
         self.shaped = True
 
     # ---- use --------------------------------------------------------------------------------
+    def master_computer(self) -> str:
+        """Where a run's ROS master goes: the computer with the most links (the hub every
+        other computer reaches, in a robots + server system), ties to the first listed."""
+        count = {c.name: 0 for c in self.system.computers}
+        for link in self.system.links:
+            for end in link.between:
+                count[end] = count.get(end, 0) + 1
+        kind = {c.name: c.kind for c in self.system.computers}
+        return max(count, key=lambda c: (count[c], kind.get(c) == "server"))
+
+    @contextlib.contextmanager
+    def inside(self, computer: str) -> Iterator[None]:
+        """This thread in ``computer``'s namespace for the block (nothing when unshaped):
+        sockets opened and processes started meanwhile belong to it. The host's namespace
+        is restored on the way out, also on an exception or Ctrl-C."""
+        ns = self.namespaces.get(computer)
+        if ns is None:
+            yield
+            return
+        with enter_namespace(Path("/run/netns") / ns):
+            yield
+
+    def link_stats(self) -> list[dict[str, object]]:
+        """Per link end, what its ``tbf`` qdisc counted so far: bytes and packets sent,
+        packets dropped, times the rate held a packet back (``overlimits``)."""
+        stats: list[dict[str, object]] = []
+        if not self.emulated:
+            return stats
+        for comp, ns in self.namespaces.items():
+            done = subprocess.run([self.tc, "-n", ns, "-s", "-j", "qdisc", "show"], capture_output=True, text=True,
+                                  timeout=30, check=False)
+            try:
+                qdiscs = json.loads(done.stdout or "[]")
+            except ValueError:
+                qdiscs = []
+            for q in qdiscs:
+                dev = q.get("dev", "")
+                end = next((e for e in self.ends if e.computer == comp and e.ifname == dev), None)
+                if end is None or q.get("kind") != "tbf":
+                    continue
+                a, b = self.system.links[end.link].between
+                stats.append({"link": end.link, "from": comp, "to": b if comp == a else a,
+                              "bytes": int(q.get("bytes", 0)), "packets": int(q.get("packets", 0)),
+                              "drops": int(q.get("drops", 0)), "overlimits": int(q.get("overlimits", 0))})
+        return sorted(stats, key=lambda s: (str(s["link"]).zfill(6), str(s["from"])))
+
     def wrap(self, computer: str, argv: list[str]) -> list[str]:
         """``argv`` run inside ``computer``'s namespace (unchanged when unshaped)."""
         ns = self.namespaces.get(computer)
@@ -295,6 +347,34 @@ class Network:
         self.namespaces = {c: ns for c, ns in self.namespaces.items() if ns in left}
         self.shaped = self.shaped and bool(self.namespaces)
         return left
+
+
+CLONE_NEWNET = 0x40000000
+
+
+@contextlib.contextmanager
+def enter_namespace(path: Path) -> Iterator[None]:
+    """The calling thread in the network namespace at ``path`` (``setns(2)``) for the block;
+    its own namespace back afterwards. Only network namespaces may be entered per thread,
+    which is all this does; an :class:`OSError` when the kernel refuses."""
+    libc = ctypes.CDLL(None, use_errno=True)
+    own = os.open(f"/proc/self/task/{threading.get_native_id()}/ns/net", os.O_RDONLY)
+    try:
+        target = os.open(path, os.O_RDONLY)
+        try:
+            if libc.setns(target, CLONE_NEWNET) != 0:
+                err = ctypes.get_errno()
+                raise OSError(err, f"cannot enter network namespace {path.name}: {os.strerror(err)}")
+        finally:
+            os.close(target)
+        try:
+            yield
+        finally:
+            if libc.setns(own, CLONE_NEWNET) != 0:  # pragma: no cover - the kernel gave it out
+                err = ctypes.get_errno()
+                raise OSError(err, f"cannot return to this process's network namespace: {os.strerror(err)}")
+    finally:
+        os.close(own)
 
 
 def _tool(name: str) -> str:

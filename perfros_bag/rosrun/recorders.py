@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import sys
 from pathlib import Path
+from typing import Any
 
 from perfros_bag.errors import InputError
 from perfros_bag.rosrun.processes import Processes, Started
@@ -30,13 +31,49 @@ def require_free_space(directory: Path) -> None:
                          f"record with less than {ROSBAG_MIN_FREE_BYTES / 2**30:g} GiB free")
 
 
-def start_rosbag(procs: Processes, name: str, bag: Path, topics: list[str] | None, node_name: str,
-                 log: Path, cwd: Path) -> Started:
-    """``rosbag record -O bag`` of ``topics`` (None: every topic, ``-a``) as ROS node
-    ``node_name``."""
+def rosbag_argv(bag: Path, topics: list[str] | None, node_name: str, exclude: str | None = None) -> list[str]:
+    """``rosbag record -O bag`` of ``topics`` (None: every topic, ``-a``, but those the regex
+    ``exclude`` matches) as ROS node ``node_name``."""
     recorder = [str(RECORD_BIN)] if RECORD_BIN.exists() else [ROSBAG, "record"]
-    which = ["-a"] if topics is None else topics
-    return procs.start(name, [*recorder, "-O", str(bag), *which, f"__name:={node_name}"], log, cwd=cwd)
+    which = ["-a", *(["-x", exclude] if exclude else [])] if topics is None else topics
+    return [*recorder, "-O", str(bag), *which, f"__name:={node_name}"]
+
+
+def start_rosbag(procs: Processes, name: str, bag: Path, topics: list[str] | None, node_name: str,
+                 log: Path, cwd: Path, exclude: str | None = None) -> Started:
+    """Start :func:`rosbag_argv`."""
+    return procs.start(name, rosbag_argv(bag, topics, node_name, exclude), log, cwd=cwd)
+
+
+def merge_bags(parts: list[Path], dest: Path) -> None:
+    """One ROS 1 bag ``dest`` holding every message of ``parts`` (bags recorded at the same
+    time on different computers), in time order, each connection with its message
+    definition and publisher (``callerid``) as recorded: rosbags reads and writes them, the
+    payloads are copied as they are."""
+    from rosbags.highlevel import AnyReader
+    from rosbags.rosbag1 import Writer
+
+    tmp = dest.with_name(dest.name + ".part")
+    tmp.unlink(missing_ok=True)
+    with AnyReader(parts) as reader:
+        writer = Writer(tmp)
+        writer.open()
+        try:
+            made: dict[int, Any] = {}
+            added: dict[tuple[str, str, str | None], Any] = {}  # a topic both computers recorded: one connection
+            for conn in reader.connections:
+                callerid = getattr(conn.ext, "callerid", None)
+                key = (conn.topic, conn.msgtype, callerid)
+                if key not in added:
+                    added[key] = writer.add_connection(
+                        conn.topic, conn.msgtype, msgdef=conn.msgdef.data, md5sum=conn.digest,
+                        callerid=callerid, latching=getattr(conn.ext, "latching", None))
+                made[id(conn)] = added[key]
+            for conn, stamp, raw in reader.messages():
+                writer.write(made[id(conn)], stamp, raw)
+        finally:
+            writer.close()
+    tmp.replace(dest)
 
 
 def start_record_cpu(procs: Processes, patterns: list[str], interval: float, trace: Path, log: Path,

@@ -13,6 +13,7 @@ the plan (eq 10, ``validation.json``); ``deploy.json`` says what ran, where, cap
 from __future__ import annotations
 
 import shutil
+import time
 import uuid
 import warnings
 from collections.abc import Callable
@@ -27,7 +28,9 @@ from perfros_bag.sweep.launchfile import check_space, read_launch
 from perfros_bag.sweep.space import Run, Space, Value, arg_text, default_value, load_space
 
 if TYPE_CHECKING:
+    from perfros_bag.rosrun.network import Network
     from perfros_bag.system.plan import Plan
+    from perfros_bag.system.types import System
     from perfros_bag.validation.eq10 import Validation
 
 DEPLOY_FORMAT = "perfros-bag/deploy-run@1"
@@ -60,13 +63,16 @@ def plan_run(plan: Plan, space: Space, arg_defaults: dict[str, str | None]) -> R
 
 def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Path, out: str | Path, *,
            duration: float | None = None, units_per_core: float = 100.0, cap: bool = True,
-           tolerance: float | None = None, interval: float = 0.5,
+           tolerance: float | None = None, interval: float = 0.5, net: bool = True,
+           system_path: str | Path | None = None,
            progress: Callable[[str, float], None] | None = None) -> DeployResult:
     from perfros_bag.characterisation.manifest import write_manifest
     from perfros_bag.rosrun.cgroups import CpuGroups, computer_cores, emulated_trace
+    from perfros_bag.rosrun.network import Network
     from perfros_bag.rosrun.recorders import require_free_space
     from perfros_bag.sweep.runner import record_run, require_ros_tools
-    from perfros_bag.system.planfile import load_plan
+    from perfros_bag.system.names import system_node_name
+    from perfros_bag.system.planfile import load_plan, plan_system
     from perfros_bag.validation.eq10 import DEFAULT_TOLERANCE, validate_files
 
     plan = load_plan(plan_path)
@@ -89,36 +95,55 @@ def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Pat
     for stale in ("run.bag", "run.cpu.csv", "run.host.cpu.csv", "manifest.yaml", "graph.yaml", "deploy.json",
                   "validation.json"):
         (outdir / stale).unlink(missing_ok=True)
+    system = plan_system(plan, plan_path, system_path)
     run_id = uuid.uuid4().hex[:10]
     groups = CpuGroups(run_id, cores)
-    where = {f"/{name}": pn.computer for name, pn in plan.nodes.items()}
+    where = {name: pn.computer for name, pn in plan.nodes.items()}  # system.yaml's node names
     placed: dict[str, str] = {}
+    links_before: list[dict[str, Any]] = []
+    links_after: list[dict[str, Any]] = []
 
     def place(graph: Graph) -> None:
         """Move every planned node into its computer's group, then cap the groups."""
         for node in graph.nodes:
-            procs_file = groups.procs_file(where.get(node.name, ""))
+            computer = where.get(system_node_name(node.name), "")
+            procs_file = groups.procs_file(computer)
             if procs_file is None or node.pid is None:
                 continue
             try:
                 procs_file.write_text(str(node.pid))
             except OSError as exc:
                 raise InputError(None, f"cannot move node {node.name} into {procs_file.parent}: {exc}") from None
-            placed[node.name] = where[node.name]
+            placed[node.name] = computer
         if cap:
             groups.apply()
 
+    def window(edge: str) -> None:
+        """The links' counters as the recording starts and ends."""
+        stats = [{**s, "t": time.monotonic()} for s in network.link_stats()]
+        (links_before if edge == "start" else links_after)[:] = stats
+
+    network = Network(f"d{run_id}", system if system is not None and net else _no_links(plan))
     groups.create(capped=False, quiet=not cap)
     mode, reason = (groups.mode, groups.reason) if cap else ("uncapped", "capping not asked for")
     try:
+        network.create()
+        if not net:
+            network.reason = "link emulation not asked for"
+        elif system is None:
+            network.reason = "the plan's system was not found: its links are unknown"
+        described = network.describe()
         graph = record_run(launch, space, run, outdir, interval=interval, progress=progress, run_id=run_id,
-                           on_graph=place)
+                           on_graph=place, network=network, where=where, on_window=window)
     finally:
         left = groups.remove()
+        net_left = network.remove()
     host_trace = outdir / "run.host.cpu.csv"
     shutil.move(outdir / "run.cpu.csv", host_trace)
-    emulated_trace(host_trace, outdir / "run.cpu.csv", where, {c: n * units_per_core for c, n in cores.items()},
-                   units_per_core)
+    by_ros_name = {n.name: where[system_node_name(n.name)] for n in graph.nodes
+                   if system_node_name(n.name) in where}
+    emulated_trace(host_trace, outdir / "run.cpu.csv", by_ros_name,
+                   {c: n * units_per_core for c, n in cores.items()}, units_per_core)
     write_graph(outdir / "graph.yaml", graph)
     write_manifest(outdir / "manifest.yaml", [{"path": "run.bag", "cpu": "run.cpu.csv", "settings": dict(run.values)}])
     validation = validate_files(outdir / "run.bag", plan_path, cpu=[outdir / "run.cpu.csv"],
@@ -130,9 +155,38 @@ def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Pat
         "params": dict(run.params),
         "cpu_cap": {"mode": mode, "reason": reason, "cgroups": groups.mode, "cores": cores,
                     "units_per_core": units_per_core},
-        "nodes": {n.name: {"pid": n.pid, "computer": placed.get(n.name, where.get(n.name))}
+        "network": {**described, "links_measured": _link_use(links_before, links_after, network)},
+        "nodes": {n.name: {"pid": n.pid, "computer": placed.get(n.name, where.get(system_node_name(n.name)))}
                   for n in graph.nodes if n.launched},
         "leftover_cgroups": [str(p) for p in left],
+        "leftover_namespaces": net_left,
     }
     atomic_write_json(outdir / "deploy.json", record)
     return DeployResult(record, validation)
+
+
+def _no_links(plan: Plan) -> System:
+    """A system of the plan's computers without links: a network with nothing to emulate."""
+    from perfros_bag.system.types import Computer, System
+
+    return System(tuple(Computer(name, "robot", c.capacity) for name, c in plan.computers.items()), ())
+
+
+def _link_use(before: list[dict[str, Any]], after: list[dict[str, Any]], network: Network) -> list[dict[str, Any]]:
+    """Per link direction, what its qdisc passed during the recording: kB/s sent against the
+    shaped rate, packets dropped, times the rate held a packet back."""
+    from perfros_bag.rosrun.network import tbf_rate_bit
+
+    first = {(s["link"], s["from"]): s for s in before}
+    rows = []
+    for s in after:
+        b = first.get((s["link"], s["from"]))
+        if b is None:
+            continue
+        seconds = s["t"] - b["t"]
+        kbps = (s["bytes"] - b["bytes"]) / 1000.0 / seconds if seconds > 0 else 0.0
+        rate = tbf_rate_bit(network.system.links[s["link"]].bandwidth_kBps) / 8000.0
+        rows.append({"link": s["link"], "from": s["from"], "to": s["to"], "sent_kBps": round(kbps, 3),
+                     "shaped_kBps": rate, "utilisation": round(kbps / rate, 4) if rate else None,
+                     "drops": s["drops"] - b["drops"], "overlimits": s["overlimits"] - b["overlimits"]})
+    return rows

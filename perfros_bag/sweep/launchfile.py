@@ -78,18 +78,64 @@ def launch_argv(launch: LaunchFile, args: Mapping[str, str]) -> list[str]:
 
 def launch_nodes(launch: LaunchFile, args: Mapping[str, str], env: Mapping[str, str], timeout: float) -> list[str]:
     """The ROS names of the nodes the launch file starts with ``args`` (``roslaunch --nodes``)."""
-    argv = [ROSLAUNCH, "--nodes", *launch_argv(launch, args)]
+    out = _roslaunch(launch, ["--nodes"], args, env, timeout)
+    nodes = [x.strip() for x in out.splitlines() if x.strip().startswith("/")]
+    if not nodes:
+        raise InputError(launch.path, "the launch file starts no node")
+    return nodes
+
+
+@dataclass(frozen=True)
+class NodeCommand:
+    """How roslaunch would start one node: its environment additions and command line."""
+
+    node: str
+    env: Mapping[str, str]
+    argv: tuple[str, ...]
+
+
+def _roslaunch(launch: LaunchFile, what: list[str], args: Mapping[str, str], env: Mapping[str, str],
+               timeout: float) -> str:
+    argv = [ROSLAUNCH, *what, *launch_argv(launch, args)]
     try:
         done = subprocess.run(argv, capture_output=True, text=True, env=dict(env), timeout=timeout, check=False)
     except FileNotFoundError:
         raise InputError(None, f"{ROSLAUNCH} not found: install Debian's ROS 1 (apt-get install ros-core)") from None
     except subprocess.TimeoutExpired:
-        raise InputError(launch.path, f"roslaunch --nodes took more than {timeout:g} s") from None
+        raise InputError(launch.path, f"roslaunch {what[0]} took more than {timeout:g} s") from None
     if done.returncode != 0:
         lines = [x.strip() for x in (done.stderr + done.stdout).splitlines() if x.strip()]
         cause = next((x for x in reversed(lines) if "error" in x.lower()), lines[-1] if lines else "no output")
         raise InputError(launch.path, f"roslaunch cannot read it: {cause}")
-    nodes = [x.strip() for x in done.stdout.splitlines() if x.strip().startswith("/")]
-    if not nodes:
-        raise InputError(launch.path, "the launch file starts no node")
-    return nodes
+    return done.stdout
+
+
+def node_command(launch: LaunchFile, node: str, args: Mapping[str, str], env: Mapping[str, str],
+                 timeout: float) -> NodeCommand:
+    """``roslaunch --args NODE``: the command line and environment roslaunch itself would
+    use to start ``node`` (remappings, ``__name``, its namespace and ``<env>`` included), so
+    a node can be started elsewhere (another network namespace) exactly as roslaunch would.
+    roslaunch's own ``ROS_MASTER_URI`` is left out: the caller gives the run's."""
+    import shlex
+
+    words = shlex.split(_roslaunch(launch, ["--args", node], args, env, timeout).strip())
+    extra: dict[str, str] = {}
+    while words and "=" in words[0] and not words[0].startswith(("/", "-")) \
+            and words[0].split("=", 1)[0].isidentifier():
+        key, value = words.pop(0).split("=", 1)
+        extra[key] = value
+    if not words:
+        raise InputError(launch.path, f"roslaunch --args gave no command line for node {node}")
+    extra.pop("ROS_MASTER_URI", None)
+    return NodeCommand(node, extra, tuple(words))
+
+
+def launch_params(launch: LaunchFile, args: Mapping[str, str], env: Mapping[str, str],
+                  timeout: float) -> dict[str, object]:
+    """``roslaunch --dump-params``: every ROS parameter the launch file sets, by full name."""
+    import yaml
+
+    data = yaml.safe_load(_roslaunch(launch, ["--dump-params"], args, env, timeout)) or {}
+    if not isinstance(data, dict):
+        raise InputError(launch.path, "roslaunch --dump-params did not give a mapping of parameters")
+    return {str(k): v for k, v in data.items()}

@@ -32,7 +32,7 @@ from collections.abc import Callable, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from perfros_bag.characterisation.manifest import parse_manifest, write_manifest
 from perfros_bag.errors import InputError, PerfrosError
@@ -46,7 +46,12 @@ from perfros_bag.rosrun.processes import (
     sigterm_as_interrupt,
     wait_for,
 )
-from perfros_bag.rosrun.recorders import require_free_space, start_record_cpu, start_rosbag
+from perfros_bag.rosrun.recorders import (
+    merge_bags,
+    require_free_space,
+    start_record_cpu,
+    start_rosbag,
+)
 from perfros_bag.sweep.graph import Graph, capture_graph, write_graph
 from perfros_bag.sweep.launchfile import (
     ROSLAUNCH,
@@ -54,9 +59,14 @@ from perfros_bag.sweep.launchfile import (
     check_space,
     launch_argv,
     launch_nodes,
+    launch_params,
+    node_command,
     read_launch,
 )
 from perfros_bag.sweep.space import Run, Space, load_space, plan_runs
+
+if TYPE_CHECKING:
+    from perfros_bag.rosrun.network import Network
 
 WORK = ".sweep"
 PROBE_NODE = "perfros_probe"
@@ -154,7 +164,7 @@ def _finished_runs(manifest_path: Path) -> tuple[str | None, dict[str, dict[str,
 class _Watch:
     """What must stay alive during a run, and how to say what died."""
 
-    launcher: Started
+    launcher: Started | None  # roslaunch; None when the nodes were started one by one
     log: Path
     others: list[Started] = field(default_factory=list)
     pids: dict[str, tuple[int, float]] = field(default_factory=dict)  # node -> (pid, create_time)
@@ -165,7 +175,7 @@ class _Watch:
         died = _died_line(self.log)
         if died:
             return died
-        if self.launcher.popen.poll() is not None:
+        if self.launcher is not None and self.launcher.popen.poll() is not None:
             cause = _last_error(self.log)
             return f"roslaunch ({cause + '; ' if cause else ''}exit code {self.launcher.popen.returncode}; see {self.log})"
         for st in self.others:
@@ -212,10 +222,19 @@ def _died_line(log: Path) -> str | None:
 
 def record_run(launch: LaunchFile, space: Space, run: Run, out: Path, *, interval: float = 0.5,
                progress: Callable[[str, float], None] | None = None, run_id: str | None = None,
-               on_graph: Callable[[Graph], None] | None = None) -> Graph:
+               on_graph: Callable[[Graph], None] | None = None, network: Network | None = None,
+               where: Mapping[str, str] | None = None, on_window: Callable[[str], None] | None = None) -> Graph:
     """Record one run into ``out/<run>.bag`` and ``out/<run>.cpu.csv``; returns its graph.
     ``on_graph`` is called with the graph (every node up, with its PID) before recording
-    starts; ``run_id`` tags the run's processes (default: a new one)."""
+    starts; ``on_window`` with ``"start"`` and ``"end"`` as the recording's ``duration_s``
+    begins and ends; ``run_id`` tags the run's processes (default: a new one).
+
+    With an emulated ``network`` (:class:`~perfros_bag.rosrun.network.Network`, made by the
+    caller) the run happens across its namespaces: roscore in the namespace of
+    :meth:`Network.master_computer`, each node started as ``roslaunch --args`` says, in the
+    namespace of its computer (``where``: node as system.yaml names it -> computer; others
+    go with the master), and one ``rosbag record`` per computer of the topics published there, so that
+    recording adds no traffic to a link; their bags are merged into one."""
     note = progress or (lambda stage, frac: None)
     work = out / WORK / run.name
     if work.exists():
@@ -229,7 +248,13 @@ def record_run(launch: LaunchFile, space: Space, run: Run, out: Path, *, interva
     try:
         with sigterm_as_interrupt():
             try:
-                graph = _record(launch, space, run, work, procs, timeout, interval, note, on_graph)
+                if network is not None and network.emulated:
+                    with network.inside(network.master_computer()):
+                        graph = _record(launch, space, run, work, procs, timeout, interval, note, on_graph,
+                                        _Spread(network, dict(where or {})), on_window)
+                else:
+                    graph = _record(launch, space, run, work, procs, timeout, interval, note, on_graph,
+                                    on_window=on_window)
             except PerfrosError as exc:
                 raise PerfrosError(f"run {run.name}: {exc}") from None
     except KeyboardInterrupt:
@@ -253,21 +278,69 @@ def record_run(launch: LaunchFile, space: Space, run: Run, out: Path, *, interva
     return graph
 
 
+@dataclass
+class _Spread:
+    """A run across emulated computers (see :func:`record_run`)."""
+
+    network: Network
+    where: dict[str, str]  # ROS node name -> computer
+
+    @property
+    def master(self) -> str:
+        return self.network.master_computer()
+
+    def computer(self, node: str) -> str:
+        """The computer of ROS node ``node`` (``where`` names nodes as system.yaml does)."""
+        from perfros_bag.system.names import system_node_name
+
+        return self.where.get(system_node_name(node), self.master)
+
+    def env(self, computer: str, uri: str) -> list[str]:
+        """``env`` assignments for a process on ``computer`` (its ROS_IP, the run's master)."""
+        addresses = self.network.ros_addresses(computer, self.master, port_of(uri))
+        return [f"{k}={v}" for k, v in addresses.items()]
+
+
+def _start_nodes(launch: LaunchFile, run: Run, nodes: list[str], spread: _Spread, uri: str, work: Path,
+                 procs: Processes, timeout: float) -> list[Started]:
+    """Each node in its computer's namespace, as ``roslaunch --args`` would start it, after
+    the launch file's parameters (``roslaunch --dump-params``) are set on the master."""
+    with ThreadPoolExecutor(max_workers=4) as pool:
+        params = pool.submit(launch_params, launch, run.args, dict(procs.env), timeout)
+        commands = list(pool.map(lambda n: node_command(launch, n, run.args, dict(procs.env), timeout), nodes))
+        for name, value in params.result().items():
+            if master_call(uri, "setParam", name, value) is None:
+                raise PerfrosError(f"the master did not take the launch file's parameter {name}")
+    started = []
+    for i, cmd in enumerate(commands):
+        comp = spread.computer(cmd.node)
+        argv = ["env", *(f"{k}={v}" for k, v in cmd.env.items()), *spread.env(comp, uri), *cmd.argv]
+        started.append(procs.start(cmd.node, spread.network.wrap(comp, argv), work / f"node{i}.log",
+                                   cwd=Path(procs.env["ROS_HOME"])))
+    return started
+
+
 def _record(launch: LaunchFile, space: Space, run: Run, work: Path, procs: Processes, timeout: float,
             interval: float, note: Callable[[str, float], None],
-            on_graph: Callable[[Graph], None] | None = None) -> Graph:
+            on_graph: Callable[[Graph], None] | None = None, spread: _Spread | None = None,
+            on_window: Callable[[str], None] | None = None) -> Graph:
     note("roscore", 0.0)
+    if spread is not None:
+        procs.env["ROS_IP"] = spread.network.address(spread.master)
     with ThreadPoolExecutor(max_workers=1) as pool:  # roslaunch --nodes while roscore starts
         listing = pool.submit(launch_nodes, launch, run.args, dict(procs.env), timeout)
-        uri = start_roscore(procs, work, timeout)
+        uri = start_roscore(procs, work, timeout, host=procs.env["ROS_IP"])
         nodes = listing.result()
     for name, value in run.params.items():
         if master_call(uri, "setParam", name, value) is None:
             raise PerfrosError(f"the master did not take the parameter {name}={value!r}")
     log = work / "roslaunch.log"
-    launcher = procs.start("roslaunch", [ROSLAUNCH, "-p", str(port_of(uri)), *launch_argv(launch, run.args)],
-                           log, cwd=work)
-    watch = _Watch(launcher, log)
+    if spread is None:
+        launcher = procs.start("roslaunch", [ROSLAUNCH, "-p", str(port_of(uri)), *launch_argv(launch, run.args)],
+                               log, cwd=work)
+        watch = _Watch(launcher, log)
+    else:
+        watch = _Watch(None, log, _start_nodes(launch, run, nodes, spread, uri, work, procs, timeout))
 
     def registered() -> bool:
         return all(isinstance(master_call(uri, "lookupNode", n), str) for n in nodes)
@@ -275,13 +348,14 @@ def _record(launch: LaunchFile, space: Space, run: Run, work: Path, procs: Proce
     note("nodes", 0.0)
     wait_for(f"the nodes {', '.join(nodes)} to register", registered, timeout, watch.failure)
     procs.remember()
-    probe = start_rosbag(procs, "rosbag probe", work / "probe.bag", None, PROBE_NODE, work / "probe.log", work)
+    probe = start_rosbag(procs, "rosbag probe", work / "probe.bag", None, PROBE_NODE, work / "probe.log", work,
+                         space.exclude)
     watch.others.append(probe)
     waiting: list[str] = []
 
     def publishing() -> bool:
         graph = capture_graph(uri, nodes, OWN_NODES)
-        quiet = _silent_topics(uri, graph, nodes)
+        quiet = [t for t in _silent_topics(uri, graph, nodes) if space.recorded(t)]
         waiting[:] = quiet
         return not quiet
 
@@ -310,33 +384,81 @@ def _record(launch: LaunchFile, space: Space, run: Run, work: Path, procs: Proce
     labels = sorted({n.rsplit("/", 1)[-1] for n in nodes})
     pattern = "(^| )__name:=(" + "|".join(re.escape(x) for x in labels) + ")( |$)"
     cpu = start_record_cpu(procs, [pattern], interval, work / "host.cpu.csv", work / "record-cpu.log", work)
-    rec = start_rosbag(procs, "rosbag record", work / "run.bag", None, RECORD_NODE, work / "rosbag.log", work)
-    watch.others += [cpu, rec]
-    advertised = [t.name for t in graph.topics if t.name not in QUIET_TOPICS and set(t.publishers) & set(nodes)]
+    advertised = [t.name for t in graph.topics
+                  if t.name not in QUIET_TOPICS and set(t.publishers) & set(nodes) and space.recorded(t.name)]
+    if spread is None:
+        recorders = [start_rosbag(procs, "rosbag record", work / "run.bag", None, RECORD_NODE, work / "rosbag.log",
+                                  work, space.exclude)]
+        expected = {t: f"/{RECORD_NODE}" for t in advertised}
+    else:
+        recorders, expected = _start_recorders(graph, nodes, space, spread, uri, work, procs)
+    watch.others += [cpu, *recorders]
 
     def recording() -> bool:
         state = master_state(uri)
         if state is None:
             return False
         subs = {t: set(who) for t, who in state[1]}
-        return all(f"/{RECORD_NODE}" in subs.get(t, set()) for t in advertised)
+        return all(who in subs.get(t, set()) for t, who in expected.items() if t in advertised)
 
     wait_for("rosbag record to subscribe", recording, timeout, watch.failure)
     procs.stop(["rosbag probe"])
     watch.others.remove(probe)
+    window = on_window or (lambda edge: None)
+    window("start")
     t0 = time.monotonic()
     while (elapsed := time.monotonic() - t0) < space.duration_s:
         _check(watch, "the recording")
         note("recording", elapsed / space.duration_s)
         time.sleep(min(0.25, space.duration_s - elapsed))
     _check(watch, "the recording")
+    window("end")
     note("recording", 1.0)
-    procs.stop(["rosbag record", "record-cpu"], timeout=15.0)
+    procs.stop([*(r.name for r in recorders), "record-cpu"], timeout=15.0)
+    if spread is not None:
+        _merge_recordings(recorders, work)
     if not (work / "run.bag").exists():
         raise PerfrosError(f"rosbag record did not write its bag (see {work / 'rosbag.log'})")
     if not (work / "host.cpu.csv").exists():
         raise PerfrosError(f"record-cpu did not write its trace (see {work / 'record-cpu.log'})")
     return graph
+
+
+def _start_recorders(graph: Graph, nodes: list[str], space: Space, spread: _Spread, uri: str, work: Path,
+                     procs: Processes) -> tuple[list[Started], dict[str, str]]:
+    """One ``rosbag record`` per computer, of the topics published there (a topic with
+    several publishers: where its first launched publisher runs; the rest with the master);
+    returns them and, per topic, the recorder that must subscribe to it."""
+    from perfros_bag.rosrun.recorders import rosbag_argv
+
+    launched = set(nodes)
+    by_computer: dict[str, list[str]] = {}
+    for t in graph.topics:
+        if not t.publishers or not space.recorded(t.name):
+            continue
+        owner = next((p for p in t.publishers if p in launched), None)
+        comp = spread.computer(owner) if owner else spread.master
+        by_computer.setdefault(comp, []).append(t.name)
+    recorders, expected = [], {}
+    for comp, topics in sorted(by_computer.items()):
+        node = f"{RECORD_NODE}_{comp}".replace("-", "_")
+        argv = rosbag_argv(work / f"run.{comp}.bag", topics, node)
+        argv = spread.network.wrap(comp, ["env", *spread.env(comp, uri), *argv])
+        recorders.append(procs.start(f"rosbag record {comp}", argv, work / f"rosbag.{comp}.log", cwd=work))
+        expected.update(dict.fromkeys(topics, f"/{node}"))
+    return recorders, expected
+
+
+def _merge_recordings(recorders: list[Started], work: Path) -> None:
+    """The per-computer bags merged into ``run.bag``."""
+    parts = sorted(work.glob("run.*.bag"))
+    missing = [r.name for r in recorders if not (work / f"run.{r.name.rsplit(' ', 1)[-1]}.bag").exists()]
+    if missing:
+        raise PerfrosError(f"{', '.join(missing)} did not write its bag (see {work})")
+    try:
+        merge_bags(parts, work / "run.bag")
+    except Exception as exc:  # noqa: BLE001 - rosbags' own errors: name the run's folder
+        raise PerfrosError(f"cannot merge the computers' bags in {work}: {exc}") from None
 
 
 def _check(watch: _Watch, during: str) -> None:

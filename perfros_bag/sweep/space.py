@@ -7,6 +7,7 @@
     repeats: 1                     # runs per setting
     design: one-at-a-time          # | grid
     startup_timeout_s: 30          # optional: how long nodes and topics may take to come up
+    exclude: '.*/debug_image$'     # optional: topics not recorded (a regex, rosbag record -x)
     vary:
       - node: detector             # ROS node name as launched (leading slash optional)
         parameter: {name: rate, unit: Hz}
@@ -37,7 +38,7 @@ from perfros_bag.system.names import NameKind, name_problem
 
 Value = int | float | str
 
-TOP_KEYS = {"duration_s", "settle_s", "repeats", "design", "startup_timeout_s", "vary"}
+TOP_KEYS = {"duration_s", "settle_s", "repeats", "design", "startup_timeout_s", "exclude", "vary"}
 VARY_KEYS = {"node", "parameter", "arg", "param", "values", "default"}
 PARAMETER_KEYS = {"name", "unit"}
 
@@ -82,6 +83,11 @@ class Space:
     design: Design
     vary: tuple[Varied, ...]
     startup_timeout_s: float = 30.0
+    exclude: str | None = None  # topics not recorded: a regex the whole name matches (rosbag record -x)
+
+    def recorded(self, topic: str) -> bool:
+        """Whether runs record ``topic`` (``exclude`` does not match it)."""
+        return self.exclude is None or re.fullmatch(self.exclude, topic) is None
 
     def with_duration(self, duration: float | None) -> Space:
         """This space with its recording length overridden (``None``: as it is)."""
@@ -145,7 +151,15 @@ def parse_space(data: Any, path: Path) -> Space:
         for r in reached:
             if reached.count(r) > 1:
                 raise fail("vary", f"{what} {r!r} is set by two entries")
-    return Space(path, duration, settle, repeats, design, vary, timeout)
+    exclude = data.get("exclude")
+    if exclude is not None:
+        if not isinstance(exclude, str) or not exclude:
+            raise fail("exclude", f"must be a regular expression (a string), got {exclude!r}")
+        try:
+            re.compile(exclude)
+        except re.error as exc:
+            raise fail("exclude", f"not a regular expression: {exc}") from None
+    return Space(path, duration, settle, repeats, design, vary, timeout, exclude)
 
 
 def _varied(item: Any, where: str, fail: Any) -> Varied:
