@@ -152,17 +152,33 @@ def read_stamps(path: str | Path, *, fast: bool = True) -> tuple[Stamps, dict[st
     return library_stamps(p, types), types
 
 
+def read_contents_stamps(path: str | Path, *, fast: bool = True) -> tuple[Stamps, dict[str, TopicType]] | None:
+    """:func:`read_stamps`, with a recording whose contents cannot be read (e.g. an empty
+    file: the index reader says so) as one warning and None."""
+    try:
+        return read_stamps(path, fast=fast)
+    except _UNREADABLE as exc:
+        warnings.warn(f"{path}: latency not read: {exc}", PerfrosWarning, stacklevel=3)
+        return None
+
+
 def read_latency(path: str | Path, *, fast: bool = True) -> dict[str, TopicLatency | None]:
     """Per topic of the recording with a header: its :class:`TopicLatency` (None when no
     message carries a non-zero stamp or it does not decode). Topics without a header are
     absent. Never raises on contents: a recording or topic that cannot be decoded is a
     warning."""
     p = Path(path)
-    try:
-        stamps, types = read_stamps(p, fast=fast)
-    except _UNREADABLE as exc:  # e.g. an empty file: the index reader says so
-        warnings.warn(f"{p}: latency not read: {exc}", PerfrosWarning, stacklevel=2)
+    return topic_latencies(p, read_contents_stamps(p, fast=fast))
+
+
+def topic_latencies(path: str | Path, read: tuple[Stamps, dict[str, TopicType]] | None
+                    ) -> dict[str, TopicLatency | None]:
+    """:func:`read_latency` from one reading of the stamps (:func:`read_contents_stamps`),
+    so other measures (chains) can share it; ``read`` None: empty."""
+    if read is None:
         return {}
+    p = path
+    stamps, types = read
     out: dict[str, TopicLatency | None] = {}
     for topic, tt in sorted(types.items()):
         if tt.stamped is None and tt.encoding in ("cdr", "ros1"):
