@@ -498,3 +498,32 @@ def test_sqlite_sql_fallback_equals_the_page_path(generated: dict[str, Path]) ->
         con.close()
         _assert_same_stamps(pages, sql)
         assert sorted(pages) == sorted(t for t, tt in types.items() if tt.stamped)
+
+
+def test_metrics_of_several_nodes_are_read_in_one_pass(generated: dict[str, Path], monkeypatch: pytest.MonkeyPatch) -> None:
+    import perfros_bag.ingest.contents as contents
+    from perfros_bag.system.types import Aggregate, Metric
+
+    metrics = {"a": Metric("/detector/scored", "score", Aggregate.MEAN), "b": Metric("/imu", "linear_acceleration.x",
+                                                                                     Aggregate.P95),
+               "c": Metric("/detector/scored", "count", Aggregate.MEDIAN), "d": Metric("/imu", "nope"),
+               "e": Metric("/detector/plain", "score", Aggregate.RATE)}
+    calls: list[set[str]] = []
+    real = contents.decoded_messages
+
+    def counted(path: Path, topics: set[str]):  # type: ignore[no-untyped-def]
+        calls.append(set(topics))
+        return real(path, topics)
+
+    monkeypatch.setattr(contents, "decoded_messages", counted)
+    with pytest.warns(PerfrosWarning, match=r"metric /imu: not read: field 'nope'"):
+        got = contents.read_metrics(generated["ros1"], metrics)
+    assert calls == [{"/detector/scored", "/imu"}]
+    scored = [s.score for s in SENT if s.topic == "/detector/scored"]
+    imu = [s.score for s in SENT if s.topic == "/imu"]
+    assert got["a"] == pytest.approx(float(np.mean(scored)))
+    assert got["b"] == pytest.approx(float(np.percentile(imu, 95)))
+    assert got["c"] == pytest.approx(float(np.median([int(abs(x)) for x in scored])))
+    assert got["d"] is None
+    plain = [s.time_ns for s in SENT if s.topic == "/detector/plain"]
+    assert got["e"] == pytest.approx((len(plain) - 1) / ((plain[-1] - plain[0]) / 1e9))

@@ -55,8 +55,16 @@ def node_name(ros_name: str) -> str:
     return name
 
 
-def draft_system(directory: str | Path, out: str | Path) -> str:
-    """Write the drafted system.yaml to ``out``; returns its text."""
+@dataclass(frozen=True)
+class Draft:
+    """What :func:`draft_system` wrote: the text and the drafted nodes' names."""
+
+    text: str
+    nodes: tuple[str, ...]
+
+
+def draft_system(directory: str | Path, out: str | Path) -> Draft:
+    """Write the drafted system.yaml to ``out``; returns its text and nodes."""
     from perfros_bag.characterisation.table import characterise, check_settings
 
     d = Path(directory)
@@ -88,7 +96,7 @@ def draft_system(directory: str | Path, out: str | Path) -> str:
     text = _render(d, graph, skeleton, result.rows, values, computer, cores, graph_path.exists())
     _check_loads(text, Path(out))
     atomic_write_text(out, text)
-    return text
+    return Draft(text, tuple(n.name for n in skeleton.nodes))
 
 
 def _manifest(d: Path) -> Manifest:

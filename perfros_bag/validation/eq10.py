@@ -411,15 +411,15 @@ def _compare_metric(n: NodeCheck, value: float | None, system: System | None, no
 def measured_metrics(run: Path, plan: Plan, system: System | None,
                      stats: RecordingStats) -> dict[str, float | None]:
     """The run's value of the ``metric`` of every plan node that has one (decoded by the
-    libraries: :func:`perfros_bag.ingest.contents.read_metric`)."""
+    libraries in one pass: :func:`perfros_bag.ingest.contents.read_metrics`)."""
     if system is None:
         return {}
     wanted = {n: system.node[n].metric for n in plan.nodes if n in system.node and system.node[n].metric}
     if not wanted:
         return {}
-    from perfros_bag.ingest.contents import read_metric
+    from perfros_bag.ingest.contents import read_metrics
 
-    return {n: read_metric(run, m, stats) for n, m in wanted.items() if m is not None}
+    return read_metrics(run, {n: m for n, m in wanted.items() if m is not None}, stats)
 
 
 def _check_computers(plan: Plan, nodes: list[NodeCheck], node_cpu: dict[str, TracedCpu],
