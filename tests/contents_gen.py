@@ -315,3 +315,20 @@ def write_chain(path: Path, kind: str = "ros1", messages: list[tuple[str, int, i
         for topic, t, stamp in msgs:
             w.write(c2[topic], t, ts.serialize_cdr(_chain_message(ts, topic, stamp), CHAIN_TOPICS[topic]))
     return path
+
+
+def solve_and_validate(system: Path, run: Path, tmp_path: Path) -> tuple[Any, Path]:
+    """``solve`` the system (Problem 1, exact) then ``validate --json --out`` the run against
+    the plan through the CLI: (the validate result, the saved validation.json)."""
+    from typer.testing import CliRunner
+
+    from perfros_bag.cli import app
+
+    plan = tmp_path / "plan.json"
+    runner = CliRunner()
+    res = runner.invoke(app, ["solve", str(system), "--problem", "1", "--method", "exact", "--out", str(plan)])
+    assert res.exit_code == 0, res.output
+    saved = tmp_path / "validation.json"
+    res = runner.invoke(app, ["validate", str(run), str(plan), "--json", "--tolerance", "100", "--out", str(saved)])
+    assert res.exit_code == 0, res.output
+    return res, saved

@@ -20,6 +20,7 @@ from contents_gen import (
     TOPICS,
     Sent,
     sent_messages,
+    solve_and_validate,
     typestore,
     write_mcap,
     write_ros1,
@@ -334,14 +335,7 @@ def test_validate_puts_the_measured_metric_beside_eq10(generated: dict[str, Path
     system.write_text((SYSTEM_YAML % ("score", "mean")).replace(
         "performance: 50}", "performance: 50, frequency_hz: 33.3}").replace(
         "performance: 80}", "performance: 80, frequency_hz: 33.3}"))
-    plan = tmp_path / "plan.json"
-    runner = CliRunner()
-    res = runner.invoke(app, ["solve", str(system), "--problem", "1", "--method", "exact", "--out", str(plan)])
-    assert res.exit_code == 0, res.output
-    saved = tmp_path / "validation.json"
-    res = runner.invoke(app, ["validate", str(generated["rosbag2-mcap"]), str(plan), "--json", "--tolerance", "100",
-                              "--out", str(saved)])
-    assert res.exit_code == 0, res.output
+    res, saved = solve_and_validate(system, generated["rosbag2-mcap"], tmp_path)
     node = json.loads(res.stdout)["nodes"][0]
     mean_score = float(np.mean([s.score for s in SENT if s.topic == "/detector/scored"]))
     assert node["metric_value"] == pytest.approx(mean_score)
