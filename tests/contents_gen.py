@@ -249,3 +249,86 @@ def write_mcap_json(path: Path, sent: list[Sent]) -> Path:
                 w.add_message(chan, log_time=s.time_ns, data=json.dumps(doc).encode(), publish_time=s.time_ns)
         w.finish()
     return path
+
+
+# --------------------------------------------------------------------------- chains of topics
+
+#: a vision chain: camera -> detector -> tracker, each copying its input's header; /detector/plain
+#: has no header
+CHAIN_TOPICS = {"/camera/image_raw": SCORED, "/detector/circles": SCORED, "/tracker/tracks": SCORED,
+                "/detector/plain": PLAIN}
+
+
+def chain_messages(n: int = 120, seed: int = 3, t0: int = 1_700_000_000_000_000_000) -> list[tuple[str, int, int]]:
+    """(topic, log time, stamp) of a chain with known delays: a camera frame every 33 ms,
+    stamped 2-6 ms before it is logged; the detector handles 2 frames in 3 (20-60 ms later,
+    the frame's stamp copied), plus every 10th output of its own with a fresh stamp (matches
+    nothing); the tracker handles every detection (5-15 ms later, stamp copied); every 25th
+    frame is stamped 0; /detector/plain mirrors the detector without a header."""
+    rng = np.random.default_rng(seed)
+    out: list[tuple[str, int, int]] = []
+    for i in range(n):
+        t = t0 + i * 33_000_000
+        stamp = 0 if i % 25 == 0 else t - int(rng.integers(2_000_000, 6_000_000))
+        out.append(("/camera/image_raw", t, stamp))
+        if i % 3 == 2:
+            continue
+        td = t + int(rng.integers(20_000_000, 60_000_000))
+        own = i % 10 == 1
+        ds = td - 1_000_000 if own else stamp
+        out.append(("/detector/circles", td, ds))
+        out.append(("/detector/plain", td, 0))
+        out.append(("/tracker/tracks", td + int(rng.integers(5_000_000, 15_000_000)), ds))
+    return sorted(out, key=lambda m: m[1])
+
+
+def _chain_message(ts: Any, topic: str, stamp: int) -> Any:
+    if CHAIN_TOPICS[topic] == PLAIN:
+        return ts.types[PLAIN](score=1.0)
+    seq = {"seq": 0} if ts.fielddefs["std_msgs/msg/Header"][1][0][0] == "seq" else {}
+    header = ts.types["std_msgs/msg/Header"](
+        **seq, stamp=ts.types["builtin_interfaces/msg/Time"](sec=stamp // 10**9, nanosec=stamp % 10**9), frame_id="cam")
+    return ts.types[SCORED](header=header, score=1.0, count=1)
+
+
+def write_chain(path: Path, kind: str = "ros1", messages: list[tuple[str, int, int]] | None = None) -> Path:
+    """The chain as a ROS 1 bag (``ros1``) or a rosbag2 directory (``sqlite3``, ``mcap``)."""
+    msgs = chain_messages() if messages is None else messages
+    if kind == "ros1":
+        from rosbags.rosbag1 import Writer as W1
+        from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+        ts = get_typestore(Stores.ROS1_NOETIC)
+        for name, text in CUSTOM_MSGS.items():
+            ts.register(get_types_from_msg(text, name))
+        with W1(path) as w1:
+            c1 = {t: w1.add_connection(t, m, typestore=ts, callerid="/" + t.split("/")[1]) for t, m in CHAIN_TOPICS.items()}
+            for topic, t, stamp in msgs:
+                w1.write(c1[topic], t, ts.serialize_ros1(_chain_message(ts, topic, stamp), CHAIN_TOPICS[topic]))
+        return path
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    ts = typestore()
+    w = Writer(path, version=9, storage_plugin=StoragePlugin.MCAP if kind == "mcap" else StoragePlugin.SQLITE3)
+    with w:
+        c2 = {t: w.add_connection(t, m, typestore=ts) for t, m in CHAIN_TOPICS.items()}
+        for topic, t, stamp in msgs:
+            w.write(c2[topic], t, ts.serialize_cdr(_chain_message(ts, topic, stamp), CHAIN_TOPICS[topic]))
+    return path
+
+
+def solve_and_validate(system: Path, run: Path, tmp_path: Path) -> tuple[Any, Path]:
+    """``solve`` the system (Problem 1, exact) then ``validate --json --out`` the run against
+    the plan through the CLI: (the validate result, the saved validation.json)."""
+    from typer.testing import CliRunner
+
+    from perfros_bag.cli import app
+
+    plan = tmp_path / "plan.json"
+    runner = CliRunner()
+    res = runner.invoke(app, ["solve", str(system), "--problem", "1", "--method", "exact", "--out", str(plan)])
+    assert res.exit_code == 0, res.output
+    saved = tmp_path / "validation.json"
+    res = runner.invoke(app, ["validate", str(run), str(plan), "--json", "--tolerance", "100", "--out", str(saved)])
+    assert res.exit_code == 0, res.output
+    return res, saved

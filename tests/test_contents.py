@@ -20,6 +20,7 @@ from contents_gen import (
     TOPICS,
     Sent,
     sent_messages,
+    solve_and_validate,
     typestore,
     write_mcap,
     write_ros1,
@@ -334,14 +335,7 @@ def test_validate_puts_the_measured_metric_beside_eq10(generated: dict[str, Path
     system.write_text((SYSTEM_YAML % ("score", "mean")).replace(
         "performance: 50}", "performance: 50, frequency_hz: 33.3}").replace(
         "performance: 80}", "performance: 80, frequency_hz: 33.3}"))
-    plan = tmp_path / "plan.json"
-    runner = CliRunner()
-    res = runner.invoke(app, ["solve", str(system), "--problem", "1", "--method", "exact", "--out", str(plan)])
-    assert res.exit_code == 0, res.output
-    saved = tmp_path / "validation.json"
-    res = runner.invoke(app, ["validate", str(generated["rosbag2-mcap"]), str(plan), "--json", "--tolerance", "100",
-                              "--out", str(saved)])
-    assert res.exit_code == 0, res.output
+    res, saved = solve_and_validate(system, generated["rosbag2-mcap"], tmp_path)
     node = json.loads(res.stdout)["nodes"][0]
     mean_score = float(np.mean([s.score for s in SENT if s.topic == "/detector/scored"]))
     assert node["metric_value"] == pytest.approx(mean_score)
@@ -498,3 +492,32 @@ def test_sqlite_sql_fallback_equals_the_page_path(generated: dict[str, Path]) ->
         con.close()
         _assert_same_stamps(pages, sql)
         assert sorted(pages) == sorted(t for t, tt in types.items() if tt.stamped)
+
+
+def test_metrics_of_several_nodes_are_read_in_one_pass(generated: dict[str, Path], monkeypatch: pytest.MonkeyPatch) -> None:
+    import perfros_bag.ingest.contents as contents
+    from perfros_bag.system.types import Aggregate, Metric
+
+    metrics = {"a": Metric("/detector/scored", "score", Aggregate.MEAN), "b": Metric("/imu", "linear_acceleration.x",
+                                                                                     Aggregate.P95),
+               "c": Metric("/detector/scored", "count", Aggregate.MEDIAN), "d": Metric("/imu", "nope"),
+               "e": Metric("/detector/plain", "score", Aggregate.RATE)}
+    calls: list[set[str]] = []
+    real = contents.decoded_messages
+
+    def counted(path: Path, topics: set[str]):  # type: ignore[no-untyped-def]
+        calls.append(set(topics))
+        return real(path, topics)
+
+    monkeypatch.setattr(contents, "decoded_messages", counted)
+    with pytest.warns(PerfrosWarning, match=r"metric /imu: not read: field 'nope'"):
+        got = contents.read_metrics(generated["ros1"], metrics)
+    assert calls == [{"/detector/scored", "/imu"}]
+    scored = [s.score for s in SENT if s.topic == "/detector/scored"]
+    imu = [s.score for s in SENT if s.topic == "/imu"]
+    assert got["a"] == pytest.approx(float(np.mean(scored)))
+    assert got["b"] == pytest.approx(float(np.percentile(imu, 95)))
+    assert got["c"] == pytest.approx(float(np.median([int(abs(x)) for x in scored])))
+    assert got["d"] is None
+    plain = [s.time_ns for s in SENT if s.topic == "/detector/plain"]
+    assert got["e"] == pytest.approx((len(plain) - 1) / ((plain[-1] - plain[0]) / 1e9))

@@ -146,13 +146,13 @@ def characterise_recording(entry: RecordingEntry, system: System | None = None, 
 
 
 def _metrics(entry: RecordingEntry, system: System | None, stats: RecordingStats) -> dict[str, float | None]:
-    """The value of each system node's ``metric`` in this recording (decoded only for the
-    nodes that have one)."""
+    """The value of each system node's ``metric`` in this recording (one pass over the
+    messages of the metric topics, decoded only when a node has a metric)."""
     if system is None or not any(n.metric for n in system.nodes):
         return {}
-    from perfros_bag.ingest.contents import read_metric
+    from perfros_bag.ingest.contents import read_metrics
 
-    return {n.name: read_metric(entry.path, n.metric, stats) for n in system.nodes if n.metric is not None}
+    return read_metrics(entry.path, {n.name: n.metric for n in system.nodes if n.metric is not None}, stats)
 
 
 def _recorded_settings(entry: RecordingEntry, system: System | None,

@@ -9,6 +9,7 @@ from typing import Annotated
 import typer
 
 from perfros_bag.cli._app import command, err, out
+from perfros_bag.errors import PerfrosError
 
 _HOW = {"index": "read from the index records", "sqlite-pages": "read from the SQLite pages",
         "sql": "read with one SQL pass", "stream": "every record streamed",
@@ -27,6 +28,7 @@ def info(
     as_json: Annotated[bool, typer.Option("--json", help="Print the perfros-bag/info@1 JSON document on stdout.")] = False,
     slow: Annotated[bool, typer.Option("--slow", help="Stream every record instead of reading the indexes (same numbers, slower).")] = False,
     latency: Annotated[bool, typer.Option("--latency", help="Also read header.stamp of the topics with a std_msgs/Header: receive time - stamp, p50/p95/max.")] = False,
+    system: Annotated[Path | None, typer.Option("--system", help="With --latency: also the end-to-end latency of this system.yaml's chains.")] = None,
 ) -> None:
     """Per-topic table like `rosbag info` / `ros2 bag info`, with rates and bandwidth."""
     from rich.console import Console
@@ -35,14 +37,27 @@ def info(
     from perfros_bag.ingest import read_recording
     from perfros_bag.ingest.document import recording_document
 
+    chains = None
+    if system is not None:
+        if not latency:
+            raise PerfrosError("--system gives the chains whose latency --latency reads: add --latency")
+        from perfros_bag.system.systemfile import load_system
+
+        chains = load_system(system).chains
     with err.status(f"reading {recording}", spinner="dots"):  # animates on a terminal only
         rec = read_recording(recording, fast=not slow)
         lat = None
+        measured = []
         if latency:
-            from perfros_bag.ingest.contents import read_latency
+            from perfros_bag.ingest.chains import chain_latencies
+            from perfros_bag.ingest.contents import read_contents_stamps, topic_latencies
 
-            lat = read_latency(recording, fast=not slow)
+            read = read_contents_stamps(recording, fast=not slow)
+            lat = topic_latencies(recording, read)
+            measured = chain_latencies(chains or (), read, where=f"{recording}: ")
     doc = recording_document(rec, lat)
+    if chains is not None:
+        doc["chains"] = [c.to_dict() for c in measured]
     if as_json:
         from perfros_bag.fileio import json_text  # strict: no NaN/Infinity
 
@@ -74,5 +89,9 @@ def info(
                       rel(t.first_ns), rel(t.last_ns), ", ".join(t.publishers),
                       *["/".join("-" if d is None else f"{d:.4f}" for d in delays)] * latency)
     console.print(table)
+    for c in doc.get("chains", []):
+        console.print(f"chain {c['name']} ({' -> '.join(c['topics'])}): end-to-end "
+                      + ("-" if c["p50_s"] is None else f"p50/p95/max {c['p50_s']:.4f}/{c['p95_s']:.4f}/{c['max_s']:.4f} s")
+                      + f", {c['matched']} of {c['messages']} matched", highlight=False, markup=False)
     if not rec.topics:
         err.print("(no topics)")

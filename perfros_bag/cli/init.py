@@ -20,6 +20,5 @@ def init_cmd(
 
     if out_path.is_dir():
         raise PerfrosError(f"{out_path}: is a directory, expected the system.yaml to write")
-    text = draft_system(directory, out_path)
-    nodes = sum(1 for line in text.splitlines() if line.startswith("  - name: "))
-    err.print(f"wrote {out_path}: {nodes} node(s); review the lines marked REPLACE", highlight=False)
+    draft = draft_system(directory, out_path)
+    err.print(f"wrote {out_path}: {len(draft.nodes)} node(s); review the lines marked REPLACE", highlight=False)

@@ -15,11 +15,16 @@ from perfros_bag.cli._app import command, err, out
 from perfros_bag.validation import DEFAULT_TOLERANCE
 
 if TYPE_CHECKING:
+    from perfros_bag.ingest.contents import TopicLatency
     from perfros_bag.validation.eq10 import TopicCheck, Validation
 
 
 def _f(x: float | None, fmt: str = ".3g") -> str:
     return "-" if x is None else format(x, fmt)
+
+
+def _delays(d: TopicLatency | None) -> tuple[str, str, str]:
+    return ("-", "-", "-") if d is None else (_f(d.p50_s), _f(d.p95_s), _f(d.max_s))
 
 
 def render(v: Validation, console: Console) -> None:
@@ -85,6 +90,29 @@ def render(v: Validation, console: Console) -> None:
                 mt.add_row(escape(n.node), _f(n.metric_value, ".4g"), _f(n.p_metric), _f(n.p_expected),
                            _f(n.p_measured), _f(n.metric_deviation_pct, ".1f"))
         console.print(mt)
+    if v.network:
+        nt = Table(title="network: transfer delay per message the plan adds, beside the measured latency (s)")
+        for col in ("edge", "topic", "route", "bytes/msg", "added", "latency p50", "latency p95"):
+            nt.add_column(col, justify="left" if col in ("edge", "topic", "route") else "right")
+        for nc in v.network:
+            nt.add_row(escape(nc.edge), escape(nc.topic), escape(", ".join("-".join(b) for b in nc.links)),
+                       _f(nc.message_bytes, ".4g"), _f(nc.predicted_delay_s, ".3g"), _f(nc.latency_p50_s, ".3g"),
+                       _f(nc.latency_p95_s, ".3g"))
+        console.print(nt)
+    if v.chains:
+        ch = Table(title="chains: end-to-end latency (last topic's log time - first topic's stamp, s)")
+        for col in ("chain", "from -> to", "matched", "p50", "p95", "max"):
+            ch.add_column(col, justify="left" if col in ("chain", "from -> to") else "right")
+        for cl in v.chains:
+            e = cl.end_to_end
+            ch.add_row(escape(cl.name), escape(f"{cl.topics[0]} -> {cl.topics[-1]}"),
+                       f"{0 if e is None else e.messages}/{cl.messages}",
+                       *_delays(e))
+            for h in cl.hops:
+                d = h.delays
+                ch.add_row("", escape(f"  hop {h.src} -> {h.dst}"), str(0 if d is None else d.messages),
+                           *_delays(d))
+        console.print(ch)
     if v.unplanned_topics:
         console.print("topics not in the plan (not counted): "
                       + ", ".join(f"{escape(u.topic)} ({u.f_measured:.3g} Hz)" for u in v.unplanned_topics))

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import re
 import warnings
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -152,17 +152,33 @@ def read_stamps(path: str | Path, *, fast: bool = True) -> tuple[Stamps, dict[st
     return library_stamps(p, types), types
 
 
+def read_contents_stamps(path: str | Path, *, fast: bool = True) -> tuple[Stamps, dict[str, TopicType]] | None:
+    """:func:`read_stamps`, with a recording whose contents cannot be read (e.g. an empty
+    file: the index reader says so) as one warning and None."""
+    try:
+        return read_stamps(path, fast=fast)
+    except _UNREADABLE as exc:
+        warnings.warn(f"{path}: latency not read: {exc}", PerfrosWarning, stacklevel=3)
+        return None
+
+
 def read_latency(path: str | Path, *, fast: bool = True) -> dict[str, TopicLatency | None]:
     """Per topic of the recording with a header: its :class:`TopicLatency` (None when no
     message carries a non-zero stamp or it does not decode). Topics without a header are
     absent. Never raises on contents: a recording or topic that cannot be decoded is a
     warning."""
     p = Path(path)
-    try:
-        stamps, types = read_stamps(p, fast=fast)
-    except _UNREADABLE as exc:  # e.g. an empty file: the index reader says so
-        warnings.warn(f"{p}: latency not read: {exc}", PerfrosWarning, stacklevel=2)
+    return topic_latencies(p, read_contents_stamps(p, fast=fast))
+
+
+def topic_latencies(path: str | Path, read: tuple[Stamps, dict[str, TopicType]] | None
+                    ) -> dict[str, TopicLatency | None]:
+    """:func:`read_latency` from one reading of the stamps (:func:`read_contents_stamps`),
+    so other measures (chains) can share it; ``read`` None: empty."""
+    if read is None:
         return {}
+    p = path
+    stamps, types = read
     out: dict[str, TopicLatency | None] = {}
     for topic, tt in sorted(types.items()):
         if tt.stamped is None and tt.encoding in ("cdr", "ros1"):
@@ -235,26 +251,58 @@ def read_metric(path: str | Path, metric: Metric, stats: RecordingStats | None =
     the libraries, only that topic's chunks read), aggregated; ``rate`` is the topic's
     frequency (``stats`` when given: no decoding). None, with one warning naming the topic
     and why, when the topic is absent, empty or does not decode."""
-    p = Path(path)
-    where = f"{p}: metric {metric.topic}"
-    if metric.aggregate is Aggregate.RATE:
-        if stats is None:
-            from perfros_bag.ingest import read_recording
+    return read_metrics(path, {"": metric}, stats)[""]
 
-            stats = read_recording(p)
-        ts = stats.topics.get(metric.topic)
-        if ts is None or ts.messages < 2:
-            warnings.warn(f"{where}: fewer than 2 messages: no rate", PerfrosWarning, stacklevel=2)
-            return None
-        return ts.frequency_hz
-    values: list[float] = []
-    try:
-        for _topic, _t, msg in decoded_messages(p, [metric.topic]):
-            values.append(field_value(msg, metric.field))
-    except (PerfrosError, Undecodable, ValueError, OSError) as exc:
-        warnings.warn(f"{where}: not read: {exc}", PerfrosWarning, stacklevel=2)
-        return None
-    if not values:
-        warnings.warn(f"{where}: no message on the topic", PerfrosWarning, stacklevel=2)
-        return None
-    return aggregate(values, metric.aggregate)
+
+def read_metrics(path: str | Path, metrics: Mapping[str, Metric],
+                 stats: RecordingStats | None = None) -> dict[str, float | None]:
+    """:func:`read_metric` of several metrics (keyed, e.g. by node) in ONE pass over the
+    messages of all their topics; a topic that does not decode fails only the metrics on
+    it (the others are read again without it), a field that is not there only its metric."""
+    p = Path(path)
+    out: dict[str, float | None] = {}
+    for key, metric in metrics.items():
+        if metric.aggregate is Aggregate.RATE:
+            if stats is None:
+                from perfros_bag.ingest import read_recording
+
+                stats = read_recording(p)
+            ts = stats.topics.get(metric.topic)
+            if ts is None or ts.messages < 2:
+                warnings.warn(f"{p}: metric {metric.topic}: fewer than 2 messages: no rate", PerfrosWarning,
+                              stacklevel=2)
+                out[key] = None
+            else:
+                out[key] = ts.frequency_hz
+    fields = {k: m for k, m in metrics.items() if m.aggregate is not Aggregate.RATE}
+    on_topic: dict[str, list[str]] = {}
+    for key, metric in fields.items():
+        on_topic.setdefault(metric.topic, []).append(key)
+    values: dict[str, list[float]] = {k: [] for k in fields}
+    failed: dict[str, str] = {}
+    topics = set(on_topic)
+    while topics:
+        for v in values.values():
+            v.clear()
+        try:
+            for topic, _t, msg in decoded_messages(p, topics):
+                for key in on_topic[topic]:
+                    if key not in failed:
+                        try:
+                            values[key].append(field_value(msg, fields[key].field))
+                        except ValueError as exc:
+                            failed[key] = str(exc)
+            break
+        except (PerfrosError, Undecodable, ValueError, OSError) as exc:
+            bad = next((t for t in topics if str(exc).startswith(f"{t}: ")), None)
+            for t in topics if bad is None else (bad,):
+                failed.update(dict.fromkeys((k for k in on_topic[t] if k not in failed), str(exc)))
+            topics = set() if bad is None else topics - {bad}
+    for key, metric in fields.items():
+        where = f"{p}: metric {metric.topic}"
+        if key in failed:
+            warnings.warn(f"{where}: not read: {failed[key]}", PerfrosWarning, stacklevel=2)
+        elif not values[key]:
+            warnings.warn(f"{where}: no message on the topic", PerfrosWarning, stacklevel=2)
+        out[key] = None if key in failed or not values[key] else aggregate(values[key], metric.aggregate)
+    return {k: out[k] for k in metrics}

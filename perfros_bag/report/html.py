@@ -218,6 +218,32 @@ def _link_name(lc: dict[str, Any]) -> str:
     return " – ".join(between)
 
 
+def _section_latency(v: dict[str, Any]) -> str:
+    """The validation's network delays (``network``) and chain latencies (``chains``)."""
+    parts = []
+    net = [c for c in v.get("network", []) if isinstance(c, dict)]
+    if net:
+        parts.append("<h3>Network: transfer delay per message the plan adds</h3>" + table(
+            ("edge", "topic", "route", "bytes/msg", "added delay s", "latency p50 s", "latency p95 s"),
+            [(c.get("edge"), c.get("topic"), ", ".join(_link_name({"between": b}) for b in c.get("links", [])
+                                                        if isinstance(b, list)),
+              number(c.get("message_bytes")), number(c.get("predicted_delay_s")), number(c.get("latency_p50_s")),
+              number(c.get("latency_p95_s"))) for c in net],
+            text_cols=(0, 1, 2), table_id="validation-network"))
+    rows = []
+    for c in (c for c in v.get("chains", []) if isinstance(c, dict)):
+        topics = [str(t) for t in c.get("topics", [])]
+        rows.append((c.get("name"), " -> ".join(topics), c.get("matched"), c.get("messages"), number(c.get("p50_s")),
+                     number(c.get("p95_s")), number(c.get("max_s"))))
+        rows += [("", f"hop {h.get('from')} -> {h.get('to')}", h.get("matched"), "", number(h.get("p50_s")),
+                  number(h.get("p95_s")), number(h.get("max_s"))) for h in c.get("hops", []) if isinstance(h, dict)]
+    if rows:
+        parts.append("<h3>Chains: end-to-end latency</h3>" + table(
+            ("chain", "topics", "matched", "messages", "p50 s", "p95 s", "max s"), rows, text_cols=(0, 1),
+            table_id="validation-chains"))
+    return "".join(parts)
+
+
 def section_validation(v: dict[str, Any], images: list[Image]) -> str:
     ov = v["overall"]
     passed = ov.get("passed")
@@ -249,6 +275,7 @@ def section_validation(v: dict[str, Any], images: list[Image]) -> str:
             [(n.get("node"), number(n.get("metric_value")), number(n.get("p_metric")), number(n.get("p_expected")),
               number(n.get("p_measured")), number(n.get("metric_deviation_pct"))) for n in metric_nodes],
             table_id="validation-metric"))
+    parts.append(_section_latency(v))
     comps = [c for c in v.get("computers", []) if isinstance(c, dict)]
     if comps:
         parts.append("<h3>CPU per computer</h3>" + table(

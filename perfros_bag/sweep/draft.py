@@ -6,7 +6,8 @@
   ``process`` pattern matching its label in the sweep's CPU traces, and, when the sweep
   varied it, its parameter (name and unit from the sweep's copy of space.yaml);
 - edges from the subscriptions the master saw (graph.yaml); without graph.yaml the nodes and
-  topics come from the recordings' ROS 1 ``callerid`` and there are no edges;
+  topics come from the recordings (ROS 1 ``callerid``, ``/rosout`` in ROS 1 and 2, a ROS 2
+  topic going to the node named as its namespace) and there are no edges;
 - one setting per measured value: CPU, frequency and bandwidth measured (the mean over the
   runs at that value; the characterisation of every run with a skeleton of this system);
 - what only the user knows, as a stated default and a comment: weights equal; performance
@@ -36,8 +37,9 @@ if TYPE_CHECKING:
     from perfros_bag.characterisation.manifest import Manifest
     from perfros_bag.characterisation.table import Row
 
-#: Nodes that are not the application's: roscore's and the tool's own recorders.
-NOT_APP = re.compile(r"^/(rosout|perfros_[a-z_]+)$")
+#: Nodes that are not the application's: roscore's, the tool's own recorders, rosbag's
+#: recorders (ROS 1 ``record_<pid>``, ROS 2 ``rosbag2_recorder``) and the ros2 command line's.
+NOT_APP = re.compile(r"^/(rosout|perfros_[a-z_]+|rosbag2_recorder|record_\d+|_ros2cli_\d+)$")
 #: Message types that are not a node's output (logs, reconfiguration).
 NOT_OUTPUT = re.compile(r"^(rosgraph_msgs|dynamic_reconfigure)/")
 MIN_CPU = 0.1  # a setting's CPU must be > 0: what a node measured at 0 gets
@@ -53,8 +55,16 @@ def node_name(ros_name: str) -> str:
     return name
 
 
-def draft_system(directory: str | Path, out: str | Path) -> str:
-    """Write the drafted system.yaml to ``out``; returns its text."""
+@dataclass(frozen=True)
+class Draft:
+    """What :func:`draft_system` wrote: the text and the drafted nodes' names."""
+
+    text: str
+    nodes: tuple[str, ...]
+
+
+def draft_system(directory: str | Path, out: str | Path) -> Draft:
+    """Write the drafted system.yaml to ``out``; returns its text and nodes."""
     from perfros_bag.characterisation.table import characterise, check_settings
 
     d = Path(directory)
@@ -86,7 +96,7 @@ def draft_system(directory: str | Path, out: str | Path) -> str:
     text = _render(d, graph, skeleton, result.rows, values, computer, cores, graph_path.exists())
     _check_loads(text, Path(out))
     atomic_write_text(out, text)
-    return text
+    return Draft(text, tuple(n.name for n in skeleton.nodes))
 
 
 def _manifest(d: Path) -> Manifest:
@@ -140,16 +150,34 @@ def _parameters(d: Path) -> dict[str, tuple[str, str | None]]:
 
 
 def _graph_from_recordings(manifest: Manifest) -> Graph:
-    """Nodes and topics from the first recording's ROS 1 ``callerid``s (no subscriptions)."""
+    """Nodes and topics from the recordings themselves (no graph.yaml, no subscriptions):
+    nodes from the publishers' ROS 1 ``callerid`` and the ``/rosout`` names (ROS 1 and 2,
+    :func:`perfros_bag.ingest.rosgraph.read_graph`) of every recording; a topic no callerid
+    names (ROS 2 records none) goes to the node whose name is its namespace (``/detector``
+    publishes ``/detector/circles``; the longest such name)."""
     from perfros_bag.ingest import read_recording
+    from perfros_bag.ingest.rosgraph import read_graph as read_recording_graph
 
-    stats = read_recording(manifest.recordings[0].path)
-    topics = tuple(GraphTopic(t.topic, t.msgtype, tuple(sorted(t.publishers)), ())
-                   for t in sorted(stats.topics.values(), key=lambda t: t.topic))
-    names = sorted({p for t in topics for p in t.publishers})
+    names: dict[str, None] = {}
+    types: dict[str, str] = {}
+    publishers: dict[str, set[str]] = {}
+    for e in manifest.recordings:
+        stats = read_recording(e.path)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", PerfrosWarning)  # a parameter changed: not init's business
+            names.update(dict.fromkeys(read_recording_graph(e.path, stats).nodes))
+        for t in stats.topics.values():
+            types.setdefault(t.topic, t.msgtype)
+            publishers.setdefault(t.topic, set()).update(t.publishers)
+    for topic, pubs in publishers.items():
+        owner = max((n for n in names if topic.startswith(n.rstrip("/") + "/")), key=len, default=None)
+        if not pubs and owner is not None:
+            pubs.add(owner)
     if not names:
-        raise InputError(manifest.recordings[0].path, "no graph.yaml beside it and no publisher (callerid) in it")
-    return Graph(tuple(GraphNode(n, None, None, True) for n in names), topics)
+        raise InputError(manifest.recordings[0].path,
+                         "no graph.yaml beside it and no node in the recordings (no callerid, no /rosout)")
+    topics = tuple(GraphTopic(t, types[t], tuple(sorted(publishers[t])), ()) for t in sorted(publishers))
+    return Graph(tuple(GraphNode(n, None, None, True) for n in sorted(names)), topics)
 
 
 def _output_topics(node: GraphNode, graph: Graph) -> tuple[str, ...]:
@@ -215,7 +243,7 @@ def _render(d: Path, graph: Graph, skeleton: Any, rows: Sequence[Row], values: M
     runs = len({r.recording for r in rows})
     lines = [
         f"# system.yaml drafted by `perfros-bag init` from {d}: "
-        + ("graph.yaml, " if from_graph else "the recordings' callerids (no graph.yaml: no edges), ")
+        + ("graph.yaml, " if from_graph else "the recordings' callerids and /rosout (no graph.yaml: no edges), ")
         + f"manifest.yaml and {runs} run(s).",
         "# It loads, fits and solves as it is. Lines marked REPLACE hold stated defaults that only you",
         "# can know better: the nodes' weights and performance.",

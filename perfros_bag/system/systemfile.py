@@ -29,6 +29,7 @@ from perfros_bag.system.types import (
     CURVE_FORMS,
     Aggregate,
     Better,
+    Chain,
     Computer,
     Curve,
     Edge,
@@ -42,7 +43,8 @@ from perfros_bag.system.types import (
     TopicRate,
 )
 
-TOP_KEYS = {"cpu_unit", "computers", "links", "media", "nodes", "edges", "machines"}
+TOP_KEYS = {"cpu_unit", "computers", "links", "media", "nodes", "edges", "machines", "chains"}
+CHAIN_KEYS = {"name", "topics"}
 COMPUTER_KEYS = {"name", "kind", "capacity", "max_capacity"}
 LINK_KEYS = {"between", "bandwidth_kBps", "medium"}
 MEDIUM_KEYS = {"name", "bandwidth_kBps"}
@@ -207,8 +209,9 @@ def parse_system(data: Any, source: str = "system.yaml") -> System:
         warnings.warn(f"{source}: node weights sum to {total:g}, not 1; normalised (eq 6)", PerfrosWarning, stacklevel=2)
         nodes = [_reweight(n, n.weight / total) for n in nodes]
 
+    chains = _chains(ctx, top.get("chains"), nodes, edges)
     system = System(tuple(computers), tuple(nodes), tuple(links), tuple(media), tuple(edges),
-                    cpu_unit, machines, source)
+                    cpu_unit, machines, source, chains)
     _check_groups(ctx, system)
     return system
 
@@ -445,6 +448,24 @@ def _edges(ctx: _Ctx, raw: Any, nodes: set[str]) -> list[Edge]:
         out.append(Edge(src, dst, None if topic is None else ctx.name(topic, f"{where}.topic", NameKind.TOPIC),
                         ctx.opt_number(m.get("bandwidth_kBps"), f"{where}.bandwidth_kBps", nonneg=True)))
     return out
+
+
+def _chains(ctx: _Ctx, raw: Any, nodes: list[Node], edges: list[Edge]) -> tuple[Chain, ...]:
+    """``chains: [{name, topics: [first, ..., last]}]``: at least two distinct topics, each
+    one a node's or an edge's."""
+    known = {t for n in nodes for t in n.topics} | {e.topic for e in edges if e.topic is not None}
+    out: list[Chain] = []
+    for name, where, m in ctx.named(raw, "chains", "chain", CHAIN_KEYS, {"name", "topics"}, at_least_one=False):
+        topics = ctx.str_list(m["topics"], f"{where}: topics", NameKind.TOPIC)
+        if len(topics) < 2:
+            raise ctx.fail(f"{where}: topics", f"a chain needs at least 2 topics, got {len(topics)}")
+        if len(set(topics)) != len(topics):
+            raise ctx.fail(f"{where}: topics", "a topic is listed twice")
+        for i, t in enumerate(topics):
+            if t not in known:
+                raise ctx.fail(f"{where}: topics[{i}]", f"{t!r} is not a topic of any node or edge of the system")
+        out.append(Chain(name, topics))
+    return tuple(out)
 
 
 def _machines(ctx: _Ctx, raw: Any, computers: set[str]) -> dict[str, dict[str, str]]:

@@ -267,6 +267,16 @@ class Edge:
 
 
 @dataclass(frozen=True)
+class Chain:
+    """A processing chain (system.yaml ``chains``): messages flow through ``topics`` in order,
+    each node copying its input's ``header.stamp`` (its end-to-end latency is measured from
+    the recording: :mod:`perfros_bag.ingest.chains`)."""
+
+    name: str
+    topics: tuple[str, ...]
+
+
+@dataclass(frozen=True)
 class Node:
     name: str
     weight: float
@@ -365,6 +375,7 @@ class System:
     cpu_unit: str | None = None
     machines: dict[str, dict[str, str]] = field(default_factory=dict)
     source: str | None = None  # the file it was loaded from, for messages
+    chains: tuple[Chain, ...] = ()  # topics whose end-to-end latency is measured
 
     @cached_property
     def computer(self) -> dict[str, Computer]:

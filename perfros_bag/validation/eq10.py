@@ -33,13 +33,17 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import StrEnum
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from perfros_bag.errors import InputError, PerfrosWarning
 from perfros_bag.ingest.stats import RecordingStats, TopicStats
 from perfros_bag.system.plan import Plan
 from perfros_bag.system.types import System
 from perfros_bag.validation import DEFAULT_TOLERANCE
+
+if TYPE_CHECKING:
+    from perfros_bag.ingest.chains import ChainLatency
+    from perfros_bag.ingest.contents import TopicLatency
 
 VALIDATION_FORMAT = "perfros-bag/validation@1"
 
@@ -149,6 +153,28 @@ class LinkCheck:
 
 
 @dataclass
+class NetworkCheck:
+    """A topic the plan sends across the network (an edge whose ends it puts on different
+    computers): the transfer delay per message its route adds, predicted from the run's mean
+    message size and the links' bandwidths, beside the topic's measured header.stamp latency."""
+
+    edge: str  # "src->dst"
+    topic: str
+    links: list[tuple[str, str]]  # the route, link by link
+    message_bytes: float | None  # mean payload bytes per message in the run; None: not recorded
+    predicted_delay_s: float | None  # Σ over the route's links of message_bytes / (1000 × bandwidth_kBps)
+    latency_p50_s: float | None = None  # measured receive/log time - header.stamp (stamped topics)
+    latency_p95_s: float | None = None
+    latency_max_s: float | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"edge": self.edge, "topic": self.topic, "links": [list(b) for b in self.links],
+                "message_bytes": self.message_bytes, "predicted_delay_s": self.predicted_delay_s,
+                "latency_p50_s": self.latency_p50_s, "latency_p95_s": self.latency_p95_s,
+                "latency_max_s": self.latency_max_s}
+
+
+@dataclass
 class UnplannedTopic:
     topic: str
     msgtype: str
@@ -179,6 +205,8 @@ class Validation:
     cpu_traces: list[str] = field(default_factory=list)
     system: str | None = None
     notes: list[str] = field(default_factory=list)
+    network: list[NetworkCheck] = field(default_factory=list)
+    chains: list[ChainLatency] = field(default_factory=list)
 
     @property
     def passed(self) -> bool:
@@ -210,6 +238,8 @@ class Validation:
             "overloaded": self.overloaded_computers,
             "links": [link.to_dict() for link in self.links],
             "media": [m.to_dict() for m in self.media],
+            "network": [c.to_dict() for c in self.network],
+            "chains": [c.to_dict() for c in self.chains],
             "notes": self.notes,
         }
 
@@ -297,10 +327,14 @@ def _check_topic(stats: RecordingStats, topic: str, f_expected: float | None) ->
 def check_run(stats: RecordingStats, plan: Plan, *, cap: bool = False,
               tolerance: float = DEFAULT_TOLERANCE, system: System | None = None,
               node_cpu: dict[str, TracedCpu] | None = None, cpu_traces: Iterable[str] = (),
-              plan_path: str | None = None, metrics: Mapping[str, float | None] | None = None) -> Validation:
+              plan_path: str | None = None, metrics: Mapping[str, float | None] | None = None,
+              latency: Mapping[str, TopicLatency | None] | None = None,
+              chains: Sequence[ChainLatency] = ()) -> Validation:
     """Eq 10 for every node of ``plan`` against the recording's statistics. ``metrics``: the
     measured value of each node's ``metric`` in the run (:func:`measured_metrics`), compared
-    with the plan's performance beside eq 10 (it does not change eq 10's numbers)."""
+    with the plan's performance beside eq 10 (it does not change eq 10's numbers);
+    ``latency``: the run's header.stamp latency per stamped topic, shown beside the network
+    delay the plan adds; ``chains``: the system's chains measured in the run."""
     plan.require_feasible(plan_path, "validate")
     notes: list[str] = []
     nodes: list[NodeCheck] = []
@@ -348,12 +382,14 @@ def check_run(stats: RecordingStats, plan: Plan, *, cap: bool = False,
 
     computers = _check_computers(plan, nodes, node_cpu, notes) if node_cpu is not None else []
     links, media = _check_links(plan, stats, system, notes) if system is not None else ([], [])
+    network = _check_network(plan, stats, system, latency or {}) if system is not None else []
     return Validation(
         recording=str(stats.path), recording_format=stats.format, plan=plan_path,
         tolerance_pct=tolerance, cap=cap, overall_expected=overall_e, overall_measured=overall_m,
         deviation_pct=_deviation(overall_m, overall_e), nodes=nodes, computers=computers,
         links=links, media=media, unplanned_topics=unplanned, cpu_traces=list(cpu_traces),
-        system=system.source if system is not None else None, notes=notes,
+        system=system.source if system is not None else None, notes=notes, network=network,
+        chains=list(chains),
     )
 
 
@@ -375,15 +411,15 @@ def _compare_metric(n: NodeCheck, value: float | None, system: System | None, no
 def measured_metrics(run: Path, plan: Plan, system: System | None,
                      stats: RecordingStats) -> dict[str, float | None]:
     """The run's value of the ``metric`` of every plan node that has one (decoded by the
-    libraries: :func:`perfros_bag.ingest.contents.read_metric`)."""
+    libraries in one pass: :func:`perfros_bag.ingest.contents.read_metrics`)."""
     if system is None:
         return {}
     wanted = {n: system.node[n].metric for n in plan.nodes if n in system.node and system.node[n].metric}
     if not wanted:
         return {}
-    from perfros_bag.ingest.contents import read_metric
+    from perfros_bag.ingest.contents import read_metrics
 
-    return {n: read_metric(run, m, stats) for n, m in wanted.items() if m is not None}
+    return read_metrics(run, {n: m for n, m in wanted.items() if m is not None}, stats)
 
 
 def _check_computers(plan: Plan, nodes: list[NodeCheck], node_cpu: dict[str, TracedCpu],
@@ -414,15 +450,8 @@ def _check_computers(plan: Plan, nodes: list[NodeCheck], node_cpu: dict[str, Tra
 
 def _measured_publisher_bw(stats: RecordingStats, plan: Plan, system: System, src: str, topic: str | None) -> float:
     """kB/s an edge carries in the run: its topic's, else all the publisher's topics'."""
-    if topic is not None:
-        ts = _find_topic(stats, topic)
-        return ts.bandwidth_kBps if ts is not None else 0.0
-    topics: Iterable[str] = plan.nodes[src].topics if plan.nodes[src].topics else system.node[src].topics
-    total = 0.0
-    for t in topics:
-        ts = _find_topic(stats, t)
-        total += ts.bandwidth_kBps if ts is not None else 0.0
-    return total
+    found = (_find_topic(stats, t) for t in _edge_topics(plan, system, src, topic))
+    return sum(ts.bandwidth_kBps for ts in found if ts is not None)
 
 
 def _check_links(plan: Plan, stats: RecordingStats, system: System,
@@ -458,6 +487,50 @@ def _check_links(plan: Plan, stats: RecordingStats, system: System,
         media.append(LinkCheck((m.name, m.name), m.bandwidth_kBps, expected, load,
                                load > m.bandwidth_kBps, m.name, [e for lc in members for e in lc.edges]))
     return links, media
+
+
+def _edge_topics(plan: Plan, system: System, src: str, topic: str | None) -> list[str]:
+    """The topics an edge carries: its own, else every planned topic of its publisher."""
+    if topic is not None:
+        return [topic]
+    return list(plan.nodes[src].topics if plan.nodes[src].topics else system.node[src].topics)
+
+
+def _planned_routes(plan: Plan, system: System) -> list[tuple[Any, tuple[int, ...]]]:
+    """(edge, links) of every edge the plan sends across at least one link."""
+    placement = {n: pn.computer for n, pn in plan.nodes.items() if pn.computer in system.computer}
+    return [(edge, route) for _, edge, route in system.edge_routes(placement) if route]
+
+
+def _check_network(plan: Plan, stats: RecordingStats, system: System,
+                   latency: Mapping[str, TopicLatency | None]) -> list[NetworkCheck]:
+    """Per topic of every edge across links: predicted added transfer delay per message
+    ``Σ_links mean_message_bytes / (1000 × bandwidth_kBps)`` and the measured latency."""
+    out: list[NetworkCheck] = []
+    for edge, route in _planned_routes(plan, system):
+        for topic in _edge_topics(plan, system, edge.src, edge.topic):
+            key = _topic_key(stats, topic)
+            ts = None if key is None else stats.topics[key]
+            size = ts.bytes / ts.messages if ts is not None and ts.messages else None
+            delay = None if size is None else sum(size / (1000.0 * system.links[li].bandwidth_kBps) for li in route)
+            lat = latency.get(key) if key is not None else None
+            out.append(NetworkCheck(f"{edge.src}->{edge.dst}", topic, [system.links[li].between for li in route],
+                                    size, delay, lat.p50_s if lat else None, lat.p95_s if lat else None,
+                                    lat.max_s if lat else None))
+    return out
+
+
+def measured_latency(run: Path, plan: Plan, system: System | None
+                     ) -> tuple[dict[str, TopicLatency | None], list[ChainLatency]]:
+    """The run's header.stamp latency per stamped topic and its chains, read (one reading of
+    the stamps) only when the system has chains or the plan sends a topic across a link."""
+    if system is None or not (system.chains or _planned_routes(plan, system)):
+        return {}, []
+    from perfros_bag.ingest.chains import chain_latencies
+    from perfros_bag.ingest.contents import read_contents_stamps, topic_latencies
+
+    read = read_contents_stamps(run)
+    return topic_latencies(run, read), chain_latencies(system.chains, read, where=f"{run}: ")
 
 
 # ---------------------------------------------------------------------------------------
@@ -515,6 +588,7 @@ def validate_files(run: str | Path, plan_path: str | Path, *, cpu: Sequence[str 
                     warnings.warn(f"{t}: node {node!r} also in {node_cpu[node].trace}; the later trace is used",
                                   PerfrosWarning, stacklevel=2)
                 node_cpu[node] = nc
+    latency, chains = measured_latency(run_p, plan, system)
     return check_run(stats, plan, cap=cap, tolerance=tolerance, system=system, node_cpu=node_cpu,
                      cpu_traces=[str(t) for t in traces], plan_path=str(plan_p),
-                     metrics=measured_metrics(run_p, plan, system, stats))
+                     metrics=measured_metrics(run_p, plan, system, stats), latency=latency, chains=chains)
