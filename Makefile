@@ -24,6 +24,7 @@ help:
 	@echo "make sanitize - the C sqlite page decoder under ASan/UBSan with a long fuzz"
 	@echo "make paper  - the paper's Table II instances with every solver"
 	@echo "make casestudy - the case study on real ROS 1 nodes (long)"
+	@echo "make casestudy-real - the case study on real C++ nodes, CPU and links emulated (long)"
 
 setup: $(STAMP)
 

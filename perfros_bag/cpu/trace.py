@@ -216,11 +216,15 @@ def match_label(label: str, process: str, node: str, pattern: str | None) -> boo
     """Does a trace row (its node label and process name) belong to system node ``node``?
 
     With a ``process`` regex: it is searched in the label and the process name. Without:
-    the label equals the node's name (a leading namespace ``/a/b/`` is ignored)."""
+    the label equals the node's name, as a ROS name (``/robot1/amcl`` is node
+    ``robot1_amcl``, :func:`~perfros_bag.system.names.system_node_name`) or with its
+    namespace ignored (``/a/b/amcl`` is ``amcl``)."""
     if pattern is not None:
         rx = re.compile(pattern)
         return bool(rx.search(label) or rx.search(process))
-    return label == node or label.rsplit("/", 1)[-1] == node
+    from perfros_bag.system.names import system_node_name
+
+    return label == node or label.rsplit("/", 1)[-1] == node or system_node_name(label) == node
 
 
 def assign_nodes(trace: CpuTrace, nodes: Mapping[str, str | None] | None) -> list[str]:

@@ -45,11 +45,11 @@ def start_rosbag(procs: Processes, name: str, bag: Path, topics: list[str] | Non
     return procs.start(name, rosbag_argv(bag, topics, node_name, exclude), log, cwd=cwd)
 
 
-def merge_bags(parts: list[Path], dest: Path) -> None:
+def merge_bags(parts: list[Path], dest: Path, start_ns: int | None = None, end_ns: int | None = None) -> None:
     """One ROS 1 bag ``dest`` holding every message of ``parts`` (bags recorded at the same
-    time on different computers), in time order, each connection with its message
-    definition and publisher (``callerid``) as recorded: rosbags reads and writes them, the
-    payloads are copied as they are."""
+    time on different computers) received in [``start_ns``, ``end_ns``], in time order,
+    each connection with its message definition and publisher (``callerid``) as recorded:
+    rosbags reads and writes them, the payloads are copied as they are."""
     from rosbags.highlevel import AnyReader
     from rosbags.rosbag1 import Writer
 
@@ -69,7 +69,7 @@ def merge_bags(parts: list[Path], dest: Path) -> None:
                         conn.topic, conn.msgtype, msgdef=conn.msgdef.data, md5sum=conn.digest,
                         callerid=callerid, latching=getattr(conn.ext, "latching", None))
                 made[id(conn)] = added[key]
-            for conn, stamp, raw in reader.messages():
+            for conn, stamp, raw in reader.messages(start=start_ns, stop=None if end_ns is None else end_ns + 1):
                 writer.write(made[id(conn)], stamp, raw)
         finally:
             writer.close()

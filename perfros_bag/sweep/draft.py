@@ -23,7 +23,7 @@ import math
 import re
 import warnings
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -72,6 +72,9 @@ def draft_system(directory: str | Path, out: str | Path) -> Draft:
     values = _values(manifest)
     graph_path = d / "graph.yaml"
     graph = read_graph(graph_path) if graph_path.exists() else _graph_from_recordings(manifest)
+    if (d / "space.yaml").exists():  # topics the sweep did not record (its exclude) have no measurement
+        recorded = load_space(d / "space.yaml").recorded
+        graph = replace(graph, topics=tuple(t for t in graph.topics if recorded(t.name)))
     parameters = _parameters(d)
     computer, cores = _computer(manifest)
     app = [n for n in graph.nodes if n.launched and not NOT_APP.match(n.name)]

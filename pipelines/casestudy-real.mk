@@ -1,0 +1,17 @@
+# casestudy-real: the case study on Debian's real, unmodified C++ nodes (image_publisher,
+# opencv_apps people_detect and smoothing), computers as CPU-capped cgroups and links as
+# tc-shaped network namespaces. Long (~20-30 min); not part of `make test` or `make demo`.
+#
+#   make casestudy-real   sweep -> init -> characterise -> fit -> solve (P1, P2; greedy, greedy+,
+#                         exact) for 6 instances -> deploy + validate every distinct plan -> RQ3;
+#                         results in $(OUT)/casestudy-real/ and docs/casestudy-real.md
+#
+# Needs root (cgroups, namespaces) and Debian's ROS 1 + opencv_apps (setup-debs installs them).
+# Finished runs are reused: delete $(OUT)/casestudy-real (or one run folder) to measure again.
+# Knobs: CASESTUDY_REAL_ARGS="--duration 15 --sweep-duration 12 --instances 1,2,3,4,5,6"
+
+CASESTUDY_REAL_ARGS ?=
+
+.PHONY: casestudy-real
+casestudy-real: setup setup-debs
+	$(PY) pipelines/casestudy_real.py --out $(OUT)/casestudy-real $(CASESTUDY_REAL_ARGS)

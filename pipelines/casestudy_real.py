@@ -1,0 +1,572 @@
+"""The case study on Debian's real, unmodified C++ nodes: RQ2 and RQ3 with CPU and links emulated.
+
+    .venv/bin/python pipelines/casestudy_real.py [--out out/casestudy-real] [--duration 15]
+        [--sweep-duration 12] [--instances 1,2,3,4,5,6] [--docs docs/casestudy-real.md]
+
+The application (fixtures/casestudy_real): per robot a camera (image_publisher, 10 Hz, a
+320x240 RGB image the pipeline draws), a HOG people detector (opencv_apps people_detect,
+parameter scale0) and a bilateral smoother (opencv_apps smoothing, parameter kernel_size) on
+its images. Everything runs through the tool's own verbs:
+
+1. ``sweep`` robot 1's application over both parameters (one at a time), ``init`` drafts the
+   system from it, ``characterise`` measures every setting;
+2. per instance (robots, capacities, links below): the instance's system.yaml (the drafted
+   nodes, once per robot, with the stated performance levels, residence, coresidence and
+   weights), robot 1's measurements copied to every robot, ``fit``, ``solve`` Problem 1
+   (greedy, greedy+, exact) and Problem 2 (greedy, exact);
+3. ``deploy`` every distinct plan (computers as CPU-capped cgroups, each computer a network
+   namespace, links shaped with tc), which records and validates it (eq 10);
+4. RQ3: instance 1's plan with parameters forced above it on the robot, and instance 4's plan
+   with robot 2's detector forced across a link too small for its images.
+
+Results: OUT/results.json, OUT/rq2.png, OUT/rq3.png and the results section of
+docs/casestudy-real.md with the commands. A step whose output exists is reused (a run
+whose deploy.json exists is not run again): delete OUT, or one run's folder, to measure again.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import shlex
+import shutil
+import subprocess
+import sys
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import yaml
+from rich.console import Console
+
+ROOT = Path(__file__).resolve().parent.parent
+BIN = Path(sys.executable).with_name("perfros-bag")
+FIXTURES = ROOT / "fixtures" / "casestudy_real"
+err = Console(stderr=True)
+COMMANDS: list[str] = []
+EXCLUDE = "/robot[0-9]+/people/image"  # the detector's debug image: never needed, never recorded
+SCALE0 = [1.05, 1.1, 1.2, 1.4]
+KERNEL = [3, 7, 11, 15]
+# The stated performance levels (the paper's experts did the same in Table I): a finer HOG
+# pyramid finds more people; a wider bilateral filter removes more noise.
+PERF_PEOPLE = {1.05: 100.0, 1.1: 85.0, 1.2: 60.0, 1.4: 30.0}
+PERF_SMOOTH = {3: 25.0, 7: 55.0, 11: 80.0, 15: 100.0}
+WEIGHTS = {"camera": 0.5, "people": 2.0, "smooth": 1.0}
+UNITS_PER_CORE = 100.0  # CPU units of one core of this machine (what init drafts)
+
+
+@dataclass(frozen=True)
+class Instance:
+    number: int
+    robot_capacity: tuple[float, ...]  # per robot, CPU units (100 = one core here)
+    server_capacity: float
+    link_kBps: tuple[float, ...]  # per robot, its link to the server
+
+
+INSTANCES = {
+    1: Instance(1, (25,), 40, (3000,)),
+    2: Instance(2, (15,), 40, (3000,)),
+    3: Instance(3, (20, 20), 40, (3000, 3000)),
+    4: Instance(4, (20, 20), 25, (3000, 2000)),
+    5: Instance(5, (15, 15, 15), 45, (3000, 3000, 3000)),
+    6: Instance(6, (25, 25, 25), 30, (2000, 3000, 3000)),
+}
+
+
+def rel(p: Path | str) -> str:
+    return str(p).replace(str(ROOT) + "/", "")
+
+
+def sh(args: Sequence[object], *, ok: tuple[int, ...] = (0,)) -> subprocess.CompletedProcess[str]:
+    shown = " ".join(shlex.quote(rel(a)) for a in args).replace(rel(BIN), "perfros-bag")
+    COMMANDS.append(shown)
+    err.print(f"[dim]$ {shown}[/]", highlight=False)
+    done = subprocess.run([str(a) for a in args], capture_output=True, text=True)
+    if done.returncode not in ok:
+        raise SystemExit(f"error: `{shown}` failed ({done.returncode}): {done.stderr.strip()[-1500:]}")
+    return done
+
+
+# ---------------------------------------------------------------- the application
+
+def draw_scene(path: Path) -> None:
+    """A 320x240 RGB test image: coloured discs and mild noise (fixed seed)."""
+    import matplotlib.image as mpimg
+    import numpy as np
+
+    rng = np.random.default_rng(7)
+    h, w = 240, 320
+    y, x = np.mgrid[0:h, 0:w]
+    img = np.full((h, w, 3), 0.5)
+    for _ in range(12):
+        cx, cy, r = rng.uniform(0, w), rng.uniform(0, h), rng.uniform(8, 40)
+        img[(x - cx) ** 2 + (y - cy) ** 2 < r * r] = rng.uniform(0, 1, 3)
+    img = (img + rng.normal(0, 0.05, img.shape)).clip(0, 1)
+    mpimg.imsave(path, img)
+
+
+def space(robots: int, duration: float) -> dict[str, Any]:
+    vary = []
+    for k in range(1, robots + 1):
+        vary.append({"node": f"/robot{k}/people", "parameter": {"name": "scale0", "unit": ""},
+                     "arg": f"robot{k}_scale0", "values": SCALE0, "default": 1.1})
+        vary.append({"node": f"/robot{k}/smooth", "parameter": {"name": "kernel_size", "unit": "px"},
+                     "arg": f"robot{k}_kernel", "values": KERNEL, "default": 7})
+    return {"duration_s": duration, "settle_s": 3, "repeats": 1, "design": "one-at-a-time",
+            "startup_timeout_s": 60, "exclude": EXCLUDE, "vary": vary}
+
+
+def application(out: Path, args: argparse.Namespace) -> Path:
+    app = out / "app"
+    app.mkdir(parents=True, exist_ok=True)
+    for f in FIXTURES.glob("*.launch"):
+        shutil.copyfile(f, app / f.name)
+    if not (app / "scene.png").exists():
+        draw_scene(app / "scene.png")
+    for n in (1, 2, 3):
+        (app / f"space{n}.yaml").write_text(yaml.safe_dump(space(n, args.duration), sort_keys=False))
+    (app / "space-sweep.yaml").write_text(yaml.safe_dump(space(1, args.sweep_duration), sort_keys=False))
+    return app
+
+
+# ---------------------------------------------------------------- 1. sweep, init, characterise
+
+def characterise(out: Path, app: Path) -> tuple[Path, dict[str, Any]]:
+    rec = out / "sweep"
+    sh([BIN, "sweep", app / "app1.launch", "--space", app / "space-sweep.yaml", "--out", rec])
+    draft = out / "draft.yaml"
+    sh([BIN, "init", rec, "--out", draft])
+    csv_path = out / "characterisation.csv"
+    sh([BIN, "characterise", rec, "--system", draft, "--out", csv_path])
+    return csv_path, yaml.safe_load(draft.read_text())
+
+
+def kind(node: str) -> str:
+    return node.split("_", 1)[1]
+
+
+def instance_system(inst: Instance, draft: dict[str, Any]) -> dict[str, Any]:
+    """The drafted robot-1 nodes once per robot, with the instance's computers and links."""
+    robots = len(inst.robot_capacity)
+    base = {kind(n["name"]): n for n in draft["nodes"] if n["name"].startswith("robot1_")}
+    nodes, edges = [], []
+    for k in range(1, robots + 1):
+        for what, src in base.items():
+            node = json.loads(json.dumps(src).replace("/robot1/", f"/robot{k}/").replace("robot1_", f"robot{k}_"))
+            node["weight"] = WEIGHTS[what]
+            perf = {"people": PERF_PEOPLE, "smooth": PERF_SMOOTH}.get(what)
+            for s in node["settings"]:
+                s["performance"] = 100.0 if perf is None else perf[s["value"]]
+            node["residence"] = {"camera": [f"robot{k}"], "people": [f"robot{k}", "server"],
+                                 "smooth": [f"robot{k}", "server"]}[what]
+            if what == "smooth":
+                node["coresidence"] = [f"robot{k}_camera"]
+            nodes.append(node)
+        for e in draft.get("edges", []):
+            edges.append({key: str(v).replace("/robot1/", f"/robot{k}/").replace("robot1_", f"robot{k}_")
+                          for key, v in e.items()})
+    return {"cpu_unit": f"100 = one core of this machine ({UNITS_PER_CORE:g} units per core)",
+            "computers": [{"name": f"robot{k}", "kind": "robot", "capacity": c}
+                          for k, c in enumerate(inst.robot_capacity, 1)]
+            + [{"name": "server", "kind": "server", "capacity": inst.server_capacity,
+                "max_capacity": 150}],
+            "links": [{"between": [f"robot{k}", "server"], "bandwidth_kBps": b}
+                      for k, b in enumerate(inst.link_kBps, 1)],
+            "nodes": nodes, "edges": edges}
+
+
+def instance_csv(rows: list[dict[str, str]], robots: int) -> list[dict[str, str]]:
+    """Robot 1's measured rows copied to every robot (the robots run the same nodes)."""
+    out = []
+    for row in rows:
+        if not row["node"].startswith("robot1_"):
+            continue
+        for k in range(1, robots + 1):
+            new = dict(row)
+            new["node"] = row["node"].replace("robot1_", f"robot{k}_", 1)
+            new["topic"] = row["topic"].replace("/robot1/", f"/robot{k}/", 1)
+            out.append(new)
+    return out
+
+
+# ---------------------------------------------------------------- 2. fit + solve
+
+METHODS = (("p1-greedy", 1, "greedy"), ("p1-greedy+", 1, "greedy+"), ("p1-exact", 1, "exact"),
+           ("p2-greedy", 2, "greedy"), ("p2-exact", 2, "exact"))
+
+
+def fit_and_solve(out: Path, char_csv: Path, draft: dict[str, Any], numbers: list[int]) -> dict[int, dict[str, Path]]:
+    with char_csv.open(newline="") as handle:
+        reader = csv.DictReader(handle)
+        fields = list(reader.fieldnames or [])
+        rows = list(reader)
+    plans: dict[int, dict[str, Path]] = {}
+    for i in numbers:
+        inst = INSTANCES[i]
+        d = out / f"instance{i}"
+        d.mkdir(parents=True, exist_ok=True)
+        sys_path = d / "system.yaml"
+        sys_path.write_text(f"# instance {i} of the real-node case study, written by pipelines/casestudy_real.py\n"
+                            + yaml.safe_dump(instance_system(inst, draft), sort_keys=False))
+        inst_csv = d / "characterisation.csv"
+        with inst_csv.open("w", newline="") as handle:
+            w = csv.DictWriter(handle, fieldnames=fields)
+            w.writeheader()
+            w.writerows(instance_csv(rows, len(inst.robot_capacity)))
+        model = d / "model.json"
+        sh([BIN, "fit", sys_path, inst_csv, "--out", model] + (["--plots", d / "fit-plots"] if i == 1 else []))
+        plans[i] = {}
+        for key, problem, method in METHODS:
+            p = d / f"plan-{key}.json"
+            sh([BIN, "solve", model, "--problem", str(problem), "--method", method, "--out", p])
+            plans[i][key] = p
+    return plans
+
+
+# ---------------------------------------------------------------- 3. deploy + validate
+
+def signature(plan: dict[str, Any]) -> str:
+    """What a deployment runs: placement, values and capacities (plans equal in these run once)."""
+    nodes = {n: (v["computer"], v.get("value")) for n, v in sorted(plan["nodes"].items())}
+    caps = {c: round(v.get("capacity") or 0.0, 3) for c, v in sorted(plan["computers"].items())}
+    return json.dumps([nodes, caps])
+
+
+def deploy(plan: Path, robots: int, system: Path, run_dir: Path, app: Path, args: argparse.Namespace,
+           label: str) -> dict[str, Any]:
+    if (run_dir / "deploy.json").exists() and (run_dir / "validation.json").exists():
+        err.print(f"reusing {rel(run_dir)}")
+        COMMANDS.append(f"perfros-bag deploy {rel(plan)} {rel(app / f'app{robots}.launch')} --space "
+                        f"{rel(app / f'space{robots}.yaml')} --out {rel(run_dir)} --system {rel(system)}   # reused")
+    else:
+        err.print(f"[bold]{label}[/]: deploying -> {rel(run_dir)}")
+        if run_dir.exists():
+            shutil.rmtree(run_dir)
+        sh([BIN, "deploy", plan, app / f"app{robots}.launch", "--space", app / f"space{robots}.yaml", "--out", run_dir,
+            "--system", system, "--units-per-core", f"{UNITS_PER_CORE:g}"], ok=(0, 1))
+    record = json.loads((run_dir / "deploy.json").read_text())
+    validation = json.loads((run_dir / "validation.json").read_text())
+    return {"record": record, "validation": validation}
+
+
+def summarise(res: dict[str, Any]) -> dict[str, Any]:
+    val, rec = res["validation"], res["record"]
+    ratios = [abs(t["ratio"] - 1) * 100 for n in val["nodes"] for t in n["topics"] if t.get("ratio") is not None]
+    links = rec["network"].get("links_measured", [])
+    return {"expected": val["overall"]["expected"], "measured": val["overall"]["measured"],
+            "deviation_pct": val["overall"]["deviation_pct"],
+            "freq_dev_mean_pct": sum(ratios) / len(ratios) if ratios else None,
+            "cpu_cap": rec["cpu_cap"]["mode"], "net": rec["network"]["mode"],
+            "computers": {c["computer"]: {"capacity": c["capacity"], "expected": c["cpu_expected"],
+                                          "measured": c["cpu_measured"], "overloaded": c["overloaded"]}
+                          for c in val["computers"]},
+            "links": [{"between": x["between"], "capacity": x["capacity_kBps"], "expected": x["expected_kBps"],
+                       "measured": x["measured_kBps"], "overloaded": x["overloaded"]} for x in val.get("links", [])],
+            "link_use": links,
+            "nodes": {n["node"]: {"computer": n["computer"], "value": n["value"], "cpu_expected": n["cpu_expected"],
+                                  "cpu_measured": n["cpu_measured"], "p_expected": n["p_expected"],
+                                  "p_measured": n["p_measured"], "f_ratio": n["ratio"]} for n in val["nodes"]}}
+
+
+def deploy_all(out: Path, app: Path, plans: dict[int, dict[str, Path]], args: argparse.Namespace,
+               bar: Any) -> list[dict[str, Any]]:
+    results = []
+    for i, ps in plans.items():
+        robots = len(INSTANCES[i].robot_capacity)
+        system = out / f"instance{i}" / "system.yaml"
+        done: dict[str, dict[str, Any]] = {}
+        for key, _problem, _method in METHODS:
+            plan = json.loads(ps[key].read_text())
+            sig = signature(plan)
+            if sig not in done:
+                run_dir = out / f"instance{i}" / f"run-{key}"
+                done[sig] = {"run": rel(run_dir), **deploy(ps[key], robots, system, run_dir, app, args,
+                                                           f"instance {i} {key}")}
+            else:
+                COMMANDS.append(f"# instance {i} {key}: same deployment as {done[sig]['run']}")
+            res = done[sig]
+            row = {"instance": i, "plan": key, "problem": plan["problem"], "method": plan["method"],
+                   "objective": plan["objective"], "status": plan["status"], "run": res["run"], **summarise(res)}
+            # eq 10 against this plan (a deployment shared by two plans is validated against each)
+            if res["validation"]["plan"] != str(ps[key]):
+                v = sh([BIN, "validate", ROOT / res["run"] / "run.bag", ps[key], "--system", system,
+                        "--cpu", ROOT / res["run"] / "run.cpu.csv", "--json"], ok=(0, 1))
+                row.update(summarise({"validation": json.loads(v.stdout), "record": res["record"]}))
+            results.append(row)
+            err.print(f"instance {i} {key}: expected {row['expected']:.2f} measured {row['measured']:.2f} "
+                      f"({row['deviation_pct']:.2f} %), freq. dev. {row['freq_dev_mean_pct'] or 0:.2f} %")
+            bar[0].advance(bar[1])
+    return results
+
+
+# ---------------------------------------------------------------- 4. RQ3
+
+def forced(out: Path, name: str, source: Path, change: dict[str, tuple[str | None, float | None]]) -> Path:
+    """``source`` with some nodes moved and/or set to another value, the model's predictions
+    rebuilt for them (``build_plan`` with the fitted model), status ``feasible``."""
+    from perfros_bag.system.plan import Assignment
+    from perfros_bag.system.planfile import load_plan, save_plan
+    from perfros_bag.system.rules import build_plan
+    from perfros_bag.system.systemfile import load_system
+
+    plan = load_plan(source)
+    model = source.parent / "model.json"
+    system = load_system(model)
+    placement = {n: pn.computer for n, pn in plan.nodes.items()}
+    choice = {}
+    for node in system.nodes:
+        pn = plan.nodes[node.name]
+        computer, value = change.get(node.name, (None, None))
+        if computer is not None:
+            placement[node.name] = computer
+        want = pn.value if value is None else value
+        choice[node.name] = min(node.settings, key=lambda s: abs((s.value or 0.0) - (want or 0.0))) \
+            if node.settings else None
+    from perfros_bag.system.types import Choice
+
+    choices = {n: Choice(0, s.cpu, s.performance, s.value, s.frequency_hz, s.bandwidth_kBps, s.topics)
+               for n, s in choice.items() if s is not None}
+    new = build_plan(system, Assignment(placement, choices), problem=1, method=f"forced ({name})",
+                     status="feasible")
+    path = out / f"plan-{name}.json"
+    save_plan(new, path)
+    return path
+
+
+def rq3(out: Path, app: Path, plans: dict[int, dict[str, Path]], args: argparse.Namespace,
+        bar: Any) -> list[dict[str, Any]]:
+    d = out / "rq3"
+    d.mkdir(parents=True, exist_ok=True)
+    rows = []
+    configs: list[tuple[str, int, Path, str, str]] = []
+    if 1 in plans:
+        base = plans[1]["p1-exact"]
+        configs.append(("instance 1 plan (baseline)", 1, base, "cpu", "robot1"))
+        configs.append(("robot: people scale0 1.05 + smooth 15 on the robot", 1,
+                        forced(d, "robot-max", base, {"robot1_people": ("robot1", 1.05),
+                                                      "robot1_smooth": ("robot1", 15.0)}), "cpu", "robot1"))
+    if 4 in plans:
+        base = plans[4]["p1-exact"]
+        configs.append(("instance 4 plan (baseline)", 4, base, "link", "robot2"))
+        configs.append(("link: robot 2's people detector on the server (2,000 kB/s link)", 4,
+                        forced(d, "link-over", base, {"robot2_people": ("server", None)}), "link", "robot2"))
+    for label, i, plan_path, what, where in configs:
+        robots = len(INSTANCES[i].robot_capacity)
+        system = out / f"instance{i}" / "system.yaml"
+        run_dir = d / f"run-{plan_path.stem}" if plan_path.parent == d else d / f"run-instance{i}-baseline"
+        res = deploy(plan_path, robots, system, run_dir, app, args, f"RQ3 {label}")
+        s = summarise(res)
+        plan = json.loads(plan_path.read_text())
+        row: dict[str, Any] = {"config": label, "instance": i, "what": what, "where": where, **s}
+        if what == "cpu":
+            comp = plan["computers"][where]
+            row["predicted_load"], row["capacity"] = comp["cpu"], comp["capacity"]
+            row["predicted_overload"] = comp["cpu"] > comp["capacity"] + 1e-9
+            thr = res["record"].get("throttling", {}).get(where) or {}
+            row["observed_load"] = s["computers"][where]["measured"]
+            row["observed_overload"] = bool(s["computers"][where]["overloaded"])
+            row["throttled"] = thr.get("nr_throttled") / thr["nr_periods"] if thr.get("nr_periods") else None
+        else:
+            link = next(x for x in s["links"] if where in x["between"])
+            use = next((x for x in s["link_use"] if x["from"] == where), None)
+            row["predicted_load"], row["capacity"] = link["expected"], link["capacity"]
+            row["predicted_overload"] = link["expected"] > link["capacity"] + 1e-9
+            row["observed_load"] = use["sent_kBps"] if use else None
+            row["utilisation"] = use["utilisation"] if use else None
+            row["overlimits"] = use["overlimits"] if use else None
+            row["observed_overload"] = bool(use and use["utilisation"] is not None and use["utilisation"] >= 0.95)
+        rows.append(row)
+        bar[0].advance(bar[1])
+    return rows
+
+
+# ---------------------------------------------------------------- report
+
+def model_errors(results: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Per node kind: CPU predicted by the fit vs measured, frequency ratio, over every
+    deployment (each run once)."""
+    seen, acc = set(), {}
+    for r in results:
+        if r["run"] in seen:
+            continue
+        seen.add(r["run"])
+        for name, n in r["nodes"].items():
+            k = kind(name)
+            a = acc.setdefault(k, {"cpu_err": [], "cpu_pred": [], "cpu_meas": [], "f": []})
+            if n["cpu_expected"] is not None and n["cpu_measured"] is not None:
+                a["cpu_pred"].append(n["cpu_expected"])
+                a["cpu_meas"].append(n["cpu_measured"])
+                if n["cpu_expected"] > 0:
+                    a["cpu_err"].append((n["cpu_measured"] - n["cpu_expected"]) / n["cpu_expected"] * 100)
+            if n["f_ratio"] is not None:
+                a["f"].append((n["f_ratio"] - 1) * 100)
+    rows = []
+    for k, a in sorted(acc.items()):
+        def mean(xs: list[float]) -> float | None:
+            return sum(xs) / len(xs) if xs else None
+        rows.append({"node": k, "runs": len(a["cpu_pred"]), "cpu_predicted_mean": mean(a["cpu_pred"]),
+                     "cpu_measured_mean": mean(a["cpu_meas"]), "cpu_error_mean_pct": mean(a["cpu_err"]),
+                     "cpu_abs_error_mean_pct": mean([abs(x) for x in a["cpu_err"]]),
+                     "freq_dev_mean_pct": mean(a["f"])})
+    return rows
+
+
+def plots(out: Path, results: list[dict[str, Any]], rq3_rows: list[dict[str, Any]]) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(11, 3.8))
+    for ax, problem in zip(axes, (1, 2), strict=True):
+        rows = [r for r in results if r["problem"] == problem]
+        xs = list(range(len(rows)))
+        ax.bar([x - 0.2 for x in xs], [r["expected"] for r in rows], 0.4, label="expected (plan)")
+        ax.bar([x + 0.2 for x in xs], [r["measured"] for r in rows], 0.4, label="measured (eq 10)")
+        ax.set_xticks(xs, [f"{r['instance']}\n{r['plan'].split('-', 1)[1]}" for r in rows], fontsize=7)
+        ax.set_title(f"Problem {problem}: Σ w·P expected vs measured")
+    axes[0].legend(loc="lower left", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(out / "rq2.png", dpi=110)
+    plt.close(fig)
+    if rq3_rows:
+        fig, ax = plt.subplots(figsize=(11, 3.8))
+        xs = list(range(len(rq3_rows)))
+        ax.bar([x - 0.2 for x in xs], [r["predicted_load"] / r["capacity"] for r in rq3_rows], 0.4,
+               label="predicted load / capacity")
+        ax.bar([x + 0.2 for x in xs], [(r["observed_load"] or 0) / r["capacity"] for r in rq3_rows], 0.4,
+               label="observed load / capacity")
+        ax.axhline(1.0, color="red", lw=1)
+        ax.set_xticks(xs, [r["config"].split(":")[0].replace(" (baseline)", "\nbaseline") for r in rq3_rows], fontsize=7)
+        ax.set_title("RQ3: robot CPU and link load against capacity")
+        ax.legend(fontsize=8)
+        fig.tight_layout()
+        fig.savefig(out / "rq3.png", dpi=110)
+        plt.close(fig)
+
+
+def f(x: Any, nd: int = 2) -> str:
+    return "-" if x is None else f"{x:.{nd}f}"
+
+
+def markdown(results: list[dict[str, Any]], rq3_rows: list[dict[str, Any]], errors: list[dict[str, Any]],
+             args: argparse.Namespace, argv: list[str], started: str, seconds: float) -> str:
+    lines = [f"Pipeline run {started} (UTC), {seconds / 60:.1f} min wall on this 2-core machine "
+             f"({UNITS_PER_CORE:g} CPU units = one core; {args.duration:g} s recorded per deployment, "
+             f"{args.sweep_duration:g} s per sweep run).", "",
+             "### The instances", "",
+             "| instance | robots | robot capacity | server capacity | links (kB/s) |", "|---|---|---|---|---|"]
+    for i in sorted({r["instance"] for r in results}):
+        inst = INSTANCES[i]
+        lines.append(f"| {i} | {len(inst.robot_capacity)} | {', '.join(f'{c:g}' for c in inst.robot_capacity)} | "
+                     f"{inst.server_capacity:g} | {', '.join(f'{b:g}' for b in inst.link_kBps)} |")
+    lines += ["", "### RQ2: expected vs measured performance (eq 10)", "",
+              "| instance | plan | objective | status | expected Σ w·P | measured Σ w·P | deviation % "
+              "| mean freq. dev. % | CPU cap | links | run |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in results:
+        lines.append(f"| {r['instance']} | {r['plan']} | {f(r['objective'])} | {r['status']} | {f(r['expected'])} | "
+                     f"{f(r['measured'])} | {f(r['deviation_pct'])} | {f(r['freq_dev_mean_pct'])} | {r['cpu_cap']} | "
+                     f"{r['net']} | {r['run'].rsplit('/', 1)[-1]} |")
+    for problem in (1, 2):
+        rows = [r for r in results if r["problem"] == problem]
+        if rows:
+            dev = sum(abs(r["deviation_pct"]) for r in rows) / len(rows)
+            fr = [r["freq_dev_mean_pct"] for r in rows if r["freq_dev_mean_pct"] is not None]
+            lines.append(f"\nProblem {problem}: mean |deviation| **{dev:.2f} %** over {len(rows)} plans "
+                         f"({len({r['instance'] for r in rows})} instances); mean topic frequency deviation "
+                         f"**{sum(fr) / len(fr):.2f} %** (goals: 2.5 % and 3 %).")
+    lines += ["", "![RQ2](casestudy-real/rq2.png)", ""]
+    if rq3_rows:
+        lines += ["### RQ3: settings and placements forced above the plan", "",
+                  "| configuration | resource | predicted load | capacity | overload predicted | observed load "
+                  "| observed overload | evidence | expected Σ w·P | measured Σ w·P | mean freq. dev. % |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|"]
+        for r in rq3_rows:
+            if r["what"] == "cpu":
+                evidence = f"CFS throttled {f(None if r.get('throttled') is None else 100 * r['throttled'], 0)} % of periods"
+                resource = f"{r['where']} CPU (units)"
+            else:
+                evidence = f"link at {f(None if r.get('utilisation') is None else 100 * r['utilisation'], 0)} % of its rate, {r.get('overlimits')} overlimits"
+                resource = f"link {r['where']}-server (kB/s)"
+            lines.append(f"| {r['config']} | {resource} | {f(r['predicted_load'], 1)} | {f(r['capacity'], 0)} | "
+                         f"{'yes' if r['predicted_overload'] else 'no'} | {f(r['observed_load'], 1)} | "
+                         f"{'yes' if r['observed_overload'] else 'no'} | {evidence} | {f(r['expected'])} | "
+                         f"{f(r['measured'])} | {f(r['freq_dev_mean_pct'])} |")
+        agree = all(r["predicted_overload"] == r["observed_overload"] for r in rq3_rows)
+        lines += ["", f"Every prediction matched the observation: **{'yes' if agree else 'no'}**.", "",
+                  "![RQ3](casestudy-real/rq3.png)", ""]
+    if errors:
+        lines += ["### The model's error per node (every deployment once)", "",
+                  "| node | runs | CPU predicted (mean units) | CPU measured (mean units) | mean CPU error % "
+                  "| mean abs. CPU error % | mean freq. deviation % |", "|---|---|---|---|---|---|---|"]
+        for e in errors:
+            lines.append(f"| {e['node']} | {e['runs']} | {f(e['cpu_predicted_mean'])} | {f(e['cpu_measured_mean'])} | "
+                         f"{f(e['cpu_error_mean_pct'], 1)} | {f(e['cpu_abs_error_mean_pct'], 1)} | "
+                         f"{f(e['freq_dev_mean_pct'], 2)} |")
+    lines += ["", "### Commands", "", "```",
+              f"make casestudy-real   # = .venv/bin/python pipelines/casestudy_real.py {' '.join(argv)}",
+              *dict.fromkeys(COMMANDS), "```", ""]
+    return "\n".join(lines)
+
+
+def write_docs(docs: Path, section: str, out: Path) -> None:
+    begin, end = "<!-- casestudy-real-results:begin -->", "<!-- casestudy-real-results:end -->"
+    text = docs.read_text() if docs.exists() else f"# Case study on real nodes\n\n{begin}\n{end}\n"
+    if begin not in text:
+        text += f"\n{begin}\n{end}\n"
+    head, rest = text.split(begin, 1)
+    _, tail = rest.split(end, 1)
+    docs.write_text(f"{head}{begin}\n{section}\n{end}{tail}")
+    img = docs.parent / "casestudy-real"
+    img.mkdir(exist_ok=True)
+    for name in ("rq2.png", "rq3.png"):
+        if (out / name).exists():
+            shutil.copyfile(out / name, img / name)
+
+
+def main(argv: list[str]) -> int:
+    ap = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
+    ap.add_argument("--out", type=Path, default=ROOT / "out" / "casestudy-real")
+    ap.add_argument("--duration", type=float, default=15.0, help="seconds recorded per deployment")
+    ap.add_argument("--sweep-duration", type=float, default=12.0, help="seconds recorded per sweep run")
+    ap.add_argument("--instances", default="1,2,3,4,5,6")
+    ap.add_argument("--docs", type=Path, default=ROOT / "docs" / "casestudy-real.md")
+    ap.add_argument("--no-docs", action="store_true", help="leave the docs page alone")
+    ap.add_argument("--skip-rq3", action="store_true")
+    args = ap.parse_args(argv)
+    numbers = [int(x) for x in args.instances.split(",") if x.strip()]
+    unknown = [n for n in numbers if n not in INSTANCES]
+    if unknown:
+        raise SystemExit(f"error: no instance {unknown[0]} (there are {', '.join(map(str, INSTANCES))})")
+    out: Path = args.out.resolve()
+    out.mkdir(parents=True, exist_ok=True)
+    started, t0 = datetime.now(UTC).strftime("%Y-%m-%d %H:%M"), time.monotonic()
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    app = application(out, args)
+    char_csv, draft = characterise(out, app)
+    plans = fit_and_solve(out, char_csv, draft, numbers)
+    with Progress(TextColumn("deployments"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                  console=err) as progress:
+        bar = (progress, progress.add_task("", total=len(METHODS) * len(numbers) + (0 if args.skip_rq3 else 4)))
+        results = deploy_all(out, app, plans, args, bar)
+        rq3_rows = [] if args.skip_rq3 else rq3(out, app, plans, args, bar)
+    errors = model_errors(results)
+    seconds = time.monotonic() - t0
+    (out / "results.json").write_text(json.dumps({"rq2": results, "rq3": rq3_rows, "model_errors": errors,
+                                                  "seconds": seconds}, indent=1, default=str))
+    plots(out, results, rq3_rows)
+    section = markdown(results, rq3_rows, errors, args, argv, started, seconds)
+    (out / "results.md").write_text(section)
+    if not args.no_docs:
+        write_docs(args.docs, section, out)
+    err.print(section)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
