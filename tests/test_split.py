@@ -16,7 +16,6 @@ import struct
 from dataclasses import replace
 from pathlib import Path
 
-import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -26,7 +25,7 @@ from perfros_bag.ingest import read_recording
 from perfros_bag.ingest.split import Part, merge_parts, plan_split, read_part, read_split
 from perfros_bag.ingest.stats import RecordingStats
 from tests.bench.gen_corpus import TopicSpec, Truth, default_topics, write_recording
-from tests.conftest import REALBAGS
+from tests.conftest import REALBAGS, assert_same_stats
 from tests.ingest_gen import (
     Msg,
     anyreader_decode,
@@ -44,16 +43,7 @@ REAL_CHUNKED = ["robot_localization_test1.bag", "event_camera_test_events_1.bag"
                 "rosbagjs_example-bz2.bag", "lichtblick_example.mcap"]
 
 
-def assert_same(a: RecordingStats, b: RecordingStats) -> None:
-    assert (a.path, a.format, a.method) == (b.path, b.format, b.method)
-    assert list(a.topics) == list(b.topics)
-    for name, x in a.topics.items():
-        y = b.topics[name]
-        assert (x.topic, x.msgtype, x.messages, x.bytes, x.publishers) == \
-               (y.topic, y.msgtype, y.messages, y.bytes, y.publishers), name
-        assert x.times_ns.dtype == y.times_ns.dtype and np.array_equal(x.times_ns, y.times_ns), name
-        assert (x.frequency_hz, x.median_rate_hz, x.p95_gap_s) == \
-               (y.frequency_hz, y.median_rate_hz, y.p95_gap_s)
+assert_same = assert_same_stats
 
 
 @pytest.fixture(scope="module")

@@ -36,12 +36,13 @@ def info(
     from perfros_bag.ingest.document import recording_document
 
     with err.status(f"reading {recording}", spinner="dots"):  # animates on a terminal only
-        rec = read_recording(recording, fast=not slow)
         lat = None
-        if latency:
-            from perfros_bag.ingest.contents import read_latency
+        if latency:  # one pass reads both
+            from perfros_bag.ingest.contents import read_with_latency
 
-            lat = read_latency(recording, fast=not slow)
+            rec, lat = read_with_latency(recording, fast=not slow)
+        else:
+            rec = read_recording(recording, fast=not slow)
     doc = recording_document(rec, lat)
     if as_json:
         from perfros_bag.fileio import json_text  # strict: no NaN/Infinity
