@@ -588,3 +588,28 @@ def test_one_pass_equals_the_two_reads_on_realbags(path: Path) -> None:
         stats, latency = read_with_latency(path)
         assert latency == read_latency(path)
     assert_same_stats(stats, expected)
+
+
+def test_cdr_head_stamps_equal_cdr_stamps_both_byte_orders() -> None:
+    """The (rows, 12) matrix decoder against the positional one (and rosbags) on little- and
+    big-endian heads, negative seconds included."""
+    from perfros_bag.ingest._accum import cdr_head_stamps, cdr_stamps
+
+    store = typestore()
+    time_t = store.types["builtin_interfaces/msg/Time"]
+    header_t = store.types["std_msgs/msg/Header"]
+    rng = np.random.default_rng(7)
+    heads, expected = [], []
+    for k in range(200):
+        sec, nsec = int(rng.integers(-2**31, 2**31)), int(rng.integers(0, 10**9))
+        raw = bytes(store.serialize_cdr(header_t(stamp=time_t(sec=sec, nanosec=nsec), frame_id="f"),
+                                        "std_msgs/msg/Header", little_endian=k % 3 != 0))
+        heads.append(np.frombuffer(raw[:12], np.uint8))
+        expected.append(sec * 1_000_000_000 + nsec)
+    matrix = np.stack(heads)
+    got = cdr_head_stamps(matrix)
+    np.testing.assert_array_equal(got, np.array(expected, np.int64))
+    np.testing.assert_array_equal(got, cdr_stamps(matrix.reshape(-1), np.arange(200, dtype=np.int64) * 12))
+    matrix[5, 1] = 3  # an encapsulation other than plain CDR
+    with pytest.raises(NoIndex):
+        cdr_head_stamps(matrix)

@@ -56,9 +56,14 @@ def latency_of(times_ns: I64, stamps_ns: I64) -> TopicLatency | None:
     """p50/p95/max of ``times - stamps`` in seconds (numpy's linear percentiles); messages
     stamped 0 are left out; None when none is left."""
     keep = stamps_ns != 0
-    if not np.any(keep):
+    if keep.all():  # the usual case: no copies through the mask
+        delay = (times_ns - stamps_ns).astype(np.float64) / 1e9
+    elif not np.any(keep):
         return None
-    delay = (times_ns[keep] - stamps_ns[keep]).astype(np.float64) / 1e9
+    else:
+        delay = (times_ns[keep] - stamps_ns[keep]).astype(np.float64) / 1e9
+    if delay.size == 0:
+        return None
     p50, p95 = np.percentile(delay, [50, 95])
     return TopicLatency(int(delay.size), float(p50), float(p95), float(delay.max()))
 

@@ -55,7 +55,7 @@ from perfros_bag.ingest._accum import (
     NoIndex,
     StampAt,
     StampFinder,
-    cdr_stamps,
+    cdr_head_stamps,
     close_mmap,
     describe,
     zstd_header_size,
@@ -286,7 +286,7 @@ def _add_stamps(acc: Accumulator, wanted: dict[int, StampAt], tids: I64, times: 
     """The stamps of rows (topic ids, timestamps, first bytes of their CDR blobs) by topic."""
     if any(not at.cdr or at.offset != 4 for at in wanted.values()):
         raise NoIndex("header.stamp not right after the CDR encapsulation")
-    stamps = cdr_stamps(np.ascontiguousarray(heads).reshape(-1), np.arange(tids.size, dtype=np.int64) * HEAD)
+    stamps = cdr_head_stamps(heads)
     for tid, at in wanted.items():
         mask = tids == tid
         acc.add_stamps(at.topic, times[mask], stamps[mask])
