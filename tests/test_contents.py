@@ -487,7 +487,8 @@ def test_blob_heads_from_the_pages_equal_sqlite(generated: dict[str, Path]) -> N
 
 def _sqlite_ways(db: Path, monkeypatch: pytest.MonkeyPatch) -> dict[str, dict]:
     """The stamps of one .db3 read by read_sqlite's three ways: the C page walk copying the
-    blobs' heads, the numpy page walk (read_blob_heads), one SQL pass."""
+    blobs' heads, the numpy page walks (as without the extension: read_blob_heads), one SQL
+    pass."""
     from perfros_bag.ingest import rosbag2, sqlitepages
     from perfros_bag.ingest.stamps import Finder
 
@@ -501,8 +502,8 @@ def _sqlite_ways(db: Path, monkeypatch: pytest.MonkeyPatch) -> dict[str, dict]:
     with monkeypatch.context() as m:  # the C walk gives them: no other way is tried
         m.setattr(rosbag2, "_stamped_rows", refuse)
         ways = {"c-walk": stamps()}
-    with monkeypatch.context() as m:
-        m.setattr(sqlitepages, "read_messages_heads", refuse)
+    with monkeypatch.context() as m:  # no extension: the numpy walks, topics split by masks
+        m.setattr(sqlitepages, "DECODER", "numpy")
         ways["numpy-pages"] = stamps()
         m.setattr(sqlitepages, "read_blob_heads", refuse)
         ways["sql"] = stamps()

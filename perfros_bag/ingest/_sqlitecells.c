@@ -63,8 +63,12 @@ static inline int blob_head(Walk *w, int64_t tid, const uint8_t *data, uint64_t 
     uint64_t k = dsize < w->head ? dsize : w->head;
     if (avail < k) return (w->err = "a blob's first bytes are not on its leaf page", -1);
     uint8_t *out = w->heads + (uint64_t)w->m * w->head;
-    memcpy(out, data, k);
-    if (k < w->head) memset(out + k, 0, w->head - k);
+    if (k == 12) { /* the usual head (CDR encapsulation + stamp): a fixed-size copy */
+        memcpy(out, data, 12);
+    } else {
+        memcpy(out, data, k);
+        if (k < w->head) memset(out + k, 0, w->head - k);
+    }
     w->rows[w->m++] = w->n - 1;
     return 0;
 }

@@ -287,9 +287,16 @@ def _add_stamps(acc: Accumulator, wanted: dict[int, StampAt], tids: I64, times: 
     if any(not at.cdr or at.offset != 4 for at in wanted.values()):
         raise NoIndex("header.stamp not right after the CDR encapsulation")
     stamps = cdr_head_stamps(heads)
-    for tid, at in wanted.items():
-        mask = tids == tid
-        acc.add_stamps(at.topic, times[mask], stamps[mask])
+    ids = list(wanted)
+    zeros = np.zeros(tids.size, np.int64)
+    by_time = sqlitepages.group_by_topic(tids, times, zeros, ids)  # C counting sorts, row order kept
+    by_stamp = sqlitepages.group_by_topic(tids, stamps, zeros, ids) if by_time is not None else None
+    for k, (tid, at) in enumerate(wanted.items()):
+        if by_time is not None and by_stamp is not None:
+            acc.add_stamps(at.topic, by_time[0][k], by_stamp[0][k])
+        else:
+            mask = tids == tid
+            acc.add_stamps(at.topic, times[mask], stamps[mask])
 
 
 def read_sqlite(db: Path, fast: bool = True, message_zstd: bool = False,
