@@ -235,11 +235,6 @@ def message_records(buf: U8, base: int, offs: I64, usize: int) -> tuple[I64, I64
     return hlen, dlen
 
 
-def message_sizes(buf: U8, base: int, offs: I64, usize: int) -> I64:
-    """``data_len`` of the message data records at chunk offsets ``offs`` (:func:`message_records`)."""
-    return message_records(buf, base, offs, usize)[1]
-
-
 def read_index(mm: mmap.mmap) -> BagIndex:
     """The index section of the bag in ``mm``, checked against the bag header.
 
