@@ -373,8 +373,8 @@ def read_messages_heads(mm: mmap.mmap, root: int, expected_rows: int, want: Sequ
     ids, timestamps, sizes, those rows' numbers, their heads as a (rows, nbytes) matrix, zero
     filled past a shorter blob). The outputs are allocated for every row but only the wanted
     rows' pages are written."""
-    if DECODER != "c":
-        raise NoIndex("blob heads in the page walk need the C extension")
+    if DECODER != "c" or not hasattr(_sqlitecells, "decode_heads"):  # not built, or built before it
+        raise NoIndex("blob heads in the page walk need the C extension (rebuilt: pip install -e .)")
     page_size, usable = _page_geometry(mm)
     topic, time, size, rows = (np.empty(expected_rows, dtype=np.int64) for _ in range(4))
     heads = np.empty((expected_rows, nbytes), dtype=np.uint8)
