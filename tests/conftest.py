@@ -18,3 +18,21 @@ def realbags() -> Path:
     if not REALBAGS.is_dir():
         raise RuntimeError(f"real recordings not found at {REALBAGS} (set PERFROS_REALBAGS)")
     return REALBAGS
+
+
+def assert_same_stats(a: object, b: object) -> None:
+    """Two RecordingStats are the same, every topic's times included."""
+    import numpy as np
+
+    from perfros_bag.ingest.stats import RecordingStats
+
+    assert isinstance(a, RecordingStats) and isinstance(b, RecordingStats)
+    assert (a.path, a.format, a.method) == (b.path, b.format, b.method)
+    assert list(a.topics) == list(b.topics)
+    for name, x in a.topics.items():
+        y = b.topics[name]
+        assert (x.topic, x.msgtype, x.messages, x.bytes, x.publishers) == \
+               (y.topic, y.msgtype, y.messages, y.bytes, y.publishers), name
+        assert x.times_ns.dtype == y.times_ns.dtype and np.array_equal(x.times_ns, y.times_ns), name
+        assert (x.frequency_hz, x.median_rate_hz, x.p95_gap_s) == \
+               (y.frequency_hz, y.median_rate_hz, y.p95_gap_s)

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import REALBAGS
+from conftest import REALBAGS, assert_same_stats
 from contents_gen import (
     TOPICS,
     Sent,
@@ -479,19 +479,135 @@ def test_blob_heads_from_the_pages_equal_sqlite(generated: dict[str, Path]) -> N
         assert got == [(t, ts, bytes(h)) for t, ts, h in rows], db
 
 
-def test_sqlite_sql_fallback_equals_the_page_path(generated: dict[str, Path]) -> None:
+def _sqlite_ways(db: Path, monkeypatch: pytest.MonkeyPatch) -> dict[str, dict]:
+    """The stamps of one .db3 read by read_sqlite's three ways: the C page walk copying the
+    blobs' heads, the numpy page walks (as without the extension: read_blob_heads), one SQL
+    pass."""
+    from perfros_bag.ingest import rosbag2, sqlitepages
+    from perfros_bag.ingest.stamps import Finder
+
+    def refuse(*_a: object, **_k: object) -> None:
+        raise NoIndex("refused by the test")
+
+    def stamps() -> dict:
+        finder = Finder()
+        return finder.stamps(rosbag2.read_sqlite(db, stamps=finder))
+
+    with monkeypatch.context() as m:  # the C walk gives them: no other way is tried
+        m.setattr(rosbag2, "_stamped_rows", refuse)
+        ways = {"c-walk": stamps()}
+    with monkeypatch.context() as m:  # no extension: the numpy walks, topics split by masks
+        m.setattr(sqlitepages, "DECODER", "numpy")
+        ways["numpy-pages"] = stamps()
+        m.setattr(sqlitepages, "read_blob_heads", refuse)
+        ways["sql"] = stamps()
+    return ways
+
+
+def test_sqlite_stamps_are_the_same_every_way(generated: dict[str, Path], monkeypatch: pytest.MonkeyPatch) -> None:
+    from perfros_bag.ingest import sqlitepages
+
+    assert sqlitepages.DECODER == "c"  # the suite fails if the extension was not built
+    for db in _db3_files(generated):
+        ways = _sqlite_ways(db, monkeypatch)
+        for got in ways.values():
+            _assert_same_stamps(got, ways["c-walk"])
+    generated_db = next(generated["rosbag2-sqlite3"].glob("*.db3"))
+    _assert_same_stamps(_sqlite_ways(generated_db, monkeypatch)["c-walk"], library_stamps(generated["rosbag2-sqlite3"]))
+
+
+def test_c_walk_blob_heads_equal_sqlite_substr(generated: dict[str, Path]) -> None:
+    """sqlitepages.read_messages_heads (the C walk) against SQLite's own substr() of every
+    row of the wanted topics, zero-filled past a shorter blob, and its columns against
+    read_messages."""
+    import mmap
     import sqlite3
 
-    from perfros_bag.ingest import stamps
+    from perfros_bag.ingest import sqlitepages
 
     for db in _db3_files(generated):
-        pages, types = stamps.sqlite_stamps(db)
         con = sqlite3.connect(f"file:{db}?mode=ro&immutable=1", uri=True)
-        wanted = {tid: t.topic for tid, t in stamps.sqlite_types(con).items() if t.stamped}
-        sql = stamps._sql_stamps(con, wanted)
+        ids = [tid for (tid,) in con.execute("SELECT id FROM topics")]
+        for want in (ids, ids[:1]):
+            rows = con.execute(f"SELECT rowid, substr(data, 1, 12) FROM messages WHERE topic_id IN "
+                               f"({','.join('?' * len(want))}) ORDER BY rowid", want).fetchall()
+            all_rowids = [r for (r,) in con.execute("SELECT rowid FROM messages ORDER BY rowid")]
+            (count,) = con.execute("SELECT count(*) FROM messages").fetchone()
+            root = sqlitepages.messages_root(con)
+            assert root is not None
+            with db.open("rb") as f, mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as mm:
+                tids, times, sizes, at, heads = sqlitepages.read_messages_heads(mm, root, count, want, 12)
+                plain = sqlitepages.read_messages(mm, root, count)
+                got = [(all_rowids[i], bytes(h)) for i, h in zip(at.tolist(), heads, strict=True)]
+                for a, b in zip((tids, times, sizes), plain, strict=True):
+                    np.testing.assert_array_equal(a, b)
+                del tids, times, sizes, at, heads, plain
+            assert got == [(r, bytes(h).ljust(12, b"\0")) for r, h in rows], db
         con.close()
-        _assert_same_stamps(pages, sql)
-        assert sorted(pages) == sorted(t for t, tt in types.items() if tt.stamped)
+
+
+@pytest.mark.parametrize("kind", ["ros1", "ros1-bz2", "ros1-lz4", "rosbag2-sqlite3", "rosbag2-mcap",
+                                  "rosbag2-message-zstd", "mcap-zstd-some-big-endian", "mcap-lz4"])
+def test_one_pass_equals_the_two_reads(generated: dict[str, Path], kind: str) -> None:
+    """read_with_latency (stamps gathered in the index pass) == read_recording + read_latency,
+    and the in-pass stamps == the stamped-chunks-only path == the libraries."""
+    from perfros_bag.ingest.contents import read_with_latency
+    from perfros_bag.ingest.stamps import read_with_stamps
+
+    path = generated[kind]
+    stats, latency = read_with_latency(path)
+    assert_same_stats(stats, read_recording(path))
+    assert latency == read_latency(path)
+    assert latency["/imu"] is not None
+    if kind != "rosbag2-message-zstd":  # payloads are zstd frames: the libraries decode
+        acc, _fmt, finder = read_with_stamps(path)
+        only, _fmt, finder_only = read_with_stamps(path, stamped_only=True)
+        _assert_same_stamps(finder.stamps(acc), library_stamps(path))
+        _assert_same_stamps(finder_only.stamps(only), finder.stamps(acc))
+
+
+@pytest.mark.parametrize("path", _realbags(), ids=lambda p: p.name)
+def test_one_pass_equals_the_two_reads_on_realbags(path: Path) -> None:
+    from perfros_bag.errors import InputError
+    from perfros_bag.ingest.contents import read_with_latency
+
+    try:
+        expected = read_recording(path)
+    except InputError as exc:  # a broken recording: the same one-line error
+        with pytest.raises(InputError) as got:
+            read_with_latency(path)
+        assert str(got.value) == str(exc)
+        return
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", PerfrosWarning)
+        stats, latency = read_with_latency(path)
+        assert latency == read_latency(path)
+    assert_same_stats(stats, expected)
+
+
+def test_cdr_head_stamps_equal_cdr_stamps_both_byte_orders() -> None:
+    """The (rows, 12) matrix decoder against the positional one (and rosbags) on little- and
+    big-endian heads, negative seconds included."""
+    from perfros_bag.ingest._accum import cdr_head_stamps, cdr_stamps
+
+    store = typestore()
+    time_t = store.types["builtin_interfaces/msg/Time"]
+    header_t = store.types["std_msgs/msg/Header"]
+    rng = np.random.default_rng(7)
+    heads, expected = [], []
+    for k in range(200):
+        sec, nsec = int(rng.integers(-2**31, 2**31)), int(rng.integers(0, 10**9))
+        raw = bytes(store.serialize_cdr(header_t(stamp=time_t(sec=sec, nanosec=nsec), frame_id="f"),
+                                        "std_msgs/msg/Header", little_endian=k % 3 != 0))
+        heads.append(np.frombuffer(raw[:12], np.uint8))
+        expected.append(sec * 1_000_000_000 + nsec)
+    matrix = np.stack(heads)
+    got = cdr_head_stamps(matrix)
+    np.testing.assert_array_equal(got, np.array(expected, np.int64))
+    np.testing.assert_array_equal(got, cdr_stamps(matrix.reshape(-1), np.arange(200, dtype=np.int64) * 12))
+    matrix[5, 1] = 3  # an encapsulation other than plain CDR
+    with pytest.raises(NoIndex):
+        cdr_head_stamps(matrix)
 
 
 def test_metrics_of_several_nodes_are_read_in_one_pass(generated: dict[str, Path], monkeypatch: pytest.MonkeyPatch) -> None:

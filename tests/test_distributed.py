@@ -220,6 +220,29 @@ def test_fleet_splits_large_recordings_and_gives_the_local_rows(cluster: str, tm
     assert errors == {f.recording: f.message for f in local.failures} and list(errors) == ["cut.mcap"]
 
 
+def test_fleet_latency_on_dask_equals_the_local_latency(cluster: str, tmp_path: Path) -> None:
+    """characterise --latency on Dask: split recordings' parts bring their stamps, merged
+    before the percentiles; whole recordings read theirs on the worker: the local rows."""
+    from perfros_bag.characterisation.cluster import characterise_on_dask, plan_units
+    from perfros_bag.characterisation.table import characterise, find_entries
+    from tests.contents_gen import sent_messages, write_mcap, write_ros1, write_rosbag2
+
+    sent = sent_messages(600)
+    write_ros1(tmp_path / "big.bag", sent, "lz4")
+    write_mcap(tmp_path / "big.mcap", sent, big_endian_every=5)
+    write_rosbag2(tmp_path / "dir2", sent)
+    entries, _ = find_entries(tmp_path)
+    _, plans = plan_units(entries, split_bytes=20_000, part_bytes=20_000)
+    assert {entries[i].name for i in plans} == {"big.bag", "big.mcap"}
+    local = characterise(entries, latency=True)
+    remote = characterise_on_dask(entries, None, scheduler=cluster, split_bytes=20_000,
+                                  part_bytes=20_000, latency=True)
+    rows = [r for o in remote if o.value for r in o.value]
+    assert rows == local.rows and not local.failures
+    stamped = [r for r in rows if r.topic in ("/imu", "/detector/scored")]
+    assert len(stamped) == 6 and all(r.latency_p95_s is not None for r in stamped)
+
+
 class UnforeseenSettings(dict[str, Any]):
     """Settings whose lookup fails as a reader's unforeseen bug would (KeyError): shipped to
     the workers by value with this module, so the real characterise code fails there too."""

@@ -141,6 +141,16 @@ def test_damaged_pages_fail_cleanly_and_decoders_agree(tmp_path: Path,
                 got[decoder] = sqlitepages.read_messages(bytes(raw), root, count)  # type: ignore[arg-type]
             except NoIndex:
                 got[decoder] = None
+        try:  # the C walk copying blob heads: the same checks, plus its own
+            with_heads = sqlitepages.read_messages_heads(bytes(raw), root, count, [1, 300, -4], 12)  # type: ignore[arg-type]
+        except NoIndex:
+            with_heads = None
+        if with_heads is not None:
+            assert got["c"] is not None
+            for a, b in zip(with_heads[:3], got["c"], strict=True):
+                np.testing.assert_array_equal(a, b)
+            rows = with_heads[3]
+            assert np.isin(with_heads[0][rows], [1, 300, -4]).all() and np.all(np.diff(rows) > 0)
         if got["c"] is None or got["numpy"] is None:
             outcomes["refused" if got["c"] is got["numpy"] else
                      "numpy only" if got["c"] is None else "c only"] += 1
@@ -150,6 +160,22 @@ def test_damaged_pages_fail_cleanly_and_decoders_agree(tmp_path: Path,
             np.testing.assert_array_equal(a, b)
     assert outcomes["rows"] > 50 and outcomes["refused"] > 50, outcomes
     assert outcomes["c only"] == outcomes["numpy only"] == 0, outcomes  # same checks, same verdicts
+
+
+def test_c_walk_blob_heads_with_overflow_pages_equal_sqlite(tmp_path: Path) -> None:
+    """read_messages_heads on 512-byte pages (overflowing blobs, three B-tree levels, blobs
+    shorter than the head) against SQLite's substr(), zero-filled."""
+    db = _many_pages(tmp_path / "many.db3")
+    root, count = _table(db)
+    con = sqlite3.connect(db)
+    for want in ([1, 300, -4], [2], [7]):
+        rows = con.execute(f"SELECT rowid, substr(data, 1, 12) FROM messages WHERE topic_id IN "
+                           f"({','.join('?' * len(want))}) ORDER BY rowid", want).fetchall()
+        tids, _times, _sizes, at, heads = sqlitepages.read_messages_heads(db.read_bytes(), root, count, want, 12)  # type: ignore[arg-type]
+        assert [(int(i) + 1, bytes(h)) for i, h in zip(at, heads, strict=True)] == \
+               [(r, bytes(h or b"").ljust(12, b"\0")) for r, h in rows]  # rowid = row number + 1 here
+        assert np.isin(tids[at], want).all()
+    con.close()
 
 
 @settings(max_examples=200, deadline=None)

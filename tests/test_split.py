@@ -16,17 +16,16 @@ import struct
 from dataclasses import replace
 from pathlib import Path
 
-import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from perfros_bag.errors import InputError
-from perfros_bag.ingest import read_recording
+from perfros_bag.ingest import read_recording, rosbag1
 from perfros_bag.ingest.split import Part, merge_parts, plan_split, read_part, read_split
 from perfros_bag.ingest.stats import RecordingStats
 from tests.bench.gen_corpus import TopicSpec, Truth, default_topics, write_recording
-from tests.conftest import REALBAGS
+from tests.conftest import REALBAGS, assert_same_stats
 from tests.ingest_gen import (
     Msg,
     anyreader_decode,
@@ -44,16 +43,7 @@ REAL_CHUNKED = ["robot_localization_test1.bag", "event_camera_test_events_1.bag"
                 "rosbagjs_example-bz2.bag", "lichtblick_example.mcap"]
 
 
-def assert_same(a: RecordingStats, b: RecordingStats) -> None:
-    assert (a.path, a.format, a.method) == (b.path, b.format, b.method)
-    assert list(a.topics) == list(b.topics)
-    for name, x in a.topics.items():
-        y = b.topics[name]
-        assert (x.topic, x.msgtype, x.messages, x.bytes, x.publishers) == \
-               (y.topic, y.msgtype, y.messages, y.bytes, y.publishers), name
-        assert x.times_ns.dtype == y.times_ns.dtype and np.array_equal(x.times_ns, y.times_ns), name
-        assert (x.frequency_hz, x.median_rate_hz, x.p95_gap_s) == \
-               (y.frequency_hz, y.median_rate_hz, y.p95_gap_s)
+assert_same = assert_same_stats
 
 
 @pytest.fixture(scope="module")
@@ -313,3 +303,74 @@ def test_ros1_index_position_at_and_past_the_end_of_the_file(
     assert by_topic(whole) == {t: (e.count, e.nbytes, e.times) for t, e in want.items()}
     if indexed:  # rosbags reads bags whose index is where the header says
         assert by_topic(whole) == anyreader_decode(path)
+
+
+# --------------------------------------------------------------------------- header stamps
+
+
+def _stamp_cases(tmp: Path) -> dict[str, Path]:
+    from tests.contents_gen import sent_messages, write_mcap, write_ros1
+
+    sent = sent_messages(600)
+    return {"ros1": write_ros1(tmp / "a.bag", sent), "ros1-bz2": write_ros1(tmp / "b.bag", sent, "bz2"),
+            "mcap-zstd-some-big-endian": write_mcap(tmp / "c.mcap", sent, big_endian_every=7),
+            "mcap-lz4": write_mcap(tmp / "d.mcap", sent, compression="lz4")}
+
+
+@pytest.fixture(scope="module")
+def stamped(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    return _stamp_cases(tmp_path_factory.mktemp("split-stamps"))
+
+
+def _assert_latency_of_parts(path: Path, parts: list[Part]) -> None:
+    """Parts' stamps, merged, == the whole file's (and the libraries'); their latencies and
+    statistics == read_latency / read_recording on the whole file."""
+    from perfros_bag.ingest.contents import latencies, library_stamps, read_latency
+    from perfros_bag.ingest.split import merge_stamps, read_part_stamps
+
+    results = [read_part_stamps(pickle.loads(pickle.dumps(p))) for p in parts]  # as shipped to a worker
+    assert all(r is not None for r in results)
+    done = [r for r in results if r is not None]
+    types = {t: tt for r in done for t, tt in r[2].items()}
+    merged = merge_stamps([r[1] for r in done])
+    library = library_stamps(path)
+    assert sorted(merged) == sorted(library)
+    for topic, (times, stamps) in library.items():
+        got = sorted(zip(*(a.tolist() for a in merged[topic]), strict=True))
+        assert got == sorted(zip(times.tolist(), stamps.tolist(), strict=True)), topic
+    assert latencies(path, merged, types) == read_latency(path)
+    assert_same(merge_parts(plan_split(path), [r[0] for r in done]), read_recording(path))
+
+
+@pytest.mark.parametrize("kind", ["ros1", "ros1-bz2", "mcap-zstd-some-big-endian", "mcap-lz4"])
+def test_parts_stamps_merge_to_the_whole_files_latency(stamped: dict[str, Path], kind: str) -> None:
+    path = stamped[kind]
+    plan = plan_split(path)
+    n = len(plan.chunks)
+    assert n >= 4
+    _assert_latency_of_parts(path, plan.parts(1))  # a chunk per part
+    _assert_latency_of_parts(path, plan.parts_of([list(range(0, n, 3)), [i for i in range(n) if i % 3]]))
+
+
+@pytest.mark.parametrize("name", ["robot_localization_test1.bag", "lichtblick_example.mcap"])
+def test_real_recordings_parts_stamps_merge_to_the_whole(name: str) -> None:
+    import warnings
+
+    from perfros_bag.errors import PerfrosWarning
+
+    path = REALBAGS / name
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", PerfrosWarning)
+        _assert_latency_of_parts(path, plan_split(path).parts(1))
+
+
+def test_a_whole_or_damaged_part_has_no_stamps(stamped: dict[str, Path]) -> None:
+    from perfros_bag.ingest.split import read_part_stamps
+
+    path = stamped["ros1"]
+    assert read_part_stamps(Part(path, "whole")) is None
+    plan = plan_split(path)
+    part = plan.parts(1)[0]
+    assert isinstance(part.index, rosbag1.BagIndex)
+    bad = Part(path, "ros1", replace(part.index, chunks=(replace(part.index.chunks[0], chunk_pos=1),)))
+    assert read_part_stamps(bad) is None

@@ -8,6 +8,11 @@ client merges the parts' statistics exactly and builds that recording's rows fro
 (the CPU trace is read there; it is small). Outcomes come back one per recording, in
 entry order, as :func:`~perfros_bag.characterisation.distributed.run_distributed` gives them, and the
 progress callback is called once per finished recording.
+
+With ``latency`` each part also returns its messages' header stamps, read in the same pass
+(:func:`~perfros_bag.ingest.split.read_part_stamps`); the client concatenates them and
+computes each topic's p50/p95/max from the whole sample
+(:func:`~perfros_bag.ingest.contents.latencies`): the same numbers as from the whole file.
 """
 
 from __future__ import annotations
@@ -20,7 +25,15 @@ from typing import TYPE_CHECKING, Any
 from perfros_bag.characterisation.distributed import Outcome, ProgressCallback, run_distributed
 from perfros_bag.characterisation.recording import characterise_recording, reporting
 from perfros_bag.errors import PerfrosError
-from perfros_bag.ingest.split import Part, SplitPlan, merge_parts, plan_split, read_part
+from perfros_bag.ingest.split import (
+    Part,
+    SplitPlan,
+    merge_parts,
+    merge_stamps,
+    plan_split,
+    read_part,
+    read_part_stamps,
+)
 
 if TYPE_CHECKING:  # pragma: no cover
     from perfros_bag.characterisation.csvfile import Row
@@ -62,12 +75,34 @@ def plan_units(entries: Sequence[RecordingEntry], *, fast: bool = True,
     return units, plans
 
 
-def run_unit(unit: Unit, system: System | None, fast: bool) -> Any:
-    """On a worker: a recording's rows, or a part's partial statistics."""
+def run_unit(unit: Unit, system: System | None, fast: bool, latency: bool = False) -> Any:
+    """On a worker: a recording's rows, or a part's partial statistics (with ``latency``,
+    and its header stamps)."""
     if unit.part is not None:
-        return read_part(unit.part)
+        return read_part_stamps(unit.part) if latency else read_part(unit.part)
     with reporting(unit.entry):  # the local loop's wording for an unforeseen exception
-        return characterise_recording(unit.entry, system, fast=fast)
+        return characterise_recording(unit.entry, system, fast=fast, latency=latency)
+
+
+def _merged_rows(entry: RecordingEntry, plan: SplitPlan, values: list[Any], system: System | None,
+                 fast: bool, latency: bool) -> list[Row]:
+    """A split recording's rows from its parts' outcomes (read again whole when a part could
+    not be read from its index)."""
+    if not latency:
+        return characterise_recording(entry, system, fast=fast, stats=merge_parts(plan, values))
+    if any(v is None for v in values):
+        return characterise_recording(entry, system, fast=fast, latency=True)
+    from perfros_bag.ingest.contents import latencies
+
+    stats = merge_parts(plan, [v[0] for v in values])
+    if stats.messages != sum(v[0].messages for v in values):  # merge_parts read the whole file
+        return characterise_recording(entry, system, fast=fast, stats=stats, latency=True)
+    types: dict[str, Any] = {}
+    for v in values:
+        for topic, tt in v[2].items():
+            types.setdefault(topic, tt)
+    delays = latencies(entry.path, merge_stamps([v[1] for v in values]), types)
+    return characterise_recording(entry, system, fast=fast, stats=stats, latency=True, delays=delays)
 
 
 def characterise_on_dask(entries: Sequence[RecordingEntry], system: System | None, *,
@@ -75,8 +110,10 @@ def characterise_on_dask(entries: Sequence[RecordingEntry], system: System | Non
                          workers: int | None = None,
                          progress: ProgressCallback | None = None,
                          split_bytes: int = SPLIT_BYTES,
-                         part_bytes: int = PART_BYTES) -> list[Outcome[list[Row]]]:
-    """One outcome (rows or error) per entry, in entry order."""
+                         part_bytes: int = PART_BYTES,
+                         latency: bool = False) -> list[Outcome[list[Row]]]:
+    """One outcome (rows or error) per entry, in entry order; ``latency``: with the
+    ``latency_*`` columns."""
     entries = list(entries)
     units, plans = plan_units(entries, fast=fast, split_bytes=split_bytes, part_bytes=part_bytes)
     by_label = {u.label: k for k, u in enumerate(units)}
@@ -92,8 +129,7 @@ def characterise_on_dask(entries: Sequence[RecordingEntry], system: System | Non
             return Outcome(entry.name, error=failed.error)
         try:
             with reporting(entry):
-                stats = merge_parts(plans[i], [o.value for o in outcomes])
-                rows = characterise_recording(entry, system, fast=fast, stats=stats)
+                rows = _merged_rows(entry, plans[i], [o.value for o in outcomes], system, fast, latency)
         except PerfrosError as exc:
             return Outcome(entry.name, error=exc)
         return Outcome(entry.name, value=rows)
@@ -111,7 +147,7 @@ def characterise_on_dask(entries: Sequence[RecordingEntry], system: System | Non
         if progress is not None:
             progress(done[i])
 
-    run_distributed(units, partial(run_unit, system=system, fast=fast),
+    run_distributed(units, partial(run_unit, system=system, fast=fast, latency=latency),
                     scheduler=scheduler, workers=workers, progress=on_unit,
                     label=lambda u: u.label)
     return [done[i] for i in range(len(entries))]

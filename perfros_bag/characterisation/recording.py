@@ -64,24 +64,29 @@ def reporting(entry: RecordingEntry) -> Iterator[None]:
 
 def characterise_recording(entry: RecordingEntry, system: System | None = None, *,
                            fast: bool = True, stats: RecordingStats | None = None,
-                           latency: bool = False) -> list[Row]:
+                           latency: bool = False,
+                           delays: Mapping[str, TopicLatency | None] | None = None) -> list[Row]:
     """The rows of one recording. Raises :class:`PerfrosError` when it cannot be read.
 
     ``stats``: the recording's statistics when already read (the fleet merges a large
     recording's chunk-range parts, perfros_bag/characterisation/cluster.py); else read here.
     ``latency``: also read the headers of the stamped topics (the ``latency_*`` columns;
-    :func:`perfros_bag.ingest.contents.read_latency`)."""
+    with the statistics in one pass, :func:`perfros_bag.ingest.contents.read_with_latency`),
+    unless ``delays`` gives them already (merged from the parts)."""
     from perfros_bag.ingest import read_recording
 
     if not entry.path.exists():
         raise InputError(entry.path, "recording not found")
+    if latency and delays is None:
+        from perfros_bag.ingest.contents import read_latency, read_with_latency
+
+        if stats is None:
+            stats, delays = read_with_latency(entry.path, fast=fast)
+        else:
+            delays = read_latency(entry.path, fast=fast)
     if stats is None:
         stats = read_recording(entry.path, fast=fast)
-    delays: Mapping[str, TopicLatency | None] = {}
-    if latency:
-        from perfros_bag.ingest.contents import read_latency
-
-        delays = read_latency(entry.path, fast=fast)
+    delays = delays or {}
     start, end = stats.start_ns, stats.end_ns
     cpu: dict[str, NodeCpu] = {}
     if entry.cpu is not None:

@@ -9,7 +9,6 @@ over the entries, in this process or on Dask (:mod:`perfros_bag.characterisation
 from __future__ import annotations
 
 import math
-import warnings
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -24,7 +23,7 @@ from perfros_bag.characterisation.manifest import (
 )
 from perfros_bag.characterisation.recording import characterise_recording, reporting
 from perfros_bag.characterisation.settings import by_setting, mean
-from perfros_bag.errors import InputError, PerfrosError, PerfrosWarning
+from perfros_bag.errors import InputError, PerfrosError
 from perfros_bag.fileio import file_kind
 from perfros_bag.system.types import System
 
@@ -101,13 +100,11 @@ def characterise(entries: Sequence[RecordingEntry], system: System | None = None
     In this process by default; with ``scheduler`` (a dask.distributed address) or
     ``workers`` (a LocalCluster of that many processes) the per-recording work runs on
     Dask through :func:`perfros_bag.characterisation.distributed.run_distributed`. Rows keep entry order.
-    ``latency``: also the ``latency_*`` columns (in this process only, not on Dask yet).
+    ``latency``: also the ``latency_*`` columns (on Dask too: a split recording's parts
+    bring their stamps, merged before the percentiles).
     """
     if scheduler is not None or workers is not None:
-        if latency:
-            warnings.warn("latency is not read on Dask yet: the latency columns stay empty",
-                          PerfrosWarning, stacklevel=2)
-        return _characterise_dask(entries, system, fast, on_done, scheduler, workers)
+        return _characterise_dask(entries, system, fast, on_done, scheduler, workers, latency)
     rows: list[Row] = []
     failures: list[Failure] = []
     for entry in entries:
@@ -126,7 +123,7 @@ def characterise(entries: Sequence[RecordingEntry], system: System | None = None
 
 def _characterise_dask(entries: Sequence[RecordingEntry], system: System | None, fast: bool,
                        on_done: Callable[[RecordingEntry, Failure | None], None] | None,
-                       scheduler: str | None, workers: int | None) -> Result:
+                       scheduler: str | None, workers: int | None, latency: bool = False) -> Result:
     # the Dask back end: loaded only when asked for
     from perfros_bag.characterisation.cluster import characterise_on_dask
     from perfros_bag.characterisation.distributed import Outcome
@@ -140,7 +137,7 @@ def _characterise_dask(entries: Sequence[RecordingEntry], system: System | None,
 
     # large ROS 1 bags / MCAP files are split into chunk-range tasks (perfros_bag/characterisation/cluster.py)
     outcomes = characterise_on_dask(entries, system, fast=fast, scheduler=scheduler,
-                                    workers=workers, progress=progress)
+                                    workers=workers, progress=progress, latency=latency)
     rows: list[Row] = []
     failures: list[Failure] = []
     for o in outcomes:

@@ -45,16 +45,22 @@ def info(
 
         chains = load_system(system).chains
     with err.status(f"reading {recording}", spinner="dots"):  # animates on a terminal only
-        rec = read_recording(recording, fast=not slow)
         lat = None
         measured = []
-        if latency:
+        if latency and chains:  # the chains need every stamp: read once, shared with the latency
             from perfros_bag.ingest.chains import chain_latencies
             from perfros_bag.ingest.contents import read_contents_stamps, topic_latencies
 
+            rec = read_recording(recording, fast=not slow)
             read = read_contents_stamps(recording, fast=not slow)
             lat = topic_latencies(recording, read)
-            measured = chain_latencies(chains or (), read, where=f"{recording}: ")
+            measured = chain_latencies(chains, read, where=f"{recording}: ")
+        elif latency:  # one pass reads both
+            from perfros_bag.ingest.contents import read_with_latency
+
+            rec, lat = read_with_latency(recording, fast=not slow)
+        else:
+            rec = read_recording(recording, fast=not slow)
     doc = recording_document(rec, lat)
     if chains is not None:
         doc["chains"] = [c.to_dict() for c in measured]

@@ -8,8 +8,10 @@ times once, giving the :class:`~perfros_bag.ingest.stats.RecordingStats` contrac
 from __future__ import annotations
 
 import mmap
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -109,6 +111,95 @@ def gather_u64(buf: U8, pos: I64) -> I64:
     return vals
 
 
+# --------------------------------------------------------------------------- header stamps
+
+STAMP_SIZE = 8  # builtin_interfaces/Time: sec, nanosec, 4 bytes each
+
+
+@dataclass(frozen=True)
+class StampAt:
+    """Where ``header.stamp`` is in each payload of one connection/channel/topic id, as the
+    recorded definitions say (:mod:`perfros_bag.ingest.stamps` decides): ``offset`` bytes
+    into the payload; ``cdr``: a CDR payload (the stamp right after the 4-byte
+    encapsulation, which gives the byte order; ``sec`` is signed), else ROS 1 (little-endian,
+    unsigned)."""
+
+    topic: str
+    offset: int
+    cdr: bool
+
+
+#: Called by a reader with its index (a ROS 1 :class:`~perfros_bag.ingest.rosbag1.BagIndex`,
+#: an MCAP :class:`~perfros_bag.ingest.mcapfile.Summary`, a rosbag2 sqlite3 connection):
+#: the connection/channel/topic ids whose stamps to read in the reader's own pass, and where.
+StampFinder = Callable[[Any], Mapping[int, StampAt]]
+
+
+def stamp_ns(sec: I64, nsec: I64) -> I64:
+    return sec * 1_000_000_000 + nsec
+
+
+def pairs_u32(buf: U8, pos: I64) -> tuple[I64, I64]:
+    """Two consecutive little-endian uint32 at every position ``pos`` (one 8-byte gather)."""
+    if pos.size == 0:
+        return pos, pos
+    if int(pos.min()) < 0 or int(pos.max()) + 8 > buf.size:
+        raise Damaged("stamp outside its chunk")
+    pairs = np.lib.stride_tricks.sliding_window_view(buf, 8)[pos].view("<u4").astype(np.int64)
+    return pairs[:, 0], pairs[:, 1]
+
+
+def cdr_stamps(payload: U8, starts: I64) -> I64:
+    """Stamps of CDR payloads starting at ``starts`` in ``payload`` (each at least 12 bytes,
+    checked by the caller); NoIndex on an encapsulation other than plain CDR."""
+    if starts.size == 0:
+        return starts
+    kind = (payload[starts].astype(np.int64) << 8) | payload[starts + 1].astype(np.int64)
+    little = kind == 1
+    if not np.all(little | (kind == 0)):
+        raise NoIndex("CDR encapsulation other than plain CDR (XCDR/parameter lists)")
+    sec, nsec = pairs_u32(payload, starts + 4)
+    if not np.all(little):  # big-endian payloads: swap the four bytes
+        big = ~little
+        sec[big] = sec[big].astype(np.uint32).byteswap().astype(np.int64)
+        nsec[big] = nsec[big].astype(np.uint32).byteswap().astype(np.int64)
+    sec = sec.astype(np.uint32).view(np.int32).astype(np.int64)  # builtin_interfaces/Time: int32 sec
+    return stamp_ns(sec, nsec)
+
+
+#: the first 12 bytes of a CDR payload starting with a Header: encapsulation, options, stamp
+CDR_HEAD = np.dtype([("kind", ">u2"), ("options", "<u2"), ("sec", "<u4"), ("nanosec", "<u4")])
+
+
+def cdr_head_stamps(heads: U8) -> I64:
+    """:func:`cdr_stamps` of payload heads given as a (rows, 12) matrix (zero-copy field
+    views instead of gathers)."""
+    if heads.shape[0] == 0:
+        return np.empty(0, np.int64)
+    rec = np.ascontiguousarray(heads).reshape(-1).view(CDR_HEAD)
+    kind = rec["kind"]
+    if int(kind.max()) > 1:
+        raise NoIndex("CDR encapsulation other than plain CDR (XCDR/parameter lists)")
+    sec, nsec = rec["sec"], rec["nanosec"]
+    if int(kind.min()) == 0:  # big-endian payloads: swap the four bytes
+        big = kind == 0
+        sec, nsec = np.where(big, sec.byteswap(), sec), np.where(big, nsec.byteswap(), nsec)
+    return stamp_ns(sec.view(np.int32).astype(np.int64), nsec.astype(np.int64))
+
+
+def payload_stamps(buf: U8, starts: I64, at: StampAt) -> I64:
+    """The stamps of the payloads starting at ``starts`` in ``buf`` (their lengths checked
+    by the caller: at least ``at.offset + STAMP_SIZE``)."""
+    if at.cdr:
+        if at.offset != 4:
+            raise NoIndex(f"{at.topic}: header.stamp not right after the CDR encapsulation")
+        return cdr_stamps(buf, starts)
+    return stamp_ns(*pairs_u32(buf, starts + at.offset))
+
+
+# --------------------------------------------------------------------------- accumulator
+
+
 @dataclass
 class _Topic:
     msgtype: str
@@ -125,6 +216,8 @@ class Accumulator:
         #: how the numbers were read: "index" (fast path) or "stream"; "mixed" across files
         self.method = "stream"
         self._files = 0  # how many per-file accumulators were merged in by extend()
+        #: topic -> (receive/log times, header stamps) parts, when a reader was asked for stamps
+        self._stamps: dict[str, list[tuple[I64, I64]]] = {}
 
     @property
     def messages(self) -> int:
@@ -148,6 +241,16 @@ class Accumulator:
             t.times.append(np.asarray(times, dtype=np.int64))
         t.nbytes += int(nbytes)
 
+    def add_stamps(self, topic: str, times: I64, stamps: I64) -> None:
+        """Header stamps of some of ``topic``'s messages (one per receive time, file order)."""
+        self._stamps.setdefault(topic, []).append((times, stamps))
+
+    def stamps(self) -> dict[str, tuple[I64, I64]]:
+        """topic -> (receive/log times ns, header stamps ns) of every message whose stamp was
+        read, in file order (the ``Stamps`` of :mod:`perfros_bag.ingest.stamps`)."""
+        return {topic: (np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]))
+                for topic, parts in self._stamps.items()}
+
     def extend(self, other: Accumulator) -> None:
         """Add every topic of ``other`` (another file of the same recording)."""
         if self._files == 0:
@@ -161,6 +264,8 @@ class Accumulator:
             mine.times.extend(t.times)
             mine.nbytes += t.nbytes
             mine.publishers |= t.publishers
+        for name, parts in other._stamps.items():
+            self._stamps.setdefault(name, []).extend(parts)
 
     def build(self, path: Path, fmt: str) -> RecordingStats:
         topics: dict[str, TopicStats] = {}

@@ -14,6 +14,14 @@
  *       Calls ``release(start, end)`` (byte offsets) after every ``release_step`` bytes of
  *       pages it has read, so the caller can unmap them. The GIL is released meanwhile.
  *
+ *   decode_heads(buf, root, page_size, usable, topic, time, size, release, release_step,
+ *                want, heads, rows) -> (n, m)
+ *       decode(), and for every row whose topic id is in ``want`` (int64) the first
+ *       ``len(heads) / len(rows)`` bytes of its data blob (zero-filled when the blob is
+ *       shorter) into the next row of ``heads`` (uint8) and the row's number into ``rows``
+ *       (int64, as long as the outputs): m such rows. ``Malformed`` when such a blob's first
+ *       bytes are not on its leaf page (an overflowing blob with a tiny local part).
+ *
  *   group(tids, times, sizes, ids, counts, nbytes, out_times) -> bool
  *       Stable counting sort of ``times`` by topic id: out_times holds the times of ids[0],
  *       then ids[1], ...; counts/nbytes per id. False (nothing to rely on) when a row has an
@@ -38,7 +46,32 @@ typedef struct {
     uint32_t *stack; /* pages still to visit, the next one last */
     uint64_t depth, room; /* entries on the stack, and its capacity */
     int nomem;
+    const int64_t *want; /* decode_heads: topic ids whose blob heads to copy (nwant of them) */
+    Py_ssize_t nwant, m; /* ... and the rows copied so far */
+    uint8_t *heads;      /* m x head rows */
+    int64_t *rows;
+    uint64_t head;
 } Walk;
+
+/* decode_heads: the first w->head bytes of the data blob of row w->n - 1 (topic ``tid``, blob
+ * of ``dsize`` bytes starting at ``data``, ``avail`` of them on the page), when ``tid`` is
+ * wanted. 0 on success, else w->err is set. */
+static inline int blob_head(Walk *w, int64_t tid, const uint8_t *data, uint64_t dsize, uint64_t avail) {
+    Py_ssize_t j = 0;
+    while (j < w->nwant && w->want[j] != tid) j++;
+    if (j == w->nwant) return 0;
+    uint64_t k = dsize < w->head ? dsize : w->head;
+    if (avail < k) return (w->err = "a blob's first bytes are not on its leaf page", -1);
+    uint8_t *out = w->heads + (uint64_t)w->m * w->head;
+    if (k == 12) { /* the usual head (CDR encapsulation + stamp): a fixed-size copy */
+        memcpy(out, data, 12);
+    } else {
+        memcpy(out, data, k);
+        if (k < w->head) memset(out + k, 0, w->head - k);
+    }
+    w->rows[w->m++] = w->n - 1;
+    return 0;
+}
 
 /* A varint of at most 9 bytes at p: its length, 0 if it runs to ``end`` or past it. With
  * ``checked`` 0 the caller guarantees 9 readable bytes at p and ``end`` is only the limit the
@@ -149,6 +182,10 @@ static inline __attribute__((always_inline)) int cell(Walk *w, const uint8_t *p,
     w->time[w->n] = int_value(t2, hend + wt);
     w->size[w->n] = (int64_t)dsize;
     w->n++;
+    if (w->nwant) {
+        const uint8_t *data = hend + wt + wts;
+        return blob_head(w, w->topic[w->n - 1], data, dsize, (uint64_t)(rend - data));
+    }
     return 0;
 }
 
@@ -210,6 +247,10 @@ static int leaf(Walk *w, const uint8_t *page) {
             time[n] = int_value(t2, p + hsize + wt);
             size[n] = (int64_t)dsize;
             n++;
+            if (w->nwant) { /* the whole record is on the page: so is its blob */
+                w->n = n;
+                if (blob_head(w, topic[n - 1], p + hsize + wt + wts, dsize, dsize)) return -1;
+            }
             continue;
         }
     general:
@@ -275,14 +316,28 @@ static int i64_buffer(PyObject *obj, Py_buffer *view, const char *name, int writ
     return 0;
 }
 
-static PyObject *decode(PyObject *self, PyObject *args) {
-    Py_buffer src, vt, vs, vz;
+/* A C-contiguous writable byte buffer. */
+static int u8_buffer(PyObject *obj, Py_buffer *view, const char *name) {
+    if (PyObject_GetBuffer(obj, view, PyBUF_WRITABLE | PyBUF_C_CONTIGUOUS) < 0) return -1;
+    (void)name;
+    return 0;
+}
+
+/* decode() and decode_heads(): ``heads`` NULL for decode(). */
+static PyObject *walk_table(PyObject *args, int with_heads) {
+    Py_buffer src, vt, vs, vz, vw, vh, vr;
     unsigned long long root, page_size, usable, step;
-    PyObject *ot, *os, *oz, *release;
-    if (!PyArg_ParseTuple(args, "y*KKKOOOOK", &src, &root, &page_size, &usable, &ot, &os, &oz, &release, &step))
+    PyObject *ot, *os, *oz, *release, *ow = NULL, *oh = NULL, *orow = NULL;
+    if (with_heads) {
+        if (!PyArg_ParseTuple(args, "y*KKKOOOOKOOO", &src, &root, &page_size, &usable, &ot, &os, &oz, &release,
+                              &step, &ow, &oh, &orow))
+            return NULL;
+    } else if (!PyArg_ParseTuple(args, "y*KKKOOOOK", &src, &root, &page_size, &usable, &ot, &os, &oz, &release,
+                                 &step)) {
         return NULL;
+    }
     PyObject *result = NULL;
-    int have_t = 0, have_s = 0, have_z = 0;
+    int have_t = 0, have_s = 0, have_z = 0, have_w = 0, have_h = 0, have_r = 0;
     Walk w = {0}; /* zeroed first: every exit below frees w.seen and w.stack */
     if (i64_buffer(ot, &vt, "topic", 1) < 0) goto done;
     have_t = 1;
@@ -294,6 +349,18 @@ static PyObject *decode(PyObject *self, PyObject *args) {
         PyErr_SetString(PyExc_ValueError, "output arrays differ in length");
         goto done;
     }
+    if (with_heads) {
+        if (i64_buffer(ow, &vw, "want", 0) < 0) goto done;
+        have_w = 1;
+        if (u8_buffer(oh, &vh, "heads") < 0) goto done;
+        have_h = 1;
+        if (i64_buffer(orow, &vr, "rows", 1) < 0) goto done;
+        have_r = 1;
+        if (vr.len != vt.len || vr.len == 0 || vh.len % (vr.len / 8) || vw.len == 0) {
+            PyErr_SetString(PyExc_ValueError, "heads/rows/want do not match the outputs");
+            goto done;
+        }
+    }
     if (page_size < 512 || page_size > 65536 || (page_size & (page_size - 1)) || usable < 480 || usable > page_size) {
         PyErr_SetString(Malformed, "bad page size");
         goto done;
@@ -301,6 +368,13 @@ static PyObject *decode(PyObject *self, PyObject *args) {
     w = (Walk){.buf = src.buf, .page_size = page_size, .usable = usable,
                .n_pages = (uint64_t)src.len / page_size, .topic = vt.buf, .time = vs.buf,
                .size = vz.buf, .cap = vt.len / 8, .lo = UINT64_MAX, .room = 64};
+    if (with_heads) {
+        w.want = vw.buf;
+        w.nwant = vw.len / 8;
+        w.heads = vh.buf;
+        w.rows = vr.buf;
+        w.head = (uint64_t)(vh.len / (vr.len / 8));
+    }
     if (root < 2 || root > w.n_pages) {
         PyErr_SetString(Malformed, "bad root page of the messages table");
         goto done;
@@ -351,16 +425,23 @@ static PyObject *decode(PyObject *self, PyObject *args) {
         goto done;
     }
     if (call_release(release, &w) < 0) goto done;
-    result = PyLong_FromSsize_t(w.n);
+    result = with_heads ? Py_BuildValue("nn", w.n, w.m) : PyLong_FromSsize_t(w.n);
 done:
     free(w.seen);
     free(w.stack);
     if (have_t) PyBuffer_Release(&vt);
     if (have_s) PyBuffer_Release(&vs);
     if (have_z) PyBuffer_Release(&vz);
+    if (have_w) PyBuffer_Release(&vw);
+    if (have_h) PyBuffer_Release(&vh);
+    if (have_r) PyBuffer_Release(&vr);
     PyBuffer_Release(&src);
     return result;
 }
+
+static PyObject *decode(PyObject *self, PyObject *args) { return walk_table(args, 0); }
+
+static PyObject *decode_heads(PyObject *self, PyObject *args) { return walk_table(args, 1); }
 
 #define MAX_SPAN (1 << 22) /* widest id range the lookup table covers */
 
@@ -435,6 +516,7 @@ done:
 
 static PyMethodDef methods[] = {
     {"decode", decode, METH_VARARGS, "Decode rosbag2's messages table from SQLite B-tree pages."},
+    {"decode_heads", decode_heads, METH_VARARGS, "decode(), with the first bytes of the wanted topics' blobs."},
     {"group", group, METH_VARARGS, "Stable counting sort of times by topic id."},
     {NULL, NULL, 0, NULL},
 };

@@ -1,13 +1,16 @@
 """What is inside the messages: per-topic latency (receive/log time - ``header.stamp``) and
 nodes' metrics (a field of a topic's messages, aggregated).
 
-Entry points: :func:`read_latency` (what ``info --latency`` and ``characterise --latency``
-use), :func:`read_stamps` (the stamps themselves) and :func:`read_metric` (system.yaml's
-``metric:``, decoded by the libraries). One fast path per container format
-(:mod:`perfros_bag.ingest.stamps`: ROS 1 index, MCAP summary + message indexes, rosbag2
-sqlite3 rows) reads the stamp at its known offset in the payload; where it cannot (no index,
-message compression, an encapsulation it does not know, a loose .db3) the recording
-libraries decode the messages (:func:`library_stamps`, :mod:`perfros_bag.ingest.decode`).
+Entry points: :func:`read_with_latency` (what ``info --latency`` and ``characterise
+--latency`` use: the recording's statistics and its latencies from one index pass),
+:func:`read_latency` (latencies only), :func:`read_stamps` (the stamps themselves),
+:func:`latencies` (stamps -> latencies, e.g. merged from the parts of a split recording)
+and :func:`read_metric` (system.yaml's ``metric:``, decoded by the libraries). The fast
+path (:mod:`perfros_bag.ingest.stamps`) has the readers gather each stamp at its known
+offset in the payload in their own index pass (ROS 1 index, MCAP summary + message
+indexes, rosbag2 sqlite3 B-tree pages); where it cannot (no index, message compression, an
+encapsulation it does not know) the recording libraries decode the messages
+(:func:`library_stamps`, :mod:`perfros_bag.ingest.decode`).
 Both give the same stamps: tests/test_contents.py checks it on every stamped message of
 shared/realbags and of generated recordings.
 
@@ -31,7 +34,6 @@ import numpy as np
 from perfros_bag.errors import PerfrosError, PerfrosWarning
 from perfros_bag.ingest._accum import I64, Damaged, NoIndex
 from perfros_bag.ingest.decode import TopicType, Undecodable, decoded_messages, topic_types
-from perfros_bag.ingest.rosbag2 import open_mmap
 from perfros_bag.ingest.stamps import Stamps
 from perfros_bag.ingest.stats import RecordingStats
 from perfros_bag.system.types import Aggregate, Metric
@@ -54,9 +56,14 @@ def latency_of(times_ns: I64, stamps_ns: I64) -> TopicLatency | None:
     """p50/p95/max of ``times - stamps`` in seconds (numpy's linear percentiles); messages
     stamped 0 are left out; None when none is left."""
     keep = stamps_ns != 0
-    if not np.any(keep):
+    if keep.all():  # the usual case: no copies through the mask
+        delay = (times_ns - stamps_ns).astype(np.float64) / 1e9
+    elif not np.any(keep):
         return None
-    delay = (times_ns[keep] - stamps_ns[keep]).astype(np.float64) / 1e9
+    else:
+        delay = (times_ns[keep] - stamps_ns[keep]).astype(np.float64) / 1e9
+    if delay.size == 0:
+        return None
     p50, p95 = np.percentile(delay, [50, 95])
     return TopicLatency(int(delay.size), float(p50), float(p95), float(delay.max()))
 
@@ -93,56 +100,23 @@ def library_stamps(path: Path, types: dict[str, TopicType] | None = None) -> Sta
     return {}
 
 
-# --------------------------------------------------------------------------- fast paths
-
-
-def _rosbag2_stamps(root: Path) -> tuple[Stamps, dict[str, TopicType]]:
-    from perfros_bag.ingest import rosbag2, stamps
-
-    meta_path = root / "metadata.yaml"
-    meta = rosbag2.parse_metadata(meta_path) if meta_path.is_file() else None
-    if meta is not None and meta.compression_mode in ("FILE", "MESSAGE"):
-        raise NoIndex("compressed rosbag2 recording")
-    files = rosbag2.resolve_files(root, meta)
-    types: dict[str, TopicType] = {}
-    out = stamps.StampParts()
-    for f in files:  # each file's types from its own definitions (schemas, definitions table)
-        if f.suffix == ".mcap":
-            with open_mmap(f) as mm:
-                part, file_types = stamps.mcap_stamps(mm, f)
-        elif f.suffix == ".db3":
-            part, file_types = stamps.sqlite_stamps(f)
-        else:
-            raise NoIndex(f"{f.name}: compressed storage file")
-        for topic, tt in file_types.items():
-            types.setdefault(topic, tt)
-        out.extend(part)
-    return out.stamps(), types
+# --------------------------------------------------------------------------- fast path
 
 
 def fast_stamps(path: Path) -> tuple[Stamps, dict[str, TopicType]]:
-    """The stamps read at their offset (no deserialisation), and every topic's type; raises
-    when the fast path cannot read this recording (the caller decodes instead)."""
-    from perfros_bag.ingest import detect_format, stamps
+    """The stamps read at their offset (no deserialisation) in the readers' own pass over
+    the chunks holding stamped messages, and every topic's type; raises when the fast path
+    cannot read this recording (the caller decodes instead)."""
+    from perfros_bag.ingest.stamps import read_with_stamps
 
-    if path.is_dir():
-        return _rosbag2_stamps(path)
-    fmt = detect_format(path)
-    if fmt == "ros1":
-        with open_mmap(path) as mm:
-            return stamps.ros1_stamps(mm)
-    if fmt == "mcap":
-        with open_mmap(path) as mm:
-            return stamps.mcap_stamps(mm, path)
-    raise Undecodable("message contents are read from .bag and .mcap files and rosbag2 directories")
+    acc, _fmt, finder = read_with_stamps(path, stamped_only=True)
+    return finder.stamps(acc), finder.types
 
 
 def read_stamps(path: str | Path, *, fast: bool = True) -> tuple[Stamps, dict[str, TopicType]]:
     """(stamps of every stamped topic, every topic's type): the fast path, else the libraries.
     Raises :class:`Undecodable` when neither can read the recording's contents."""
-    p = Path(path)
-    if p.is_file() and p.name == "metadata.yaml":
-        p = p.parent
+    p = _recording(path)
     if fast:
         try:
             return fast_stamps(p)
@@ -162,6 +136,31 @@ def read_contents_stamps(path: str | Path, *, fast: bool = True) -> tuple[Stamps
         return None
 
 
+def _recording(path: str | Path) -> Path:
+    p = Path(path)
+    return p.parent if p.is_file() and p.name == "metadata.yaml" else p
+
+
+def latencies(path: Path, stamps: Stamps, types: dict[str, TopicType]) -> dict[str, TopicLatency | None]:
+    """Per stamped topic of ``types``: its :class:`TopicLatency` from ``stamps`` (None, with a
+    warning, when every stamp is 0); a warning per ``cdr``/``ros1`` topic whose type no
+    recorded definition tells."""
+    out: dict[str, TopicLatency | None] = {}
+    for topic, tt in sorted(types.items()):
+        if tt.stamped is None and tt.encoding in ("cdr", "ros1"):
+            warnings.warn(f"{path}: {topic}: no definition of {tt.msgtype or 'its type'} that rosbags can parse "
+                          "in the recording: "
+                          "no latency for it", PerfrosWarning, stacklevel=3)
+        if not tt.stamped:
+            continue
+        t, s = stamps.get(topic, (np.empty(0, np.int64), np.empty(0, np.int64)))
+        out[topic] = latency_of(t, s)
+        if t.size and out[topic] is None:
+            warnings.warn(f"{path}: {topic}: every header.stamp is 0 (unset): no latency for it",
+                          PerfrosWarning, stacklevel=3)
+    return out
+
+
 def read_latency(path: str | Path, *, fast: bool = True) -> dict[str, TopicLatency | None]:
     """Per topic of the recording with a header: its :class:`TopicLatency` (None when no
     message carries a non-zero stamp or it does not decode). Topics without a header are
@@ -177,22 +176,30 @@ def topic_latencies(path: str | Path, read: tuple[Stamps, dict[str, TopicType]] 
     so other measures (chains) can share it; ``read`` None: empty."""
     if read is None:
         return {}
-    p = path
     stamps, types = read
-    out: dict[str, TopicLatency | None] = {}
-    for topic, tt in sorted(types.items()):
-        if tt.stamped is None and tt.encoding in ("cdr", "ros1"):
-            warnings.warn(f"{p}: {topic}: no definition of {tt.msgtype or 'its type'} that rosbags can parse "
-                          "in the recording: "
-                          "no latency for it", PerfrosWarning, stacklevel=2)
-        if not tt.stamped:
-            continue
-        t, s = stamps.get(topic, (np.empty(0, np.int64), np.empty(0, np.int64)))
-        out[topic] = latency_of(t, s)
-        if t.size and out[topic] is None:
-            warnings.warn(f"{p}: {topic}: every header.stamp is 0 (unset): no latency for it",
-                          PerfrosWarning, stacklevel=2)
-    return out
+    return latencies(Path(path), stamps, types)
+
+
+def read_with_latency(path: str | Path, *, fast: bool = True,
+                      ) -> tuple[RecordingStats, dict[str, TopicLatency | None]]:
+    """``read_recording(path, fast=fast)`` and ``read_latency(path, fast=fast)`` in one pass:
+    the index reader gathers the stamps as it goes
+    (:func:`~perfros_bag.ingest.stamps.read_with_stamps`). Where that pass cannot be used
+    (no index, compression, ``fast=False``, ...) the two are read one after the other, with
+    the same results."""
+    from perfros_bag.ingest import read_recording
+    from perfros_bag.ingest.stamps import read_with_stamps
+
+    p = Path(path)
+    if fast and p.exists():
+        try:
+            acc, fmt, finder = read_with_stamps(_recording(p))
+            stats = acc.build(_recording(p), fmt)
+        except Exception:  # noqa: S110 - the two separate reads below say what is wrong
+            pass
+        else:
+            return stats, latencies(p, finder.stamps(acc), finder.types)
+    return read_recording(p, fast=fast), read_latency(p, fast=fast)
 
 
 # --------------------------------------------------------------------------- metrics

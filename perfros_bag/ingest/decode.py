@@ -19,7 +19,7 @@ only the chunks (or sqlite rows) holding them. Anything that cannot be decoded r
 from __future__ import annotations
 
 import json
-from collections.abc import Collection, Iterable, Iterator
+from collections.abc import Collection, Iterable, Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -188,47 +188,71 @@ def typestore_from_definitions(definitions: Iterable[tuple[str, str, str]]) -> T
     return typestore
 
 
-def _mcap_typestore(schemas: Collection[Any]) -> Typestore:
-    return typestore_from_definitions(
-        (schema.name, schema.encoding, bytes(schema.data).decode("utf-8", "replace")) for schema in schemas)
+def channel_types(schemas: Mapping[int, tuple[str, str, str]],
+                  channels: Iterable[tuple[int, str, int, str]]) -> dict[int, TopicType]:
+    """Channel id -> :class:`TopicType` of an MCAP file from its schemas (id -> (name,
+    encoding, text)) and channels ((id, topic, schema id, message encoding)): one rosbags
+    typestore of all its schemas; ``cdr`` and ``ros1`` channels are typed from it, others
+    (``json``, ...) are ``stamped`` None. Both our summary reader
+    (:mod:`perfros_bag.ingest.stamps`) and the ``mcap`` reader's summary
+    (:func:`mcap_types`) go through here."""
+    from rosbags.typesys.msg import normalize_msgtype
+
+    typestore = typestore_from_definitions(schemas.values())
+    out: dict[int, TopicType] = {}
+    for cid, topic, schema_id, encoding in channels:
+        schema = schemas.get(schema_id)
+        name = schema[0] if schema is not None else ""
+        name = normalize_msgtype(name) if "/" in name else name
+        if encoding in ("cdr", "ros1"):
+            out[cid] = topic_type(typestore, topic, name, encoding)
+        else:
+            out[cid] = TopicType(topic, name, encoding, None)
+    return out
 
 
-def _mcap_summary(path: Path) -> tuple[Any, Typestore]:
+def _library_channel_types(summary: Any) -> dict[int, TopicType]:
+    """:func:`channel_types` of the ``mcap`` reader's summary."""
+    schemas = {sid: (s.name, s.encoding, bytes(s.data).decode("utf-8", "replace"))
+               for sid, s in summary.schemas.items()}
+    return channel_types(schemas, ((cid, ch.topic, ch.schema_id, ch.message_encoding)
+                                   for cid, ch in summary.channels.items()))
+
+
+def _mcap_reader(f: Any) -> tuple[Any, Any]:
+    """The ``mcap`` reader of the open file ``f`` and its summary (which it keeps)."""
     from mcap.reader import make_reader
 
-    with path.open("rb") as f:
-        try:
-            summary = make_reader(f).get_summary()
-        except Exception as exc:
-            raise Undecodable(f"the mcap reader cannot read its summary: {exc}") from None
+    try:
+        reader = make_reader(f)
+        summary = reader.get_summary()
+    except Exception as exc:
+        raise Undecodable(f"the mcap reader cannot read its summary: {exc}") from None
     if summary is None:
         raise Undecodable("MCAP file without a summary section (the mcap reader needs it to find the topics)")
-    return summary, _mcap_typestore(summary.schemas.values())
+    return reader, summary
 
 
 def mcap_types(path: Path) -> dict[str, TopicType]:
-    from rosbags.typesys.msg import normalize_msgtype
-
-    summary, typestore = _mcap_summary(path)
+    """Every topic's :class:`TopicType` of an MCAP file, from the ``mcap`` reader's summary."""
+    with path.open("rb") as f:
+        by_channel = _library_channel_types(_mcap_reader(f)[1])
     out: dict[str, TopicType] = {}
-    for ch in summary.channels.values():
-        schema = summary.schemas.get(ch.schema_id)
-        name = normalize_msgtype(schema.name) if schema is not None and "/" in schema.name else (
-            schema.name if schema is not None else "")
-        if ch.message_encoding in ("cdr", "ros1"):
-            out.setdefault(ch.topic, topic_type(typestore, ch.topic, name, ch.message_encoding))
-        else:
-            out.setdefault(ch.topic, TopicType(ch.topic, name, ch.message_encoding, None))
+    for tt in by_channel.values():
+        out.setdefault(tt.topic, tt)
     return out
 
 
 def _mcap_messages(path: Path, topics: Collection[str]) -> Iterator[tuple[str, int, Any]]:
-    from mcap.reader import make_reader
+    """One ``mcap`` reader: its summary (cached by the reader) gives the typestore, then the
+    messages of ``topics``."""
     from rosbags.typesys.msg import normalize_msgtype
 
-    _summary, typestore = _mcap_summary(path)
     with path.open("rb") as f:
-        for schema, channel, message in make_reader(f).iter_messages(topics=list(topics)):
+        reader, summary = _mcap_reader(f)
+        typestore = typestore_from_definitions(
+            (s.name, s.encoding, bytes(s.data).decode("utf-8", "replace")) for s in summary.schemas.values())
+        for schema, channel, message in reader.iter_messages(topics=list(topics)):
             enc = channel.message_encoding
             try:
                 if enc == "json":

@@ -32,11 +32,15 @@ from perfros_bag.ingest import MCAP_MAGIC
 from perfros_bag.ingest._accum import (
     I64,
     RELEASE_STEP,
+    STAMP_SIZE,
     U8,
     Accumulator,
     Damaged,
     NoIndex,
+    StampAt,
+    StampFinder,
     gather_u64,
+    payload_stamps,
     release,
     zstd_size,
 )
@@ -91,6 +95,7 @@ class Channel:
     topic: str
     schema_id: int
     callerid: str = ""  # ROS 1 profile: the publisher, from the channel metadata
+    encoding: str = ""  # the message encoding: "cdr", "ros1", "json", ...
 
 
 @dataclass(frozen=True)
@@ -114,7 +119,9 @@ class ChunkIndex:
 @dataclass(frozen=True)
 class Summary:
     """The summary section: schema names and channels by id, the chunk indexes (in file
-    order as recorded) and the Statistics record's message count (None without one)."""
+    order as recorded) and the Statistics record's message count (None without one);
+    ``definitions``: each schema's (encoding, data) by id (what
+    :mod:`perfros_bag.ingest.stamps` parses)."""
 
     schemas: Mapping[int, str]
     channels: Mapping[int, Channel]
@@ -123,6 +130,7 @@ class Summary:
     #: a rosbag2 storage file whose ``rosbag2`` Metadata record says each payload is a zstd
     #: frame (``compression_mode: message``): the sizes to report are the decompressed ones
     message_zstd: bool = False
+    definitions: Mapping[int, tuple[str, bytes]] = field(default_factory=dict)
 
     def chunk_sizes(self) -> tuple[int, ...]:
         """Bytes of file each chunk takes with its message indexes (at least 1)."""
@@ -146,6 +154,8 @@ class _State:
     channels: dict[int, Channel] = field(default_factory=dict)
     times: dict[int, list[I64]] = field(default_factory=dict)
     nbytes: dict[int, int] = field(default_factory=dict)
+    definitions: dict[int, tuple[str, bytes]] = field(default_factory=dict)
+    stamps: list[tuple[str, I64, I64]] = field(default_factory=list)  # (topic, times, stamps)
 
     def add(self, cid: int, times: I64, nbytes: int) -> None:
         self.times.setdefault(cid, []).append(times)
@@ -161,6 +171,8 @@ class _State:
             times = np.concatenate(parts) if parts else np.empty(0, dtype=np.int64)
             acc.add(ch.topic, self.schemas.get(ch.schema_id, ""), times, self.nbytes.get(cid, 0),
                     ch.callerid or None)
+        for topic, times, stamps in self.stamps:
+            acc.add_stamps(topic, times, stamps)
         return acc
 
 
@@ -179,13 +191,16 @@ def _schema(buf: Buf, start: int, length: int, st: _State) -> None:
     c = _Cursor(buf, start, start + length)
     sid = c.u16()
     st.schemas[sid] = c.string()
+    encoding = c.string()
+    start, n = c.skip_prefixed()
+    st.definitions[sid] = (encoding, bytes(buf[start:start + n]))
 
 
 def _channel(buf: Buf, start: int, length: int, st: _State) -> None:
     c = _Cursor(buf, start, start + length)
     cid, schema_id = c.u16(), c.u16()
     topic = c.string()
-    c.string()  # message encoding
+    encoding = c.string()
     callerid = ""
     if c.pos < c.end:  # metadata map<string, string> (the ros1 profile records callerid)
         mstart, mlen = c.skip_prefixed()
@@ -194,7 +209,7 @@ def _channel(buf: Buf, start: int, length: int, st: _State) -> None:
             key, value = m.string(), m.string()
             if key == "callerid":
                 callerid = value
-    st.channels[cid] = Channel(topic, schema_id, callerid)
+    st.channels[cid] = Channel(topic, schema_id, callerid, encoding)
 
 
 def decompress(compression: str, data: Buf, usize: int) -> bytes:
@@ -360,7 +375,7 @@ def read_summary(mm: mmap.mmap) -> Summary:
             if c.string() == ROSBAG2_METADATA:
                 rosbag2_metadata = (moffset, mlength)
     message_zstd = rosbag2_metadata is not None and _says_message_zstd(mm, *rosbag2_metadata)
-    return Summary(st.schemas, st.channels, tuple(chunks), count, message_zstd)
+    return Summary(st.schemas, st.channels, tuple(chunks), count, message_zstd, st.definitions)
 
 
 def rosbag2_message_compressed(mm: mmap.mmap) -> bool:
@@ -408,11 +423,14 @@ def _says_message_zstd(mm: mmap.mmap, offset: int, length: int) -> bool:
     return mode == "message" and fmt == "zstd"
 
 
-def read_chunks(mm: mmap.mmap, summary: Summary, message_zstd: bool | None = None) -> Accumulator:
+def read_chunks(mm: mmap.mmap, summary: Summary, message_zstd: bool | None = None,
+                stamps: Mapping[int, StampAt] | None = None) -> Accumulator:
     """Counts, log times and payload bytes of the messages in ``summary.chunk_indexes``
     (every channel of the summary declared), from their message indexes; method "index".
     ``message_zstd``: whether payloads are zstd frames (None: as the file says,
-    :attr:`Summary.message_zstd`).
+    :attr:`Summary.message_zstd`). ``stamps``: the channels whose ``header.stamp`` to read
+    too, in the same pass (the accumulator's
+    :meth:`~perfros_bag.ingest._accum.Accumulator.stamps`; NoIndex with zstd payloads).
 
     The whole-file fast path reads all chunks, a split task some of them
     (:meth:`Summary.select`). Raises :class:`NoIndex` when a message index disagrees
@@ -420,10 +438,12 @@ def read_chunks(mm: mmap.mmap, summary: Summary, message_zstd: bool | None = Non
     """
     if message_zstd is None:
         message_zstd = summary.message_zstd
+    if stamps and message_zstd:
+        raise NoIndex("stamps of zstd-compressed payloads are not read in place")
     st = _State(dict(summary.schemas), dict(summary.channels))
     for ci in summary.chunk_indexes:
         buf, base, blen = load_chunk(mm, ci)
-        _index_chunk(mm, ci, buf, base, blen, st, message_zstd)
+        _index_chunk(mm, ci, buf, base, blen, st, message_zstd, stamps or {})
         del buf
         release(mm, ci.chunk_start_offset, ci.end)  # keep the resident set small (see _accum.release)
     acc = st.accumulator()
@@ -431,13 +451,14 @@ def read_chunks(mm: mmap.mmap, summary: Summary, message_zstd: bool | None = Non
     return acc
 
 
-def read_fast(mm: mmap.mmap, message_zstd: bool | None = None) -> Accumulator:
+def read_fast(mm: mmap.mmap, message_zstd: bool | None = None, stamps: StampFinder | None = None) -> Accumulator:
     """The whole file from its summary: :func:`read_chunks` over every chunk index,
-    cross-checked with the Statistics record."""
+    cross-checked with the Statistics record; ``stamps``: which channels' header stamps to
+    read in the same pass, given the summary."""
     summary = read_summary(mm)
     if not summary.chunk_indexes and summary.message_count != 0:
         raise NoIndex("no chunk index")
-    acc = read_chunks(mm, summary, message_zstd)
+    acc = read_chunks(mm, summary, message_zstd, stamps(summary) if stamps is not None else None)
     summary.check_message_count(acc.messages)
     return acc
 
@@ -456,24 +477,28 @@ def load_chunk(mm: mmap.mmap, ci: ChunkIndex) -> tuple[U8, int, int]:
     return np.frombuffer(raw, dtype=np.uint8), 0, len(raw)
 
 
+def message_index(mm: mmap.mmap, ci: ChunkIndex, cid: int) -> npt.NDArray[np.uint64]:
+    """Channel ``cid``'s message index after the chunk of ``ci``: its ``(log_time, offset)``
+    pairs as an (n, 2) array viewing the mmap. NoIndex when the record is not that
+    channel's message index."""
+    op, istart, ilen = record_at(mm, ci.message_index_offsets[cid], len(mm))
+    if op != OP_MESSAGE_INDEX:
+        raise NoIndex("message-index offset does not point at a message index")
+    c = _Cursor(mm, istart, istart + ilen)
+    if c.u16() != cid:
+        raise NoIndex("message index for the wrong channel")
+    ppos, plen = c.skip_prefixed()
+    if plen % 16:
+        raise NoIndex("malformed message index")
+    return np.frombuffer(mm, dtype="<u8", count=plen // 8, offset=ppos).reshape(-1, 2)
+
+
 def _index_chunk(mm: mmap.mmap, ci: ChunkIndex, buf: U8, base: int, blen: int, st: _State,
-                 message_zstd: bool) -> None:
-    """Adds one chunk's indexed messages to ``st``."""
-    size = len(mm)
-    cids: list[int] = []
-    parts: list[npt.NDArray[np.uint64]] = []
-    for cid, ipos in ci.message_index_offsets.items():
-        op, istart, ilen = record_at(mm, ipos, size)
-        if op != OP_MESSAGE_INDEX:
-            raise NoIndex("message-index offset does not point at a message index")
-        c = _Cursor(mm, istart, istart + ilen)
-        if c.u16() != cid:
-            raise NoIndex("message index for the wrong channel")
-        ppos, plen = c.skip_prefixed()
-        if plen % 16:
-            raise NoIndex("malformed message index")
-        cids.append(cid)
-        parts.append(np.frombuffer(mm, dtype="<u8", count=plen // 8, offset=ppos).reshape(-1, 2))
+                 message_zstd: bool, stamps: Mapping[int, StampAt]) -> None:
+    """Adds one chunk's indexed messages (and the header stamps of the channels in
+    ``stamps``) to ``st``."""
+    cids = list(ci.message_index_offsets)
+    parts = [message_index(mm, ci, cid) for cid in cids]
     counts = np.array([len(p) for p in parts], dtype=np.int64)
     n = int(counts.sum())
     if n == 0:
@@ -511,12 +536,22 @@ def _index_chunk(mm: mmap.mmap, ci: ChunkIndex, buf: U8, base: int, blen: int, s
     k = 0
     for cid, cnt, nbytes in zip(cids, counts.tolist(), per, strict=True):
         st.add(cid, times[k:k + cnt], nbytes)
+        where = stamps.get(cid)
+        if where is not None and cnt:
+            if int(lengths[k:k + cnt].min()) < MSG_HEADER + where.offset + STAMP_SIZE:
+                raise NoIndex(f"{where.topic}: a stamped message shorter than its header")
+            st.stamps.append((where.topic, times[k:k + cnt],
+                              payload_stamps(buf, at[k:k + cnt] + 9 + MSG_HEADER, where)))
         k += cnt
 
 
-def read(mm: mmap.mmap, fast: bool = True, message_zstd: bool | None = None) -> Accumulator:
+def read(mm: mmap.mmap, fast: bool = True, message_zstd: bool | None = None,
+         stamps: StampFinder | None = None) -> Accumulator:
     """The whole file, from its indexes when ``fast`` (else, or when they are missing or
-    damaged, by streaming). ``message_zstd`` None: as the file's summary says."""
+    damaged, by streaming). ``message_zstd`` None: as the file's summary says. ``stamps``:
+    header stamps read in the index pass (:func:`read_fast`; no streaming fallback then)."""
+    if stamps is not None:
+        return read_fast(mm, message_zstd, stamps)
     if fast:
         try:
             return read_fast(mm, message_zstd)

@@ -30,11 +30,14 @@ import numpy as np
 from perfros_bag.ingest._accum import (
     I64,
     RELEASE_STEP,
+    STAMP_SIZE,
     U8,
     Accumulator,
     Damaged,
     NoIndex,
+    StampAt,
     gather_u32,
+    payload_stamps,
     release,
 )
 from perfros_bag.ingest.stats import RecordingStats
@@ -56,11 +59,13 @@ class Record:
 
 @dataclass(frozen=True)
 class Connection:
-    """A connection record: the topic, its message type and the publishing node."""
+    """A connection record: the topic, its message type, the publishing node and the
+    message definition it recorded (what :mod:`perfros_bag.ingest.stamps` parses)."""
 
     topic: str
     msgtype: str
     callerid: str
+    msgdef: str = field(default="", compare=False, repr=False)
 
 
 @dataclass(frozen=True)
@@ -165,8 +170,9 @@ def _connection(buf: bytes | memoryview | mmap.mmap, rec: Record) -> tuple[int, 
     fields = parse_fields(buf, rec.data_start, rec.data_start + rec.data_len)
     msgtype = fields.get("type", b"").decode("utf-8", "replace")
     callerid = fields.get("callerid", b"").decode("utf-8", "replace")
+    msgdef = fields.get("message_definition", b"").decode("utf-8", "replace")
     return cid, Connection(topic or fields.get("topic", b"").decode("utf-8", "replace"),
-                           msgtype, callerid)
+                           msgtype, callerid, msgdef)
 
 
 def decompress_chunk(compression: str, data: bytes | memoryview, size: int) -> bytes:
@@ -207,14 +213,15 @@ def _records(buf: bytes | memoryview | mmap.mmap, pos: int, end: int) -> Iterato
         pos = rec.end
 
 
-def message_sizes(buf: U8, base: int, offs: I64, usize: int) -> I64:
-    """``data_len`` of the message data records at chunk offsets ``offs`` (vectorised).
+def message_records(buf: U8, base: int, offs: I64, usize: int) -> tuple[I64, I64]:
+    """(``header_len``, ``data_len``) of the message data records at chunk offsets ``offs``
+    (vectorised); a record's data starts at ``offs + 8 + header_len``.
 
     The records must lie inside the chunk and must not overlap: a damaged index fails here
     rather than giving wrong byte totals.
     """
     if offs.size == 0:
-        return offs
+        return offs, offs
     if int(offs.min()) < 0 or int(offs.max()) + 8 > usize:
         raise NoIndex("index offset outside its chunk")
     hlen = gather_u32(buf, base + offs)
@@ -225,7 +232,7 @@ def message_sizes(buf: U8, base: int, offs: I64, usize: int) -> I64:
     order = np.argsort(offs, kind="stable")
     if int(ends.max()) > usize or np.any(offs[order][1:] < ends[order][:-1]):
         raise NoIndex("indexed message records overlap or overrun their chunk")
-    return dlen
+    return hlen, dlen
 
 
 def read_index(mm: mmap.mmap) -> BagIndex:
@@ -264,59 +271,91 @@ def read_index(mm: mmap.mmap) -> BagIndex:
     return BagIndex(conns, tuple(chunks), index_pos)
 
 
-def read_chunks(mm: mmap.mmap, index: BagIndex) -> Accumulator:
+@dataclass
+class LoadedChunk:
+    """One indexed chunk, ready to gather from: its records are at ``base + offset`` in
+    ``buf`` (the mmapped file for an uncompressed chunk, else the decompressed bytes), and
+    ``records`` holds ``(connection, receive times ns, offsets)`` of each of its index-data
+    records; ``end`` is the file position after them."""
+
+    buf: U8
+    base: int
+    usize: int
+    end: int
+    records: list[tuple[int, I64, I64]]
+
+
+def load_chunk(mm: mmap.mmap, whole: U8, info: ChunkInfo, connections: Mapping[int, Connection]) -> LoadedChunk:
+    """The chunk of ``info`` (``whole``: the mmap as bytes) with its index-data records,
+    every one checked against the chunk info (version 1, one per connection it counts,
+    its count, its size). Raises :class:`NoIndex` when they disagree."""
+    size = len(mm)
+    chunk_pos, expected = info.chunk_pos, info.connection_counts
+    crec = read_record(mm, chunk_pos, size)
+    if crec.op != OP_CHUNK:
+        raise NoIndex(f"chunk-info points at a non-chunk record (byte {chunk_pos})")
+    compression = crec.header.get("compression", b"").decode("latin-1")
+    usize = _u32(crec.header, "size")
+    if compression == "none":
+        if usize != crec.data_len:
+            raise NoIndex("uncompressed chunk size mismatch")
+        buf, base = whole, crec.data_start
+    else:
+        raw = decompress_chunk(compression, memoryview(mm)[crec.data_start:crec.end], usize)
+        buf, base = np.frombuffer(raw, dtype=np.uint8), 0
+    pos = crec.end
+    records: list[tuple[int, I64, I64]] = []
+    seen: set[int] = set()
+    while len(seen) < len(expected):
+        irec = read_record(mm, pos, size)
+        if irec.op != OP_INDEX or _u32(irec.header, "ver") != 1:
+            raise NoIndex(f"missing index-data record after the chunk at byte {chunk_pos}")
+        cid, n = _u32(irec.header, "conn"), _u32(irec.header, "count")
+        if cid not in connections or irec.data_len != 12 * n or expected.get(cid) != n or cid in seen:
+            raise NoIndex("index-data record disagrees with its chunk info")
+        entries = np.frombuffer(mm, dtype=INDEX_ENTRY_DT, count=n, offset=irec.data_start)
+        times = entries["sec"].astype(np.int64) * 1_000_000_000 + entries["nsec"].astype(np.int64)
+        records.append((cid, times, entries["offset"].astype(np.int64)))
+        del entries
+        seen.add(cid)
+        pos = irec.end
+    return LoadedChunk(buf, base, usize, pos, records)
+
+
+def read_chunks(mm: mmap.mmap, index: BagIndex, stamps: Mapping[int, StampAt] | None = None) -> Accumulator:
     """Counts, times and payload bytes of the messages in ``index.chunks`` (every connection
-    of the index declared), from their index-data records; method "index".
+    of the index declared), from their index-data records; method "index". ``stamps``: the
+    connections whose ``header.stamp`` to read too, in the same pass (the accumulator's
+    :meth:`~perfros_bag.ingest._accum.Accumulator.stamps`).
 
     The whole-file fast path reads all chunks, a split task some of them
     (:meth:`BagIndex.select`). Raises :class:`NoIndex` when an index-data record
     disagrees with its chunk (the caller streams instead).
     """
-    size = len(mm)
     accs: dict[int, _ConnAcc] = {cid: _ConnAcc() for cid in index.connections}
+    out = Accumulator()
     whole: U8 = np.frombuffer(mm, dtype=np.uint8)
     for info in index.chunks:
-        chunk_pos, expected = info.chunk_pos, info.connection_counts
-        crec = read_record(mm, chunk_pos, size)
-        if crec.op != OP_CHUNK:
-            raise NoIndex(f"chunk-info points at a non-chunk record (byte {chunk_pos})")
-        compression = crec.header.get("compression", b"").decode("latin-1")
-        usize = _u32(crec.header, "size")
-        if compression == "none":
-            if usize != crec.data_len:
-                raise NoIndex("uncompressed chunk size mismatch")
-            buf, base = whole, crec.data_start
-        else:
-            raw = decompress_chunk(compression, memoryview(mm)[crec.data_start:crec.end], usize)
-            buf, base = np.frombuffer(raw, dtype=np.uint8), 0
-        pos = crec.end
-        parts: list[tuple[int, I64, I64]] = []  # (conn, times, offsets) per index-data record
-        seen: set[int] = set()
-        while len(seen) < len(expected):
-            irec = read_record(mm, pos, size)
-            if irec.op != OP_INDEX or _u32(irec.header, "ver") != 1:
-                raise NoIndex(f"missing index-data record after the chunk at byte {chunk_pos}")
-            cid, n = _u32(irec.header, "conn"), _u32(irec.header, "count")
-            if cid not in accs or irec.data_len != 12 * n or expected.get(cid) != n or cid in seen:
-                raise NoIndex("index-data record disagrees with its chunk info")
-            entries = np.frombuffer(mm, dtype=INDEX_ENTRY_DT, count=n, offset=irec.data_start)
-            times = entries["sec"].astype(np.int64) * 1_000_000_000 + entries["nsec"].astype(np.int64)
-            parts.append((cid, times, entries["offset"].astype(np.int64)))
-            del entries
-            seen.add(cid)
-            pos = irec.end
+        chunk = load_chunk(mm, whole, info, index.connections)
+        parts = chunk.records
         offs = np.concatenate([p[2] for p in parts]) if parts else np.empty(0, dtype=np.int64)
-        dlen = message_sizes(buf, base, offs, usize)
+        hlen, dlen = message_records(chunk.buf, chunk.base, offs, chunk.usize)
         k = 0
         for cid, times, o in parts:
             acc = accs[cid]
             acc.times.append(times)
             acc.nbytes += int(dlen[k:k + o.size].sum())
+            at = stamps.get(cid) if stamps else None
+            if at is not None and o.size:
+                data = offs[k:k + o.size] + 8 + hlen[k:k + o.size]
+                if int((dlen[k:k + o.size]).min()) < at.offset + STAMP_SIZE:
+                    raise NoIndex(f"{at.topic}: a stamped message shorter than its header")
+                out.add_stamps(at.topic, times, payload_stamps(chunk.buf, chunk.base + data, at))
             k += o.size
-        del buf
-        release(mm, chunk_pos, pos)  # keep the resident set small however large the file
+        end = chunk.end
+        del chunk, parts
+        release(mm, info.chunk_pos, end)  # keep the resident set small however large the file
     del whole
-    out = Accumulator()
     for cid, conn in index.connections.items():
         acc = accs[cid]
         times = np.concatenate(acc.times) if acc.times else np.empty(0, dtype=np.int64)

@@ -19,6 +19,11 @@ sqlite3 (database opened read-only and immutable), cheapest exact way first:
 3. with zstd *message* compression the payload size is the decompressed size, read from each
    frame header (``substr(data, 1, 18)``);
 4. ``stream`` (``fast=False``): every row with its blob.
+
+Header stamps (``stamps``: a :data:`~perfros_bag.ingest._accum.StampFinder` given the
+connection): the first 12 bytes of the stamped topics' blobs are copied in the same page
+walk (:func:`~perfros_bag.ingest.sqlitepages.read_messages_heads`, C); without the extension
+or with a WAL, from a second page walk (numpy) or one SQL pass.
 """
 
 from __future__ import annotations
@@ -43,9 +48,14 @@ from perfros_bag.fileio import read_yaml
 from perfros_bag.ingest import mcapfile, read_head, sniff, sqlitepages
 from perfros_bag.ingest._accum import (
     I64,
+    STAMP_SIZE,
+    U8,
     Accumulator,
     Damaged,
     NoIndex,
+    StampAt,
+    StampFinder,
+    cdr_head_stamps,
     close_mmap,
     describe,
     zstd_header_size,
@@ -242,9 +252,59 @@ def _columns(con: sqlite3.Connection, db: Path, fast: bool, message_zstd: bool,
     return (flat[:, 0], flat[:, 1], flat[:, 2]), "sql"
 
 
-def read_sqlite(db: Path, fast: bool = True, message_zstd: bool = False) -> Accumulator:
+HEAD = 4 + STAMP_SIZE  # a CDR payload's first bytes up to the end of header.stamp
+
+
+def _stamped_rows(con: sqlite3.Connection, db: Path, wal: bool, ids: list[int]) -> tuple[I64, I64, U8]:
+    """(topic ids, timestamps, first :data:`HEAD` bytes of the blob) of the rows of topics
+    ``ids``, when the C walk did not give them: the numpy page walk, else one SQL pass.
+    NoIndex when such a blob is shorter."""
+    root = None if wal else sqlitepages.messages_root(con)
+    if root is not None:
+        (count,) = con.execute("SELECT count(*) FROM messages").fetchone()
+        try:
+            with open_mmap(db) as mm:
+                return sqlitepages.read_blob_heads(mm, root, int(count), ids, HEAD)
+        except NoIndex:
+            pass  # the SQL pass below
+    marks = ",".join("?" * len(ids))
+    n, tids_text, times_text, heads, shortest = con.execute(
+        "SELECT count(*), group_concat(topic_id), group_concat(timestamp), "
+        f"group_concat(hex(substr(data, 1, {HEAD})), ''), min(length(data)) "
+        f"FROM messages WHERE topic_id IN ({marks})", tuple(ids)).fetchone()  # noqa: S608 - only '?'
+    if n == 0:
+        return np.empty(0, np.int64), np.empty(0, np.int64), np.empty((0, HEAD), np.uint8)
+    if shortest is None or int(shortest) < HEAD:
+        raise NoIndex("a stamped message shorter than its header")
+    raw = np.frombuffer(bytes.fromhex(heads), dtype=np.uint8)
+    if raw.size != n * HEAD:
+        raise NoIndex("stamp bytes do not match the message count")
+    return parse_ints(tids_text, n), parse_ints(times_text, n), raw.reshape(n, HEAD)
+
+
+def _add_stamps(acc: Accumulator, wanted: dict[int, StampAt], tids: I64, times: I64, heads: U8) -> None:
+    """The stamps of rows (topic ids, timestamps, first bytes of their CDR blobs) by topic."""
+    if any(not at.cdr or at.offset != 4 for at in wanted.values()):
+        raise NoIndex("header.stamp not right after the CDR encapsulation")
+    stamps = cdr_head_stamps(heads)
+    ids = list(wanted)
+    zeros = np.zeros(tids.size, np.int64)
+    by_time = sqlitepages.group_by_topic(tids, times, zeros, ids)  # C counting sorts, row order kept
+    by_stamp = sqlitepages.group_by_topic(tids, stamps, zeros, ids) if by_time is not None else None
+    for k, (tid, at) in enumerate(wanted.items()):
+        if by_time is not None and by_stamp is not None:
+            acc.add_stamps(at.topic, by_time[0][k], by_stamp[0][k])
+        else:
+            mask = tids == tid
+            acc.add_stamps(at.topic, times[mask], stamps[mask])
+
+
+def read_sqlite(db: Path, fast: bool = True, message_zstd: bool = False,
+                stamps: StampFinder | None = None) -> Accumulator:
     """One rosbag2 sqlite3 file. Method: "sqlite-pages" (B-tree pages, the fast path), "sql"
-    (one SQL pass: WAL present, message compression or an unexpected table) or "stream"."""
+    (one SQL pass: WAL present, message compression or an unexpected table) or "stream".
+    ``stamps``: which topics' header stamps to read too (NoIndex with message compression or
+    without ``fast``)."""
     acc = Accumulator()
     with connect_db(db) as (con, wal):
         try:
@@ -252,7 +312,31 @@ def read_sqlite(db: Path, fast: bool = True, message_zstd: bool = False) -> Accu
         except sqlite3.DatabaseError as exc:
             raise Damaged(f"not a rosbag2 sqlite3 database ({exc})") from None
         topics = {int(tid): (str(name), str(mtype or "")) for tid, name, mtype in topic_rows}
-        (tids, times, sizes), acc.method = _columns(con, db, fast, message_zstd, wal)
+        wanted = dict(stamps(con)) if stamps is not None else {}
+        if wanted and (message_zstd or not fast):
+            raise NoIndex("header stamps are read in place only from uncompressed payloads, on the fast path")
+        in_walk = None
+        stamped: tuple[I64, I64, U8] | None = None
+        if wanted and not wal:
+            root = sqlitepages.messages_root(con)
+            if root is not None:
+                (count,) = con.execute("SELECT count(*) FROM messages").fetchone()
+                try:
+                    with open_mmap(db) as mm:
+                        in_walk = sqlitepages.read_messages_heads(mm, root, int(count), list(wanted), HEAD)
+                except NoIndex:
+                    pass  # the extension is not built, or the table is unusual: the other ways
+        if in_walk is not None:
+            tids, times, sizes, rows, heads = in_walk
+            acc.method = "sqlite-pages"
+            if rows.size and int(sizes[rows].min()) < HEAD:
+                raise NoIndex("a stamped message shorter than its header")
+            stamped = (tids[rows], times[rows], heads)
+        else:
+            (tids, times, sizes), acc.method = _columns(con, db, fast, message_zstd, wal)
+            stamped = _stamped_rows(con, db, wal, list(wanted)) if wanted else None
+    if stamped is not None:
+        _add_stamps(acc, wanted, *stamped)
     grouped = sqlitepages.group_by_topic(tids, times, sizes, list(topics))
     if grouped is not None:  # one counting sort in C
         for (name, mtype), tt, nbytes in zip(topics.values(), *grouped, strict=True):
@@ -279,23 +363,29 @@ def read_sqlite(db: Path, fast: bool = True, message_zstd: bool = False) -> Accu
     return acc
 
 
-def read_storage_file(path: Path, fast: bool = True, message_zstd: bool = False) -> Accumulator:
-    """One storage file of a rosbag2 recording (file compression undone first)."""
+def read_storage_file(path: Path, fast: bool = True, message_zstd: bool = False,
+                      stamps: StampFinder | None = None) -> Accumulator:
+    """One storage file of a rosbag2 recording (file compression undone first); ``stamps``:
+    header stamps read in the same pass (not from compressed files)."""
     if path.name.endswith(".zstd"):
+        if stamps is not None:
+            raise NoIndex("header stamps are not read in place from a compressed file")
         with _decompressed(path) as plain:
             return read_storage_file(plain, fast, message_zstd)
     fmt = sniff(read_head(path))
     if fmt == "rosbag2-sqlite3":
-        return read_sqlite(path, fast, message_zstd)
+        return read_sqlite(path, fast, message_zstd, stamps)
     if fmt == "mcap":
         with open_mmap(path) as mm:
-            return mcapfile.read(mm, fast, message_zstd)
+            return mcapfile.read(mm, fast, message_zstd, stamps)
     if fmt == "zstd":
         raise InputError(path, "zstd-compressed file without a .zstd suffix")
     raise InputError(path, "not a sqlite3 or MCAP storage file")
 
 
-def read_dir(root: Path, fast: bool = True) -> tuple[Accumulator, str]:
+def read_dir(root: Path, fast: bool = True, stamps: StampFinder | None = None) -> tuple[Accumulator, str]:
+    """Every storage file of the directory ``root`` (``stamps``: with header stamps, each
+    file's own definitions deciding which topics have them)."""
     meta_path = root / "metadata.yaml"
     meta = parse_metadata(meta_path) if meta_path.is_file() else None
     files = resolve_files(root, meta)
@@ -307,7 +397,7 @@ def read_dir(root: Path, fast: bool = True) -> tuple[Accumulator, str]:
     acc = Accumulator()
     for f in files:
         try:
-            acc.extend(read_storage_file(f, fast, message_zstd))
+            acc.extend(read_storage_file(f, fast, message_zstd, stamps))
         except InputError:
             raise
         except Exception as exc:  # corrupt data can fail anywhere: one clear line, never a traceback

@@ -16,6 +16,12 @@ be split (another format, no index, a damaged index, no chunks) is one ``whole``
 by ``read_recording``; a part whose index turns out damaged returns ``None`` and the caller
 reads the whole file instead, as the readers fall back to streaming.
 
+Header stamps (``characterise --latency`` on Dask): :func:`read_part_stamps` gathers each
+part's stamps in the same pass (the readers' ``stamps`` argument), :func:`merge_stamps`
+concatenates them in chunk order, so the latencies
+(:func:`perfros_bag.ingest.contents.latencies`: p50/p95 need the whole sample) come from
+every stamped message of the file, exactly as from the whole file.
+
 :func:`read_split` runs the parts through :func:`perfros_bag.characterisation.distributed.run_distributed`
 (in-process, on a Dask scheduler, or on a LocalCluster of N workers).
 """
@@ -23,15 +29,22 @@ reads the whole file instead, as the readers fall back to streaming.
 from __future__ import annotations
 
 import mmap
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from perfros_bag.errors import InputError
 from perfros_bag.ingest import detect_format, mcapfile, read_recording, rosbag1
-from perfros_bag.ingest._accum import Accumulator, Damaged, NoIndex
+from perfros_bag.ingest._accum import I64, Accumulator, Damaged, NoIndex, StampAt
 from perfros_bag.ingest.rosbag2 import open_mmap
 from perfros_bag.ingest.stats import RecordingStats
+
+if TYPE_CHECKING:
+    from perfros_bag.ingest.decode import TopicType
+
+#: topic -> (receive/log times ns, header stamps ns): :data:`perfros_bag.ingest.stamps.Stamps`
+Stamps = dict[str, tuple[I64, I64]]
 
 #: Default amount of file per task (compressed bytes as stored).
 TARGET_BYTES = 64 << 20
@@ -140,10 +153,41 @@ def read_part(part: Part) -> RecordingStats | None:
     return None
 
 
-def _read_chunks(mm: mmap.mmap, index: Index) -> Accumulator:
+def read_part_stamps(part: Part) -> tuple[RecordingStats, Stamps, dict[str, TopicType]] | None:
+    """:func:`read_part` and, in the same pass, the header stamps of the part's messages and
+    every topic's type (:class:`perfros_bag.ingest.stamps.Finder`, from the index's own
+    definitions). ``None``: a ``whole`` part, a damaged index, or stamps that cannot be read
+    in place: read the whole file instead."""
+    if part.format == "whole" or part.index is None:
+        return None
+    from perfros_bag.ingest.stamps import Finder
+
+    finder = Finder()
+    try:
+        with open_mmap(part.path) as mm:
+            try:
+                acc = _read_chunks(mm, part.index, finder(part.index))
+                return acc.build(part.path, part.format), finder.stamps(acc), finder.types
+            except (NoIndex, Damaged, ValueError, IndexError):
+                pass  # handled here, so no traceback keeps a view of the mmap alive
+    except (InputError, OSError):
+        pass
+    return None
+
+
+def merge_stamps(parts: Sequence[Stamps]) -> Stamps:
+    """The parts' stamps, concatenated per topic in part order (the whole file's order)."""
+    import numpy as np
+
+    topics = {topic for part in parts for topic in part}
+    return {topic: (np.concatenate([p[topic][0] for p in parts if topic in p]),
+                    np.concatenate([p[topic][1] for p in parts if topic in p])) for topic in sorted(topics)}
+
+
+def _read_chunks(mm: mmap.mmap, index: Index, stamps: Mapping[int, StampAt] | None = None) -> Accumulator:
     if isinstance(index, rosbag1.BagIndex):
-        return rosbag1.read_chunks(mm, index)
-    return mcapfile.read_chunks(mm, index)  # payload compression: as the summary says
+        return rosbag1.read_chunks(mm, index, stamps)
+    return mcapfile.read_chunks(mm, index, None, stamps)  # payload compression: as the summary says
 
 
 def merge_parts(plan: SplitPlan, parts: Sequence[RecordingStats | None]) -> RecordingStats:

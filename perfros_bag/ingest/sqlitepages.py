@@ -366,6 +366,31 @@ def _read_c(mm: mmap.mmap, root: int, expected_rows: int, page_size: int,
     return topic, time, size
 
 
+def read_messages_heads(mm: mmap.mmap, root: int, expected_rows: int, want: Sequence[int],
+                        nbytes: int) -> tuple[I64, I64, I64, I64, U8]:
+    """:func:`read_messages` and, in the same walk (C extension only: NoIndex without it),
+    the first ``nbytes`` of the data blob of every row whose topic id is in ``want``: (topic
+    ids, timestamps, sizes, those rows' numbers, their heads as a (rows, nbytes) matrix, zero
+    filled past a shorter blob). The outputs are allocated for every row but only the wanted
+    rows' pages are written."""
+    if DECODER != "c" or not hasattr(_sqlitecells, "decode_heads"):  # not built, or built before it
+        raise NoIndex("blob heads in the page walk need the C extension (rebuilt: pip install -e .)")
+    page_size, usable = _page_geometry(mm)
+    topic, time, size, rows = (np.empty(expected_rows, dtype=np.int64) for _ in range(4))
+    heads = np.empty((expected_rows, nbytes), dtype=np.uint8)
+    if expected_rows == 0 or not want:
+        return topic, time, size, rows[:0], heads[:0]
+    try:
+        n, m = _sqlitecells.decode_heads(mm, root, page_size, usable, topic, time, size,
+                                         lambda a, b: release(mm, a, b), RELEASE_STEP,
+                                         np.asarray(list(want), dtype=np.int64), heads.reshape(-1), rows)
+    except _sqlitecells.Malformed as exc:
+        raise NoIndex(str(exc)) from None
+    if n != expected_rows:
+        raise NoIndex(f"{n} cells in the B-tree, count(*) says {expected_rows}")
+    return topic, time, size, rows[:m], heads[:m]
+
+
 def group_by_topic(tids: I64, times: I64, sizes: I64,
                    ids: list[int]) -> tuple[list[I64], list[int]] | None:
     """Times of each topic id of ``ids`` (in row order) and its byte total, by the extension's

@@ -1,4 +1,4 @@
-"""``header.stamp`` of every message of the stamped topics, read at its known offset (fast path).
+"""``header.stamp`` of every message of the stamped topics, read in the readers' own pass.
 
 A message whose type starts with ``std_msgs/Header`` has its stamp at a fixed place:
 
@@ -8,10 +8,17 @@ A message whose type starts with ``std_msgs/Header`` has its stamp at a fixed pl
   then ``int32 sec, uint32 nanosec`` -> bytes 4-12.
 
 Which topics are stamped is decided by rosbags from the definitions stored in the recording
-(:func:`perfros_bag.ingest.decode.starts_with_header`); only the chunks of those topics are
-touched, through the existing readers' index access (:func:`perfros_bag.ingest.rosbag1.read_index`,
-:func:`perfros_bag.ingest.mcapfile.read_summary`); rosbag2 sqlite3 files give each blob's first
-bytes from their B-tree pages (:func:`perfros_bag.ingest.sqlitepages.read_blob_heads`).
+(:func:`perfros_bag.ingest.decode.starts_with_header`), parsed from what the readers' index
+pass already holds: a ROS 1 bag's connection records (:attr:`rosbag1.Connection.msgdef`), an
+MCAP summary's schemas (:attr:`mcapfile.Summary.definitions`), a rosbag2 sqlite3 file's
+``message_definitions`` table. A :class:`Finder` is handed to the readers
+(:data:`~perfros_bag.ingest._accum.StampFinder`): given their index it says which
+connections to read the stamps of, and the readers gather them in the same pass as counts
+and sizes (:func:`rosbag1.read_chunks <perfros_bag.ingest.rosbag1.read_chunks>`,
+:func:`mcapfile.read_chunks <perfros_bag.ingest.mcapfile.read_chunks>`,
+:func:`rosbag2.read_sqlite <perfros_bag.ingest.rosbag2.read_sqlite>`: the blobs' first bytes
+from the C page walk). :func:`read_with_stamps` is that one pass over a recording.
+
 Every structural fact is checked; anything unexpected (another CDR encapsulation, a payload
 shorter than a header, an index that disagrees with its chunk) raises
 :class:`~perfros_bag.ingest._accum.NoIndex` and the caller decodes with the libraries instead
@@ -22,229 +29,45 @@ recordings.
 
 from __future__ import annotations
 
-import mmap
 import sqlite3
-from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from perfros_bag.ingest import mcapfile, rosbag1
-from perfros_bag.ingest._accum import I64, U8, Damaged, NoIndex, gather_u32, gather_u64, release
-from perfros_bag.ingest.decode import TopicType, topic_type
+from perfros_bag.ingest._accum import I64, Accumulator, NoIndex, StampAt
+from perfros_bag.ingest.decode import TopicType, Undecodable, channel_types, topic_type
 
 #: topic -> (receive/log times ns, header stamps ns), one entry per message, in file order
 Stamps = dict[str, tuple[I64, I64]]
-STAMP_SIZE = 8  # sec, nanosec: 4 bytes each
 
 
-def _offset(tt: TopicType) -> int:
-    """The stamp's offset in ``tt``'s payloads; NoIndex when it has none (library path)."""
-    if tt.stamp_offset is None:
-        raise NoIndex(f"{tt.topic}: no fixed offset of header.stamp in the recorded definitions")
-    return tt.stamp_offset
-
-
-def _stamp_ns(sec: I64, nsec: I64) -> I64:
-    return sec * 1_000_000_000 + nsec
-
-
-class StampParts:
-    """Parts of each topic's (times, stamps), concatenated once at the end."""
-
-    def __init__(self) -> None:
-        self.parts: dict[str, list[tuple[I64, I64]]] = {}
-
-    def add(self, topic: str, times: I64, stamps: I64) -> None:
-        self.parts.setdefault(topic, []).append((times, stamps))
-
-    def extend(self, stamps: Stamps) -> None:
-        for topic, (t, s) in stamps.items():
-            self.add(topic, t, s)
-
-    def stamps(self) -> Stamps:
-        return {topic: (np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]))
-                for topic, parts in self.parts.items()}
-
-
-def _pairs_u32(buf: U8, pos: I64) -> tuple[I64, I64]:
-    """Two consecutive little-endian uint32 at every position ``pos`` (one 8-byte gather)."""
-    if pos.size == 0:
-        return pos, pos
-    if int(pos.min()) < 0 or int(pos.max()) + 8 > buf.size:
-        raise Damaged("stamp outside its chunk")
-    pairs = np.lib.stride_tricks.sliding_window_view(buf, 8)[pos].view("<u4").astype(np.int64)
-    return pairs[:, 0], pairs[:, 1]
-
-
-# --------------------------------------------------------------------------- ROS 1
-
-
-def ros1_types(mm: mmap.mmap, index: rosbag1.BagIndex) -> dict[int, TopicType]:
+def ros1_types(index: rosbag1.BagIndex) -> dict[int, TopicType]:
     """Connection id -> :class:`TopicType`, rosbags parsing each connection record's
-    ``message_definition``."""
-    from rosbags.typesys import get_types_from_msg, get_typestore
+    ``message_definition`` (kept in the index)."""
     from rosbags.typesys.msg import normalize_msgtype
-    from rosbags.typesys.stores import Stores
 
-    typestore = get_typestore(Stores.EMPTY)
-    names: dict[int, str] = {}
-    pos, end = index.index_pos, len(mm)
-    while pos < end:
-        rec = rosbag1.read_record(mm, pos, end)
-        pos = rec.end
-        if rec.op != rosbag1.OP_CONNECTION:
-            continue
-        cid = int.from_bytes(rec.header.get("conn", b"\0\0\0\0"), "little")
-        fields = rosbag1.parse_fields(mm, rec.data_start, rec.data_start + rec.data_len)
-        name = normalize_msgtype(fields.get("type", b"").decode("utf-8", "replace"))
-        names[cid] = name
-        msgdef = fields.get("message_definition", b"").decode("utf-8", "replace")
-        if name not in typestore.fielddefs:
-            try:
-                typestore.register(get_types_from_msg(msgdef, name))
-            except Exception:  # noqa: S112 - a definition rosbags cannot parse: not stamped
-                continue
-    return {cid: topic_type(typestore, conn.topic, names.get(cid, conn.msgtype), "ros1")
+    from perfros_bag.ingest.decode import typestore_from_definitions
+
+    def name(msgtype: str) -> str:
+        try:
+            return str(normalize_msgtype(msgtype))
+        except Exception:  # a type name rosbags cannot read: its topic is not stamped
+            return msgtype
+
+    typestore = typestore_from_definitions(
+        (conn.msgtype, "ros1msg", conn.msgdef) for conn in index.connections.values() if conn.msgdef)
+    return {cid: topic_type(typestore, conn.topic, name(conn.msgtype), "ros1")
             for cid, conn in index.connections.items()}
 
 
-def ros1_stamps(mm: mmap.mmap) -> tuple[Stamps, dict[str, TopicType]]:
-    """Stamps of the stamped connections of a ROS 1 bag from its index; the chunks holding
-    none of them are not touched. Raises NoIndex/Damaged when the index cannot be used."""
-    index = rosbag1.read_index(mm)
-    types = ros1_types(mm, index)
-    wanted = {cid: _offset(t) for cid, t in types.items() if t.stamped}
-    out = StampParts()
-    size = len(mm)
-    whole: U8 = np.frombuffer(mm, dtype=np.uint8)
-    for info in index.chunks:
-        if not wanted & info.connection_counts.keys():
-            continue
-        crec = rosbag1.read_record(mm, info.chunk_pos, size)
-        if crec.op != rosbag1.OP_CHUNK:
-            raise NoIndex("chunk-info points at a non-chunk record")
-        compression = crec.header.get("compression", b"").decode("latin-1")
-        usize = int.from_bytes(crec.header.get("size", b""), "little")
-        if compression == "none":
-            if usize != crec.data_len:
-                raise NoIndex("uncompressed chunk size mismatch")
-            buf, base = whole, crec.data_start
-        else:
-            raw = rosbag1.decompress_chunk(compression, memoryview(mm)[crec.data_start:crec.end], usize)
-            buf, base = np.frombuffer(raw, dtype=np.uint8), 0
-        pos = crec.end
-        parts: list[tuple[int, I64, I64]] = []  # (connection, times, offsets) of the wanted ones
-        for _ in range(len(info.connection_counts)):
-            irec = rosbag1.read_record(mm, pos, size)
-            pos = irec.end
-            if irec.op != rosbag1.OP_INDEX:
-                raise NoIndex("missing index-data record after a chunk")
-            cid = int.from_bytes(irec.header.get("conn", b""), "little")
-            n = int.from_bytes(irec.header.get("count", b""), "little")
-            if cid not in wanted:
-                continue
-            if irec.data_len != 12 * n:
-                raise NoIndex("index-data record size mismatch")
-            entries = np.frombuffer(mm, dtype=rosbag1.INDEX_ENTRY_DT, count=n, offset=irec.data_start)
-            parts.append((cid, _stamp_ns(entries["sec"].astype(np.int64), entries["nsec"].astype(np.int64)),
-                          entries["offset"].astype(np.int64)))
-            del entries
-        offs = np.concatenate([p[2] for p in parts])
-        at = np.concatenate([np.full(p[2].size, wanted[p[0]], dtype=np.int64) for p in parts])
-        dlen = rosbag1.message_sizes(buf, base, offs, usize)  # checks the records' bounds
-        if dlen.size and int((dlen - at).min()) < STAMP_SIZE:
-            raise NoIndex("a stamped message shorter than its header")
-        sec, nsec = _pairs_u32(buf, base + offs + 8 + gather_u32(buf, base + offs) + at)
-        stamps = _stamp_ns(sec, nsec)
-        k = 0
-        for cid, times, o in parts:
-            out.add(types[cid].topic, times, stamps[k:k + o.size])
-            k += o.size
-        del buf
-        release(mm, info.chunk_pos, pos)
-    del whole
-    return out.stamps(), {t.topic: t for t in types.values()}
-
-
-# --------------------------------------------------------------------------- CDR
-
-
-def cdr_stamps(payload: U8, starts: I64) -> I64:
-    """Stamps of CDR payloads starting at ``starts`` in ``payload`` (each at least 12 bytes,
-    checked by the caller; the stamp right after the encapsulation, as
-    :func:`~perfros_bag.ingest.decode.stamp_offset` requires); NoIndex on an encapsulation
-    other than plain CDR."""
-    if starts.size == 0:
-        return starts
-    kind = (payload[starts].astype(np.int64) << 8) | payload[starts + 1].astype(np.int64)
-    little = kind == 1
-    if not np.all(little | (kind == 0)):
-        raise NoIndex("CDR encapsulation other than plain CDR (XCDR/parameter lists)")
-    sec, nsec = _pairs_u32(payload, starts + 4)
-    if not np.all(little):  # big-endian payloads: swap the four bytes
-        big = ~little
-        sec[big] = sec[big].astype(np.uint32).byteswap().astype(np.int64)
-        nsec[big] = nsec[big].astype(np.uint32).byteswap().astype(np.int64)
-    sec = sec.astype(np.uint32).view(np.int32).astype(np.int64)  # builtin_interfaces/Time: int32 sec
-    return _stamp_ns(sec, nsec)
-
-
-# --------------------------------------------------------------------------- MCAP
-
-
-def mcap_stamps(mm: mmap.mmap, path: Path) -> tuple[Stamps, dict[str, TopicType]]:
-    """Stamps of the stamped channels (``cdr`` or ``ros1`` payloads) of an MCAP file from
-    its summary and message indexes; only the chunks holding them are decompressed."""
-    from perfros_bag.ingest.decode import mcap_types
-
-    summary = mcapfile.read_summary(mm)
-    types = mcap_types(path)
-    wanted = {cid: ch for cid, ch in summary.channels.items()
-              if types.get(ch.topic) is not None and types[ch.topic].stamped}
-    encodings = {cid: types[ch.topic].encoding for cid, ch in wanted.items()}
-    out = StampParts()
-    size = len(mm)
-    for ci in summary.chunk_indexes:
-        cids = [cid for cid in ci.message_index_offsets if cid in wanted]
-        if not cids:
-            continue
-        buf, base, blen = mcapfile.load_chunk(mm, ci)
-        for cid in cids:
-            op, istart, ilen = mcapfile.record_at(mm, ci.message_index_offsets[cid], size)
-            if op != mcapfile.OP_MESSAGE_INDEX or int.from_bytes(mm[istart:istart + 2], "little") != cid:
-                raise NoIndex("message index disagrees with its chunk index")
-            plen = int.from_bytes(mm[istart + 2:istart + 6], "little")
-            if plen % 16 or 6 + plen > ilen:
-                raise NoIndex("malformed message index")
-            pairs = np.frombuffer(mm, dtype="<u8", count=plen // 8, offset=istart + 6).reshape(-1, 2)
-            if pairs.size == 0:
-                continue
-            if int(pairs[:, 0].max()) >= 2**63 or int(pairs[:, 1].max()) + 9 + mcapfile.MSG_HEADER > blen:
-                raise NoIndex("message-index entry out of range")
-            offs = pairs[:, 1].astype(np.int64)
-            times = pairs[:, 0].astype(np.int64)
-            del pairs
-            at = base + offs
-            lengths = gather_u64(buf, at + 1)
-            chan = buf[at + 9].astype(np.int64) | (buf[at + 10].astype(np.int64) << 8)
-            stamp_at = _offset(types[wanted[cid].topic])
-            if (not np.all(buf[at] == mcapfile.OP_MESSAGE) or np.any(chan != cid)
-                    or int(lengths.min()) < mcapfile.MSG_HEADER + stamp_at + STAMP_SIZE
-                    or int((offs + 9 + lengths).max()) > blen):
-                raise NoIndex("message index points at something other than this channel's messages")
-            starts = at + 9 + mcapfile.MSG_HEADER
-            if encodings[cid] == "cdr":
-                stamps = cdr_stamps(buf, starts)
-            else:
-                stamps = _stamp_ns(*_pairs_u32(buf, starts + stamp_at))
-            out.add(wanted[cid].topic, times, stamps)
-        del buf
-        release(mm, ci.chunk_start_offset, ci.end)
-    return out.stamps(), types
-
-
-# --------------------------------------------------------------------------- rosbag2 sqlite3
+def mcap_types(summary: mcapfile.Summary) -> dict[int, TopicType]:
+    """Channel id -> :class:`TopicType` of an MCAP file from its summary's schemas."""
+    schemas = {sid: (summary.schemas.get(sid, ""), enc, data.decode("utf-8", "replace"))
+               for sid, (enc, data) in summary.definitions.items()}
+    return channel_types(schemas, ((cid, ch.topic, ch.schema_id, ch.encoding)
+                                   for cid, ch in summary.channels.items()))
 
 
 def sqlite_types(con: sqlite3.Connection) -> dict[int, TopicType]:
@@ -265,53 +88,72 @@ def sqlite_types(con: sqlite3.Connection) -> dict[int, TopicType]:
             for tid, name, mtype, fmt in con.execute("SELECT id, name, type, serialization_format FROM topics")}
 
 
-def sqlite_stamps(db: Path) -> tuple[Stamps, dict[str, TopicType]]:
-    """Stamps of the stamped topics of one rosbag2 sqlite3 file (CDR payloads) and every
-    topic's type: the first 12 bytes of each of their blobs from the B-tree pages
-    (:func:`perfros_bag.ingest.sqlitepages.read_blob_heads`), else (a WAL, an unusual table)
-    one SQL pass returning them as hex text."""
-    from perfros_bag.ingest import sqlitepages
-    from perfros_bag.ingest.rosbag2 import connect_db, open_mmap
+class Finder:
+    """The :data:`~perfros_bag.ingest._accum.StampFinder` the readers call with their index:
+    the stamped connections and where their stamps are. Keeps every topic's
+    :class:`TopicType` it saw in :attr:`types` (the first file's, for a topic in several)."""
 
-    with connect_db(db) as (con, wal):
-        try:
-            by_id = sqlite_types(con)
-            types = {t.topic: t for t in by_id.values()}
-            wanted = {tid: t.topic for tid, t in by_id.items() if t.stamped}
-            if not wanted:
-                return {}, types
-            if any(_offset(types[name]) != 4 for name in wanted.values()):
-                raise NoIndex("header.stamp not right after the CDR encapsulation")
-            root = None if wal else sqlitepages.messages_root(con)
-            if root is not None:
-                (count,) = con.execute("SELECT count(*) FROM messages").fetchone()
-                try:
-                    with open_mmap(db) as mm:
-                        tids, times, heads = sqlitepages.read_blob_heads(mm, root, int(count), list(wanted), 12)
-                    stamps = cdr_stamps(heads.reshape(-1), np.arange(tids.size, dtype=np.int64) * 12)
-                    return {name: (times[tids == tid], stamps[tids == tid]) for tid, name in wanted.items()}, types
-                except NoIndex:
-                    pass  # the SQL pass below
-            return _sql_stamps(con, wanted), types
-        except (sqlite3.Error, ValueError) as exc:
-            raise Damaged(f"cannot read the messages table: {exc}") from None
+    def __init__(self) -> None:
+        self.types: dict[str, TopicType] = {}
+
+    def __call__(self, source: Any) -> dict[int, StampAt]:
+        if isinstance(source, rosbag1.BagIndex):
+            by_id = ros1_types(source)
+        elif isinstance(source, mcapfile.Summary):
+            by_id = mcap_types(source)
+        elif isinstance(source, sqlite3.Connection):
+            by_id = sqlite_types(source)
+        else:
+            raise TypeError(f"no stamps from a {type(source).__name__}")
+        for tt in by_id.values():
+            self.types.setdefault(tt.topic, tt)
+        out: dict[int, StampAt] = {}
+        for i, tt in by_id.items():
+            if not tt.stamped:
+                continue
+            if tt.stamp_offset is None:
+                raise NoIndex(f"{tt.topic}: no fixed offset of header.stamp in the recorded definitions")
+            out[i] = StampAt(tt.topic, tt.stamp_offset, tt.encoding == "cdr")
+        return out
+
+    def stamps(self, acc: Accumulator) -> Stamps:
+        """``acc``'s stamps, with every stamped topic (none read: empty arrays)."""
+        out = acc.stamps()
+        for topic, tt in self.types.items():
+            if tt.stamped and topic not in out:
+                out[topic] = (np.empty(0, np.int64), np.empty(0, np.int64))
+        return out
 
 
-def _sql_stamps(con: sqlite3.Connection, wanted: Mapping[int, str]) -> Stamps:
-    from perfros_bag.ingest.rosbag2 import parse_ints
+def read_with_stamps(path: Path, *, stamped_only: bool = False) -> tuple[Accumulator, str, Finder]:
+    """One index pass over the recording ``path`` (what ``read_recording`` reads on its fast
+    path) gathering the header stamps too: (its accumulator, the format to build it with,
+    the finder with every topic's type; :meth:`Finder.stamps`). ``stamped_only``: touch only
+    the chunks holding stamped messages (the accumulator's statistics are then partial).
+    Raises NoIndex/Damaged/InputError/Undecodable when the fast path cannot read it: the
+    caller reads it the other way."""
+    from perfros_bag.ingest import detect_format, rosbag2
 
-    marks = ",".join("?" * len(wanted))
-    n, tids_text, times_text, heads, shortest = con.execute(
-        "SELECT count(*), group_concat(topic_id), group_concat(timestamp), "
-        "group_concat(hex(substr(data, 1, 12)), ''), min(length(data)) "
-        f"FROM messages WHERE topic_id IN ({marks})", tuple(wanted)).fetchone()  # noqa: S608 - only '?'
-    if n == 0:
-        return {}
-    if shortest is None or int(shortest) < 4 + STAMP_SIZE:
-        raise NoIndex("a stamped message shorter than its header")
-    raw = np.frombuffer(bytes.fromhex(heads), dtype=np.uint8)
-    if raw.size != n * 12:
-        raise NoIndex("stamp bytes do not match the message count")
-    tids, times = parse_ints(tids_text, n), parse_ints(times_text, n)
-    stamps = cdr_stamps(raw, np.arange(n, dtype=np.int64) * 12)
-    return {name: (times[tids == tid], stamps[tids == tid]) for tid, name in wanted.items()}
+    finder = Finder()
+    if path.is_dir():
+        acc, fmt = rosbag2.read_dir(path, True, finder)
+        return acc, fmt, finder
+    fmt = detect_format(path)
+    if fmt == "rosbag2-sqlite3":
+        return rosbag2.read_sqlite(path, True, False, finder), fmt, finder
+    if fmt not in ("ros1", "mcap"):
+        raise Undecodable("message contents are read from .bag and .mcap files and rosbag2 directories")
+    with rosbag2.open_mmap(path) as mm:
+        if fmt == "ros1":
+            index = rosbag1.read_index(mm)
+            wanted = finder(index)
+            if stamped_only:
+                index = index.select([i for i, c in enumerate(index.chunks) if wanted.keys() & c.connection_counts.keys()])
+            return rosbag1.read_chunks(mm, index, wanted), fmt, finder
+        if not stamped_only:
+            return mcapfile.read_fast(mm, stamps=finder), fmt, finder
+        summary = mcapfile.read_summary(mm)
+        wanted = finder(summary)
+        summary = summary.select([i for i, ci in enumerate(summary.chunk_indexes)
+                                  if wanted.keys() & ci.message_index_offsets.keys()])
+        return mcapfile.read_chunks(mm, summary, None, wanted), fmt, finder

@@ -10,9 +10,12 @@ serialised once by rosbags and only the stamp bytes are rewritten per message.
 
 Measured in one run, page cache warm, best of 3 (wall and CPU seconds):
 **index** = ``read_recording`` (today's ``info``/``characterise`` reader); **index+latency** =
-``read_recording`` then ``read_latency`` (``--latency``); **AnyReader** = rosbags' AnyReader
-looping over the stamped topics' messages and deserialising each one (``header.stamp``).
-The run checks that our stamps equal AnyReader's on every stamped message.
+``read_with_latency`` (what ``--latency`` runs: the statistics and the stamps from one index
+pass); **latency alone** = ``read_latency`` (only the chunks holding stamped messages);
+**AnyReader** = rosbags' AnyReader looping over the stamped topics' messages and
+deserialising each one (``header.stamp``). The run checks that our stamps (both ways) equal
+AnyReader's on every stamped message, and that ``read_with_latency`` equals
+``read_recording`` + ``read_latency``.
 Goals (issue 12): index+latency <= 2x index; >= 10x faster than AnyReader.
 
 Metric (second table): a ~500 MB recording (``/camera/image`` 130 KB images at 10 Hz,
@@ -236,7 +239,8 @@ def main() -> None:
 
 def latency_table(args: argparse.Namespace, n: int) -> list[str]:
     from perfros_bag.ingest import read_recording
-    from perfros_bag.ingest.contents import read_latency, read_stamps
+    from perfros_bag.ingest.contents import read_latency, read_stamps, read_with_latency
+    from perfros_bag.ingest.stamps import read_with_stamps
 
     print("| format | msgs | index wall s | index+latency wall s | ratio | index cpu s | index+latency cpu s "
           "| ratio | latency alone wall s | AnyReader wall s | x faster |")
@@ -245,16 +249,24 @@ def latency_table(args: argparse.Namespace, n: int) -> list[str]:
     for fmt in FORMATS:
         path = write_once(args.data, str(n), fmt, lambda ros1: messages(n, ros1))
         stamps, _ = read_stamps(path)
+        acc, _fmt, finder = read_with_stamps(path)
+        in_pass = finder.stamps(acc)
+        stats, latency = read_with_latency(path)
+        whole = read_recording(path)
+        if latency != read_latency(path) or [(t.messages, t.bytes) for t in stats.topics.values()] != \
+                [(t.messages, t.bytes) for t in whole.topics.values()]:
+            raise SystemExit(f"{fmt}: read_with_latency differs from read_recording + read_latency")
         if not args.skip_baselines:
             t = time.perf_counter()
             ref = anyreader_stamps(path)
             any_wall = time.perf_counter() - t
             for topic in STAMPED:  # equal to rosbags' deserialisation on every stamped message
-                ours = sorted(zip(*(a.tolist() for a in stamps[topic]), strict=True))
-                if ours != sorted(ref[topic]):
-                    raise SystemExit(f"{fmt} {topic}: stamps differ from AnyReader's")
+                for way in (stamps, in_pass):
+                    ours = sorted(zip(*(a.tolist() for a in way[topic]), strict=True))
+                    if ours != sorted(ref[topic]):
+                        raise SystemExit(f"{fmt} {topic}: stamps differ from AnyReader's")
         idx = best_of(3, lambda path=path: read_recording(path))
-        both = best_of(3, lambda path=path: (read_recording(path), read_latency(path)))
+        both = best_of(3, lambda path=path: read_with_latency(path))
         lat = best_of(3, lambda path=path: read_latency(path))
         ratio_w, ratio_c = both[0] / idx[0], both[1] / idx[1]
         faster = "-" if args.skip_baselines else f"{any_wall / lat[0]:.1f}x"
