@@ -102,6 +102,7 @@ def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Pat
     placed: dict[str, str] = {}
     links_before: list[dict[str, Any]] = []
     links_after: list[dict[str, Any]] = []
+    throttle: dict[str, dict[str, dict[str, float]]] = {}  # "start"/"end" -> computer -> CFS counters
 
     def place(graph: Graph) -> None:
         """Move every planned node into its computer's group, then cap the groups."""
@@ -119,9 +120,10 @@ def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Pat
             groups.apply()
 
     def window(edge: str) -> None:
-        """The links' counters as the recording starts and ends."""
+        """The links' and the groups' counters as the recording starts and ends."""
         stats = [{**s, "t": time.monotonic()} for s in network.link_stats()]
         (links_before if edge == "start" else links_after)[:] = stats
+        throttle[edge] = {c: groups.throttled(c) for c in cores}
 
     network = Network(f"d{run_id}", system if system is not None and net else _no_links(plan))
     groups.create(capped=False, quiet=not cap)
@@ -155,6 +157,8 @@ def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Pat
         "params": dict(run.params),
         "cpu_cap": {"mode": mode, "reason": reason, "cgroups": groups.mode, "cores": cores,
                     "units_per_core": units_per_core},
+        "throttling": {c: {k: v - throttle.get("start", {}).get(c, {}).get(k, 0.0) for k, v in end.items()}
+                       for c, end in throttle.get("end", {}).items()},
         "network": {**described, "links_measured": _link_use(links_before, links_after, network)},
         "nodes": {n.name: {"pid": n.pid, "computer": placed.get(n.name, where.get(system_node_name(n.name)))}
                   for n in graph.nodes if n.launched},
