@@ -102,6 +102,8 @@ def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Pat
     placed: dict[str, str] = {}
     links_before: list[dict[str, Any]] = []
     links_after: list[dict[str, Any]] = []
+    media_before: list[dict[str, Any]] = []
+    media_after: list[dict[str, Any]] = []
 
     def place(graph: Graph) -> None:
         """Move every planned node into its computer's group, then cap the groups."""
@@ -119,9 +121,11 @@ def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Pat
             groups.apply()
 
     def window(edge: str) -> None:
-        """The links' counters as the recording starts and ends."""
+        """The links' and the shared media's counters as the recording starts and ends."""
         stats = [{**s, "t": time.monotonic()} for s in network.link_stats()]
+        media = [{**s, "t": time.monotonic()} for s in network.media_stats()]
         (links_before if edge == "start" else links_after)[:] = stats
+        (media_before if edge == "start" else media_after)[:] = media
 
     network = Network(f"d{run_id}", system if system is not None and net else _no_links(plan))
     groups.create(capped=False, quiet=not cap)
@@ -155,7 +159,8 @@ def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Pat
         "params": dict(run.params),
         "cpu_cap": {"mode": mode, "reason": reason, "cgroups": groups.mode, "cores": cores,
                     "units_per_core": units_per_core},
-        "network": {**described, "links_measured": _link_use(links_before, links_after, network)},
+        "network": {**described, "links_measured": _link_use(links_before, links_after, network),
+                    "media_measured": _medium_use(media_before, media_after, network)},
         "nodes": {n.name: {"pid": n.pid, "computer": placed.get(n.name, where.get(system_node_name(n.name)))}
                   for n in graph.nodes if n.launched},
         "leftover_cgroups": [str(p) for p in left],
@@ -188,5 +193,25 @@ def _link_use(before: list[dict[str, Any]], after: list[dict[str, Any]], network
         rate = tbf_rate_bit(network.system.links[s["link"]].bandwidth_kBps) / 8000.0
         rows.append({"link": s["link"], "from": s["from"], "to": s["to"], "sent_kBps": round(kbps, 3),
                      "shaped_kBps": rate, "utilisation": round(kbps / rate, 4) if rate else None,
+                     "drops": s["drops"] - b["drops"], "overlimits": s["overlimits"] - b["overlimits"]})
+    return rows
+
+
+def _medium_use(before: list[dict[str, Any]], after: list[dict[str, Any]], network: Network) -> list[dict[str, Any]]:
+    """Per emulated shared medium, what its IFB's qdisc passed during the recording (both
+    directions of all its links): kB/s against the medium's shaped rate, drops, overlimits."""
+    from perfros_bag.rosrun.network import tbf_rate_bit
+
+    first = {s["medium"]: s for s in before}
+    rows = []
+    for s in after:
+        b = first.get(s["medium"])
+        if b is None:
+            continue
+        seconds = s["t"] - b["t"]
+        kbps = (s["bytes"] - b["bytes"]) / 1000.0 / seconds if seconds > 0 else 0.0
+        rate = tbf_rate_bit(network.system.medium[s["medium"]].bandwidth_kBps) / 8000.0
+        rows.append({"medium": s["medium"], "hub": s["hub"], "sent_kBps": round(kbps, 3), "shaped_kBps": rate,
+                     "utilisation": round(kbps / rate, 4) if rate else None,
                      "drops": s["drops"] - b["drops"], "overlimits": s["overlimits"] - b["overlimits"]})
     return rows
