@@ -188,13 +188,19 @@ def _link_use(before: list[dict[str, Any]], after: list[dict[str, Any]], network
         b = first.get((s["link"], s["from"]))
         if b is None:
             continue
-        seconds = s["t"] - b["t"]
-        kbps = (s["bytes"] - b["bytes"]) / 1000.0 / seconds if seconds > 0 else 0.0
         rate = tbf_rate_bit(network.system.links[s["link"]].bandwidth_kBps) / 8000.0
-        rows.append({"link": s["link"], "from": s["from"], "to": s["to"], "sent_kBps": round(kbps, 3),
-                     "shaped_kBps": rate, "utilisation": round(kbps / rate, 4) if rate else None,
-                     "drops": s["drops"] - b["drops"], "overlimits": s["overlimits"] - b["overlimits"]})
+        rows.append({"link": s["link"], "from": s["from"], "to": s["to"], **_qdisc_use(b, s, rate)})
     return rows
+
+
+def _qdisc_use(before: dict[str, Any], after: dict[str, Any], rate_kBps: float) -> dict[str, Any]:
+    """What a qdisc passed between two readings of its counters: kB/s sent against its shaped
+    rate, packets dropped, times the rate held a packet back."""
+    seconds = after["t"] - before["t"]
+    kbps = (after["bytes"] - before["bytes"]) / 1000.0 / seconds if seconds > 0 else 0.0
+    return {"sent_kBps": round(kbps, 3), "shaped_kBps": rate_kBps,
+            "utilisation": round(kbps / rate_kBps, 4) if rate_kBps else None,
+            "drops": after["drops"] - before["drops"], "overlimits": after["overlimits"] - before["overlimits"]}
 
 
 def _medium_use(before: list[dict[str, Any]], after: list[dict[str, Any]], network: Network) -> list[dict[str, Any]]:
@@ -208,10 +214,6 @@ def _medium_use(before: list[dict[str, Any]], after: list[dict[str, Any]], netwo
         b = first.get(s["medium"])
         if b is None:
             continue
-        seconds = s["t"] - b["t"]
-        kbps = (s["bytes"] - b["bytes"]) / 1000.0 / seconds if seconds > 0 else 0.0
         rate = tbf_rate_bit(network.system.medium[s["medium"]].bandwidth_kBps) / 8000.0
-        rows.append({"medium": s["medium"], "hub": s["hub"], "sent_kBps": round(kbps, 3), "shaped_kBps": rate,
-                     "utilisation": round(kbps / rate, 4) if rate else None,
-                     "drops": s["drops"] - b["drops"], "overlimits": s["overlimits"] - b["overlimits"]})
+        rows.append({"medium": s["medium"], "hub": s["hub"], **_qdisc_use(b, s, rate)})
     return rows
