@@ -482,7 +482,8 @@ class Network:
         return {"ROS_IP": self.address(computer), "ROS_MASTER_URI": f"http://{self.address(master)}:{port}"}
 
     def describe(self) -> dict[str, object]:
-        """What the run emulated, for its record (run.json)."""
+        """What the run emulated, for its record (run.json, deploy.json): links, and per shared
+        medium whether it is emulated (its hub and IFB) or why not."""
         links = []
         for a, b in zip(self.ends[::2], self.ends[1::2], strict=True):
             bw = self.system.links[a.link].bandwidth_kBps
