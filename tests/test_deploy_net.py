@@ -5,7 +5,8 @@ detector on a server, and the camera's images crossing a veth link shaped with `
 Independent checks: the merged recording is read with Debian's rosbag API (rates, message
 bytes, each topic's publisher); the bytes the link's qdisc passed against the image stream
 the recording holds and against the shaped rate; the nodes' network namespaces from
-``/proc/PID/ns/net`` while the run is on; and afterwards nothing left: no process with the
+``/proc/PID/ns/net`` while the run is on; the link's shared medium's queue against what the
+link's two qdiscs passed; and afterwards nothing left: no process with the
 run's tag, no cgroup, no namespace, no ``pfr-`` interface on the host. Ctrl-C in the middle
 of a deploy leaves nothing either.
 """
@@ -66,7 +67,7 @@ def _host_veths() -> list[str]:
 @pytest.fixture(scope="module")
 def deployed(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     """sweep (the detector's threshold; the camera at its 10 Hz default) -> init -> a robot
-    and a server joined by a 3,000 kB/s link -> characterise -> fit -> solve -> deploy."""
+    and a server joined by a 3,000 kB/s link on a 3,000 kB/s shared medium -> characterise -> fit -> solve -> deploy."""
     _require_ros()
     d = tmp_path_factory.mktemp("net")
     space = _space(d / "space.yaml", duration_s=3, settle_s=1, design="one-at-a-time",
@@ -80,7 +81,8 @@ def deployed(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     doc = yaml.safe_load((d / "draft.yaml").read_text())
     doc["computers"] += [{"name": "robot1", "kind": "robot", "capacity": 30},
                          {"name": "server", "kind": "server", "capacity": 60}]
-    doc["links"] = [{"between": ["robot1", "server"], "bandwidth_kBps": 3000}]
+    doc["links"] = [{"between": ["robot1", "server"], "bandwidth_kBps": 3000, "medium": "wifi"}]
+    doc["media"] = [{"name": "wifi", "bandwidth_kBps": 3000}]
     home = {"camera": "robot1", "detector": "server"}
     for node in doc["nodes"]:
         node["residence"] = [home[node["name"]]]
@@ -150,6 +152,14 @@ def test_a_plan_runs_across_a_shaped_link_and_validates(deployed: dict[str, Any]
     up = next(x for x in network["links_measured"] if x["from"] == "robot1")
     assert 0.9 * stream_kBps < up["sent_kBps"] < 1.25 * stream_kBps, (up, stream_kBps)
     assert up["sent_kBps"] <= 1.02 * up["shaped_kBps"]
+    # the medium's one queue (an IFB on the server) carried both directions of the link: what
+    # the two ends' qdiscs passed, counted at the same moments
+    [medium] = network["media"]
+    assert medium["emulated"] and medium["hub"] == "server" and medium["links"] == [0]
+    [wifi] = network["media_measured"]
+    both = sum(x["sent_kBps"] for x in network["links_measured"])
+    assert wifi["medium"] == "wifi" and abs(wifi["sent_kBps"] / both - 1) < 0.05, (wifi, both)
+    assert wifi["sent_kBps"] <= 1.02 * wifi["shaped_kBps"]
     validation = json.loads((run / "validation.json").read_text())
     assert validation["overall"]["deviation_pct"] <= 5.0, validation["overall"]
     assert deployed["rc"] == 0

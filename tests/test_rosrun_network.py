@@ -6,7 +6,9 @@ CI): the addresses and routes the kernel holds (``ip -j``) against the plan, a T
 across two links, the shaped rate measured by a receiver in another namespace against the
 link's bandwidth and an unshaped control, and nothing left - no namespace, no process in one,
 no interface on the host - after success, an exception, and SIGINT to the process that made
-them. Where namespaces cannot be made here, each test asserts that the fallback is reported.
+them. Shared media: which computer hosts a medium's queue, checked against a brute-force
+search, and (``net``) concurrent TCP streams whose aggregate rate, measured by the receivers,
+is capped at the medium's bandwidth, against a control whose medium is wider than its links. Where namespaces cannot be made here, each test asserts that the fallback is reported.
 """
 
 from __future__ import annotations
@@ -33,10 +35,11 @@ from perfros_bag.rosrun.network import (
     Network,
     leftover_namespaces,
     plan_ends,
+    plan_media,
     plan_routes,
     remove_leftover_namespaces,
 )
-from perfros_bag.system.types import Computer, Link, System
+from perfros_bag.system.types import Computer, Link, Medium, System
 
 ROOT = Path(__file__).resolve().parent.parent
 NETNS_DIR = Path("/run/netns")
@@ -61,7 +64,8 @@ while True:
         first, first_len = now, len(chunk)
     got += len(chunk)
     last = now
-print(json.dumps({"bytes": got, "after_first": got - first_len, "seconds": last - first, "peer": peer[0]}))
+print(json.dumps({"bytes": got, "after_first": got - first_len, "seconds": last - first, "peer": peer[0],
+                  "first": first, "last": last}))
 """
 
 SENDER = r"""
@@ -80,6 +84,13 @@ def chain(bandwidths: tuple[float, ...] = (500.0, 2000.0), lonely: bool = False)
         computers.append(Computer("lonely", "robot", 100.0))
     links = tuple(Link((a, b), bw) for a, b, bw in zip(names, names[1:], bandwidths, strict=False))
     return System(tuple(computers), (), links)
+
+
+def with_medium(system: System, bandwidth_kBps: float, links: tuple[int, ...], name: str = "wifi") -> System:
+    """``system`` with its ``links`` on one shared medium."""
+    on = tuple(Link(li.between, li.bandwidth_kBps, name if i in links else li.medium)
+               for i, li in enumerate(system.links))
+    return System(system.computers, system.nodes, on, (*system.media, Medium(name, bandwidth_kBps)))
 
 
 def triangle_with_tail() -> System:
@@ -147,6 +158,39 @@ def test_planned_addresses_and_routes_reach_exactly_the_connected_computers(syst
             assert deliver(comp.name, dst) == expected, (comp.name, dst)
 
 
+def star(media_links: tuple[tuple[int, ...], ...]) -> System:
+    """A server with three robots, a link robot1 - robot2, two parallel links robot3 - server,
+    and one medium per entry of ``media_links`` (plus one no link names)."""
+    comps = (Computer("robot1", "robot", 100.0), Computer("server", "server", 400.0),
+             Computer("robot2", "robot", 100.0), Computer("robot3", "robot", 100.0))
+    pairs = [("robot1", "server"), ("server", "robot2"), ("robot3", "server"), ("robot1", "robot2"),
+             ("server", "robot3")]
+    name = {li: f"m{k}" for k, group in enumerate(media_links) for li in group}
+    links = tuple(Link(p, 100.0, name.get(i)) for i, p in enumerate(pairs))
+    media = tuple(Medium(f"m{k}", 50.0) for k in range(len(media_links))) + (Medium("unused", 10.0),)
+    return System(comps, (), links, media)
+
+
+@pytest.mark.parametrize("media_links", [((0, 1, 2),), ((0, 3), (1,)), ((3,), (2, 4)), ((0, 4), (1,), (2,))])
+def test_each_medium_is_hosted_by_the_computer_all_its_links_share(media_links: tuple[tuple[int, ...], ...]) -> None:
+    system = star(media_links)
+    plans = plan_media(system)
+    assert [p.name for p in plans] == [m.name for m in system.media]
+    assert [p.ifname for p in plans] == [f"pfr-m{j}" for j in range(len(system.media))]
+    degree = {c.name: sum(c.name in li.between for li in system.links) for c in system.computers}
+    for plan, group in zip(plans, (*media_links, ()), strict=True):
+        assert plan.links == group
+        # brute force: every computer that is an end of every link of the medium
+        shared = [c.name for c in system.computers if group and all(c.name in system.links[i].between for i in group)]
+        if not shared:
+            assert plan.hub is None and not plan.emulated and plan.reason
+            continue
+        best = max(degree[c] for c in shared)
+        first = [c for c in shared if degree[c] == best]
+        servers = [c for c in first if system.computer[c].kind == "server"]
+        assert plan.emulated and plan.hub == (servers or first)[0]
+
+
 def _fake_ip(tmp_path: Path) -> str:
     fake = tmp_path / "ip"
     fake.write_text("#!/bin/sh\necho 'mount --make-shared /run/netns failed: Operation not permitted' >&2\nexit 1\n")
@@ -164,6 +208,7 @@ def test_namespaces_refused_fall_back_to_unshaped_with_a_warning(tmp_path: Path)
     assert net.ros_addresses("robot1", "server", 11311) == {"ROS_IP": "127.0.0.1",
                                                            "ROS_MASTER_URI": "http://127.0.0.1:11311"}
     assert net.describe()["mode"] == "unshaped"
+    assert net.describe()["media"] == [] and net.media_stats() == []
     assert net.remove() == []
 
 
@@ -299,6 +344,50 @@ def _transfer(net: Network, src: str, dst: str, size: int, port: int = 5001) -> 
     return json.loads(out)  # type: ignore[no-any-return]
 
 
+def _transfers(net: Network, flows: list[tuple[str, str]], size: int) -> list[dict[str, float | str]]:
+    """``size`` bytes over TCP on each ``(src, dst)`` flow, all at the same time (one receiver
+    per flow, ports 5001...); each receiver's result, in ``flows`` order."""
+    recvs: list[subprocess.Popen[str]] = []
+    senders: list[subprocess.Popen[bytes]] = []
+    try:
+        for k, (_, dst) in enumerate(flows):
+            recvs.append(subprocess.Popen(net.wrap(dst, [sys.executable, "-c", RECEIVER, net.address(dst),
+                                                         str(5001 + k)]),
+                                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True))
+        for recv in recvs:
+            assert recv.stdout is not None
+            assert recv.stdout.readline().strip() == "ready"
+        for k, (src, dst) in enumerate(flows):
+            senders.append(subprocess.Popen(net.wrap(src, [sys.executable, "-c", SENDER, net.address(dst),
+                                                           str(5001 + k), str(size)]),
+                                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE))
+        for sender in senders:
+            _, err = sender.communicate(timeout=30)
+            assert sender.returncode == 0, err
+        results = []
+        for recv in recvs:
+            out, err = recv.communicate(timeout=30)
+            assert recv.returncode == 0, err
+            results.append(json.loads(out))
+        return results
+    finally:
+        for proc in [*recvs, *senders]:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+
+
+def _tc_json(net: Network, comp: str, *args: str) -> list[dict[str, object]]:
+    done = subprocess.run(["tc", "-j", "-n", net.namespaces[comp], *args], capture_output=True, text=True,
+                          timeout=10, check=True)
+    return json.loads(done.stdout or "[]")  # type: ignore[no-any-return]
+
+
+def _ifb_in(ns: str) -> list[str]:
+    """The IFB devices inside namespace ``ns``."""
+    return sorted(str(x["ifname"]) for x in _ip_json("-n", ns, "-d", "link", "show", "type", "ifb"))
+
+
 def _tbf_sent_bytes(net: Network, comp: str, ifname: str) -> int:
     done = subprocess.run(["tc", "-j", "-s", "-n", net.namespaces[comp], "qdisc", "show", "dev", ifname],
                           capture_output=True, text=True, timeout=10, check=True)
@@ -307,7 +396,9 @@ def _tbf_sent_bytes(net: Network, comp: str, ifname: str) -> int:
 
 @pytest.mark.net
 def test_links_are_shaped_to_their_bandwidth_in_both_directions() -> None:
-    rate_kBps, size = 500.0, 400_000
+    # 1 MB: a TCP retransmission timeout (seen in ~1 of 4 400 kB transfers here, ~0.3 s) costs
+    # ~13 % of the rate, not the ~30 % that failed the 25 % bound
+    rate_kBps, size = 500.0, 1_000_000
     system = System((Computer("robot1", "robot", 100.0), Computer("server", "server", 400.0)), (),
                     (Link(("robot1", "server"), rate_kBps),))
     before = _host_state()
@@ -333,13 +424,14 @@ def test_links_are_shaped_to_their_bandwidth_in_both_directions() -> None:
 @pytest.mark.net
 def test_an_exception_removes_everything_and_kills_what_runs_inside() -> None:
     before = _host_state()
-    net = Network(_run_id(), chain((100.0, 100.0, 100.0)))
+    net = Network(_run_id(), with_medium(chain((100.0, 100.0, 100.0)), 150.0, (0, 1)))
     sleeper: subprocess.Popen[bytes] | None = None
     inodes: set[int] = set()
     with pytest.raises(RuntimeError, match="boom"), net:
         if not _create(net):
             raise RuntimeError("boom (unshaped)")
         inodes = _ns_inodes(net)
+        assert _ifb_in(net.namespaces["server"]) == ["pfr-m0"]
         sleeper = subprocess.Popen(net.wrap("server", ["sleep", "60"]))
         deadline = time.monotonic() + 5
         while not _processes_in(inodes) and time.monotonic() < deadline:
@@ -355,17 +447,20 @@ def test_an_exception_removes_everything_and_kills_what_runs_inside() -> None:
 CHILD = r"""
 import subprocess, sys, time, warnings
 from perfros_bag.rosrun.network import Network
-from perfros_bag.system.types import Computer, Link, System
+from perfros_bag.system.types import Computer, Link, Medium, System
 system = System((Computer("robot1", "robot", 100.0), Computer("server", "server", 400.0),
                  Computer("robot2", "robot", 100.0)), (),
-                (Link(("robot1", "server"), 500.0), Link(("server", "robot2"), 500.0)))
+                (Link(("robot1", "server"), 500.0, "wifi"), Link(("server", "robot2"), 500.0, "wifi")),
+                (Medium("wifi", 800.0),))
 with warnings.catch_warnings(record=True) as caught:
     warnings.simplefilter("always")
     with Network(sys.argv[1], system) as net:
         net.create()
         sleeper = subprocess.Popen(net.wrap("robot2", ["sleep", "60"]), stdout=subprocess.DEVNULL,
                                    stderr=subprocess.DEVNULL)
-        print(("ready " if net.emulated else "unshaped ") + str(sleeper.pid), flush=True)
+        media = net.describe()["media"]
+        hub = "hub" if media and media[0]["emulated"] else "nohub"
+        print(("ready " if net.emulated else "unshaped ") + str(sleeper.pid) + " " + hub, flush=True)
         print("\n".join(str(w.message) for w in caught), file=sys.stderr, flush=True)
         time.sleep(60)
 """
@@ -385,7 +480,7 @@ def test_sigint_to_the_process_that_made_them_removes_everything() -> None:
     proc = _start_child(run_id)
     try:
         assert proc.stdout is not None
-        state, pid = proc.stdout.readline().split()
+        state, pid, hub = proc.stdout.readline().split()
         if state == "unshaped":
             proc.send_signal(signal.SIGINT)
             _, err = proc.communicate(timeout=20)
@@ -393,6 +488,7 @@ def test_sigint_to_the_process_that_made_them_removes_everything() -> None:
             return
         inodes = {os.stat(NETNS_DIR / ns).st_ino for ns in leftover_namespaces(run_id)}
         assert len(inodes) == 3 and int(pid) in _processes_in(inodes)
+        assert hub == "hub" and _ifb_in(f"pfr-{run_id}-server") == ["pfr-m0"]
         proc.send_signal(signal.SIGINT)
         _, err = proc.communicate(timeout=20)
         assert proc.returncode != 0 and "KeyboardInterrupt" in err
@@ -414,7 +510,7 @@ def test_namespaces_of_a_killed_run_are_found_and_removed() -> None:
     proc = _start_child(run_id)
     try:
         assert proc.stdout is not None
-        state, pid = proc.stdout.readline().split()
+        state, pid, hub = proc.stdout.readline().split()
         proc.kill()  # SIGKILL: no cleanup runs
         _, err = proc.communicate(timeout=20)
     finally:
@@ -428,9 +524,94 @@ def test_namespaces_of_a_killed_run_are_found_and_removed() -> None:
     assert made == sorted(f"pfr-{run_id}-{c}" for c in ("robot1", "server", "robot2"))
     inodes = {os.stat(NETNS_DIR / ns).st_ino for ns in made}
     assert int(pid) in _processes_in(inodes)  # the sleeper outlived its parent, inside robot2
+    assert hub == "hub" and _ifb_in(f"pfr-{run_id}-server") == ["pfr-m0"]  # the medium's IFB outlived it too
     assert remove_leftover_namespaces(run_id) == made
     deadline = time.monotonic() + 5
     while psutil.pid_exists(int(pid)) and psutil.Process(int(pid)).status() != psutil.STATUS_ZOMBIE \
             and time.monotonic() < deadline:
         time.sleep(0.05)
     _nothing_left(run_id, inodes, before)
+
+
+# ---- shared media -----------------------------------------------------------------------------
+ROBOTS_TO_SERVER = (("robot1", "server"), ("robot2", "server"))
+EACH_WAY = (("robot1", "server"), ("server", "robot2"))
+
+
+@pytest.mark.net
+@pytest.mark.parametrize("flows", [ROBOTS_TO_SERVER, EACH_WAY], ids=["robots_to_server", "each_way"])
+@pytest.mark.parametrize("medium_kBps", [400.0, 2000.0], ids=["medium_400", "medium_2000"])
+def test_a_medium_caps_the_sum_of_its_links(flows: tuple[tuple[str, str], ...], medium_kBps: float) -> None:
+    """robot1 - server - robot2, both links 400 kB/s on one medium; two streams at once. A
+    medium of 400 kB/s holds their sum to it (not 2x); one of 2000 kB/s (more than the two
+    links) leaves each stream at its own link's rate: the link's tbf still applies."""
+    # 1 MB per stream: a TCP retransmission timeout (~0.3 s, which a tbf's tail drops cause now
+    # and then) costs a stream ~12 % of its rate, not the ~30 % it costs a 400 kB one
+    link_kBps, size = 400.0, 1_000_000
+    system = with_medium(chain((link_kBps, link_kBps)), medium_kBps, (0, 1))
+    before = _host_state()
+    with Network(_run_id(), system) as net:
+        if not _create(net):
+            return
+        inodes = _ns_inodes(net)
+        net.apply()  # again: the redirects are made afresh, not doubled
+        qdiscs = [(str(q["kind"]), str(q["dev"])) for q in _tc_json(net, "server", "qdisc", "show")]
+        assert sorted(q for q in qdiscs if q[0] in ("tbf", "clsact")) == [
+            ("clsact", "pfr-l0"), ("clsact", "pfr-l1"), ("tbf", "pfr-l0"), ("tbf", "pfr-l1"), ("tbf", "pfr-m0")]
+        [medium] = net.describe()["media"]  # type: ignore[misc]
+        assert medium["emulated"] and medium["hub"] == "server" and medium["interface"] == "pfr-m0"
+        assert medium["filter"] in ("matchall", "u32") and medium["tbf_rate_bit"] == int(medium_kBps * 8000)
+        assert {c: _ifb_in(ns) for c, ns in net.namespaces.items()} == {"robot1": [], "server": ["pfr-m0"],
+                                                                        "robot2": []}
+        [m0] = net.media_stats()
+        link0 = {(end, dev): _tbf_sent_bytes(net, end, dev) for end, dev in (("server", "pfr-l0"), ("server", "pfr-l1"))}
+        got = _transfers(net, list(flows), size)
+        [m1] = net.media_stats()
+        assert [g["bytes"] for g in got] == [size, size]
+        for g, (src, _) in zip(got, flows, strict=True):  # from one of the sender's own addresses
+            assert g["peer"] in {str(e.address.ip) for e in net.ends if e.computer == src}
+        rates = [float(g["after_first"]) / float(g["seconds"]) / 1000 for g in got]
+        span = max(float(g["last"]) for g in got) - min(float(g["first"]) for g in got)
+        aggregate = sum(float(g["after_first"]) for g in got) / span / 1000
+        # both directions of both links passed the medium's one queue ...
+        assert int(m1["bytes"]) - int(m0["bytes"]) >= 2 * size  # type: ignore[call-overload]
+        # ... and what the server sends still passed its link's own tbf after the IFB
+        for src, dst in flows:
+            if src == "server":
+                dev = next(e.ifname for e in net.ends if e.computer == "server" and dst in system.links[e.link].between)
+                assert _tbf_sent_bytes(net, "server", dev) - link0[("server", dev)] >= size
+        print(f"medium {medium_kBps:g} kB/s, flows {flows}: per flow {[round(r) for r in rates]} kB/s, "
+              f"aggregate {aggregate:.0f} kB/s, medium queue {m1['overlimits']} overlimits {m1['drops']} drops")
+        if medium_kBps < 2 * link_kBps:
+            assert abs(aggregate / medium_kBps - 1) < 0.25, (aggregate, rates)
+        else:
+            for rate in rates:
+                assert abs(rate / link_kBps - 1) < 0.25, (rate, rates)
+            assert abs(aggregate / (2 * link_kBps) - 1) < 0.25, (aggregate, rates)
+    _nothing_left(net.run_id, inodes, before)
+
+
+@pytest.mark.net
+def test_a_medium_whose_links_share_no_computer_is_not_emulated_and_says_so() -> None:
+    system = with_medium(chain((400.0, 400.0, 400.0)), 400.0, (0, 2))  # robot1-server and robot2-robot3
+    before = _host_state()
+    with Network(_run_id(), system) as net:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            net.create()
+        said = [str(w.message) for w in caught if issubclass(w.category, PerfrosWarning)]
+        if not net.emulated:
+            assert any("UNSHAPED" in m for m in said), said
+            return
+        assert [m for m in said if "medium" in m] == [
+            "system: medium 'wifi' is not emulated: its links share no computer (only a medium whose links all "
+            "meet at one computer is emulated); each link is shaped to its own bandwidth only"]
+        inodes = _ns_inodes(net)
+        described = net.describe()
+        [medium] = described["media"]  # type: ignore[misc]
+        assert medium["emulated"] is False and medium["hub"] is None and medium["interface"] is None
+        assert "share no computer" in medium["reason"] and medium["links"] == [0, 2]
+        assert all(link["tbf_rate_bit"] == 3_200_000 for link in described["links"])  # type: ignore[attr-defined]
+        assert all(_ifb_in(ns) == [] for ns in net.namespaces.values())
+        assert net.media_stats() == []
+    _nothing_left(net.run_id, inodes, before)

@@ -15,14 +15,30 @@ each namespace has a /32 route to every address of the run that is more than one
 via the first link of the system's route (:meth:`System.route`), and namespaces with
 several links forward. There is no default route and no NAT: a process inside a namespace
 reaches loopback and the run's own addresses, nothing else; IPv6 is off on the veths. The
-host's interfaces and routes are never touched. Shared media are not emulated: each link is
-shaped to its own bandwidth.
+host's interfaces and routes are never touched.
+
+A shared medium (system.yaml ``media:``, links naming it with ``medium:``: one wifi channel
+several robots share) caps the sum of its links' traffic. It is emulated where all of its
+links share one computer, the hub (the server every robot's wifi link goes to; where two
+computers qualify, the one :meth:`Network.master_computer` would prefer): an IFB device
+``pfr-m<j>`` (``j``: the medium's index in ``media:``) in the hub's namespace, with a
+``tbf`` at the medium's ``bandwidth_kBps``, and on every hub-side veth end of the medium's
+links a ``clsact`` qdisc whose egress and ingress filters (``matchall``, or ``u32 match u32
+0 0`` on kernels without it) redirect every frame to the IFB. Both directions of every link
+of the medium then pass that one queue, on top of each link's own ``tbf``: the clsact
+egress hook runs before the veth's root qdisc and the IFB hands the frame back to the
+veth's root ``tbf``; ingress frames, already shaped by the far end's ``tbf``, are queued on
+the IFB before the hub's stack sees them. Traffic a hub forwards from one link of a medium
+to another crosses the medium twice, as the model counts it (the load of both links). A
+medium whose links share no computer is not emulated (a warning; :meth:`Network.describe`
+says why): its links are shaped to their own bandwidths only. On a kernel where ``ifb`` is
+a module not yet loaded it is loaded with ``numifbs=0``, so no ``ifb0`` appears in the host.
 
 Where namespaces cannot be made (no root, no ``ip``, a kernel or container that refuses),
 the network falls back to ``unshaped``: a clear warning, every computer shares the host's
 loopback, links are not shaped, and the run is marked unshaped. :meth:`Network.remove`
-kills what still runs inside the namespaces, deletes the veths (and their qdiscs) and the
-namespaces; :func:`leftover_namespaces` finds any of a run, :func:`remove_leftover_namespaces`
+kills what still runs inside the namespaces, deletes the veths (and their qdiscs), the IFBs
+and the namespaces; :func:`leftover_namespaces` finds any of a run, :func:`remove_leftover_namespaces`
 deletes them.
 """
 
@@ -30,6 +46,7 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
+import dataclasses
 import ipaddress
 import json
 import os
@@ -53,6 +70,7 @@ from perfros_bag.system.types import System
 SUBNET = ipaddress.IPv4Network("10.213.0.0/16")
 PREFIX = "pfr-"
 LINK_PREFIX = "pfr-l"
+MEDIUM_PREFIX = "pfr-m"
 LOOPBACK = "127.0.0.1"
 LATENCY_MS = 100  # tbf queue: this long at the link's rate
 MIN_RATE_BIT = 8000  # tc takes no zero rate: a 0 kB/s link gets 1 kB/s
@@ -85,6 +103,22 @@ class Route:
     destination: ipaddress.IPv4Address
     via: ipaddress.IPv4Address
     ifname: str
+
+
+@dataclass(frozen=True)
+class MediumPlan:
+    """How a shared medium is emulated: its IFB ``ifname`` in ``hub``'s namespace, or why not."""
+
+    medium: int  # index in System.media
+    name: str
+    links: tuple[int, ...]  # indices in System.links
+    hub: str | None  # the computer all its links share; None when there is none
+    ifname: str
+    reason: str = ""  # why it is not emulated; "" when it is
+
+    @property
+    def emulated(self) -> bool:
+        return not self.reason
 
 
 def namespace_name(run_id: str, computer: str) -> str:
@@ -134,6 +168,41 @@ def plan_routes(system: System, ends: list[LinkEnd]) -> dict[str, list[Route]]:
     return routes
 
 
+def link_counts(system: System) -> dict[str, int]:
+    """Per computer, how many links it has."""
+    count = {c.name: 0 for c in system.computers}
+    for link in system.links:
+        for end in link.between:
+            count[end] = count.get(end, 0) + 1
+    return count
+
+
+def plan_media(system: System) -> list[MediumPlan]:
+    """Per medium of ``media:``, its hub: the computer all of its links share (of two, the one
+    with more links, then a server, then the first listed). A medium without links, or whose
+    links share no computer, gets the reason it is not emulated."""
+    count = link_counts(system)
+    kind = {c.name: c.kind for c in system.computers}
+    order = {c.name: k for k, c in enumerate(system.computers)}
+    plans: list[MediumPlan] = []
+    for j, (name, links) in enumerate(system.medium_links.items()):
+        ifname = f"{MEDIUM_PREFIX}{j}"
+        if not links:
+            plans.append(MediumPlan(j, name, links, None, ifname, "no link is on it"))
+            continue
+        common = set(system.links[links[0]].between)
+        for li in links[1:]:
+            common &= set(system.links[li].between)
+        if not common:
+            plans.append(MediumPlan(j, name, links, None, ifname,
+                                    "its links share no computer (only a medium whose links all meet at one "
+                                    "computer is emulated); each link is shaped to its own bandwidth only"))
+            continue
+        hub = min(common, key=lambda c: (-count.get(c, 0), kind.get(c) != "server", order.get(c, 0)))
+        plans.append(MediumPlan(j, name, links, hub, ifname))
+    return plans
+
+
 def tbf_rate_bit(bandwidth_kBps: float) -> int:
     """A link's ``tbf`` rate in bit/s (kB = 1000 bytes)."""
     return max(MIN_RATE_BIT, int(round(bandwidth_kBps * 8000)))
@@ -158,6 +227,8 @@ class Network:
     namespaces: dict[str, str] = field(default_factory=dict)  # computer -> namespace created
     ends: list[LinkEnd] = field(default_factory=list)
     routes: dict[str, list[Route]] = field(default_factory=dict)
+    media: list[MediumPlan] = field(default_factory=list)
+    media_filter: str = ""  # the classifier redirecting to the IFBs: "matchall" or "u32"
     killed: list[int] = field(default_factory=list)  # PIDs remove() found still inside
 
     def __post_init__(self) -> None:
@@ -191,8 +262,14 @@ class Network:
             self._make_namespaces()
             self._make_links()
             self.mode = NetMode.NAMESPACES
+            self._make_media()
             if shaped:
                 self.apply()
+            if not quiet:
+                for m in self.media:
+                    if m.reason and m.links:
+                        warnings.warn(f"{self.system.source or 'system'}: medium {m.name!r} is not emulated: "
+                                      f"{m.reason}", PerfrosWarning, stacklevel=2)
         except OSError as exc:
             self.remove()
             self.mode, self.reason = NetMode.UNSHAPED, str(exc)
@@ -238,8 +315,58 @@ class Network:
                 _run([self.ip, "-n", ns, "-batch", "-"], "".join(
                     f"route add {r.destination}/32 via {r.via} dev {r.ifname} onlink\n" for r in self.routes[comp]))
 
+    def _make_media(self) -> None:
+        """An IFB ``pfr-m<j>`` in each emulated medium's hub namespace (a medium whose IFB
+        cannot be made is not emulated, with the reason)."""
+        self.media = plan_media(self.system)
+        if any(m.emulated for m in self.media):
+            _load_ifb()
+        for k, m in enumerate(self.media):
+            if m.emulated and m.hub is not None:
+                ns = self.namespaces[m.hub]
+                try:
+                    _run([self.ip, "-n", ns, "-batch", "-"], f"link add {m.ifname} type ifb\nlink set {m.ifname} up\n")
+                except OSError as exc:
+                    self.media[k] = dataclasses.replace(m, reason=f"cannot make an IFB device ({exc})")
+
+    def _medium_ends(self, m: MediumPlan) -> list[LinkEnd]:
+        """The hub-side veth ends of ``m``'s links."""
+        return [e for e in self.ends if e.computer == m.hub and e.link in m.links]
+
+    def _shape_medium(self, m: MediumPlan) -> None:
+        """``tbf`` on the IFB at the medium's rate; every hub-side end redirected to it."""
+        ns = self.namespaces[str(m.hub)]
+        rate = tbf_rate_bit(self.system.medium[m.name].bandwidth_kBps)
+        ends = self._medium_ends(m)
+        for end in ends:  # apply() again: the redirects start afresh
+            subprocess.run([self.tc, "-n", ns, "qdisc", "del", "dev", end.ifname, "clsact"], capture_output=True,
+                           timeout=30, check=False)
+        lines = [f"qdisc replace dev {m.ifname} root tbf rate {rate}bit burst {tbf_burst_bytes(rate)} "
+                 f"latency {LATENCY_MS}ms\n"]
+        lines += [f"qdisc add dev {end.ifname} clsact\n" for end in ends]
+        _run([self.tc, "-n", ns, "-batch", "-"], "".join(lines))
+        for name in ([self.media_filter] if self.media_filter else ["matchall", "u32"]):
+            match = "matchall" if name == "matchall" else "u32 match u32 0 0"
+            try:
+                _run([self.tc, "-n", ns, "-batch", "-"], "".join(
+                    f"filter add dev {end.ifname} {hook} protocol all pref 1 {match} "
+                    f"action mirred egress redirect dev {m.ifname}\n" for end in ends for hook in ("egress", "ingress")))
+            except OSError:
+                if name == "u32" or self.media_filter:
+                    raise
+                for end in ends:  # no matchall in this kernel: drop what was added, try u32
+                    subprocess.run([self.tc, "-n", ns, "filter", "del", "dev", end.ifname, "egress"],
+                                   capture_output=True, timeout=30, check=False)
+                    subprocess.run([self.tc, "-n", ns, "filter", "del", "dev", end.ifname, "ingress"],
+                                   capture_output=True, timeout=30, check=False)
+                continue
+            self.media_filter = name
+            return
+
     def apply(self) -> None:
-        """Shape every link to its bandwidth, both directions (``tbf`` on both veth ends)."""
+        """Shape every link to its bandwidth, both directions (``tbf`` on both veth ends), and
+        every emulated medium to its own (see the module's text). A medium the kernel cannot
+        redirect is left unemulated, with the reason."""
         if not self.emulated:
             return
         for comp, ns in self.namespaces.items():
@@ -251,16 +378,26 @@ class Network:
                                  f"burst {tbf_burst_bytes(rate)} latency {LATENCY_MS}ms\n")
             if lines:
                 _run([self.tc, "-n", ns, "-batch", "-"], "".join(lines))
+        for k, m in enumerate(self.media):
+            if not m.emulated:
+                continue
+            try:
+                self._shape_medium(m)
+            except OSError as exc:
+                ns = self.namespaces[str(m.hub)]
+                for end in self._medium_ends(m):
+                    subprocess.run([self.tc, "-n", ns, "qdisc", "del", "dev", end.ifname, "clsact"],
+                                   capture_output=True, timeout=30, check=False)
+                subprocess.run([self.ip, "-n", ns, "link", "del", m.ifname], capture_output=True, timeout=30,
+                               check=False)
+                self.media[k] = dataclasses.replace(m, reason=f"cannot redirect its links to an IFB ({exc})")
         self.shaped = True
 
     # ---- use --------------------------------------------------------------------------------
     def master_computer(self) -> str:
         """Where a run's ROS master goes: the computer with the most links (the hub every
         other computer reaches, in a robots + server system), ties to the first listed."""
-        count = {c.name: 0 for c in self.system.computers}
-        for link in self.system.links:
-            for end in link.between:
-                count[end] = count.get(end, 0) + 1
+        count = link_counts(self.system)
         kind = {c.name: c.kind for c in self.system.computers}
         return max(count, key=lambda c: (count[c], kind.get(c) == "server"))
 
@@ -300,6 +437,28 @@ class Network:
                               "drops": int(q.get("drops", 0)), "overlimits": int(q.get("overlimits", 0))})
         return sorted(stats, key=lambda s: (str(s["link"]).zfill(6), str(s["from"])))
 
+    def media_stats(self) -> list[dict[str, object]]:
+        """Per emulated medium, what its IFB's ``tbf`` counted so far (both directions of all
+        its links): bytes and packets sent, packets dropped, ``overlimits``."""
+        stats: list[dict[str, object]] = []
+        if not self.emulated:
+            return stats
+        for m in self.media:
+            if not m.emulated or m.hub not in self.namespaces:
+                continue
+            done = subprocess.run([self.tc, "-n", self.namespaces[m.hub], "-s", "-j", "qdisc", "show", "dev",
+                                   m.ifname], capture_output=True, text=True, timeout=30, check=False)
+            try:
+                qdiscs = json.loads(done.stdout or "[]")
+            except ValueError:
+                qdiscs = []
+            for q in qdiscs:
+                if q.get("kind") == "tbf":
+                    stats.append({"medium": m.name, "hub": m.hub, "interface": m.ifname,
+                                  "bytes": int(q.get("bytes", 0)), "packets": int(q.get("packets", 0)),
+                                  "drops": int(q.get("drops", 0)), "overlimits": int(q.get("overlimits", 0))})
+        return stats
+
     def wrap(self, computer: str, argv: list[str]) -> list[str]:
         """``argv`` run inside ``computer``'s namespace (unchanged when unshaped)."""
         ns = self.namespaces.get(computer)
@@ -323,15 +482,25 @@ class Network:
         return {"ROS_IP": self.address(computer), "ROS_MASTER_URI": f"http://{self.address(master)}:{port}"}
 
     def describe(self) -> dict[str, object]:
-        """What the run emulated, for its record (run.json)."""
+        """What the run emulated, for its record (run.json, deploy.json): links, and per shared
+        medium whether it is emulated (its hub and IFB) or why not."""
         links = []
         for a, b in zip(self.ends[::2], self.ends[1::2], strict=True):
             bw = self.system.links[a.link].bandwidth_kBps
             links.append({"between": [a.computer, b.computer], "bandwidth_kBps": bw, "interface": a.ifname,
                           "addresses": {a.computer: str(a.address.ip), b.computer: str(b.address.ip)},
                           "tbf_rate_bit": tbf_rate_bit(bw) if self.shaped else None})
+        media = []
+        for m in self.media:
+            bw = self.system.medium[m.name].bandwidth_kBps
+            media.append({"name": m.name, "bandwidth_kBps": bw, "links": list(m.links), "emulated": m.emulated,
+                          "reason": m.reason, "hub": m.hub if m.emulated else None,
+                          "interface": m.ifname if m.emulated else None,
+                          "filter": self.media_filter if m.emulated and self.shaped else None,
+                          "tbf_rate_bit": tbf_rate_bit(bw) if m.emulated and self.shaped else None})
         return {"mode": str(self.mode), "reason": self.reason, "shaped": self.shaped,
                 "namespaces": dict(self.namespaces), "links": links if self.emulated else [],
+                "media": media if self.emulated else [],
                 "addresses": {c.name: self.address(c.name) for c in self.system.computers}}
 
     # ---- remove -----------------------------------------------------------------------------
@@ -410,7 +579,7 @@ def _delete_namespace(ip: str, ns: str, killed: list[int], timeout: float) -> bo
                 pass
         time.sleep(0.05)
     for ifname in _links_in(ip, ns):
-        # deleting one end of a veth deletes the pair and the qdiscs on both ends
+        # deleting one end of a veth deletes the pair and the qdiscs on both ends; an IFB, its tbf
         subprocess.run([ip, "-n", ns, "link", "del", ifname], capture_output=True, timeout=30, check=False)
     done = subprocess.run([ip, "netns", "del", ns], capture_output=True, timeout=30, check=False)
     return done.returncode == 0 or ns not in leftover_namespaces(ip=ip)
@@ -421,12 +590,20 @@ def _pids_in(ip: str, ns: str) -> list[int]:
     return [int(p) for p in done.stdout.split() if p.isdigit() and int(p) != os.getpid()]
 
 
+def _load_ifb() -> None:
+    """Where ``ifb`` is a module not loaded yet, load it without devices of its own (loaded
+    on demand it would make ``ifb0`` and ``ifb1`` in the host's namespace)."""
+    modprobe = shutil.which("modprobe")
+    if modprobe is not None and not Path("/sys/module/ifb").exists():
+        subprocess.run([modprobe, "-q", "ifb", "numifbs=0"], capture_output=True, timeout=30, check=False)
+
+
 def _links_in(ip: str, ns: str) -> list[str]:
-    """The run's veths inside ``ns`` (``pfr-l<i>``)."""
+    """The run's veths (``pfr-l<i>``) and IFBs (``pfr-m<j>``) inside ``ns``."""
     done = subprocess.run([ip, "-n", ns, "-o", "link", "show"], capture_output=True, text=True, timeout=30,
                           check=False)
     names = [line.split(":")[1].strip().split("@")[0] for line in done.stdout.splitlines() if line.count(":") >= 2]
-    return [n for n in names if n.startswith(LINK_PREFIX)]
+    return [n for n in names if n.startswith((LINK_PREFIX, MEDIUM_PREFIX))]
 
 
 def leftover_namespaces(run_id: str | None = None, *, ip: str = "ip") -> list[str]:

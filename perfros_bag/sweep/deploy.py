@@ -103,6 +103,8 @@ def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Pat
     links_before: list[dict[str, Any]] = []
     links_after: list[dict[str, Any]] = []
     throttle: dict[str, dict[str, dict[str, float]]] = {}  # "start"/"end" -> computer -> CFS counters
+    media_before: list[dict[str, Any]] = []
+    media_after: list[dict[str, Any]] = []
 
     def place(graph: Graph) -> None:
         """Move every planned node into its computer's group, then cap the groups."""
@@ -120,9 +122,11 @@ def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Pat
             groups.apply()
 
     def window(edge: str) -> None:
-        """The links' and the groups' counters as the recording starts and ends."""
+        """The links', the shared media's and the groups' counters as the recording starts and ends."""
         stats = [{**s, "t": time.monotonic()} for s in network.link_stats()]
+        media = [{**s, "t": time.monotonic()} for s in network.media_stats()]
         (links_before if edge == "start" else links_after)[:] = stats
+        (media_before if edge == "start" else media_after)[:] = media
         throttle[edge] = {c: groups.throttled(c) for c in cores}
 
     network = Network(f"d{run_id}", system if system is not None and net else _no_links(plan))
@@ -159,7 +163,8 @@ def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Pat
                     "units_per_core": units_per_core},
         "throttling": {c: {k: v - throttle.get("start", {}).get(c, {}).get(k, 0.0) for k, v in end.items()}
                        for c, end in throttle.get("end", {}).items()},
-        "network": {**described, "links_measured": _link_use(links_before, links_after, network)},
+        "network": {**described, "links_measured": _link_use(links_before, links_after, network),
+                    "media_measured": _medium_use(media_before, media_after, network)},
         "nodes": {n.name: {"pid": n.pid, "computer": placed.get(n.name, where.get(system_node_name(n.name)))}
                   for n in graph.nodes if n.launched},
         "leftover_cgroups": [str(p) for p in left],
@@ -187,10 +192,32 @@ def _link_use(before: list[dict[str, Any]], after: list[dict[str, Any]], network
         b = first.get((s["link"], s["from"]))
         if b is None:
             continue
-        seconds = s["t"] - b["t"]
-        kbps = (s["bytes"] - b["bytes"]) / 1000.0 / seconds if seconds > 0 else 0.0
         rate = tbf_rate_bit(network.system.links[s["link"]].bandwidth_kBps) / 8000.0
-        rows.append({"link": s["link"], "from": s["from"], "to": s["to"], "sent_kBps": round(kbps, 3),
-                     "shaped_kBps": rate, "utilisation": round(kbps / rate, 4) if rate else None,
-                     "drops": s["drops"] - b["drops"], "overlimits": s["overlimits"] - b["overlimits"]})
+        rows.append({"link": s["link"], "from": s["from"], "to": s["to"], **_qdisc_use(b, s, rate)})
+    return rows
+
+
+def _qdisc_use(before: dict[str, Any], after: dict[str, Any], rate_kBps: float) -> dict[str, Any]:
+    """What a qdisc passed between two readings of its counters: kB/s sent against its shaped
+    rate, packets dropped, times the rate held a packet back."""
+    seconds = after["t"] - before["t"]
+    kbps = (after["bytes"] - before["bytes"]) / 1000.0 / seconds if seconds > 0 else 0.0
+    return {"sent_kBps": round(kbps, 3), "shaped_kBps": rate_kBps,
+            "utilisation": round(kbps / rate_kBps, 4) if rate_kBps else None,
+            "drops": after["drops"] - before["drops"], "overlimits": after["overlimits"] - before["overlimits"]}
+
+
+def _medium_use(before: list[dict[str, Any]], after: list[dict[str, Any]], network: Network) -> list[dict[str, Any]]:
+    """Per emulated shared medium, what its IFB's qdisc passed during the recording (both
+    directions of all its links): kB/s against the medium's shaped rate, drops, overlimits."""
+    from perfros_bag.rosrun.network import tbf_rate_bit
+
+    first = {s["medium"]: s for s in before}
+    rows = []
+    for s in after:
+        b = first.get(s["medium"])
+        if b is None:
+            continue
+        rate = tbf_rate_bit(network.system.medium[s["medium"]].bandwidth_kBps) / 8000.0
+        rows.append({"medium": s["medium"], "hub": s["hub"], **_qdisc_use(b, s, rate)})
     return rows
