@@ -66,6 +66,7 @@ class Instance:
     robot_capacity: tuple[float, ...]  # per robot, CPU units (100 = one core here)
     server_capacity: float
     link_kBps: tuple[float, ...]  # per robot, its link to the server
+    wifi_kBps: float | None = None  # every link on one shared medium of this bandwidth
 
 
 INSTANCES = {
@@ -73,8 +74,8 @@ INSTANCES = {
     2: Instance(2, (15,), 40, (3000,)),
     3: Instance(3, (20, 20), 40, (3000, 3000)),
     4: Instance(4, (20, 20), 25, (3000, 2000)),  # robot 2's images cannot cross its link
-    5: Instance(5, (15, 15, 15), 45, (3000, 3000, 3000)),
-    6: Instance(6, (25, 25, 25), 30, (2000, 3000, 3000)),
+    5: Instance(5, (15, 15, 15), 45, (3000, 3000, 3000), wifi_kBps=5000),  # two robots' images at most
+    6: Instance(6, (25, 25, 25), 30, (2000, 3000, 3000), wifi_kBps=6000),
 }
 
 
@@ -175,8 +176,10 @@ def instance_system(inst: Instance, draft: dict[str, Any]) -> dict[str, Any]:
                           for k, c in enumerate(inst.robot_capacity, 1)]
             + [{"name": "server", "kind": "server", "capacity": inst.server_capacity,
                 "max_capacity": 150}],
-            "links": [{"between": [f"robot{k}", "server"], "bandwidth_kBps": b}
+            "links": [{"between": [f"robot{k}", "server"], "bandwidth_kBps": b,
+                       **({"medium": "wifi"} if inst.wifi_kBps else {})}
                       for k, b in enumerate(inst.link_kBps, 1)],
+            **({"media": [{"name": "wifi", "bandwidth_kBps": inst.wifi_kBps}]} if inst.wifi_kBps else {}),
             "nodes": nodes, "edges": edges}
 
 
@@ -358,10 +361,11 @@ def rq3(out: Path, app: Path, plans: dict[int, dict[str, Path]], args: argparse.
     if 2 in plans:
         base = plans[2]["p1-exact"]
         configs.append(("instance 2 plan (baseline)", 2, base, "cpu", "robot1"))
-        configs.append(("robot: smooth 15 (plan's people kept)", 2,
-                        forced(d, "robot-smooth", base, {"robot1_smooth": ("robot1", 15.0)}), "cpu", "robot1"))
-        configs.append(("robot: people 1.05 moved onto the robot", 2,
-                        forced(d, "robot-people", base, {"robot1_people": ("robot1", 1.05)}), "cpu", "robot1"))
+        for people, smooth in ((1.2, 15.0), (1.1, 11.0), (1.1, 15.0)):
+            name = f"robot-people{people:g}-smooth{smooth:g}"
+            configs.append((f"robot: people {people:g} on the robot, smooth {smooth:g}", 2,
+                            forced(d, name, base, {"robot1_people": ("robot1", people),
+                                                   "robot1_smooth": ("robot1", smooth)}), "cpu", "robot1"))
     if 4 in plans:
         base = plans[4]["p1-exact"]
         configs.append(("instance 4 plan (baseline)", 4, base, "link", "robot2"))
@@ -509,11 +513,13 @@ def markdown(results: list[dict[str, Any]], rq3_rows: list[dict[str, Any]], erro
              f"({UNITS_PER_CORE:g} CPU units = one core; {args.duration:g} s recorded per deployment, "
              f"{args.sweep_duration:g} s per sweep run).", "",
              "### The instances", "",
-             "| instance | robots | robot capacity | server capacity | links (kB/s) |", "|---|---|---|---|---|"]
+             "| instance | robots | robot capacity | server capacity | links (kB/s) | shared wifi (kB/s) |",
+             "|---|---|---|---|---|---|"]
     for i in sorted({r["instance"] for r in results}):
         inst = INSTANCES[i]
         lines.append(f"| {i} | {len(inst.robot_capacity)} | {', '.join(f'{c:g}' for c in inst.robot_capacity)} | "
-                     f"{inst.server_capacity:g} | {', '.join(f'{b:g}' for b in inst.link_kBps)} |")
+                     f"{inst.server_capacity:g} | {', '.join(f'{b:g}' for b in inst.link_kBps)} | "
+                     f"{f(inst.wifi_kBps, 0) if inst.wifi_kBps else '-'} |")
     lines += ["", "### RQ2: expected vs measured performance (eq 10)", "",
               "| instance | plan | objective | status | expected Σ w·P | measured Σ w·P | deviation % "
               "| mean freq. dev. % | CPU cap | links | run |", "|---|---|---|---|---|---|---|---|---|---|---|"]
@@ -618,7 +624,7 @@ def main(argv: list[str]) -> int:
     plans = fit_and_solve(out, char_csv, draft, numbers)
     with Progress(TextColumn("deployments"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                   console=err) as progress:
-        bar = (progress, progress.add_task("", total=sum(map(len, plans.values())) + (0 if args.skip_rq3 else 5)))
+        bar = (progress, progress.add_task("", total=sum(map(len, plans.values())) + (0 if args.skip_rq3 else 6)))
         results = deploy_all(out, app, plans, args, bar)
         rq3_rows = [] if args.skip_rq3 else rq3(out, app, plans, args, bar)
     errors, computers = model_errors(results), computer_errors(results)
