@@ -35,6 +35,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+from _docs import write_section
 from rich.console import Console
 
 from perfros_bag.casestudy.launcher import RunConfig, run_plan
@@ -394,23 +395,6 @@ def markdown(results: list[dict[str, Any]], rq3_rows: list[dict[str, Any]], args
     return "\n".join(lines)
 
 
-def write_docs(docs: Path, section: str, out: Path) -> None:
-    import shutil
-
-    begin, end = "<!-- casestudy-results:begin -->", "<!-- casestudy-results:end -->"
-    text = docs.read_text() if docs.exists() else f"# Case study\n\n{begin}\n{end}\n"
-    if begin not in text:
-        text += f"\n{begin}\n{end}\n"
-    head, rest = text.split(begin, 1)
-    _, tail = rest.split(end, 1)
-    atomic_write_text(docs, f"{head}{begin}\n{section}\n{end}{tail}")
-    img = docs.parent / "casestudy"
-    img.mkdir(exist_ok=True)
-    for name in ("fig5.png", "rq3.png"):
-        if (out / name).exists():
-            shutil.copyfile(out / name, img / name)
-
-
 def main(argv: list[str]) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, default=ROOT / "out" / "casestudy")
@@ -441,7 +425,7 @@ def main(argv: list[str]) -> int:
     section = markdown(results, rq3_rows, args, argv)
     atomic_write_text(out / "results.md", section)
     if args.docs:
-        write_docs(args.docs, section, out)
+        write_section(args.docs, "casestudy", section, out, ("fig5.png", "rq3.png"), "Case study")
     err.print(section)
     return 0
 

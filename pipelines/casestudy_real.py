@@ -41,6 +41,7 @@ from pathlib import Path
 from typing import Any
 
 import yaml
+from _docs import write_section
 from rich.console import Console
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -585,21 +586,6 @@ def markdown(results: list[dict[str, Any]], rq3_rows: list[dict[str, Any]], erro
     return "\n".join(lines)
 
 
-def write_docs(docs: Path, section: str, out: Path) -> None:
-    begin, end = "<!-- casestudy-real-results:begin -->", "<!-- casestudy-real-results:end -->"
-    text = docs.read_text() if docs.exists() else f"# Case study on real nodes\n\n{begin}\n{end}\n"
-    if begin not in text:
-        text += f"\n{begin}\n{end}\n"
-    head, rest = text.split(begin, 1)
-    _, tail = rest.split(end, 1)
-    docs.write_text(f"{head}{begin}\n{section}\n{end}{tail}")
-    img = docs.parent / "casestudy-real"
-    img.mkdir(exist_ok=True)
-    for name in ("rq2.png", "rq3.png"):
-        if (out / name).exists():
-            shutil.copyfile(out / name, img / name)
-
-
 def main(argv: list[str]) -> int:
     ap = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     ap.add_argument("--out", type=Path, default=ROOT / "out" / "casestudy-real")
@@ -637,7 +623,7 @@ def main(argv: list[str]) -> int:
     section = markdown(results, rq3_rows, errors, computers, args, argv, started, seconds)
     (out / "results.md").write_text(section)
     if not args.no_docs:
-        write_docs(args.docs, section, out)
+        write_section(args.docs, "casestudy-real", section, out, ("rq2.png", "rq3.png"), "Case study on real nodes")
     err.print(section)
     return 0
 

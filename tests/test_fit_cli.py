@@ -424,3 +424,32 @@ def test_model_reader_names_the_broken_place_and_solve_needs_the_system_only(
             read_model(path)
         assert str(info.value) == f"{path}: {problem}"
         assert load_system(path).node["amcl1"].curve == load_system(out).node["amcl1"].curve
+
+
+def test_cpu_p95_plans_with_the_settings_bursts(tmp_path: Path) -> None:
+    """`fit --cpu p95`: each setting's CPU is the mean over its recordings of their
+    `cpu_units_p95` (computed here from the CSV rows), not of `cpu_units_mean`; model.json
+    says which, and a model without the key reads as `mean`."""
+    rng = np.random.default_rng(5)
+    rows = table_i_rows()
+    for r in rows:
+        r["cpu_units_p95"] = float(r["cpu_units_mean"]) * float(rng.uniform(1.1, 1.4))
+    system_path = write_yaml(tmp_path / "system.yaml", table_i_system())
+    csv_path = write_csv(tmp_path / "char.csv", rows)
+    out = tmp_path / "model.json"
+    result = run(str(system_path), str(csv_path), "--out", str(out), "--cpu", "p95")
+    assert result.exit_code == 0, result.stderr
+    doc = json.loads(out.read_text())
+    assert doc["cpu_statistic"] == "p95"
+    system = load_system(out)
+    for name, (_param, _t, table) in TABLE_I.items():
+        for s, (v, *_rest) in zip(system.node[name].settings, table, strict=True):
+            p95 = [float(r["cpu_units_p95"]) for r in rows if r["node"] == name and r["value"] == v]
+            mean = [float(r["cpu_units_mean"]) for r in rows if r["node"] == name and r["value"] == v]
+            assert s.cpu == pytest.approx(statistics.fmean(p95), rel=1e-6)
+            assert s.cpu > statistics.fmean(mean)
+    del doc["cpu_statistic"]
+    (tmp_path / "old.json").write_text(json.dumps(doc))
+    assert read_model(tmp_path / "old.json").cpu_statistic == "mean"
+    bad = run(str(system_path), str(csv_path), "--out", str(tmp_path / "x.json"), "--cpu", "p50")
+    assert "p50" in one_error_line(bad) and not (tmp_path / "x.json").exists()

@@ -51,6 +51,10 @@ class SettingMeasures:
     def cpus(self) -> list[float]:
         return [m.cpu for m in self.recordings if m.cpu is not None]
 
+    def cpus_p95(self) -> list[float]:
+        """Per recording, the 95th percentile of the node's CPU samples (``cpu_units_p95``)."""
+        return [m.cpu_p95 for m in self.recordings if m.cpu_p95 is not None]
+
     def frequencies(self) -> list[float]:
         return [m.frequency_hz for m in self.recordings if m.frequency_hz is not None]
 

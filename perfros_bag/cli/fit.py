@@ -17,6 +17,7 @@ def fit(
     out_path: Annotated[Path, typer.Option("--out", "-o", help="model.json to write (atomically).")] = Path("model.json"),
     plots: Annotated[Path | None, typer.Option("--plots", help="Directory for one PNG per fitted node (Fig 3/4).")] = None,
     as_json: Annotated[bool, typer.Option("--json", help="Print the model.json document on stdout (only).")] = False,
+    cpu: Annotated[str, typer.Option("--cpu", help="A setting's CPU: 'mean' of its samples, or 'p95' (room for bursts).")] = "mean",
 ) -> None:
     """Fit parameter -> CPU/performance/frequency/bandwidth and CPU -> performance per configurable node."""
     from rich.table import Table
@@ -24,7 +25,7 @@ def fit(
     from perfros_bag.fitting.build import build_model
     from perfros_bag.fitting.modelfile import write_model
 
-    result = build_model(system, characterisation)
+    result = build_model(system, characterisation, cpu=cpu)
     write_model(out_path, result.document)
     written: list[Path] = []
     if plots is not None:

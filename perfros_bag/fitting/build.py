@@ -50,10 +50,17 @@ class ModelResult:
 
 # --- characterisation.csv ---------------------------------------------------------------
 
-def measured_settings(table: CharacterisationFile, system: System) -> dict[str, list[MeasuredSetting]]:
+#: What a setting's CPU is taken as: the mean of the node's CPU samples in each recording
+#: (``cpu_units_mean``), or their 95th percentile (``cpu_units_p95``: a plan with room for
+#: the node's bursts, e.g. a server sized by Problem 2 that must not run at 100 %).
+CPU_STATISTICS = ("mean", "p95")
+
+
+def measured_settings(table: CharacterisationFile, system: System, cpu: str = "mean") -> dict[str, list[MeasuredSetting]]:
     """Per node of ``system``: what was measured at each parameter value, over the
-    recordings (rows of other nodes are ignored). A value of a node in the system that is
-    not a number is an error (the reader refuses non-finite ones)."""
+    recordings (rows of other nodes are ignored), the CPU as ``cpu`` says
+    (:data:`CPU_STATISTICS`). A value of a node in the system that is not a number is an
+    error (the reader refuses non-finite ones)."""
     path = str(table.path)
     rows = []
     for row, cells, line in zip(table.rows, table.cells, table.lines, strict=True):
@@ -75,7 +82,7 @@ def measured_settings(table: CharacterisationFile, system: System) -> dict[str, 
                     bws.append(t.bandwidth_kBps)
         out.setdefault(s.node, []).append(MeasuredSetting(
             None if s.value is None else float(s.value), len(s.recordings),
-            Stat.of(s.cpus()), Stat.of(s.frequencies()), Stat.of(s.bandwidths()),
+            Stat.of(s.cpus() if cpu == "mean" else s.cpus_p95()), Stat.of(s.frequencies()), Stat.of(s.bandwidths()),
             {t: (Stat.of(fl), Stat.of(bl)) for t, (fl, bl) in sorted(per_topic.items())}))
     return out
 
@@ -127,15 +134,18 @@ class _Warn:
         warnings.warn(msg, PerfrosWarning, stacklevel=3)
 
 
-def build_model(system_path: str | Path, characterisation_path: str | Path) -> ModelResult:
-    """Fit the configurable nodes of ``system_path`` to ``characterisation_path``."""
+def build_model(system_path: str | Path, characterisation_path: str | Path, *, cpu: str = "mean") -> ModelResult:
+    """Fit the configurable nodes of ``system_path`` to ``characterisation_path``, a
+    setting's CPU taken as ``cpu`` (:data:`CPU_STATISTICS`)."""
+    if cpu not in CPU_STATISTICS:
+        raise InputError(None, f"the CPU statistic must be one of {', '.join(CPU_STATISTICS)}, got {cpu!r}")
     sys_path, csv_path = str(system_path), str(characterisation_path)
     raw = read_system_data(system_path)  # a model.json: refitted from its system part
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", PerfrosWarning)  # reported when the model is loaded
         system = parse_system(raw, sys_path)
     table = read_characterisation(csv_path)
-    measured = measured_settings(table, system)
+    measured = measured_settings(table, system, cpu)
     metrics = metric_means(table, system)
     if not measured:
         known = sorted({r.node for r in table.rows if r.node})
@@ -157,7 +167,7 @@ def build_model(system_path: str | Path, characterisation_path: str | Path) -> M
             fits[node.name] = fits_n
     document = ModelDocument(sys_path, csv_path, doc_system,
                              {n: dict(fs) for n, fs in fits.items()},
-                             measured, warn.messages)
+                             measured, warn.messages, cpu_statistic=cpu)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", PerfrosWarning)
         final = parse_system(doc_system, sys_path)  # what solve will read: must load

@@ -136,12 +136,14 @@ class ModelDocument:
     measured: dict[str, list[MeasuredSetting]]
     warnings: list[str]
     format: str = MODEL_FORMAT
+    cpu_statistic: str = "mean"  # a setting's CPU: the mean of its samples, or their p95
 
     def to_json(self) -> dict[str, Any]:
         return {
             "format": self.format,
             "system_file": self.system_file,
             "characterisation": self.characterisation,
+            "cpu_statistic": self.cpu_statistic,
             "system": self.system,
             "fits": {n: {rel: f.to_json() for rel, f in fs.items()} for n, fs in self.fits.items()},
             "measured": {n: [m.to_json() for m in ms] for n, ms in self.measured.items()},
@@ -280,9 +282,12 @@ def parse_model(data: Any, path: str | Path) -> ModelDocument:
     measured = {str(n): [_measured(doc, v, f"measured.{n}[{i}]") for i, v in enumerate(doc.items(ms, f"measured.{n}"))]
                 for n, ms in doc.mapping(data.get("measured", {}), "measured").items()}
     warnings = [doc.string(w, f"warnings[{i}]") for i, w in enumerate(doc.items(data.get("warnings", []), "warnings"))]
+    statistic = doc.string(data.get("cpu_statistic", "mean"), "cpu_statistic")
+    if statistic not in ("mean", "p95"):
+        raise InputError(p, f"cpu_statistic: must be 'mean' or 'p95', got {statistic!r}")
     return ModelDocument(doc.string(data.get("system_file", ""), "system_file"),
                          doc.string(data.get("characterisation", ""), "characterisation"),
-                         data["system"], fits, measured, warnings, fmt)
+                         data["system"], fits, measured, warnings, fmt, statistic)
 
 
 def read_model(path: str | Path) -> ModelDocument:
