@@ -37,7 +37,7 @@ import math
 import os
 import sys
 import time
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -49,7 +49,7 @@ from perfros_bag.system.rules import build_plan, computer_loads, server_sizes
 from perfros_bag.system.rules import objective as plan_objective
 from perfros_bag.system.types import Choice, Edge, Problem, System
 
-__all__ = ["solve_exact"]
+__all__ = ["solve_exact", "trivial_bound", "within_trivial_bound"]
 
 EPS = 1e-9
 _INF = math.inf
@@ -201,10 +201,7 @@ class Instance:
     min_cpu: dict[str, float]
     cut: dict[int, frozenset[str]]  # link -> one side, for links in the cut form
     pairs: dict[int, list[tuple[str, str]]]  # link -> ordered computer pairs routed over it
-
-
-def _bw_vector(system: System, node: str, choice: Choice) -> tuple[float, ...]:
-    return tuple(system.edge_bandwidth(e, choice) for e in system.edges if e.src == node)
+    active: set[int] | None = None  # active_links, once computed
 
 
 def _prune_choices(system: System, problem: Problem, node: str, options: Sequence[Choice],
@@ -216,7 +213,8 @@ def _prune_choices(system: System, problem: Problem, node: str, options: Sequenc
     usable = [i for i, ch in enumerate(options) if ch.cpu <= cpu_room + EPS]
     if problem != Problem.PERFORMANCE or len(usable) <= 1:
         return [options[i] for i in usable], {i: p for p, i in enumerate(usable)}
-    bws = {i: _bw_vector(system, node, options[i]) for i in usable}
+    out_edges = [e for e in system.edges if e.src == node]
+    bws = {i: tuple(system.edge_bandwidth(e, options[i]) for e in out_edges) for i in usable}
     order = sorted(usable, key=lambda i: (options[i].cpu, -options[i].performance, bws[i]))
     kept: list[int] = []
     best_of: dict[int, int] = {}
@@ -336,12 +334,17 @@ def _crossing_always(inst: Instance, edge: Edge, li: int) -> bool | None:
     a_d = inst.group_of[edge.dst].allowed
     if inst.group_of[edge.src] is inst.group_of[edge.dst]:
         return False
-    if li in inst.cut:
+    if li in inst.cut:  # split when exactly one end is on the cut's side
         side = inst.cut[li]
-        split = [(a in side) != (b in side) for a in a_s for b in a_d]
-    else:
-        pairs = set(inst.pairs[li])
-        split = [(a, b) in pairs for a in a_s for b in a_d]
+        src_in = [a in side for a in a_s]
+        dst_in = [b in side for b in a_d]
+        if (all(src_in) and not any(dst_in)) or (not any(src_in) and all(dst_in)):
+            return True
+        if (all(src_in) and all(dst_in)) or (not any(src_in) and not any(dst_in)):
+            return False
+        return None
+    pairs = set(inst.pairs[li])
+    split = [(a, b) in pairs for a in a_s for b in a_d]
     if all(split):
         return True
     if not any(split):
@@ -413,13 +416,16 @@ class _Built:
 
 def active_links(inst: Instance) -> set[int]:
     """Links (by index) whose bandwidth, or whose medium's, could ever be exceeded: the
-    others need no rows at all."""
+    others need no rows at all. Computed once per instance."""
+    if inst.active is not None:
+        return inst.active
     system = inst.system
     potential, _ = _load_bounds(inst, forced=False)
     active = {li for li, link in enumerate(system.links) if potential[li] > link.bandwidth_kBps + EPS}
     for m in system.media:
         if system.medium_load(potential, m.name) > m.bandwidth_kBps + EPS:
             active.update(system.medium_links[m.name])
+    inst.active = active
     return active
 
 
@@ -748,9 +754,41 @@ def _lp_rounding(inst: Instance, built: _Built, values: Sequence[float], maximis
     return _extract(fixed, sub, h.getSolution().col_value)
 
 
+def trivial_bound(system: System, choices: Mapping[str, list[Choice]]) -> float:
+    """Σ w·(best performance): no plan can do better (Problem 1)."""
+    return sum(system.node[n].weight * max(c.performance for c in opts) for n, opts in choices.items())
+
+
+def within_trivial_bound(system: System, problem: Problem, choices: Mapping[str, list[Choice]], plan: Plan) -> Plan:
+    """The plan with its bound as the rule wants it (every exact path applies this): never
+    looser than the trivial one (Problem 1: Σ w·max P; Problem 2: no server capacity at
+    all), never on the wrong side of the objective, and stated whenever there is an
+    objective (a solve stopped before proving anything states the trivial one). HiGHS
+    reports its dual bound as it stands, which before its root LP is solved can be anything
+    (29250.5 beside an objective of 75.6 was seen)."""
+    if plan.objective is None:
+        return plan
+    if problem == Problem.PERFORMANCE:
+        ceiling = trivial_bound(system, choices)
+        plan.bound = max(min(ceiling if plan.bound is None else plan.bound, ceiling), plan.objective)
+    else:
+        plan.bound = min(max(0.0 if plan.bound is None else plan.bound, 0.0), plan.objective)
+    return plan
+
+
+def greedy_start(inst: Instance, choices: dict[str, list[Choice]]) -> tuple[Assignment, dict[str, int]] | None:
+    """The paper's greedy's plan mapped onto the pruned model, None when it finds none."""
+    from perfros_bag.solver import start_of
+    from perfros_bag.solver.greedy import solve_greedy
+
+    plan = solve_greedy(inst.system, inst.problem, choices)
+    raw = start_of(plan, choices) if plan.status != Status.INFEASIBLE else None
+    return start_assignment(inst, raw) if raw is not None else None
+
+
 def solve_exact(system: System, problem: Problem, choices: dict[str, list[Choice]], *,
                 time_limit: float | None = None, mip_gap: float = 0.0,
-                start: Assignment | None = None) -> Plan:
+                start: Assignment | None = None, prepared: Instance | str | None = None) -> Plan:
     """Solve Problem 1 (max Σ w·P) or Problem 2 (min Σ server capacity) exactly with HiGHS.
 
     ``choices`` are each node's candidates (:func:`perfros_bag.solver.fixed_choices`).
@@ -758,7 +796,10 @@ def solve_exact(system: System, problem: Problem, choices: dict[str, list[Choice
     with the solver's ``bound`` when ``time_limit`` or a positive ``mip_gap`` stopped it
     first, or ``infeasible`` with a reason naming the constraint. ``start`` (e.g. the
     greedy+ plan) is checked and passed to HiGHS as a MIP start; on hard instances it is
-    what lets HiGHS close the gap quickly (docs/solvers.md).
+    what lets HiGHS close the gap quickly (docs/solvers.md). ``time_limit`` covers the
+    whole call, set-up included: when the set-up uses it up, the start is the answer (with
+    the LP bound when there is one). ``prepared``: :func:`prepare_instance`'s answer when
+    the caller has it.
     """
     import highspy
 
@@ -767,7 +808,8 @@ def solve_exact(system: System, problem: Problem, choices: dict[str, list[Choice
         raise InputError(system.source, f"problem must be 1 or 2, got {problem!r}")
     if mip_gap < 0 or not math.isfinite(mip_gap):
         raise InputError(None, f"mip_gap must be >= 0, got {mip_gap!r}")
-    prepared = prepare_instance(system, problem, choices)
+    if prepared is None:
+        prepared = prepare_instance(system, problem, choices)
     if isinstance(prepared, str):
         return Plan.infeasible(problem, Method.EXACT, prepared, solve_s=time.perf_counter() - t0,
                                system=system.source)
@@ -780,17 +822,23 @@ def solve_exact(system: System, problem: Problem, choices: dict[str, list[Choice
     def remaining() -> float | None:
         return None if time_limit is None else max(time_limit - (time.perf_counter() - t0), 0.01)
 
+    def out_of_time() -> bool:
+        return time_limit is not None and time.perf_counter() - t0 >= time_limit
+
     def done(assignment: Assignment, bound: float, proven: bool) -> Plan:
         value = plan_objective(system, assignment, problem)
         if not math.isfinite(bound):
             bound = value if proven else (math.inf if maximise else 0.0)
         bound = max(bound, value) if maximise else min(bound, value)
         proven = proven or abs(bound - value) <= 1e-6 * max(1.0, abs(value))
-        return build_plan(system, assignment, problem=problem, method=Method.EXACT,
+        plan = build_plan(system, assignment, problem=problem, method=Method.EXACT,
                           status=Status.OPTIMAL if proven else Status.FEASIBLE,
                           bound=value if proven else (bound if math.isfinite(bound) else None),
                           solve_s=time.perf_counter() - t0)
+        return within_trivial_bound(system, problem, choices, plan)
 
+    if mapped is not None and out_of_time():  # the set-up used the time: the start is the answer
+        return done(mapped[0], _INF if maximise else -_INF, False)
     if mapped is not None or big:
         # The LP relaxation is cheap next to HiGHS's MIP presolve on big models, and the
         # x form's LP bound is tight: when it already proves the start within mip_gap,
@@ -804,7 +852,8 @@ def solve_exact(system: System, problem: Problem, choices: dict[str, list[Choice
                 mapped = start_assignment(inst, rounded) if rounded is not None else None
             if mapped is not None:
                 value = plan_objective(system, mapped[0], problem)
-                if abs(lp_bound - value) <= max(mip_gap * abs(value), 1e-6 * max(1.0, abs(value))):
+                if abs(lp_bound - value) <= max(mip_gap * abs(value), 1e-6 * max(1.0, abs(value))) \
+                        or out_of_time():
                     return done(mapped[0], lp_bound, False)
     start_values = _start_values(inst, built, *mapped) if mapped is not None else None
     h = built.milp.solve(maximise, time_limit=remaining(), mip_gap=mip_gap, start=start_values)
@@ -816,8 +865,12 @@ def solve_exact(system: System, problem: Problem, choices: dict[str, list[Choice
         reason = _diagnose(inst, remaining())
         return Plan.infeasible(problem, Method.EXACT, reason, solve_s=time.perf_counter() - t0,
                                system=system.source)
+    if not has_solution and mapped is None and time_limit is not None:
+        mapped = greedy_start(inst, choices)  # the limit came first: the best plan at hand
+    if not has_solution and mapped is not None:  # HiGHS stopped before it found a plan
+        return done(mapped[0], _INF if maximise else -_INF, False)
     if not has_solution:
-        limit = f"{time_limit:g} s" if time_limit is not None else "the solver's limits"
+        limit = "the time limit" if time_limit is not None else "the solver's limits"
         return Plan.infeasible(problem, Method.EXACT,
                                f"no feasible plan found within {limit} (HiGHS: {h.modelStatusToString(status)}); "
                                "infeasibility was not proven: a longer time limit may find one",
