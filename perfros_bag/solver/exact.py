@@ -202,6 +202,8 @@ class Instance:
     cut: dict[int, frozenset[str]]  # link -> one side, for links in the cut form
     pairs: dict[int, list[tuple[str, str]]]  # link -> ordered computer pairs routed over it
     active: set[int] | None = None  # active_links, once computed
+    # edge (src, dst) -> links it always crosses, links it may cross (see _crossings)
+    crossings: dict[tuple[str, str], tuple[frozenset[int], frozenset[int]]] = field(default_factory=dict)
 
 
 def _prune_choices(system: System, problem: Problem, node: str, options: Sequence[Choice],
@@ -244,25 +246,29 @@ def _prune_choices(system: System, problem: Problem, node: str, options: Sequenc
 def _classify_links(system: System) -> tuple[dict[int, frozenset[str]], dict[int, list[tuple[str, str]]]]:
     """Per link, the cut form's side when the pairs routed over it are exactly those the
     link's removal splits, else those pairs (for the pair form)."""
-    names = [c.name for c in system.computers]
+    n_computers = len(system.computers)
     cut: dict[int, frozenset[str]] = {}
     pairs: dict[int, list[tuple[str, str]]] = {}
+    adjacent: dict[str, list[tuple[str, int]]] = {c.name: [] for c in system.computers}
+    for li, link in enumerate(system.links):
+        a, b = link.between
+        adjacent[a].append((b, li))
+        adjacent[b].append((a, li))
     for li, link in enumerate(system.links):
         # the side of link.between[0] when the link is removed
         side = {link.between[0]}
         frontier = [link.between[0]]
         while frontier:
             cur = frontier.pop()
-            for lj, other in enumerate(system.links):
-                if lj == li or cur not in other.between:
-                    continue
-                nxt = other.between[1] if other.between[0] == cur else other.between[0]
-                if nxt not in side:
+            for nxt, lj in adjacent[cur]:
+                if lj != li and nxt not in side:
                     side.add(nxt)
                     frontier.append(nxt)
-        split = {(a, b) for a in names for b in names if (a in side) != (b in side)}
         crossing = system.link_pairs[li]
-        if link.between[1] not in side and split == set(crossing):
+        # the pairs it splits are exactly the crossing ones: as many, and each crossing one split
+        split_count = 2 * len(side) * (n_computers - len(side))
+        if link.between[1] not in side and len(crossing) == split_count \
+                and all((a in side) != (b in side) for a, b in crossing):
             cut[li] = frozenset(side)
         else:
             pairs[li] = list(crossing)
@@ -327,29 +333,32 @@ def prepare_instance(system: System, problem: Problem, choices: dict[str, list[C
     return _network_precheck(inst) or inst
 
 
+def _crossings(inst: Instance, edge: Edge) -> tuple[frozenset[int], frozenset[int]]:
+    """The links the edge crosses wherever its ends go, and those it may cross (over every
+    pair of computers its ends' groups may use: the intersection and the union of their
+    routes). Cached on the instance."""
+    key = (edge.src, edge.dst)
+    hit = inst.crossings.get(key)
+    if hit is None:
+        gs, gd = inst.group_of[edge.src], inst.group_of[edge.dst]
+        always: set[int] | None = None
+        maybe: set[int] = set()
+        if gs is not gd:
+            for a in gs.allowed:
+                for b in gd.allowed:
+                    route = set(inst.system.route(a, b) or ())
+                    maybe |= route
+                    always = route if always is None else always & route
+        hit = (frozenset(always or ()), frozenset(maybe))
+        inst.crossings[key] = hit
+    return hit
+
+
 def _crossing_always(inst: Instance, edge: Edge, li: int) -> bool | None:
     """True when the edge crosses link ``li`` wherever its ends go, False when it never
     can, None otherwise."""
-    a_s = inst.group_of[edge.src].allowed
-    a_d = inst.group_of[edge.dst].allowed
-    if inst.group_of[edge.src] is inst.group_of[edge.dst]:
-        return False
-    if li in inst.cut:  # split when exactly one end is on the cut's side
-        side = inst.cut[li]
-        src_in = [a in side for a in a_s]
-        dst_in = [b in side for b in a_d]
-        if (all(src_in) and not any(dst_in)) or (not any(src_in) and all(dst_in)):
-            return True
-        if (all(src_in) and all(dst_in)) or (not any(src_in) and not any(dst_in)):
-            return False
-        return None
-    pairs = set(inst.pairs[li])
-    split = [(a, b) in pairs for a in a_s for b in a_d]
-    if all(split):
-        return True
-    if not any(split):
-        return False
-    return None
+    always, maybe = _crossings(inst, edge)
+    return True if li in always else (None if li in maybe else False)
 
 
 def _link_name(system: System, li: int) -> str:
@@ -387,15 +396,17 @@ def _load_bounds(inst: Instance, *, forced: bool) -> tuple[list[float], list[lis
     bound = [0.0] * len(system.links)
     edges: list[list[str]] = [[] for _ in system.links]
     for e in system.edges:
+        always, maybe = _crossings(inst, e)
+        links = always if forced else maybe
+        if not links:
+            continue
         traffic = [system.edge_bandwidth(e, ch) for ch in inst.choices[e.src]]
         bw = min(traffic) if forced else max(traffic)
         if bw <= 0:
             continue
-        for li in range(len(system.links)):
-            crosses = _crossing_always(inst, e, li)
-            if crosses if forced else crosses is not False:
-                bound[li] += bw
-                edges[li].append(f"{e.src}->{e.dst}")
+        for li in sorted(links):
+            bound[li] += bw
+            edges[li].append(f"{e.src}->{e.dst}")
     return bound, edges
 
 
