@@ -483,8 +483,20 @@ def _grid(inst: Instance, node: str, modelled: Sequence[int]) -> tuple[float, fl
     return lo, step
 
 
-def _build(inst: Instance, *, elastic: bool = False, compact_form: bool = False) -> _Built:
+class _OutOfTime(Exception):
+    """Building the model passed its deadline."""
+
+
+def _build(inst: Instance, *, elastic: bool = False, compact_form: bool = False,
+           deadline: float | None = None) -> _Built:
+    """The MILP of the instance. Past ``deadline`` (``time.perf_counter()``), raises
+    :class:`_OutOfTime` (checked once per node group and edge: at 1,000 x 100 the whole
+    build takes over a second)."""
     system, problem = inst.system, inst.problem
+
+    def on_time() -> None:
+        if deadline is not None and time.perf_counter() > deadline:
+            raise _OutOfTime
     milp = _Milp()
     x: dict[tuple[str, int, str], int] = {}
     slack: dict[str, int] = {}
@@ -495,6 +507,7 @@ def _build(inst: Instance, *, elastic: bool = False, compact_form: bool = False)
     placed_terms: dict[tuple[str, str], list[tuple[int, float]]] = {}
     cpu_terms: dict[tuple[str, str], list[tuple[int, float]]] = {}
     for g in inst.groups:
+        on_time()
         if len(g.members) > 1:
             g.z = {c: milp.var(0.0, 1.0, 0.0, integer=True) for c in g.allowed}
             milp.row(((col, 1.0) for col in g.z.values()), 1.0, 1.0)
@@ -577,6 +590,7 @@ def _build(inst: Instance, *, elastic: bool = False, compact_form: bool = False)
         load_terms: list[list[tuple[int, float]]] = [[] for _ in system.links]
         pair_cols: dict[tuple[int, str, str], int] = {}
         for ei in modelled:
+            on_time()
             e = system.edges[ei]
             gs, gd = inst.group_of[e.src], inst.group_of[e.dst]
             bw = [system.edge_bandwidth(e, ch) for ch in inst.choices[e.src]]
@@ -830,10 +844,8 @@ def solve_exact(system: System, problem: Problem, choices: dict[str, list[Choice
         return Plan.infeasible(problem, Method.EXACT, prepared, solve_s=time.perf_counter() - t0,
                                system=system.source)
     inst = prepared
-    built = _build(inst)
     mapped = start_assignment(inst, start) if start is not None else None
     maximise = problem == Problem.PERFORMANCE
-    big = len(built.milp.cost) > _BIG_MODEL
 
     def remaining() -> float | None:
         """HiGHS's time limit for its next run: what is left, but a reserve (HiGHS stops a
@@ -859,6 +871,18 @@ def solve_exact(system: System, problem: Problem, choices: dict[str, list[Choice
         return within_trivial_bound(system, problem, choices, plan)
 
     if mapped is not None and out_of_time():  # the set-up used the time: the start is the answer
+        return done(mapped[0], _INF if maximise else -_INF, False)
+    try:
+        built = _build(inst, deadline=None if time_limit is None else t0 + time_limit)
+    except _OutOfTime:  # so did building the model: the start, else the greedy's plan, is the answer
+        mapped = mapped or greedy_start(inst, choices)
+        if mapped is None:
+            return Plan.infeasible(problem, Method.EXACT, "no feasible plan found within the time limit (the model "
+                                   "was not even built); infeasibility was not proven: a longer time limit may "
+                                   "find one", solve_s=time.perf_counter() - t0, system=system.source)
+        return done(mapped[0], _INF if maximise else -_INF, False)
+    big = len(built.milp.cost) > _BIG_MODEL
+    if mapped is not None and out_of_time():
         return done(mapped[0], _INF if maximise else -_INF, False)
     if mapped is not None or big:
         # The LP relaxation is cheap next to HiGHS's MIP presolve on big models, and the
