@@ -872,14 +872,10 @@ def solve_exact(system: System, problem: Problem, choices: dict[str, list[Choice
 
     if mapped is not None and out_of_time():  # the set-up used the time: the start is the answer
         return done(mapped[0], _INF if maximise else -_INF, False)
-    try:
-        built = _build(inst, deadline=None if time_limit is None else t0 + time_limit)
-    except _OutOfTime:  # so did building the model: the start, else the greedy's plan, is the answer
-        mapped = mapped or greedy_start(inst, choices)
-        if mapped is None:
-            return Plan.infeasible(problem, Method.EXACT, "no feasible plan found within the time limit (the model "
-                                   "was not even built); infeasibility was not proven: a longer time limit may "
-                                   "find one", solve_s=time.perf_counter() - t0, system=system.source)
+    try:  # with a start to fall back on, building the model may stop at the time limit
+        built = _build(inst, deadline=None if time_limit is None or mapped is None else t0 + time_limit)
+    except _OutOfTime:  # so did building the model: the start is the answer
+        assert mapped is not None
         return done(mapped[0], _INF if maximise else -_INF, False)
     big = len(built.milp.cost) > _BIG_MODEL
     if mapped is not None and out_of_time():
