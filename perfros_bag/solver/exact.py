@@ -864,10 +864,12 @@ def solve_exact(system: System, problem: Problem, choices: dict[str, list[Choice
 
     def remaining() -> float | None:
         """HiGHS's time limit for its next run: what is left, but a reserve (HiGHS stops a
-        little after its limit; the plan is built after it)."""
+        little after its limit; the plan is built after it) when there is a start to fall
+        back on (else HiGHS is the only way to a plan: it gets all that is left)."""
         if time_limit is None:
             return None
-        return max(time_limit - _reserve(time_limit) - (time.perf_counter() - t0), 0.01)
+        reserve = _reserve(time_limit) if mapped is not None else 0.0
+        return max(time_limit - reserve - (time.perf_counter() - t0), 0.01)
 
     def out_of_time() -> bool:
         return time_limit is not None and time.perf_counter() - t0 >= time_limit
