@@ -897,6 +897,7 @@ def solve_exact(system: System, problem: Problem, choices: dict[str, list[Choice
     big = len(built.milp.cost) > _BIG_MODEL
     if mapped is not None and out_of_time():
         return done(mapped[0], _INF if maximise else -_INF, False)
+    known = _INF if maximise else -_INF  # the best bound proven so far (the LP relaxation's)
     if mapped is not None or big:
         # The LP relaxation is cheap next to HiGHS's MIP presolve on big models, and the
         # x form's LP bound is tight: when it already proves the start within mip_gap,
@@ -907,6 +908,7 @@ def solve_exact(system: System, problem: Problem, choices: dict[str, list[Choice
         lp_seconds = time.perf_counter() - lp_started
         if lp.getModelStatus() == highspy.HighsModelStatus.kOptimal:
             lp_bound = float(lp.getInfo().objective_function_value)
+            known = lp_bound
             if mapped is None:
                 rounded = _lp_rounding(inst, built, lp.getSolution().col_value, maximise, mip_gap, remaining())
                 mapped = start_assignment(inst, rounded) if rounded is not None else None
@@ -931,7 +933,7 @@ def solve_exact(system: System, problem: Problem, choices: dict[str, list[Choice
     if not has_solution and mapped is None and time_limit is not None:
         mapped = greedy_start(inst, choices)  # the limit came first: the best plan at hand
     if not has_solution and mapped is not None:  # HiGHS stopped before it found a plan
-        return done(mapped[0], _INF if maximise else -_INF, False)
+        return done(mapped[0], known, False)
     if not has_solution:
         limit = "the time limit" if time_limit is not None else "the solver's limits"
         return Plan.infeasible(problem, Method.EXACT,
@@ -939,4 +941,5 @@ def solve_exact(system: System, problem: Problem, choices: dict[str, list[Choice
                                "infeasibility was not proven: a longer time limit may find one",
                                solve_s=time.perf_counter() - t0, system=system.source)
     assignment = _extract(inst, built, h.getSolution().col_value)
-    return done(assignment, float(info.mip_dual_bound), False)
+    dual = float(info.mip_dual_bound)  # before its root LP, HiGHS's is no better than the LP's
+    return done(assignment, min(dual, known) if maximise else max(dual, known), False)
