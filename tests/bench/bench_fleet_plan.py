@@ -186,6 +186,28 @@ def time_limits(sizes: list[tuple[int, int]], limits: list[float]) -> None:
                       f"{100 * r['gap']:.4f} % | {r['rss_mb']:.0f} | {r['checker']} |", flush=True)
 
 
+def other_paths(sizes: list[tuple[int, int]], limits: list[float]) -> None:
+    """``--time-limit`` on the exact paths other than the decomposition, in-process: Problem 2
+    (the MILP, no start) and Problem 1 with the wifi halved so the network can bind (the
+    MILP with greedy+'s start)."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests/: the binding fleet
+    from test_fleet import binding_network
+
+    print("\n| path | instance | limit s | wall s | status | objective | bound | checker |")
+    print("|---|---|---|---|---|---|---|---|")
+    for n, c in sizes:
+        data = fleet_instance(n, c)
+        for label, system, problem in (("Problem 2", system_of(data, "fleet"), 2),
+                                       ("Problem 1, binding wifi", system_of(binding_network(data), "binding"), 1)):
+            for limit in limits:
+                w = time.perf_counter()
+                plan = solve(system, problem, "exact", time_limit=limit)
+                wall = time.perf_counter() - w
+                ok = check_plan(system, plan) or "ok" if plan.objective is not None else plan.reason
+                print(f"| {label} | {n} x {c} | {limit:g} | {wall:.2f} | {plan.status} | {plan.objective} | "
+                      f"{plan.bound} | {ok} |", flush=True)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--sizes", default="200x20,500x50,1000x100")
@@ -201,6 +223,7 @@ def main() -> int:
     sizes = [(int(s.split("x")[0]), int(s.split("x")[1])) for s in args.sizes.split(",") if s]
     if args.time_limits:
         time_limits(sizes, [float(v) for v in args.time_limits.split(",")])
+        other_paths(sizes, [float(v) for v in args.time_limits.split(",")])
         return 0
     limits = [float(v) for v in args.limits.split(",")]
     for (n, c), limit in zip(sizes, limits, strict=True):
