@@ -155,7 +155,7 @@ LIMITED = [("decomposed", FLEET, 1), ("milp", binding_network(FLEET), 1), ("prob
 
 
 @functools.cache
-def unlimited_objectives(name: str, problem: int) -> tuple[float, ...]:
+def other_objectives(name: str, problem: int) -> tuple[float, ...]:
     """The objectives of other plans of the instance (exact with a longer limit, greedy)
     that pass the checker: no proven bound may be on the wrong side of one."""
     data = next(d for n, d, _ in LIMITED if n == name)
@@ -181,7 +181,7 @@ def test_a_time_limited_plan_passes_the_checker_and_states_a_proven_bound(
     assert plan.status in (Status.FEASIBLE, Status.OPTIMAL), plan.reason
     assert check_plan(system, plan) == []
     assert plan.objective is not None and plan.bound is not None
-    found = unlimited_objectives(name, problem)
+    found = other_objectives(name, problem)
     tol = 1e-7 * max(1.0, abs(plan.objective))
     if the_problem == Problem.PERFORMANCE:
         assert plan.objective - tol <= plan.bound <= trivial_bound(system, choices) + tol

@@ -521,9 +521,9 @@ def solve_decomposed(system: System, problem: Problem, choices: dict[str, list[C
     else ``feasible``. ``time_limit`` covers the whole call, set-up included: column
     generation gets at most half of what the set-up left, the MILP over the columns what
     is left but 5 % (at least 0.15 s); when the set-up alone uses the budget, the paper's
-    greedy's plan is returned with the bound at hand (at worst Σ w·max P). ``prepared``: the instance
-    as ``exact.prepare_instance`` gave it, when the caller has it (else it is prepared
-    here). Returns None when the instance does not qualify (:func:`decomposable`: the
+    greedy's plan is returned with the bound at hand (at worst Σ w·max P). ``prepared``:
+    the instance as ``exact.prepare_instance`` gave it, when the caller has it (else it is
+    prepared here). Returns None when the instance does not qualify (:func:`decomposable`: the
     caller then uses the MILP on the whole model) or when no plan was found."""
     t0 = time.perf_counter()
 
