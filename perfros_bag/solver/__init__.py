@@ -258,7 +258,7 @@ def _dispatch(system: System, problem: Problem, method: Method, choices: dict[st
 #: ends 2.9 % from its bound in 30 s, with greedy+'s plan as start 0.3 %). Table II
 #: instances (< 5,000 columns) prove optimal in < 1 s without one.
 START_COLUMNS = 20_000
-#: the share of ``time_limit`` greedy+ may spend on that start.
+#: the share of what is left of ``time_limit`` greedy+ may spend on that start.
 START_SHARE = 0.25
 #: above this many columns, Problem 1 goes to the decomposition
 #: (:mod:`perfros_bag.solver.decompose`) when the instance qualifies. Measured
@@ -275,7 +275,7 @@ def exact_columns(system: System, choices: Mapping[str, list[Choice]]) -> int:
 
 def _exact_start(system: System, problem: Problem, choices: dict[str, list[Choice]],
                  time_limit: float | None, columns: int) -> Assignment | None:
-    """greedy+'s plan (within :data:`START_SHARE` of the time limit) as the exact solver's MIP
+    """greedy+'s plan (within :data:`START_SHARE` of the time left) as the exact solver's MIP
     start on big instances (``columns`` > :data:`START_COLUMNS`); None on small ones, or
     when greedy+ finds nothing."""
     if problem != Problem.PERFORMANCE or columns <= START_COLUMNS:
