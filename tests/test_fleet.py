@@ -3,6 +3,8 @@ MILP on the whole model and the independent checker."""
 
 from __future__ import annotations
 
+import copy
+import functools
 import random
 import warnings
 from typing import Any
@@ -12,14 +14,14 @@ import pytest
 from perfros_bag.casestudy.instances import fleet_instance, random_instance
 from perfros_bag.solver import (
     DECOMPOSE_COLUMNS,
-    _within_trivial_bound,
     exact_columns,
     fixed_choices,
     solve,
 )
+from perfros_bag.solver import exact as exact_mod
 from perfros_bag.solver.check import check_plan
-from perfros_bag.solver.decompose import decomposable, solve_decomposed, trivial_bound
-from perfros_bag.solver.exact import solve_exact
+from perfros_bag.solver.decompose import decomposable, solve_decomposed
+from perfros_bag.solver.exact import solve_exact, trivial_bound, within_trivial_bound
 from perfros_bag.system.plan import Method, Plan, Status
 from perfros_bag.system.systemfile import parse_system
 from perfros_bag.system.types import Problem, System
@@ -127,8 +129,67 @@ def test_a_bound_is_never_looser_than_the_trivial_one() -> None:
     choices = fixed_choices(system, Problem.PERFORMANCE)
     plan = solve_exact(system, Problem.PERFORMANCE, choices)
     plan.bound, plan.status = 29250.5, Status.FEASIBLE  # what HiGHS reported before its root LP
-    fixed = _within_trivial_bound(system, Problem.PERFORMANCE, choices, plan)
+    fixed = within_trivial_bound(system, Problem.PERFORMANCE, choices, plan)
     assert fixed.bound == pytest.approx(trivial_bound(system, choices))
     plan2 = solve_exact(system, Problem.SERVER_CAPACITY, fixed_choices(system, Problem.SERVER_CAPACITY))
     plan2.bound = -5.0
-    assert _within_trivial_bound(system, Problem.SERVER_CAPACITY, {}, plan2).bound == 0.0
+    assert within_trivial_bound(system, Problem.SERVER_CAPACITY, {}, plan2).bound == 0.0
+
+
+def binding_network(data: dict[str, Any]) -> dict[str, Any]:
+    """The fleet with its wifi cut to half of what its links could ever carry: the network
+    can bind, so the instance does not decompose (``solve`` uses the MILP)."""
+    system = system_of(data)
+    inst = exact_mod.prepare_instance(system, Problem.PERFORMANCE, fixed_choices(system, Problem.PERFORMANCE))
+    assert not isinstance(inst, str)
+    potential, _ = exact_mod._load_bounds(inst, forced=False)
+    out = copy.deepcopy(data)
+    out["media"][0]["bandwidth_kBps"] = system.medium_load(potential, out["media"][0]["name"]) / 2
+    assert not decomposable(system_of(out), Problem.PERFORMANCE, fixed_choices(system, Problem.PERFORMANCE))
+    return out
+
+
+FLEET = fleet_instance(200, 20, seed=0)
+LIMITED = [("decomposed", FLEET, 1), ("milp", binding_network(FLEET), 1), ("problem2", FLEET, 2),
+           ("small", fleet_instance(40, 5, seed=1), 1)]
+
+
+@functools.cache
+def other_objectives(name: str, problem: int) -> tuple[float, ...]:
+    """The objectives of other plans of the instance (exact with a longer limit, greedy)
+    that pass the checker: no proven bound may be on the wrong side of one."""
+    data = next(d for n, d, _ in LIMITED if n == name)
+    system = system_of(data, name)
+    plans = [solve(system, problem, "exact", time_limit=3), solve(system, problem, "greedy")]
+    found = tuple(p.objective for p in plans if p.objective is not None and check_plan(system, p) == [])
+    assert found
+    return found
+
+
+@pytest.mark.parametrize("limit", [1e-4, 0.05, 0.4])
+@pytest.mark.parametrize(("name", "data", "problem"), LIMITED, ids=[c[0] for c in LIMITED])
+def test_a_time_limited_plan_passes_the_checker_and_states_a_proven_bound(
+        name: str, data: dict[str, Any], problem: int, limit: float) -> None:
+    """Whatever path the time limit cuts short (the set-up, the bound, the MILP), the plan
+    is feasible by the independent checker and its bound obeys the rule: between the
+    objective and the trivial bound (Problem 1: Σ w·max P; Problem 2: 0), and on the right
+    side of every plan found without a limit (or by greedy+): a bound is proven, not guessed."""
+    system = system_of(data, name)
+    the_problem = Problem(problem)
+    choices = fixed_choices(system, the_problem)
+    plan = solve(system, problem, "exact", time_limit=limit)
+    assert plan.status in (Status.FEASIBLE, Status.OPTIMAL), plan.reason
+    assert check_plan(system, plan) == []
+    assert plan.objective is not None and plan.bound is not None
+    found = other_objectives(name, problem)
+    tol = 1e-7 * max(1.0, abs(plan.objective))
+    if the_problem == Problem.PERFORMANCE:
+        assert plan.objective - tol <= plan.bound <= trivial_bound(system, choices) + tol
+        assert all(plan.bound >= value - tol for value in found)
+    else:
+        assert 0.0 <= plan.bound <= plan.objective + tol
+        assert all(plan.bound <= value + tol for value in found)
+    if plan.status == Status.OPTIMAL:
+        assert plan.bound == pytest.approx(plan.objective, rel=1e-6)
+    else:
+        assert plan.bound != pytest.approx(plan.objective, rel=1e-9, abs=0.0)

@@ -143,3 +143,26 @@ def test_console_script_end_to_end(tmp_path: Path) -> None:
     assert r.returncode == 2
     assert "Traceback" not in r.stderr and "infeasible: youbot_core1" in r.stderr
     assert json.loads(r.stdout)["status"] == "infeasible"
+
+
+def test_a_fleet_past_its_time_limit_still_gets_a_checked_plan_and_a_proven_bound(tmp_path: Path) -> None:
+    """A time limit far shorter than the set-up: exit 0, the best plan at hand (status
+    feasible unless proven), its bound in plan.json between the objective and Σ w·max P."""
+    from perfros_bag.casestudy.instances import fleet_instance
+    from perfros_bag.solver import fixed_choices
+    from perfros_bag.solver.exact import trivial_bound
+
+    path = tmp_path / "fleet.yaml"
+    path.write_text(yaml.safe_dump(fleet_instance(200, 20, seed=0)))
+    out = tmp_path / "plan.json"
+    code, stdout, _ = cli(str(path), "--method", "exact", "--time-limit", "0.001", "--json", "-o", str(out))
+    assert code == 0
+    doc = json.loads(stdout)
+    assert doc == json.loads(out.read_text())
+    system = load_system(path)
+    plan = load_plan(out)
+    assert check_plan(system, plan) == []
+    assert plan.status in ("feasible", "optimal") and plan.objective is not None and plan.bound is not None
+    ceiling = trivial_bound(system, fixed_choices(system, 1))
+    assert plan.objective - 1e-9 <= plan.bound <= ceiling + 1e-9
+    assert (plan.status == "optimal") == (plan.bound - plan.objective <= 1e-6 * plan.objective)

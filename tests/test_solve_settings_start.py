@@ -173,7 +173,9 @@ def test_big_instances_get_greedy_plus_as_start(monkeypatch: pytest.MonkeyPatch)
     starts, budgets = _spy(monkeypatch)
     monkeypatch.setattr(solve_mod, "START_COLUMNS", 0)
     plan = solve(system, 1, "exact", time_limit=40.0)
-    assert budgets == [pytest.approx(solve_mod.START_SHARE * 40.0)]
+    # a quarter of what is left of the limit when greedy+ starts (choices, pruning came first)
+    assert len(budgets) == 1 and budgets[0] is not None
+    assert 0.0 < solve_mod.START_SHARE * 40.0 - budgets[0] <= solve_mod.START_SHARE * plan.solve_s
     assert len(starts) == 1 and starts[0] is not None
     start = starts[0]
     assert set(start.placement) == {n.name for n in system.nodes}

@@ -97,7 +97,8 @@ def solve(
     settings: Annotated[str | None, typer.Option(
         "--settings", help="Problem 2: plan.json, or node=value,... (parameter values) / node=cpu:U")] = None,
     time_limit: Annotated[float | None, typer.Option(
-        "--time-limit", help="exact: stop after S seconds (best plan, status feasible)")] = None,
+        "--time-limit", help="exact: S seconds of wall clock for the solve, counted after reading the input "
+                             "(best plan so far and its proven bound, status feasible)")] = None,
     pareto: Annotated[str | None, typer.Option(
         "--pareto", metavar="RANGE", help="Problem 1 per total server capacity: auto, LO:HI or LO:HI:POINTS "
                                           "(-o writes frontier.json and a PNG beside it)")] = None,

@@ -206,9 +206,10 @@ def solve(system: System, problem: int, method: str, *, resolution: float = 1.0,
         raise InputError(None, f"unknown method {method!r} (one of {', '.join(METHODS)})")
     the_problem, the_method = Problem(problem), Method(method)
     system.capacities(the_problem)  # every capacity the problem needs is there
-    start = time.perf_counter()
+    start = time.perf_counter()  # --time-limit counts from here: the choices, the set-up and the solve
+    deadline = None if time_limit is None else start + time_limit
     choices = fixed_choices(system, the_problem, settings, resolution)
-    plan = _dispatch(system, the_problem, the_method, choices, time_limit, progress)
+    plan = _dispatch(system, the_problem, the_method, choices, deadline, progress)
     plan.solve_s = time.perf_counter() - start
     plan.method = the_method
     if plan.system is None:
@@ -217,8 +218,7 @@ def solve(system: System, problem: int, method: str, *, resolution: float = 1.0,
 
 
 def _dispatch(system: System, problem: Problem, method: Method, choices: dict[str, list[Choice]],
-              time_limit: float | None, progress: Progress | None) -> Plan:
-    t0 = time.perf_counter()
+              deadline: float | None, progress: Progress | None) -> Plan:
     if method == Method.GREEDY:
         from perfros_bag.solver.greedy import solve_greedy
 
@@ -232,34 +232,25 @@ def _dispatch(system: System, problem: Problem, method: Method, choices: dict[st
 
         return solve_bruteforce(system, problem, choices)
     try:
-        from perfros_bag.solver.exact import solve_exact
+        from perfros_bag.solver import exact
     except ImportError as exc:
         raise InputError(None, f"the exact solver is not available ({exc})") from None
-    if problem == Problem.PERFORMANCE and exact_columns(system, choices) > DECOMPOSE_COLUMNS:
+
+    def left() -> float | None:
+        """Seconds to the deadline (0 when past it), None without a time limit."""
+        return None if deadline is None else max(deadline - time.perf_counter(), 0.0)
+
+    prepared = exact.prepare_instance(system, problem, choices)  # once, for whichever solver runs
+    columns = exact_columns(system, choices)
+    if problem == Problem.PERFORMANCE and columns > DECOMPOSE_COLUMNS and not isinstance(prepared, str):
         from perfros_bag.solver.decompose import solve_decomposed
 
-        decomposed = solve_decomposed(system, problem, choices, time_limit=time_limit, progress=progress)
+        decomposed = solve_decomposed(system, problem, choices, time_limit=left(), progress=progress,
+                                      prepared=prepared)
         if decomposed is not None:
-            return decomposed
-    start = _exact_start(system, problem, choices, time_limit)
-    remaining = None if time_limit is None else max(time_limit - (time.perf_counter() - t0), 0.01)
-    return _within_trivial_bound(system, problem, choices,
-                                 solve_exact(system, problem, choices, time_limit=remaining, start=start))
-
-
-def _within_trivial_bound(system: System, problem: Problem, choices: Mapping[str, list[Choice]], plan: Plan) -> Plan:
-    """A plan's bound never looser than the trivial one (Problem 1: Σ w·max P; Problem 2:
-    no server capacity at all): HiGHS reports its dual bound as it stands, which before its
-    root LP is solved can be anything (29250.5 beside an objective of 75.6 was seen)."""
-    if plan.bound is None or plan.objective is None:
-        return plan
-    if problem == Problem.PERFORMANCE:
-        from perfros_bag.solver.decompose import trivial_bound
-
-        plan.bound = max(min(plan.bound, trivial_bound(system, choices)), plan.objective)
-    else:
-        plan.bound = min(max(plan.bound, 0.0), plan.objective)
-    return plan
+            return exact.within_trivial_bound(system, problem, choices, decomposed)
+    start = None if isinstance(prepared, str) else _exact_start(system, problem, choices, left(), columns)
+    return exact.solve_exact(system, problem, choices, time_limit=left(), start=start, prepared=prepared)
 
 
 #: above this many (node, choice, computer) columns the exact solver gets a MIP start from
@@ -267,7 +258,7 @@ def _within_trivial_bound(system: System, problem: Problem, choices: Mapping[str
 #: ends 2.9 % from its bound in 30 s, with greedy+'s plan as start 0.3 %). Table II
 #: instances (< 5,000 columns) prove optimal in < 1 s without one.
 START_COLUMNS = 20_000
-#: the share of ``time_limit`` greedy+ may spend on that start.
+#: the share of what is left of ``time_limit`` greedy+ may spend on that start.
 START_SHARE = 0.25
 #: above this many columns, Problem 1 goes to the decomposition
 #: (:mod:`perfros_bag.solver.decompose`) when the instance qualifies. Measured
@@ -283,10 +274,11 @@ def exact_columns(system: System, choices: Mapping[str, list[Choice]]) -> int:
 
 
 def _exact_start(system: System, problem: Problem, choices: dict[str, list[Choice]],
-                 time_limit: float | None) -> Assignment | None:
-    """greedy+'s plan (within :data:`START_SHARE` of the time limit) as the exact solver's MIP
-    start on big instances; None on small ones, or when greedy+ finds nothing."""
-    if problem != Problem.PERFORMANCE or exact_columns(system, choices) <= START_COLUMNS:
+                 time_limit: float | None, columns: int) -> Assignment | None:
+    """greedy+'s plan (within :data:`START_SHARE` of the time left) as the exact solver's MIP
+    start on big instances (``columns`` > :data:`START_COLUMNS`); None on small ones, or
+    when greedy+ finds nothing."""
+    if problem != Problem.PERFORMANCE or columns <= START_COLUMNS:
         return None
     from perfros_bag.solver.local import solve_greedy_plus
 

@@ -35,7 +35,7 @@ from __future__ import annotations
 import itertools
 import math
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -43,13 +43,13 @@ import numpy as np
 
 from perfros_bag.solver import Progress
 from perfros_bag.solver import exact as exact_mod
-from perfros_bag.solver.exact import Group, Instance, quiet_highs
+from perfros_bag.solver.exact import Group, Instance, quiet_highs, trivial_bound
 from perfros_bag.solver.local import combine_tables, on_grid
 from perfros_bag.system.plan import Assignment, Method, Plan, Status
 from perfros_bag.system.rules import build_plan, computer_loads, weighted_performance
 from perfros_bag.system.types import Choice, Problem, System
 
-__all__ = ["decomposable", "solve_decomposed", "trivial_bound"]
+__all__ = ["decomposable", "solve_decomposed"]
 
 
 GRID_SCALES = (1, 2, 4, 5, 10)  # CPU grid factors tried (CPU x factor must be integers)
@@ -57,16 +57,12 @@ MAX_CELLS = 5_000  # CPU cells of one private computer's knapsack table
 MAX_GROUP_OPTIONS = 20_000  # setting combinations of one coresidence group
 CG_SHARE = 0.5  # share of the time limit column generation may take
 PLAN_SHARE = 0.05  # share kept for building the plan (the --time-limit promise is 5 %)
+PLAN_MIN_S = 0.15  # ... at least this: HiGHS stops a little after its limit (measured up to ~0.1 s)
 NO_LIMIT_S = 120.0  # the MILP's limit when no time limit is given
 REL_TOL = 1e-6  # "optimal": bound - objective within this (relative), as exact.py
 FIRST_MIP_SHARE = 0.5  # of the time left, for the MILP over the generated columns
 NEAR_LIMIT = 20_000  # columns the reduced-cost enumeration may add (else it is not tried)
 CG_TOL = 1e-7  # column generation stops when the LP is this close to the bound (relative)
-
-
-def trivial_bound(system: System, choices: Mapping[str, list[Choice]]) -> float:
-    """Σ w·(best performance): no plan can do better (Problem 1)."""
-    return sum(system.node[n].weight * max(c.performance for c in opts) for n, opts in choices.items())
 
 
 @dataclass
@@ -212,16 +208,24 @@ def _model(system: System, inst: Instance) -> _Model | str:
     return _Model(inst, relaxed, cap, classes)
 
 
+def _qualified(system: System, problem: Problem, choices: dict[str, list[Choice]],
+               prepared: Instance | str | None) -> _Model | None:
+    """The decomposition's model when the instance qualifies (:func:`decomposable`), else
+    None. ``prepared``: ``exact.prepare_instance``'s answer when the caller has it."""
+    if problem != Problem.PERFORMANCE:
+        return None
+    inst = exact_mod.prepare_instance(system, problem, choices) if prepared is None else prepared
+    if isinstance(inst, str) or exact_mod.active_links(inst):
+        return None
+    model = _model(system, inst)
+    return None if isinstance(model, str) else model
+
+
 def decomposable(system: System, problem: Problem, choices: dict[str, list[Choice]]) -> bool:
     """Whether :func:`solve_decomposed` applies: Problem 1, a network that can never
     overflow, CPU levels on a grid; an instance infeasible on its face is left to the
     exact solver (which names the constraint)."""
-    if problem != Problem.PERFORMANCE:
-        return False
-    inst = exact_mod.prepare_instance(system, problem, choices)
-    if isinstance(inst, str) or exact_mod.active_links(inst):
-        return False
-    return not isinstance(_model(system, inst), str)
+    return _qualified(system, problem, choices, None) is not None
 
 
 # ---- pricing ----------------------------------------------------------------------------
@@ -508,44 +512,38 @@ def _fits(model: _Model, assignment: Assignment) -> bool:
 
 
 def solve_decomposed(system: System, problem: Problem, choices: dict[str, list[Choice]], *,
-                     time_limit: float | None = None, progress: Progress | None = None) -> Plan | None:
+                     time_limit: float | None = None, progress: Progress | None = None,
+                     prepared: Instance | str | None = None) -> Plan | None:
     """Problem 1 by column generation and a MILP over the columns (module docstring).
 
     Returns the best plan found with ``bound`` the best Lagrangian bound (never above
     Σ w·max P); ``status`` is ``optimal`` only when they agree within 1e-6 (relative),
-    else ``feasible``. ``time_limit`` covers the whole call: column generation gets at most
-    half of it, the MILP over the columns what is left but 5 %. Returns None when the
-    instance does not qualify (:func:`decomposable`: the caller then uses the MILP on the
-    whole model) or when no plan was found."""
-    from perfros_bag.solver import start_of
-    from perfros_bag.solver.greedy import solve_greedy
-
+    else ``feasible``. ``time_limit`` covers the whole call, set-up included: column
+    generation gets at most half of what the set-up left, the MILP over the columns what
+    is left but 5 % (at least 0.15 s); when the set-up alone uses the budget, the paper's
+    greedy's plan is returned with the bound at hand (at worst Σ w·max P). ``prepared``:
+    the instance as ``exact.prepare_instance`` gave it, when the caller has it (else it is
+    prepared here). Returns None when the instance does not qualify (:func:`decomposable`: the
+    caller then uses the MILP on the whole model) or when no plan was found."""
     t0 = time.perf_counter()
 
     def elapsed() -> float:
         return time.perf_counter() - t0
 
-    if problem != Problem.PERFORMANCE:
+    model = _qualified(system, problem, choices, prepared)
+    if model is None:
         return None
-    inst = exact_mod.prepare_instance(system, problem, choices)
-    if isinstance(inst, str) or exact_mod.active_links(inst):
-        return None
-    model = _model(system, inst)
-    if isinstance(model, str):
-        return None
+    inst = model.inst
     ceiling = trivial_bound(system, inst.choices)
-    budget = NO_LIMIT_S if time_limit is None else time_limit * (1 - PLAN_SHARE)
+    budget = NO_LIMIT_S if time_limit is None else time_limit - max(PLAN_SHARE * time_limit, PLAN_MIN_S)
     master = _Master(model, penalty=ceiling + 1.0)
 
     # the paper's greedy: the first columns, and the MILP's start
-    greedy = solve_greedy(system, problem, choices)
+    mapped = exact_mod.greedy_start(inst, choices)
     incumbent: Assignment | None = None
-    if greedy.status != Status.INFEASIBLE:
-        raw = start_of(greedy, choices)
-        mapped = exact_mod.start_assignment(inst, raw) if raw is not None else None
-        if mapped is not None:
-            incumbent = mapped[0]
-            master.add(_column_of(model, *mapped))
+    if mapped is not None:
+        incumbent = mapped[0]
+        master.add(_column_of(model, *mapped))
     best_value = weighted_performance(system, incumbent.choice) if incumbent is not None else None
     bound = ceiling
     lam = np.zeros(len(model.relaxed))
@@ -561,7 +559,7 @@ def solve_decomposed(system: System, problem: Problem, choices: dict[str, list[C
             break  # the LP is the Lagrangian dual: no column can improve it
         if elapsed() > cg_until or (master.add([col for _, col in priced]) == 0 and lp_value is not None):
             break
-        lp = master.solve_lp(max(budget - elapsed(), 0.1))
+        lp = master.solve_lp(budget - elapsed())
         if lp is None:
             break
         lp_value, _, lam = lp
@@ -575,6 +573,8 @@ def solve_decomposed(system: System, problem: Problem, choices: dict[str, list[C
 
     proven = complete = False
     for attempt in range(2):
+        if attempt == 0 and incumbent is not None and elapsed() >= budget:
+            break  # the set-up and the bound used the time: the greedy's plan is the answer
         if attempt == 1:
             if incumbent is None or best_value is None or elapsed() > budget * 0.9:
                 break

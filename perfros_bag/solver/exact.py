@@ -37,7 +37,7 @@ import math
 import os
 import sys
 import time
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -49,7 +49,7 @@ from perfros_bag.system.rules import build_plan, computer_loads, server_sizes
 from perfros_bag.system.rules import objective as plan_objective
 from perfros_bag.system.types import Choice, Edge, Problem, System
 
-__all__ = ["solve_exact"]
+__all__ = ["solve_exact", "trivial_bound", "within_trivial_bound"]
 
 EPS = 1e-9
 _INF = math.inf
@@ -59,6 +59,12 @@ _LOG = False  # HiGHS log on stdout (debugging)
 # Above this many columns HiGHS's MIP presolve (probing) costs more than it saves: 23 s of
 # a 40 s run on 200 nodes x 20 computers (80,000 columns), against 0.2 s with it off.
 _BIG_MODEL = 20_000
+#: the share of a time limit (at least RESERVE_S) not handed to HiGHS nor to building the
+#: model: measured, a MILP run at 200 x 20 (80,000 columns) stops up to ~0.1 s after its
+#: limit, and freeing a half-built 1,000 x 100 model takes ~0.12 s; the plan is built after
+#: them (--time-limit is honoured within 5 %)
+RESERVE_SHARE = 0.05
+RESERVE_S = 0.2
 _HIGHS_OPTIONS: dict[str, Any] = {
     "mip_heuristic_run_rins": False,
     "mip_heuristic_run_rens": False,
@@ -140,9 +146,12 @@ class _Milp:
 
     def solve(self, maximise: bool, *, time_limit: float | None, mip_gap: float,
               start: dict[int, float] | None = None, relax: bool = False) -> Any:
-        """Run HiGHS (``relax``: the LP relaxation); returns the Highs object."""
+        """Run HiGHS (``relax``: the LP relaxation); returns the Highs object. ``time_limit``
+        counts from this call: passing a big model to HiGHS takes a while (~0.3 s at 1,000 x
+        100), which HiGHS's own clock does not count."""
         import highspy  # lazy: keeps the CLI's start-up fast
 
+        entered = time.perf_counter()
         h = quiet_highs()
         h.setOptionValue("output_flag", _LOG)
         h.setOptionValue("mip_rel_gap", float(mip_gap))
@@ -173,6 +182,8 @@ class _Milp:
             idx = np.fromiter(start.keys(), dtype=np.int32, count=len(start))
             val = np.fromiter(start.values(), dtype=np.float64, count=len(start))
             h.setSolution(len(start), idx, val)
+        if time_limit is not None:
+            h.setOptionValue("time_limit", float(max(time_limit - (time.perf_counter() - entered), 0.01)))
         h.run()
         return h
 
@@ -201,10 +212,9 @@ class Instance:
     min_cpu: dict[str, float]
     cut: dict[int, frozenset[str]]  # link -> one side, for links in the cut form
     pairs: dict[int, list[tuple[str, str]]]  # link -> ordered computer pairs routed over it
-
-
-def _bw_vector(system: System, node: str, choice: Choice) -> tuple[float, ...]:
-    return tuple(system.edge_bandwidth(e, choice) for e in system.edges if e.src == node)
+    active: set[int] | None = None  # active_links, once computed
+    # edge (src, dst) -> links it always crosses, links it may cross (see _crossings)
+    crossings: dict[tuple[str, str], tuple[frozenset[int], frozenset[int]]] = field(default_factory=dict)
 
 
 def _prune_choices(system: System, problem: Problem, node: str, options: Sequence[Choice],
@@ -216,7 +226,8 @@ def _prune_choices(system: System, problem: Problem, node: str, options: Sequenc
     usable = [i for i, ch in enumerate(options) if ch.cpu <= cpu_room + EPS]
     if problem != Problem.PERFORMANCE or len(usable) <= 1:
         return [options[i] for i in usable], {i: p for p, i in enumerate(usable)}
-    bws = {i: _bw_vector(system, node, options[i]) for i in usable}
+    out_edges = [e for e in system.edges if e.src == node]
+    bws = {i: tuple(system.edge_bandwidth(e, options[i]) for e in out_edges) for i in usable}
     order = sorted(usable, key=lambda i: (options[i].cpu, -options[i].performance, bws[i]))
     kept: list[int] = []
     best_of: dict[int, int] = {}
@@ -246,25 +257,29 @@ def _prune_choices(system: System, problem: Problem, node: str, options: Sequenc
 def _classify_links(system: System) -> tuple[dict[int, frozenset[str]], dict[int, list[tuple[str, str]]]]:
     """Per link, the cut form's side when the pairs routed over it are exactly those the
     link's removal splits, else those pairs (for the pair form)."""
-    names = [c.name for c in system.computers]
+    n_computers = len(system.computers)
     cut: dict[int, frozenset[str]] = {}
     pairs: dict[int, list[tuple[str, str]]] = {}
+    adjacent: dict[str, list[tuple[str, int]]] = {c.name: [] for c in system.computers}
+    for li, link in enumerate(system.links):
+        a, b = link.between
+        adjacent[a].append((b, li))
+        adjacent[b].append((a, li))
     for li, link in enumerate(system.links):
         # the side of link.between[0] when the link is removed
         side = {link.between[0]}
         frontier = [link.between[0]]
         while frontier:
             cur = frontier.pop()
-            for lj, other in enumerate(system.links):
-                if lj == li or cur not in other.between:
-                    continue
-                nxt = other.between[1] if other.between[0] == cur else other.between[0]
-                if nxt not in side:
+            for nxt, lj in adjacent[cur]:
+                if lj != li and nxt not in side:
                     side.add(nxt)
                     frontier.append(nxt)
-        split = {(a, b) for a in names for b in names if (a in side) != (b in side)}
         crossing = system.link_pairs[li]
-        if link.between[1] not in side and split == set(crossing):
+        # the pairs it splits are exactly the crossing ones: as many, and each crossing one split
+        split_count = 2 * len(side) * (n_computers - len(side))
+        if link.between[1] not in side and len(crossing) == split_count \
+                and all((a in side) != (b in side) for a, b in crossing):
             cut[li] = frozenset(side)
         else:
             pairs[li] = list(crossing)
@@ -329,24 +344,32 @@ def prepare_instance(system: System, problem: Problem, choices: dict[str, list[C
     return _network_precheck(inst) or inst
 
 
+def _crossings(inst: Instance, edge: Edge) -> tuple[frozenset[int], frozenset[int]]:
+    """The links the edge crosses wherever its ends go, and those it may cross (over every
+    pair of computers its ends' groups may use: the intersection and the union of their
+    routes). Cached on the instance."""
+    key = (edge.src, edge.dst)
+    hit = inst.crossings.get(key)
+    if hit is None:
+        gs, gd = inst.group_of[edge.src], inst.group_of[edge.dst]
+        always: set[int] | None = None
+        maybe: set[int] = set()
+        if gs is not gd:
+            for a in gs.allowed:
+                for b in gd.allowed:
+                    route = set(inst.system.route(a, b) or ())
+                    maybe |= route
+                    always = route if always is None else always & route
+        hit = (frozenset(always or ()), frozenset(maybe))
+        inst.crossings[key] = hit
+    return hit
+
+
 def _crossing_always(inst: Instance, edge: Edge, li: int) -> bool | None:
     """True when the edge crosses link ``li`` wherever its ends go, False when it never
     can, None otherwise."""
-    a_s = inst.group_of[edge.src].allowed
-    a_d = inst.group_of[edge.dst].allowed
-    if inst.group_of[edge.src] is inst.group_of[edge.dst]:
-        return False
-    if li in inst.cut:
-        side = inst.cut[li]
-        split = [(a in side) != (b in side) for a in a_s for b in a_d]
-    else:
-        pairs = set(inst.pairs[li])
-        split = [(a, b) in pairs for a in a_s for b in a_d]
-    if all(split):
-        return True
-    if not any(split):
-        return False
-    return None
+    always, maybe = _crossings(inst, edge)
+    return True if li in always else (None if li in maybe else False)
 
 
 def _link_name(system: System, li: int) -> str:
@@ -384,15 +407,17 @@ def _load_bounds(inst: Instance, *, forced: bool) -> tuple[list[float], list[lis
     bound = [0.0] * len(system.links)
     edges: list[list[str]] = [[] for _ in system.links]
     for e in system.edges:
+        always, maybe = _crossings(inst, e)
+        links = always if forced else maybe
+        if not links:
+            continue
         traffic = [system.edge_bandwidth(e, ch) for ch in inst.choices[e.src]]
         bw = min(traffic) if forced else max(traffic)
         if bw <= 0:
             continue
-        for li in range(len(system.links)):
-            crosses = _crossing_always(inst, e, li)
-            if crosses if forced else crosses is not False:
-                bound[li] += bw
-                edges[li].append(f"{e.src}->{e.dst}")
+        for li in sorted(links):
+            bound[li] += bw
+            edges[li].append(f"{e.src}->{e.dst}")
     return bound, edges
 
 
@@ -413,13 +438,16 @@ class _Built:
 
 def active_links(inst: Instance) -> set[int]:
     """Links (by index) whose bandwidth, or whose medium's, could ever be exceeded: the
-    others need no rows at all."""
+    others need no rows at all. Computed once per instance."""
+    if inst.active is not None:
+        return inst.active
     system = inst.system
     potential, _ = _load_bounds(inst, forced=False)
     active = {li for li, link in enumerate(system.links) if potential[li] > link.bandwidth_kBps + EPS}
     for m in system.media:
         if system.medium_load(potential, m.name) > m.bandwidth_kBps + EPS:
             active.update(system.medium_links[m.name])
+    inst.active = active
     return active
 
 
@@ -461,8 +489,20 @@ def _grid(inst: Instance, node: str, modelled: Sequence[int]) -> tuple[float, fl
     return lo, step
 
 
-def _build(inst: Instance, *, elastic: bool = False, compact_form: bool = False) -> _Built:
+class _OutOfTime(Exception):
+    """Building the model passed its deadline."""
+
+
+def _build(inst: Instance, *, elastic: bool = False, compact_form: bool = False,
+           deadline: float | None = None) -> _Built:
+    """The MILP of the instance. Past ``deadline`` (``time.perf_counter()``), raises
+    :class:`_OutOfTime` (checked per node group, computer and edge: at 1,000 x 100 the whole
+    build takes over a second)."""
     system, problem = inst.system, inst.problem
+
+    def on_time() -> None:
+        if deadline is not None and time.perf_counter() > deadline:
+            raise _OutOfTime
     milp = _Milp()
     x: dict[tuple[str, int, str], int] = {}
     slack: dict[str, int] = {}
@@ -473,6 +513,7 @@ def _build(inst: Instance, *, elastic: bool = False, compact_form: bool = False)
     placed_terms: dict[tuple[str, str], list[tuple[int, float]]] = {}
     cpu_terms: dict[tuple[str, str], list[tuple[int, float]]] = {}
     for g in inst.groups:
+        on_time()
         if len(g.members) > 1:
             g.z = {c: milp.var(0.0, 1.0, 0.0, integer=True) for c in g.allowed}
             milp.row(((col, 1.0) for col in g.z.values()), 1.0, 1.0)
@@ -523,6 +564,7 @@ def _build(inst: Instance, *, elastic: bool = False, compact_form: bool = False)
     # CPU per computer (eq 3)
     server_cap: dict[str, int] = {}
     for comp in system.computers:
+        on_time()
         terms = [t for g in inst.groups if comp.name in g.allowed
                  for n in g.members for t in cpu_terms[(n, comp.name)]]
         if problem == Problem.SERVER_CAPACITY and comp.kind == "server":
@@ -542,6 +584,7 @@ def _build(inst: Instance, *, elastic: bool = False, compact_form: bool = False)
     # computers joined by no path: the two ends of an edge cannot sit there together
     if system.links:
         for e in system.edges:
+            on_time()
             gs, gd = inst.group_of[e.src], inst.group_of[e.dst]
             if gs is gd:
                 continue
@@ -555,6 +598,7 @@ def _build(inst: Instance, *, elastic: bool = False, compact_form: bool = False)
         load_terms: list[list[tuple[int, float]]] = [[] for _ in system.links]
         pair_cols: dict[tuple[int, str, str], int] = {}
         for ei in modelled:
+            on_time()
             e = system.edges[ei]
             gs, gd = inst.group_of[e.src], inst.group_of[e.dst]
             bw = [system.edge_bandwidth(e, ch) for ch in inst.choices[e.src]]
@@ -748,9 +792,48 @@ def _lp_rounding(inst: Instance, built: _Built, values: Sequence[float], maximis
     return _extract(fixed, sub, h.getSolution().col_value)
 
 
+def trivial_bound(system: System, choices: Mapping[str, list[Choice]]) -> float:
+    """Σ w·(best performance): no plan can do better (Problem 1)."""
+    return sum(system.node[n].weight * max(c.performance for c in opts) for n, opts in choices.items())
+
+
+def within_trivial_bound(system: System, problem: Problem, choices: Mapping[str, list[Choice]], plan: Plan) -> Plan:
+    """The plan with its bound as the rule wants it (every exact path applies this): never
+    looser than the trivial one (Problem 1: Σ w·max P; Problem 2: no server capacity at
+    all), never on the wrong side of the objective, and stated whenever there is an
+    objective (a solve stopped before proving anything states the trivial one). HiGHS
+    reports its dual bound as it stands, which before its root LP is solved can be anything
+    (29250.5 beside an objective of 75.6 was seen)."""
+    if plan.objective is None:
+        return plan
+    if problem == Problem.PERFORMANCE:
+        ceiling = trivial_bound(system, choices)
+        plan.bound = max(min(ceiling if plan.bound is None else plan.bound, ceiling), plan.objective)
+    else:
+        plan.bound = min(max(0.0 if plan.bound is None else plan.bound, 0.0), plan.objective)
+    return plan
+
+
+def _reserve(time_limit: float) -> float:
+    """The seconds of a time limit kept from HiGHS and from building the model: HiGHS stops a
+    little after its limit, the plan is built after it, and a big model takes a while to
+    free (~0.12 s at 1,000 x 100)."""
+    return max(RESERVE_SHARE * time_limit, RESERVE_S)
+
+
+def greedy_start(inst: Instance, choices: dict[str, list[Choice]]) -> tuple[Assignment, dict[str, int]] | None:
+    """The paper's greedy's plan mapped onto the pruned model, None when it finds none."""
+    from perfros_bag.solver import start_of
+    from perfros_bag.solver.greedy import solve_greedy
+
+    plan = solve_greedy(inst.system, inst.problem, choices)
+    raw = start_of(plan, choices) if plan.status != Status.INFEASIBLE else None
+    return start_assignment(inst, raw) if raw is not None else None
+
+
 def solve_exact(system: System, problem: Problem, choices: dict[str, list[Choice]], *,
                 time_limit: float | None = None, mip_gap: float = 0.0,
-                start: Assignment | None = None) -> Plan:
+                start: Assignment | None = None, prepared: Instance | str | None = None) -> Plan:
     """Solve Problem 1 (max Σ w·P) or Problem 2 (min Σ server capacity) exactly with HiGHS.
 
     ``choices`` are each node's candidates (:func:`perfros_bag.solver.fixed_choices`).
@@ -758,7 +841,10 @@ def solve_exact(system: System, problem: Problem, choices: dict[str, list[Choice
     with the solver's ``bound`` when ``time_limit`` or a positive ``mip_gap`` stopped it
     first, or ``infeasible`` with a reason naming the constraint. ``start`` (e.g. the
     greedy+ plan) is checked and passed to HiGHS as a MIP start; on hard instances it is
-    what lets HiGHS close the gap quickly (docs/solvers.md).
+    what lets HiGHS close the gap quickly (docs/solvers.md). ``time_limit`` covers the
+    whole call, set-up included: when the set-up uses it up, the start is the answer (with
+    the LP bound when there is one). ``prepared``: :func:`prepare_instance`'s answer when
+    the caller has it.
     """
     import highspy
 
@@ -767,18 +853,26 @@ def solve_exact(system: System, problem: Problem, choices: dict[str, list[Choice
         raise InputError(system.source, f"problem must be 1 or 2, got {problem!r}")
     if mip_gap < 0 or not math.isfinite(mip_gap):
         raise InputError(None, f"mip_gap must be >= 0, got {mip_gap!r}")
-    prepared = prepare_instance(system, problem, choices)
+    if prepared is None:
+        prepared = prepare_instance(system, problem, choices)
     if isinstance(prepared, str):
         return Plan.infeasible(problem, Method.EXACT, prepared, solve_s=time.perf_counter() - t0,
                                system=system.source)
     inst = prepared
-    built = _build(inst)
     mapped = start_assignment(inst, start) if start is not None else None
     maximise = problem == Problem.PERFORMANCE
-    big = len(built.milp.cost) > _BIG_MODEL
 
     def remaining() -> float | None:
-        return None if time_limit is None else max(time_limit - (time.perf_counter() - t0), 0.01)
+        """HiGHS's time limit for its next run: what is left, but a reserve (HiGHS stops a
+        little after its limit; the plan is built after it) when there is a start to fall
+        back on (else HiGHS is the only way to a plan: it gets all that is left)."""
+        if time_limit is None:
+            return None
+        reserve = _reserve(time_limit) if mapped is not None else 0.0
+        return max(time_limit - reserve - (time.perf_counter() - t0), 0.01)
+
+    def out_of_time() -> bool:
+        return time_limit is not None and time.perf_counter() - t0 >= time_limit
 
     def done(assignment: Assignment, bound: float, proven: bool) -> Plan:
         value = plan_objective(system, assignment, problem)
@@ -786,26 +880,46 @@ def solve_exact(system: System, problem: Problem, choices: dict[str, list[Choice
             bound = value if proven else (math.inf if maximise else 0.0)
         bound = max(bound, value) if maximise else min(bound, value)
         proven = proven or abs(bound - value) <= 1e-6 * max(1.0, abs(value))
-        return build_plan(system, assignment, problem=problem, method=Method.EXACT,
+        plan = build_plan(system, assignment, problem=problem, method=Method.EXACT,
                           status=Status.OPTIMAL if proven else Status.FEASIBLE,
                           bound=value if proven else (bound if math.isfinite(bound) else None),
                           solve_s=time.perf_counter() - t0)
+        return within_trivial_bound(system, problem, choices, plan)
 
+    if mapped is not None and out_of_time():  # the set-up used the time: the start is the answer
+        return done(mapped[0], _INF if maximise else -_INF, False)
+    try:  # with a start to fall back on, building the model may stop at the time limit
+        built = _build(inst, deadline=None if time_limit is None or mapped is None
+                       else t0 + time_limit - _reserve(time_limit))
+    except _OutOfTime:  # so did building the model: the start is the answer
+        assert mapped is not None
+        return done(mapped[0], _INF if maximise else -_INF, False)
+    big = len(built.milp.cost) > _BIG_MODEL
+    if mapped is not None and out_of_time():
+        return done(mapped[0], _INF if maximise else -_INF, False)
+    known = _INF if maximise else -_INF  # the best bound proven so far (the LP relaxation's)
     if mapped is not None or big:
         # The LP relaxation is cheap next to HiGHS's MIP presolve on big models, and the
         # x form's LP bound is tight: when it already proves the start within mip_gap,
         # stop there (measured: 200 nodes x 20 computers, greedy+ within 0.3 % of it).
         # A big model without a start gets one by rounding the LP's placement.
+        lp_started = time.perf_counter()
         lp = built.milp.solve(maximise, time_limit=remaining(), mip_gap=mip_gap, relax=True)
+        lp_seconds = time.perf_counter() - lp_started
         if lp.getModelStatus() == highspy.HighsModelStatus.kOptimal:
             lp_bound = float(lp.getInfo().objective_function_value)
+            known = lp_bound
             if mapped is None:
                 rounded = _lp_rounding(inst, built, lp.getSolution().col_value, maximise, mip_gap, remaining())
                 mapped = start_assignment(inst, rounded) if rounded is not None else None
             if mapped is not None:
                 value = plan_objective(system, mapped[0], problem)
-                if abs(lp_bound - value) <= max(mip_gap * abs(value), 1e-6 * max(1.0, abs(value))):
+                # the MILP starts with this LP: no time left for it, the start is the answer
+                too_late = time_limit is not None and time_limit - (time.perf_counter() - t0) < lp_seconds
+                if abs(lp_bound - value) <= max(mip_gap * abs(value), 1e-6 * max(1.0, abs(value))) or too_late:
                     return done(mapped[0], lp_bound, False)
+        elif mapped is not None and time_limit is not None:  # the LP ran out of time: so would the MILP
+            return done(mapped[0], _INF if maximise else -_INF, False)
     start_values = _start_values(inst, built, *mapped) if mapped is not None else None
     h = built.milp.solve(maximise, time_limit=remaining(), mip_gap=mip_gap, start=start_values)
     status = h.getModelStatus()
@@ -816,11 +930,16 @@ def solve_exact(system: System, problem: Problem, choices: dict[str, list[Choice
         reason = _diagnose(inst, remaining())
         return Plan.infeasible(problem, Method.EXACT, reason, solve_s=time.perf_counter() - t0,
                                system=system.source)
+    if not has_solution and mapped is None and time_limit is not None:
+        mapped = greedy_start(inst, choices)  # the limit came first: the best plan at hand
+    if not has_solution and mapped is not None:  # HiGHS stopped before it found a plan
+        return done(mapped[0], known, False)
     if not has_solution:
-        limit = f"{time_limit:g} s" if time_limit is not None else "the solver's limits"
+        limit = "the time limit" if time_limit is not None else "the solver's limits"
         return Plan.infeasible(problem, Method.EXACT,
                                f"no feasible plan found within {limit} (HiGHS: {h.modelStatusToString(status)}); "
                                "infeasibility was not proven: a longer time limit may find one",
                                solve_s=time.perf_counter() - t0, system=system.source)
     assignment = _extract(inst, built, h.getSolution().col_value)
-    return done(assignment, float(info.mip_dual_bound), False)
+    dual = float(info.mip_dual_bound)  # before its root LP, HiGHS's is no better than the LP's
+    return done(assignment, min(dual, known) if maximise else max(dual, known), False)

@@ -276,6 +276,11 @@ class Improver:
         stop = time.monotonic() + TIME_BUDGET_S
         return stop if self.deadline is None else min(stop, self.deadline)
 
+    def late(self) -> bool:
+        """Past the deadline: a search in progress stops where it is (every change applied
+        was checked, so the state stays feasible)."""
+        return self.deadline is not None and time.monotonic() > self.deadline
+
     def run(self) -> None:
         s = self.s
         stop = self.stop()
@@ -308,6 +313,8 @@ class Improver:
         groups_on = {c: sorted({s.group_of[n] for n in on[c]}) for c in s.computers}
         for src in s.computers:
             for gi in groups_on[src]:
+                if self.late():
+                    break
                 g = s.groups[gi]
                 rest = [n for n in on[src] if n not in g]
                 v_src = self.value(src, rest)
@@ -323,7 +330,7 @@ class Improver:
         for i, a in enumerate(comps):
             for b in comps[i + 1:]:
                 for ga in groups_on[a]:
-                    if b not in s.group_allowed[ga]:
+                    if b not in s.group_allowed[ga] or self.late():
                         continue
                     rest_a = [n for n in on[a] if s.group_of[n] != ga]
                     for gb in groups_on[b]:
@@ -341,6 +348,8 @@ class Improver:
         pairs = sorted({tuple(sorted((s.group_of[e.src], s.group_of[e.dst]))) for e in s.edges
                         if s.group_of[e.src] != s.group_of[e.dst]})
         for ga, gb in pairs:
+            if self.late():
+                break
             members = list(s.groups[ga]) + list(s.groups[gb])
             homes = {s.place[n] or "" for n in members}
             for dst in s.group_allowed[ga]:
@@ -362,7 +371,9 @@ class Improver:
                 break
             if self._apply(plan):
                 return True
-        if len(s.groups) * len(s.computers) > MOVES_LIMIT:
+            if self.late():
+                return False
+        if len(s.groups) * len(s.computers) > MOVES_LIMIT or self.late():
             return False
         if self._repartition() or (self.trios and self._repartition3()):
             return True
@@ -371,7 +382,7 @@ class Improver:
         before = self.current(s.nodes)
         tried = 0
         for gain, _, plan in moves:
-            if tried >= self.DEPTH2:
+            if tried >= self.DEPTH2 or self.late():
                 break
             if len(plan) == 1 and gain <= 1e-9:
                 continue  # re-optimising one computer's settings changes nothing
@@ -395,6 +406,8 @@ class Improver:
         on = {c: s.on(c) for c in s.computers}
         best: tuple[float, Plan_] | None = None
         for i, a in enumerate(s.computers):
+            if self.late():
+                break
             for b in s.computers[i + 1:]:
                 groups = sorted({s.group_of[n] for n in on[a] + on[b]})
                 both = [gi for gi in groups if a in s.group_allowed[gi] and b in s.group_allowed[gi]]
@@ -421,6 +434,8 @@ class Improver:
         on = {c: s.on(c) for c in s.computers}
         best: tuple[float, Plan_] | None = None
         for trio in itertools.combinations(s.computers, 3):
+            if self.late():
+                break
             nodes = [n for c in trio for n in on[c]]
             groups = sorted({s.group_of[n] for n in nodes})
             opts = {gi: [c for c in trio if c in s.group_allowed[gi]] for gi in groups}

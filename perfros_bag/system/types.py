@@ -350,11 +350,17 @@ class Node:
                           else TopicRate(cur.frequency_hz, v))
         return out
 
+    @cached_property
+    def _setting_points(self) -> dict[str, list[tuple[float, float]]]:
+        """(CPU, value) of the settings that have it, by CPU, for the interpolated rates."""
+        return {attr: sorted((s.cpu, getattr(s, attr)) for s in self.settings if getattr(s, attr) is not None)
+                for attr in ("frequency_hz", "bandwidth_kBps")}
+
     def _relation_or_interp(self, key: str, value: float | None, cpu: float, attr: str) -> float | None:
         rel = self.relations.get(key)
         if rel is not None and value is not None:
             return rel(min(max(value, rel.domain[0]), rel.domain[1]))
-        points = sorted((s.cpu, getattr(s, attr)) for s in self.settings if getattr(s, attr) is not None)
+        points = self._setting_points[attr]
         if not points:
             return None
         if cpu <= points[0][0]:
@@ -396,7 +402,8 @@ class System:
 
     def allowed_to_all(self, nodes: Sequence[str]) -> tuple[str, ...]:
         """Computers every one of ``nodes`` may sit on (a coresidence group's), in system order."""
-        return tuple(c.name for c in self.computers if all(c.name in self.allowed(n) for n in nodes))
+        allowed = [set(self.allowed(n)) for n in nodes]
+        return tuple(c.name for c in self.computers if all(c.name in a for a in allowed))
 
     @cached_property
     def coresidence_groups(self) -> list[tuple[str, ...]]:

@@ -19,6 +19,7 @@ under ``/usr/bin/time`` (wall, peak RSS).
 
     .venv/bin/python tests/bench/bench_fleet_plan.py [--sizes 200x20,500x50,1000x100]
         [--limits 10,30,60] [--random 5] [--cpsat-python /path/to/python]
+    .venv/bin/python tests/bench/bench_fleet_plan.py --sizes 1000x100,200x20 --time-limits 1,2,5,10,30
 """
 
 from __future__ import annotations
@@ -133,27 +134,78 @@ def problem2(system: System, limit: float) -> None:
           f"bound {plan.bound}, {time.perf_counter() - w:.2f} s wall, checker {'ok' if not ok else ok}", flush=True)
 
 
+def cli_solve(path: Path, system: System, limit: float) -> dict[str, Any]:
+    """``perfros-bag solve PATH --method exact --time-limit LIMIT --json -o plan.json`` under
+    ``/usr/bin/time``: the plan's fields, the process's wall and peak RSS, the checker's verdict."""
+    from perfros_bag.system.planfile import load_plan
+
+    out = path.with_name("plan.json")
+    cmd = ["/usr/bin/time", "-f", "%e %M", sys.executable, "-m", "perfros_bag", "solve", str(path),
+           "--method", "exact", "--time-limit", f"{limit:g}", "--json", "-o", str(out)]
+    run = subprocess.run(cmd, capture_output=True, text=True, check=False)
+    wall, rss = run.stderr.strip().splitlines()[-1].split()
+    doc = json.loads(out.read_text())
+    problems = check_plan(system, load_plan(out))
+    return {**doc, "exit": run.returncode, "wall": float(wall), "rss_mb": int(rss) / 1024,
+            "gap": (doc["bound"] - doc["objective"]) / doc["objective"], "checker": problems or "ok"}
+
+
 def cli_run(system_data: dict[str, Any], limit: float) -> None:
     import yaml
 
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "fleet.yaml"
         path.write_text(yaml.safe_dump(system_data))
-        out = Path(tmp) / "plan.json"
-        cmd = ["/usr/bin/time", "-f", "%e %M", sys.executable, "-m", "perfros_bag", "solve", str(path),
-               "--method", "exact", "--time-limit", f"{limit:g}", "--json", "-o", str(out)]
-        run = subprocess.run(cmd, capture_output=True, text=True, check=False)
-        wall, rss = run.stderr.strip().splitlines()[-1].split()
-        doc = json.loads(out.read_text())
-        from perfros_bag.system.planfile import load_plan
-
-        system = system_of(system_data, str(path))
-        ok = check_plan(system, load_plan(out))
-        gap = (doc["bound"] - doc["objective"]) / doc["objective"]
+        r = cli_solve(path, system_of(system_data, str(path)), limit)
         print(f"\nCLI `perfros-bag solve fleet.yaml --method exact --time-limit {limit:g} --json -o plan.json`: "
-              f"{doc['status']}, objective {doc['objective']:.4f}, bound {doc['bound']:.4f}, gap {100 * gap:.4f} %, "
-              f"solve_s {doc['solve_s']:.2f}, {wall} s wall end to end, peak RSS {int(rss) / 1024:.0f} MB, "
-              f"checker {'ok' if not ok else ok}", flush=True)
+              f"{r['status']}, objective {r['objective']:.4f}, bound {r['bound']:.4f}, gap {100 * r['gap']:.4f} %, "
+              f"solve_s {r['solve_s']:.2f}, {r['wall']} s wall end to end, peak RSS {r['rss_mb']:.0f} MB, "
+              f"checker {r['checker']}", flush=True)
+
+
+def time_limits(sizes: list[tuple[int, int]], limits: list[float]) -> None:
+    """``--time-limit`` against the clock, end to end from the CLI: per size and limit, the
+    process's wall, the solve part (plan.json's ``solve_s``: from the start of ``solve()``,
+    after reading the system, to the plan), the rest (start-up, reading, writing), the
+    plan's gap to its own bound."""
+    import yaml
+
+    print("| instance | --time-limit s | solve_s | solve_s / limit | process wall s | wall - solve_s | "
+          "status | objective | bound | gap | peak RSS MB | checker |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for n, c in sizes:
+        data = fleet_instance(n, c)
+        with tempfile.TemporaryDirectory() as tmp:
+            path = Path(tmp) / "fleet.yaml"
+            path.write_text(yaml.safe_dump(data))
+            system = system_of(data, str(path))
+            for limit in limits:
+                r = cli_solve(path, system, limit)
+                print(f"| {n} x {c} | {limit:g} | {r['solve_s']:.2f} | {r['solve_s'] / limit:.3f} | {r['wall']:.2f} | "
+                      f"{r['wall'] - r['solve_s']:.2f} | {r['status']} | {r['objective']:.4f} | {r['bound']:.4f} | "
+                      f"{100 * r['gap']:.4f} % | {r['rss_mb']:.0f} | {r['checker']} |", flush=True)
+
+
+def other_paths(sizes: list[tuple[int, int]], limits: list[float]) -> None:
+    """``--time-limit`` on the exact paths other than the decomposition, in-process: Problem 2
+    (the MILP, no start) and Problem 1 with the wifi halved so the network can bind (the
+    MILP with greedy+'s start)."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests/: the binding fleet
+    from test_fleet import binding_network
+
+    print("\n| path | instance | limit s | wall s | status | objective | bound | checker |")
+    print("|---|---|---|---|---|---|---|---|")
+    for n, c in sizes:
+        data = fleet_instance(n, c)
+        for label, system, problem in (("Problem 2", system_of(data, "fleet"), 2),
+                                       ("Problem 1, binding wifi", system_of(binding_network(data), "binding"), 1)):
+            for limit in limits:
+                w = time.perf_counter()
+                plan = solve(system, problem, "exact", time_limit=limit)
+                wall = time.perf_counter() - w
+                ok = check_plan(system, plan) or "ok" if plan.objective is not None else plan.reason
+                print(f"| {label} | {n} x {c} | {limit:g} | {wall:.2f} | {plan.status} | {plan.objective} | "
+                      f"{plan.bound} | {ok} |", flush=True)
 
 
 def main() -> int:
@@ -164,9 +216,15 @@ def main() -> int:
     ap.add_argument("--cpsat-python", default=None, help="a Python with ortools installed (else no CP-SAT rows)")
     ap.add_argument("--no-highs-above", type=int, default=10_000_000,
                     help="skip plain HiGHS above this many nodes x computers")
+    ap.add_argument("--time-limits", default=None,
+                    help="only the --time-limit table: these limits (e.g. 1,2,5,10,30) at every size, from the CLI")
     args = ap.parse_args()
     t = time.perf_counter()
-    sizes = [tuple(int(v) for v in s.split("x")) for s in args.sizes.split(",") if s]
+    sizes = [(int(s.split("x")[0]), int(s.split("x")[1])) for s in args.sizes.split(",") if s]
+    if args.time_limits:
+        time_limits(sizes, [float(v) for v in args.time_limits.split(",")])
+        other_paths(sizes, [float(v) for v in args.time_limits.split(",")])
+        return 0
     limits = [float(v) for v in args.limits.split(",")]
     for (n, c), limit in zip(sizes, limits, strict=True):
         data = fleet_instance(n, c)
