@@ -76,6 +76,8 @@ BAD = [
     ("default wrong type", _with(["vary", 0, "default"], "slow"), ".default: must be of the same type"),
     ("node twice", _with(["vary", 1, "node"], "/camera"), "node /camera is listed twice"),
     ("arg twice", _with(["vary", 1, "arg"], "camera_rate"), "arg 'camera_rate' is set by two entries"),
+    ("exclude not a string", _with(["exclude"], ["/a"]), "exclude: must be a regular expression"),
+    ("exclude bad regex", _with(["exclude"], "/camera/(image"), "exclude: not a regular expression"),
 ]
 
 
@@ -198,3 +200,45 @@ def test_a_disk_too_full_for_rosbag_is_one_line_before_anything_starts(
     started = [p.pid for p in psutil.process_iter(["cmdline"]) if str(out) in " ".join(p.info["cmdline"] or [])]
     assert started == []  # nothing was started (no roscore, roslaunch or recorder for this folder)
     assert not list(out.glob("*.bag")) and not (out / "manifest.yaml").exists()
+
+
+def test_exclude_matches_whole_topic_names_as_rosbag_does(tmp_path: Path) -> None:
+    """rosbag record -x takes a topic out when the regex matches the whole name
+    (boost::regex_match): so does Space.recorded."""
+    doc = _with(["exclude"], "/robot[0-9]+/people/image")
+    space = load_space(_write(tmp_path, doc))
+    assert not space.recorded("/robot1/people/image") and not space.recorded("/robot12/people/image")
+    assert space.recorded("/robot1/people/image_raw") and space.recorded("/x/robot1/people/image")
+    assert space.recorded("/robot1/people/found")
+    assert load_space(_write(tmp_path, _with(["repeats"], 1))).recorded("/robot1/people/image")  # no exclude
+
+
+@pytest.mark.ros
+def test_node_command_is_what_roslaunch_would_run(tmp_path: Path) -> None:
+    """`roslaunch --args` for a node in a group namespace with an <env> and a remap, and
+    `--dump-params`: what a node started in another namespace gets (checked against the
+    launch file's own text)."""
+    import os
+
+    from perfros_bag.sweep.launchfile import launch_nodes, launch_params, node_command
+
+    (tmp_path / "inner.launch").write_text("""<launch>
+  <arg name="rate" default="5" />
+  <node name="camera" pkg="image_publisher" type="image_publisher" args="/no/such.png">
+    <remap from="image_raw" to="raw" />
+    <param name="publish_rate" value="$(arg rate)" />
+    <env name="PERFROS_TEST_ENV" value="a b" />
+  </node>
+</launch>""")
+    (tmp_path / "app.launch").write_text("""<launch>
+  <arg name="rate" default="7" />
+  <group ns="robot2"><include file="$(dirname)/inner.launch"><arg name="rate" value="$(arg rate)" /></include></group>
+</launch>""")
+    launch = read_launch(tmp_path / "app.launch")
+    env = dict(os.environ, ROS_HOME=str(tmp_path / "ros"))
+    assert launch_nodes(launch, {"rate": "9"}, env, 30) == ["/robot2/camera"]
+    cmd = node_command(launch, "/robot2/camera", {"rate": "9"}, env, 30)
+    assert cmd.node == "/robot2/camera"
+    assert cmd.env == {"ROS_NAMESPACE": "/robot2", "PERFROS_TEST_ENV": "a b"}
+    assert cmd.argv == ("/usr/lib/image_publisher/image_publisher", "/no/such.png", "image_raw:=raw", "__name:=camera")
+    assert launch_params(launch, {"rate": "9"}, env, 30) == {"/robot2/camera/publish_rate": 9}
