@@ -453,3 +453,44 @@ def test_cpu_p95_plans_with_the_settings_bursts(tmp_path: Path) -> None:
     assert read_model(tmp_path / "old.json").cpu_statistic == "mean"
     bad = run(str(system_path), str(csv_path), "--out", str(tmp_path / "x.json"), "--cpu", "p50")
     assert "p50" in one_error_line(bad) and not (tmp_path / "x.json").exists()
+
+
+def test_a_plan_of_the_mean_model_sets_problem_2_on_the_p95_model(tmp_path: Path) -> None:
+    """`solve --problem 2 --settings plan.json` on a model other than the plan's own (here
+    `fit --cpu p95` of the same rows): each node is held at the plan's parameter value, at
+    that value's CPU in the other model; a node without a parameter at its one setting."""
+    rng = np.random.default_rng(9)
+    rows = table_i_rows()
+    for r in rows:
+        r["cpu_units_p95"] = float(r["cpu_units_mean"]) * float(rng.uniform(1.1, 1.3))
+    system_path = write_yaml(tmp_path / "system.yaml", table_i_system())
+    csv_path = write_csv(tmp_path / "char.csv", rows)
+    mean_model, p95_model = tmp_path / "mean.json", tmp_path / "p95.json"
+    assert run(str(system_path), str(csv_path), "--out", str(mean_model)).exit_code == 0
+    assert run(str(system_path), str(csv_path), "--out", str(p95_model), "--cpu", "p95").exit_code == 0
+    plan1, plan2 = tmp_path / "p1.json", tmp_path / "p2.json"
+    solved = CliRunner().invoke(app, ["solve", str(mean_model), "--problem", "1", "--method", "exact", "--out", str(plan1)])
+    assert solved.exit_code == 0, solved.stderr
+    solved = CliRunner().invoke(app, ["solve", str(p95_model), "--problem", "2", "--method", "exact",
+                                      "--settings", str(plan1), "--out", str(plan2)])
+    assert solved.exit_code == 0, solved.stderr
+    first, second = json.loads(plan1.read_text()), json.loads(plan2.read_text())
+    p95 = load_system(p95_model)
+    for name, planned in first["nodes"].items():
+        node = p95.node[name]
+        if planned.get("value") is None:
+            assert len(node.settings) == 1
+            want = node.settings[0].cpu
+        else:
+            at = [s.cpu for s in node.settings if s.value is not None and np.isclose(s.value, planned["value"])]
+            want = at[0] if at else node.relations["parameter->cpu"](planned["value"])
+            lo, hi = node.curve.domain if node.curve is not None else (want, want)
+            want = min(max(want, lo), hi)
+        assert second["nodes"][name]["cpu"] == pytest.approx(want, rel=1e-6), name
+    # fed back to its own model, a plan keeps its own CPU levels
+    again = tmp_path / "again.json"
+    solved = CliRunner().invoke(app, ["solve", str(mean_model), "--problem", "2", "--method", "exact",
+                                      "--settings", str(plan1), "--out", str(again)])
+    assert solved.exit_code == 0, solved.stderr
+    assert {n: v["cpu"] for n, v in json.loads(again.read_text())["nodes"].items()} == pytest.approx(
+        {n: v["cpu"] for n, v in first["nodes"].items()})

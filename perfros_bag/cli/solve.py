@@ -27,7 +27,7 @@ def parse_settings(system: System, text: str, resolution: float) -> dict[str, fl
     from perfros_bag.system.planfile import load_plan
 
     if text.lower().endswith(".json") or Path(text).is_file():
-        return settings_from_plan(load_plan(text))
+        return settings_from_plan(load_plan(text), system, resolution)
     values: dict[str, float] = {}
     cpus: dict[str, float] = {}
     for item in filter(None, (p.strip() for p in text.split(","))):

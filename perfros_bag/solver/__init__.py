@@ -185,9 +185,33 @@ def _clamp(system: System, node: Node, value: float, cpu: float) -> float:
     return clamped
 
 
-def settings_from_plan(plan: Plan) -> dict[str, float]:
-    """node -> CPU level from a plan (e.g. Problem 1's answer fed to Problem 2)."""
-    return {name: n.cpu for name, n in plan.nodes.items()}
+def settings_from_plan(plan: Plan, system: System | None = None, resolution: float = 1.0) -> dict[str, float]:
+    """node -> CPU level from a plan (e.g. Problem 1's answer fed to Problem 2): the plan's
+    own CPU levels when ``system`` is the one the plan was solved from (or not given); for
+    another model of the same nodes (e.g. one fitted with ``fit --cpu p95``), each node's
+    parameter value in ``system`` (:func:`settings_from_values`), and a node without a value
+    at its one choice there."""
+    if system is None or _same_source(plan.system, system.source):
+        return {name: n.cpu for name, n in plan.nodes.items()}
+    out = settings_from_values(system, {name: n.value for name, n in plan.nodes.items()
+                                        if n.value is not None and name in system.node}, resolution)
+    for name, n in plan.nodes.items():
+        if name not in out and name in system.node:
+            choices = system.node[name].choices(resolution)
+            out[name] = choices[0].cpu if len(choices) == 1 else n.cpu
+    return out
+
+
+def _same_source(a: str | None, b: str | None) -> bool:
+    """Do two recorded source paths name the same file (best effort)?"""
+    from pathlib import Path
+
+    if a is None or b is None:
+        return a == b
+    try:
+        return Path(a).resolve() == Path(b).resolve()
+    except OSError:
+        return a == b
 
 
 def solve(system: System, problem: int, method: str, *, resolution: float = 1.0,
