@@ -50,6 +50,7 @@ FIXTURES = ROOT / "fixtures" / "casestudy_real"
 err = Console(stderr=True)
 COMMANDS: list[str] = []
 FAILED: list[dict[str, Any]] = []  # solves that found no plan
+DEPLOYS = {"ran": 0, "reused": 0}
 EXCLUDE = "/robot[0-9]+/people/image"  # the detector's debug image: never needed, never recorded
 SCALE0 = [1.05, 1.1, 1.2, 1.4]
 KERNEL = [3, 7, 11, 15]
@@ -259,6 +260,7 @@ def deploy(plan: Path, robots: int, system: Path, run_dir: Path, app: Path, args
     if (run_dir / "deploy.json").exists() and (run_dir / "validation.json").exists() \
             and stamp.exists() and stamp.read_text() == sig:
         err.print(f"reusing {rel(run_dir)}")
+        DEPLOYS["reused"] += 1
         COMMANDS.append(f"perfros-bag deploy {rel(plan)} {rel(app / f'app{robots}.launch')} --space "
                         f"{rel(app / f'space{robots}.yaml')} --out {rel(run_dir)} --system {rel(system)}   # reused")
     else:
@@ -268,6 +270,7 @@ def deploy(plan: Path, robots: int, system: Path, run_dir: Path, app: Path, args
         sh([BIN, "deploy", plan, app / f"app{robots}.launch", "--space", app / f"space{robots}.yaml", "--out", run_dir,
             "--system", system, "--units-per-core", f"{UNITS_PER_CORE:g}"], ok=(0, 1))
         stamp.write_text(sig)
+        DEPLOYS["ran"] += 1
     record = json.loads((run_dir / "deploy.json").read_text())
     validation = json.loads((run_dir / "validation.json").read_text())
     return {"record": record, "validation": validation}
@@ -483,15 +486,19 @@ def plots(out: Path, results: list[dict[str, Any]], rq3_rows: list[dict[str, Any
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(11, 3.8))
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2), sharey=True)
     for ax, problem in zip(axes, (1, 2), strict=True):
         rows = [r for r in results if r["problem"] == problem]
         xs = list(range(len(rows)))
-        ax.bar([x - 0.2 for x in xs], [r["expected"] for r in rows], 0.4, label="expected (plan)")
-        ax.bar([x + 0.2 for x in xs], [r["measured"] for r in rows], 0.4, label="measured (eq 10)")
-        ax.set_xticks(xs, [f"{r['instance']}\n{r['plan'].split('-', 1)[1]}" for r in rows], fontsize=7)
-        ax.set_title(f"Problem {problem}: Σ w·P expected vs measured")
-    axes[0].legend(loc="lower left", fontsize=8)
+        ax.bar(xs, [r["measured"] / r["expected"] for r in rows], 0.6,
+               color=["tab:orange" if r["plan"].endswith("p95") else "tab:blue" for r in rows])
+        ax.axhline(1.0, color="grey", lw=0.8)
+        for y in (0.975, 1.025):
+            ax.axhline(y, color="grey", lw=0.6, ls=":")
+        ax.set_ylim(0.85, 1.05)
+        ax.set_xticks(xs, [f"{r['instance']} {r['plan'].split('-', 1)[1]}" for r in rows], fontsize=7, rotation=90)
+        ax.set_title(f"Problem {problem}: measured / expected Σ w·P (eq 10)", fontsize=10)
+    axes[0].set_ylabel("measured / expected (dotted: ±2.5 %)")
     fig.tight_layout()
     fig.savefig(out / "rq2.png", dpi=110)
     plt.close(fig)
@@ -518,7 +525,8 @@ def f(x: Any, nd: int = 2) -> str:
 def markdown(results: list[dict[str, Any]], rq3_rows: list[dict[str, Any]], errors: list[dict[str, Any]],
              computers: dict[str, Any], args: argparse.Namespace, argv: list[str], started: str,
              seconds: float) -> str:
-    lines = [f"Pipeline run {started} (UTC), {seconds / 60:.1f} min wall on this 2-core machine "
+    lines = [f"Pipeline run {started} (UTC), {seconds / 60:.1f} min wall on this 2-core machine, "
+             f"{DEPLOYS['ran']} deployment(s) run and {DEPLOYS['reused']} reused from an earlier start "
              f"({UNITS_PER_CORE:g} CPU units = one core; {args.duration:g} s recorded per deployment, "
              f"{args.sweep_duration:g} s per sweep run).", "",
              "### The instances", "",
