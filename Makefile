@@ -48,8 +48,8 @@ test: setup setup-debs
 	$(PY) -m pytest -q $(PYTEST_ARGS)
 
 lint: setup
-	$(BIN)/ruff check perfros_bag tests
-	$(BIN)/mypy perfros_bag
+	$(BIN)/ruff check perfros_bag tests pipelines
+	$(BIN)/mypy perfros_bag pipelines
 
 bench: setup setup-debs
 	$(PY) tests/bench/run.py

@@ -40,11 +40,11 @@ from rich.console import Console
 
 from perfros_bag.casestudy.launcher import RunConfig, run_plan
 from perfros_bag.fileio import atomic_write_json, atomic_write_text
-from perfros_bag.system.plan import Assignment, Plan
+from perfros_bag.system.plan import Assignment, Plan, Status
 from perfros_bag.system.planfile import load_plan, save_plan
 from perfros_bag.system.rules import build_plan
 from perfros_bag.system.systemfile import load_system
-from perfros_bag.system.types import Choice, System
+from perfros_bag.system.types import Choice, Problem, System
 
 ROOT = Path(__file__).resolve().parent.parent
 BIN = Path(sys.executable).with_name("perfros-bag")
@@ -122,7 +122,8 @@ def characterise(out: Path, args: argparse.Namespace) -> Path:
         for idx in range(len(target.settings)):
             choice = {n.name: table1_choice(n, idx if n.name == target.name else 0) for n in system.nodes}
             place = {n.name: "server" for n in system.nodes}
-            plan = build_plan(system, Assignment(place, choice), problem=1, method="characterisation", status="feasible")
+            plan = build_plan(system, Assignment(place, choice), problem=Problem.PERFORMANCE, method="characterisation",
+                              status=Status.FEASIBLE)
             name = f"{target.name}_{choice[target.name].value:g}"
             deploy(system, sys_path, plan, char / name, cfg, f"characterise {name}")
             entries.append({"path": f"{name}/run.bag", "cpu": f"{name}/run.cpu.csv", "computer": "server",
@@ -283,8 +284,8 @@ def rq3(out: Path, args: argparse.Namespace) -> list[dict[str, Any]]:
         for name, v in values.items():
             choice[name] = forced_choice(system, name, v)
         placement = {n: pn.computer for n, pn in baseline.nodes.items()}
-        plan = build_plan(system, Assignment(placement, choice), problem=1,
-                          method=f"forced (Table III Mod. {m + 1})", status="feasible")
+        plan = build_plan(system, Assignment(placement, choice), problem=Problem.PERFORMANCE,
+                          method=f"forced (Table III Mod. {m + 1})", status=Status.FEASIBLE)
         configs.append((f"Mod. {m + 1}", plan))
     rows = []
     for label, plan in configs:

@@ -86,7 +86,7 @@ def rel(p: Path | str) -> str:
 
 
 def sh(args: Sequence[object], *, ok: tuple[int, ...] = (0,)) -> subprocess.CompletedProcess[str]:
-    shown = " ".join(shlex.quote(rel(a)) for a in args).replace(rel(BIN), "perfros-bag")
+    shown = " ".join(shlex.quote(rel(str(a))) for a in args).replace(rel(BIN), "perfros-bag")
     COMMANDS.append(shown)
     err.print(f"[dim]$ {shown}[/]", highlight=False)
     done = subprocess.run([str(a) for a in args], capture_output=True, text=True)
@@ -195,7 +195,8 @@ def instance_system(inst: Instance, draft: dict[str, Any]) -> dict[str, Any]:
         for what, src in base.items():
             node = json.loads(json.dumps(src).replace("/robot1/", f"/robot{k}/").replace("robot1_", f"robot{k}_"))
             node["weight"] = round(WEIGHTS[what] / (robots * sum(WEIGHTS.values())), 6)
-            perf = {"people": PERF_PEOPLE, "smooth": PERF_SMOOTH}.get(what)
+            levels: dict[str, dict[Any, float]] = {"people": PERF_PEOPLE, "smooth": PERF_SMOOTH}
+            perf = levels.get(what)
             for s in node["settings"]:
                 s["performance"] = 100.0 if perf is None else perf[s["value"]]
             node["residence"] = {"camera": [f"robot{k}"], "people": [f"robot{k}", "server"],
@@ -368,7 +369,7 @@ def deploy_all(out: Path, app: Path, plans: dict[int, dict[str, Path]], args: ar
 def forced(out: Path, name: str, source: Path, change: dict[str, tuple[str | None, float | None]]) -> Path:
     """``source`` with some nodes moved and/or set to another value, the model's predictions
     rebuilt for them (``build_plan`` with the fitted model), status ``feasible``."""
-    from perfros_bag.system.plan import Assignment
+    from perfros_bag.system.plan import Assignment, Status
     from perfros_bag.system.planfile import load_plan, save_plan
     from perfros_bag.system.rules import build_plan
     from perfros_bag.system.systemfile import load_system
@@ -386,12 +387,12 @@ def forced(out: Path, name: str, source: Path, change: dict[str, tuple[str | Non
         want = pn.value if value is None else value
         choice[node.name] = min(node.settings, key=lambda s: abs((s.value or 0.0) - (want or 0.0))) \
             if node.settings else None
-    from perfros_bag.system.types import Choice
+    from perfros_bag.system.types import Choice, Problem
 
     choices = {n: Choice(0, s.cpu, s.performance, s.value, s.frequency_hz, s.bandwidth_kBps, s.topics)
                for n, s in choice.items() if s is not None}
-    new = build_plan(system, Assignment(placement, choices), problem=1, method=f"forced ({name})",
-                     status="feasible")
+    new = build_plan(system, Assignment(placement, choices), problem=Problem.PERFORMANCE, method=f"forced ({name})",
+                     status=Status.FEASIBLE)
     path = out / f"plan-{name}.json"
     save_plan(new, path)
     return path
@@ -460,7 +461,9 @@ def computer_errors(results: list[dict[str, Any]]) -> dict[str, Any]:
     predicts against the group's measured CPU, over every deployment (each run once); and
     the camera's CPU with its detector on the robot vs on the server (the cost of sending
     its images to one more subscriber across a link)."""
-    seen, comp, camera = set(), {"robot": [], "server": []}, {"robot": [], "server": []}
+    seen: set[str] = set()
+    comp: dict[str, list[tuple[float, float]]] = {"robot": [], "server": []}
+    camera: dict[str, list[float]] = {"robot": [], "server": []}
     for r in results:
         if r["run"] in seen:
             continue
@@ -487,7 +490,8 @@ def computer_errors(results: list[dict[str, Any]]) -> dict[str, Any]:
 def model_errors(results: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """Per node kind: CPU predicted by the fit vs measured, frequency ratio, over every
     deployment (each run once)."""
-    seen, acc = set(), {}
+    seen: set[str] = set()
+    acc: dict[str, dict[str, list[float]]] = {}
     for r in results:
         if r["run"] in seen:
             continue
