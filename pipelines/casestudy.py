@@ -27,7 +27,6 @@ import csv
 import json
 import os
 import re
-import shlex
 import subprocess
 import sys
 from collections.abc import Sequence
@@ -35,7 +34,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from _docs import write_section
+from _common import run_shown, write_section
 from rich.console import Console
 
 from perfros_bag.casestudy.launcher import RunConfig, run_plan
@@ -57,14 +56,7 @@ BAR: list[Any] = []  # [rich Progress, task id] while the pipeline runs
 
 
 def sh(args: Sequence[object], *, ok: tuple[int, ...] = (0,)) -> subprocess.CompletedProcess[str]:
-    shown = " ".join(shlex.quote(str(a)) for a in args).replace(str(BIN), "perfros-bag")
-    shown = shown.replace(str(ROOT) + "/", "")
-    COMMANDS.append(shown)
-    err.print(f"[dim]$ {shown}[/]", highlight=False)
-    done = subprocess.run([str(a) for a in args], capture_output=True, text=True)
-    if done.returncode not in ok:
-        raise SystemExit(f"error: `{shown}` failed ({done.returncode}): {done.stderr.strip()[-800:]}")
-    return done
+    return run_shown(args, root=ROOT, program=BIN, commands=COMMANDS, console=err, ok=ok)
 
 
 def kind(name: str) -> str:

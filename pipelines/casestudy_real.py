@@ -29,7 +29,6 @@ from __future__ import annotations
 import argparse
 import csv
 import json
-import shlex
 import shutil
 import subprocess
 import sys
@@ -41,7 +40,7 @@ from pathlib import Path
 from typing import Any
 
 import yaml
-from _docs import write_section
+from _common import run_shown, write_section
 from rich.console import Console
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -86,13 +85,7 @@ def rel(p: Path | str) -> str:
 
 
 def sh(args: Sequence[object], *, ok: tuple[int, ...] = (0,)) -> subprocess.CompletedProcess[str]:
-    shown = " ".join(shlex.quote(rel(str(a))) for a in args).replace(rel(BIN), "perfros-bag")
-    COMMANDS.append(shown)
-    err.print(f"[dim]$ {shown}[/]", highlight=False)
-    done = subprocess.run([str(a) for a in args], capture_output=True, text=True)
-    if done.returncode not in ok:
-        raise SystemExit(f"error: `{shown}` failed ({done.returncode}): {done.stderr.strip()[-1500:]}")
-    return done
+    return run_shown(args, root=ROOT, program=BIN, commands=COMMANDS, console=err, ok=ok)
 
 
 # ---------------------------------------------------------------- the application

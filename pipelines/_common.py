@@ -1,0 +1,46 @@
+"""What the pipelines share: running a shown command, and writing results into a docs page."""
+
+from __future__ import annotations
+
+import shlex
+import shutil
+import subprocess
+from collections.abc import Sequence
+from pathlib import Path
+
+from rich.console import Console
+
+from perfros_bag.fileio import atomic_write_text
+
+
+def run_shown(args: Sequence[object], *, root: Path, program: Path, commands: list[str], console: Console,
+              ok: tuple[int, ...] = (0,)) -> subprocess.CompletedProcess[str]:
+    """Run ``args``; show it (paths relative to ``root``, ``program`` as ``perfros-bag``) on
+    ``console`` and append it to ``commands`` (for the results page); a ``SystemExit`` naming
+    it and the end of its stderr when its exit code is not in ``ok``."""
+    shown = " ".join(shlex.quote(str(a)) for a in args).replace(str(program), "perfros-bag")
+    shown = shown.replace(str(root) + "/", "")
+    commands.append(shown)
+    console.print(f"[dim]$ {shown}[/]", highlight=False)
+    done = subprocess.run([str(a) for a in args], capture_output=True, text=True)
+    if done.returncode not in ok:
+        raise SystemExit(f"error: `{shown}` failed ({done.returncode}): {done.stderr.strip()[-1500:]}")
+    return done
+
+
+def write_section(docs: Path, name: str, section: str, out: Path, images: tuple[str, ...], title: str) -> None:
+    """Replace what stands between ``<!-- NAME-results:begin -->`` and ``...:end -->`` in
+    ``docs`` with ``section`` (the markers are appended, or the page made with ``title``,
+    when missing); copy ``images`` that exist in ``out`` into ``docs``'s folder ``NAME/``."""
+    begin, end = f"<!-- {name}-results:begin -->", f"<!-- {name}-results:end -->"
+    text = docs.read_text() if docs.exists() else f"# {title}\n\n{begin}\n{end}\n"
+    if begin not in text:
+        text += f"\n{begin}\n{end}\n"
+    head, rest = text.split(begin, 1)
+    _, tail = rest.split(end, 1)
+    atomic_write_text(docs, f"{head}{begin}\n{section}\n{end}{tail}")
+    img = docs.parent / name
+    img.mkdir(exist_ok=True)
+    for image in images:
+        if (out / image).exists():
+            shutil.copyfile(out / image, img / image)
