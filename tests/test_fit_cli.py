@@ -426,16 +426,20 @@ def test_model_reader_names_the_broken_place_and_solve_needs_the_system_only(
         assert load_system(path).node["amcl1"].curve == load_system(out).node["amcl1"].curve
 
 
+def _bursty_table_i(tmp_path: Path, seed: int, high: float) -> tuple[list[dict[str, Any]], Path, Path]:
+    """Table I's rows with each recording's p95 CPU 1.1-``high`` times its mean (random)."""
+    rng = np.random.default_rng(seed)
+    rows = table_i_rows()
+    for r in rows:
+        r["cpu_units_p95"] = float(r["cpu_units_mean"]) * float(rng.uniform(1.1, high))
+    return rows, write_yaml(tmp_path / "system.yaml", table_i_system()), write_csv(tmp_path / "char.csv", rows)
+
+
 def test_cpu_p95_plans_with_the_settings_bursts(tmp_path: Path) -> None:
     """`fit --cpu p95`: each setting's CPU is the mean over its recordings of their
     `cpu_units_p95` (computed here from the CSV rows), not of `cpu_units_mean`; model.json
     says which, and a model without the key reads as `mean`."""
-    rng = np.random.default_rng(5)
-    rows = table_i_rows()
-    for r in rows:
-        r["cpu_units_p95"] = float(r["cpu_units_mean"]) * float(rng.uniform(1.1, 1.4))
-    system_path = write_yaml(tmp_path / "system.yaml", table_i_system())
-    csv_path = write_csv(tmp_path / "char.csv", rows)
+    rows, system_path, csv_path = _bursty_table_i(tmp_path, seed=5, high=1.4)
     out = tmp_path / "model.json"
     result = run(str(system_path), str(csv_path), "--out", str(out), "--cpu", "p95")
     assert result.exit_code == 0, result.stderr
@@ -459,12 +463,7 @@ def test_a_plan_of_the_mean_model_sets_problem_2_on_the_p95_model(tmp_path: Path
     """`solve --problem 2 --settings plan.json` on a model other than the plan's own (here
     `fit --cpu p95` of the same rows): each node is held at the plan's parameter value, at
     that value's CPU in the other model; a node without a parameter at its one setting."""
-    rng = np.random.default_rng(9)
-    rows = table_i_rows()
-    for r in rows:
-        r["cpu_units_p95"] = float(r["cpu_units_mean"]) * float(rng.uniform(1.1, 1.3))
-    system_path = write_yaml(tmp_path / "system.yaml", table_i_system())
-    csv_path = write_csv(tmp_path / "char.csv", rows)
+    rows, system_path, csv_path = _bursty_table_i(tmp_path, seed=9, high=1.3)
     mean_model, p95_model = tmp_path / "mean.json", tmp_path / "p95.json"
     assert run(str(system_path), str(csv_path), "--out", str(mean_model)).exit_code == 0
     assert run(str(system_path), str(csv_path), "--out", str(p95_model), "--cpu", "p95").exit_code == 0
