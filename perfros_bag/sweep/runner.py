@@ -253,9 +253,10 @@ def record_run(launch: LaunchFile, space: Space, run: Run, out: Path, *, interva
         with sigterm_as_interrupt():
             try:
                 if network is not None and network.emulated:
-                    with network.inside(network.master_computer()):
+                    spread = _Spread(network, dict(where or {}))
+                    with network.inside(spread.master):
                         graph = _record(launch, space, run, work, procs, timeout, interval, note, on_graph,
-                                        _Spread(network, dict(where or {})), on_window)
+                                        spread, on_window)
                 else:
                     graph = _record(launch, space, run, work, procs, timeout, interval, note, on_graph,
                                     on_window=on_window)
@@ -287,11 +288,11 @@ class _Spread:
     """A run across emulated computers (see :func:`record_run`)."""
 
     network: Network
-    where: dict[str, str]  # ROS node name -> computer
+    where: dict[str, str]  # node as system.yaml names it -> computer
+    master: str = field(init=False)  # where roscore runs (Network.master_computer)
 
-    @property
-    def master(self) -> str:
-        return self.network.master_computer()
+    def __post_init__(self) -> None:
+        self.master = self.network.master_computer()
 
     def computer(self, node: str) -> str:
         """The computer of ROS node ``node`` (``where`` names nodes as system.yaml does)."""
@@ -393,9 +394,10 @@ def _record(launch: LaunchFile, space: Space, run: Run, work: Path, procs: Proce
     if spread is None:
         recorders = [start_rosbag(procs, "rosbag record", work / "run.bag", None, RECORD_NODE, work / "rosbag.log",
                                   work, space.exclude)]
+        bags: dict[str, Path] = {}
         expected = {t: f"/{RECORD_NODE}" for t in advertised}
     else:
-        recorders, expected = _start_recorders(graph, nodes, space, spread, uri, work, procs)
+        recorders, expected, bags = _start_recorders(graph, nodes, space, spread, uri, work, procs)
     watch.others += [cpu, *recorders]
 
     def recording() -> bool:
@@ -427,7 +429,7 @@ def _record(launch: LaunchFile, space: Space, run: Run, work: Path, procs: Proce
     note("recording", 1.0)
     procs.stop([*(r.name for r in recorders), "record-cpu"], timeout=15.0)
     if spread is not None:
-        _merge_recordings(recorders, work, started_ns, ended_ns)
+        _merge_recordings(bags, work, started_ns, ended_ns)
     if not (work / "run.bag").exists():
         raise PerfrosError(f"rosbag record did not write its bag (see {work / 'rosbag.log'})")
     if not (work / "host.cpu.csv").exists():
@@ -436,10 +438,10 @@ def _record(launch: LaunchFile, space: Space, run: Run, work: Path, procs: Proce
 
 
 def _start_recorders(graph: Graph, nodes: list[str], space: Space, spread: _Spread, uri: str, work: Path,
-                     procs: Processes) -> tuple[list[Started], dict[str, str]]:
+                     procs: Processes) -> tuple[list[Started], dict[str, str], dict[str, Path]]:
     """One ``rosbag record`` per computer, of the topics published there (a topic with
     several publishers: where its first launched publisher runs; the rest with the master);
-    returns them and, per topic, the recorder that must subscribe to it."""
+    returns them, per topic the recorder that must subscribe to it, and per recorder its bag."""
     from perfros_bag.rosrun.recorders import rosbag_argv
 
     launched = set(nodes)
@@ -450,24 +452,25 @@ def _start_recorders(graph: Graph, nodes: list[str], space: Space, spread: _Spre
         owner = next((p for p in t.publishers if p in launched), None)
         comp = spread.computer(owner) if owner else spread.master
         by_computer.setdefault(comp, []).append(t.name)
-    recorders, expected = [], {}
+    recorders, expected, bags = [], {}, {}
     for comp, topics in sorted(by_computer.items()):
         node = f"{RECORD_NODE}_{comp}".replace("-", "_")
-        argv = rosbag_argv(work / f"run.{comp}.bag", topics, node)
-        argv = spread.network.wrap(comp, ["env", *spread.env(comp, uri), *argv])
-        recorders.append(procs.start(f"rosbag record {comp}", argv, work / f"rosbag.{comp}.log", cwd=work))
+        name, bag = f"rosbag record {comp}", work / f"run.{comp}.bag"
+        argv = spread.network.wrap(comp, ["env", *spread.env(comp, uri), *rosbag_argv(bag, topics, node)])
+        recorders.append(procs.start(name, argv, work / f"rosbag.{comp}.log", cwd=work))
         expected.update(dict.fromkeys(topics, f"/{node}"))
-    return recorders, expected
+        bags[name] = bag
+    return recorders, expected, bags
 
 
-def _merge_recordings(recorders: list[Started], work: Path, start_ns: int, end_ns: int) -> None:
-    """The per-computer bags merged into ``run.bag``, cut to the recording's window."""
-    parts = sorted(work.glob("run.*.bag"))
-    missing = [r.name for r in recorders if not (work / f"run.{r.name.rsplit(' ', 1)[-1]}.bag").exists()]
+def _merge_recordings(bags: Mapping[str, Path], work: Path, start_ns: int, end_ns: int) -> None:
+    """The per-computer bags (recorder -> its bag) merged into ``run.bag``, cut to the
+    recording's window."""
+    missing = [name for name, bag in bags.items() if not bag.exists()]
     if missing:
         raise PerfrosError(f"{', '.join(missing)} did not write its bag (see {work})")
     try:
-        merge_bags(parts, work / "run.bag", start_ns, end_ns)
+        merge_bags(list(bags.values()), work / "run.bag", start_ns, end_ns)
     except Exception as exc:  # noqa: BLE001 - rosbags' own errors: name the run's folder
         raise PerfrosError(f"cannot merge the computers' bags in {work}: {exc}") from None
 
