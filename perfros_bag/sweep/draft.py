@@ -30,7 +30,7 @@ from typing import TYPE_CHECKING, Any
 from perfros_bag.errors import InputError, PerfrosWarning
 from perfros_bag.fileio import atomic_write_text
 from perfros_bag.sweep.graph import Graph, GraphNode, GraphTopic, read_graph
-from perfros_bag.sweep.space import load_space
+from perfros_bag.sweep.space import Space, load_space
 from perfros_bag.system.names import NameKind, name_problem, system_node_name
 
 if TYPE_CHECKING:
@@ -72,10 +72,10 @@ def draft_system(directory: str | Path, out: str | Path) -> Draft:
     values = _values(manifest)
     graph_path = d / "graph.yaml"
     graph = read_graph(graph_path) if graph_path.exists() else _graph_from_recordings(manifest)
-    if (d / "space.yaml").exists():  # topics the sweep did not record (its exclude) have no measurement
-        recorded = load_space(d / "space.yaml").recorded
-        graph = replace(graph, topics=tuple(t for t in graph.topics if recorded(t.name)))
-    parameters = _parameters(d)
+    space = load_space(d / "space.yaml") if (d / "space.yaml").exists() else None  # the sweep's copy
+    if space is not None:  # topics the sweep did not record (its exclude) have no measurement
+        graph = replace(graph, topics=tuple(t for t in graph.topics if space.recorded(t.name)))
+    parameters = _parameters(space)
     computer, cores = _computer(manifest)
     app = [n for n in graph.nodes if n.launched and not NOT_APP.match(n.name)]
     if not app:
@@ -144,12 +144,11 @@ def _computer(manifest: Manifest) -> tuple[str, int]:
     return name, read_cpu_trace(trace).logical_cpus
 
 
-def _parameters(d: Path) -> dict[str, tuple[str, str | None]]:
+def _parameters(space: Space | None) -> dict[str, tuple[str, str | None]]:
     """node -> (parameter name, unit) from the sweep's copy of space.yaml (when there)."""
-    path = d / "space.yaml"
-    if not path.exists():
+    if space is None:
         return {}
-    return {v.system_name: (v.parameter.name, v.parameter.unit) for v in load_space(path).vary}
+    return {v.system_name: (v.parameter.name, v.parameter.unit) for v in space.vary}
 
 
 def _graph_from_recordings(manifest: Manifest) -> Graph:
