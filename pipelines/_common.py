@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import csv
 import shlex
 import shutil
 import subprocess
@@ -11,6 +12,21 @@ from pathlib import Path
 from rich.console import Console
 
 from perfros_bag.fileio import atomic_write_text
+
+
+def read_rows(path: Path) -> tuple[list[str], list[dict[str, str]]]:
+    """A CSV file's columns and rows (a characterisation.csv the pipeline copies per instance)."""
+    with path.open(newline="") as handle:
+        reader = csv.DictReader(handle)
+        return list(reader.fieldnames or []), list(reader)
+
+
+def write_rows(path: Path, fields: list[str], rows: list[dict[str, str]]) -> None:
+    """Write ``rows`` as a CSV file with the columns ``fields``."""
+    with path.open("w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=fields)
+        writer.writeheader()
+        writer.writerows(rows)
 
 
 def run_shown(args: Sequence[object], *, root: Path, program: Path, commands: list[str], console: Console,

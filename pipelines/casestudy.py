@@ -23,7 +23,6 @@ reused: delete OUT (or a run folder) to measure again.
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import os
 import re
@@ -34,7 +33,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from _common import run_shown, write_section
+from _common import read_rows, run_shown, write_rows, write_section
 from rich.console import Console
 
 from perfros_bag.casestudy.launcher import RunConfig, run_plan
@@ -148,10 +147,7 @@ def csv_for_instance(rows: list[dict[str, str]], system: System) -> list[dict[st
 # ---------------------------------------------------------------- 2. fit + solve
 
 def fit_and_solve(out: Path, char_csv: Path, instances: list[int]) -> dict[int, dict[str, Path]]:
-    with char_csv.open(newline="") as handle:
-        reader = csv.DictReader(handle)
-        fields = list(reader.fieldnames or [])
-        rows = list(reader)
+    fields, rows = read_rows(char_csv)
     plans: dict[int, dict[str, Path]] = {}
     for i in instances:
         sys_path = FIXTURES / f"instance{i}.yaml"
@@ -159,10 +155,7 @@ def fit_and_solve(out: Path, char_csv: Path, instances: list[int]) -> dict[int, 
         d = out / f"instance{i}"
         d.mkdir(parents=True, exist_ok=True)
         inst_csv = d / "characterisation.csv"
-        with inst_csv.open("w", newline="") as handle:
-            w = csv.DictWriter(handle, fieldnames=fields)
-            w.writeheader()
-            w.writerows(csv_for_instance(rows, system))
+        write_rows(inst_csv, fields, csv_for_instance(rows, system))
         model = d / "model.json"
         sh([BIN, "fit", sys_path, inst_csv, "--out", model] + (["--plots", d / "fit-plots"] if i == 1 else []))
         plans[i] = {}

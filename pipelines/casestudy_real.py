@@ -27,7 +27,6 @@ whose deploy.json exists is not run again): delete OUT, or one run's folder, to 
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import shutil
 import subprocess
@@ -40,7 +39,7 @@ from pathlib import Path
 from typing import Any
 
 import yaml
-from _common import run_shown, write_section
+from _common import read_rows, run_shown, write_rows, write_section
 from rich.console import Console
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -161,8 +160,7 @@ def rate_sweep(out: Path, app: Path) -> list[dict[str, Any]]:
     sh([BIN, "init", rec, "--out", out / "rate-draft.yaml"])
     csv_path = out / "rate-characterisation.csv"
     sh([BIN, "characterise", rec, "--system", out / "rate-draft.yaml", "--out", csv_path])
-    with csv_path.open(newline="") as handle:
-        rows = list(csv.DictReader(handle))
+    _fields, rows = read_rows(csv_path)
     rate_of = {r["recording"]: float(r["value"]) for r in rows if r["node"] == "robot1_camera" and r["value"]}
     cpu: dict[float, dict[str, float]] = {}
     for r in rows:
@@ -237,10 +235,7 @@ METHODS = (("p1-greedy", 1, "greedy"), ("p1-greedy+", 1, "greedy+"), ("p1-exact"
 
 
 def fit_and_solve(out: Path, char_csv: Path, draft: dict[str, Any], numbers: list[int]) -> dict[int, dict[str, Path]]:
-    with char_csv.open(newline="") as handle:
-        reader = csv.DictReader(handle)
-        fields = list(reader.fieldnames or [])
-        rows = list(reader)
+    fields, rows = read_rows(char_csv)
     plans: dict[int, dict[str, Path]] = {}
     for i in numbers:
         inst = INSTANCES[i]
@@ -250,10 +245,7 @@ def fit_and_solve(out: Path, char_csv: Path, draft: dict[str, Any], numbers: lis
         sys_path.write_text(f"# instance {i} of the real-node case study, written by pipelines/casestudy_real.py\n"
                             + yaml.safe_dump(instance_system(inst, draft), sort_keys=False))
         inst_csv = d / "characterisation.csv"
-        with inst_csv.open("w", newline="") as handle:
-            w = csv.DictWriter(handle, fieldnames=fields)
-            w.writeheader()
-            w.writerows(instance_csv(rows, len(inst.robot_capacity)))
+        write_rows(inst_csv, fields, instance_csv(rows, len(inst.robot_capacity)))
         model = d / "model.json"
         sh([BIN, "fit", sys_path, inst_csv, "--out", model] + (["--plots", d / "fit-plots"] if i == 1 else []))
         sh([BIN, "fit", sys_path, inst_csv, "--out", d / "model-p95.json", "--cpu", "p95"])
