@@ -33,7 +33,6 @@ for a quick smoke run).
 from __future__ import annotations
 
 import argparse
-import shutil
 import struct
 import sys
 import time
@@ -45,6 +44,9 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent.parent))
+
+from _timing import recording_once  # noqa: E402 - tests/bench/_timing.py (this folder is on sys.path)
+
 FORMATS = ("ros1", "rosbag2-sqlite3", "rosbag2-mcap", "mcap-zstd")
 STAMPED = ("/a/points", "/b/points", "/c/points")
 T0 = 1_700_000_000_000_000_000
@@ -95,15 +97,12 @@ Messages = Callable[[bool], Iterator[tuple[str, str, int, bytes]]]
 def write_once(data: Path, name: str, fmt: str, msgs: Messages) -> Path:
     """``data/name-fmt/rec...`` written by the third-party writers from ``msgs(ros1)``
     (ROS 1: Noetic types, else Humble), unless a complete one is there."""
+    return recording_once(data, f"{name}-{fmt}", fmt, lambda target: _write(target, fmt, msgs))
+
+
+def _write(target: Path, fmt: str, msgs: Messages) -> None:
     from rosbags.typesys import Stores, get_typestore
 
-    target = data / f"{name}-{fmt}" / ("rec.bag" if fmt == "ros1" else "rec.mcap" if fmt == "mcap-zstd" else "rec")
-    done = target.parent / ".complete"
-    if done.exists():
-        return target
-    shutil.rmtree(target.parent, ignore_errors=True)
-    target.parent.mkdir(parents=True)
-    t = time.perf_counter()
     ts = get_typestore(Stores.ROS1_NOETIC if fmt == "ros1" else Stores.ROS2_HUMBLE)
     if fmt == "mcap-zstd":
         from mcap.writer import CompressionType
@@ -133,9 +132,6 @@ def write_once(data: Path, name: str, fmt: str, msgs: Messages) -> Path:
                 if topic not in conns:
                     conns[topic] = w.add_connection(topic, mtype, typestore=ts, **extra)
                 w.write(conns[topic], stamp, payload)
-    print(f"  generated {target.relative_to(data)} in {time.perf_counter() - t:.1f} s", flush=True)
-    done.touch()
-    return target
 
 
 def best_of(n: int, fn: Callable[[], object]) -> tuple[float, float]:

@@ -29,7 +29,6 @@ import argparse
 import json
 import os
 import resource
-import shutil
 import subprocess
 import sys
 import time
@@ -39,6 +38,8 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent.parent
 sys.path.insert(0, str(ROOT))
+
+from _timing import recording_once  # noqa: E402 - tests/bench/_timing.py (this folder is on sys.path)
 
 from tests.ingest_gen import Msg, write_mcap, write_ros1, write_rosbag2  # noqa: E402
 
@@ -94,25 +95,18 @@ def dataset(kind: str, scale: float) -> Iterator[Msg]:
 
 
 def generate(data: Path, kind: str, fmt: str, scale: float) -> Path:
-    target = data / f"{kind}-{scale:g}-{fmt}" / ("rec.bag" if fmt == "ros1" else "rec.mcap" if fmt == "mcap-zstd" else "rec")
-    done = target.parent / ".complete"
-    if done.exists():
-        return target
-    shutil.rmtree(target.parent, ignore_errors=True)
-    target.parent.mkdir(parents=True)
-    msgs = list(dataset(kind, scale))
-    t = time.perf_counter()
-    if fmt == "ros1":
-        write_ros1(target, msgs)
-    elif fmt == "rosbag2-sqlite3":
-        write_rosbag2(target, msgs, "sqlite3")
-    elif fmt == "rosbag2-mcap":
-        write_rosbag2(target, msgs, "mcap")
-    else:
-        write_mcap(target, msgs, compression="zstd", chunk_size=1 << 20)
-    print(f"  generated {target.relative_to(data)} in {time.perf_counter() - t:.1f} s", flush=True)
-    done.touch()
-    return target
+    def write(target: Path) -> None:
+        msgs = list(dataset(kind, scale))
+        if fmt == "ros1":
+            write_ros1(target, msgs)
+        elif fmt == "rosbag2-sqlite3":
+            write_rosbag2(target, msgs, "sqlite3")
+        elif fmt == "rosbag2-mcap":
+            write_rosbag2(target, msgs, "mcap")
+        else:
+            write_mcap(target, msgs, compression="zstd", chunk_size=1 << 20)
+
+    return recording_once(data, f"{kind}-{scale:g}-{fmt}", fmt, write)
 
 
 def files_of(path: Path) -> list[Path]:
