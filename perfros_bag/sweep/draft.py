@@ -148,7 +148,7 @@ def _parameters(space: Space | None) -> dict[str, tuple[str, str | None]]:
     """node -> (parameter name, unit) from the sweep's copy of space.yaml (when there)."""
     if space is None:
         return {}
-    return {v.system_name: (v.parameter.name, v.parameter.unit) for v in space.vary}
+    return {name: (p.name, p.unit) for name, p in space.parameters().items()}  # replay: a replaced node's rate
 
 
 def _graph_from_recordings(manifest: Manifest) -> Graph:

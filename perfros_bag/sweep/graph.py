@@ -10,6 +10,10 @@
          publishers: [/detector], subscribers: [/viewer]}
 
 ``launched``: the node is one of the launch file's (``/rosout``, started by roscore, is not).
+Under space.yaml ``replay:`` a replaced node is not started: the ``rosbag play`` standing in
+for it runs under its name (so it is ``launched``, with the player's PID and executable) and
+carries ``replay: {recording: robot_day1.bag, factor: 2.0}`` (the recording as space.yaml
+names it, the run's play-rate factor).
 :func:`capture_graph` asks the master (getSystemState, getTopicTypes, lookupNode) and each
 node (getPid); the tool's own nodes are left out.
 """
@@ -30,11 +34,20 @@ _INTERPRETERS = ("python", "python3", "sh", "bash", "perl", "ruby", "node")
 
 
 @dataclass(frozen=True)
+class Replayed:
+    """What a player standing in for a replaced node plays: the recording, at a factor."""
+
+    recording: str
+    factor: float
+
+
+@dataclass(frozen=True)
 class GraphNode:
     name: str
     pid: int | None
     executable: str | None
     launched: bool = True
+    replay: Replayed | None = None  # a rosbag play standing in for this launch-file node
 
 
 @dataclass(frozen=True)
@@ -58,11 +71,17 @@ class Graph:
         doc: dict[str, Any] = {"format": GRAPH_FORMAT}
         if self.run is not None:
             doc["run"] = self.run
-        doc["nodes"] = [{"name": n.name, "pid": n.pid, "executable": n.executable, "launched": n.launched}
-                        for n in self.nodes]
+        doc["nodes"] = [_node_dict(n) for n in self.nodes]
         doc["topics"] = [{"name": t.name, "type": t.type, "publishers": list(t.publishers),
                           "subscribers": list(t.subscribers)} for t in self.topics]
         return doc
+
+
+def _node_dict(n: GraphNode) -> dict[str, Any]:
+    out: dict[str, Any] = {"name": n.name, "pid": n.pid, "executable": n.executable, "launched": n.launched}
+    if n.replay is not None:
+        out["replay"] = {"recording": n.replay.recording, "factor": n.replay.factor}
+    return out
 
 
 def executable_of(pid: int) -> str | None:
@@ -133,7 +152,16 @@ def read_graph(path: str | Path) -> Graph:
         if pid is not None and (isinstance(pid, bool) or not isinstance(pid, int)):
             raise fail(f"nodes[{i}].pid: must be a whole number, got {pid!r}")
         exe = raw.get("executable")
-        nodes.append(GraphNode(raw["name"], pid, None if exe is None else str(exe), bool(raw.get("launched", True))))
+        replay = raw.get("replay")
+        replayed = None
+        if replay is not None:
+            factor = replay.get("factor") if isinstance(replay, dict) else None
+            if not isinstance(replay, dict) or not isinstance(replay.get("recording"), str) \
+                    or isinstance(factor, bool) or not isinstance(factor, int | float) or not factor > 0:
+                raise fail(f"nodes[{i}].replay: expected {{recording, factor > 0}}, got {replay!r}")
+            replayed = Replayed(replay["recording"], float(factor))
+        nodes.append(GraphNode(raw["name"], pid, None if exe is None else str(exe), bool(raw.get("launched", True)),
+                               replayed))
     topics = []
     for i, raw in enumerate(data.get("topics") or []):
         if not isinstance(raw, dict) or not isinstance(raw.get("name"), str) or not raw["name"]:

@@ -18,6 +18,13 @@ set on it, Debian's ``roslaunch -p PORT APP.launch arg:=value ...``; then
 :func:`sweep` does every run not yet in ``DIR/manifest.yaml`` and rewrites the manifest
 (atomically) after each one, so Ctrl-C or an error keeps every finished run. A failing run
 raises a :class:`PerfrosError` ``run NAME: cause``.
+
+With ``replay:`` (:mod:`perfros_bag.sweep.replay`) every run of the design is done at every
+play-rate factor: the launch file's nodes but the replaced ones start one by one as
+``roslaunch --args NODE`` says (roslaunch cannot leave a node out; the path a run across
+namespaces takes), after the launch file's parameters; one ``rosbag play`` per replaced node,
+named as that node, plays its topics looping at the factor; the manifest gives each replaced
+node its replayed rate as its setting.
 """
 
 from __future__ import annotations
@@ -63,10 +70,11 @@ from perfros_bag.sweep.launchfile import (
     node_command,
     read_launch,
 )
-from perfros_bag.sweep.space import Run, Space, load_space, plan_runs
+from perfros_bag.sweep.space import PLAYER_TOPICS, Run, Space, load_space, plan_runs
 
 if TYPE_CHECKING:
     from perfros_bag.rosrun.network import Network
+    from perfros_bag.sweep.replay import Inspected, Prepared
 
 WORK = ".sweep"
 PROBE_NODE = "perfros_probe"
@@ -115,6 +123,7 @@ def sweep(launch_path: str | Path, space_path: str | Path, out: str | Path, *, d
     outdir = Path(out).absolute()
     if outdir.exists() and not outdir.is_dir():
         raise InputError(outdir, "is not a directory, expected the folder to record into")
+    inspected = _inspect_replay(launch, space, runs[0])
     outdir.mkdir(parents=True, exist_ok=True)
     require_free_space(outdir)
     manifest_path = outdir / "manifest.yaml"
@@ -124,6 +133,8 @@ def sweep(launch_path: str | Path, space_path: str | Path, out: str | Path, *, d
         atomic_write_text(copy, space.path.read_text(encoding="utf-8"))
     result = SweepResult([r.name for r in runs])
     note = progress or (lambda i, n, name, stage, frac: None)
+    prepared: Prepared | None = None
+    warned = False
     for i, run in enumerate(runs):
         if f"{run.name}.bag" in entries:
             result.skipped.append(run.name)
@@ -135,9 +146,20 @@ def sweep(launch_path: str | Path, space_path: str | Path, out: str | Path, *, d
         def stage(name: str, frac: float, i: int = i, run: Run = run) -> None:
             note(i, len(runs), run.name, name, frac)
 
-        graph = record_run(launch, space, run, outdir, interval=interval, progress=stage)
+        settings: dict[str, Any] = dict(run.values)
+        if inspected is not None and run.factor is not None:
+            if prepared is None:  # converted once, when a run needs it (cached in DIR/.replay)
+                from perfros_bag.sweep.replay import prepare
+
+                note(i, len(runs), run.name, "converting the recording", 0.0)
+                prepared = prepare(inspected, outdir)
+            settings.update(inspected.settings(run.factor))
+        graph = record_run(launch, space, run, outdir, interval=interval, progress=stage, replay=prepared)
+        if inspected is not None and not warned:
+            warned = True
+            _warn_unsubscribed(graph, inspected)
         entries[f"{run.name}.bag"] = {"path": f"{run.name}.bag", "cpu": f"{run.name}.cpu.csv",
-                                      "computer": computer_name(), "settings": dict(run.values)}
+                                      "computer": computer_name(), "settings": settings}
         write_manifest(manifest_path, list(entries.values()), system_ref)
         write_graph(outdir / "graph.yaml", graph)
         result.recorded.append(run.name)
@@ -145,6 +167,41 @@ def sweep(launch_path: str | Path, space_path: str | Path, out: str | Path, *, d
     with contextlib.suppress(OSError):
         (outdir / WORK).rmdir()  # only when empty: a failed run's logs stay
     return result
+
+
+def _inspect_replay(launch: LaunchFile, space: Space, run: Run) -> Inspected | None:
+    """The replay's recording, read before anything starts (:func:`inspect_recording`), and
+    its replaced nodes checked against the launch file's (``roslaunch --nodes``)."""
+    if space.replay is None:
+        return None
+    import tempfile
+
+    from perfros_bag.rosrun.processes import ros_env
+    from perfros_bag.sweep.replay import inspect_recording
+
+    inspected = inspect_recording(space.replay)
+    with tempfile.TemporaryDirectory(prefix="perfros-nodes-") as home:
+        env = ros_env("nodes-" + uuid.uuid4().hex[:10], Path(home))
+        nodes = launch_nodes(launch, run.args, env, space.startup_timeout_s)
+    missing = [n for n in space.replay.replaces if n not in nodes]
+    if missing:
+        raise InputError(space.path, f"replay.replaces: node(s) {', '.join(missing)} not in {launch.path} "
+                         f"(its nodes: {', '.join(nodes)})")
+    return inspected
+
+
+def _warn_unsubscribed(graph: Graph, inspected: Inspected) -> None:
+    """A warning per replayed topic no launched node subscribes to (in the run's graph)."""
+    import warnings
+
+    from perfros_bag.errors import PerfrosWarning
+
+    stands = {s.node for s in inspected.stands}
+    launched = {n.name for n in graph.nodes if n.launched} - stands
+    for t in graph.topics:
+        if t.name in inspected.topics and not set(t.subscribers) & launched:
+            warnings.warn(PerfrosWarning(f"replay: topic {t.name} is replayed but no launched node subscribes to it"),
+                          stacklevel=2)
 
 
 def _finished_runs(manifest_path: Path) -> tuple[str | None, dict[str, dict[str, Any]]]:
@@ -227,7 +284,8 @@ def _died_line(log: Path) -> str | None:
 def record_run(launch: LaunchFile, space: Space, run: Run, out: Path, *, interval: float = 0.5,
                progress: Callable[[str, float], None] | None = None, run_id: str | None = None,
                on_graph: Callable[[Graph], None] | None = None, network: Network | None = None,
-               where: Mapping[str, str] | None = None, on_window: Callable[[str], None] | None = None) -> Graph:
+               where: Mapping[str, str] | None = None, on_window: Callable[[str], None] | None = None,
+               replay: Prepared | None = None) -> Graph:
     """Record one run into ``out/<run>.bag`` and ``out/<run>.cpu.csv``; returns its graph.
     ``on_graph`` is called with the graph (every node up, with its PID) before recording
     starts; ``on_window`` with ``"start"`` and ``"end"`` as the recording's ``duration_s``
@@ -238,7 +296,10 @@ def record_run(launch: LaunchFile, space: Space, run: Run, out: Path, *, interva
     :meth:`Network.master_computer`, each node started as ``roslaunch --args`` says, in the
     namespace of its computer (``where``: node as system.yaml names it -> computer; others
     go with the master), and one ``rosbag record`` per computer of the topics published there, so that
-    recording adds no traffic to a link; their bags are merged into one."""
+    recording adds no traffic to a link; their bags are merged into one.
+
+    With ``replay`` (:func:`perfros_bag.sweep.replay.prepare`) and a run with a ``factor``,
+    the replaced nodes are not started: a ``rosbag play`` per replaced node stands in for it."""
     note = progress or (lambda stage, frac: None)
     work = out / WORK / run.name
     if work.exists():
@@ -259,7 +320,7 @@ def record_run(launch: LaunchFile, space: Space, run: Run, out: Path, *, interva
                                         spread, on_window)
                 else:
                     graph = _record(launch, space, run, work, procs, timeout, interval, note, on_graph,
-                                    on_window=on_window)
+                                    on_window=on_window, replay=replay if run.factor is not None else None)
             except PerfrosError as exc:
                 raise PerfrosError(f"run {run.name}: {exc}") from None
     except KeyboardInterrupt:
@@ -306,10 +367,11 @@ class _Spread:
         return [f"{k}={v}" for k, v in addresses.items()]
 
 
-def _start_nodes(launch: LaunchFile, run: Run, nodes: list[str], spread: _Spread, uri: str, work: Path,
+def _start_nodes(launch: LaunchFile, run: Run, nodes: list[str], spread: _Spread | None, uri: str, work: Path,
                  procs: Processes, timeout: float) -> list[Started]:
-    """Each node in its computer's namespace, as ``roslaunch --args`` would start it, after
-    the launch file's parameters (``roslaunch --dump-params``) are set on the master."""
+    """Each node (in its computer's namespace with a ``spread``), as ``roslaunch --args``
+    would start it, after the launch file's parameters (``roslaunch --dump-params``) are set
+    on the master."""
     with ThreadPoolExecutor(max_workers=4) as pool:
         params = pool.submit(launch_params, launch, run.args, dict(procs.env), timeout)
         commands = list(pool.map(lambda n: node_command(launch, n, run.args, dict(procs.env), timeout), nodes))
@@ -318,17 +380,28 @@ def _start_nodes(launch: LaunchFile, run: Run, nodes: list[str], spread: _Spread
                 raise PerfrosError(f"the master did not take the launch file's parameter {name}")
     started = []
     for i, cmd in enumerate(commands):
-        comp = spread.computer(cmd.node)
-        argv = ["env", *(f"{k}={v}" for k, v in cmd.env.items()), *spread.env(comp, uri), *cmd.argv]
-        started.append(procs.start(cmd.node, spread.network.wrap(comp, argv), work / f"node{i}.log",
-                                   cwd=Path(procs.env["ROS_HOME"])))
+        argv = ["env", *(f"{k}={v}" for k, v in cmd.env.items())]
+        if spread is not None:
+            comp = spread.computer(cmd.node)
+            argv = spread.network.wrap(comp, [*argv, *spread.env(comp, uri), *cmd.argv])
+        else:
+            argv += cmd.argv
+        started.append(procs.start(cmd.node, argv, work / f"node{i}.log", cwd=Path(procs.env["ROS_HOME"])))
     return started
+
+
+def _start_players(replay: Prepared, factor: float, work: Path, procs: Processes) -> list[Started]:
+    """One ``rosbag play`` per replaced node, named as that node (:func:`replay.player_argv`)."""
+    from perfros_bag.sweep.replay import player_argv
+
+    return [procs.start(f"rosbag play {s.node}", player_argv(replay, s.node, factor), work / f"play{i}.log",
+                        cwd=work) for i, s in enumerate(replay.inspected.stands)]
 
 
 def _record(launch: LaunchFile, space: Space, run: Run, work: Path, procs: Processes, timeout: float,
             interval: float, note: Callable[[str, float], None],
             on_graph: Callable[[Graph], None] | None = None, spread: _Spread | None = None,
-            on_window: Callable[[str], None] | None = None) -> Graph:
+            on_window: Callable[[str], None] | None = None, replay: Prepared | None = None) -> Graph:
     note("roscore", 0.0)
     if spread is not None:
         procs.env["ROS_IP"] = spread.network.address(spread.master)
@@ -340,7 +413,12 @@ def _record(launch: LaunchFile, space: Space, run: Run, work: Path, procs: Proce
         if master_call(uri, "setParam", name, value) is None:
             raise PerfrosError(f"the master did not take the parameter {name}={value!r}")
     log = work / "roslaunch.log"
-    if spread is None:
+    if replay is not None and run.factor is not None:  # the replaced nodes: a player each, under their names
+        replaced = {s.node for s in replay.inspected.stands}
+        started = _start_nodes(launch, run, [n for n in nodes if n not in replaced], spread, uri, work, procs,
+                               timeout)
+        watch = _Watch(None, log, [*started, *_start_players(replay, run.factor, work, procs)])
+    elif spread is None:
         launcher = procs.start("roslaunch", [ROSLAUNCH, "-p", str(port_of(uri)), *launch_argv(launch, run.args)],
                                log, cwd=work)
         watch = _Watch(launcher, log)
@@ -354,13 +432,14 @@ def _record(launch: LaunchFile, space: Space, run: Run, work: Path, procs: Proce
     wait_for(f"the nodes {', '.join(nodes)} to register", registered, timeout, watch.failure)
     procs.remember()
     probe = start_rosbag(procs, "rosbag probe", work / "probe.bag", None, PROBE_NODE, work / "probe.log", work,
-                         space.exclude)
+                         space.record_exclude)
     watch.others.append(probe)
     waiting: list[str] = []
+    players_own = PLAYER_TOPICS if replay is not None else frozenset()
 
     def publishing() -> bool:
         graph = capture_graph(uri, nodes, OWN_NODES)
-        quiet = [t for t in _silent_topics(uri, graph, nodes) if space.recorded(t)]
+        quiet = [t for t in _silent_topics(uri, graph, nodes) if space.recorded(t) and t not in players_own]
         waiting[:] = quiet
         return not quiet
 
@@ -378,6 +457,8 @@ def _record(launch: LaunchFile, space: Space, run: Run, work: Path, procs: Proce
         note("settling", 0.0)
         time.sleep(min(0.2, max(0.0, deadline - time.monotonic())))
     graph = capture_graph(uri, nodes, OWN_NODES, run.name)
+    if replay is not None and run.factor is not None:
+        graph = _replayed_graph(graph, space, replay, run.factor)
     for n in graph.nodes:
         if n.launched and n.pid is not None:
             watch.pids[n.name] = (n.pid, _create_time(n.pid))
@@ -393,7 +474,7 @@ def _record(launch: LaunchFile, space: Space, run: Run, work: Path, procs: Proce
                   if t.name not in QUIET_TOPICS and set(t.publishers) & set(nodes) and space.recorded(t.name)]
     if spread is None:
         recorders = [start_rosbag(procs, "rosbag record", work / "run.bag", None, RECORD_NODE, work / "rosbag.log",
-                                  work, space.exclude)]
+                                  work, space.record_exclude)]
         bags: dict[str, Path] = {}
         expected = {t: f"/{RECORD_NODE}" for t in advertised}
     else:
@@ -435,6 +516,29 @@ def _record(launch: LaunchFile, space: Space, run: Run, work: Path, procs: Proce
     if not (work / "host.cpu.csv").exists():
         raise PerfrosError(f"record-cpu did not write its trace (see {work / 'record-cpu.log'})")
     return graph
+
+
+def _replayed_graph(graph: Graph, space: Space, replay: Prepared, factor: float) -> Graph:
+    """The graph with each player marked as the replaced node it stands for (``replay:``),
+    without the players' own topics (:data:`PLAYER_TOPICS`)."""
+    from dataclasses import replace
+
+    from perfros_bag.sweep.graph import Replayed
+
+    assert space.replay is not None
+    stands = {s.node for s in replay.inspected.stands}
+    shown = str(space.replay.recording)
+    with contextlib.suppress(ValueError):
+        shown = str(space.replay.recording.relative_to(space.path.parent.absolute()))
+    nodes = tuple(replace(n, replay=Replayed(shown, factor)) if n.name in stands else n for n in graph.nodes)
+    topics = []
+    for t in graph.topics:  # the players' own topics are not the replaced nodes'
+        if t.name in PLAYER_TOPICS:
+            t = replace(t, publishers=tuple(p for p in t.publishers if p not in stands))
+            if not t.publishers and not t.subscribers:
+                continue
+        topics.append(t)
+    return replace(graph, nodes=nodes, topics=tuple(topics))
 
 
 def _start_recorders(graph: Graph, nodes: list[str], space: Space, spread: _Spread, uri: str, work: Path,

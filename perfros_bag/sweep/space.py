@@ -15,6 +15,13 @@
         # param: /detector/rate    # ... or a ROS parameter set before the node starts
         values: [2, 5, 10]
         default: 5                 # optional: its value while another entry varies
+    replay:                        # optional: recorded data stands in for nodes (perfros_bag.sweep.replay)
+      recording: robot_day1.bag    # ROS 1 bag, rosbag2 directory or MCAP file (relative to space.yaml)
+      replaces: [camera]           # launch-file nodes not started: the recording supplies their topics
+      topics: [/camera/image_raw]  # optional; default: every recorded topic a replaced node published
+      rates: [0.5, 1, 2]           # play-rate factors; every run of the design is played at each factor
+
+With ``replay:``, ``vary:`` may be left out (the factors are then the only dimension).
 
 Every problem is one :class:`~perfros_bag.errors.InputError` naming the file and the field.
 """
@@ -38,9 +45,17 @@ from perfros_bag.system.names import NameKind, name_problem
 
 Value = int | float | str
 
-TOP_KEYS = {"duration_s", "settle_s", "repeats", "design", "startup_timeout_s", "exclude", "vary"}
+TOP_KEYS = {"duration_s", "settle_s", "repeats", "design", "startup_timeout_s", "exclude", "vary", "replay"}
 VARY_KEYS = {"node", "parameter", "arg", "param", "values", "default"}
 PARAMETER_KEYS = {"name", "unit"}
+REPLAY_KEYS = {"recording", "replaces", "topics", "rates"}
+#: The topic each replay player publishes once per loop, one mean message period after the last
+#: replayed message, so that a loop restart keeps the recorded spacing (see
+#: :mod:`perfros_bag.sweep.replay`). The tool's own: never recorded, never in graph.yaml.
+LOOP_TOPIC = "/perfros_replay/loop"
+#: Topics a replay player advertises of its own: its loop topic, and ``/clock`` (rosbag play
+#: always advertises it; it publishes there only with ``--clock``, which the tool does not use).
+PLAYER_TOPICS = frozenset({LOOP_TOPIC, "/clock"})
 
 
 class Design(enum.Enum):
@@ -75,6 +90,27 @@ class Varied:
 
 
 @dataclass(frozen=True)
+class Replay:
+    """``replay:``: a recording plays the topics of the nodes it replaces, at each factor."""
+
+    recording: Path  # resolved against space.yaml's folder
+    replaces: tuple[str, ...]  # ROS node names, with their leading slash
+    topics: tuple[str, ...] | None  # None: every recorded topic a replaced node published
+    rates: tuple[float, ...]  # play-rate factors, each > 0
+
+    @property
+    def system_names(self) -> tuple[str, ...]:
+        """The replaced nodes as manifest.yaml and system.yaml name them."""
+        from perfros_bag.system.names import system_node_name
+
+        return tuple(system_node_name(n) for n in self.replaces)
+
+
+#: A replaced node's parameter in the manifest and the draft: its topics' replayed rate.
+REPLAYED_PARAMETER = Parameter("rate", "Hz")
+
+
+@dataclass(frozen=True)
 class Space:
     path: Path
     duration_s: float
@@ -84,10 +120,30 @@ class Space:
     vary: tuple[Varied, ...]
     startup_timeout_s: float = 30.0
     exclude: str | None = None  # topics not recorded: a regex the whole name matches (rosbag record -x)
+    replay: Replay | None = None
 
     def recorded(self, topic: str) -> bool:
-        """Whether runs record ``topic`` (``exclude`` does not match it)."""
+        """Whether runs record ``topic`` (``exclude`` does not match it; a replay's loop
+        topic is the tool's own)."""
+        if self.replay is not None and topic == LOOP_TOPIC:
+            return False
         return self.exclude is None or re.fullmatch(self.exclude, topic) is None
+
+    @property
+    def record_exclude(self) -> str | None:
+        """The regex ``rosbag record -x`` is given: ``exclude``, and a replay's loop topic."""
+        if self.replay is None:
+            return self.exclude
+        loop = re.escape(LOOP_TOPIC)
+        return loop if self.exclude is None else f"(?:{self.exclude})|{loop}"
+
+    def parameters(self) -> dict[str, Parameter]:
+        """Every node the runs set, as system.yaml names it -> its parameter (a replaced
+        node's is its replayed ``rate`` in Hz)."""
+        out = {v.system_name: v.parameter for v in self.vary}
+        if self.replay is not None:
+            out.update(dict.fromkeys(self.replay.system_names, REPLAYED_PARAMETER))
+        return out
 
     def with_duration(self, duration: float | None) -> Space:
         """This space with its recording length overridden (``None``: as it is)."""
@@ -107,6 +163,7 @@ class Run:
     args: Mapping[str, str]  # roslaunch arg -> value
     params: Mapping[str, Value]  # ROS parameter -> value
     repeat: int
+    factor: float | None = None  # replay: the recording's play-rate factor in this run
 
 
 def load_space(path: str | Path) -> Space:
@@ -136,12 +193,16 @@ def parse_space(data: Any, path: Path) -> Space:
         design = Design(raw_design)
     except ValueError:
         raise fail("design", f"must be 'one-at-a-time' or 'grid', got {raw_design!r}") from None
+    replay = _replay(data["replay"], path, fail) if data.get("replay") is not None else None
     raw_vary = data.get("vary")
-    if raw_vary is None:
+    if raw_vary is None and replay is None:
         raise fail("", "missing 'vary:' (a list of {node, parameter, arg or param, values})")
-    if not isinstance(raw_vary, list) or not raw_vary:
+    if raw_vary is not None and (not isinstance(raw_vary, list) or not raw_vary):
         raise fail("vary", f"must be a non-empty list, got {raw_vary!r}")
-    vary = tuple(_varied(item, f"vary[{i}]", fail) for i, item in enumerate(raw_vary))
+    vary = tuple(_varied(item, f"vary[{i}]", fail) for i, item in enumerate(raw_vary or []))
+    for v in vary:
+        if replay is not None and v.node in replay.replaces:
+            raise fail("vary", f"node {v.node} is replaced by the replay (not started): it cannot be varied")
     nodes = [v.node for v in vary]
     for node in nodes:
         if nodes.count(node) > 1:
@@ -159,7 +220,49 @@ def parse_space(data: Any, path: Path) -> Space:
             re.compile(exclude)
         except re.error as exc:
             raise fail("exclude", f"not a regular expression: {exc}") from None
-    return Space(path, duration, settle, repeats, design, vary, timeout, exclude)
+    return Space(path, duration, settle, repeats, design, vary, timeout, exclude, replay)
+
+
+def _replay(raw: Any, path: Path, fail: Any) -> Replay:
+    if not isinstance(raw, Mapping):
+        raise fail("replay", f"expected a mapping {{recording, replaces, topics, rates}}, got {kind_of(raw)}")
+    bad = unknown_keys(raw, REPLAY_KEYS)
+    if bad:
+        raise fail("replay", bad)
+    recording = raw.get("recording")
+    if not isinstance(recording, str) or not recording.strip():
+        raise fail("replay.recording", f"must be the path of a recording, got {recording!r}")
+    replaces = raw.get("replaces")
+    if not isinstance(replaces, list) or not replaces:
+        raise fail("replay.replaces", f"must be a non-empty list of node names, got {replaces!r}")
+    nodes = []
+    for node in replaces:
+        problem = name_problem(NameKind.GRAPH_NODE, node)
+        if problem is not None or not isinstance(node, str):
+            raise fail("replay.replaces", f"{node!r} {problem}")
+        nodes.append("/" + node.lstrip("/"))
+    if len(set(nodes)) < len(nodes):
+        raise fail("replay.replaces", f"lists a node twice: {replaces!r}")
+    topics = raw.get("topics")
+    if topics is not None:
+        if not isinstance(topics, list) or not topics:
+            raise fail("replay.topics", f"must be a non-empty list of topic names, got {topics!r}")
+        for t in topics:
+            problem = name_problem(NameKind.TOPIC, t)
+            if problem is not None or not isinstance(t, str) or not t.startswith("/") or t == LOOP_TOPIC:
+                raise fail("replay.topics", f"{t!r}: {problem or 'must be an absolute topic name (as recorded)'}")
+        if len(set(topics)) < len(topics):
+            raise fail("replay.topics", f"lists a topic twice: {topics!r}")
+    rates = raw.get("rates", [1])
+    if not isinstance(rates, list) or not rates:
+        raise fail("replay.rates", f"must be a non-empty list of play-rate factors, got {rates!r}")
+    for r in rates:
+        if isinstance(r, bool) or not isinstance(r, int | float) or not math.isfinite(r) or r <= 0:
+            raise fail("replay.rates", f"a factor must be a number > 0, got {r!r}")
+    if len({float(r) for r in rates}) < len(rates):
+        raise fail("replay.rates", f"lists a factor twice: {rates!r}")
+    return Replay((path.parent / recording).absolute(), tuple(nodes), None if topics is None else tuple(topics),
+                  tuple(float(r) for r in rates))
 
 
 def _varied(item: Any, where: str, fail: Any) -> Varied:
@@ -242,7 +345,9 @@ def plan_runs(space: Space, arg_defaults: Mapping[str, str | None]) -> list[Run]
     combination. ``arg_defaults``: the launch file's declared args and their defaults."""
     defaults = {v.node: default_value(v, arg_defaults) for v in space.vary}
     settings: list[dict[str, Value]] = []
-    if space.design is Design.GRID:
+    if not space.vary:
+        settings.append({})
+    elif space.design is Design.GRID:
         for combo in itertools.product(*(v.values for v in space.vary)):
             settings.append({v.node: x for v, x in zip(space.vary, combo, strict=True)})
     else:
@@ -256,21 +361,30 @@ def plan_runs(space: Space, arg_defaults: Mapping[str, str | None]) -> list[Run]
                     settings.append(s)
     runs: list[Run] = []
     names: set[str] = set()
+    factors: tuple[float | None, ...] = (None,) if space.replay is None else space.replay.rates
     for s in settings:
-        stem = _stem(space, s)
-        for rep in range(space.repeats):
-            name = stem if space.repeats == 1 else f"{stem}_r{rep + 1}"
-            if name in names:  # two values that read the same once made file-safe
-                name += "_" + hashlib.sha1(json.dumps(s, sort_keys=True, default=str).encode()).hexdigest()[:6]
-            names.add(name)
-            runs.append(Run(
-                name,
-                {v.system_name: s[v.node] for v in space.vary},
-                {v.arg: arg_text(s[v.node]) for v in space.vary if v.arg is not None},
-                {v.param: s[v.node] for v in space.vary if v.param is not None},
-                rep + 1,
-            ))
+        for factor in factors:
+            stem = "__".join(x for x in (_stem(space, s), _factor_part(factor)) if x)
+            for rep in range(space.repeats):
+                name = stem if space.repeats == 1 else f"{stem}_r{rep + 1}"
+                if name in names:  # two values that read the same once made file-safe
+                    key = json.dumps([s, factor], sort_keys=True, default=str)
+                    name += "_" + hashlib.sha1(key.encode()).hexdigest()[:6]
+                names.add(name)
+                runs.append(Run(
+                    name,
+                    {v.system_name: s[v.node] for v in space.vary},
+                    {v.arg: arg_text(s[v.node]) for v in space.vary if v.arg is not None},
+                    {v.param: s[v.node] for v in space.vary if v.param is not None},
+                    rep + 1,
+                    factor,
+                ))
     return runs
+
+
+def _factor_part(factor: float | None) -> str:
+    """A replay run's part of its name: ``replay-x0.5``."""
+    return "" if factor is None else re.sub(r"[^A-Za-z0-9._=-]+", "_", f"replay-x{factor:g}")
 
 
 def default_value(v: Varied, arg_defaults: Mapping[str, str | None]) -> Value:
