@@ -334,7 +334,8 @@ def _mcap_raw(path: Path, topics: list[str]) -> Iterator[tuple[str, str, int, An
         typestore = typestore_from_definitions(
             (s.name, s.encoding, bytes(s.data).decode("utf-8", "replace")) for s in summary.schemas.values())
         sources = {enc: _Source(typestore, enc == "cdr") for enc in ("cdr", "ros1")}
-        for schema, channel, message in reader.iter_messages(topics=topics):
+        # file order (no time-ordering heap: ~20 % of the conversion); rosbag play orders by the bag's index
+        for schema, channel, message in reader.iter_messages(topics=topics, log_time_order=False):
             enc = channel.message_encoding
             name = normalize_msgtype(schema.name) if schema is not None and "/" in schema.name else ""
             if enc not in sources or not name:
