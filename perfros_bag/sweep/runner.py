@@ -441,7 +441,14 @@ def _record(launch: LaunchFile, space: Space, run: Run, work: Path, procs: Proce
         graph = capture_graph(uri, nodes, OWN_NODES)
         quiet = [t for t in _silent_topics(uri, graph, nodes) if space.recorded(t) and t not in players_own]
         waiting[:] = quiet
-        return not quiet
+        if quiet:
+            return False
+        # and the probe listens to every one (rosbag record -a looks for new topics once a
+        # second): a node that works only when someone listens has started working
+        state = master_state(uri)
+        probed = {t for t, who in state[1] if f"/{PROBE_NODE}" in who} if state is not None else set()
+        return all(t.name in probed for t in graph.topics if t.name not in QUIET_TOPICS and t.name not in players_own
+                   and set(t.publishers) & set(nodes) and space.recorded(t.name))
 
     note("topics", 0.0)
     try:
@@ -507,6 +514,9 @@ def _record(launch: LaunchFile, space: Space, run: Run, work: Path, procs: Proce
     _check(watch, "the recording")
     window("end")
     ended_ns = time.time_ns()
+    graph = _with_later_edges(graph, capture_graph(uri, nodes, OWN_NODES, run.name))
+    if replay is not None and run.factor is not None:
+        graph = _replayed_graph(graph, space, replay, run.factor)
     note("recording", 1.0)
     procs.stop([*(r.name for r in recorders), "record-cpu"], timeout=15.0)
     if spread is not None:
@@ -516,6 +526,23 @@ def _record(launch: LaunchFile, space: Space, run: Run, work: Path, procs: Proce
     if not (work / "host.cpu.csv").exists():
         raise PerfrosError(f"record-cpu did not write its trace (see {work / 'record-cpu.log'})")
     return graph
+
+
+def _with_later_edges(graph: Graph, later: Graph) -> Graph:
+    """``graph`` (taken before the recording) with the publishers and subscribers the master
+    knew at its end added: a node that subscribes to its input only once its outputs have a
+    listener (opencv_apps' lazy nodelets) may have done so after the first look."""
+    from dataclasses import replace
+
+    more = {t.name: t for t in later.topics}
+    topics = []
+    for t in graph.topics:
+        m = more.get(t.name)
+        if m is not None:
+            t = replace(t, publishers=tuple(sorted(set(t.publishers) | set(m.publishers))),
+                        subscribers=tuple(sorted(set(t.subscribers) | set(m.subscribers))))
+        topics.append(t)
+    return replace(graph, topics=tuple(topics))
 
 
 def _replayed_graph(graph: Graph, space: Space, replay: Prepared, factor: float) -> Graph:
