@@ -109,20 +109,72 @@ def _bag_rates(bag: Path) -> dict[str, float]:
     return rates
 
 
+def sweep_once(factory: pytest.TempPathFactory, name: str,
+               **top: Any) -> tuple[Path, Path, subprocess.CompletedProcess[str]]:
+    """``sweep`` of fixtures/app into a new folder with ``_space(**top)``: (folder, out, result)."""
+    _require_ros()
+    d = factory.mktemp(name)
+    out = d / "rec"
+    done = _cli("sweep", str(APP), "--space", str(_space(d / "space.yaml", **top)), "--out", str(out), timeout=150)
+    return d, out, done
+
+
+def succeeded(out: Path, done: subprocess.CompletedProcess[str]) -> None:
+    """A sweep that ended well: exit 0, no traceback, nothing of it left running."""
+    assert done.returncode == 0, done.stderr
+    assert "Traceback" not in done.stderr
+    _nothing_left(out, set(), set())
+
+
+def drafted(d: Path, out: Path, done: subprocess.CompletedProcess[str]) -> tuple[Path, dict[str, Any]]:
+    """``init`` of a sweep that succeeded into ``d/system.yaml``: the file and its document."""
+    assert done.returncode == 0, done.stderr
+    system = d / "system.yaml"
+    step = _cli("init", str(out), "--out", str(system))
+    assert step.returncode == 0, step.stderr
+    doc: dict[str, Any] = yaml.safe_load(system.read_text())
+    return system, doc
+
+
+def kill_mid_recording(proc: subprocess.Popen[str], out: Path, program: str,
+                       runs_before: int = 0) -> tuple[str, set[str], set[int]]:
+    """Kill the one process of a running sweep into ``out`` whose command line names
+    ``program``, once ``runs_before`` runs are recorded and the next one's recorder runs: the
+    sweep ends with exit 2 and one line, returned with the run's tags and master ports."""
+    try:
+        _wait(lambda: len(_recorded(out)) == runs_before, proc, 60, f"{runs_before} run(s)")
+        _wait(lambda: bool(_running(out, "__name:=perfros_record")), proc, 90, "the recording")
+        tags, ports = _tags_and_ports(out)
+        victims = _running(out, program)
+        assert len(victims) == 1
+        victims[0].kill()
+        _, stderr = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 2, stderr
+    lines = [x for x in stderr.splitlines() if x.strip()]
+    assert len(lines) == 1, stderr
+    return lines[0], tags, ports
+
+
+def interrupt(proc: subprocess.Popen[str]) -> str:
+    """Ctrl-C a running ``sweep``: it ends with 130 and says so, no traceback; its stderr."""
+    proc.send_signal(signal.SIGINT)
+    _, stderr = proc.communicate(timeout=60)
+    assert proc.returncode == 130, stderr
+    assert "Traceback" not in stderr and "interrupted" in stderr
+    return stderr
+
+
 @pytest.fixture(scope="module")
 def swept(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, subprocess.CompletedProcess[str]]:
-    _require_ros()
-    d = tmp_path_factory.mktemp("sweep")
-    out = d / "rec"
-    done = _cli("sweep", str(APP), "--space", str(_space(d / "space.yaml")), "--out", str(out), timeout=150)
-    return d, out, done
+    return sweep_once(tmp_path_factory, "sweep")
 
 
 def test_sweep_records_every_setting_and_leaves_nothing(swept: tuple[Path, Path, Any]) -> None:
     d, out, done = swept
-    assert done.returncode == 0, done.stderr
-    assert "Traceback" not in done.stderr
-    _nothing_left(out, set(), set())
+    succeeded(out, done)
     manifest = load_manifest(out / "manifest.yaml")
     settings = sorted((e.settings["camera"], e.settings["detector"]) for e in manifest.recordings)
     assert settings == [(5, 100), (5, 200), (10, 100), (10, 200)]
@@ -164,11 +216,7 @@ def test_sweep_records_every_setting_and_leaves_nothing(swept: tuple[Path, Path,
 
 def test_init_characterise_fit_solve_deploy_with_no_hand_written_file(swept: tuple[Path, Path, Any]) -> None:
     d, out, done = swept
-    assert done.returncode == 0, done.stderr
-    system = d / "system.yaml"
-    drafted = _cli("init", str(out), "--out", str(system))
-    assert drafted.returncode == 0, drafted.stderr
-    doc = yaml.safe_load(system.read_text())
+    system, doc = drafted(d, out, done)
     declared = _launch_nodes(APP)
     assert {n["name"] for n in doc["nodes"]} == {n.lstrip("/") for n in declared}
     image = "/" + declared["/detector"]["image"]
@@ -304,13 +352,10 @@ def test_ctrl_c_mid_run_keeps_finished_runs_and_leaves_nothing(tmp_path: Path) -
         _wait(lambda: bool(_running(out, "hough_circles")), proc, 30, "the second run's nodes")
         tags, ports = _tags_and_ports(out)
         assert len(tags) == 1 and len(ports) == 1
-        proc.send_signal(signal.SIGINT)
-        _, stderr = proc.communicate(timeout=60)
+        interrupt(proc)
     finally:
         if proc.poll() is None:
             proc.kill()
-    assert proc.returncode == 130, stderr
-    assert "Traceback" not in stderr and "interrupted" in stderr
     _nothing_left(out, tags, ports)
     _one_line_then_consistent(out, ["camera-publish_rate-5.bag"])
     assert not any((out / ".sweep").glob("*")), "the interrupted run's work folder is removed"
@@ -324,20 +369,9 @@ def test_a_node_dying_mid_run_is_one_line_and_leaves_nothing(tmp_path: Path) -> 
                           "values": [5, 10]}])
     proc = subprocess.Popen([str(BIN), "sweep", str(APP), "--space", str(space), "--out", str(out),
                              "--duration", "3"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-    try:
-        _wait(lambda: len(_recorded(out)) == 1, proc, 60, "the first run")
-        _wait(lambda: bool(_running(out, "__name:=perfros_record")), proc, 30, "the second run's recording")
-        tags, ports = _tags_and_ports(out)
-        victims = _running(out, "hough_circles")
-        assert len(victims) == 1
-        victims[0].kill()  # the detector dies during the recording
-        _, stderr = proc.communicate(timeout=60)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-    assert proc.returncode == 2, stderr
-    lines = [x for x in stderr.splitlines() if x.strip()]
-    assert len(lines) == 1 and lines[0].startswith("error: run camera-publish_rate-10: "), stderr
+    line, tags, ports = kill_mid_recording(proc, out, "hough_circles", 1)  # the detector dies during the recording
+    lines = [line]
+    assert lines[0].startswith("error: run camera-publish_rate-10: "), line
     # the recorder process is up when the detector is killed; whether rosbag had subscribed yet
     # (the runner's last wait) or was recording is a race on a loaded machine: both are mid-run
     assert re.search(r"node /?detector \(pid \d+", lines[0]), lines[0]  # roslaunch names it without the slash

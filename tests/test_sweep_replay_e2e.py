@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import json
 import os
-import signal
 import subprocess
 from pathlib import Path
 from typing import Any
@@ -33,7 +32,13 @@ from tests.test_sweep_e2e import (
     _running,
     _tags_and_ports,
     _wait,
+    drafted,
+    interrupt,
+    kill_mid_recording,
+    succeeded,
+    sweep_once,
 )
+from tests.test_sweep_e2e import _space as sweep_space
 
 pytestmark = pytest.mark.ros
 
@@ -57,27 +62,20 @@ def _times(bag: Path, topic: str) -> list[float]:
 
 
 def _space(path: Path, **top: Any) -> Path:
-    doc = {"duration_s": 5, "settle_s": 1, "startup_timeout_s": 30,
-           "replay": {"recording": str(CAMERA_BAG), "replaces": ["camera"], "rates": list(FACTORS)}}
-    doc.update(top)
-    path.write_text(yaml.safe_dump(doc, sort_keys=False))
-    return path
+    """The sweep tests' space with ``vary:`` left out and the camera replayed."""
+    replay = {"recording": str(CAMERA_BAG), "replaces": ["camera"], "rates": list(FACTORS)}
+    return sweep_space(path, **{"duration_s": 5, "vary": None, "replay": replay, **top})
 
 
 @pytest.fixture(scope="module")
 def replayed(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, subprocess.CompletedProcess[str]]:
-    _require_ros()
-    d = tmp_path_factory.mktemp("replay")
-    out = d / "rec"
-    done = _cli("sweep", str(APP), "--space", str(_space(d / "space.yaml")), "--out", str(out), timeout=150)
-    return d, out, done
+    replay = {"recording": str(CAMERA_BAG), "replaces": ["camera"], "rates": list(FACTORS)}
+    return sweep_once(tmp_path_factory, "replay", duration_s=5, vary=None, replay=replay)
 
 
 def test_replayed_rates_are_the_recorded_rate_times_the_factor(replayed: tuple[Path, Path, Any]) -> None:
     _d, out, done = replayed
-    assert done.returncode == 0, done.stderr
-    assert "Traceback" not in done.stderr
-    _nothing_left(out, set(), set())
+    succeeded(out, done)
     # the default topics hold camera_info, which the detector does not take: one warning, once
     assert done.stderr.count("warning: replay: topic /camera/camera_info is replayed but no launched node "
                              "subscribes to it") == 1, done.stderr
@@ -133,11 +131,7 @@ def test_a_loop_restart_is_neither_a_gap_nor_a_burst(replayed: tuple[Path, Path,
 
 def test_init_drafts_the_replaced_node_as_a_source_of_its_rates(replayed: tuple[Path, Path, Any]) -> None:
     d, out, done = replayed
-    assert done.returncode == 0, done.stderr
-    system = d / "system.yaml"
-    drafted = _cli("init", str(out), "--out", str(system))
-    assert drafted.returncode == 0, drafted.stderr
-    doc = yaml.safe_load(system.read_text())
+    system, doc = drafted(d, out, done)
     nodes = {n["name"]: n for n in doc["nodes"]}
     assert set(nodes) == {"camera", "detector"}
     camera = nodes["camera"]
@@ -184,13 +178,10 @@ def test_ctrl_c_during_a_replay_run_leaves_nothing(tmp_path: Path) -> None:
         tags, ports = _tags_and_ports(out)
         assert len(tags) == 1 and len(ports) == 1
         assert not _running(out, "image_publisher")  # the replaced camera is never started
-        proc.send_signal(signal.SIGINT)
-        _, stderr = proc.communicate(timeout=60)
+        interrupt(proc)
     finally:
         if proc.poll() is None:
             proc.kill()
-    assert proc.returncode == 130, stderr
-    assert "Traceback" not in stderr
     _nothing_left(out, tags, ports)
     assert [e.name for e in load_manifest(out / "manifest.yaml").recordings] == ["replay-x1.bag"]
 
@@ -202,18 +193,6 @@ def test_a_player_dying_mid_run_is_one_line_and_leaves_nothing(tmp_path: Path) -
                    replay={"recording": str(CAMERA_BAG), "replaces": ["camera"], "topics": [IMAGE], "rates": [1]})
     proc = subprocess.Popen([str(BIN), "sweep", str(APP), "--space", str(space), "--out", str(out)],
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-    try:
-        _wait(lambda: bool(_running(out, "__name:=perfros_record")), proc, 90, "the recording")
-        tags, ports = _tags_and_ports(out)
-        victims = _running(out, "/usr/lib/rosbag/play")
-        assert len(victims) == 1
-        victims[0].kill()
-        _, stderr = proc.communicate(timeout=60)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-    assert proc.returncode == 2, stderr
-    lines = [x for x in stderr.splitlines() if x.strip()]
-    assert len(lines) == 1 and lines[0].startswith("error: run replay-x1: "), stderr
-    assert "/camera" in lines[0], lines[0]
+    line, tags, ports = kill_mid_recording(proc, out, "/usr/lib/rosbag/play")
+    assert line.startswith("error: run replay-x1: ") and "/camera" in line, line
     _nothing_left(out, tags, ports)
