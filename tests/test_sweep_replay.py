@@ -295,3 +295,31 @@ def test_vary_may_be_left_out_only_with_replay(tmp_path: Path) -> None:
     with pytest.raises(InputError, match="missing 'vary:'"):
         parse_space({"duration_s": 4}, tmp_path / "space.yaml")
     assert parse_space({"replay": _replay()}, tmp_path / "space.yaml").vary == ()
+
+
+@pytest.mark.parametrize("kind", ["ros1", "sqlite3", "mcap"])
+def test_a_latched_topic_stays_latched(tmp_path: Path, kind: str) -> None:
+    """rosbag play re-publishes a latched topic's last message to late subscribers only when
+    the bag says it is latched (ROS 1 ``latching``; rosbag2's transient-local offer)."""
+    from rosbags.convert import convert
+    from rosbags.rosbag1 import Reader, Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS1_NOETIC)
+    msgtype = "std_msgs/msg/String"
+    source = tmp_path / "latched.bag"
+    with Writer(source) as writer:
+        plain = writer.add_connection("/camera/status", msgtype, typestore=store, callerid="/camera")
+        latched = writer.add_connection("/camera/config", msgtype, typestore=store, callerid="/camera", latching=1)
+        for i in range(21):
+            t = 10**18 + i * 10**8
+            writer.write(plain, t, store.serialize_ros1(store.types[msgtype](f"{i}"), msgtype))
+            if i % 10 == 0:
+                writer.write(latched, t, store.serialize_ros1(store.types[msgtype]("config"), msgtype))
+    if kind != "ros1":
+        dst = tmp_path / f"latched_{kind}"
+        convert([source], dst, kind, 8, None, "file", None, None, [], [], [], [])
+        source = dst
+    bag, _loop = _converted(tmp_path, source)
+    with Reader(bag) as reader:
+        assert {c.topic: c.ext.latching for c in reader.connections} == {"/camera/status": 0, "/camera/config": 1}

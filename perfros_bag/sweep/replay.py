@@ -258,6 +258,7 @@ class _Source:
 
     typestore: Any
     is2: bool  # CDR payloads (ROS 2); False: ROS 1 payloads
+    latched: frozenset[str] = frozenset()  # topics recorded as latched (ROS 2: transient local)
     destination: Any = None  # the ROS 1 typestore the converted types are registered in
     cache: Any = None
 
@@ -284,7 +285,8 @@ def _connection(writer: Any, source: _Source, topic: str, msgtype: str, callerid
         with contextlib.redirect_stdout(io.StringIO()):  # rosbags prints what it migrates
             convert = generate_message_converter(source.typestore, source.destination, msgtype, msgtype,
                                                  source.cache, src_is2=source.is2, dst_is2=False)
-        conn = writer.add_connection(topic, msgtype, typestore=source.destination, callerid=callerid)
+        conn = writer.add_connection(topic, msgtype, typestore=source.destination, callerid=callerid,
+                                     latching=int(topic in source.latched))
     except Exception as exc:  # noqa: BLE001 - rosbags' typesys on a definition it cannot take
         reason = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
         raise InputError(path, f"replay: cannot convert message type {msgtype} of topic {topic} to ROS 1: "
@@ -317,8 +319,8 @@ def _anyreader_raw(path: Path, topics: list[str]) -> Iterator[tuple[str, str, in
     from perfros_bag.ingest.decode import standard_typestore
 
     with AnyReader([path], default_typestore=standard_typestore()) as reader:
-        source = _Source(reader.typestore, bool(reader.is2))
         conns = [c for c in reader.connections if c.topic in topics]
+        source = _Source(reader.typestore, bool(reader.is2), frozenset(c.topic for c in conns if _latched(c.ext)))
         if conns:
             for conn, log_ns, raw in reader.messages(connections=conns):
                 yield conn.topic, conn.msgtype, int(log_ns), raw, source
@@ -333,7 +335,9 @@ def _mcap_raw(path: Path, topics: list[str]) -> Iterator[tuple[str, str, int, An
         reader, summary = _mcap_reader(f)
         typestore = typestore_from_definitions(
             (s.name, s.encoding, bytes(s.data).decode("utf-8", "replace")) for s in summary.schemas.values())
-        sources = {enc: _Source(typestore, enc == "cdr") for enc in ("cdr", "ros1")}
+        latched = frozenset(ch.topic for ch in summary.channels.values()
+                            if _transient_local(ch.metadata.get("offered_qos_profiles", "")))
+        sources = {enc: _Source(typestore, enc == "cdr", latched) for enc in ("cdr", "ros1")}
         # file order (no time-ordering heap: ~20 % of the conversion); rosbag play orders by the bag's index
         for schema, channel, message in reader.iter_messages(topics=topics, log_time_order=False):
             enc = channel.message_encoding
@@ -342,6 +346,28 @@ def _mcap_raw(path: Path, topics: list[str]) -> Iterator[tuple[str, str, int, An
                 raise InputError(path, f"replay: cannot convert topic {channel.topic} (encoding {enc!r}, type "
                                  f"{name or 'unknown'}) to ROS 1: only cdr and ros1 payloads with a schema are")
             yield channel.topic, name, int(message.log_time), message.data, sources[enc]
+
+
+def _latched(ext: Any) -> bool:
+    """A rosbags connection recorded as latched: ROS 1 ``latching``, rosbag2 a transient-local
+    QoS offer."""
+    if getattr(ext, "latching", None):
+        return True
+    return any(getattr(getattr(q, "durability", None), "value", None) == 1
+               for q in getattr(ext, "offered_qos_profiles", None) or [])
+
+
+def _transient_local(profiles: str) -> bool:
+    """Whether a rosbag2 MCAP channel's ``offered_qos_profiles`` (YAML text) offers transient
+    local durability (ROS 2's latching)."""
+    import yaml
+
+    try:
+        offers = yaml.safe_load(profiles) if profiles else None
+    except yaml.YAMLError:
+        return False
+    return isinstance(offers, list) and any(
+        isinstance(q, dict) and q.get("durability") in (1, "transient_local") for q in offers)
 
 
 def player_argv(prepared: Prepared, node: str, factor: float) -> list[str]:
