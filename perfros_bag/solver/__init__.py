@@ -104,9 +104,13 @@ def check_resolution(system: System, resolution: float) -> None:
 
 
 def fixed_choices(system: System, problem: Problem, settings: Mapping[str, float] | None = None,
-                  resolution: float = 1.0) -> dict[str, list[Choice]]:
+                  resolution: float = 1.0, *, own: Mapping[str, int] | None = None) -> dict[str, list[Choice]]:
     """Each node's candidate choices, sorted by CPU: all of them for Problem 1; for Problem 2
-    the single fixed one (``settings[node]`` as a CPU level, default the maximum-CPU choice)."""
+    the single fixed one (``settings[node]`` as a CPU level, default the maximum-CPU choice).
+
+    A driven node's choices are its settings at each input rate its input can take
+    (:meth:`System.flow_choices`); for Problem 2 its CPU level is the one at its input's
+    fixed rate, or ``own[node]`` names its setting (an index into ``Node.settings``)."""
     check_resolution(system, resolution)
     if settings:
         unknown = sorted(set(settings) - set(system.node))
@@ -114,12 +118,38 @@ def fixed_choices(system: System, problem: Problem, settings: Mapping[str, float
             raise InputError(_where(system), f"settings: unknown node(s) {', '.join(map(repr, unknown))}")
     out: dict[str, list[Choice]] = {}
     for node in system.nodes:
-        if problem == Problem.PERFORMANCE:
+        if problem == Problem.PERFORMANCE or node.driven:  # a driven node's CPU follows its input: below
             out[node.name] = node.choices(resolution)
         elif settings and node.name in settings:
             out[node.name] = [_match_cpu(system, node, float(settings[node.name]), resolution)]
         else:
             out[node.name] = [node.choices(resolution)[-1]]
+    if not system.has_flow:
+        return out
+
+    def fixed(name: str, options: list[Choice]) -> list[Choice]:
+        """Problem 2: the driven node's one choice at its input's (fixed) rate: the one at
+        ``settings[name]``'s CPU level, else its maximum-CPU one."""
+        if problem == Problem.PERFORMANCE:
+            return options
+        if own and name in own:
+            return [c for c in options if c.setting == own[name]][:1]
+        if settings and name in settings:
+            level = float(settings[name])
+            match = [c for c in options if math.isclose(c.cpu, level, rel_tol=1e-9, abs_tol=1e-6)]
+            if not match:
+                have = ", ".join(f"{c.cpu:g}" for c in options)
+                raise InputError(_where(system), f"node {name!r}: no setting with CPU {level:g} at its input's rate "
+                                                 f"(its settings' CPU there: {have})")
+            return match[:1]
+        return [max(options, key=lambda c: (c.cpu, c.performance))]
+
+    out = system.flow_choices(out, fixed)
+    total = sum(len(v) for v in out.values())
+    if total > MAX_CHOICES:
+        raise InputError(_where(system), f"the driven nodes' settings at every input rate their inputs can take give "
+                                         f"{total:,} choices, more than the {MAX_CHOICES:,} the solvers take: use a "
+                                         "coarser resolution or fewer settings upstream")
     return out
 
 
@@ -139,12 +169,16 @@ def settings_from_values(system: System, values: Mapping[str, float], resolution
     :data:`ROUNDING_UNITS` the clamp is reported with a :class:`PerfrosWarning`."""
     check_resolution(system, resolution)
     out: dict[str, float] = {}
+    own: dict[str, int] = {}  # driven nodes: the setting with the value
     for name, v in values.items():
         node = system.node.get(name)
         if node is None:
             raise InputError(_where(system), f"settings: unknown node {name!r}")
         if not math.isfinite(v):
             raise InputError(_where(system), f"settings: node {name!r}: value {v!r} is not a finite number")
+        if node.driven:
+            own[name] = _setting_with_value(system, node, v)
+            continue
         rel = node.relations.get("parameter->cpu")
         # a setting first (its own, measured CPU: on a fitted curve several CPU levels may
         # map back to the same end value), then the fitted relation, then a choice
@@ -169,7 +203,20 @@ def settings_from_values(system: System, values: Mapping[str, float], resolution
             raise InputError(_where(system), f"settings: node {name!r}: value {v:g} gives no finite CPU level "
                                              f"(its parameter->cpu relation gives {cpu!r})")
         out[name] = _clamp(system, node, v, cpu)
+    if own:  # a driven node's CPU level is its setting's at the rate its input then has
+        fixed = fixed_choices(system, Problem.SERVER_CAPACITY, out, resolution, own=own)
+        out.update({name: fixed[name][0].cpu for name in own})
     return out
+
+
+def _setting_with_value(system: System, node: Node, value: float) -> int:
+    """The index of the driven node's setting with ``value``."""
+    for j, s in enumerate(node.settings):
+        if s.value is not None and math.isclose(s.value, value, rel_tol=1e-9, abs_tol=1e-9):
+            return j
+    have = ", ".join(f"{s.value:g}" for s in node.settings if s.value is not None) or "none"
+    raise InputError(_where(system), f"settings: node {node.name!r} has no setting with value {value:g} "
+                                     f"(its values: {have})")
 
 
 def _clamp(system: System, node: Node, value: float, cpu: float) -> float:
@@ -243,14 +290,10 @@ def solve(system: System, problem: int, method: str, *, resolution: float = 1.0,
 
 def _dispatch(system: System, problem: Problem, method: Method, choices: dict[str, list[Choice]],
               deadline: float | None, progress: Progress | None) -> Plan:
-    if method == Method.GREEDY:
-        from perfros_bag.solver.greedy import solve_greedy
+    if method in (Method.GREEDY, Method.GREEDY_PLUS):
+        from perfros_bag.solver.flow import solve_heuristic
 
-        return solve_greedy(system, problem, choices)
-    if method == Method.GREEDY_PLUS:
-        from perfros_bag.solver.local import solve_greedy_plus
-
-        return solve_greedy_plus(system, problem, choices)
+        return solve_heuristic(system, problem, choices, method)
     if method == Method.BRUTEFORCE:
         from perfros_bag.solver.bruteforce import solve_bruteforce
 
@@ -266,7 +309,9 @@ def _dispatch(system: System, problem: Problem, method: Method, choices: dict[st
 
     prepared = exact.prepare_instance(system, problem, choices)  # once, for whichever solver runs
     columns = exact_columns(system, choices)
-    if problem == Problem.PERFORMANCE and columns > DECOMPOSE_COLUMNS and not isinstance(prepared, str):
+    # the decomposition prices robots one by one: a data flow across them is the MILP's (its rows)
+    if problem == Problem.PERFORMANCE and columns > DECOMPOSE_COLUMNS and not isinstance(prepared, str) \
+            and not system.has_flow:
         from perfros_bag.solver.decompose import solve_decomposed
 
         decomposed = solve_decomposed(system, problem, choices, time_limit=left(), progress=progress,
@@ -304,10 +349,10 @@ def _exact_start(system: System, problem: Problem, choices: dict[str, list[Choic
     when greedy+ finds nothing."""
     if problem != Problem.PERFORMANCE or columns <= START_COLUMNS:
         return None
-    from perfros_bag.solver.local import solve_greedy_plus
+    from perfros_bag.solver.flow import solve_heuristic
 
     budget = None if time_limit is None else START_SHARE * time_limit
-    plan = solve_greedy_plus(system, problem, choices, time_budget=budget)
+    plan = solve_heuristic(system, problem, choices, Method.GREEDY_PLUS, time_budget=budget)
     if plan.status == Status.INFEASIBLE:
         return None
     return start_of(plan, choices)

@@ -55,6 +55,8 @@ def plan_document(plan: Plan) -> dict[str, Any]:
             "performance": n.performance, "weight": n.weight,
             "topics": {t: {"frequency_hz": r.frequency_hz, "bandwidth_kBps": r.bandwidth_kBps}
                        for t, r in n.topics.items()},
+            **({"input": n.input, "input_hz": n.input_hz, "bandwidth_kBps": n.bandwidth_kBps}
+               if n.input is not None else {}),
         }
         for name, n in plan.nodes.items()
     }
@@ -192,6 +194,8 @@ def _parse_node(n: Any, where: str, path: str) -> PlannedNode:
         performance=_num(n, "performance", where, path, optional=False, nonneg=True) or 0.0,
         weight=_num(n, "weight", where, path, optional=False, positive=True) or 0.0,
         parameter=_text(n, "parameter", where, path), value=_num(n, "value", where, path), topics=topics,
+        input=_text(n, "input", where, path), input_hz=_num(n, "input_hz", where, path, nonneg=True),
+        bandwidth_kBps=_num(n, "bandwidth_kBps", where, path, nonneg=True),
     )
 
 

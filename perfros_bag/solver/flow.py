@@ -1,0 +1,138 @@
+"""The heuristics on a system with driven nodes (system.yaml ``input``).
+
+The paper's greedy and greedy+ treat every node's choices as independent. Along the data
+flow they are not: a driven node's choice must be made for the rate its input's publisher
+gives (:meth:`~perfros_bag.system.types.System.flow_choices`). Fix, for every node that
+drives others (a *publisher*), the rates it publishes (its *rate class*), and what is left
+is the paper's problem: each publisher keeps its choices in that class, each driven node
+its choices at that input rate, and every combination of them is consistent. So:
+
+- one inner run of the heuristic per assignment of rate classes (:func:`_restricted`);
+- every assignment when there are at most :data:`ENUMERATE` of them (a camera with three
+  rates and a throttle with four: 12), else a coordinate search: start with every
+  publisher at its lowest class, then, publisher by publisher, keep the class that gives
+  the best plan, until a pass changes nothing or :data:`PASSES` passes have run.
+
+The exact solver needs none of this: its rows tie the choices together
+(:func:`perfros_bag.solver.exact._flow_rows`).
+"""
+
+from __future__ import annotations
+
+import itertools
+import time
+from collections.abc import Mapping
+
+from perfros_bag.system.plan import Method, Plan, Status
+from perfros_bag.system.types import Choice, Problem, System
+
+#: at most this many rate-class assignments are all tried; above, a coordinate search
+ENUMERATE = 64
+#: coordinate-search passes over the publishers
+PASSES = 3
+
+Classes = dict[str, tuple[float, ...]]  # publisher -> the rates it publishes (one per node it drives)
+
+
+def solve_heuristic(system: System, problem: Problem, choices: dict[str, list[Choice]], method: Method, *,
+                    time_budget: float | None = None) -> Plan:
+    """``method`` (greedy or greedy+) on ``choices``; along the data flow when the system has one."""
+    if not system.has_flow:
+        return _inner(system, problem, choices, method, time_budget)
+    deadline = None if time_budget is None else time.monotonic() + time_budget
+    options = _class_options(system, choices)
+    publishers = sorted(options, key=lambda p: system.flow_order.index(p) if p in system.flow_order else -1)
+    tried: dict[tuple[tuple[float, ...], ...], Plan | None] = {}
+
+    def run(classes: Classes) -> Plan | None:
+        key = tuple(classes[p] for p in publishers)
+        if key not in tried:
+            restricted = _restricted(system, choices, classes)
+            left = None if deadline is None else max(deadline - time.monotonic(), 0.0)
+            tried[key] = None if restricted is None else _inner(system, problem, restricted, method, left)
+        return tried[key]
+
+    combos = 1
+    for p in publishers:
+        combos *= len(options[p])
+    if combos <= ENUMERATE:
+        for pick in itertools.product(*(options[p] for p in publishers)):
+            run(dict(zip(publishers, pick, strict=True)))
+    else:
+        current: Classes = {p: options[p][0] for p in publishers}
+        best = run(current)
+        for _ in range(PASSES):
+            changed = False
+            for p in publishers:
+                for cls in options[p]:
+                    if deadline is not None and time.monotonic() > deadline:
+                        break
+                    trial = {**current, p: cls}
+                    plan = run(trial)
+                    if _better(plan, best, problem):
+                        best, current, changed = plan, trial, True
+            if not changed:
+                break
+    return _best(tried, problem, method, system)
+
+
+def _inner(system: System, problem: Problem, choices: dict[str, list[Choice]], method: Method,
+           time_budget: float | None) -> Plan:
+    if method == Method.GREEDY_PLUS:
+        from perfros_bag.solver.local import solve_greedy_plus
+
+        return solve_greedy_plus(system, problem, choices, time_budget=time_budget)
+    from perfros_bag.solver.greedy import solve_greedy
+
+    return solve_greedy(system, problem, choices)
+
+
+def _output(system: System, publisher: str, choice: Choice) -> tuple[float, ...]:
+    """The rates a publisher's choice gives the nodes it drives, in their order."""
+    return tuple(system.input_hz(child, choice) for child in system.flow_children[publisher])
+
+
+def _class_options(system: System, choices: Mapping[str, list[Choice]]) -> dict[str, list[tuple[float, ...]]]:
+    """Per publisher, its rate classes, the lowest total rate first."""
+    return {p: sorted({_output(system, p, ch) for ch in choices[p]}, key=lambda c: (sum(c), c))
+            for p in system.flow_children}
+
+
+def _restricted(system: System, choices: Mapping[str, list[Choice]], classes: Classes) -> dict[str, list[Choice]] | None:
+    """The choices consistent with ``classes``: a publisher's in its class, a driven node's
+    at the rate its publisher's class gives it; None when a node has none left."""
+    out: dict[str, list[Choice]] = {}
+    for name, options in choices.items():
+        kept = options
+        if name in classes:
+            kept = [ch for ch in kept if _output(system, name, ch) == classes[name]]
+        parent = system.flow_parent.get(name)
+        if parent is not None:
+            rate = classes[parent][system.flow_children[parent].index(name)]
+            kept = [ch for ch in kept if ch.input_hz == rate]
+        if not kept:
+            return None
+        out[name] = kept
+    return out
+
+
+def _better(plan: Plan | None, than: Plan | None, problem: Problem) -> bool:
+    if plan is None or plan.status == Status.INFEASIBLE or plan.objective is None:
+        return False
+    if than is None or than.status == Status.INFEASIBLE or than.objective is None:
+        return True
+    if problem == Problem.PERFORMANCE:
+        return plan.objective > than.objective + 1e-9
+    return plan.objective < than.objective - 1e-9
+
+
+def _best(tried: Mapping[tuple[tuple[float, ...], ...], Plan | None], problem: Problem, method: Method, system: System) -> Plan:
+    best: Plan | None = None
+    for plan in tried.values():
+        if _better(plan, best, problem):
+            best = plan
+    if best is not None:
+        return best
+    reasons = [p.reason for p in tried.values() if p is not None and p.reason]
+    why = reasons[0] if reasons else "no setting of the driven nodes fits any rate their inputs can take"
+    return Plan.infeasible(problem, method, f"{why} (at every input rate tried)", system=system.source)
