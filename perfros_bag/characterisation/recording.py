@@ -131,12 +131,14 @@ def characterise_recording(entry: RecordingEntry, system: System | None = None, 
     for node in order:
         parameter, value = _setting(node, settings, system)
         metric = metrics.get(node)
+        driven_by = system.node[node].input if system is not None and node in system.node else None
+        input_hz = stats.topics[driven_by].frequency_hz if driven_by in stats.topics else None
         c = cpu.get(node) or (_cpu_for_publisher(node, cpu) if system is None else None)
         mean, p95, samples = (c.mean, c.p95, c.samples) if c is not None else (None, None, None)
         topics = by_node.get(node, [])
         if not topics:
             rows.append(Row(entry.name, node, parameter, value, None, None, None, span, None, None,
-                            mean, p95, samples, metric_value=metric))
+                            mean, p95, samples, metric_value=metric, input_hz=input_hz))
             continue
         for topic in topics:
             ts = stats.topics[topic]
@@ -146,7 +148,7 @@ def characterise_recording(entry: RecordingEntry, system: System | None = None, 
                             ts.median_rate_hz, ts.p95_gap_s, metric_value=metric,
                             latency_p50_s=delay.p50_s if delay else None,
                             latency_p95_s=delay.p95_s if delay else None,
-                            latency_max_s=delay.max_s if delay else None))
+                            latency_max_s=delay.max_s if delay else None, input_hz=input_hz))
     return rows
 
 
