@@ -13,7 +13,8 @@
 - what only the user knows, as a stated default and a comment: weights equal; performance
   ``100 x`` the node's measured output frequency ``/`` its highest (eq 10 measures
   performance through the output frequency);
-- this machine as one computer of ``cores x 100`` units (100 = one core), a commented robot +
+- this machine as one computer of ``cores x units_per_core`` units (the manifest's scale, 100 =
+  one core as ``sweep`` records), a commented robot +
   server example.
 """
 
@@ -76,7 +77,7 @@ def draft_system(directory: str | Path, out: str | Path) -> Draft:
     if space is not None:  # topics the sweep did not record (its exclude) have no measurement
         graph = replace(graph, topics=tuple(t for t in graph.topics if space.recorded(t.name)))
     parameters = _parameters(space)
-    computer, cores = _computer(manifest)
+    machine = _computer(manifest)
     app = [n for n in graph.nodes if n.launched and not NOT_APP.match(n.name)]
     if not app:
         raise InputError(graph_path, "no node of the application in the graph")
@@ -89,14 +90,14 @@ def draft_system(directory: str | Path, out: str | Path) -> Draft:
     unknown = sorted(set(values) - {node_name(n.name) for n in app})
     if unknown:
         raise InputError(manifest.path, f"settings name node(s) {', '.join(unknown)} that the graph does not have")
-    skeleton = _skeleton(app, graph, values, parameters, computer, cores)
+    skeleton = _skeleton(app, graph, values, parameters, machine)
     check_settings(manifest.recordings, skeleton, manifest.path)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", PerfrosWarning)
         result = characterise(manifest.recordings, skeleton)
     if result.failures:
         raise InputError(result.failures[0].recording, result.failures[0].message)
-    text = _render(d, graph, skeleton, result.rows, values, computer, cores, graph_path.exists())
+    text = _render(d, graph, skeleton, result.rows, values, machine, graph_path.exists())
     _check_loads(text, Path(out))
     atomic_write_text(out, text)
     return Draft(text, tuple(n.name for n in skeleton.nodes))
@@ -128,8 +129,24 @@ def _values(manifest: Manifest) -> dict[str, list[float]]:
     return {n: sorted(v) for n, v in out.items()}
 
 
-def _computer(manifest: Manifest) -> tuple[str, int]:
-    """This machine's name (the manifest's computer) and its logical CPUs (the CPU traces')."""
+@dataclass(frozen=True)
+class _Machine:
+    """Where the runs were measured: the manifest's computer, its logical CPUs (the CPU
+    traces') and the measurement's CPU units per core (the manifest's ``units_per_core``)."""
+
+    name: str
+    cores: int
+    units_per_core: float
+    own_scale: bool  # every run gives units_per_core: the system's computers cannot rescale the data
+
+    @property
+    def capacity(self) -> float:
+        return _norm(self.cores * self.units_per_core)
+
+
+def _computer(manifest: Manifest) -> _Machine:
+    """This machine, as the runs measured it."""
+    from perfros_bag.characterisation.manifest import SWEEP_UNITS_PER_CORE
     from perfros_bag.cpu.trace import read_cpu_trace
     from perfros_bag.sweep.runner import computer_name
 
@@ -137,11 +154,17 @@ def _computer(manifest: Manifest) -> tuple[str, int]:
     if len(names) > 1:
         raise InputError(manifest.path, f"the runs name several computers ({', '.join(sorted(names))}): "
                          "init drafts one machine")
+    units = {e.units_per_core for e in manifest.recordings if e.units_per_core is not None}
+    if len(units) > 1:
+        raise InputError(manifest.path, f"the runs were measured in several scales (units_per_core "
+                         f"{', '.join(f'{u:g}' for u in sorted(units))}): init drafts one machine")
     name = names.pop() if names else computer_name()
     trace = next((e.cpu for e in manifest.recordings if e.cpu is not None and e.cpu.exists()), None)
     if trace is None:
         raise InputError(manifest.path, "no CPU trace beside the recordings (expected <run>.cpu.csv)")
-    return name, read_cpu_trace(trace).logical_cpus
+    own = all(e.units_per_core is not None for e in manifest.recordings)
+    return _Machine(name, read_cpu_trace(trace).logical_cpus, units.pop() if units else float(SWEEP_UNITS_PER_CORE),
+                    own)
 
 
 def _parameters(space: Space | None) -> dict[str, tuple[str, str | None]]:
@@ -189,7 +212,7 @@ def _output_topics(node: GraphNode, graph: Graph) -> tuple[str, ...]:
 
 
 def _skeleton(app: Sequence[GraphNode], graph: Graph, values: Mapping[str, list[float]],
-              parameters: Mapping[str, tuple[str, str | None]], computer: str, cores: int) -> Any:
+              parameters: Mapping[str, tuple[str, str | None]], machine: _Machine) -> Any:
     """The system the runs are characterised with: the nodes, their topics and patterns."""
     from perfros_bag.system.systemfile import parse_system
 
@@ -205,7 +228,7 @@ def _skeleton(app: Sequence[GraphNode], graph: Graph, values: Mapping[str, list[
             pname, unit = parameters.get(name, ("value", None))
             entry["parameter"] = {"name": pname} if unit is None else {"name": pname, "unit": unit}
         nodes.append(entry)
-    doc = {"computers": [{"name": computer, "kind": "robot", "capacity": cores * 100}], "nodes": nodes}
+    doc = {"computers": [{"name": machine.name, "kind": "robot", "capacity": machine.capacity}], "nodes": nodes}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", PerfrosWarning)
         return parse_system(doc, "<skeleton>")
@@ -230,7 +253,7 @@ def _r(x: float, digits: int = 4) -> float:
 
 
 def _render(d: Path, graph: Graph, skeleton: Any, rows: Sequence[Row], values: Mapping[str, list[float]],
-            computer: str, cores: int, from_graph: bool) -> str:
+            machine: _Machine, from_graph: bool) -> str:
     import yaml
 
     from perfros_bag.characterisation.table import table_one
@@ -249,10 +272,13 @@ def _render(d: Path, graph: Graph, skeleton: Any, rows: Sequence[Row], values: M
         + f"manifest.yaml and {runs} run(s).",
         "# It loads, fits and solves as it is. Lines marked REPLACE hold stated defaults that only you",
         "# can know better: the nodes' weights and performance.",
-        f"cpu_unit: {flow(f'100 = one core of {computer} (the machine the sweep ran on)')}",
+        f"cpu_unit: {flow(f'{machine.units_per_core:g} = one core of {machine.name} (the machine the sweep ran on)')}",
         "computers:",
-        f"  # this machine: {cores} logical CPUs x 100",
-        f"  - {flow({'name': computer, 'kind': 'robot', 'capacity': cores * 100})}",
+        f"  # this machine: {machine.cores} logical CPUs x {machine.units_per_core:g}"
+        + (". The measured CPU figures keep the runs' own scale (manifest.yaml units_per_core):\n"
+           "  # edit this computer, or describe your robots below, and the plan changes, never the data."
+           if machine.own_scale else " (it also normalises the CPU traces: manifest.yaml has no units_per_core)"),
+        f"  - {flow({'name': machine.name, 'kind': 'robot', 'capacity': machine.capacity})}",
         "  # where the nodes may run instead, e.g. a robot and a server on Wi-Fi (then add links:)",
         "  # - {name: robot1, kind: robot, capacity: 100}",
         "  # - {name: server, kind: server, capacity: 400}",
