@@ -23,7 +23,7 @@ from __future__ import annotations
 import math
 import re
 import warnings
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -37,6 +37,7 @@ from perfros_bag.system.names import NameKind, name_problem, system_node_name
 if TYPE_CHECKING:
     from perfros_bag.characterisation.manifest import Manifest
     from perfros_bag.characterisation.table import Row
+    from perfros_bag.sweep.driven import Follow, RunMeasure
 
 #: Nodes that are not the application's: roscore's, the tool's own recorders, rosbag's
 #: recorders (ROS 1 ``record_<pid>``, ROS 2 ``rosbag2_recorder``) and the ros2 command line's.
@@ -97,7 +98,11 @@ def draft_system(directory: str | Path, out: str | Path) -> Draft:
         result = characterise(manifest.recordings, skeleton)
     if result.failures:
         raise InputError(result.failures[0].recording, result.failures[0].message)
-    text = _render(d, graph, skeleton, result.rows, values, machine, graph_path.exists())
+    from perfros_bag.sweep.driven import find_inputs, per_run
+
+    by_run = per_run(result.rows)
+    follows = find_inputs(skeleton.nodes, graph, by_run, {node_name(n.name): n.name for n in app})
+    text = _render(d, graph, skeleton, result.rows, values, machine, graph_path.exists(), follows, by_run)
     _check_loads(text, Path(out))
     atomic_write_text(out, text)
     return Draft(text, tuple(n.name for n in skeleton.nodes))
@@ -253,7 +258,8 @@ def _r(x: float, digits: int = 4) -> float:
 
 
 def _render(d: Path, graph: Graph, skeleton: Any, rows: Sequence[Row], values: Mapping[str, list[float]],
-            machine: _Machine, from_graph: bool) -> str:
+            machine: _Machine, from_graph: bool, follows: Mapping[str, Follow],
+            by_run: Mapping[str, Mapping[str, RunMeasure]]) -> str:
     import yaml
 
     from perfros_bag.characterisation.table import table_one
@@ -292,6 +298,9 @@ def _render(d: Path, graph: Graph, skeleton: Any, rows: Sequence[Row], values: M
         ros = graph.node("/" + node.name)
         exe = ros.executable if ros is not None and ros.executable else "executable unknown"
         keys = [_norm(v) for v in values.get(node.name, [])] if node.parameter else [None]
+        if node.name in follows:
+            lines += _render_driven(node, exe, keys, weight, follows[node.name], by_run[node.name], flow)
+            continue
         measured = [_measured(node, key, per_value, topic_means) for key in keys]
         freqs = [m.frequency_hz for m in measured if m.frequency_hz]
         top = max(freqs) if freqs else None
@@ -317,6 +326,46 @@ def _render(d: Path, graph: Graph, skeleton: Any, rows: Sequence[Row], values: M
     elif not from_graph:
         lines.append("# edges: unknown without graph.yaml: add {from: NODE, to: NODE, topic: TOPIC} per subscription")
     return "\n".join(lines) + "\n"
+
+
+def _render_driven(node: Any, exe: str, keys: Sequence[int | float | None], weight: float, follow: Follow,
+                   runs: Mapping[str, RunMeasure], flow: Callable[[Any], str]) -> list[str]:
+    """A driven node's lines (perfros_bag/sweep/driven.py: the rule and the numbers)."""
+    from perfros_bag.sweep.driven import INPUT_VARIED, RATIO_TOLERANCE, draft_settings
+
+    drafted = draft_settings(node.topics, runs, follow)
+    settings = [drafted[repr(k)] for k in keys]
+    top = max(s.out_per_in for s in settings)
+    lines = [f"  # /{node.name} ({exe})",
+             f"  - name: {flow(node.name)}",
+             f"    weight: {weight!r}  # REPLACE: every node weighs the same (a stated default)",
+             f"    # driven: its output kept one rate per message of {follow.topic} (within "
+             f"{100 * (RATIO_TOLERANCE - 1):.0f} %) while that rate varied by more than {100 * (INPUT_VARIED - 1):.0f} %",
+             f"    input: {flow(follow.topic)}"]
+    if node.parameter is not None:
+        lines.append(f"    parameter: {flow(_parameter(node.parameter))}")
+    if node.topics:
+        lines.append(f"    topics: {flow(list(node.topics))}")
+    lines.append(f"    process: {flow(node.process)}  # its ROS name in the sweep's CPU traces")
+    lines.append("    # cpu + cpu_per_hz x input rate: least squares over the runs at each setting; "
+                 "performance: REPLACE.")
+    lines.append(f"    # A stated default: 100 x its out_per_in / the highest ({_r(top)})")
+    lines.append("    settings:")
+    for s in settings:
+        entry: dict[str, Any] = {} if s.value is None else {"value": _norm(s.value)}
+        entry.update(cpu=_r(s.cpu), cpu_per_hz=_r(s.cpu_per_hz),
+                     performance=_r(100.0 * s.out_per_in / top) if top > 0 else 100.0,
+                     out_per_in=_r(s.out_per_in), bytes_per_msg=_r(s.bytes_per_msg))
+        note = ""
+        if s.clipped == "base":
+            note = "  # the line's base was < 0: clipped to 0, the line through the origin"
+        elif s.clipped == "slope":
+            note = "  # the line's slope was < 0: clipped to 0, cpu = the mean CPU"
+        elif s.scaled_from is not None:
+            note = (f"  # input rate not varied here: the line at value {_norm(s.scaled_from)} scaled by "
+                    "this setting's CPU")
+        lines.append(f"      - {flow(entry)}{note}")
+    return lines
 
 
 def _norm(v: float) -> float | int:
