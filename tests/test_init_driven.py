@@ -210,3 +210,25 @@ def test_the_rule_and_its_tolerance(ratios: list[float], rates: list[float], dri
     assert ("b" in found) == driven
     if driven:
         assert found["b"].topic == "/in" and found["b"].spread <= RATIO_TOLERANCE
+
+
+def test_an_input_without_a_rate_in_some_run_drives_nothing() -> None:
+    runs, input_hz = _runs([1.0, 1.0, 1.0], [5.0, 10.0, 10.0])
+    input_hz["r2"] = 0.0  # the camera published one message in that run
+    upstream = {r: RunMeasure(5, 1.0, {"/in": (f, 1.0)}) for r, f in input_hz.items()}
+    graph = Graph((GraphNode("/a", None, None), GraphNode("/b", None, None)),
+                  (GraphTopic("/in", None, ("/a",), ("/b",)), GraphTopic("/out", None, ("/b",), ())))
+    assert find_inputs([_Node("a", ("/in",)), _Node("b", ("/out",))], graph, {"a": upstream, "b": runs},
+                       {"a": "/a", "b": "/b"}) == {}
+
+
+def test_no_cycle_of_inputs_is_drafted() -> None:
+    """Two nodes each subscribed to the other's output, both at the same varying rate: the first
+    (graph order) is driven by the second, and the second stays a paper node."""
+    a = {f"r{i}": RunMeasure(1, 1.0, {"/a/out": (f, 1.0)}) for i, f in enumerate((5.0, 10.0))}
+    b = {f"r{i}": RunMeasure(1, 1.0, {"/b/out": (f, 1.0)}) for i, f in enumerate((5.0, 10.0))}
+    graph = Graph((GraphNode("/a", None, None), GraphNode("/b", None, None)),
+                  (GraphTopic("/a/out", None, ("/a",), ("/b",)), GraphTopic("/b/out", None, ("/b",), ("/a",))))
+    found = find_inputs([_Node("a", ("/a/out",)), _Node("b", ("/b/out",))], graph, {"a": a, "b": b},
+                        {"a": "/a", "b": "/b"})
+    assert {n: f.topic for n, f in found.items()} == {"a": "/b/out"}

@@ -334,6 +334,9 @@ def _render_driven(node: Any, exe: str, keys: Sequence[int | float | None], weig
     from perfros_bag.sweep.driven import INPUT_VARIED, RATIO_TOLERANCE, draft_settings
 
     drafted = draft_settings(node.topics, runs, follow)
+    missing = [k for k in keys if repr(k) not in drafted]
+    if missing:
+        raise InputError(None, f"node {node.name}: no run measured it at value {missing[0]}")
     settings = [drafted[repr(k)] for k in keys]
     top = max(s.out_per_in for s in settings)
     lines = [f"  # /{node.name} ({exe})",

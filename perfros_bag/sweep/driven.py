@@ -136,8 +136,8 @@ def find_inputs(nodes: Sequence[Any], graph: Graph, measured: Mapping[str, Mappi
                 continue
             upstream = measured.get(source, {})
             input_hz = {r: upstream[r].rate(g.name) for r in runs if r in upstream}
-            if len(input_hz) != len(runs) or not runs:
-                continue
+            if not runs or len(input_hz) != len(runs) or min(input_hz.values()) <= 0:
+                continue  # a run without the input at a rate shows nothing to follow
             spread = _follows(topics, runs, input_hz)
             if spread is not None and (best is None or spread < best.spread):
                 best = Follow(g.name, source, input_hz, spread)
