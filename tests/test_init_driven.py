@@ -178,7 +178,8 @@ def test_a_negative_base_is_clipped_and_the_line_goes_through_the_origin(tmp_pat
     assert _lstsq(list(zip(f, c, strict=True)))[0] < 0
     assert s["cpu"] == 0
     assert s["cpu_per_hz"] == pytest.approx(float(f @ c / (f @ f)), rel=1e-3)
-    assert "the line's base was < 0: clipped to 0" in system_path.read_text()
+    assert "the fitted base cpu was below 0: clipped to 0, cpu_per_hz fitted through the origin" \
+        in system_path.read_text()
     _solve(system_path, tmp_path)
 
 

@@ -360,10 +360,8 @@ def _render_driven(node: Any, exe: str, keys: Sequence[int | float | None], weig
                      performance=_r(100.0 * s.out_per_in / top) if top > 0 else 100.0,
                      out_per_in=_r(s.out_per_in), bytes_per_msg=_r(s.bytes_per_msg))
         note = ""
-        if s.clipped == "base":
-            note = "  # the line's base was < 0: clipped to 0, the line through the origin"
-        elif s.clipped == "slope":
-            note = "  # the line's slope was < 0: clipped to 0, cpu = the mean CPU"
+        if s.clipped is not None:
+            note = f"  # {s.clipped}"
         elif s.scaled_from is not None:
             note = (f"  # input rate not varied here: the line at value {_norm(s.scaled_from)} scaled by "
                     "this setting's CPU")

@@ -21,7 +21,8 @@ Per own setting, from the runs at it:
 - ``cpu`` + ``cpu_per_hz`` x F_in: the least-squares line through (measured input rate, CPU)
   when the input rate varied there by more than 20 %; a negative base is clipped to 0 (the line
   then goes through the origin: ``cpu_per_hz = sum(F C) / sum(F^2)``) and a negative slope to 0
-  (``cpu`` = the mean CPU), and the draft says so in a comment;
+  (``cpu`` = the mean CPU), and the draft says so in a comment (the line is ``fit``'s own,
+  :func:`perfros_bag.fitting.build.cpu_line`);
 - otherwise (one-at-a-time: the own parameter varied at one input rate) the line of the
   reference setting (the own setting with a line, the one with most runs), scaled by this
   setting's CPU over the line's CPU at the input rate it was measured at: ``k = mean C /
@@ -168,22 +169,17 @@ class DrivenSetting:
     cpu_per_hz: float
     out_per_in: float
     bytes_per_msg: float
-    clipped: str | None = None  # "base" or "slope" when the line was clipped at 0
+    clipped: str | None = None  # what was clipped at 0 (the fit's words), None when nothing
     scaled_from: Any = None  # the reference value (one-at-a-time), None when its own line
 
 
 def _line(f: Sequence[float], c: Sequence[float]) -> tuple[float, float, str | None]:
-    """Least squares C = a + b F, clipped: a >= 0 (then through the origin), b >= 0."""
-    import numpy as np
+    """Least squares C = a + b F, clipped (a >= 0, then through the origin; b >= 0): the fit's
+    own line (:func:`perfros_bag.fitting.build.cpu_line`), with what was clipped."""
+    from perfros_bag.fitting.build import cpu_line
 
-    x, y = np.asarray(f, dtype=float), np.asarray(c, dtype=float)
-    design = np.column_stack([np.ones_like(x), x])
-    (a, b), *_ = np.linalg.lstsq(design, y, rcond=None)
-    if a < 0:
-        return 0.0, float(max(0.0, float(x @ y) / float(x @ x))), "base"
-    if b < 0:
-        return float(y.mean()), 0.0, "slope"
-    return float(a), float(b), None
+    a, b, _r2, notes = cpu_line(list(zip(f, c, strict=True)))
+    return a, b, "; ".join(notes) or None
 
 
 def draft_settings(topics: Sequence[str], runs: Mapping[str, RunMeasure], follow: Follow) -> dict[str, DrivenSetting]:
