@@ -13,6 +13,7 @@ import pytest
 import yaml
 from typer.testing import CliRunner
 
+from perfros_bag.characterisation.csvfile import read_characterisation
 from perfros_bag.cli import app
 from perfros_bag.sweep.draft import draft_system
 from perfros_bag.sweep.driven import RATIO_TOLERANCE, RunMeasure, find_inputs
@@ -142,6 +143,19 @@ def test_a_grid_drafts_one_least_squares_line_per_own_setting(tmp_path: Path) ->
     assert plan["relay"]["input_hz"] == pytest.approx(detector_hz)
     s = next(x for x in detector if x["value"] == plan["detector"]["value"])
     assert plan["detector"]["cpu"] == pytest.approx(s["cpu"] + s["cpu_per_hz"] * camera_hz)
+
+    # and it characterises (input_hz: the camera's rate as written), fits and solves as drafted
+    char, model = tmp_path / "c.csv", tmp_path / "model.json"
+    runner = CliRunner()
+    res = runner.invoke(app, ["characterise", str(tmp_path / "sweep"), "--system", str(system_path), "--out", str(char)])
+    assert res.exit_code == 0, res.output
+    rates = {f"run{k}.bag": rate for k, (rate, _v) in enumerate(runs)}
+    inputs = {r.recording: r.input_hz for r in read_characterisation(char).rows if r.node == "detector"}
+    assert inputs == pytest.approx(rates)
+    res = runner.invoke(app, ["fit", str(system_path), str(char), "--out", str(model)])
+    assert res.exit_code == 0, res.output
+    plan = _solve(model, tmp_path)
+    assert plan["detector"]["input"] == "/camera/image_raw"
 
 
 def test_one_at_a_time_scales_the_default_settings_line(tmp_path: Path) -> None:
