@@ -576,6 +576,13 @@ def test_units_per_core_keeps_the_measurement_apart_from_the_robot(tmp_path: Pat
     assert r.returncode == 0, r.stderr
     assert {(x["recording"], x["node"], x["topic"]): tuple(x[c] for c in cpu_cols)
             for x in json.loads(r.stdout)} == out["small.yaml"]
+    # and it needs no system.yaml to normalise (without one the nodes are the trace's labels)
+    edit_manifest(d, lambda data: data.pop("system"))
+    r = run("characterise", d, "--json")
+    assert r.returncode == 0, r.stderr
+    bare = {(x["recording"], x["node"]): x["cpu_units_mean"] for x in json.loads(r.stdout)}
+    assert bare[("tracker_f15", "people_tracker")] == next(  # the trace's label of tracker1
+        v[0] for k, v in out["small.yaml"].items() if k[:2] == ("tracker_f15", "tracker1"))
     # without units_per_core the computer's capacity normalises (the old contract, kept)
     def old(data: dict) -> None:
         data["recordings"] = [e for e in data["recordings"] if e["path"] == "tracker_f15"]
