@@ -23,6 +23,9 @@ and ``overloaded`` where it exceeds the capacity. With the system (given, or the
 plan's ``system`` path), each link's measured load is the measured bandwidth of the
 publisher topics of the edges crossing it, and a node with a ``metric`` gets its measured
 value, on the 0-100 scale of the metric's ``range``, beside P_measured (``p_metric``).
+A driven node (system.yaml ``input``) gets its input rate, the plan's against the run's;
+an overloaded plan the rates it keeps (:mod:`perfros_bag.validation.kept`). A topic with
+too few messages for a rate (:attr:`TopicStats.rate_note`) is said to have none.
 """
 
 from __future__ import annotations
