@@ -81,12 +81,6 @@ class KeptRates:
                 "rounds": self.rounds, "converged": self.converged, "notes": self.notes}
 
 
-def _same(a: float | None, b: float | None) -> bool:
-    if a is None or b is None:
-        return a is None and b is None
-    return abs(a - b) <= 1e-9 * max(1.0, abs(a), abs(b))
-
-
 def planned_settings(plan: Plan, system: System | None) -> tuple[dict[str, Setting], list[str]]:
     """Each driven node's setting (system.yaml ``input:``) the plan chose, by its value; a
     driven node whose value matches no setting is left out (a note says so)."""
@@ -98,7 +92,8 @@ def planned_settings(plan: Plan, system: System | None) -> tuple[dict[str, Setti
         node = system.node.get(name)
         if node is None or not node.driven or pn.input_hz is None:
             continue
-        s = next((s for s in node.settings if _same(s.value, pn.value)), None)
+        s = next((s for s in node.settings if s.value is not None and pn.value is not None
+                  and math.isclose(s.value, pn.value, rel_tol=1e-9, abs_tol=1e-9)), None)
         if s is None and len(node.settings) == 1:
             s = node.settings[0]
         if s is None:
