@@ -188,3 +188,13 @@ def test_measured_overload_calibrates_the_need(solved: tuple[Path, Path, Any]) -
     f_in = float(max(r.real for r in roots if abs(r.imag) < 1e-12))
     assert k["detector"].input_hz_predicted == pytest.approx(f_in, rel=1e-9)
     assert k["camera"].factor == pytest.approx(f_in / f0, rel=1e-9)
+
+
+def test_without_the_system_driven_nodes_keep_their_share_only(solved: tuple[Path, Path, Any]) -> None:
+    _, _, plan = solved
+    kept = predict_kept(plan, None, {"robot": 40, "server": 400})
+    k = {n.node: n for n in kept.nodes}
+    need = plan.nodes["camera"].cpu + plan.nodes["detector"].cpu
+    assert k["detector"].factor == pytest.approx(40 / need) and k["tracker"].factor == 1.0
+    assert k["tracker"].f_predicted == k["tracker"].f_planned  # nothing propagates without the rule's settings
+    assert any("no system" in note for note in kept.notes)

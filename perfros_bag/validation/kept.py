@@ -87,6 +87,9 @@ def planned_settings(plan: Plan, system: System | None) -> tuple[dict[str, Setti
     out: dict[str, Setting] = {}
     notes: list[str] = []
     if system is None:
+        if any(pn.input is not None for pn in plan.nodes.values()):
+            notes.append("no system: the driven nodes' CPU and rates do not follow their inputs in the kept-rate "
+                         "prediction (each keeps its computer's share only)")
         return out, notes
     for name, pn in plan.nodes.items():
         node = system.node.get(name)
