@@ -198,3 +198,24 @@ def test_without_the_system_driven_nodes_keep_their_share_only(solved: tuple[Pat
     assert k["detector"].factor == pytest.approx(40 / need) and k["tracker"].factor == 1.0
     assert k["tracker"].f_predicted == k["tracker"].f_planned  # nothing propagates without the rule's settings
     assert any("no system" in note for note in kept.notes)
+
+
+def test_cpu_trace_overload_gives_kept_rates_through_the_cli(tmp_path: Path, solved: tuple[Path, Path, Any]) -> None:
+    """A CPU trace showing camera and detector at 1.5x their planned CPU (108 of the robot's
+    100): validate predicts the kept rates from the measured needs."""
+    from tests.test_validate import write_trace
+
+    _, plan_path, plan = solved
+    run = tmp_path / "run.mcap"
+    write_run(run, {"/cam": 20, "/det": 10, "/trk": 10})
+    units = {n: 1.5 * plan.nodes[n].cpu for n in ("camera", "detector")}  # 2 cores: units = percent / 2
+    write_trace(tmp_path / "run.cpu.csv", [(n, 2 * u) for n, u in units.items()] + [("tracker", 1.0)], 2, T0 / 1e9)
+    doc = json.loads(run_cli("validate", str(run), str(plan_path), "--json").stdout)
+    assert doc["overloaded"] == ["robot"]
+    k = {n["node"]: n for n in doc["kept"]["nodes"]}
+    c, b, kk = CAM[20] * 1.5, DET["cpu"] * 1.5, DET["cpu_per_hz"] * 1.5
+    roots = np.roots([kk, c + b, -20 * 100])
+    f_in = float(max(r.real for r in roots if abs(r.imag) < 1e-12))
+    assert k["detector"]["input_hz_predicted"] == pytest.approx(f_in, rel=1e-6)
+    assert k["camera"]["f_predicted"] == pytest.approx(f_in, rel=1e-6)  # the camera keeps what the detector gets
+    assert k["camera"]["f_measured"] == pytest.approx(20)
