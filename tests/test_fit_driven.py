@@ -16,6 +16,7 @@ from typer.testing import CliRunner
 
 from perfros_bag.characterisation.csvfile import Row, write_characterisation
 from perfros_bag.cli import app
+from perfros_bag.errors import InputError
 from perfros_bag.fitting.build import build_model
 from perfros_bag.fitting.modelfile import read_model
 from perfros_bag.system.planfile import load_plan
@@ -181,3 +182,46 @@ def test_fit_then_solve_follows_the_rule(tmp_path: Path) -> None:
         f_out = min(s.get("out_per_in", 1.0) * f_in, s.get("max_frequency_hz", np.inf))
         assert det.topics["/det/out"].frequency_hz == pytest.approx(f_out, rel=1e-8)
         assert cam.cpu + det.cpu <= 60 + 1e-6
+
+
+def test_driven_node_without_parameter_and_without_input_rates(tmp_path: Path) -> None:
+    """A driven node with one setting and no parameter is fitted from its rows; one whose
+    rows carry no input_hz keeps the system.yaml's numbers (a warning, source "system")."""
+    system = system_yaml((1.0,))
+    system["nodes"].append({"name": "tracker", "weight": 0.1, "input": "/det/out", "topics": ["/trk"],
+                            "settings": [{"cpu": 9.0, "cpu_per_hz": 9.0, "performance": 100}]})
+    system["nodes"].append({"name": "logger", "weight": 0.1, "input": "/det/out", "topics": ["/log"],
+                            "settings": [{"cpu": 7.0, "cpu_per_hz": 0.5, "performance": 100}]})
+    table = rows(detector={1.0: DETECTOR[1.0]})
+    for rate, f_in in CAMERA.items():
+        rec = f"rec_r{rate:g}_s1.bag"
+        table.append(Row(rec, "tracker", None, None, "/trk", "x", 10, 20.0, f_in, 0.1 * f_in, 0.5 + 0.25 * f_in,
+                         None, 10, input_hz=f_in))
+        table.append(Row(rec, "logger", None, None, "/log", "x", 10, 20.0, f_in, 0.1, 3.0, None, 10))
+    sys_path, csv_path = write_inputs(tmp_path, system, table)
+    with pytest.warns(Warning, match="'logger': no row gives the rate of its input"):
+        result = build_model(sys_path, csv_path)
+    nodes = {n["name"]: n for n in result.document.system["nodes"]}
+    (trk,) = nodes["tracker"]["settings"]
+    assert (trk["cpu"], trk["cpu_per_hz"]) == pytest.approx((0.5, 0.25), rel=1e-8)
+    assert nodes["logger"]["settings"] == [{"cpu": 7.0, "cpu_per_hz": 0.5, "performance": 100}]
+    assert [d.source for d in result.document.driven["logger"]] == ["system"]
+    assert "tracker" not in result.fits and "logger" not in result.fits  # nothing over a parameter
+
+
+def test_bad_driven_part_of_model_json(tmp_path: Path) -> None:
+    sys_path, csv_path = write_inputs(tmp_path, system_yaml(), rows())
+    out = tmp_path / "model.json"
+    res = CliRunner().invoke(app, ["fit", str(sys_path), str(csv_path), "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    doc = json.loads(out.read_text())
+    doc["driven"]["detector"][1]["source"] = "guessed"
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps(doc))
+    with pytest.raises(InputError, match=r"driven\.detector\[1\]\.source: must be one of measured, system, grid"):
+        read_model(bad)
+    del doc["driven"]  # an older model.json: no driven part
+    (tmp_path / "old.json").write_text(json.dumps(doc))
+    assert read_model(tmp_path / "old.json").driven == {}
+    res = CliRunner().invoke(app, ["report", "--model", str(bad), "--out", str(tmp_path / "r.html")])
+    assert res.exit_code == 2 and "bad.json" in res.output and "Traceback" not in res.output

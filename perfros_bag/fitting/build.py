@@ -533,10 +533,10 @@ def _fit_driven_node(node: Node, samples: dict[float | None, list[DrivenSample]]
                 performance = measured_perf
                 rs["performance"] = round9(performance)
         m = _match(node, s.value, measures)
+        setting = "its setting" if s.value is None else f"setting {s.value:g}"
         if m is None:
             if samples:
-                warn(f"{who}: setting {'' if s.value is None else f'{s.value:g} '}has no recording with an input "
-                     f"rate: kept {sys_path}'s numbers")
+                warn(f"{who}: {setting} has no recording with an input rate: kept {sys_path}'s numbers")
             written.append(DrivenSetting(s.value, "system", s.cpu, s.cpu_per_hz or 0.0, performance,
                                          s.out_per_in, s.bytes_per_msg))
         else:
@@ -547,7 +547,7 @@ def _fit_driven_node(node: Node, samples: dict[float | None, list[DrivenSample]]
             if m.bytes_per_msg is not None:
                 rs["bytes_per_msg"] = round9(m.bytes_per_msg)
             for note in m.notes:
-                warn(f"{who}: setting {'' if s.value is None else f'{s.value:g} '}: {note}")
+                warn(f"{who}: {setting}: {note}")
             written.append(DrivenSetting(s.value, "measured", m.cpu, m.cpu_per_hz, performance,
                                          rs.get("out_per_in"), rs.get("bytes_per_msg"), m.r2, m.points, m.notes))
         new_settings.append(rs)
