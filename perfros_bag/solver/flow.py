@@ -5,7 +5,9 @@ flow they are not: a driven node's choice must be made for the rate its input's 
 gives (:meth:`~perfros_bag.system.types.System.flow_choices`). Fix, for every node that
 drives others (a *publisher*), the rates it publishes (its *rate class*), and what is left
 is the paper's problem: each publisher keeps its choices in that class, each driven node
-its choices at that input rate, and every combination of them is consistent. So:
+its choices at that input rate, and every combination of them is consistent. A publisher
+that is itself driven is fixed by its own setting instead (its rates then follow its input).
+So:
 
 - one inner run of the heuristic per assignment of rate classes (:func:`_restricted`);
 - every assignment when there are at most :data:`ENUMERATE` of them (a camera with three
@@ -31,7 +33,9 @@ ENUMERATE = 64
 #: coordinate-search passes over the publishers
 PASSES = 3
 
-Classes = dict[str, tuple[float, ...]]  # publisher -> the rates it publishes (one per node it drives)
+#: per publisher: the rates it publishes (one per node it drives), or a driven publisher's own setting
+Pick = tuple[float, ...] | int
+Classes = dict[str, Pick]
 
 
 def solve_heuristic(system: System, problem: Problem, choices: dict[str, list[Choice]], method: Method, *,
@@ -42,7 +46,7 @@ def solve_heuristic(system: System, problem: Problem, choices: dict[str, list[Ch
     deadline = None if time_budget is None else time.monotonic() + time_budget
     options = _class_options(system, choices)
     publishers = sorted(options, key=lambda p: system.flow_order.index(p) if p in system.flow_order else -1)
-    tried: dict[tuple[tuple[float, ...], ...], Plan | None] = {}
+    tried: dict[tuple[Pick, ...], Plan | None] = {}
 
     def run(classes: Classes) -> Plan | None:
         key = tuple(classes[p] for p in publishers)
@@ -92,28 +96,52 @@ def _output(system: System, publisher: str, choice: Choice) -> tuple[float, ...]
     return tuple(system.input_hz(child, choice) for child in system.flow_children[publisher])
 
 
-def _class_options(system: System, choices: Mapping[str, list[Choice]]) -> dict[str, list[tuple[float, ...]]]:
-    """Per publisher, its rate classes, the lowest total rate first."""
-    return {p: sorted({_output(system, p, ch) for ch in choices[p]}, key=lambda c: (sum(c), c))
-            for p in system.flow_children}
+def _class_options(system: System, choices: Mapping[str, list[Choice]]) -> dict[str, list[Pick]]:
+    """Per publisher, what fixes its rates: a source's rate classes, the lowest total rate
+    first; a driven publisher's own settings, the least CPU per input message first."""
+    out: dict[str, list[Pick]] = {}
+    for p in system.flow_children:
+        if p in system.flow_parent:
+            node = system.node[p]
+            own = sorted({ch.setting for ch in choices[p] if ch.setting is not None},
+                         key=lambda j: (node.settings[j].cpu_per_hz or 0.0, node.settings[j].cpu, j))
+            out[p] = list(own)
+        else:
+            rates: list[tuple[float, ...]] = sorted({_output(system, p, ch) for ch in choices[p]},
+                                                    key=lambda c: (sum(c), c))
+            out[p] = list(rates)
+    return out
 
 
 def _restricted(system: System, choices: Mapping[str, list[Choice]], classes: Classes) -> dict[str, list[Choice]] | None:
-    """The choices consistent with ``classes``: a publisher's in its class, a driven node's
-    at the rate its publisher's class gives it; None when a node has none left."""
+    """The choices consistent with ``classes``: a source publisher's in its rate class, a
+    driven node's at the rate its publisher then gives it (and a driven publisher's at its
+    own setting); None when a node has none left."""
     out: dict[str, list[Choice]] = {}
-    for name, options in choices.items():
+    given: dict[str, tuple[float, ...]] = {}  # publisher -> the rates it gives its children
+    for name, options in choices.items():  # the sources first: driven nodes below, in flow order
+        if name in system.flow_parent:
+            continue
         kept = options
-        if name in classes:
-            kept = [ch for ch in kept if _output(system, name, ch) == classes[name]]
-        parent = system.flow_parent.get(name)
-        if parent is not None:
-            rate = classes[parent][system.flow_children[parent].index(name)]
-            kept = [ch for ch in kept if ch.input_hz == rate]
+        cls = classes.get(name)
+        if isinstance(cls, tuple):
+            kept = [ch for ch in kept if _output(system, name, ch) == cls]
+            given[name] = cls
         if not kept:
             return None
         out[name] = kept
-    return out
+    for name in system.flow_order:
+        parent = system.flow_parent[name]
+        rate = given[parent][system.flow_children[parent].index(name)]
+        kept = [ch for ch in choices[name] if ch.input_hz == rate]
+        if name in classes:
+            kept = [ch for ch in kept if ch.setting == classes[name]]
+            if kept:
+                given[name] = _output(system, name, kept[0])
+        if not kept:
+            return None
+        out[name] = kept
+    return {name: out[name] for name in choices}
 
 
 def _better(plan: Plan | None, than: Plan | None, problem: Problem) -> bool:
@@ -126,7 +154,7 @@ def _better(plan: Plan | None, than: Plan | None, problem: Problem) -> bool:
     return plan.objective < than.objective - 1e-9
 
 
-def _best(tried: Mapping[tuple[tuple[float, ...], ...], Plan | None], problem: Problem, method: Method, system: System) -> Plan:
+def _best(tried: Mapping[tuple[Pick, ...], Plan | None], problem: Problem, method: Method, system: System) -> Plan:
     best: Plan | None = None
     for plan in tried.values():
         if _better(plan, best, problem):
