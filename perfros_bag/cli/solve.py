@@ -58,11 +58,14 @@ def print_plan(console: Console, plan: Plan) -> None:
     """Nodes (computer, parameter value, CPU, performance), computers and links."""
     title = f"Problem {plan.problem} · {plan.method} · {plan.status}"
     nodes = Table(title=title, title_justify="left")
-    for col in ("node", "computer", "parameter", "value", "CPU", "performance", "weight"):
-        nodes.add_column(col, justify="right" if col in ("value", "CPU", "performance", "weight") else "left")
+    flow = any(n.input is not None for n in plan.nodes.values())  # driven nodes: their input's rate too
+    cols = ("node", "computer", "parameter", "value", "CPU", "performance", "weight") + (("input Hz",) if flow else ())
+    for col in cols:
+        nodes.add_column(col, justify="left" if col in ("node", "computer", "parameter") else "right")
     for name, n in plan.nodes.items():
-        nodes.add_row(name, n.computer, n.parameter or "-", _num(n.value, 3), _num(n.cpu), _num(n.performance),
-                      _num(n.weight, 4))
+        row = [name, n.computer, n.parameter or "-", _num(n.value, 3), _num(n.cpu), _num(n.performance),
+               _num(n.weight, 4)]
+        nodes.add_row(*row, *((_num(n.input_hz),) if flow else ()))
     console.print(nodes)
     comps = Table(title="computers", title_justify="left")
     for col in ("computer", "kind", "CPU", "capacity", "use"):
