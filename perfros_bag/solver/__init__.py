@@ -45,6 +45,7 @@ METHODS: tuple[str, ...] = tuple(Method)
 
 __all__ = ["DECOMPOSE_COLUMNS", "DrivenLevel", "MAX_CHOICES", "METHODS", "Progress", "START_COLUMNS", "START_SHARE",
            "check_resolution", "choice_count", "exact_columns", "fixed_choices", "lowest_settings", "settings_from_plan",
+           "with_headroom",
            "settings_from_values", "solve", "start_of"]
 
 
@@ -298,9 +299,12 @@ def _same_source(a: str | None, b: str | None) -> bool:
 
 def solve(system: System, problem: int, method: str, *, resolution: float = 1.0,
           settings: Mapping[str, float] | None = None, time_limit: float | None = None,
-          progress: Progress | None = None) -> Plan:
+          progress: Progress | None = None, headroom: float = 0.0) -> Plan:
     """Solve Problem ``problem`` (1 or 2) with ``method`` (a :class:`Method`); the
     returned plan carries ``solve_s``.
+
+    ``headroom`` (in [0, 1)): the share of every computer's capacity the plan keeps free
+    (:func:`with_headroom`); each computer's ``margin`` in the plan says how much.
 
     An infeasible instance gives a plan with status ``infeasible`` and a ``reason`` (not an
     exception: :meth:`Plan.require_feasible` turns it into one); bad input (unknown method,
@@ -312,6 +316,12 @@ def solve(system: System, problem: int, method: str, *, resolution: float = 1.0,
         raise InputError(None, f"unknown method {method!r} (one of {', '.join(METHODS)})")
     the_problem, the_method = Problem(problem), Method(method)
     system.capacities(the_problem)  # every capacity the problem needs is there
+    if isinstance(headroom, bool) or not isinstance(headroom, int | float) or not 0.0 <= headroom < 1.0:
+        raise InputError(None, f"headroom must be in [0, 1), got {headroom!r}")
+    if headroom > 0:
+        plan = solve(with_headroom(system, headroom), problem, method, resolution=resolution, settings=settings,
+                     time_limit=time_limit, progress=progress)
+        return _give_back(system, plan, headroom)
     start = time.perf_counter()  # --time-limit counts from here: the choices, the set-up and the solve
     deadline = None if time_limit is None else start + time_limit
     choices = fixed_choices(system, the_problem, settings, resolution)
@@ -320,6 +330,38 @@ def solve(system: System, problem: int, method: str, *, resolution: float = 1.0,
     plan.method = the_method
     if plan.system is None:
         plan.system = system.source
+    return plan
+
+
+def with_headroom(system: System, headroom: float) -> System:
+    """The system with every computer's capacity (and a server's ``max_capacity``) cut to
+    ``1 - headroom`` of it: what a plan may fill when it keeps ``headroom`` free."""
+    import dataclasses
+
+    keep = 1.0 - headroom
+    computers = tuple(dataclasses.replace(
+        c, capacity=None if c.capacity is None else c.capacity * keep,
+        max_capacity=None if c.max_capacity is None else c.max_capacity * keep) for c in system.computers)
+    return dataclasses.replace(system, computers=computers)
+
+
+def _give_back(system: System, plan: Plan, headroom: float) -> Plan:
+    """A plan solved on :func:`with_headroom`'s system, stated on ``system``: each computer
+    its own capacity (a Problem 2 server: its load over ``1 - headroom``) and its
+    ``margin``, the CPU units kept free; Problem 2's objective and bound the sized capacity."""
+    plan.extra["headroom"] = headroom
+    if plan.status == Status.INFEASIBLE:
+        plan.reason = f"{plan.reason} (with {100 * headroom:g} % of every computer kept free)"
+        return plan
+    keep = 1.0 - headroom
+    sized = plan.problem == Problem.SERVER_CAPACITY
+    for name, pc in plan.computers.items():
+        c = system.computer[name]
+        pc.capacity = (pc.capacity or 0.0) / keep if sized and c.kind == "server" else c.capacity
+        pc.margin = None if pc.capacity is None else pc.capacity * headroom
+    if sized:
+        plan.objective = None if plan.objective is None else plan.objective / keep
+        plan.bound = None if plan.bound is None else plan.bound / keep
     return plan
 
 
