@@ -36,6 +36,9 @@ ENUMERATE = 64
 PASSES = 3
 #: greedy+ runs on this many of the coordinate search's best assignments
 FINALISTS = 1
+#: the whole search's time (seconds) when the caller sets none: past it, the best plan found
+#: so far (at least the first assignment's, every publisher at its cheapest) is the answer
+SEARCH_BUDGET_S = 60.0
 
 #: per publisher: the rates it publishes (one per node it drives), or a driven publisher's own setting
 Pick = tuple[float, ...] | int
@@ -47,7 +50,7 @@ def solve_heuristic(system: System, problem: Problem, choices: dict[str, list[Ch
     """``method`` (greedy or greedy+) on ``choices``; along the data flow when the system has one."""
     if not system.has_flow:
         return _inner(system, problem, choices, method, time_budget)
-    deadline = None if time_budget is None else time.monotonic() + time_budget
+    deadline = time.monotonic() + (SEARCH_BUDGET_S if time_budget is None else time_budget)
     options = _class_options(system, choices)
     publishers = sorted(options, key=lambda p: system.flow_order.index(p) if p in system.flow_order else -1)
     tried: dict[tuple[Method, tuple[Pick, ...]], Plan | None] = {}
@@ -56,12 +59,12 @@ def solve_heuristic(system: System, problem: Problem, choices: dict[str, list[Ch
         key = (how, tuple(classes[p] for p in publishers))
         if key not in tried:
             restricted = _restricted(system, choices, classes)
-            left = None if deadline is None else max(deadline - time.monotonic(), 0.0)
+            left = max(deadline - time.monotonic(), 0.0)
             tried[key] = None if restricted is None else _inner(system, problem, restricted, how, left)
         return tried[key]
 
     def late() -> bool:
-        return deadline is not None and time.monotonic() > deadline
+        return time.monotonic() > deadline
 
     combos = 1
     for p in publishers:
