@@ -14,7 +14,12 @@ are checked when it is read, and the plan's own (node, computer and parameter na
 
 ``ros2-params``: a ROS 2 parameters file (``<node>: {ros__parameters: {param: value}}``)
 preceded by a placement table in comments (ROS 2 would read any extra top-level key as
-a node), one line per node: ``# placement: <node> -> <computer>``, names JSON-quoted.
+a node), one line per node: ``# placement: <node> -> <computer>``, names JSON-quoted; and
+beside it, per computer that runs a node, a ROS 2 XML launch file
+``<stem>.<computer>.launch.xml`` naming its nodes and their parameter values.
+
+With ``--launch`` and ``--space``, ``roslaunch`` is the user's own launch file planned:
+:mod:`perfros_bag.export.planned`.
 """
 
 from __future__ import annotations
@@ -41,7 +46,7 @@ MACHINE_ATTRS = {"address": "address", "user": "user", "env_loader": "env-loader
                  "ssh_port": "ssh-port", "password": "password", "default": "default"}
 
 
-def _param_value(plan: Plan, system: System | None, node: str) -> int | float | None:
+def rounded_value(plan: Plan, system: System | None, node: str) -> int | float | None:
     """The node's planned parameter value (9 significant digits), typed: int when
     system.yaml says ``type: int`` (or, without a system, when the value is integral)."""
     v = plan.nodes[node].value
@@ -65,7 +70,8 @@ def _launch(system: System | None, node: str) -> dict[str, str]:
     return dict(system.node[node].launch)
 
 
-def _arg_name(computer: str) -> str:
+def address_arg(computer: str) -> str:
+    """The launch argument holding a computer's address."""
     return re.sub(r"[^A-Za-z0-9_]", "_", computer) + "_address"
 
 
@@ -84,6 +90,21 @@ def check_plan_names(plan: Plan, plan_path: str | None = None) -> None:
             raise InputError(plan_path, f"{where}: {problem}")
 
 
+def add_machines(root: ET.Element, plan: Plan, system: System | None) -> None:
+    """One ``<machine>`` per computer of the plan: system.yaml's ``machines:`` attributes,
+    else its address an ``<arg name="<computer>_address">`` defaulting to the computer's name."""
+    machines = system.machines if system is not None else {}
+    used = {n.computer for n in plan.nodes.values()}
+    computers = list(plan.computers) + sorted(used - set(plan.computers))
+    for c in computers:
+        attrs = {MACHINE_ATTRS[k]: v for k, v in machines.get(c, {}).items() if k in MACHINE_ATTRS}
+        if "address" not in attrs:
+            arg = address_arg(c)
+            ET.SubElement(root, "arg", {"name": arg, "default": c})
+            attrs["address"] = f"$(arg {arg})"
+        ET.SubElement(root, "machine", {"name": c, **attrs})
+
+
 def roslaunch_xml(plan: Plan, system: System | None = None, *, plan_path: str | None = None) -> str:
     """The plan as a ROS 1 launch file (text)."""
     plan.require_feasible(plan_path, "export")
@@ -95,16 +116,7 @@ def roslaunch_xml(plan: Plan, system: System | None = None, *, plan_path: str | 
                            "the argument <computer>_address, defaulting to the computer's name; a node "
                            "without launch.package in system.yaml has pkg=\"" + PLACEHOLDER_PACKAGE
                            + "\" and type = its name "))
-    machines = system.machines if system is not None else {}
-    used = {n.computer for n in plan.nodes.values()}
-    computers = list(plan.computers) + sorted(used - set(plan.computers))
-    for c in computers:
-        attrs = {MACHINE_ATTRS[k]: v for k, v in machines.get(c, {}).items() if k in MACHINE_ATTRS}
-        if "address" not in attrs:
-            arg = _arg_name(c)
-            ET.SubElement(root, "arg", {"name": arg, "default": c})
-            attrs["address"] = f"$(arg {arg})"
-        ET.SubElement(root, "machine", {"name": c, **attrs})
+    add_machines(root, plan, system)
     for name, pn in plan.nodes.items():
         launch = _launch(system, name)
         attrs = {
@@ -116,7 +128,7 @@ def roslaunch_xml(plan: Plan, system: System | None = None, *, plan_path: str | 
         if "namespace" in launch:
             attrs["ns"] = launch["namespace"]
         el = ET.SubElement(root, "node", attrs)
-        pname, value = _param_name(plan, system, name), _param_value(plan, system, name)
+        pname, value = _param_name(plan, system, name), rounded_value(plan, system, name)
         if pname is not None and value is not None:
             ET.SubElement(el, "param", {"name": pname, "type": "int" if isinstance(value, int) else "double",
                                         "value": str(value) if isinstance(value, int) else repr(value)})
@@ -138,7 +150,7 @@ def ros2_params(plan: Plan, system: System | None = None) -> dict[str, Any]:
     out: dict[str, Any] = {}
     for name in plan.nodes:
         params: dict[str, Any] = {}
-        pname, value = _param_name(plan, system, name), _param_value(plan, system, name)
+        pname, value = _param_name(plan, system, name), rounded_value(plan, system, name)
         if pname is not None and value is not None:
             params[pname] = value
         out[_ros2_key(system, name)] = {"ros__parameters": params}
@@ -156,6 +168,54 @@ def ros2_params_yaml(plan: Plan, system: System | None = None, *, plan_path: str
     body = yaml.safe_dump(ros2_params(plan, system), sort_keys=False, default_flow_style=False,
                           allow_unicode=True)
     return "\n".join(lines) + "\n" + body
+
+
+def ros2_value(value: int | float) -> str:
+    """A parameter value as ROS 2 XML launch infers its type (the ROS 2 launch migration
+    guide: ``value="1"`` an integer, ``value="1.0"`` a float): a float always has a dot."""
+    if isinstance(value, int):
+        return str(value)
+    text = repr(float(value))
+    mantissa, e, exponent = text.partition("e")
+    return text if "." in mantissa else f"{mantissa}.0{e}{exponent}"
+
+
+def ros2_launch_path(out: str | Path, computer: str) -> Path:
+    """Where the ROS 2 launch file of ``computer`` goes, beside the parameters file ``out``."""
+    p = Path(out)
+    stem = p.name[: -len(p.suffix)] if p.suffix else p.name
+    return p.with_name(f"{stem}.{computer}.launch.xml")
+
+
+def ros2_launch_xml(plan: Plan, system: System | None, computer: str) -> str:
+    """A ROS 2 XML launch file starting the plan's nodes on ``computer``: ``<node pkg= exec=
+    name= [namespace=]>`` with ``<param name= value=>`` (the ROS 2 launch documentation's
+    format; no ``type`` or ``machine``: ROS 2 has neither)."""
+    root = ET.Element("launch")
+    root.append(ET.Comment(f" generated by perfros-bag: the plan's nodes on computer {computer} (problem "
+                           f"{plan.problem}); a node without launch.package in system.yaml has pkg=\""
+                           + PLACEHOLDER_PACKAGE + "\" and exec = its name "))
+    for name, pn in plan.nodes.items():
+        if pn.computer != computer:
+            continue
+        launch = _launch(system, name)
+        attrs = {"pkg": launch.get("package", PLACEHOLDER_PACKAGE), "exec": launch.get("type", name),
+                 "name": launch.get("name", name)}
+        if launch.get("namespace"):
+            attrs["namespace"] = launch["namespace"]
+        el = ET.SubElement(root, "node", attrs)
+        pname, value = _param_name(plan, system, name), rounded_value(plan, system, name)
+        if pname is not None and value is not None:
+            ET.SubElement(el, "param", {"name": pname, "value": ros2_value(value)})
+    ET.indent(root, space="  ")
+    return '<?xml version="1.0" encoding="utf-8"?>\n' + ET.tostring(root, encoding="unicode") + "\n"
+
+
+def ros2_launch_files(plan: Plan, system: System | None, out: str | Path) -> dict[Path, str]:
+    """One ROS 2 launch file per computer that runs a node, beside the parameters file ``out``."""
+    used = {pn.computer for pn in plan.nodes.values()}
+    return {ros2_launch_path(out, c): ros2_launch_xml(plan, system, c)
+            for c in [*plan.computers, *sorted(used - set(plan.computers))] if c in used}
 
 
 def read_placement_comments(text: str) -> dict[str, str]:
@@ -176,9 +236,13 @@ def export_plan(plan_path: str | Path, fmt: str, out: str | Path, system_path: s
         raise InputError(None, f"unknown export format {fmt!r} (one of {', '.join(FORMATS)})")
     plan = load_plan(plan_path)
     system = plan_system(plan, plan_path, system_path)
+    extra: dict[Path, str] = {}
     if fmt == "roslaunch":
         text = roslaunch_xml(plan, system, plan_path=str(plan_path))
     else:
         text = ros2_params_yaml(plan, system, plan_path=str(plan_path))
+        extra = ros2_launch_files(plan, system, out)
     atomic_write_text(out, text)
+    for path, launch in extra.items():
+        atomic_write_text(path, launch)
     return text
