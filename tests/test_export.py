@@ -199,6 +199,19 @@ def test_cli_writes_files_atomically(tmp_path: Path) -> None:
     assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
 
 
+# Debian's roslaunch loader on a launch file (argv: the file, then name:=value args): each
+# node's machine, each parameter, each machine's address
+LOADER = (
+    "import sys, roslaunch.config, roslaunch.xmlloader\n"
+    "cfg = roslaunch.config.ROSLaunchConfig()\n"
+    "roslaunch.xmlloader.XmlLoader().load(sys.argv[1], cfg, argv=['roslaunch'] + sys.argv[2:], verbose=False)\n"
+    "for n in cfg.nodes: print('node', n.name, n.machine_name or '')\n"
+    "for n in cfg.nodes: print('fullnode', n.namespace.rstrip('/') + '/' + n.name, n.machine_name or '')\n"
+    "for k, v in sorted(cfg.params.items()): print('param', k, repr(v.value))\n"
+    "for k, m in sorted(cfg.machines.items()): print('machine', k, m.address)\n"
+)
+
+
 @pytest.mark.ros
 def test_roslaunch_loads_the_file(tmp_path: Path) -> None:
     """Debian's roslaunch parses the exported file: machines and params resolved."""
@@ -209,15 +222,7 @@ def test_roslaunch_loads_the_file(tmp_path: Path) -> None:
     data["nodes"]["tracker"]["parameter"] = "output_freq"
     path = tmp_path / "sys.launch"
     path.write_text(roslaunch_xml(parse_plan(data, "p.json")))
-    script = (
-        "import sys, roslaunch.config, roslaunch.xmlloader\n"
-        "cfg = roslaunch.config.ROSLaunchConfig()\n"
-        "roslaunch.xmlloader.XmlLoader().load(sys.argv[1], cfg, verbose=False)\n"
-        "for n in cfg.nodes: print('node', n.name, n.machine_name)\n"
-        "for k, v in sorted(cfg.params.items()): print('param', k, repr(v.value))\n"
-        "for k, m in sorted(cfg.machines.items()): print('machine', k, m.address)\n"
-    )
-    r = subprocess.run(["/usr/bin/python3", "-c", script, str(path)], capture_output=True, text=True,
+    r = subprocess.run(["/usr/bin/python3", "-c", LOADER, str(path)], capture_output=True, text=True,
                        timeout=60)
     assert r.returncode == 0, r.stderr
     lines = set(r.stdout.splitlines())

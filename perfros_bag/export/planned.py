@@ -25,9 +25,8 @@ import os
 import warnings
 import xml.etree.ElementTree as ET
 from collections.abc import Mapping
-from dataclasses import replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
 
 import yaml
 
@@ -87,17 +86,47 @@ def _marker(text: str, i: int) -> str:
         return f"perfros_marker_{i}_{_MARK}"
 
 
-def _uses(real: Resolved, marked: Resolved, markers: Mapping[str, str]) -> dict[str, Any] | None:
-    """Where each marker landed: ``{"params": {name: arg}, "text": {marker: arg}}``; None when
-    the markers changed what the file starts (an arg in a condition or an expression)."""
-    if [n.full_name for n in real.nodes] != [n.full_name for n in marked.nodes] or set(real.params) != set(marked.params):
-        return None
-    params = {}
-    for name, value in marked.params.items():
-        for arg, mark in markers.items():
-            if _is_mark(value, mark):
-                params[name] = arg
-    return {"params": params, "text": {mark: arg for arg, mark in markers.items()}}
+@dataclass
+class _Marks:
+    """Where each arg's marker landed in the marked resolution (see the module's doc)."""
+
+    marked: Resolved | None  # None: the markers changed what the file starts (an arg in a condition, an $(eval))
+    text_args: dict[str, str] = field(default_factory=dict)  # marker -> arg
+
+    @classmethod
+    def find(cls, real: Resolved, marked: Resolved, markers: Mapping[str, str]) -> _Marks:
+        same = marked.error is None and [n.full_name for n in real.nodes] == [n.full_name for n in marked.nodes] \
+            and set(real.params) == set(marked.params)
+        return cls(marked if same and markers else None, {mark: arg for arg, mark in markers.items()})
+
+    def node(self, full_name: str) -> ResolvedNode | None:
+        return next((n for n in self.marked.nodes if n.full_name == full_name), None) if self.marked else None
+
+    def text(self, marked: str | None, real: str) -> str:
+        """``marked`` with each marker as ``$(arg NAME)``; ``real`` when it holds none."""
+        if marked is None:
+            return real
+        out = marked
+        for mark, arg in self.text_args.items():
+            out = out.replace(mark, f"$(arg {arg})")
+        return out if out != marked else real
+
+    def param(self, name: str, value: object) -> str:
+        """A parameter's value as written: ``$(arg NAME)`` when it is an arg's whole value."""
+        marked = self.marked.params.get(name) if self.marked else None
+        for mark, arg in self.text_args.items():
+            if _is_mark(marked, mark):
+                return f"$(arg {arg})"
+        return self.text(marked, value) if isinstance(value, str) and isinstance(marked, str) else _text(value)
+
+    def used(self, arg: str) -> bool:
+        if self.marked is None:
+            return False
+        mark = next(m for m, a in self.text_args.items() if a == arg)
+        texts = [t for n in self.marked.nodes for t in (n.args, *(x for r in n.remaps for x in r),
+                                                        *(v for _, v in n.env))]
+        texts += [v for v in self.marked.params.values() if isinstance(v, str)]
+        return any(mark in t for t in texts) or any(_is_mark(v, mark) for v in self.marked.params.values())
 
 
 def _is_mark(value: object, mark: str) -> bool:
@@ -107,15 +136,6 @@ def _is_mark(value: object, mark: str) -> bool:
     if isinstance(value, bool) or not isinstance(value, int | float) or mark.startswith("perfros_marker_"):
         return False
     return float(value) == float(mark)
-
-
-def _with_args(text: str, original: str, text_marks: Mapping[str, str]) -> str:
-    """``text`` (resolved with markers) with each marker as ``$(arg NAME)``; the plan's own
-    resolution ``original`` when no marker is in it."""
-    out = text
-    for mark, arg in text_marks.items():
-        out = out.replace(mark, f"$(arg {arg})")
-    return out if out != text else original
 
 
 def _type(value: object) -> str:
@@ -136,37 +156,41 @@ def _text(value: object) -> str:
     return str(value)
 
 
-def _param(parent: ET.Element, name: str, value: object, arg: str | None) -> None:
+def _param(parent: ET.Element, name: str, value: object, marks: _Marks, full_name: str) -> None:
     if isinstance(value, list | dict):
         el = ET.SubElement(parent, "rosparam", {"param": name})
         el.text = yaml.safe_dump(value, default_flow_style=True).strip()
         return
-    ET.SubElement(parent, "param", {"name": name, "type": _type(value),
-                                    "value": f"$(arg {arg})" if arg is not None else _text(value)})
+    ET.SubElement(parent, "param", {"name": name, "type": _type(value), "value": marks.param(full_name, value)})
 
 
-def _node(root: ET.Element, real: ResolvedNode, marked: ResolvedNode | None, machine: str | None,
-          params: Mapping[str, object], param_args: Mapping[str, str], text_marks: Mapping[str, str]) -> None:
+def _owner(param: str, nodes: list[str]) -> str | None:
+    """The node whose private parameter ``param`` is (the deepest one), or None."""
+    owners = [n for n in nodes if param.startswith(n + "/")]
+    return max(owners, key=len) if owners else None
+
+
+def _node(root: ET.Element, real: ResolvedNode, machine: str | None, params: Mapping[str, object],
+          marks: _Marks) -> None:
+    marked = marks.node(real.full_name)
     attrs = {"name": real.name, "pkg": real.package, "type": real.type}
     if real.namespace.strip("/"):
         attrs["ns"] = real.namespace.rstrip("/")
     if machine is not None:
         attrs["machine"] = machine
     if real.args:
-        attrs["args"] = _with_args(marked.args, real.args, text_marks) if marked else real.args
+        attrs["args"] = marks.text(marked.args if marked else None, real.args)
     attrs.update(real.options)
     el = ET.SubElement(root, "node", attrs)
     el.append(ET.Comment(f" from {real.file} "))
     for i, (a, b) in enumerate(real.remaps):
-        ma, mb = marked.remaps[i] if marked and i < len(marked.remaps) else (a, b)
-        ET.SubElement(el, "remap", {"from": _with_args(ma, a, text_marks), "to": _with_args(mb, b, text_marks)})
+        ma, mb = marked.remaps[i] if marked and i < len(marked.remaps) else (None, None)
+        ET.SubElement(el, "remap", {"from": marks.text(ma, a), "to": marks.text(mb, b)})
     for i, (k, v) in enumerate(real.env):
-        mv = marked.env[i][1] if marked and i < len(marked.env) else v
-        ET.SubElement(el, "env", {"name": k, "value": _with_args(mv, v, text_marks)})
-    prefix = real.full_name + "/"
+        mv = marked.env[i][1] if marked and i < len(marked.env) else None
+        ET.SubElement(el, "env", {"name": k, "value": marks.text(mv, v)})
     for name, value in params.items():
-        if name.startswith(prefix):
-            _param(el, name[len(prefix):], value, param_args.get(name))
+        _param(el, name[len(real.full_name) + 1:], value, marks, name)
 
 
 def planned_launch_xml(plan: Plan, system: System | None, launch: LaunchFile, space: Space, *,
@@ -177,7 +201,6 @@ def planned_launch_xml(plan: Plan, system: System | None, launch: LaunchFile, sp
     plan.require_feasible(plan_path, "export")
     check_plan_names(plan, plan_path)
     check_space(launch, space)
-    check_space_against_plan(plan, space)
     run = plan_run(_rounded(plan, system), space, dict(launch.args))
     markers = {arg: _marker(text, i) for i, (arg, text) in enumerate(run.args.items())}
     real, marked = resolve_launch(launch, [run.args, markers], os.environ if env is None else env, RESOLVE_TIMEOUT_S)
@@ -189,9 +212,8 @@ def planned_launch_xml(plan: Plan, system: System | None, launch: LaunchFile, sp
         started = ", ".join(n.full_name for n in real.nodes) or "none"
         raise InputError(launch.path, f"the plan's node(s) {', '.join(missing)} are not in it (it starts: {started}); "
                          "not the launch file the plan was made from")
-    uses = _uses(real, marked, markers) if marked.error is None and markers else None
-    param_args: dict[str, str] = uses["params"] if uses else {}
-    text_marks: dict[str, str] = uses["text"] if uses else {}
+    check_space_against_plan(plan, space)
+    marks = _Marks.find(real, marked, markers)
     params: dict[str, object] = dict(real.params)
     kept: list[str] = []
     for v in space.vary:
@@ -211,37 +233,28 @@ def planned_launch_xml(plan: Plan, system: System | None, launch: LaunchFile, sp
         if user_machine not in plan.computers and any(n.machine == user_machine for n in real.nodes):
             ET.SubElement(root, "machine", {"name": user_machine, **attrs})
     for arg, text in run.args.items():
-        used = uses is not None and (arg in param_args.values() or any(
-            a == arg and _appears(mark, marked) for mark, a in text_marks.items()))
-        doc = "the plan's value, through space.yaml's arg" + ("" if used else
+        doc = "the plan's value, through space.yaml's arg" + ("" if marks.used(arg) else
                                                                " (where roslaunch uses it could not be traced: "
                                                                "the nodes below hold its value)")
         ET.SubElement(root, "arg", {"name": arg, "default": text, "doc": doc})
     if kept:
         root.append(ET.Comment(" set by the launch file itself, which wins over space.yaml's param as in the "
                                f"sweep: {', '.join(kept)} "))
-    node_names = {n.full_name for n in real.nodes}
-    for name, value in params.items():  # parameters no node owns
-        if not any(name.startswith(n + "/") for n in node_names):
-            _param(root, name, value, param_args.get(name))
-    marked_nodes = {n.full_name: n for n in marked.nodes} if uses else {}
+    node_names = [n.full_name for n in real.nodes]
+    owned: dict[str | None, dict[str, object]] = {}
+    for name, value in params.items():
+        owned.setdefault(_owner(name, node_names), {})[name] = value
+    for name, value in owned.get(None, {}).items():  # parameters no node owns
+        _param(root, name, value, marks, name)
     unknown = [n for n in real.nodes if system_node_name(n.full_name) not in plan.nodes]
     for n in real.nodes:
         planned = plan.nodes.get(system_node_name(n.full_name))
-        _node(root, n, marked_nodes.get(n.full_name), planned.computer if planned else n.machine, params,
-              param_args, text_marks)
+        _node(root, n, planned.computer if planned else n.machine, owned.get(n.full_name, {}), marks)
     if unknown:
         root.append(ET.Comment(" nodes the plan does not know, at their launch defaults (and machine): "
                                + ", ".join(n.full_name for n in unknown) + " "))
     ET.indent(root, space="  ")
     return '<?xml version="1.0" encoding="utf-8"?>\n' + ET.tostring(root, encoding="unicode") + "\n"
-
-
-def _appears(mark: str, marked: Resolved) -> bool:
-    for n in marked.nodes:
-        if mark in n.args or any(mark in a or mark in b for a, b in n.remaps) or any(mark in v for _, v in n.env):
-            return True
-    return False
 
 
 def export_planned(plan_path: str | Path, launch_path: str | Path, space_path: str | Path, out: str | Path,

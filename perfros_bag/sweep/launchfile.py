@@ -189,7 +189,9 @@ out = []
 for argv in req["argsets"]:
     try:
         cfg = roslaunch.config.ROSLaunchConfig()
-        roslaunch.xmlloader.XmlLoader().load(req["path"], cfg, argv=["roslaunch"] + argv, verbose=False)
+        loader = roslaunch.xmlloader.XmlLoader()
+        loader.ignore_unset_args = False  # as roslaunch itself: a required arg left unset is an error
+        loader.load(req["path"], cfg, argv=["roslaunch"] + argv, verbose=False)
         params = {}
         for k, p in cfg.params.items():
             v = p.value
@@ -258,7 +260,8 @@ def resolve_launch(launch: LaunchFile, argsets: list[Mapping[str, str]], env: Ma
     out = []
     for a in answers:
         if "error" in a:
-            out.append(Resolved((), {}, {}, a["error"].strip().splitlines()[-1] if a["error"].strip() else "error"))
+            out.append(Resolved((), {}, {}, " ".join(x.strip() for x in a["error"].splitlines() if x.strip())
+                                or "error"))
             continue
         nodes = tuple(ResolvedNode(n["package"], n["type"], n["name"], n["namespace"], n["args"],
                                    tuple((r[0], r[1]) for r in n["remaps"]), tuple((e[0], e[1]) for e in n["env"]),
