@@ -241,3 +241,68 @@ def test_bisection_noise_is_rounded() -> None:
     nodes = {n.get("name"): n for n in ET.fromstring(roslaunch_xml(parse_plan(data, "p.json"))).iter("node")}
     assert nodes["nav"].find("param").attrib["value"] == "25"  # type: ignore[union-attr]
     assert nodes["amcl"].find("param").attrib["value"] == "0.3"  # type: ignore[union-attr]
+
+
+def _ros2_inferred(text: str) -> int | float | str:
+    """A ROS 2 XML launch ``<param value=>`` as the ROS 2 launch documentation's type inference
+    rules read it ("Migrating Launch Files": ``"1"`` an integer, ``"1.0"`` a float, ``"asd"``
+    and ``"'1'"`` strings)."""
+    import re
+
+    if re.fullmatch(r"[+-]?\d+", text):
+        return int(text)
+    if re.fullmatch(r"[+-]?(\d+\.\d*|\.\d+)([eE][+-]?\d+)?", text):
+        return float(text)
+    return text[1:-1] if len(text) >= 2 and text[0] == text[-1] == "'" else text
+
+
+def test_ros2_launch_file_per_computer_in_the_documented_format(tmp_path: Path) -> None:
+    """``ros2-params`` writes, beside the parameters file, one ROS 2 XML launch file per
+    computer. No ROS 2 runtime here: each is parsed against the format the ROS 2 launch
+    documentation gives (``<launch><node pkg= exec= name= namespace=><param name= value=/>``;
+    no ``type``, no ``machine``), its values read by the documented inference rules."""
+    plan_path, sys_path = tmp_path / "plan.json", tmp_path / "system.yaml"
+    plan_path.write_text(json.dumps(PLAN))
+    sys_path.write_text(json.dumps(SYSTEM))
+    out = tmp_path / "params.yaml"
+    r = CliRunner().invoke(app, ["export", str(plan_path), "--format", "ros2-params", "--out", str(out),
+                                 "--system", str(sys_path)])
+    assert r.exit_code == 0, r.output
+    written = sorted(p.name for p in tmp_path.iterdir())
+    assert written == ["params.robot1.launch.xml", "params.server.launch.xml", "params.yaml", "plan.json",
+                       "system.yaml"]
+    launch_nodes = {n["name"]: n.get("launch", {}) for n in SYSTEM["nodes"]}
+    typed = {n["name"]: n.get("parameter", {}).get("type") for n in SYSTEM["nodes"]}
+    seen: dict[str, str] = {}
+    for computer in ("robot1", "server"):
+        root = ET.parse(tmp_path / f"params.{computer}.launch.xml").getroot()
+        assert root.tag == "launch" and root.attrib == {}
+        for node in root:
+            assert node.tag == "node"
+            assert {"pkg", "exec"} <= set(node.attrib) <= {"pkg", "exec", "name", "namespace"}
+            name = next(n for n, ln in launch_nodes.items() if ln.get("name", n) == node.get("name"))
+            ln = launch_nodes[name]
+            assert (node.get("pkg"), node.get("exec")) == (ln.get("package", "PACKAGE"), ln.get("type", name))
+            assert node.get("namespace") == ln.get("namespace")
+            seen[name] = computer
+            params = {}
+            for p in node:
+                assert p.tag == "param" and set(p.attrib) == {"name", "value"}
+                params[p.get("name")] = _ros2_inferred(p.get("value", ""))
+            pn = PLAN["nodes"][name]
+            if pn["value"] is None:
+                assert params == {}
+                continue
+            [(pname, value)] = params.items()
+            assert pname == ln.get("param", pn["parameter"])
+            assert value == pn["value"]
+            assert type(value) is (int if typed[name] == "int" else float)  # the system's type, as ROS 2 infers it
+    assert seen == {n: pn["computer"] for n, pn in PLAN["nodes"].items()}
+
+
+@pytest.mark.parametrize("value", [0.00001, 1e20, -2.5, 3.0, 7, -4, 123456789.125])
+def test_ros2_values_keep_their_type_under_the_documented_inference(value: float) -> None:
+    from perfros_bag.export.writers import ros2_value
+
+    text = ros2_value(value)
+    assert _ros2_inferred(text) == value and type(_ros2_inferred(text)) is type(value), text
