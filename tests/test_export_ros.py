@@ -134,7 +134,10 @@ RICH = """<launch>
       <rosparam>nested: {a: 1, b: [x, y]}</rosparam>
     </node>
   </group>
-  <node name="detector" pkg="opencv_apps" type="hough_circles" launch-prefix="nice -n 5" required="true">
+  <machine name="mine" address="localhost" user="someone" timeout="20" />
+  <node name="extra" pkg="image_publisher" type="image_publisher" machine="mine" args="x" />
+  <node name="detector" pkg="opencv_apps" type="hough_circles" launch-prefix="nice -n 5" required="true"
+        if="$(eval canny_threshold > 100)">
     <remap from="image" to="cams/camera/image_raw" />
     <remap from="$(arg mode)_in" to="$(arg mode)_out" />
     <param name="canny_threshold" value="$(arg canny_threshold)" />
@@ -167,6 +170,12 @@ def test_every_kind_of_value_and_xml_characters_survive(tmp_path: Path) -> None:
     params = yaml.safe_load(_roslaunch("--dump-params", str(out), "camera_rate:=12.5"))
     assert params["/cams/camera/publish_rate"] == 12.5 and params["/cams/camera/note"] == "rate=12.5 & <more>"
     assert params["/detector/canny_threshold"] == 120
+    # the node the plan does not know keeps the user's machine, written with what the file gave
+    loaded = _loaded(out)
+    assert loaded["nodes"] == {"camera": "robot1", "detector": "robot1", "extra": "mine"}
+    assert loaded["machines"]["mine"] == "localhost"
+    mine = next(m for m in ET.parse(out).getroot().iter("machine") if m.get("name") == "mine")
+    assert mine.attrib == {"name": "mine", "address": "localhost", "user": "someone", "timeout": "20.0"}
 
 
 def test_exported_file_runs_with_local_addresses_records_and_validates(tmp_path: Path) -> None:

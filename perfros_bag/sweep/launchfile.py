@@ -183,7 +183,7 @@ class Resolved:
 # as `roslaunch --nodes/--args/--dump-params` use it, without starting anything.
 _RESOLVE = r"""
 import json, sys
-import roslaunch.config, roslaunch.xmlloader
+import roslaunch.config, roslaunch.core, roslaunch.xmlloader
 req = json.load(sys.stdin)
 out = []
 for argv in req["argsets"]:
@@ -212,9 +212,12 @@ for argv in req["argsets"]:
         for name, m in cfg.machines.items():
             if not name:
                 continue
+            # only what the file gave: roslaunch's defaults are left to roslaunch where it runs
+            default_loader = roslaunch.config.calculate_env_loader()
             attrs = {"address": m.address, "user": m.user, "password": m.password,
-                     "env-loader": m.env_loader, "ssh-port": str(m.ssh_port) if m.ssh_port else None,
-                     "timeout": str(m.timeout) if m.timeout else None}
+                     "env-loader": m.env_loader if m.env_loader != default_loader else None,
+                     "ssh-port": str(m.ssh_port) if m.ssh_port and int(m.ssh_port) != 22 else None,
+                     "timeout": repr(m.timeout) if m.timeout != roslaunch.core._DEFAULT_REGISTER_TIMEOUT else None}
             machines[name] = {k: str(v) for k, v in attrs.items() if v}
         out.append({"nodes": nodes, "params": params, "machines": machines})
     except Exception as exc:
