@@ -53,6 +53,12 @@ def _plan(path: Path, nodes: dict[str, tuple[str, str | None, float | None, dict
     return path
 
 
+def _export(plan: Path, launch: Path, space: Path, out: Path) -> subprocess.CompletedProcess[str]:
+    """``perfros-bag export PLAN --format roslaunch --launch LAUNCH --space SPACE --out OUT``."""
+    return _cli("export", str(plan), "--format", "roslaunch", "--launch", str(launch), "--space", str(space),
+                "--out", str(out))
+
+
 def _roslaunch(*args: str) -> str:
     done = subprocess.run(["roslaunch", *args], capture_output=True, text=True, timeout=60)
     assert done.returncode == 0, done.stderr
@@ -91,8 +97,7 @@ def test_the_users_launch_file_planned_resolves_as_theirs_on_the_plan_computers(
     plan = _plan(tmp_path / "plan.json", {"camera": ("robot1", "publish_rate", 7.0, {}),
                                           "detector": ("server", "canny_threshold", 150.00000001, {})})
     out = tmp_path / "planned.launch"
-    done = _cli("export", str(plan), "--format", "roslaunch", "--launch", str(APP), "--space", str(SPACE),
-                "--out", str(out))
+    done = _export(plan, APP, SPACE, out)
     assert done.returncode == 0, done.stderr
     nodes = _same_as_the_users_file(out, APP, ["camera_rate:=7", "canny_threshold:=150"])
     assert sorted(nodes) == ["/camera", "/detector"]
@@ -107,8 +112,7 @@ def test_the_users_launch_file_planned_resolves_as_theirs_on_the_plan_computers(
     # a node the plan does not know keeps its launch defaults, no machine, and is listed
     only = _plan(tmp_path / "camera.json", {"camera": ("robot1", "publish_rate", 5.0, {})})
     out2 = tmp_path / "camera.launch"
-    done = _cli("export", str(only), "--format", "roslaunch", "--launch", str(APP), "--space", str(SPACE),
-                "--out", str(out2))
+    done = _export(only, APP, SPACE, out2)
     assert done.returncode == 0, done.stderr
     assert "not in the plan" in done.stderr and "detector" in done.stderr
     _same_as_the_users_file(out2, APP, ["camera_rate:=5"])
@@ -161,8 +165,7 @@ def test_every_kind_of_value_and_xml_characters_survive(tmp_path: Path) -> None:
     plan = _plan(tmp_path / "plan.json", {"cams_camera": ("robot1", "publish_rate", 7.5, {}),
                                           "detector": ("robot1", "canny_threshold", 120.0, {})})
     out = tmp_path / "planned.launch"
-    done = _cli("export", str(plan), "--format", "roslaunch", "--launch", str(app), "--space", str(space),
-                "--out", str(out))
+    done = _export(plan, app, space, out)
     assert done.returncode == 0, done.stderr
     text = out.read_text()
     assert "&amp;" in text and "&lt;" in text and "&quot;" in text  # escaped by the writer, not raw
@@ -186,8 +189,7 @@ def test_exported_file_runs_with_local_addresses_records_and_validates(tmp_path:
     plan = _plan(tmp_path / "plan.json", {"camera": ("robot1", "publish_rate", 7.0, {IMAGE: 7.0}),
                                           "detector": ("server", "canny_threshold", 150.0, {})})
     planned = tmp_path / "planned.launch"
-    done = _cli("export", str(plan), "--format", "roslaunch", "--launch", str(APP), "--space", str(SPACE),
-                "--out", str(planned))
+    done = _export(plan, APP, SPACE, planned)
     assert done.returncode == 0, done.stderr
     space = load_space(SPACE).with_duration(3)
     run = Run("exported", {}, {"robot1_address": "localhost", "server_address": "127.0.0.1"}, {}, 1)
@@ -231,8 +233,7 @@ def test_several_robots_from_one_launch_file_each_on_its_machine(tmp_path: Path)
         nodes[f"robot{k}_smooth"] = ("server" if k == 2 else f"robot{k}", "kernel_size", float(kernel), {})
     plan = _plan(tmp_path / "plan.json", nodes)
     out = tmp_path / "planned.launch"
-    done = _cli("export", str(plan), "--format", "roslaunch", "--launch", str(APP2), "--space", str(space),
-                "--out", str(out))
+    done = _export(plan, APP2, space, out)
     assert done.returncode == 0, done.stderr
     args = ["robot1_scale0:=1.05", "robot1_kernel:=3", "robot2_scale0:=1.1", "robot2_kernel:=5"]
     assert len(_same_as_the_users_file(out, APP2, args)) == 6
@@ -258,34 +259,34 @@ def _one_line(done: subprocess.CompletedProcess[str], out: Path, *needles: str) 
 def test_bad_input_is_one_line_and_writes_nothing(tmp_path: Path) -> None:
     _require_ros()
     out = tmp_path / "x.launch"
-    export = ("--format", "roslaunch", "--out", str(out))
     # a plan whose nodes are not in the launch file: named
     stray = _plan(tmp_path / "stray.json", {"camera": ("robot1", "publish_rate", 7.0, {}),
                                             "detector": ("robot1", "canny_threshold", 100.0, {}),
                                             "tracker": ("robot1", None, None, {}), "mapper": ("robot1", None, None, {})})
-    _one_line(_cli("export", str(stray), *export, "--launch", str(APP), "--space", str(SPACE)), out,
+    _one_line(_export(stray, APP, SPACE, out), out,
               str(APP), "tracker, mapper", "not in it")
     # a space.yaml that does not match the plan's parameters
     other = _plan(tmp_path / "other.json", {"camera": ("robot1", "frame_rate", 7.0, {}),
                                             "detector": ("robot1", "canny_threshold", 100.0, {})})
-    _one_line(_cli("export", str(other), *export, "--launch", str(APP), "--space", str(SPACE)), out,
+    _one_line(_export(other, APP, SPACE, out), out,
               str(SPACE), "'publish_rate'", "'frame_rate'")
     plan = _plan(tmp_path / "plan.json", {"camera": ("robot1", "publish_rate", 7.0, {}),
                                           "detector": ("robot1", "canny_threshold", 100.0, {})})
     only_camera = tmp_path / "camera-space.yaml"
     only_camera.write_text(yaml.safe_dump({"vary": [yaml.safe_load(SPACE.read_text())["vary"][0]]}))
-    _one_line(_cli("export", str(plan), *export, "--launch", str(APP), "--space", str(only_camera)), out,
+    _one_line(_export(plan, APP, only_camera, out), out,
               str(only_camera), "detector", "canny_threshold")
     # a launch file roslaunch cannot read: its error, with the file
     broken = tmp_path / "broken.launch"
     broken.write_text(APP.read_text().replace("$(arg canny_threshold)", "$(arg canny)"))
-    _one_line(_cli("export", str(plan), *export, "--launch", str(broken), "--space", str(SPACE)), out,
+    _one_line(_export(plan, broken, SPACE, out), out,
               str(broken), "roslaunch cannot read it", "'canny'")
     typed = tmp_path / "typed.launch"
     typed.write_text(APP.read_text().replace('<node name="camera"', '<node name="camera" respawn="perhaps"'))
-    _one_line(_cli("export", str(plan), *export, "--launch", str(typed), "--space", str(SPACE)), out,
+    _one_line(_export(plan, typed, SPACE, out), out,
               str(typed), "roslaunch cannot read it", "perhaps")
     # --launch without --space, or with the ROS 2 format
-    _one_line(_cli("export", str(plan), *export, "--launch", str(APP)), out, "--space")
+    _one_line(_cli("export", str(plan), "--format", "roslaunch", "--out", str(out), "--launch", str(APP)), out,
+              "--space")
     _one_line(_cli("export", str(plan), "--format", "ros2-params", "--out", str(out), "--launch", str(APP),
                    "--space", str(SPACE)), out, "--format roslaunch")
