@@ -23,7 +23,7 @@ def export(
     space: Annotated[Path | None, typer.Option(
         "--space", help="with --launch: the sweep's space.yaml (how each node's value reaches the launch file).")] = None,
 ) -> None:
-    """Write a plan as a ROS 1 launch file (your own, planned, with --launch) or ROS 2 parameters and launch files."""
+    """Write a plan as a ROS 1 launch file (yours, with --launch) or ROS 2 files."""
     from perfros_bag.errors import InputError
 
     if (launch is None) != (space is None):
