@@ -209,6 +209,7 @@ LOADER = (
     "for n in cfg.nodes: print('fullnode', n.namespace.rstrip('/') + '/' + n.name, n.machine_name or '')\n"
     "for k, v in sorted(cfg.params.items()): print('param', k, repr(v.value))\n"
     "for k, m in sorted(cfg.machines.items()): print('machine', k, m.address)\n"
+    "for c in sorted(cfg.clear_params): print('clear', c)\n"
 )
 
 

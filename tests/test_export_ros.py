@@ -70,14 +70,16 @@ def _loaded(launch: Path, *args: str) -> dict[str, Any]:
     r = subprocess.run([ROS_PY, "-c", LOADER, str(launch), *args], capture_output=True, text=True, timeout=60,
                        env={k: v for k, v in os.environ.items() if k != "PYTHONPATH"})
     assert r.returncode == 0, r.stderr
-    nodes, machines = {}, {}
+    nodes, machines, clear = {}, {}, []
     for line in r.stdout.splitlines():
         kind, name, value = (line.split(" ", 2) + [""])[:3]
-        if kind == "node":
+        if kind == "clear":
+            clear.append(name)
+        elif kind == "node":
             nodes[name] = value
         elif kind == "machine" and name:  # "": roslaunch's own local machine
             machines[name] = value
-    return {"nodes": nodes, "machines": machines}
+    return {"nodes": nodes, "machines": machines, "clear": clear}
 
 
 def _same_as_the_users_file(planned: Path, app: Path, args: list[str]) -> list[str]:
@@ -130,8 +132,10 @@ RICH = """<launch>
   <env name="PERFROS_NOTE" value="a &amp; b &lt;c&gt; &quot;q&quot; 'x' $(arg mode)" />
   <rosparam param="/global/list">[1, 2.5, "a&lt;b"]</rosparam>
   <param name="/global/mode" value="$(arg mode)" />
+  <rosparam param="/global/padded">"  spaces at both ends  "</rosparam>
   <group ns="cams">
-    <node name="camera" pkg="image_publisher" type="image_publisher" args="IMAGE" respawn="true" output="screen">
+    <node name="camera" pkg="image_publisher" type="image_publisher" args="IMAGE" respawn="true" output="screen"
+          clear_params="true" respawn_delay="2.5">
       <param name="publish_rate" value="$(arg camera_rate)" type="double" />
       <param name="note" value="rate=$(arg camera_rate) &amp; &lt;more&gt;" />
       <param name="flag" value="true" />
@@ -177,6 +181,10 @@ def test_every_kind_of_value_and_xml_characters_survive(tmp_path: Path) -> None:
     loaded = _loaded(out)
     assert loaded["nodes"] == {"camera": "robot1", "detector": "robot1", "extra": "mine"}
     assert loaded["machines"]["mine"] == "localhost"
+    assert loaded["clear"] == _loaded(app, "camera_rate:=7.5", "canny_threshold:=120")["clear"] == ["/cams/camera/"]
+    camera = next(n for n in ET.parse(out).getroot().iter("node") if n.get("name") == "camera")
+    assert {k: camera.get(k) for k in ("respawn", "respawn_delay", "output", "clear_params")} == {
+        "respawn": "true", "respawn_delay": "2.5", "output": "screen", "clear_params": "true"}
     mine = next(m for m in ET.parse(out).getroot().iter("machine") if m.get("name") == "mine")
     assert mine.attrib == {"name": "mine", "address": "localhost", "user": "someone", "timeout": "20.0"}
 

@@ -157,7 +157,9 @@ def _text(value: object) -> str:
 
 
 def _param(parent: ET.Element, name: str, value: object, marks: _Marks, full_name: str) -> None:
-    if isinstance(value, list | dict):
+    # <rosparam> (YAML) for what <param value=> cannot hold: lists, mappings, and text with
+    # spaces at its ends (roslaunch strips a value= before typing it)
+    if isinstance(value, list | dict) or isinstance(value, str) and value != value.strip():
         el = ET.SubElement(parent, "rosparam", {"param": name})
         el.text = yaml.safe_dump(value, default_flow_style=True).strip()
         return

@@ -162,7 +162,7 @@ class ResolvedNode:
     env: tuple[tuple[str, str], ...]
     machine: str | None  # the launch file's own machine= (None: none)
     file: str  # the launch file that declares it
-    options: Mapping[str, str]  # respawn, respawn_delay, required, output, cwd, launch-prefix when set
+    options: Mapping[str, str]  # respawn, respawn_delay, required, output, cwd, launch-prefix, clear_params when set
 
     @property
     def full_name(self) -> str:
@@ -203,7 +203,8 @@ for argv in req["argsets"]:
             opts = {"respawn": "true" if n.respawn else None,
                     "respawn_delay": repr(n.respawn_delay) if n.respawn_delay else None,
                     "required": "true" if n.required else None, "output": n.output, "cwd": n.cwd,
-                    "launch-prefix": n.launch_prefix}
+                    "launch-prefix": n.launch_prefix,
+                    "clear_params": "true" if (n.namespace + n.name + "/") in cfg.clear_params else None}
             nodes.append({"package": n.package, "type": n.type, "name": n.name, "namespace": n.namespace,
                           "args": n.args or "", "remaps": [list(r) for r in n.remap_args],
                           "env": [list(e) for e in n.env_args], "machine": n.machine_name or None,
