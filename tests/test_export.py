@@ -307,3 +307,21 @@ def test_ros2_values_keep_their_type_under_the_documented_inference(value: float
 
     text = ros2_value(value)
     assert _ros2_inferred(text) == value and type(_ros2_inferred(text)) is type(value), text
+
+
+def test_names_in_comments_keep_the_xml_well_formed(tmp_path: Path) -> None:
+    """A computer name may hold "--", which XML comments cannot: every file still parses."""
+    data = json.loads(json.dumps(PLAN))
+    data["computers"]["robot--1"] = data["computers"].pop("robot1")
+    for n in data["nodes"].values():
+        n["computer"] = "robot--1" if n["computer"] == "robot1" else n["computer"]
+    plan_path = tmp_path / "plan.json"
+    plan_path.write_text(json.dumps(data))
+    export_plan(plan_path, "ros2-params", tmp_path / "params.yaml")
+    root = ET.parse(tmp_path / "params.robot--1.launch.xml",
+                    ET.XMLParser(target=ET.TreeBuilder(insert_comments=True))).getroot()
+    assert {n.get("name") for n in root.iter("node")} == {"amcl", "nav", "core"}
+    assert any("robot- -1" in (c.text or "") for c in root.iter(ET.Comment))
+    export_plan(plan_path, "roslaunch", tmp_path / "system.launch")
+    assert {m.get("name") for m in ET.parse(tmp_path / "system.launch").getroot().iter("machine")} == {
+        "robot--1", "server"}
