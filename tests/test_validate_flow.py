@@ -174,6 +174,16 @@ def test_kept_rates_on_a_smaller_robot(tmp_path: Path, solved: tuple[Path, Path,
                                            "need": pytest.approx(40 / want["share"]), "capped": True}
     table = run_cli("validate", str(run), str(plan_path), "--system", str(small)).stdout
     assert "kept rates" in table and "robot (needs" in table
+    # the report shows both: the driven nodes' input rates and the kept rates beside those measured
+    (tmp_path / "validation.json").write_text(r.stdout)
+    from perfros_bag.report.html import build_report
+
+    page = build_report(tmp_path / "report", validation=tmp_path / "validation.json").read_text()
+    kept_table = page.split('id="validation-kept"', 1)[1].split("</table>", 1)[0]
+    det_row = kept_table.split('<td class="t">detector</td>', 1)[1].split("</tr>", 1)[0]
+    assert f">{want['det_out']:.4g}<" in det_row and det_row.endswith(">5</td>")
+    inputs = page.split('id="validation-inputs"', 1)[1].split("</table>", 1)[0]
+    assert '<td class="t">detector</td>' in inputs and '<td class="t">tracker</td>' in inputs
 
 
 def test_measured_overload_calibrates_the_need(solved: tuple[Path, Path, Any]) -> None:

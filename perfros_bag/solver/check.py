@@ -181,6 +181,9 @@ def check_plan(system: System, plan: Plan, *, tol: float = 1e-6) -> list[str]:
             cap = c.capacity if c.capacity is not None else 0.0
         if _over(load[c.name], cap, tol):
             bad.append(f"computer {c.name}: cpu {load[c.name]:g} > capacity {cap:g}")
+        elif pc is not None and pc.margin and _over(load[c.name], cap - pc.margin, tol):
+            bad.append(f"computer {c.name}: cpu {load[c.name]:g} leaves less than its margin {pc.margin:g} "
+                       f"of capacity {cap:g} free")
         if pc is not None and not _close(pc.cpu, load[c.name], tol):
             bad.append(f"computer {c.name}: plan reports cpu {pc.cpu:g}, its nodes sum to {load[c.name]:g}")
 

@@ -69,6 +69,7 @@ class PlannedComputer:
     kind: str
     capacity: float | None
     cpu: float
+    margin: float | None = None  # CPU units the plan keeps free (``solve --headroom``); None: none asked
 
 
 @dataclass

@@ -42,7 +42,8 @@ def plan_document(plan: Plan) -> dict[str, Any]:
     if plan.system is not None:
         out["system"] = plan.system
     out["computers"] = {
-        name: {"kind": c.kind, "capacity": c.capacity, "cpu": c.cpu} for name, c in plan.computers.items()
+        name: {"kind": c.kind, "capacity": c.capacity, "cpu": c.cpu, **({} if c.margin is None else {"margin": c.margin})}
+        for name, c in plan.computers.items()
     }
     out["links"] = [
         {"between": list(link.between), "bandwidth_kBps": link.bandwidth_kBps, "load_kBps": link.load_kBps,
@@ -134,7 +135,8 @@ def parse_plan(data: Any, path: str = "plan.json") -> Plan:
         if kind not in ("robot", "server"):
             raise InputError(path, f"computer {name!r}: 'kind' must be 'robot' or 'server', got {kind!r}")
         plan.computers[name] = PlannedComputer(kind, _num(c, "capacity", f"computer {name!r}", path, nonneg=True),
-                                               _num(c, "cpu", f"computer {name!r}", path, nonneg=True) or 0.0)
+                                               _num(c, "cpu", f"computer {name!r}", path, nonneg=True) or 0.0,
+                                               _num(c, "margin", f"computer {name!r}", path, nonneg=True))
     links = data.get("links") or []
     if not isinstance(links, list):
         raise InputError(path, "links must be a list")
