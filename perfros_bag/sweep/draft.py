@@ -10,6 +10,9 @@
   topic going to the node named as its namespace) and there are no edges;
 - one setting per measured value: CPU, frequency and bandwidth measured (the mean over the
   runs at that value; the characterisation of every run with a skeleton of this system);
+- a node whose output followed the rate of a topic it subscribes to as driven (``input:``,
+  per setting ``cpu`` + ``cpu_per_hz`` x the input's rate, ``out_per_in``, ``bytes_per_msg``:
+  :mod:`perfros_bag.sweep.driven`); the node publishing that topic keeps its settings;
 - what only the user knows, as a stated default and a comment: weights equal; performance
   ``100 x`` the node's measured output frequency ``/`` its highest (eq 10 measures
   performance through the output frequency);
