@@ -247,3 +247,18 @@ def test_no_cycle_of_inputs_is_drafted() -> None:
     found = find_inputs([_Node("a", ("/a/out",)), _Node("b", ("/b/out",))], graph, {"a": a, "b": b},
                         {"a": "/a", "b": "/b"})
     assert {n: f.topic for n, f in found.items()} == {"a": "/b/out"}
+
+
+def test_runs_in_several_cpu_scales_are_one_error(tmp_path: Path) -> None:
+    from perfros_bag.errors import InputError
+
+    _sweep(tmp_path / "sweep", [(4.0, 1), (8.0, 1)])
+    doc = yaml.safe_load((tmp_path / "sweep" / "manifest.yaml").read_text())
+    doc["recordings"][1]["units_per_core"] = 50
+    (tmp_path / "sweep" / "manifest.yaml").write_text(yaml.safe_dump(doc))
+    res = CliRunner().invoke(app, ["init", str(tmp_path / "sweep"), "--out", str(tmp_path / "s.yaml")])
+    assert res.exit_code == 2
+    assert "several scales (units_per_core 50, 100): init drafts one machine" in " ".join(res.output.split())
+    assert not (tmp_path / "s.yaml").exists()
+    with pytest.raises(InputError):
+        draft_system(tmp_path / "sweep", tmp_path / "s.yaml")
