@@ -143,6 +143,24 @@ def test_one_input_rate_only(tmp_path: Path) -> None:
                for d in result.document.driven["detector"] if d.source == "measured")
 
 
+def test_one_at_a_time_scales_the_reference_line(tmp_path: Path) -> None:
+    """One-at-a-time: the camera rate varied at detector 1.0, the detector varied at 10 Hz.
+    The settings measured at one rate take 1.0's line scaled by their CPU there, as init
+    drafts them (sweep/driven.py): numbers computed here from the rows."""
+    table = [r for r in rows() if r.recording.endswith("_s1.bag") or "_r10_" in r.recording]
+    sys_path, csv_path = write_inputs(tmp_path, system_yaml(), table)
+    with pytest.warns(Warning, match="scaled by the CPU ratio"):
+        result = build_model(sys_path, csv_path)
+    got = detector_settings(result.document.to_json())
+    ref = lstsq([(r.input_hz or 0, r.cpu_units_mean or 0) for r in table if r.node == "detector" and r.value == 1.0])
+    assert (got[1.0]["cpu"], got[1.0]["cpu_per_hz"]) == pytest.approx(ref, rel=1e-8)
+    for value in (1.5, 2.0):
+        (row,) = [r for r in table if r.node == "detector" and r.value == value]
+        k = (row.cpu_units_mean or 0) / (ref[0] + ref[1] * (row.input_hz or 0))
+        assert got[value]["cpu"] == pytest.approx(k * ref[0], rel=1e-8)
+        assert got[value]["cpu_per_hz"] == pytest.approx(k * ref[1], rel=1e-8)
+
+
 def test_negative_base_clipped_through_origin(tmp_path: Path) -> None:
     truth = {1.0: (-0.5, 3.0, 1.0, 400.0), 2.0: (1.0, 1.2, 1.0, 250.0)}
     table = rows(detector=truth)

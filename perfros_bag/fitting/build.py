@@ -468,6 +468,19 @@ def cpu_line(points: list[tuple[float, float]]) -> tuple[float, float, float | N
     return float(base), float(k), r_squared(cpu, base + k * fin), notes
 
 
+def scaled_line(reference: tuple[float, float], input_hz: float, cpu: float) -> tuple[float, float]:
+    """One-at-a-time sweeps: a setting measured at one input rate takes the line ``(cpu,
+    cpu_per_hz)`` of a ``reference`` setting measured at several, scaled by its CPU over the
+    reference line's at that rate (the own parameter scales the per-message work and the
+    base alike); a reference line at 0 there leaves the mean ``cpu`` as the base."""
+    base, slope = reference
+    at = base + slope * input_hz
+    if at <= 0:
+        return cpu, 0.0
+    k = cpu / at
+    return k * base, k * slope
+
+
 @dataclass(frozen=True)
 class _DrivenMeasure:
     """One parameter value of a driven node, from its recordings."""
@@ -484,6 +497,28 @@ class _DrivenMeasure:
 
 def _mean(xs: list[float]) -> float | None:
     return sum(xs) / len(xs) if xs else None
+
+
+def _one_at_a_time(measures: list[_DrivenMeasure]) -> list[_DrivenMeasure]:
+    """Settings measured at one input rate (``r2`` None) take the line of the setting with a
+    line and the most recordings, scaled (:func:`scaled_line`), as ``init`` drafts them; with
+    no such setting they keep :func:`cpu_line`'s one-rate answer."""
+    lines = [m for m in measures if m.r2 is not None]
+    if not lines:
+        return measures
+    ref = max(lines, key=lambda m: len(m.points))
+    out = []
+    for m in measures:
+        if m.r2 is not None:
+            out.append(m)
+            continue
+        f_in = sum(p[0] for p in m.points) / len(m.points)
+        cpu = sum(p[1] for p in m.points) / len(m.points)
+        base, slope = scaled_line((ref.cpu, ref.cpu_per_hz), f_in, cpu)
+        ref_value = "its setting" if ref.value is None else f"{ref.value:g}"
+        note = f"one input rate only ({f_in:g} Hz): the line of setting {ref_value} scaled by the CPU ratio there"
+        out.append(replace(m, cpu=base, cpu_per_hz=slope, notes=(note,)))
+    return out
 
 
 def _driven_measure(value: float | None, samples: list[DrivenSample], cap: float | None) -> _DrivenMeasure:
@@ -519,6 +554,7 @@ def _fit_driven_node(node: Node, samples: dict[float | None, list[DrivenSample]]
             measures.append(_driven_measure(value, ss, own.max_frequency_hz if own is not None else common_cap))
         except FitError as exc:
             warn(f"{who}: value {value if value is None else f'{value:g}'}: {exc}: nothing fitted there")
+    measures = _one_at_a_time(measures)
     if not samples:
         warn(f"{who}: no row gives the rate of its input {node.input} (input_hz): kept {sys_path}'s settings")
     written: list[DrivenSetting] = []

@@ -184,6 +184,8 @@ def _line(f: Sequence[float], c: Sequence[float]) -> tuple[float, float, str | N
 
 def draft_settings(topics: Sequence[str], runs: Mapping[str, RunMeasure], follow: Follow) -> dict[str, DrivenSetting]:
     """own value (``repr``) -> its drafted setting, by the module's rules."""
+    from perfros_bag.fitting.build import scaled_line
+
     rated = rated_topics(topics, runs)
     groups = _groups(runs)
     lines: dict[str, tuple[float, float, str | None]] = {}
@@ -207,10 +209,8 @@ def draft_settings(topics: Sequence[str], runs: Mapping[str, RunMeasure], follow
         else:
             a_ref, b_ref, _ = lines[ref]
             f_in = sum(follow.input_hz[r] for r in recs) / len(recs)
-            at = a_ref + b_ref * f_in
-            k = (sum(cpus) / len(cpus)) / at if at > 0 else 0.0
-            a, b, clipped = (k * a_ref, k * b_ref, None) if at > 0 else (sum(cpus) / len(cpus), 0.0, None)
-            scaled = runs[groups[ref][0]].value
+            a, b = scaled_line((a_ref, b_ref), f_in, sum(cpus) / len(cpus))
+            clipped, scaled = None, runs[groups[ref][0]].value
         out[key] = DrivenSetting(runs[recs[0]].value, a, b, sum(ratios) / len(ratios), sum(sizes) / len(sizes),
                                  clipped, scaled)
     return out
