@@ -35,6 +35,7 @@ from perfros_bag.characterisation.table import characterise, find_entries, table
 from perfros_bag.cli import app
 from perfros_bag.errors import InputError
 from perfros_bag.fitting.build import measured_settings
+from perfros_bag.ingest import read_recording
 from perfros_bag.system.systemfile import load_system, parse_system
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -538,3 +539,70 @@ def test_table_one_and_the_fit_share_one_aggregation(tmp_path: Path) -> None:
     assert m5.frequency_hz.mean == pytest.approx((10 + 12) / 2)  # /a only: the declared topic
     assert m5.bandwidth_kBps.mean == pytest.approx((1 + 1.5) / 2)
     assert set(m5.topics) == {"/a"}
+
+
+def test_units_per_core_keeps_the_measurement_apart_from_the_robot(tmp_path: Path) -> None:
+    """The same runs characterised with two system.yaml that differ only in the computers'
+    capacities (the sweep machine described as a smaller robot): with the manifest's own
+    ``units_per_core`` the CPU columns are identical, and they are the trace's cpu_percent /
+    100 x units_per_core (pandas over the trace files); without it, the old rule rescales."""
+    d = copy_fixtures(tmp_path)
+    edit_manifest(d, lambda data: [e.update(units_per_core=50) for e in data["recordings"]])
+    base = yaml.safe_load((d / "system.yaml").read_text())
+    small = dict(base, computers=[dict(c, capacity=c["capacity"] / 4) for c in base["computers"]])
+    (d / "small.yaml").write_text(yaml.safe_dump(small))
+    cpu_cols = ("cpu_units_mean", "cpu_units_p95", "cpu_samples")
+    out = {}
+    for name in ("system.yaml", "small.yaml"):
+        r = run("characterise", d, "--system", d / name, "--json")
+        assert r.returncode == 0, r.stderr
+        out[name] = {(x["recording"], x["node"], x["topic"]): tuple(x[c] for c in cpu_cols)
+                     for x in json.loads(r.stdout)}
+    assert out["system.yaml"] == out["small.yaml"]
+    manifest = load_manifest(d / "manifest.yaml")
+    system = load_system(d / "system.yaml")
+    procs = {n.name: n.process for n in system.nodes}
+    for e in manifest.recordings:
+        assert e.cpu is not None and e.units_per_core == 50
+        stats = read_recording(e.path)
+        ncpu = int(next(x for x in e.cpu.read_text().splitlines() if x.startswith("# logical_cpus=")).split("=")[1])
+        expected = independent_cpu(e.cpu, stats.start_ns / 1e9, stats.end_ns / 1e9, 50 * ncpu, procs)
+        for node, (mean, p95, n) in expected.items():
+            got = next(v for k, v in out["small.yaml"].items() if k[:2] == (e.name, node))
+            assert got[0] == pytest.approx(mean) and got[1] == pytest.approx(p95) and got[2] == n
+    # the computer only says where it was measured: the robot may be another machine
+    edit_manifest(d, lambda data: [e.update(computer="sweep-machine") for e in data["recordings"]])
+    r = run("characterise", d, "--system", d / "small.yaml", "--json")
+    assert r.returncode == 0, r.stderr
+    assert {(x["recording"], x["node"], x["topic"]): tuple(x[c] for c in cpu_cols)
+            for x in json.loads(r.stdout)} == out["small.yaml"]
+    # and it needs no system.yaml to normalise (without one the nodes are the trace's labels)
+    edit_manifest(d, lambda data: data.pop("system"))
+    r = run("characterise", d, "--json")
+    assert r.returncode == 0, r.stderr
+    bare = {(x["recording"], x["node"]): x["cpu_units_mean"] for x in json.loads(r.stdout)}
+    assert bare[("tracker_f15", "people_tracker")] == next(  # the trace's label of tracker1
+        v[0] for k, v in out["small.yaml"].items() if k[:2] == ("tracker_f15", "tracker1"))
+    # without units_per_core the computer's capacity normalises (the old contract, kept)
+    def old(data: dict) -> None:
+        data["recordings"] = [e for e in data["recordings"] if e["path"] == "tracker_f15"]
+        data["recordings"][0].pop("units_per_core")
+        data["recordings"][0]["computer"] = "server"
+
+    edit_manifest(d, old)
+    rows = {}
+    for name in ("system.yaml", "small.yaml"):
+        r = run("characterise", d, "--system", d / name, "--json")
+        assert r.returncode == 0, r.stderr
+        rows[name] = next(x for x in json.loads(r.stdout) if x["recording"] == "tracker_f15" and x["node"] == "tracker1")
+    assert rows["small.yaml"]["cpu_units_mean"] == pytest.approx(rows["system.yaml"]["cpu_units_mean"] / 4)
+
+
+@pytest.mark.parametrize("bad", [0, -1, "many", True, float("inf")])
+def test_bad_units_per_core_is_one_line(tmp_path: Path, bad: object) -> None:
+    d = copy_fixtures(tmp_path)
+    edit_manifest(d, lambda data: data["recordings"][0].update(units_per_core=bad))
+    r = run("characterise", d, "--json")
+    assert r.returncode == 2
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and "recordings[0].units_per_core: must be" in lines[0], r.stderr

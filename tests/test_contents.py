@@ -216,7 +216,7 @@ def test_characterise_latency_columns(generated: dict[str, Path], tmp_path: Path
     res = CliRunner().invoke(app, ["characterise", str(d), "--latency", "--out", str(out)])
     assert res.exit_code == 0, res.output
     table = read_characterisation(out)
-    assert table.columns[-4:] == ("metric_value", "latency_p50_s", "latency_p95_s", "latency_max_s")
+    assert table.columns[-5:] == ("metric_value", "latency_p50_s", "latency_p95_s", "latency_max_s", "input_hz")
     rows = {r.topic: r for r in table.rows}
     expected = read_latency(generated["ros1"])
     assert rows["/detector/plain"].latency_p50_s is None

@@ -199,6 +199,20 @@ def test_cli_writes_files_atomically(tmp_path: Path) -> None:
     assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
 
 
+# Debian's roslaunch loader on a launch file (argv: the file, then name:=value args): each
+# node's machine, each parameter, each machine's address
+LOADER = (
+    "import sys, roslaunch.config, roslaunch.xmlloader\n"
+    "cfg = roslaunch.config.ROSLaunchConfig()\n"
+    "roslaunch.xmlloader.XmlLoader().load(sys.argv[1], cfg, argv=['roslaunch'] + sys.argv[2:], verbose=False)\n"
+    "for n in cfg.nodes: print('node', n.name, n.machine_name or '')\n"
+    "for n in cfg.nodes: print('fullnode', n.namespace.rstrip('/') + '/' + n.name, n.machine_name or '')\n"
+    "for k, v in sorted(cfg.params.items()): print('param', k, repr(v.value))\n"
+    "for k, m in sorted(cfg.machines.items()): print('machine', k, m.address)\n"
+    "for c in sorted(cfg.clear_params): print('clear', c)\n"
+)
+
+
 @pytest.mark.ros
 def test_roslaunch_loads_the_file(tmp_path: Path) -> None:
     """Debian's roslaunch parses the exported file: machines and params resolved."""
@@ -209,15 +223,7 @@ def test_roslaunch_loads_the_file(tmp_path: Path) -> None:
     data["nodes"]["tracker"]["parameter"] = "output_freq"
     path = tmp_path / "sys.launch"
     path.write_text(roslaunch_xml(parse_plan(data, "p.json")))
-    script = (
-        "import sys, roslaunch.config, roslaunch.xmlloader\n"
-        "cfg = roslaunch.config.ROSLaunchConfig()\n"
-        "roslaunch.xmlloader.XmlLoader().load(sys.argv[1], cfg, verbose=False)\n"
-        "for n in cfg.nodes: print('node', n.name, n.machine_name)\n"
-        "for k, v in sorted(cfg.params.items()): print('param', k, repr(v.value))\n"
-        "for k, m in sorted(cfg.machines.items()): print('machine', k, m.address)\n"
-    )
-    r = subprocess.run(["/usr/bin/python3", "-c", script, str(path)], capture_output=True, text=True,
+    r = subprocess.run(["/usr/bin/python3", "-c", LOADER, str(path)], capture_output=True, text=True,
                        timeout=60)
     assert r.returncode == 0, r.stderr
     lines = set(r.stdout.splitlines())
@@ -236,3 +242,86 @@ def test_bisection_noise_is_rounded() -> None:
     nodes = {n.get("name"): n for n in ET.fromstring(roslaunch_xml(parse_plan(data, "p.json"))).iter("node")}
     assert nodes["nav"].find("param").attrib["value"] == "25"  # type: ignore[union-attr]
     assert nodes["amcl"].find("param").attrib["value"] == "0.3"  # type: ignore[union-attr]
+
+
+def _ros2_inferred(text: str) -> int | float | str:
+    """A ROS 2 XML launch ``<param value=>`` as the ROS 2 launch documentation's type inference
+    rules read it ("Migrating Launch Files": ``"1"`` an integer, ``"1.0"`` a float, ``"asd"``
+    and ``"'1'"`` strings)."""
+    import re
+
+    if re.fullmatch(r"[+-]?\d+", text):
+        return int(text)
+    if re.fullmatch(r"[+-]?(\d+\.\d*|\.\d+)([eE][+-]?\d+)?", text):
+        return float(text)
+    return text[1:-1] if len(text) >= 2 and text[0] == text[-1] == "'" else text
+
+
+def test_ros2_launch_file_per_computer_in_the_documented_format(tmp_path: Path) -> None:
+    """``ros2-params`` writes, beside the parameters file, one ROS 2 XML launch file per
+    computer. No ROS 2 runtime here: each is parsed against the format the ROS 2 launch
+    documentation gives (``<launch><node pkg= exec= name= namespace=><param name= value=/>``;
+    no ``type``, no ``machine``), its values read by the documented inference rules."""
+    plan_path, sys_path = tmp_path / "plan.json", tmp_path / "system.yaml"
+    plan_path.write_text(json.dumps(PLAN))
+    sys_path.write_text(json.dumps(SYSTEM))
+    out = tmp_path / "params.yaml"
+    r = CliRunner().invoke(app, ["export", str(plan_path), "--format", "ros2-params", "--out", str(out),
+                                 "--system", str(sys_path)])
+    assert r.exit_code == 0, r.output
+    written = sorted(p.name for p in tmp_path.iterdir())
+    assert written == ["params.robot1.launch.xml", "params.server.launch.xml", "params.yaml", "plan.json",
+                       "system.yaml"]
+    launch_nodes = {n["name"]: n.get("launch", {}) for n in SYSTEM["nodes"]}
+    typed = {n["name"]: n.get("parameter", {}).get("type") for n in SYSTEM["nodes"]}
+    seen: dict[str, str] = {}
+    for computer in ("robot1", "server"):
+        root = ET.parse(tmp_path / f"params.{computer}.launch.xml").getroot()
+        assert root.tag == "launch" and root.attrib == {}
+        for node in root:
+            assert node.tag == "node"
+            assert {"pkg", "exec"} <= set(node.attrib) <= {"pkg", "exec", "name", "namespace"}
+            name = next(n for n, ln in launch_nodes.items() if ln.get("name", n) == node.get("name"))
+            ln = launch_nodes[name]
+            assert (node.get("pkg"), node.get("exec")) == (ln.get("package", "PACKAGE"), ln.get("type", name))
+            assert node.get("namespace") == ln.get("namespace")
+            seen[name] = computer
+            params = {}
+            for p in node:
+                assert p.tag == "param" and set(p.attrib) == {"name", "value"}
+                params[p.get("name")] = _ros2_inferred(p.get("value", ""))
+            pn = PLAN["nodes"][name]
+            if pn["value"] is None:
+                assert params == {}
+                continue
+            [(pname, value)] = params.items()
+            assert pname == ln.get("param", pn["parameter"])
+            assert value == pn["value"]
+            assert type(value) is (int if typed[name] == "int" else float)  # the system's type, as ROS 2 infers it
+    assert seen == {n: pn["computer"] for n, pn in PLAN["nodes"].items()}
+
+
+@pytest.mark.parametrize("value", [0.00001, 1e20, -2.5, 3.0, 7, -4, 123456789.125])
+def test_ros2_values_keep_their_type_under_the_documented_inference(value: float) -> None:
+    from perfros_bag.export.writers import ros2_value
+
+    text = ros2_value(value)
+    assert _ros2_inferred(text) == value and type(_ros2_inferred(text)) is type(value), text
+
+
+def test_names_in_comments_keep_the_xml_well_formed(tmp_path: Path) -> None:
+    """A computer name may hold "--", which XML comments cannot: every file still parses."""
+    data = json.loads(json.dumps(PLAN))
+    data["computers"]["robot--1"] = data["computers"].pop("robot1")
+    for n in data["nodes"].values():
+        n["computer"] = "robot--1" if n["computer"] == "robot1" else n["computer"]
+    plan_path = tmp_path / "plan.json"
+    plan_path.write_text(json.dumps(data))
+    export_plan(plan_path, "ros2-params", tmp_path / "params.yaml")
+    root = ET.parse(tmp_path / "params.robot--1.launch.xml",
+                    ET.XMLParser(target=ET.TreeBuilder(insert_comments=True))).getroot()
+    assert {n.get("name") for n in root.iter("node")} == {"amcl", "nav", "core"}
+    assert any("robot- -1" in (c.text or "") for c in root.iter(ET.Comment))
+    export_plan(plan_path, "roslaunch", tmp_path / "system.launch")
+    assert {m.get("name") for m in ET.parse(tmp_path / "system.launch").getroot().iter("machine")} == {
+        "robot--1", "server"}

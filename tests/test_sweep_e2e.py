@@ -63,8 +63,8 @@ def _space(path: Path, **top: Any) -> Path:
     return path
 
 
-def _cli(*args: str, timeout: float = 120) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([str(BIN), *args], capture_output=True, text=True, timeout=timeout)
+def _cli(*args: str, timeout: float = 120, cwd: Path | None = None) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([str(BIN), *args], capture_output=True, text=True, timeout=timeout, cwd=cwd)
 
 
 def _ours(out: Path) -> list[psutil.Process]:
@@ -107,6 +107,11 @@ def _bag_rates(bag: Path) -> dict[str, float]:
                           check=True, env={k: v for k, v in os.environ.items() if k != "PYTHONPATH"})
     rates: dict[str, float] = json.loads(done.stdout)
     return rates
+
+
+#: The README's example ("Starting from your own launch file"), its runs shortened to 4 s.
+SPACE = FIXTURES / "app" / "space.yaml"
+SHORT = ("--duration", "4")
 
 
 def sweep_once(factory: pytest.TempPathFactory, name: str,
@@ -169,7 +174,13 @@ def interrupt(proc: subprocess.Popen[str]) -> str:
 
 @pytest.fixture(scope="module")
 def swept(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, subprocess.CompletedProcess[str]]:
-    return sweep_once(tmp_path_factory, "sweep")
+    """Step 1 of the README, in a folder of its own: ``sweep fixtures/app/app.launch --space
+    fixtures/app/space.yaml --out runs/`` (4 s runs)."""
+    _require_ros()
+    d = tmp_path_factory.mktemp("sweep")
+    out = d / "runs"
+    done = _cli("sweep", str(APP), "--space", str(SPACE), "--out", "runs/", *SHORT, timeout=150, cwd=d)
+    return d, out, done
 
 
 def test_sweep_records_every_setting_and_leaves_nothing(swept: tuple[Path, Path, Any]) -> None:
@@ -209,54 +220,76 @@ def test_sweep_records_every_setting_and_leaves_nothing(swept: tuple[Path, Path,
         assert {r[2] for r in rows[1:]} == set(declared), e.cpu
 
     # again: every run is already there
-    again = _cli("sweep", str(APP), "--space", str(d / "space.yaml"), "--out", str(out))
+    again = _cli("sweep", str(APP), "--space", str(SPACE), "--out", str(out), *SHORT)
     assert again.returncode == 0, again.stderr
     assert "0 run(s) recorded, 4 already there" in again.stderr
 
 
-def test_init_characterise_fit_solve_deploy_with_no_hand_written_file(swept: tuple[Path, Path, Any]) -> None:
+def test_the_readme_example_holds_within_2_5_percent(swept: tuple[Path, Path, Any]) -> None:
+    """The README's steps as written ("Starting from your own launch file"; 4 s runs), with no
+    file written by hand: the detector is drafted as driven by the camera's images, the plan
+    expects it at the camera's planned rate, and the deployment deviates by at most 2.5 %."""
     d, out, done = swept
-    system, doc = drafted(d, out, done)
+    assert done.returncode == 0, done.stderr
+    steps = [("init", "runs/", "--out", "system.yaml"),
+             ("characterise", "runs/", "--system", "system.yaml", "--out", "characterisation.csv"),
+             ("fit", "system.yaml", "characterisation.csv", "--out", "model.json"),
+             ("solve", "model.json", "--problem", "1", "--method", "exact", "--out", "plan.json")]
+    for args in steps:
+        step = _cli(*args, cwd=d)
+        assert step.returncode == 0, (args[0], step.stderr)
+        assert "Traceback" not in step.stderr
+    system = d / "system.yaml"
+    doc = yaml.safe_load(system.read_text())
     declared = _launch_nodes(APP)
     assert {n["name"] for n in doc["nodes"]} == {n.lstrip("/") for n in declared}
     image = "/" + declared["/detector"]["image"]
     assert doc["edges"] == [{"from": "camera", "to": "detector", "topic": image}]
     nodes = {n["name"]: n for n in doc["nodes"]}
     assert nodes["camera"]["parameter"] == {"name": "publish_rate", "unit": "Hz"}
+    assert "input" not in nodes["camera"] and nodes["detector"]["input"] == image  # the source, the driven
     assert [s["value"] for s in nodes["camera"]["settings"]] == [5, 10]
     assert [s["value"] for s in nodes["detector"]["settings"]] == [100, 200]
+    assert all({"cpu", "cpu_per_hz", "out_per_in", "bytes_per_msg"} <= set(s) for s in nodes["detector"]["settings"])
     assert image in nodes["camera"]["topics"] and "/rosout" not in nodes["camera"]["topics"]
-    assert doc["computers"][0]["capacity"] == 100 * int(
-        next(line for line in load_manifest(out / "manifest.yaml").recordings[0].cpu.read_text().splitlines()  # type: ignore[union-attr]
-             if line.startswith("# logical_cpus=")).split("=")[1])
-    # the drafted camera rates are the recorded ones (Debian's reader, averaged over the runs)
     manifest = load_manifest(out / "manifest.yaml")
+    assert {e.units_per_core for e in manifest.recordings} == {100}  # the measurement's own scale
+    assert doc["computers"][0]["capacity"] == 100 * int(
+        next(line for line in manifest.recordings[0].cpu.read_text().splitlines()  # type: ignore[union-attr]
+             if line.startswith("# logical_cpus=")).split("=")[1])
+    # the drafted camera rates are the recorded ones, and the detector's output followed them
+    # one for one (Debian's reader, per run)
     for s in nodes["camera"]["settings"]:
         bags = [e.path for e in manifest.recordings if e.settings["camera"] == s["value"]]
         expected = sum(_bag_rates(b)[image] for b in bags) / len(bags)
         assert abs(s["topics"][image]["frequency_hz"] / expected - 1) < 0.01, (s, expected)
+    for e in manifest.recordings:
+        rates = _bag_rates(e.path)
+        assert abs(rates["/detector/circles"] / rates[image] - 1) < 0.05, (e.name, rates)
+    for s in nodes["detector"]["settings"]:
+        assert abs(s["out_per_in"] - 1) < 0.05, s
     assert "REPLACE" in system.read_text()
 
-    char = d / "characterisation.csv"
-    step = _cli("characterise", str(out), "--system", str(system), "--out", str(char))
-    assert step.returncode == 0, step.stderr
-    model = d / "model.json"
-    step = _cli("fit", str(system), str(char), "--out", str(model))
-    assert step.returncode == 0, step.stderr
-    plan = d / "plan.json"
-    step = _cli("solve", str(model), "--problem", "1", "--method", "exact", "--out", str(plan))
-    assert step.returncode == 0, step.stderr
-    solved = json.loads(plan.read_text())
+    solved = json.loads((d / "plan.json").read_text())
     assert solved["status"] in ("optimal", "feasible") and set(solved["nodes"]) == {"camera", "detector"}
-    step = _cli("solve", str(system), "--problem", "1", "--method", "greedy", "--out", str(d / "plan2.json"))
+    camera_plan, detector_plan = solved["nodes"]["camera"], solved["nodes"]["detector"]
+    camera_hz = camera_plan["topics"][image]["frequency_hz"]
+    assert detector_plan["input"] == image and detector_plan["input_hz"] == pytest.approx(camera_hz)
+    for topic, rate in detector_plan["topics"].items():  # expected at the camera's planned rate
+        assert abs(rate["frequency_hz"] / camera_hz - 1) < 0.05, (topic, rate, camera_hz)
+    assert abs(camera_hz / camera_plan["value"] - 1) < 0.05
+    step = _cli("solve", "system.yaml", "--problem", "1", "--method", "greedy", "--out", "plan2.json", cwd=d)
     assert step.returncode == 0, step.stderr
 
-    # deploy the plan on this machine (its computer a cgroup when cgroups work here), validate it
+    # step 4: deploy the plan on this machine (its computer a cgroup when cgroups work here), validate it
+    step = _cli("deploy", "plan.json", str(APP), "--space", str(SPACE), "--out", "deployed/", *SHORT, cwd=d)
     run = d / "deployed"
-    step = _cli("deploy", str(plan), str(APP), "--space", str(d / "space.yaml"), "--out", str(run),
-                "--duration", "3")
-    assert step.returncode in (0, 1), step.stderr  # 1: the run deviates from the plan by more than 5 %
     assert "Traceback" not in step.stderr
+    validation = json.loads((run / "validation.json").read_text())
+    deviation = validation["overall"]["deviation_pct"]
+    print(f"README example: deploy deviation {deviation:.2f} %")  # the figure, for the record (pytest -s)
+    assert deviation <= 2.5, step.stdout
+    assert step.returncode == 0, step.stderr
     record = json.loads((run / "deploy.json").read_text())
     _nothing_left(run, {record["run_id"]}, set())
     assert record["leftover_cgroups"] == []
@@ -266,13 +299,12 @@ def test_init_characterise_fit_solve_deploy_with_no_hand_written_file(swept: tup
     assert record["values"] == {n: int(round(solved["nodes"][n]["value"])) for n in ("camera", "detector")}
     assert {n: v["computer"] for n, v in record["nodes"].items()} == {
         f"/{n}": v["computer"] for n, v in solved["nodes"].items()}
-    validation = json.loads((run / "validation.json").read_text())
-    assert (step.returncode == 0) == (validation["overall"]["deviation_pct"] <= 5.0)
-    measured = _bag_rates(run / "run.bag")[image]
-    assert abs(measured / solved["nodes"]["camera"]["value"] - 1) < 0.1  # the camera ran at the planned rate
+    rates = _bag_rates(run / "run.bag")
+    assert abs(rates[image] / camera_plan["value"] - 1) < 0.1  # the camera ran at the planned rate
+    assert abs(rates["/detector/circles"] / rates[image] - 1) < 0.05  # and the detector with it
     camera = next(n for n in validation["nodes"] if n["node"] == "camera")
     checked = next(t for t in camera["topics"] if t["topic"] == image)
-    assert abs(checked["f_measured"] / measured - 1) < 0.01
+    assert abs(checked["f_measured"] / rates[image] - 1) < 0.01
 
 
 def test_init_without_graph_yaml_takes_the_nodes_from_the_recordings(swept: tuple[Path, Path, Any],

@@ -45,6 +45,9 @@ class Row:
     latency_p50_s: float | None = None
     latency_p95_s: float | None = None
     latency_max_s: float | None = None
+    # the data flow: the measured rate of the node's input topic (system.yaml ``input``) in
+    # this recording; empty for a node without one
+    input_hz: float | None = None
 
 
 COLUMNS: tuple[str, ...] = tuple(f.name for f in fields(Row))

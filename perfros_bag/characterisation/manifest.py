@@ -5,8 +5,15 @@ settings (design.md contract)::
     recordings:
       - path: tracker_f10.bag        # file or rosbag2 directory, relative to the manifest
         cpu: tracker_f10.cpu.csv     # optional; default <stem>.cpu.csv when it exists
-        computer: robot1             # whose capacity normalises the CPU trace
+        computer: robot1             # where it was measured (whose capacity normalises the
+                                     #   CPU trace when units_per_core is not given)
+        units_per_core: 100          # optional: CPU units of one busy core of that machine
         settings: {tracker1: 10}     # node -> parameter value in this run
+
+``units_per_core`` fixes the scale of the measurement itself (``sweep`` writes
+:data:`SWEEP_UNITS_PER_CORE`): the trace is then normalised as ``cpu_percent / 100 x
+units_per_core`` whatever a system.yaml says about the computers, so describing the robot
+differently (its ``capacity``) changes the plan, never the data.
 
 Node and computer names follow ROS's rules (:mod:`perfros_bag.system.names`). Structural
 problems are :class:`InputError` naming the manifest and the entry; a missing
@@ -23,10 +30,14 @@ from typing import Any
 
 from perfros_bag.errors import InputError
 from perfros_bag.fileio import MANIFEST_KIND, expect_kind, read_yaml, unknown_keys
+from perfros_bag.limits import number_problem
 from perfros_bag.system.names import NameKind, name_problem
 
 TOP_KEYS = {"system", "recordings"}
-ENTRY_KEYS = {"path", "cpu", "computer", "settings"}
+ENTRY_KEYS = {"path", "cpu", "computer", "units_per_core", "settings"}
+#: The scale ``sweep`` records its runs in (and ``init`` drafts this machine with): 100 CPU
+#: units = one busy core of the machine the sweep ran on.
+SWEEP_UNITS_PER_CORE = 100
 
 SettingValue = int | float | str
 
@@ -40,6 +51,7 @@ class RecordingEntry:
     cpu: Path | None = None  # the CPU trace; None: no trace
     computer: str | None = None
     settings: Mapping[str, SettingValue] = field(default_factory=dict)
+    units_per_core: float | None = None  # the measurement's own scale; None: the computer's capacity
 
 
 @dataclass(frozen=True)
@@ -136,7 +148,13 @@ def parse_manifest(data: Any, path: Path) -> Manifest:
         if computer is not None and name_problem(NameKind.COMPUTER, computer) is not None:
             raise fail(f"{where}.computer", f"{computer!r} {name_problem(NameKind.COMPUTER, computer)}")
         settings = _settings(item.get("settings"), f"{where}.settings", fail)
-        entries.append(RecordingEntry(rec, rel, cpu, computer, settings))
+        units = item.get("units_per_core")
+        if units is not None:
+            problem = number_problem(units, positive=True)
+            if problem is not None:
+                raise fail(f"{where}.units_per_core", problem)
+            units = float(units)
+        entries.append(RecordingEntry(rec, rel, cpu, computer, settings, units))
     return Manifest(path, system, tuple(entries))
 
 

@@ -13,8 +13,9 @@ Rows are one per (recording, node, topic), design.md's ``characterisation.csv``:
   (ROS 1 ``callerid``) when that names a system node; else node = publisher (or empty);
 - a node's CPU comes from the processes the CPU trace attributes to it (the node's
   ``process`` regex on the trace's node label / process name, or its name), summed per
-  sample, aligned with the recording's window, normalised with the capacity of the
-  manifest's ``computer``;
+  sample, aligned with the recording's window, normalised with the measurement's own
+  ``units_per_core`` when the manifest gives it (the system's computers then play no part),
+  else with the capacity of the manifest's ``computer``;
 - a node with CPU but no topic in the recording gets one row with an empty topic;
 - settings the manifest does not give (no manifest, or silent about a node) come from the
   recording's ``/parameter_events`` (ROS 2; :mod:`perfros_bag.ingest.rosgraph`);
@@ -91,7 +92,7 @@ def characterise_recording(entry: RecordingEntry, system: System | None = None, 
     cpu: dict[str, NodeCpu] = {}
     if entry.cpu is not None:
         trace = read_cpu_trace(entry.cpu)
-        capacity = _capacity(entry, system)
+        capacity = _capacity(entry, system, trace.logical_cpus)
         patterns = None if system is None else {n.name: n.process for n in system.nodes}
         cpu = node_cpu(trace, capacity, start_ns=start, end_ns=end, nodes=patterns)
         if trace.time.size and start is not None and end is not None and not cpu:
@@ -131,12 +132,14 @@ def characterise_recording(entry: RecordingEntry, system: System | None = None, 
     for node in order:
         parameter, value = _setting(node, settings, system)
         metric = metrics.get(node)
+        driven_by = system.node[node].input if system is not None and node in system.node else None
+        input_hz = stats.topics[driven_by].frequency_hz if driven_by in stats.topics else None
         c = cpu.get(node) or (_cpu_for_publisher(node, cpu) if system is None else None)
         mean, p95, samples = (c.mean, c.p95, c.samples) if c is not None else (None, None, None)
         topics = by_node.get(node, [])
         if not topics:
             rows.append(Row(entry.name, node, parameter, value, None, None, None, span, None, None,
-                            mean, p95, samples, metric_value=metric))
+                            mean, p95, samples, metric_value=metric, input_hz=input_hz))
             continue
         for topic in topics:
             ts = stats.topics[topic]
@@ -146,7 +149,7 @@ def characterise_recording(entry: RecordingEntry, system: System | None = None, 
                             ts.median_rate_hz, ts.p95_gap_s, metric_value=metric,
                             latency_p50_s=delay.p50_s if delay else None,
                             latency_p95_s=delay.p95_s if delay else None,
-                            latency_max_s=delay.max_s if delay else None))
+                            latency_max_s=delay.max_s if delay else None, input_hz=input_hz))
     return rows
 
 
@@ -193,7 +196,12 @@ def _cpu_for_publisher(publisher: str, cpu: Mapping[str, NodeCpu]) -> NodeCpu | 
     return cpu.get(publisher) or cpu.get(short)
 
 
-def _capacity(entry: RecordingEntry, system: System | None) -> float:
+def _capacity(entry: RecordingEntry, system: System | None, logical_cpus: int) -> float:
+    """The capacity R the trace is normalised with (``cpu_percent / (100 N) x R``): the
+    measurement's own ``units_per_core x N`` when the manifest gives it, else the capacity
+    of the manifest's computer in the system (100 without a computer)."""
+    if entry.units_per_core is not None:
+        return entry.units_per_core * logical_cpus
     if entry.computer is None:
         if system is not None:
             warnings.warn(f"{entry.name}: no 'computer' in the manifest: CPU normalised to "

@@ -82,12 +82,14 @@ def find_entries(directory: str | Path, manifest: str | Path | None = None) -> t
 
 
 def check_settings(entries: Iterable[RecordingEntry], system: System, source: str | Path) -> None:
-    """Manifest settings and computers must name nodes/computers of the system."""
+    """Manifest settings must name nodes of the system, and computers its computers unless
+    the entry gives its own ``units_per_core`` (then the computer only says where it was
+    measured: the robot the system describes may be another machine)."""
     for e in entries:
         for node in e.settings:
             if node not in system.node:
                 raise InputError(source, f"recording {e.name!r}: settings name unknown node {node!r}")
-        if e.computer is not None and e.computer not in system.computer:
+        if e.computer is not None and e.units_per_core is None and e.computer not in system.computer:
             raise InputError(source, f"recording {e.name!r}: unknown computer {e.computer!r}")
 
 

@@ -31,7 +31,7 @@ def fit(
     if plots is not None:
         from perfros_bag.report.fit_plots import plot_model
 
-        written = plot_model(result.system.node, result.fits, plots)
+        written = plot_model(result.system.node, result.fits, plots, result.document.driven)
 
     if as_json:
         from perfros_bag.fileio import json_text  # strict: no NaN/Infinity
@@ -48,6 +48,16 @@ def fit(
             table.add_row(node, rel.replace("parameter", "param"), f.form, r2, loo, str(len(f.points)),
                           f"[{f.domain[0]:.4g}, {f.domain[1]:.4g}]")
     out.print(table)
+    for node, settings in result.document.driven.items():
+        for d in settings:
+            if d.source == "measured":
+                at = "" if d.value is None else f" {d.value:g}"
+                r2 = "one input rate" if d.r2 is None else f"R² {d.r2:.4f}"
+                out.print(f"{node}{at}: CPU = {d.cpu:.4g} + {d.cpu_per_hz:.4g} x input Hz ({r2}, "
+                          f"{len(d.points)} recording(s))")
+        grid = sum(d.source == "grid" for d in settings)
+        if grid:
+            out.print(f"{node}: {grid} more setting(s) between the measured ones, from the curves over its parameter")
     for node, n in result.system.node.items():
         if n.curve is not None and node in result.fits:
             lo, hi = n.curve.domain

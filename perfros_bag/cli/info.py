@@ -90,8 +90,9 @@ def info(
 
     for t, td in zip(rec.topics.values(), doc["topics"], strict=True):
         delays = [td[k] for k in ("latency_p50_s", "latency_p95_s", "latency_max_s")]
-        table.add_row(t.topic, t.msgtype, str(t.messages), f"{t.frequency_hz:.3f}",
-                      f"{t.median_rate_hz:.3f}", f"{t.p95_gap_s:.4f}", f"{t.bandwidth_kBps:.3f}",
+        few = t.rate_note is not None  # too few messages: no rate to print
+        table.add_row(t.topic, t.msgtype, str(t.messages), "too few msgs" if few else f"{t.frequency_hz:.3f}",
+                      "-" if few else f"{t.median_rate_hz:.3f}", f"{t.p95_gap_s:.4f}", f"{t.bandwidth_kBps:.3f}",
                       rel(t.first_ns), rel(t.last_ns), ", ".join(t.publishers),
                       *["/".join("-" if d is None else f"{d:.4f}" for d in delays)] * latency)
     console.print(table)

@@ -58,11 +58,14 @@ def print_plan(console: Console, plan: Plan) -> None:
     """Nodes (computer, parameter value, CPU, performance), computers and links."""
     title = f"Problem {plan.problem} · {plan.method} · {plan.status}"
     nodes = Table(title=title, title_justify="left")
-    for col in ("node", "computer", "parameter", "value", "CPU", "performance", "weight"):
-        nodes.add_column(col, justify="right" if col in ("value", "CPU", "performance", "weight") else "left")
+    flow = any(n.input is not None for n in plan.nodes.values())  # driven nodes: their input's rate too
+    cols = ("node", "computer", "parameter", "value", "CPU", "performance", "weight") + (("input Hz",) if flow else ())
+    for col in cols:
+        nodes.add_column(col, justify="left" if col in ("node", "computer", "parameter") else "right")
     for name, n in plan.nodes.items():
-        nodes.add_row(name, n.computer, n.parameter or "-", _num(n.value, 3), _num(n.cpu), _num(n.performance),
-                      _num(n.weight, 4))
+        row = [name, n.computer, n.parameter or "-", _num(n.value, 3), _num(n.cpu), _num(n.performance),
+               _num(n.weight, 4)]
+        nodes.add_row(*row, *((_num(n.input_hz),) if flow else ()))
     console.print(nodes)
     comps = Table(title="computers", title_justify="left")
     for col in ("computer", "kind", "CPU", "capacity", "use"):
@@ -99,6 +102,9 @@ def solve(
     time_limit: Annotated[float | None, typer.Option(
         "--time-limit", help="exact: S seconds of wall clock for the solve, counted after reading the input "
                              "(best plan so far and its proven bound, status feasible)")] = None,
+    headroom: Annotated[float, typer.Option(
+        "--headroom", help="share of every computer's capacity the plan keeps free, in [0, 1) "
+                           "(plan.json gives each computer its margin)")] = 0.0,
     pareto: Annotated[str | None, typer.Option(
         "--pareto", metavar="RANGE", help="Problem 1 per total server capacity: auto, LO:HI or LO:HI:POINTS "
                                           "(-o writes frontier.json and a PNG beside it)")] = None,
@@ -117,6 +123,8 @@ def solve(
         raise InputError(None, f"--resolution must be > 0, got {resolution}")
     if time_limit is not None and not time_limit > 0:
         raise InputError(None, f"--time-limit must be > 0, got {time_limit}")
+    if not 0.0 <= headroom < 1.0:
+        raise InputError(None, f"--headroom must be in [0, 1), got {headroom}")
     if time_limit is not None and method != "exact":
         warnings.warn(f"--time-limit applies to --method exact only; {method} ignores it", PerfrosWarning, stacklevel=1)
     system = load_system(system_path)
@@ -133,7 +141,7 @@ def solve(
     try:
         with _live_progress(method == "exact") as progress:
             plan = run(system, problem, method, resolution=resolution, settings=fixed, time_limit=time_limit,
-                       progress=progress)
+                       progress=progress, headroom=headroom)
     except ValueError as exc:  # a model that cannot be evaluated (e.g. a curve off its domain)
         raise InputError(system_path, str(exc)) from None
     if out_path is not None:

@@ -43,6 +43,8 @@ def render(v: Validation, console: Console) -> None:
                 topic = f"[red]{topic} (missing)[/]"
             elif tc is not None and tc.status == "no-expectation":
                 topic = f"[yellow]{topic} (no F expected)[/]"
+            if tc is not None and tc.rate_note is not None:
+                topic += f" [yellow]({escape(tc.rate_note)}: F = messages / recording span)[/]"
             dev = f"{n.deviation_pct:.1f}" if n.counted else "[dim]not counted[/]"
             t.add_row(
                 escape(n.node) if first else "", escape(n.computer) if first else "", topic,
@@ -59,6 +61,16 @@ def render(v: Validation, console: Console) -> None:
         f"deviation [{style}]{v.deviation_pct:.2f} %[/] (tolerance {v.tolerance_pct:g} %)"
         + ("  [dim](capped)[/]" if v.cap else "")
     )
+    driven = [n for n in v.nodes if n.input is not None]
+    if driven:
+        dt = Table(title="driven nodes: input rate expected (plan) vs measured (Hz)")
+        for col in ("node", "input", "expected", "measured", "dev%"):
+            dt.add_column(col, justify="left" if col in ("node", "input") else "right")
+        for n in driven:
+            measured = _f(n.input_hz_measured) if n.input_rate_note is None else f"[yellow]{escape(n.input_rate_note)}[/]"
+            dt.add_row(escape(n.node), escape(n.input or ""), _f(n.input_hz_expected), measured,
+                       _f(n.input_deviation_pct, ".1f"))
+        console.print(dt)
     if v.computers:
         ct = Table(title="CPU per computer (normalised units)")
         for col in ("computer", "capacity", "planned", "measured", "status"):
@@ -113,9 +125,22 @@ def render(v: Validation, console: Console) -> None:
                 ch.add_row("", escape(f"  hop {h.src} -> {h.dst}"), str(0 if d is None else d.messages),
                            *_delays(d))
         console.print(ch)
+    if v.kept is not None:
+        kt = Table(title="kept rates: a capped computer shares its CPU in proportion to need; "
+                         "a starved node slows what it drives (Hz, CPU units)")
+        for col in ("node", "computer", "CPU need", "CPU share", "kept", "F planned", "F predicted", "F measured"):
+            kt.add_column(col, justify="left" if col in ("node", "computer") else "right")
+        for k in v.kept.nodes:
+            kt.add_row(escape(k.node), escape(k.computer), _f(k.cpu_need), _f(k.cpu_share), f"{k.factor:.0%}",
+                       _f(k.f_planned), _f(k.f_predicted), _f(k.f_measured))
+        console.print(kt)
+        console.print("capped: " + (", ".join(f"{escape(c.computer)} (needs {c.need:.4g} of {c.capacity:.4g})"
+                                              for c in v.kept.computers if c.capped) or "none predicted"))
     if v.unplanned_topics:
         console.print("topics not in the plan (not counted): "
-                      + ", ".join(f"{escape(u.topic)} ({u.f_measured:.3g} Hz)" for u in v.unplanned_topics))
+                      + ", ".join(f"{escape(u.topic)} ({u.f_measured:.3g} Hz)" if u.f_measured is not None
+                                  else f"{escape(u.topic)} ({escape(u.rate_note or 'no rate')})"
+                                  for u in v.unplanned_topics))
     for note in v.notes:
         console.print(f"[dim]note: {escape(note)}[/]")
 

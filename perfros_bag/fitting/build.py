@@ -19,12 +19,13 @@ import math
 import warnings
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol, TypeVar
 
-from perfros_bag.characterisation.csvfile import CharacterisationFile, read_characterisation
+from perfros_bag.characterisation.csvfile import CharacterisationFile, Row, read_characterisation
 from perfros_bag.characterisation.settings import by_setting
 from perfros_bag.errors import InputError, PerfrosWarning
 from perfros_bag.fitting.modelfile import (
+    DrivenSetting,
     FittedRelation,
     MeasuredSetting,
     ModelDocument,
@@ -56,11 +57,10 @@ class ModelResult:
 CPU_STATISTICS = ("mean", "p95")
 
 
-def measured_settings(table: CharacterisationFile, system: System, cpu: str = "mean") -> dict[str, list[MeasuredSetting]]:
-    """Per node of ``system``: what was measured at each parameter value, over the
-    recordings (rows of other nodes are ignored), the CPU as ``cpu`` says
-    (:data:`CPU_STATISTICS`). A value of a node in the system that is not a number is an
-    error (the reader refuses non-finite ones)."""
+def node_rows(table: CharacterisationFile, system: System) -> list[Row]:
+    """The rows of ``table`` that name a node of ``system`` (a row without a recording
+    named after its line). A value of such a node that is not a number is an error (the
+    reader refuses non-finite ones)."""
     path = str(table.path)
     rows = []
     for row, cells, line in zip(table.rows, table.cells, table.lines, strict=True):
@@ -70,6 +70,25 @@ def measured_settings(table: CharacterisationFile, system: System, cpu: str = "m
         if isinstance(row.value, str):
             raise InputError(path, f"line {line}: node {row.node!r}: parameter value {raw!r} is not a number")
         rows.append(row if row.recording else replace(row, recording=f"(row {line})"))
+    return rows
+
+
+def input_rates(rows: list[Row]) -> dict[tuple[str, str], float]:
+    """(node, recording) -> the measured rate of the node's input topic there (the
+    ``input_hz`` column; a driven node's rows of one recording share it)."""
+    out: dict[tuple[str, str], float] = {}
+    for r in rows:
+        if r.input_hz is not None:
+            out.setdefault((r.node, r.recording), r.input_hz)
+    return out
+
+
+def measured_settings(table: CharacterisationFile, system: System, cpu: str = "mean") -> dict[str, list[MeasuredSetting]]:
+    """Per node of ``system``: what was measured at each parameter value, over the
+    recordings (rows of other nodes are ignored), the CPU as ``cpu`` says
+    (:data:`CPU_STATISTICS`)."""
+    rows = node_rows(table, system)
+    inputs = input_rates(rows)
     out: dict[str, list[MeasuredSetting]] = {}
     for s in by_setting(rows, {n.name: n.topics for n in system.nodes}):
         per_topic: dict[str, tuple[list[float], list[float]]] = {}
@@ -80,10 +99,11 @@ def measured_settings(table: CharacterisationFile, system: System, cpu: str = "m
                     freqs.append(t.frequency_hz)
                 if t.bandwidth_kBps is not None:
                     bws.append(t.bandwidth_kBps)
+        fin = [inputs[(s.node, m.recording)] for m in s.recordings if (s.node, m.recording) in inputs]
         out.setdefault(s.node, []).append(MeasuredSetting(
             None if s.value is None else float(s.value), len(s.recordings),
             Stat.of(s.cpus() if cpu == "mean" else s.cpus_p95()), Stat.of(s.frequencies()), Stat.of(s.bandwidths()),
-            {t: (Stat.of(fl), Stat.of(bl)) for t, (fl, bl) in sorted(per_topic.items())}))
+            {t: (Stat.of(fl), Stat.of(bl)) for t, (fl, bl) in sorted(per_topic.items())}, Stat.of(fin)))
     return out
 
 
@@ -158,23 +178,37 @@ def build_model(system_path: str | Path, characterisation_path: str | Path, *, c
     unmeasured = [n.name for n in system.nodes if n.name not in measured]
     if unmeasured:
         warn(f"{csv_path}: no rows for node(s) {', '.join(unmeasured)}: kept the numbers of {sys_path}")
+    samples = driven_samples(table, system, cpu) if system.has_flow else {}
+    driven: dict[str, list[DrivenSetting]] = {}
     for node in system.nodes:
         if node.name not in measured:
             continue
         perf = _performance_source(node, metrics.get(node.name, {}), warn)
-        fits_n = _fit_node(node, measured[node.name], raw_nodes[node.name], warn, sys_path, perf)
+        if node.driven:
+            fits_n, driven[node.name] = _fit_driven_node(node, samples.get(node.name, {}), raw_nodes[node.name],
+                                                         warn, sys_path, perf)
+        else:
+            fits_n = _fit_node(node, measured[node.name], raw_nodes[node.name], warn, sys_path, perf)
         if fits_n:
             fits[node.name] = fits_n
     document = ModelDocument(sys_path, csv_path, doc_system,
                              {n: dict(fs) for n, fs in fits.items()},
-                             measured, warn.messages, cpu_statistic=cpu)
+                             measured, warn.messages, cpu_statistic=cpu, driven=driven)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", PerfrosWarning)
         final = parse_system(doc_system, sys_path)  # what solve will read: must load
     return ModelResult(document, fits, final, warn.messages)
 
 
-def _match(node: Node, value: float | None, measured: list[MeasuredSetting]) -> MeasuredSetting | None:
+class _Valued(Protocol):
+    @property
+    def value(self) -> float | None: ...
+
+
+_V = TypeVar("_V", bound=_Valued)
+
+
+def _match(node: Node, value: float | None, measured: list[_V]) -> _V | None:
     for m in measured:
         if _same(m.value, value):
             return m
@@ -366,3 +400,274 @@ def solver_curve(c2p: FittedRelation, p2c: FittedRelation, max_perf: float) -> t
         notes.append(f"CPU levels [{img_hi:.4g}, {hi:g}] all map to parameter value {v_hi:g} "
                      f"(the parameter->cpu fit gives {img_hi:.4g} there)")
     return Curve(curve.form, curve.coef, (lo, hi), curve.scale), notes
+
+
+# --- driven nodes (system.yaml ``input:``; docs/formats.md "model.json: driven nodes") ---
+
+#: how many parameter values (ends included) the grid of settings evaluated from a driven
+#: node's curves spans between its lowest and highest measured value
+GRID_POINTS = 9
+#: a recording whose output runs within this fraction of its setting's ``max_frequency_hz``
+#: is throttled: its output rate says nothing about ``out_per_in``
+THROTTLED = 0.98
+
+
+@dataclass(frozen=True)
+class DrivenSample:
+    """One recording of a driven node at one parameter value."""
+
+    recording: str
+    input_hz: float
+    cpu: float | None
+    frequency_hz: float | None  # F_out: the mean over its topics
+    bandwidth_kBps: float | None  # all its topics
+
+
+def driven_samples(table: CharacterisationFile, system: System,
+                   cpu: str = "mean") -> dict[str, dict[float | None, list[DrivenSample]]]:
+    """Per driven node of ``system`` and parameter value: one sample per recording that
+    measured its input rate (``input_hz``), the CPU as ``cpu`` says (:data:`CPU_STATISTICS`)."""
+    rows = [r for r in node_rows(table, system) if system.node[r.node].driven]
+    inputs = input_rates(rows)
+    out: dict[str, dict[float | None, list[DrivenSample]]] = {}
+    for s in by_setting(rows, {n.name: n.topics for n in system.nodes}):
+        value = None if s.value is None else float(s.value)
+        for m in s.recordings:
+            fin = inputs.get((s.node, m.recording))
+            if fin is not None:
+                out.setdefault(s.node, {}).setdefault(value, []).append(DrivenSample(
+                    m.recording, fin, m.cpu if cpu == "mean" else m.cpu_p95, m.frequency_hz, m.bandwidth_kBps))
+    return out
+
+
+def cpu_line(points: list[tuple[float, float]]) -> tuple[float, float, float | None, list[str]]:
+    """``(cpu, cpu_per_hz, r2, notes)`` of CPU = cpu + cpu_per_hz x F_in through the
+    (F_in, CPU) ``points`` of one setting (least squares; the base clipped at 0, refitted
+    through the origin; a slope below 0 clipped to 0). With one input rate only: the base
+    is 0 and cpu_per_hz the mean CPU over that rate (``r2`` None; a note says so)."""
+    import numpy as np
+
+    from perfros_bag.fitting.regression import fit_form, r_squared
+
+    fin = np.array([p[0] for p in points], dtype=float)
+    cpu = np.array([p[1] for p in points], dtype=float)
+    notes: list[str] = []
+    if len(np.unique(fin)) < 2:
+        f = float(fin[0])
+        if f <= 0:
+            raise FitError(f"measured at input rate {f:g} Hz only: no CPU per Hz can be told")
+        notes.append(f"one input rate only ({f:g} Hz): cpu_per_hz = mean CPU / input rate, base cpu 0")
+        return 0.0, float(cpu.mean()) / f, None, notes
+    k, base = fit_form("linear", fin, cpu)
+    if base < 0:
+        k, base = float(fin @ cpu) / float(fin @ fin), 0.0
+        notes.append("the fitted base cpu was below 0: clipped to 0, cpu_per_hz fitted through the origin")
+    if k < 0:
+        k, base = 0.0, float(cpu.mean())
+        notes.append("CPU fell as the input rate rose: cpu_per_hz clipped to 0, base cpu = the mean CPU")
+    return float(base), float(k), r_squared(cpu, base + k * fin), notes
+
+
+def scaled_line(reference: tuple[float, float], input_hz: float, cpu: float) -> tuple[float, float]:
+    """One-at-a-time sweeps: a setting measured at one input rate takes the line ``(cpu,
+    cpu_per_hz)`` of a ``reference`` setting measured at several, scaled by its CPU over the
+    reference line's at that rate (the own parameter scales the per-message work and the
+    base alike); a reference line at 0 there leaves the mean ``cpu`` as the base."""
+    base, slope = reference
+    at = base + slope * input_hz
+    if at <= 0:
+        return cpu, 0.0
+    k = cpu / at
+    return k * base, k * slope
+
+
+@dataclass(frozen=True)
+class _DrivenMeasure:
+    """One parameter value of a driven node, from its recordings."""
+
+    value: float | None
+    cpu: float
+    cpu_per_hz: float
+    r2: float | None
+    out_per_in: float | None
+    bytes_per_msg: float | None
+    points: tuple[tuple[float, float], ...]
+    notes: tuple[str, ...]
+
+
+def _mean(xs: list[float]) -> float | None:
+    return sum(xs) / len(xs) if xs else None
+
+
+def _one_at_a_time(measures: list[_DrivenMeasure]) -> list[_DrivenMeasure]:
+    """Settings measured at one input rate (``r2`` None) take the line of the setting with a
+    line and the most recordings, scaled (:func:`scaled_line`), as ``init`` drafts them; with
+    no such setting they keep :func:`cpu_line`'s one-rate answer."""
+    lines = [m for m in measures if m.r2 is not None]
+    if not lines:
+        return measures
+    ref = max(lines, key=lambda m: len(m.points))
+    out = []
+    for m in measures:
+        if m.r2 is not None:
+            out.append(m)
+            continue
+        f_in = sum(p[0] for p in m.points) / len(m.points)
+        cpu = sum(p[1] for p in m.points) / len(m.points)
+        base, slope = scaled_line((ref.cpu, ref.cpu_per_hz), f_in, cpu)
+        ref_value = "its setting" if ref.value is None else f"{ref.value:g}"
+        note = f"one input rate only ({f_in:g} Hz): the line of setting {ref_value} scaled by the CPU ratio there"
+        out.append(replace(m, cpu=base, cpu_per_hz=slope, notes=(note,)))
+    return out
+
+
+def _driven_measure(value: float | None, samples: list[DrivenSample], cap: float | None) -> _DrivenMeasure:
+    """The setting's line (:func:`cpu_line`), ``out_per_in`` = mean F_out / F_in over its
+    recordings (those throttled by ``cap`` left out) and ``bytes_per_msg`` = mean
+    bandwidth x 1000 / F_out."""
+    points = [(s.input_hz, s.cpu) for s in samples if s.cpu is not None]
+    if not points:
+        raise FitError("no CPU measured")
+    base, k, r2, notes = cpu_line(points)
+    ratios = [s.frequency_hz / s.input_hz for s in samples if s.frequency_hz is not None and s.input_hz > 0
+              and (cap is None or s.frequency_hz < THROTTLED * cap)]
+    sizes = [s.bandwidth_kBps * 1000.0 / s.frequency_hz for s in samples
+             if s.bandwidth_kBps is not None and s.frequency_hz is not None and s.frequency_hz > 0]
+    return _DrivenMeasure(value, base, k, r2, _mean(ratios), _mean(sizes), tuple(points), tuple(notes))
+
+
+def _fit_driven_node(node: Node, samples: dict[float | None, list[DrivenSample]], raw: dict[str, Any], warn: _Warn,
+                     sys_path: str, perf: dict[float, float] | None = None
+                     ) -> tuple[dict[str, FittedRelation], list[DrivenSetting]]:
+    """A driven node: each setting's ``cpu``, ``cpu_per_hz``, ``out_per_in`` and
+    ``bytes_per_msg`` from its recordings (:func:`_driven_measure`), then over the parameter
+    the curves of those and of performance, and settings on a grid of values between the
+    measured ones evaluated from the curves. ``raw`` (the node's system.yaml mapping) is
+    filled in place; returns the curves and every setting written with its source."""
+    who = f"node {node.name!r}"
+    caps = {s.max_frequency_hz for s in node.settings}
+    common_cap = next(iter(caps)) if len(caps) == 1 else None
+    measures: list[_DrivenMeasure] = []
+    for value, ss in samples.items():
+        own = next((s for s in node.settings if _same(s.value, value)), None)
+        try:
+            measures.append(_driven_measure(value, ss, own.max_frequency_hz if own is not None else common_cap))
+        except FitError as exc:
+            warn(f"{who}: value {value if value is None else f'{value:g}'}: {exc}: nothing fitted there")
+    measures = _one_at_a_time(measures)
+    if not samples:
+        warn(f"{who}: no row gives the rate of its input {node.input} (input_hz): kept {sys_path}'s settings")
+    written: list[DrivenSetting] = []
+    new_settings: list[dict[str, Any]] = []
+    used: set[int] = set()
+    for s, rs in zip(node.settings, raw.get("settings") or [], strict=True):
+        rs = dict(rs)
+        performance = s.performance
+        if perf is not None:
+            measured_perf = _measured_perf(perf, s.value)
+            if measured_perf is not None:
+                performance = measured_perf
+                rs["performance"] = round9(performance)
+        m = _match(node, s.value, measures)
+        setting = "its setting" if s.value is None else f"setting {s.value:g}"
+        if m is None:
+            if samples:
+                warn(f"{who}: {setting} has no recording with an input rate: kept {sys_path}'s numbers")
+            written.append(DrivenSetting(s.value, "system", s.cpu, s.cpu_per_hz or 0.0, performance,
+                                         s.out_per_in, s.bytes_per_msg))
+        else:
+            used.add(id(m))
+            rs["cpu"], rs["cpu_per_hz"] = round9(m.cpu), round9(m.cpu_per_hz)
+            if m.out_per_in is not None:
+                rs["out_per_in"] = round9(m.out_per_in)
+            if m.bytes_per_msg is not None:
+                rs["bytes_per_msg"] = round9(m.bytes_per_msg)
+            for note in m.notes:
+                warn(f"{who}: {setting}: {note}")
+            written.append(DrivenSetting(s.value, "measured", m.cpu, m.cpu_per_hz, performance,
+                                         rs.get("out_per_in"), rs.get("bytes_per_msg"), m.r2, m.points, m.notes))
+        new_settings.append(rs)
+    if new_settings:
+        raw["settings"] = new_settings
+    if node.parameter is None:
+        return {}, written
+
+    # The curves over the parameter: every setting written, and measured values not rated.
+    extra = [m for m in measures if id(m) not in used and m.value is not None]
+    known = [(d.value, d.cpu, d.cpu_per_hz, d.out_per_in, d.bytes_per_msg) for d in written if d.value is not None]
+    known += [(m.value, m.cpu, m.cpu_per_hz, m.out_per_in, m.bytes_per_msg) for m in extra if m.value is not None]
+    rated = [(d.value, d.performance) for d in written if d.value is not None]
+    if perf is not None:
+        rated += [(m.value, p) for m in extra if m.value is not None and (p := _measured_perf(perf, m.value)) is not None]
+    fits: dict[str, FittedRelation] = {}
+    for rel, pts in (("parameter->cpu_base", [(k[0], k[1]) for k in known]),
+                     ("parameter->cpu_per_hz", [(k[0], k[2]) for k in known]),
+                     ("parameter->performance", rated),
+                     ("parameter->out_per_in", [(k[0], k[3]) for k in known]),
+                     ("parameter->bytes_per_msg", [(k[0], k[4]) for k in known])):
+        xy = [(float(x), float(y)) for x, y in pts if x is not None and y is not None]
+        if len({x for x, _ in xy}) < 2:
+            continue
+        try:
+            fit = fit_curve([x for x, _ in xy], [y for _, y in xy])
+        except FitError as exc:
+            warn(f"{who}: {rel}: {exc}")
+            continue
+        for note in fit.warnings:
+            warn(f"{who}: {rel}: {note}")
+        if rel == "parameter->performance":
+            fit = replace(fit, source="settings" if perf is None else "metric")
+        fits[rel] = fit
+    needed = ("parameter->cpu_base", "parameter->cpu_per_hz", "parameter->performance")
+    if not all(r in fits for r in needed):
+        warn(f"{who}: {len({k[0] for k in known})} value(s) of {node.parameter.name} measured, "
+             f"{len({r[0] for r in rated})} rated: no curves over the parameter, the node keeps its settings")
+        return fits, written
+    if len(caps) > 1:
+        warn(f"{who}: its settings have different max_frequency_hz: no settings between them")
+        return fits, written
+    means = {"parameter->out_per_in": _mean([k[3] for k in known if k[3] is not None]),
+             "parameter->bytes_per_msg": _mean([k[4] for k in known if k[4] is not None])}
+    grid = _grid_settings(node, fits, means, [d.value for d in written if d.value is not None],
+                          max(r[1] for r in rated))
+    raw["settings"] = new_settings + [_setting_json(g, common_cap) for g in grid]
+    return fits, written + grid
+
+
+def _grid_settings(node: Node, fits: dict[str, FittedRelation], means: dict[str, float | None], taken: list[float],
+                   max_perf: float) -> list[DrivenSetting]:
+    """Settings at :data:`GRID_POINTS` values over the range every needed curve covers
+    (rounded for an ``int`` parameter; values already ``taken`` left out), each number from
+    its curve (clipped at 0, performance at ``max_perf``); ``out_per_in`` and
+    ``bytes_per_msg`` without a curve: ``means`` (the measured ones' mean)."""
+    needed = [fits[r] for r in ("parameter->cpu_base", "parameter->cpu_per_hz", "parameter->performance")]
+    lo, hi = max(f.domain[0] for f in needed), min(f.domain[1] for f in needed)
+    integer = node.parameter is not None and node.parameter.type == "int"
+    values: list[float] = []
+    for i in range(GRID_POINTS):
+        v = lo + (hi - lo) * i / (GRID_POINTS - 1)
+        v = float(round(v)) if integer else round9(v)
+        if lo <= v <= hi and not any(_same(v, t) for t in taken + values):
+            values.append(v)
+
+    def at(rel: str, v: float) -> float | None:
+        fit = fits.get(rel)
+        if fit is None:
+            return means.get(rel)
+        return max(0.0, fit.curve(min(max(v, fit.domain[0]), fit.domain[1])))
+
+    return [DrivenSetting(v, "grid", at("parameter->cpu_base", v) or 0.0, at("parameter->cpu_per_hz", v) or 0.0,
+                          min(at("parameter->performance", v) or 0.0, max_perf),
+                          at("parameter->out_per_in", v), at("parameter->bytes_per_msg", v))
+            for v in values]
+
+
+def _setting_json(d: DrivenSetting, cap: float | None) -> dict[str, Any]:
+    """A grid setting as the ``system`` part writes it (``cap``: every setting's
+    ``max_frequency_hz``, when they share one)."""
+    out: dict[str, Any] = {"value": d.value, "cpu": round9(d.cpu), "cpu_per_hz": round9(d.cpu_per_hz),
+                           "performance": round9(d.performance)}
+    for key, v in (("out_per_in", d.out_per_in), ("bytes_per_msg", d.bytes_per_msg), ("max_frequency_hz", cap)):
+        if v is not None:
+            out[key] = round9(v)
+    return out

@@ -76,6 +76,7 @@ class MeasuredSetting:
     frequency_hz: Stat | None
     bandwidth_kBps: Stat | None
     topics: dict[str, tuple[Stat | None, Stat | None]] = field(default_factory=dict)  # (frequency, bandwidth)
+    input_hz: Stat | None = None  # a driven node's: the measured rate of its input topic
 
     def to_json(self) -> dict[str, Any]:
         def st(s: Stat | None) -> dict[str, float | int] | None:
@@ -85,6 +86,44 @@ class MeasuredSetting:
             "value": self.value, "recordings": self.recordings,
             "cpu": st(self.cpu), "frequency_hz": st(self.frequency_hz), "bandwidth_kBps": st(self.bandwidth_kBps),
             "topics": {t: {"frequency_hz": st(f), "bandwidth_kBps": st(b)} for t, (f, b) in self.topics.items()},
+            **({} if self.input_hz is None else {"input_hz": st(self.input_hz)}),
+        }
+
+
+#: Where a driven node's setting in model.json's ``system`` part came from: fitted from
+#: recordings at that value, kept from the system.yaml (no recording), or evaluated from the
+#: fitted curves at a value between the measured ones.
+DRIVEN_SOURCES = ("measured", "system", "grid")
+
+
+@dataclass(frozen=True)
+class DrivenSetting:
+    """One setting of a driven node (system.yaml ``input:``) as ``fit`` wrote it into the
+    ``system`` part, and where its numbers came from (``source``: :data:`DRIVEN_SOURCES`).
+    A measured setting also keeps the line CPU = ``cpu`` + ``cpu_per_hz`` x input rate was
+    fitted to: ``points`` (input Hz, CPU) per recording, its ``r2`` (None with one input
+    rate) and ``notes`` (e.g. one input rate only)."""
+
+    value: float | None
+    source: str
+    cpu: float
+    cpu_per_hz: float
+    performance: float
+    out_per_in: float | None = None
+    bytes_per_msg: float | None = None
+    r2: float | None = None
+    points: tuple[tuple[float, float], ...] = ()
+    notes: tuple[str, ...] = ()
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "value": self.value, "source": self.source, "cpu": round9(self.cpu), "cpu_per_hz": round9(self.cpu_per_hz),
+            "performance": round9(self.performance),
+            "out_per_in": None if self.out_per_in is None else round9(self.out_per_in),
+            "bytes_per_msg": None if self.bytes_per_msg is None else round9(self.bytes_per_msg),
+            "r2": None if self.r2 is None else round6(self.r2),
+            "points": [[float(a), float(b)] for a, b in self.points],
+            "notes": list(self.notes),
         }
 
 
@@ -137,6 +176,8 @@ class ModelDocument:
     warnings: list[str]
     format: str = MODEL_FORMAT
     cpu_statistic: str = "mean"  # a setting's CPU: the mean of its samples, or their p95
+    #: per driven node (system.yaml ``input:``), its settings in ``system`` and where each came from
+    driven: dict[str, list[DrivenSetting]] = field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -147,6 +188,7 @@ class ModelDocument:
             "system": self.system,
             "fits": {n: {rel: f.to_json() for rel, f in fs.items()} for n, fs in self.fits.items()},
             "measured": {n: [m.to_json() for m in ms] for n, ms in self.measured.items()},
+            **({"driven": {n: [d.to_json() for d in ds] for n, ds in self.driven.items()}} if self.driven else {}),
             "warnings": list(self.warnings),
         }
 
@@ -262,7 +304,28 @@ def _measured(doc: _Doc, raw: Any, where: str) -> MeasuredSetting:
     recordings = _whole(doc, recordings, f"{where}.recordings")
     return MeasuredSetting(doc.opt_number(m.get("value"), f"{where}.value"), recordings,
                            doc.stat(m.get("cpu"), f"{where}.cpu"), doc.stat(m.get("frequency_hz"), f"{where}.frequency_hz"),
-                           doc.stat(m.get("bandwidth_kBps"), f"{where}.bandwidth_kBps"), topics)
+                           doc.stat(m.get("bandwidth_kBps"), f"{where}.bandwidth_kBps"), topics,
+                           doc.stat(m.get("input_hz"), f"{where}.input_hz"))
+
+
+def _driven(doc: _Doc, raw: Any, where: str) -> DrivenSetting:
+    m = doc.mapping(raw, where)
+    source = doc.string(m.get("source"), f"{where}.source")
+    if source not in DRIVEN_SOURCES:
+        raise doc.fail(f"{where}.source", f"must be one of {', '.join(DRIVEN_SOURCES)}, got {source!r}")
+    r2 = m.get("r2")
+    return DrivenSetting(
+        doc.opt_number(m.get("value"), f"{where}.value"), source,
+        doc.number(m.get("cpu"), f"{where}.cpu", nonneg=True),
+        doc.number(m.get("cpu_per_hz"), f"{where}.cpu_per_hz", nonneg=True),
+        doc.number(m.get("performance"), f"{where}.performance", nonneg=True),
+        doc.opt_number(m.get("out_per_in"), f"{where}.out_per_in", nonneg=True),
+        doc.opt_number(m.get("bytes_per_msg"), f"{where}.bytes_per_msg", nonneg=True),
+        None if r2 is None else doc.number(r2, f"{where}.r2"),
+        tuple((x, y) for x, y in (doc.numbers(p, f"{where}.points[{i}]", 2)
+                                  for i, p in enumerate(doc.items(m.get("points", []), f"{where}.points")))),
+        tuple(doc.string(w, f"{where}.notes[{i}]") for i, w in enumerate(doc.items(m.get("notes", []), f"{where}.notes"))),
+    )
 
 
 def parse_model(data: Any, path: str | Path) -> ModelDocument:
@@ -281,13 +344,15 @@ def parse_model(data: Any, path: str | Path) -> ModelDocument:
             for n, rels in doc.mapping(data.get("fits", {}), "fits").items()}
     measured = {str(n): [_measured(doc, v, f"measured.{n}[{i}]") for i, v in enumerate(doc.items(ms, f"measured.{n}"))]
                 for n, ms in doc.mapping(data.get("measured", {}), "measured").items()}
+    driven = {str(n): [_driven(doc, v, f"driven.{n}[{i}]") for i, v in enumerate(doc.items(ds, f"driven.{n}"))]
+              for n, ds in doc.mapping(data.get("driven", {}), "driven").items()}
     warnings = [doc.string(w, f"warnings[{i}]") for i, w in enumerate(doc.items(data.get("warnings", []), "warnings"))]
     statistic = doc.string(data.get("cpu_statistic", "mean"), "cpu_statistic")
     if statistic not in ("mean", "p95"):
         raise InputError(p, f"cpu_statistic: must be 'mean' or 'p95', got {statistic!r}")
     return ModelDocument(doc.string(data.get("system_file", ""), "system_file"),
                          doc.string(data.get("characterisation", ""), "characterisation"),
-                         data["system"], fits, measured, warnings, fmt, statistic)
+                         data["system"], fits, measured, warnings, fmt, statistic, driven)
 
 
 def read_model(path: str | Path) -> ModelDocument:

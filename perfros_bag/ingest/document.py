@@ -36,6 +36,7 @@ def topic_document(t: TopicStats, latency: TopicLatency | None = None) -> dict[s
         "bandwidth_kBps": _num(t.bandwidth_kBps),
         "median_rate_hz": _num(t.median_rate_hz),
         "p95_gap_s": _num(t.p95_gap_s),
+        "rate_note": t.rate_note,  # the rates above are no rate (too few messages): why
         "publishers": list(t.publishers),
         "latency_p50_s": _opt(latency.p50_s if latency else None),
         "latency_p95_s": _opt(latency.p95_s if latency else None),

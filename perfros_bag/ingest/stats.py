@@ -14,6 +14,11 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
+#: A measured rate needs at least this many messages ...
+RATE_MIN_MESSAGES = 3
+#: ... over at least this span (s): two messages microseconds apart are not a rate of 1e5 Hz.
+RATE_MIN_SPAN_S = 0.5
+
 
 @dataclass
 class TopicStats:
@@ -49,6 +54,15 @@ class TopicStats:
         """(n - 1) / (t_last - t_first); 0 with fewer than 2 messages or a zero span."""
         span = self.span_s
         return (self.messages - 1) / span if self.messages >= 2 and span > 0 else 0.0
+
+    @property
+    def rate_note(self) -> str | None:
+        """Why :attr:`frequency_hz` is not a rate (fewer than :data:`RATE_MIN_MESSAGES`
+        messages, or a span below :data:`RATE_MIN_SPAN_S`), as printed instead of it; None
+        when it is one."""
+        if self.messages >= RATE_MIN_MESSAGES and self.span_s >= RATE_MIN_SPAN_S:
+            return None
+        return f"too few messages for a rate ({self.messages} in {self.span_s:.3g} s)"
 
     @property
     def bandwidth_kBps(self) -> float:

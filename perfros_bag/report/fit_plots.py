@@ -4,7 +4,9 @@ model.json keeps them (:class:`~perfros_bag.fitting.modelfile.FittedRelation`).
 :func:`plot_model` (``fit --plots``): one file per node with four panels: parameter ->
 performance (Fig 3), CPU -> performance (Fig 4, with the CPU range the solver uses
 shaded), parameter -> CPU (what Problem 2 and the plan's parameter value come from) and
-parameter -> frequency / bandwidth. :func:`plot_relations` (the HTML report): every
+parameter -> frequency / bandwidth; a driven node (system.yaml ``input:``) instead shows its
+CPU against its input rate, one line per setting (:func:`plot_driven_node`).
+:func:`plot_relations` (the HTML report): every
 relation of a node, one panel each. Points are the data, the line the chosen form, and
 the legend gives the form and R².
 """
@@ -18,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from perfros_bag.fitting.modelfile import FittedRelation
+from perfros_bag.fitting.modelfile import DrivenSetting, FittedRelation
 from perfros_bag.report.figures import label, png_bytes, save_png, subplots
 from perfros_bag.system.types import CurveForm, Node
 
@@ -91,12 +93,86 @@ def plot_node(node: Node, fits: Mapping[str, FittedRelation], path: str | Path) 
         return save_png(fig, path)
 
 
+def _twin(ax: Any, left: FittedRelation | None, right: FittedRelation | None, right_label: str) -> None:
+    """Two relations on one panel, the second on a twin axis, one legend."""
+    if left is not None:
+        _draw(ax, left, "tab:blue")
+    if right is None:
+        if left is not None:
+            ax.legend(fontsize=7, loc="best")
+        return
+    twin = ax.twinx()
+    twin.set_ylabel(right_label)
+    _draw(twin, right, "tab:orange", f"{right_label} ")
+    h1, l1 = ax.get_legend_handles_labels()
+    h2, l2 = twin.get_legend_handles_labels()
+    ax.legend(h1 + h2, l1 + l2, fontsize=7, loc="best")
+
+
+def plot_driven_node(node: Node, fits: Mapping[str, FittedRelation], settings: list[DrivenSetting],
+                     path: str | Path) -> Path:
+    """A driven node's figure: CPU against input rate (one line cpu + cpu_per_hz x F_in per
+    measured setting through its recordings; settings evaluated from the curves as thin
+    grey lines), and over the parameter: base CPU and CPU per Hz, performance, output per
+    input and bytes per message."""
+    pname = node.parameter.name if node.parameter else "parameter"
+    punit = f" ({node.parameter.unit})" if node.parameter and node.parameter.unit else ""
+    rates = [f for d in settings for f, _ in d.points]
+    top = max(rates, default=1.0) * 1.1 or 1.0
+    xs = np.linspace(0.0, top, 50)
+    with subplots(2, 2, figsize=(12, 8.5)) as (fig, axes):
+        ax = axes[0, 0]
+        ax.set_title(f"CPU vs input rate ({node.input})")
+        ax.set_xlabel("input rate (Hz)")
+        ax.set_ylabel("CPU units")
+        colours = iter(f"C{i}" for i in range(10_000))
+        for d in settings:
+            name = "" if d.value is None else f"{pname}={d.value:g}: "
+            if d.source == "grid":
+                ax.plot(xs, d.cpu + d.cpu_per_hz * xs, "-", color="0.75", lw=0.8)
+                continue
+            colour = next(colours)
+            r2 = "" if d.r2 is None else f", R² = {d.r2:.3f}"
+            ax.plot(xs, d.cpu + d.cpu_per_hz * xs, "-", color=colour, lw=2,
+                    label=f"{name}{d.cpu:.3g} + {d.cpu_per_hz:.3g}·F_in{r2}")
+            if d.points:
+                ax.plot([p[0] for p in d.points], [p[1] for p in d.points], "o", color=colour, ms=6, mec="black")
+        if any(d.source == "grid" for d in settings):
+            ax.plot([], [], "-", color="0.75", lw=0.8, label="settings from the curves")
+        ax.grid(alpha=0.3)
+        ax.set_xlim(left=0)
+        ax.set_ylim(bottom=0)
+        ax.legend(fontsize=7, loc="best")
+        panels = ((axes[0, 1], "base CPU and CPU per Hz", "base CPU units", "parameter->cpu_base",
+                   "parameter->cpu_per_hz", "CPU per Hz"),
+                  (axes[1, 0], "parameter vs performance", "performance", "parameter->performance", None, ""),
+                  (axes[1, 1], "output per input and bytes per message", "output msgs per input msg",
+                   "parameter->out_per_in", "parameter->bytes_per_msg", "bytes per message"))
+        for pax, title, ylabel, left, right, right_label in panels:
+            pax.set_title(title)
+            pax.set_xlabel(f"{pname}{punit}")
+            pax.set_ylabel(ylabel)
+            pax.grid(alpha=0.3)
+            lf, rf = fits.get(left), fits.get(right) if right else None
+            if lf is None and rf is None:
+                pax.text(0.5, 0.5, "not fitted", ha="center", va="center", transform=pax.transAxes)
+                continue
+            _twin(pax, lf, rf, right_label)
+        fig.suptitle(f"{node.name}: driven by {node.input}", fontsize=14)
+        fig.tight_layout()
+        return save_png(fig, path)
+
+
 def plot_model(system_nodes: Mapping[str, Node], fits: Mapping[str, Mapping[str, FittedRelation]],
-               out_dir: str | Path) -> list[Path]:
-    """One PNG per fitted node in ``out_dir`` (``<node>.png``)."""
+               out_dir: str | Path, driven: Mapping[str, list[DrivenSetting]] | None = None) -> list[Path]:
+    """One PNG per fitted node in ``out_dir`` (``<node>.png``); a driven node (``driven``:
+    its settings as model.json's ``driven`` part gives them) by :func:`plot_driven_node`."""
     d = Path(out_dir)
-    return [plot_node(system_nodes[name], node_fits, d / f"{_safe(name)}.png")
-            for name, node_fits in fits.items()]
+    driven = driven or {}
+    out = [plot_node(system_nodes[name], node_fits, d / f"{_safe(name)}.png")
+           for name, node_fits in fits.items() if name not in driven]
+    return out + [plot_driven_node(system_nodes[name], fits.get(name, {}), settings, d / f"{_safe(name)}.png")
+                  for name, settings in driven.items() if settings]
 
 
 def plot_relations(node: str, fits: Mapping[str, FittedRelation]) -> bytes:

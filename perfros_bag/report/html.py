@@ -244,6 +244,29 @@ def _section_latency(v: dict[str, Any]) -> str:
     return "".join(parts)
 
 
+def _section_flow(v: dict[str, Any]) -> str:
+    """Driven nodes' input rates (expected vs measured) and, for an overloaded plan, the
+    rates it was predicted to keep beside those measured (validation's ``kept``)."""
+    parts = []
+    driven = [n for n in v["nodes"] if isinstance(n, dict) and n.get("input") is not None]
+    if driven:
+        parts.append("<h3>Driven nodes: input rate</h3>" + table(
+            ("node", "input", "expected Hz", "measured Hz", "deviation %"),
+            [(n.get("node"), n.get("input"), number(n.get("input_hz_expected")),
+              number(n.get("input_hz_measured")) if n.get("input_rate_note") is None else n.get("input_rate_note"),
+              number(n.get("input_deviation_pct"))) for n in driven],
+            text_cols=(0, 1), table_id="validation-inputs"))
+    kept = v.get("kept")
+    if isinstance(kept, dict):
+        nodes = [n for n in kept.get("nodes", []) if isinstance(n, dict)]
+        parts.append("<h3>Overloaded: the rates each node keeps, predicted and measured</h3>" + table(
+            ("node", "computer", "CPU need", "CPU share", "F planned", "F predicted", "F measured"),
+            [(n.get("node"), n.get("computer"), number(n.get("cpu_need")), number(n.get("cpu_share")),
+              number(n.get("f_planned")), number(n.get("f_predicted")), number(n.get("f_measured"))) for n in nodes],
+            text_cols=(0, 1), table_id="validation-kept"))
+    return "".join(parts)
+
+
 def section_validation(v: dict[str, Any], images: list[Image]) -> str:
     ov = v["overall"]
     passed = ov.get("passed")
@@ -275,6 +298,7 @@ def section_validation(v: dict[str, Any], images: list[Image]) -> str:
             [(n.get("node"), number(n.get("metric_value")), number(n.get("p_metric")), number(n.get("p_expected")),
               number(n.get("p_measured")), number(n.get("metric_deviation_pct"))) for n in metric_nodes],
             table_id="validation-metric"))
+    parts.append(_section_flow(v))
     parts.append(_section_latency(v))
     comps = [c for c in v.get("computers", []) if isinstance(c, dict)]
     if comps:

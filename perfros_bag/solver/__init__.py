@@ -43,9 +43,23 @@ Progress = Callable[[float | None, float, float], None]
 #: the solvers' names (``Method`` values), in the order the docs list them
 METHODS: tuple[str, ...] = tuple(Method)
 
-__all__ = ["DECOMPOSE_COLUMNS", "MAX_CHOICES", "METHODS", "Progress", "START_COLUMNS", "START_SHARE",
-           "check_resolution", "choice_count", "exact_columns", "fixed_choices", "settings_from_plan",
+__all__ = ["DECOMPOSE_COLUMNS", "DrivenLevel", "MAX_CHOICES", "METHODS", "Progress", "START_COLUMNS", "START_SHARE",
+           "check_resolution", "choice_count", "exact_columns", "fixed_choices", "lowest_settings", "settings_from_plan",
+           "with_headroom",
            "settings_from_values", "solve", "start_of"]
+
+
+class DrivenLevel(float):
+    """A driven node's Problem 2 CPU level that also names its own setting (an index into
+    ``Node.settings``): two settings may need the same CPU at one input rate and still
+    publish at different rates, so the level alone would not say which."""
+
+    setting: int
+
+    def __new__(cls, cpu: float, setting: int) -> DrivenLevel:
+        level = super().__new__(cls, cpu)
+        level.setting = setting
+        return level
 
 
 def _where(system: System) -> str | None:
@@ -104,9 +118,13 @@ def check_resolution(system: System, resolution: float) -> None:
 
 
 def fixed_choices(system: System, problem: Problem, settings: Mapping[str, float] | None = None,
-                  resolution: float = 1.0) -> dict[str, list[Choice]]:
+                  resolution: float = 1.0, *, own: Mapping[str, int] | None = None) -> dict[str, list[Choice]]:
     """Each node's candidate choices, sorted by CPU: all of them for Problem 1; for Problem 2
-    the single fixed one (``settings[node]`` as a CPU level, default the maximum-CPU choice)."""
+    the single fixed one (``settings[node]`` as a CPU level, default the maximum-CPU choice).
+
+    A driven node's choices are its settings at each input rate its input can take
+    (:meth:`System.flow_choices`); for Problem 2 its CPU level is the one at its input's
+    fixed rate, or ``own[node]`` names its setting (an index into ``Node.settings``)."""
     check_resolution(system, resolution)
     if settings:
         unknown = sorted(set(settings) - set(system.node))
@@ -114,12 +132,41 @@ def fixed_choices(system: System, problem: Problem, settings: Mapping[str, float
             raise InputError(_where(system), f"settings: unknown node(s) {', '.join(map(repr, unknown))}")
     out: dict[str, list[Choice]] = {}
     for node in system.nodes:
-        if problem == Problem.PERFORMANCE:
+        if problem == Problem.PERFORMANCE or node.driven:  # a driven node's CPU follows its input: below
             out[node.name] = node.choices(resolution)
         elif settings and node.name in settings:
             out[node.name] = [_match_cpu(system, node, float(settings[node.name]), resolution)]
         else:
             out[node.name] = [node.choices(resolution)[-1]]
+    if not system.has_flow:
+        return out
+
+    def fixed(name: str, options: list[Choice]) -> list[Choice]:
+        """Problem 2: the driven node's one choice at its input's (fixed) rate: the one at
+        ``settings[name]``'s CPU level, else its maximum-CPU one."""
+        if problem == Problem.PERFORMANCE:
+            return options
+        if own and name in own:
+            return [c for c in options if c.setting == own[name]][:1]
+        if settings and name in settings:
+            given = settings[name]
+            if isinstance(given, DrivenLevel):
+                options = [c for c in options if c.setting == given.setting]
+            level = float(given)
+            match = [c for c in options if math.isclose(c.cpu, level, rel_tol=1e-9, abs_tol=1e-6)]
+            if not match:
+                have = ", ".join(f"{c.cpu:g}" for c in options)
+                raise InputError(_where(system), f"node {name!r}: no setting with CPU {level:g} at its input's rate "
+                                                 f"(its settings' CPU there: {have})")
+            return match[:1]
+        return [max(options, key=lambda c: (c.cpu, c.performance))]
+
+    out = system.flow_choices(out, fixed)
+    total = sum(len(v) for v in out.values())
+    if total > MAX_CHOICES:
+        raise InputError(_where(system), f"the driven nodes' settings at every input rate their inputs can take give "
+                                         f"{total:,} choices, more than the {MAX_CHOICES:,} the solvers take: use a "
+                                         "coarser resolution or fewer settings upstream")
     return out
 
 
@@ -139,12 +186,16 @@ def settings_from_values(system: System, values: Mapping[str, float], resolution
     :data:`ROUNDING_UNITS` the clamp is reported with a :class:`PerfrosWarning`."""
     check_resolution(system, resolution)
     out: dict[str, float] = {}
+    own: dict[str, int] = {}  # driven nodes: the setting with the value
     for name, v in values.items():
         node = system.node.get(name)
         if node is None:
             raise InputError(_where(system), f"settings: unknown node {name!r}")
         if not math.isfinite(v):
             raise InputError(_where(system), f"settings: node {name!r}: value {v!r} is not a finite number")
+        if node.driven:
+            own[name] = _setting_with_value(system, node, v)
+            continue
         rel = node.relations.get("parameter->cpu")
         # a setting first (its own, measured CPU: on a fitted curve several CPU levels may
         # map back to the same end value), then the fitted relation, then a choice
@@ -169,7 +220,34 @@ def settings_from_values(system: System, values: Mapping[str, float], resolution
             raise InputError(_where(system), f"settings: node {name!r}: value {v:g} gives no finite CPU level "
                                              f"(its parameter->cpu relation gives {cpu!r})")
         out[name] = _clamp(system, node, v, cpu)
+    if own:  # a driven node's CPU level is its setting's at the rate its input then has
+        fixed = fixed_choices(system, Problem.SERVER_CAPACITY, out, resolution, own=own)
+        out.update({name: DrivenLevel(fixed[name][0].cpu, own[name]) for name in own})
     return out
+
+
+def lowest_settings(system: System, resolution: float = 1.0) -> dict[str, float]:
+    """node -> CPU level with every node at its least-CPU setting (a driven node's at the rate
+    its input then has): Problem 2's ``settings`` for "everything at its lowest"."""
+    base = {n.name: n.choices(resolution)[0].cpu for n in system.nodes if not n.driven}
+    own = {n.name: _least_setting(n) for n in system.nodes if n.driven}
+    fixed = fixed_choices(system, Problem.SERVER_CAPACITY, base, resolution, own=own)
+    return {name: options[0].cpu for name, options in fixed.items()}
+
+
+def _least_setting(node: Node) -> int:
+    """A driven node's setting with the least CPU per input message (then base CPU)."""
+    return min(range(len(node.settings)), key=lambda j: (node.settings[j].cpu_per_hz or 0.0, node.settings[j].cpu))
+
+
+def _setting_with_value(system: System, node: Node, value: float) -> int:
+    """The index of the driven node's setting with ``value``."""
+    for j, s in enumerate(node.settings):
+        if s.value is not None and math.isclose(s.value, value, rel_tol=1e-9, abs_tol=1e-9):
+            return j
+    have = ", ".join(f"{s.value:g}" for s in node.settings if s.value is not None) or "none"
+    raise InputError(_where(system), f"settings: node {node.name!r} has no setting with value {value:g} "
+                                     f"(its values: {have})")
 
 
 def _clamp(system: System, node: Node, value: float, cpu: float) -> float:
@@ -192,7 +270,12 @@ def settings_from_plan(plan: Plan, system: System | None = None, resolution: flo
     parameter value in ``system`` (:func:`settings_from_values`), and a node without a value
     at its one choice there."""
     if system is None or _same_source(plan.system, system.source):
-        return {name: n.cpu for name, n in plan.nodes.items()}
+        levels: dict[str, float] = {name: n.cpu for name, n in plan.nodes.items()}
+        for name, n in plan.nodes.items():  # a driven node: its own setting too (by its value)
+            node = system.node.get(name) if system is not None else None
+            if node is not None and node.driven and n.value is not None:
+                levels[name] = DrivenLevel(n.cpu, _setting_with_value(system, node, n.value))  # type: ignore[arg-type]
+        return levels
     out = settings_from_values(system, {name: n.value for name, n in plan.nodes.items()
                                         if n.value is not None and name in system.node}, resolution)
     for name, n in plan.nodes.items():
@@ -216,9 +299,12 @@ def _same_source(a: str | None, b: str | None) -> bool:
 
 def solve(system: System, problem: int, method: str, *, resolution: float = 1.0,
           settings: Mapping[str, float] | None = None, time_limit: float | None = None,
-          progress: Progress | None = None) -> Plan:
+          progress: Progress | None = None, headroom: float = 0.0) -> Plan:
     """Solve Problem ``problem`` (1 or 2) with ``method`` (a :class:`Method`); the
     returned plan carries ``solve_s``.
+
+    ``headroom`` (in [0, 1)): the share of every computer's capacity the plan keeps free
+    (:func:`with_headroom`); each computer's ``margin`` in the plan says how much.
 
     An infeasible instance gives a plan with status ``infeasible`` and a ``reason`` (not an
     exception: :meth:`Plan.require_feasible` turns it into one); bad input (unknown method,
@@ -230,6 +316,12 @@ def solve(system: System, problem: int, method: str, *, resolution: float = 1.0,
         raise InputError(None, f"unknown method {method!r} (one of {', '.join(METHODS)})")
     the_problem, the_method = Problem(problem), Method(method)
     system.capacities(the_problem)  # every capacity the problem needs is there
+    if isinstance(headroom, bool) or not isinstance(headroom, int | float) or not 0.0 <= headroom < 1.0:
+        raise InputError(None, f"headroom must be in [0, 1), got {headroom!r}")
+    if headroom > 0:
+        plan = solve(with_headroom(system, headroom), problem, method, resolution=resolution, settings=settings,
+                     time_limit=time_limit, progress=progress)
+        return _give_back(system, plan, headroom)
     start = time.perf_counter()  # --time-limit counts from here: the choices, the set-up and the solve
     deadline = None if time_limit is None else start + time_limit
     choices = fixed_choices(system, the_problem, settings, resolution)
@@ -241,16 +333,44 @@ def solve(system: System, problem: int, method: str, *, resolution: float = 1.0,
     return plan
 
 
+def with_headroom(system: System, headroom: float) -> System:
+    """The system with every computer's capacity (and a server's ``max_capacity``) cut to
+    ``1 - headroom`` of it: what a plan may fill when it keeps ``headroom`` free."""
+    import dataclasses
+
+    keep = 1.0 - headroom
+    computers = tuple(dataclasses.replace(
+        c, capacity=None if c.capacity is None else c.capacity * keep,
+        max_capacity=None if c.max_capacity is None else c.max_capacity * keep) for c in system.computers)
+    return dataclasses.replace(system, computers=computers)
+
+
+def _give_back(system: System, plan: Plan, headroom: float) -> Plan:
+    """A plan solved on :func:`with_headroom`'s system, stated on ``system``: each computer
+    its own capacity (a Problem 2 server: its load over ``1 - headroom``) and its
+    ``margin``, the CPU units kept free; Problem 2's objective and bound the sized capacity."""
+    plan.extra["headroom"] = headroom
+    if plan.status == Status.INFEASIBLE:
+        plan.reason = f"{plan.reason} (with {100 * headroom:g} % of every computer kept free)"
+        return plan
+    keep = 1.0 - headroom
+    sized = plan.problem == Problem.SERVER_CAPACITY
+    for name, pc in plan.computers.items():
+        c = system.computer[name]
+        pc.capacity = (pc.capacity or 0.0) / keep if sized and c.kind == "server" else c.capacity
+        pc.margin = None if pc.capacity is None else pc.capacity * headroom
+    if sized:
+        plan.objective = None if plan.objective is None else plan.objective / keep
+        plan.bound = None if plan.bound is None else plan.bound / keep
+    return plan
+
+
 def _dispatch(system: System, problem: Problem, method: Method, choices: dict[str, list[Choice]],
               deadline: float | None, progress: Progress | None) -> Plan:
-    if method == Method.GREEDY:
-        from perfros_bag.solver.greedy import solve_greedy
+    if method in (Method.GREEDY, Method.GREEDY_PLUS):
+        from perfros_bag.solver.flow import solve_heuristic
 
-        return solve_greedy(system, problem, choices)
-    if method == Method.GREEDY_PLUS:
-        from perfros_bag.solver.local import solve_greedy_plus
-
-        return solve_greedy_plus(system, problem, choices)
+        return solve_heuristic(system, problem, choices, method)
     if method == Method.BRUTEFORCE:
         from perfros_bag.solver.bruteforce import solve_bruteforce
 
@@ -266,7 +386,9 @@ def _dispatch(system: System, problem: Problem, method: Method, choices: dict[st
 
     prepared = exact.prepare_instance(system, problem, choices)  # once, for whichever solver runs
     columns = exact_columns(system, choices)
-    if problem == Problem.PERFORMANCE and columns > DECOMPOSE_COLUMNS and not isinstance(prepared, str):
+    # the decomposition prices robots one by one: a data flow across them is the MILP's (its rows)
+    if problem == Problem.PERFORMANCE and columns > DECOMPOSE_COLUMNS and not isinstance(prepared, str) \
+            and not system.has_flow:
         from perfros_bag.solver.decompose import solve_decomposed
 
         decomposed = solve_decomposed(system, problem, choices, time_limit=left(), progress=progress,
@@ -304,10 +426,10 @@ def _exact_start(system: System, problem: Problem, choices: dict[str, list[Choic
     when greedy+ finds nothing."""
     if problem != Problem.PERFORMANCE or columns <= START_COLUMNS:
         return None
-    from perfros_bag.solver.local import solve_greedy_plus
+    from perfros_bag.solver.flow import solve_heuristic
 
     budget = None if time_limit is None else START_SHARE * time_limit
-    plan = solve_greedy_plus(system, problem, choices, time_budget=budget)
+    plan = solve_heuristic(system, problem, choices, Method.GREEDY_PLUS, time_budget=budget)
     if plan.status == Status.INFEASIBLE:
         return None
     return start_of(plan, choices)

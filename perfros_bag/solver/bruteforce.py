@@ -19,8 +19,14 @@ EPS = 1e-9
 
 
 def combinations(system: System, choices: dict[str, list[Choice]]) -> int:
-    """How many (choice, computer) combinations an exhaustive search visits at most."""
-    return math.prod(len(choices[n.name]) * len(system.allowed(n.name)) for n in system.nodes)
+    """How many (choice, computer) combinations an exhaustive search visits at most (a
+    driven node's input rate follows its publisher: only its own settings multiply)."""
+    return math.prod(_own_count(choices[n.name]) * len(system.allowed(n.name)) for n in system.nodes)
+
+
+def _own_count(options: list[Choice]) -> int:
+    driven = {ch.setting for ch in options if ch.input_hz is not None}
+    return len(driven) if driven else len(options)
 
 
 def solve_bruteforce(system: System, problem: Problem, choices: dict[str, list[Choice]]) -> Plan:
@@ -64,6 +70,8 @@ def solve_bruteforce(system: System, problem: Problem, choices: dict[str, list[C
                 continue
             for ch in choices[n]:
                 if load[comp] + ch.cpu > cap[comp] + EPS:
+                    continue
+                if system.has_flow and system.flow_violation({**pick, n: ch}) is not None:
                     continue
                 load[comp] += ch.cpu
                 place[n], pick[n] = comp, ch

@@ -23,18 +23,91 @@ def _over(load: float, cap: float, tol: float) -> bool:
     return load > cap + tol * max(1.0, abs(cap))
 
 
-def _node_choice(node: Node, cpu: float, performance: float, tol: float) -> Choice | None:
-    """The node's setting the plan claims (matched on CPU and performance), or None."""
+def _node_choice(node: Node, cpu: float, performance: float, tol: float, value: float | None = None) -> Choice | None:
+    """The node's setting the plan claims (matched on CPU and performance; among equals, the
+    one with the plan's ``value``), or None."""
     if node.curve is None:
-        for i, s in enumerate(node.settings):
-            if _close(s.cpu, cpu, tol) and _close(s.performance, performance, tol):
-                return Choice(i, s.cpu, s.performance, s.value, s.frequency_hz, s.bandwidth_kBps, s.topics)
+        match = [(i, s) for i, s in enumerate(node.settings)
+                 if _close(s.cpu, cpu, tol) and _close(s.performance, performance, tol)]
+        match.sort(key=lambda m: not (value is not None and m[1].value is not None and _close(m[1].value, value, tol)))
+        for i, s in match[:1]:
+            return Choice(i, s.cpu, s.performance, s.value, s.frequency_hz, s.bandwidth_kBps, s.topics)
     else:
         lo, hi = node.curve.domain
         if lo - tol * max(1.0, abs(lo)) <= cpu <= hi + tol * max(1.0, abs(hi)):
             if _close(node.curve(min(max(cpu, lo), hi)), performance, tol):
                 return node.choice_at(0, min(max(cpu, lo), hi))
     return None
+
+
+def _driven_choice(node: Node, input_hz: float, cpu: float, performance: float, tol: float) -> Choice | None:
+    """A driven node's setting the plan claims at input rate ``input_hz``: its CPU is
+    ``cpu + cpu_per_hz·F_in``, its output ``min(out_per_in·F_in, max_frequency_hz)``, its
+    bandwidth ``bytes_per_msg`` per output message (docs/formats.md; this checker's own
+    copy of the rule)."""
+    for j, s in enumerate(node.settings):
+        need = s.cpu + (s.cpu_per_hz or 0.0) * input_hz
+        if not (_close(need, cpu, tol) and _close(s.performance, performance, tol)):
+            continue
+        out = (1.0 if s.out_per_in is None else s.out_per_in) * input_hz
+        if s.max_frequency_hz is not None and s.max_frequency_hz < out:
+            out = s.max_frequency_hz
+        size = s.bytes_per_msg
+        if size is None:
+            size = s.bandwidth_kBps * 1000.0 / s.frequency_hz if s.frequency_hz and s.bandwidth_kBps is not None else 0.0
+        return Choice(j, need, s.performance, s.value, out, size * out / 1000.0, {}, input_hz=input_hz, setting=j)
+    return None
+
+
+def _topic_rate(choice: Choice, topic: str) -> float | None:
+    rate = choice.topics.get(topic)
+    if rate is not None and rate.frequency_hz is not None:
+        return rate.frequency_hz
+    return choice.frequency_hz
+
+
+def _flow(system: System, plan: Plan, chosen: dict[str, Choice], tol: float) -> list[str]:
+    """Match every driven node's setting at the input rate its publisher's planned setting
+    gives, publishers first (a pass per level of the data flow); the problems found."""
+    bad: list[str] = []
+    publisher: dict[str, list[str]] = defaultdict(list)
+    for n in system.nodes:
+        for t in n.topics:
+            publisher[t].append(n.name)
+    pending = [n for n in system.nodes if n.input is not None and n.name in plan.nodes]
+    while pending:
+        later = []
+        for node in pending:
+            pubs = publisher.get(node.input or "", [])
+            if len(pubs) != 1:
+                bad.append(f"node {node.name}: input {node.input} has {len(pubs)} publishers, not 1")
+                continue
+            if pubs[0] not in chosen:
+                later.append(node)
+                continue
+            f_in = _topic_rate(chosen[pubs[0]], node.input or "")
+            pn = plan.nodes[node.name]
+            if f_in is None:
+                bad.append(f"node {node.name}: its input {node.input} has no rate at {pubs[0]}'s setting")
+                continue
+            ch = _driven_choice(node, f_in, pn.cpu, pn.performance, tol)
+            if ch is None:
+                bad.append(f"node {node.name}: cpu {pn.cpu:g} / performance {pn.performance:g} is none of its "
+                           f"settings at its input's rate {f_in:g} Hz")
+                continue
+            chosen[node.name] = ch
+            if pn.input_hz is not None and not _close(pn.input_hz, f_in, tol):
+                bad.append(f"node {node.name}: plan says input_hz {pn.input_hz:g}, {pubs[0]} publishes "
+                           f"{node.input} at {f_in:g} Hz")
+            for t, rate in pn.topics.items():
+                if rate.frequency_hz is not None and not _close(rate.frequency_hz, ch.frequency_hz or 0.0, tol):
+                    bad.append(f"node {node.name}: plan says topic {t} at {rate.frequency_hz:g} Hz, its input "
+                               f"rate gives {ch.frequency_hz:g}")
+        if len(later) == len(pending):
+            bad.extend(f"node {n.name}: its input's publisher has no setting in the plan (or a cycle)" for n in later)
+            break
+        pending = later
+    return bad
 
 
 def plan_objective(system: System, plan: Plan, problem: int) -> float:
@@ -74,13 +147,16 @@ def check_plan(system: System, plan: Plan, *, tol: float = 1e-6) -> list[str]:
         # eq 8: residence
         if node.residence is not None and pn.computer not in node.residence:
             bad.append(f"node {node.name}: residence: on {pn.computer}, allowed {', '.join(node.residence)}")
-        ch = _node_choice(node, pn.cpu, pn.performance, tol)
-        if ch is None:
+        if node.input is not None:
+            pass  # matched at its input's rate, once its publisher's setting is known (_flow)
+        elif (ch := _node_choice(node, pn.cpu, pn.performance, tol, pn.value)) is None:
             bad.append(f"node {node.name}: cpu {pn.cpu:g} / performance {pn.performance:g} is none of its settings")
         else:
             chosen[node.name] = ch
         if not _close(pn.weight, node.weight, 1e-6):
             bad.append(f"node {node.name}: weight {pn.weight:g}, the system says {node.weight:g}")
+
+    bad.extend(_flow(system, plan, chosen, tol))
 
     # eq 9: coresidence
     for node in system.nodes:
@@ -105,6 +181,9 @@ def check_plan(system: System, plan: Plan, *, tol: float = 1e-6) -> list[str]:
             cap = c.capacity if c.capacity is not None else 0.0
         if _over(load[c.name], cap, tol):
             bad.append(f"computer {c.name}: cpu {load[c.name]:g} > capacity {cap:g}")
+        elif pc is not None and pc.margin and _over(load[c.name], cap - pc.margin, tol):
+            bad.append(f"computer {c.name}: cpu {load[c.name]:g} leaves less than its margin {pc.margin:g} "
+                       f"of capacity {cap:g} free")
         if pc is not None and not _close(pc.cpu, load[c.name], tol):
             bad.append(f"computer {c.name}: plan reports cpu {pc.cpu:g}, its nodes sum to {load[c.name]:g}")
 

@@ -224,7 +224,10 @@ def _prune_choices(system: System, problem: Problem, node: str, options: Sequenc
     Returns the kept choices and, for every original position, the kept position that can
     replace it (for MIP starts); unusable positions are absent."""
     usable = [i for i, ch in enumerate(options) if ch.cpu <= cpu_room + EPS]
-    if problem != Problem.PERFORMANCE or len(usable) <= 1:
+    # a node of the data flow is no plain multiple-choice item: a driven node's choices are
+    # tied to its input's rate, a publisher's rate loads everything it drives
+    in_flow = system.node[node].input is not None or node in system.flow_children
+    if problem != Problem.PERFORMANCE or len(usable) <= 1 or in_flow:
         return [options[i] for i in usable], {i: p for p, i in enumerate(usable)}
     out_edges = [e for e in system.edges if e.src == node]
     bws = {i: tuple(system.edge_bandwidth(e, options[i]) for e in out_edges) for i in usable}
@@ -472,6 +475,8 @@ def _grid(inst: Instance, node: str, modelled: Sequence[int]) -> tuple[float, fl
     opts = inst.choices[node]
     if inst.problem != Problem.PERFORMANCE or len(opts) < 3:
         return None
+    if inst.system.node[node].input is not None or node in inst.system.flow_children:
+        return None  # tied to the data flow's rows by its x columns
     lo, step = opts[0].cpu, opts[1].cpu - opts[0].cpu
     if step <= EPS:
         return None
@@ -551,6 +556,9 @@ def _build(inst: Instance, *, elastic: bool = False, compact_form: bool = False,
                         milp.row(placed_terms[(n, c)] + [(g.z[c], -1.0)], 0.0, 0.0)
             else:
                 milp.row((t for c in g.allowed for t in placed_terms[(n, c)]), 1.0, 1.0)
+
+    if system.has_flow:
+        _flow_rows(inst, milp, x)
 
     def placed(node: str, comp: str) -> list[tuple[int, float]]:
         """Terms of the 0/1 expression 'node sits on comp' (empty when it cannot)."""
@@ -674,6 +682,28 @@ def _build(inst: Instance, *, elastic: bool = False, compact_form: bool = False,
     return _Built(milp, x, server_cap, slack, compact)
 
 
+def _flow_rows(inst: Instance, milp: _Milp, x: dict[tuple[str, int, str], int]) -> None:
+    """The data flow, linear: a driven node's choices are its settings at each input rate
+    (:meth:`System.flow_choices`), so "its input runs at rate f" is the sum of its x columns
+    at f, and "its publisher publishes at f" the sum of the publisher's x columns whose
+    choice gives f. One row per driven node and rate sets the two equal: the product of the
+    upstream and the downstream choice, linearised exactly (docs/solvers.md)."""
+    system = inst.system
+    for name in system.flow_order:
+        parent = system.flow_parent[name]
+        sides: dict[float, list[tuple[int, float]]] = {}
+        for k, ch in enumerate(inst.choices[name]):
+            assert ch.input_hz is not None
+            cols = [x[(name, k, c)] for c in inst.group_of[name].allowed]
+            sides.setdefault(ch.input_hz, []).extend((col, 1.0) for col in cols)
+        for k, ch in enumerate(inst.choices[parent]):
+            f = system.input_hz(name, ch)
+            cols = [x[(parent, k, c)] for c in inst.group_of[parent].allowed]
+            sides.setdefault(f, []).extend((col, -1.0) for col in cols)
+        for terms in sides.values():
+            milp.row(terms, 0.0, 0.0)
+
+
 def start_assignment(inst: Instance, start: Assignment) -> tuple[Assignment, dict[str, int]] | None:
     """A MIP start mapped onto the pruned model (a dominated choice becomes the kept choice
     that dominates it), with each node's kept position; None when it is not feasible
@@ -698,6 +728,8 @@ def start_assignment(inst: Instance, start: Assignment) -> tuple[Assignment, dic
     if any(load[c] > inst.cap[c] + 1e-9 * max(1.0, inst.cap[c]) for c in load):
         return None
     if system.network_violation(placement, choice) is not None:
+        return None
+    if system.has_flow and system.flow_violation(choice) is not None:
         return None
     capacities = server_sizes(system, placement, choice) if inst.problem == Problem.SERVER_CAPACITY else {}
     return Assignment(placement, choice, capacities), position
@@ -824,9 +856,9 @@ def _reserve(time_limit: float) -> float:
 def greedy_start(inst: Instance, choices: dict[str, list[Choice]]) -> tuple[Assignment, dict[str, int]] | None:
     """The paper's greedy's plan mapped onto the pruned model, None when it finds none."""
     from perfros_bag.solver import start_of
-    from perfros_bag.solver.greedy import solve_greedy
+    from perfros_bag.solver.flow import solve_heuristic
 
-    plan = solve_greedy(inst.system, inst.problem, choices)
+    plan = solve_heuristic(inst.system, inst.problem, choices, Method.GREEDY)
     raw = start_of(plan, choices) if plan.status != Status.INFEASIBLE else None
     return start_assignment(inst, raw) if raw is not None else None
 

@@ -103,10 +103,10 @@ def capacity_range(system: System, *, resolution: float = 1.0, time_limit: float
     """The total server capacities at which Problem 2's plan fits the servers' shares, with
     every node at its lowest setting and with every node at its highest (exact solver).
     With one server: Problem 2's minimum in both cases."""
-    from perfros_bag.solver import fixed_choices, solve
+    from perfros_bag.solver import lowest_settings, solve
 
     share = _shares(system)
-    lowest = {n: opts[0].cpu for n, opts in fixed_choices(system, Problem.PERFORMANCE, resolution=resolution).items()}
+    lowest = lowest_settings(system, resolution)
     ends = []
     for settings in (lowest, None):
         plan = solve(system, Problem.SERVER_CAPACITY, "exact", resolution=resolution, settings=settings,

@@ -31,6 +31,8 @@ def frontier_values(system: System, high: float, resolution: float = 1.0) -> tup
     """Per server capacity ``k / scale`` (k = 0 .. high·scale), the best Σ w·P (-inf: no
     plan), and ``scale``; None when the method does not apply. ``system`` has one server;
     its capacity is replaced by ``high`` for the pruning."""
+    if system.has_flow:  # a driven node's CPU follows its publisher's choice: no per-computer knapsack
+        return None
     from perfros_bag.solver import fixed_choices
     from perfros_bag.solver.frontier import with_server_capacity
 

@@ -10,10 +10,14 @@
   topic going to the node named as its namespace) and there are no edges;
 - one setting per measured value: CPU, frequency and bandwidth measured (the mean over the
   runs at that value; the characterisation of every run with a skeleton of this system);
+- a node whose output followed the rate of a topic it subscribes to as driven (``input:``,
+  per setting ``cpu`` + ``cpu_per_hz`` x the input's rate, ``out_per_in``, ``bytes_per_msg``:
+  :mod:`perfros_bag.sweep.driven`); the node publishing that topic keeps its settings;
 - what only the user knows, as a stated default and a comment: weights equal; performance
   ``100 x`` the node's measured output frequency ``/`` its highest (eq 10 measures
   performance through the output frequency);
-- this machine as one computer of ``cores x 100`` units (100 = one core), a commented robot +
+- this machine as one computer of ``cores x units_per_core`` units (the manifest's scale, 100 =
+  one core as ``sweep`` records), a commented robot +
   server example.
 """
 
@@ -22,7 +26,7 @@ from __future__ import annotations
 import math
 import re
 import warnings
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -36,6 +40,7 @@ from perfros_bag.system.names import NameKind, name_problem, system_node_name
 if TYPE_CHECKING:
     from perfros_bag.characterisation.manifest import Manifest
     from perfros_bag.characterisation.table import Row
+    from perfros_bag.sweep.driven import Follow, RunMeasure
 
 #: Nodes that are not the application's: roscore's, the tool's own recorders, rosbag's
 #: recorders (ROS 1 ``record_<pid>``, ROS 2 ``rosbag2_recorder``) and the ros2 command line's.
@@ -76,7 +81,7 @@ def draft_system(directory: str | Path, out: str | Path) -> Draft:
     if space is not None:  # topics the sweep did not record (its exclude) have no measurement
         graph = replace(graph, topics=tuple(t for t in graph.topics if space.recorded(t.name)))
     parameters = _parameters(space)
-    computer, cores = _computer(manifest)
+    machine = _computer(manifest)
     app = [n for n in graph.nodes if n.launched and not NOT_APP.match(n.name)]
     if not app:
         raise InputError(graph_path, "no node of the application in the graph")
@@ -89,14 +94,18 @@ def draft_system(directory: str | Path, out: str | Path) -> Draft:
     unknown = sorted(set(values) - {node_name(n.name) for n in app})
     if unknown:
         raise InputError(manifest.path, f"settings name node(s) {', '.join(unknown)} that the graph does not have")
-    skeleton = _skeleton(app, graph, values, parameters, computer, cores)
+    skeleton = _skeleton(app, graph, values, parameters, machine)
     check_settings(manifest.recordings, skeleton, manifest.path)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", PerfrosWarning)
         result = characterise(manifest.recordings, skeleton)
     if result.failures:
         raise InputError(result.failures[0].recording, result.failures[0].message)
-    text = _render(d, graph, skeleton, result.rows, values, computer, cores, graph_path.exists())
+    from perfros_bag.sweep.driven import find_inputs, per_run
+
+    by_run = per_run(result.rows)
+    follows = find_inputs(skeleton.nodes, graph, by_run, {node_name(n.name): n.name for n in app})
+    text = _render(d, graph, skeleton, result.rows, values, machine, graph_path.exists(), follows, by_run)
     _check_loads(text, Path(out))
     atomic_write_text(out, text)
     return Draft(text, tuple(n.name for n in skeleton.nodes))
@@ -128,8 +137,24 @@ def _values(manifest: Manifest) -> dict[str, list[float]]:
     return {n: sorted(v) for n, v in out.items()}
 
 
-def _computer(manifest: Manifest) -> tuple[str, int]:
-    """This machine's name (the manifest's computer) and its logical CPUs (the CPU traces')."""
+@dataclass(frozen=True)
+class _Machine:
+    """Where the runs were measured: the manifest's computer, its logical CPUs (the CPU
+    traces') and the measurement's CPU units per core (the manifest's ``units_per_core``)."""
+
+    name: str
+    cores: int
+    units_per_core: float
+    own_scale: bool  # every run gives units_per_core: the system's computers cannot rescale the data
+
+    @property
+    def capacity(self) -> float:
+        return _norm(self.cores * self.units_per_core)
+
+
+def _computer(manifest: Manifest) -> _Machine:
+    """This machine, as the runs measured it."""
+    from perfros_bag.characterisation.manifest import SWEEP_UNITS_PER_CORE
     from perfros_bag.cpu.trace import read_cpu_trace
     from perfros_bag.sweep.runner import computer_name
 
@@ -137,11 +162,17 @@ def _computer(manifest: Manifest) -> tuple[str, int]:
     if len(names) > 1:
         raise InputError(manifest.path, f"the runs name several computers ({', '.join(sorted(names))}): "
                          "init drafts one machine")
+    units = {e.units_per_core for e in manifest.recordings if e.units_per_core is not None}
+    if len(units) > 1:
+        raise InputError(manifest.path, f"the runs were measured in several scales (units_per_core "
+                         f"{', '.join(f'{u:g}' for u in sorted(units))}): init drafts one machine")
     name = names.pop() if names else computer_name()
     trace = next((e.cpu for e in manifest.recordings if e.cpu is not None and e.cpu.exists()), None)
     if trace is None:
         raise InputError(manifest.path, "no CPU trace beside the recordings (expected <run>.cpu.csv)")
-    return name, read_cpu_trace(trace).logical_cpus
+    own = all(e.units_per_core is not None for e in manifest.recordings)
+    return _Machine(name, read_cpu_trace(trace).logical_cpus, units.pop() if units else float(SWEEP_UNITS_PER_CORE),
+                    own)
 
 
 def _parameters(space: Space | None) -> dict[str, tuple[str, str | None]]:
@@ -189,7 +220,7 @@ def _output_topics(node: GraphNode, graph: Graph) -> tuple[str, ...]:
 
 
 def _skeleton(app: Sequence[GraphNode], graph: Graph, values: Mapping[str, list[float]],
-              parameters: Mapping[str, tuple[str, str | None]], computer: str, cores: int) -> Any:
+              parameters: Mapping[str, tuple[str, str | None]], machine: _Machine) -> Any:
     """The system the runs are characterised with: the nodes, their topics and patterns."""
     from perfros_bag.system.systemfile import parse_system
 
@@ -205,7 +236,7 @@ def _skeleton(app: Sequence[GraphNode], graph: Graph, values: Mapping[str, list[
             pname, unit = parameters.get(name, ("value", None))
             entry["parameter"] = {"name": pname} if unit is None else {"name": pname, "unit": unit}
         nodes.append(entry)
-    doc = {"computers": [{"name": computer, "kind": "robot", "capacity": cores * 100}], "nodes": nodes}
+    doc = {"computers": [{"name": machine.name, "kind": "robot", "capacity": machine.capacity}], "nodes": nodes}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", PerfrosWarning)
         return parse_system(doc, "<skeleton>")
@@ -230,7 +261,8 @@ def _r(x: float, digits: int = 4) -> float:
 
 
 def _render(d: Path, graph: Graph, skeleton: Any, rows: Sequence[Row], values: Mapping[str, list[float]],
-            computer: str, cores: int, from_graph: bool) -> str:
+            machine: _Machine, from_graph: bool, follows: Mapping[str, Follow],
+            by_run: Mapping[str, Mapping[str, RunMeasure]]) -> str:
     import yaml
 
     from perfros_bag.characterisation.table import table_one
@@ -249,10 +281,13 @@ def _render(d: Path, graph: Graph, skeleton: Any, rows: Sequence[Row], values: M
         + f"manifest.yaml and {runs} run(s).",
         "# It loads, fits and solves as it is. Lines marked REPLACE hold stated defaults that only you",
         "# can know better: the nodes' weights and performance.",
-        f"cpu_unit: {flow(f'100 = one core of {computer} (the machine the sweep ran on)')}",
+        f"cpu_unit: {flow(f'{machine.units_per_core:g} = one core of {machine.name} (the machine the sweep ran on)')}",
         "computers:",
-        f"  # this machine: {cores} logical CPUs x 100",
-        f"  - {flow({'name': computer, 'kind': 'robot', 'capacity': cores * 100})}",
+        f"  # this machine: {machine.cores} logical CPUs x {machine.units_per_core:g}"
+        + (". The measured CPU figures keep the runs' own scale (manifest.yaml units_per_core):\n"
+           "  # edit this computer, or describe your robots below, and the plan changes, never the data."
+           if machine.own_scale else " (it also normalises the CPU traces: manifest.yaml has no units_per_core)"),
+        f"  - {flow({'name': machine.name, 'kind': 'robot', 'capacity': machine.capacity})}",
         "  # where the nodes may run instead, e.g. a robot and a server on Wi-Fi (then add links:)",
         "  # - {name: robot1, kind: robot, capacity: 100}",
         "  # - {name: server, kind: server, capacity: 400}",
@@ -266,6 +301,9 @@ def _render(d: Path, graph: Graph, skeleton: Any, rows: Sequence[Row], values: M
         ros = graph.node("/" + node.name)
         exe = ros.executable if ros is not None and ros.executable else "executable unknown"
         keys = [_norm(v) for v in values.get(node.name, [])] if node.parameter else [None]
+        if node.name in follows:
+            lines += _render_driven(node, exe, keys, weight, follows[node.name], by_run[node.name], flow)
+            continue
         measured = [_measured(node, key, per_value, topic_means) for key in keys]
         freqs = [m.frequency_hz for m in measured if m.frequency_hz]
         top = max(freqs) if freqs else None
@@ -291,6 +329,47 @@ def _render(d: Path, graph: Graph, skeleton: Any, rows: Sequence[Row], values: M
     elif not from_graph:
         lines.append("# edges: unknown without graph.yaml: add {from: NODE, to: NODE, topic: TOPIC} per subscription")
     return "\n".join(lines) + "\n"
+
+
+def _render_driven(node: Any, exe: str, keys: Sequence[int | float | None], weight: float, follow: Follow,
+                   runs: Mapping[str, RunMeasure], flow: Callable[[Any], str]) -> list[str]:
+    """A driven node's lines (perfros_bag/sweep/driven.py: the rule and the numbers)."""
+    from perfros_bag.sweep.driven import INPUT_VARIED, RATIO_TOLERANCE, draft_settings
+
+    drafted = draft_settings(node.topics, runs, follow)
+    missing = [k for k in keys if repr(k) not in drafted]
+    if missing:
+        raise InputError(None, f"node {node.name}: no run measured it at value {missing[0]}")
+    settings = [drafted[repr(k)] for k in keys]
+    top = max(s.out_per_in for s in settings)
+    lines = [f"  # /{node.name} ({exe})",
+             f"  - name: {flow(node.name)}",
+             f"    weight: {weight!r}  # REPLACE: every node weighs the same (a stated default)",
+             f"    # driven: its output kept one rate per message of {follow.topic} (within "
+             f"{100 * (RATIO_TOLERANCE - 1):.0f} %) while that rate varied by more than {100 * (INPUT_VARIED - 1):.0f} %",
+             f"    input: {flow(follow.topic)}"]
+    if node.parameter is not None:
+        lines.append(f"    parameter: {flow(_parameter(node.parameter))}")
+    if node.topics:
+        lines.append(f"    topics: {flow(list(node.topics))}")
+    lines.append(f"    process: {flow(node.process)}  # its ROS name in the sweep's CPU traces")
+    lines.append("    # cpu + cpu_per_hz x input rate: least squares over the runs at each setting; "
+                 "performance: REPLACE.")
+    lines.append(f"    # A stated default: 100 x its out_per_in / the highest ({_r(top)})")
+    lines.append("    settings:")
+    for s in settings:
+        entry: dict[str, Any] = {} if s.value is None else {"value": _norm(s.value)}
+        entry.update(cpu=_r(s.cpu), cpu_per_hz=_r(s.cpu_per_hz),
+                     performance=_r(100.0 * s.out_per_in / top) if top > 0 else 100.0,
+                     out_per_in=_r(s.out_per_in), bytes_per_msg=_r(s.bytes_per_msg))
+        note = ""
+        if s.clipped is not None:
+            note = f"  # {s.clipped}"
+        elif s.scaled_from is not None:
+            note = (f"  # input rate not varied here: the line at value {_norm(s.scaled_from)} scaled by "
+                    "this setting's CPU")
+        lines.append(f"      - {flow(entry)}{note}")
+    return lines
 
 
 def _norm(v: float) -> float | int:

@@ -41,7 +41,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from perfros_bag.characterisation.manifest import parse_manifest, write_manifest
+from perfros_bag.characterisation.manifest import (
+    SWEEP_UNITS_PER_CORE,
+    parse_manifest,
+    write_manifest,
+)
 from perfros_bag.errors import InputError, PerfrosError
 from perfros_bag.fileio import atomic_write_text, read_yaml
 from perfros_bag.rosrun.master import bus_stats, master_call, master_state, port_of, start_roscore
@@ -159,7 +163,8 @@ def sweep(launch_path: str | Path, space_path: str | Path, out: str | Path, *, d
             warned = True
             _warn_unsubscribed(graph, inspected)
         entries[f"{run.name}.bag"] = {"path": f"{run.name}.bag", "cpu": f"{run.name}.cpu.csv",
-                                      "computer": computer_name(), "settings": settings}
+                                      "computer": computer_name(), "units_per_core": SWEEP_UNITS_PER_CORE,
+                                      "settings": settings}
         write_manifest(manifest_path, list(entries.values()), system_ref)
         write_graph(outdir / "graph.yaml", graph)
         result.recorded.append(run.name)

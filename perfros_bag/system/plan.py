@@ -57,6 +57,11 @@ class PlannedNode:
     parameter: str | None = None
     value: float | None = None
     topics: dict[str, PlannedTopic] = field(default_factory=dict)
+    # a driven node (system.yaml ``input``): the topic that drives it and its planned rate,
+    # and the bandwidth of all its topics at the rate that follows (None: not driven)
+    input: str | None = None
+    input_hz: float | None = None
+    bandwidth_kBps: float | None = None
 
 
 @dataclass
@@ -64,6 +69,7 @@ class PlannedComputer:
     kind: str
     capacity: float | None
     cpu: float
+    margin: float | None = None  # CPU units the plan keeps free (``solve --headroom``); None: none asked
 
 
 @dataclass

@@ -42,7 +42,8 @@ def plan_document(plan: Plan) -> dict[str, Any]:
     if plan.system is not None:
         out["system"] = plan.system
     out["computers"] = {
-        name: {"kind": c.kind, "capacity": c.capacity, "cpu": c.cpu} for name, c in plan.computers.items()
+        name: {"kind": c.kind, "capacity": c.capacity, "cpu": c.cpu, **({} if c.margin is None else {"margin": c.margin})}
+        for name, c in plan.computers.items()
     }
     out["links"] = [
         {"between": list(link.between), "bandwidth_kBps": link.bandwidth_kBps, "load_kBps": link.load_kBps,
@@ -55,6 +56,8 @@ def plan_document(plan: Plan) -> dict[str, Any]:
             "performance": n.performance, "weight": n.weight,
             "topics": {t: {"frequency_hz": r.frequency_hz, "bandwidth_kBps": r.bandwidth_kBps}
                        for t, r in n.topics.items()},
+            **({"input": n.input, "input_hz": n.input_hz, "bandwidth_kBps": n.bandwidth_kBps}
+               if n.input is not None else {}),
         }
         for name, n in plan.nodes.items()
     }
@@ -132,7 +135,8 @@ def parse_plan(data: Any, path: str = "plan.json") -> Plan:
         if kind not in ("robot", "server"):
             raise InputError(path, f"computer {name!r}: 'kind' must be 'robot' or 'server', got {kind!r}")
         plan.computers[name] = PlannedComputer(kind, _num(c, "capacity", f"computer {name!r}", path, nonneg=True),
-                                               _num(c, "cpu", f"computer {name!r}", path, nonneg=True) or 0.0)
+                                               _num(c, "cpu", f"computer {name!r}", path, nonneg=True) or 0.0,
+                                               _num(c, "margin", f"computer {name!r}", path, nonneg=True))
     links = data.get("links") or []
     if not isinstance(links, list):
         raise InputError(path, "links must be a list")
@@ -192,6 +196,8 @@ def _parse_node(n: Any, where: str, path: str) -> PlannedNode:
         performance=_num(n, "performance", where, path, optional=False, nonneg=True) or 0.0,
         weight=_num(n, "weight", where, path, optional=False, positive=True) or 0.0,
         parameter=_text(n, "parameter", where, path), value=_num(n, "value", where, path), topics=topics,
+        input=_text(n, "input", where, path), input_hz=_num(n, "input_hz", where, path, nonneg=True),
+        bandwidth_kBps=_num(n, "bandwidth_kBps", where, path, nonneg=True),
     )
 
 

@@ -84,7 +84,9 @@ def build_plan(system: System, assignment: Assignment, *, problem: Problem, meth
         nodes[node.name] = PlannedNode(
             computer=assignment.placement[node.name], cpu=ch.cpu, performance=ch.performance,
             weight=node.weight, parameter=node.parameter.name if node.parameter else None,
-            value=ch.value, topics=expected_topics(system, node.name, ch),
+            value=ch.value, topics=expected_topics(system, node.name, ch), input=node.input,
+            input_hz=ch.input_hz if node.input is not None else None,
+            bandwidth_kBps=ch.bandwidth_kBps if node.input is not None else None,
         )
     obj = objective_value if objective_value is not None else objective(system, assignment, problem)
     return Plan(problem, method, status, obj, bound, solve_s, computers, links, nodes, system=system.source)

@@ -50,10 +50,12 @@ LINK_KEYS = {"between", "bandwidth_kBps", "medium"}
 MEDIUM_KEYS = {"name", "bandwidth_kBps"}
 NODE_KEYS = {
     "name", "weight", "residence", "coresidence", "parameter", "topics", "process",
-    "settings", "curve", "launch", "relations", "metric",
+    "settings", "curve", "launch", "relations", "metric", "input",
 }
 METRIC_KEYS = {"topic", "field", "aggregate", "better", "range"}
 SETTING_KEYS = {"value", "cpu", "performance", "frequency_hz", "bandwidth_kBps", "topics"}
+#: a driven node's setting (``input:``) also says how it follows its input rate
+DRIVEN_KEYS = {"cpu_per_hz", "out_per_in", "max_frequency_hz", "bytes_per_msg"}
 TOPIC_RATE_KEYS = {"frequency_hz", "bandwidth_kBps"}
 PARAMETER_KEYS = {"name", "unit", "type"}
 CURVE_KEYS = {"form", "coef", "cpu", "domain", "scale"}
@@ -213,7 +215,27 @@ def parse_system(data: Any, source: str = "system.yaml") -> System:
     system = System(tuple(computers), tuple(nodes), tuple(links), tuple(media), tuple(edges),
                     cpu_unit, machines, source, chains)
     _check_groups(ctx, system)
+    _check_flow(ctx, system)
     return system
+
+
+def _check_flow(ctx: _Ctx, system: System) -> None:
+    """Every ``input`` names a topic exactly one node publishes, and inputs form no cycle."""
+    for n in system.nodes:
+        if n.input is None:
+            continue
+        publishers = system.publishers.get(n.input, ())
+        if not publishers:
+            raise ctx.fail(f"node {n.name!r}: input", f"no node of the system publishes {n.input} "
+                                                      "(list it under that node's topics)")
+        if len(publishers) > 1:
+            raise ctx.fail(f"node {n.name!r}: input", f"{n.input} is published by several nodes "
+                                                      f"({', '.join(map(repr, publishers))}): a driven node "
+                                                      "follows exactly one publisher")
+    cycle = system.flow_cycle()
+    if cycle is not None:
+        path = " <- ".join([*cycle, cycle[0]])
+        raise ctx.fail(f"node {cycle[0]!r}: input", f"the inputs form a cycle: {path} (each node driven by the next)")
 
 
 def _reweight(n: Node, weight: float) -> Node:
@@ -356,7 +378,12 @@ def _nodes(ctx: _Ctx, raw: Any, computers: set[str]) -> list[Node]:
             except re.error as exc:
                 raise ctx.fail(f"{where}: process", f"not a valid regular expression: {exc}") from None
 
-        settings = tuple(_setting(ctx, s, f"{where}: settings[{j}]") for j, s in enumerate(ctx.seq(m.get("settings"), f"{where}: settings")))
+        driven_by = None if m.get("input") is None else ctx.name(m["input"], f"{where}: input", NameKind.TOPIC)
+        settings = tuple(_setting(ctx, s, f"{where}: settings[{j}]", driven=driven_by is not None)
+                         for j, s in enumerate(ctx.seq(m.get("settings"), f"{where}: settings")))
+        if driven_by is not None and m.get("curve") is not None:
+            raise ctx.fail(f"{where}: curve", "a driven node (input:) takes discrete settings, not a CPU curve: "
+                                              "its CPU follows its input's rate")
         curve = None
         if m.get("curve") is not None:
             curve = parse_curve(ctx.path, m["curve"], f"{where}: curve", default_scale=100.0)
@@ -384,7 +411,7 @@ def _nodes(ctx: _Ctx, raw: Any, computers: set[str]) -> list[Node]:
 
         metric = _metric(ctx, m["metric"], f"{where}: metric") if m.get("metric") is not None else None
         out.append(Node(name, weight, settings, curve, residence, coresidence, parameter,
-                        topics, process, launch, relations, metric))
+                        topics, process, launch, relations, metric, driven_by))
     return out
 
 
@@ -412,8 +439,12 @@ def _metric(ctx: _Ctx, raw: Any, where: str) -> Metric:
     return Metric(topic, field, Aggregate(aggregate), Better(better), bounds)
 
 
-def _setting(ctx: _Ctx, raw: Any, where: str) -> Setting:
-    m = ctx.mapping(raw, where, SETTING_KEYS, {"cpu", "performance"})
+def _setting(ctx: _Ctx, raw: Any, where: str, *, driven: bool = False) -> Setting:
+    m = ctx.mapping(raw, where, SETTING_KEYS | DRIVEN_KEYS, {"cpu", "performance"} | ({"cpu_per_hz"} if driven else set()))
+    if not driven:
+        extra = sorted(k for k in DRIVEN_KEYS if k in m)
+        if extra:
+            raise ctx.fail(where, f"{', '.join(extra)}: only a driven node (one with input:) follows an input rate")
     topics: dict[str, TopicRate] = {}
     if m.get("topics") is not None:
         tm = ctx.mapping(m["topics"], f"{where}.topics", set(m["topics"]) if isinstance(m["topics"], Mapping) else set())
@@ -425,12 +456,17 @@ def _setting(ctx: _Ctx, raw: Any, where: str) -> Setting:
                 ctx.opt_number(rm.get("bandwidth_kBps"), f"{where}.topics.{topic}.bandwidth_kBps", nonneg=True),
             )
     return Setting(
-        cpu=ctx.number(m["cpu"], f"{where}.cpu", positive=True),
+        # a driven node's cpu is the part that does not follow its input: it may be 0
+        cpu=ctx.number(m["cpu"], f"{where}.cpu", positive=not driven, nonneg=driven),
         performance=ctx.number(m["performance"], f"{where}.performance", nonneg=True),
         value=ctx.opt_number(m.get("value"), f"{where}.value"),
         frequency_hz=ctx.opt_number(m.get("frequency_hz"), f"{where}.frequency_hz", nonneg=True),
         bandwidth_kBps=ctx.opt_number(m.get("bandwidth_kBps"), f"{where}.bandwidth_kBps", nonneg=True),
         topics=topics,
+        cpu_per_hz=ctx.opt_number(m.get("cpu_per_hz"), f"{where}.cpu_per_hz", nonneg=True),
+        out_per_in=ctx.opt_number(m.get("out_per_in"), f"{where}.out_per_in", nonneg=True),
+        max_frequency_hz=ctx.opt_number(m.get("max_frequency_hz"), f"{where}.max_frequency_hz", nonneg=True),
+        bytes_per_msg=ctx.opt_number(m.get("bytes_per_msg"), f"{where}.bytes_per_msg", nonneg=True),
     )
 
 

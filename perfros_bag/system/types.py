@@ -13,8 +13,8 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from collections.abc import Iterable, Iterator, Mapping, Sequence
-from dataclasses import dataclass, field
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from dataclasses import dataclass, field, replace
 from enum import IntEnum, StrEnum
 from functools import cached_property
 from typing import Literal
@@ -159,7 +159,12 @@ class TopicRate:
 
 @dataclass(frozen=True)
 class Setting:
-    """One parameter value of a node with its CPU cost and performance (a row of Table I)."""
+    """One parameter value of a node with its CPU cost and performance (a row of Table I).
+
+    A driven node's setting (its node has an ``input``) also says how it follows its input
+    rate F_in: CPU ``cpu + cpu_per_hz·F_in``, output ``min(out_per_in·F_in,
+    max_frequency_hz)``, ``bytes_per_msg`` per output message (:func:`driven_rates`).
+    """
 
     cpu: float
     performance: float
@@ -167,6 +172,29 @@ class Setting:
     frequency_hz: float | None = None
     bandwidth_kBps: float | None = None
     topics: dict[str, TopicRate] = field(default_factory=dict)
+    cpu_per_hz: float | None = None  # driven only: CPU units per input message per second
+    out_per_in: float | None = None  # driven only: output messages per input message (default 1)
+    max_frequency_hz: float | None = None  # driven only: the output's cap (a throttle), none when absent
+    bytes_per_msg: float | None = None  # driven only: bytes of all its topics per output message
+
+
+def driven_rates(setting: Setting, input_hz: float) -> tuple[float, float, float]:
+    """The data-flow rule (docs/formats.md, "driven nodes"): a driven node's CPU, output
+    frequency (Hz, every topic of it) and bandwidth (kB/s, all its topics) at ``setting``
+    when its input topic runs at ``input_hz``.
+
+    Without ``bytes_per_msg`` the bytes per message are the setting's measured
+    ``bandwidth_kBps`` over its ``frequency_hz`` (both measured in one run), else 0."""
+    cpu = setting.cpu + (setting.cpu_per_hz or 0.0) * input_hz
+    ratio = 1.0 if setting.out_per_in is None else setting.out_per_in
+    out = ratio * input_hz
+    if setting.max_frequency_hz is not None:
+        out = min(out, setting.max_frequency_hz)
+    size = setting.bytes_per_msg
+    if size is None:
+        f, bw = setting.frequency_hz, setting.bandwidth_kBps
+        size = bw * 1000.0 / f if f and bw is not None else 0.0
+    return cpu, out, size * out / 1000.0
 
 
 @dataclass(frozen=True)
@@ -183,6 +211,8 @@ class Choice:
     frequency_hz: float | None = None
     bandwidth_kBps: float | None = None
     topics: dict[str, TopicRate] = field(default_factory=dict)
+    input_hz: float | None = None  # a driven node's input rate under this choice (None: not driven)
+    setting: int | None = None  # a driven node's own setting (index into ``Node.settings``)
 
 
 @dataclass(frozen=True)
@@ -293,6 +323,11 @@ class Node:
     # "parameter->frequency:<topic>", "parameter->bandwidth:<topic>".
     relations: dict[str, Curve] = field(default_factory=dict)
     metric: Metric | None = None  # measured performance (system.yaml ``metric``)
+    input: str | None = None  # the topic that drives it (system.yaml ``input``); None: a paper node
+
+    @property
+    def driven(self) -> bool:
+        return self.input is not None
 
     @property
     def configurable(self) -> bool:
@@ -308,10 +343,11 @@ class Node:
         Without a curve: the discrete settings.
         """
         if self.curve is None:
-            ordered = sorted(self.settings, key=lambda s: (s.cpu, s.performance))
+            ordered = sorted(enumerate(self.settings), key=lambda js: (js[1].cpu, js[1].performance))
             return [
-                Choice(i, s.cpu, s.performance, s.value, s.frequency_hz, s.bandwidth_kBps, s.topics)
-                for i, s in enumerate(ordered)
+                Choice(i, s.cpu, s.performance, s.value, s.frequency_hz, s.bandwidth_kBps, s.topics,
+                       setting=j if self.driven else None)
+                for i, (j, s) in enumerate(ordered)
             ]
         if resolution <= 0:
             raise ValueError("resolution must be > 0")
@@ -463,6 +499,125 @@ class System:
                     path.append(li)
                 routes[(src, dst)] = tuple(reversed(path))
         return routes
+
+    # ---- the data flow: driven nodes (system.yaml ``input``; docs/formats.md) ------------
+    @property
+    def has_flow(self) -> bool:
+        """Does any node follow an input (``input:``)? Without, the system is the paper's."""
+        return any(n.input is not None for n in self.nodes)
+
+    @cached_property
+    def publishers(self) -> dict[str, tuple[str, ...]]:
+        """Per topic, the nodes that list it among their ``topics``."""
+        out: dict[str, list[str]] = {}
+        for n in self.nodes:
+            for t in n.topics:
+                out.setdefault(t, []).append(n.name)
+        return {t: tuple(v) for t, v in out.items()}
+
+    @cached_property
+    def flow_parent(self) -> dict[str, str]:
+        """Driven node -> the node publishing its input (systemfile checks there is exactly one)."""
+        return {n.name: self.publishers[n.input][0] for n in self.nodes if n.input is not None}
+
+    @cached_property
+    def flow_order(self) -> tuple[str, ...]:
+        """The driven nodes, each after its input's publisher (``input`` is acyclic: checked
+        when the system is read, :meth:`flow_cycle`)."""
+        order: list[str] = []
+        done: set[str] = set()
+        for n in self.nodes:
+            path: list[str] = []
+            at: str | None = n.name
+            while at is not None and at in self.flow_parent and at not in done and at not in path:
+                path.append(at)
+                at = self.flow_parent[at]
+            for m in reversed(path):
+                if m not in done:
+                    done.add(m)
+                    order.append(m)
+        return tuple(order)
+
+    def flow_cycle(self) -> list[str] | None:
+        """The nodes of a cycle of ``input`` (each driven by the next's output), or None."""
+        for n in self.nodes:
+            seen: list[str] = []
+            at: str | None = n.name
+            while at is not None and at in self.flow_parent:
+                if at in seen:
+                    return seen[seen.index(at):]
+                seen.append(at)
+                at = self.flow_parent[at]
+        return None
+
+    @cached_property
+    def flow_children(self) -> dict[str, tuple[str, ...]]:
+        """Per node, the driven nodes its output drives directly."""
+        out: dict[str, list[str]] = {}
+        for child, parent in self.flow_parent.items():
+            out.setdefault(parent, []).append(child)
+        return {k: tuple(v) for k, v in out.items()}
+
+    @staticmethod
+    def topic_hz(choice: Choice, topic: str) -> float | None:
+        """The frequency of ``topic`` at a publisher's choice: its per-topic rate, else the
+        choice's frequency."""
+        rate = choice.topics.get(topic)
+        if rate is not None and rate.frequency_hz is not None:
+            return rate.frequency_hz
+        return choice.frequency_hz
+
+    def driven_choice(self, node: Node, setting: int, input_hz: float, index: int = 0) -> Choice:
+        """A driven node's choice at its own ``setting`` (index into ``node.settings``) and
+        input rate (:func:`driven_rates`)."""
+        s = node.settings[setting]
+        cpu, out, bw = driven_rates(s, input_hz)
+        return Choice(index, cpu, s.performance, s.value, out, bw, {}, input_hz=input_hz, setting=setting)
+
+    def input_hz(self, node: str, parent_choice: Choice) -> float:
+        """A driven node's input rate when its input's publisher runs at ``parent_choice``."""
+        topic = self.node[node].input
+        assert topic is not None
+        f = self.topic_hz(parent_choice, topic)
+        if f is None:
+            parent = self.flow_parent[node]
+            at = f"value {parent_choice.value:g}" if parent_choice.value is not None else f"CPU {parent_choice.cpu:g}"
+            raise InputError(self.source, f"node {node!r}: its input {topic} has no frequency_hz at its publisher "
+                                          f"{parent!r}'s setting ({at}): a driven node needs its input's rate")
+        return f
+
+    def flow_choices(self, base: Mapping[str, list[Choice]],
+                     pick: Callable[[str, list[Choice]], list[Choice]] | None = None) -> dict[str, list[Choice]]:
+        """``base`` with every driven node's choices made concrete: each of its own settings
+        (``base``'s choices name them by ``setting``) at every input rate its input's
+        publisher can give (the propagated rule, :func:`driven_rates`), sorted by CPU.
+        Driven nodes are expanded in :attr:`flow_order`; ``pick`` (node, expanded) may keep
+        a subset of each before its children are expanded (Problem 2's fixed settings)."""
+        out = {name: list(options) for name, options in base.items()}
+        for name in self.flow_order:
+            node = self.node[name]
+            parent = self.flow_parent[name]
+            rates = sorted({self.input_hz(name, ch) for ch in out[parent]})
+            own = sorted({ch.setting for ch in base[name] if ch.setting is not None})
+            made = [self.driven_choice(node, j, f) for j in own for f in rates]
+            made.sort(key=lambda c: (c.cpu, -c.performance, c.input_hz or 0.0))
+            made = [replace(c, index=i) for i, c in enumerate(made)]
+            out[name] = pick(name, made) if pick is not None else made
+        return out
+
+    def flow_violation(self, choice: Mapping[str, Choice], tol: float = 1e-9) -> str | None:
+        """Why chosen settings break the data flow: a driven node whose choice was made for
+        another input rate than its input's publisher gives; None when they agree."""
+        for name in self.flow_order:
+            parent = self.flow_parent[name]
+            if name not in choice or parent not in choice:
+                continue
+            want = self.input_hz(name, choice[parent])
+            got = choice[name].input_hz
+            if got is None or abs(got - want) > tol * max(1.0, abs(want)):
+                return (f"node {name!r} is planned for an input rate of {got} Hz but {parent!r} publishes "
+                        f"{self.node[name].input} at {want:g} Hz")
+        return None
 
     def edge_bandwidth(self, edge: Edge, publisher_choice: Choice) -> float:
         """kB/s an edge carries when its publisher runs at ``publisher_choice``."""

@@ -23,6 +23,9 @@ and ``overloaded`` where it exceeds the capacity. With the system (given, or the
 plan's ``system`` path), each link's measured load is the measured bandwidth of the
 publisher topics of the edges crossing it, and a node with a ``metric`` gets its measured
 value, on the 0-100 scale of the metric's ``range``, beside P_measured (``p_metric``).
+A driven node (system.yaml ``input``) gets its input rate, the plan's against the run's;
+an overloaded plan the rates it keeps (:mod:`perfros_bag.validation.kept`). A topic with
+too few messages for a rate (:attr:`TopicStats.rate_note`) is said to have none.
 """
 
 from __future__ import annotations
@@ -40,6 +43,7 @@ from perfros_bag.ingest.stats import RecordingStats, TopicStats
 from perfros_bag.system.plan import Plan
 from perfros_bag.system.types import System
 from perfros_bag.validation import DEFAULT_TOLERANCE
+from perfros_bag.validation.kept import KeptRates, overloaded_capacities, predict_kept
 
 if TYPE_CHECKING:
     from perfros_bag.ingest.chains import ChainLatency
@@ -70,12 +74,15 @@ class TopicCheck:
     bandwidth_kBps: float  # measured
     messages: int
     status: TopicStatus
+    #: the recording has too few messages of it for a rate: f_measured is then its messages
+    #: over the recording's span (:func:`_measured_rate`), and this says why
+    rate_note: str | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return {
             "topic": self.topic, "status": str(self.status), "f_expected": self.f_expected,
             "f_measured": self.f_measured, "ratio": self.ratio, "deviation_pct": self.deviation_pct,
-            "bandwidth_kBps": self.bandwidth_kBps, "messages": self.messages,
+            "bandwidth_kBps": self.bandwidth_kBps, "messages": self.messages, "rate_note": self.rate_note,
         }
 
 
@@ -99,6 +106,12 @@ class NodeCheck:
     metric_value: float | None = None
     p_metric: float | None = None  # metric_value on the 0-100 scale of the metric's range
     metric_deviation_pct: float | None = None  # p_metric against p_expected
+    # a driven node (system.yaml ``input``): its input topic, the rate the plan propagated to
+    # it and the run's rate of that topic (None: not recorded, or too few messages: the note)
+    input: str | None = None
+    input_hz_expected: float | None = None
+    input_hz_measured: float | None = None
+    input_rate_note: str | None = None
 
     @property
     def flagged(self) -> bool:
@@ -113,8 +126,18 @@ class NodeCheck:
             "cpu_expected": self.cpu_expected, "cpu_measured": self.cpu_measured, "note": self.note,
             "metric_value": self.metric_value, "p_metric": self.p_metric,
             "metric_deviation_pct": self.metric_deviation_pct,
+            "input": self.input, "input_hz_expected": self.input_hz_expected,
+            "input_hz_measured": self.input_hz_measured,
+            "input_deviation_pct": self.input_deviation_pct, "input_rate_note": self.input_rate_note,
             "topics": [t.to_dict() for t in self.topics],
         }
+
+    @property
+    def input_deviation_pct(self) -> float | None:
+        """100 x |measured - expected| / expected of a driven node's input rate."""
+        if self.input_hz_expected is None or self.input_hz_measured is None:
+            return None
+        return _deviation(self.input_hz_measured, self.input_hz_expected)
 
 
 @dataclass
@@ -179,12 +202,13 @@ class UnplannedTopic:
     topic: str
     msgtype: str
     messages: int
-    f_measured: float
+    f_measured: float | None  # None: too few messages for a rate (``rate_note`` says so)
     bandwidth_kBps: float
+    rate_note: str | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return {"topic": self.topic, "msgtype": self.msgtype, "messages": self.messages,
-                "f_measured": self.f_measured, "bandwidth_kBps": self.bandwidth_kBps}
+                "f_measured": self.f_measured, "bandwidth_kBps": self.bandwidth_kBps, "rate_note": self.rate_note}
 
 
 @dataclass
@@ -207,6 +231,7 @@ class Validation:
     notes: list[str] = field(default_factory=list)
     network: list[NetworkCheck] = field(default_factory=list)
     chains: list[ChainLatency] = field(default_factory=list)
+    kept: KeptRates | None = None  # the rates an overloaded plan keeps (None: nothing capped)
 
     @property
     def passed(self) -> bool:
@@ -240,6 +265,7 @@ class Validation:
             "media": [m.to_dict() for m in self.media],
             "network": [c.to_dict() for c in self.network],
             "chains": [c.to_dict() for c in self.chains],
+            "kept": None if self.kept is None else self.kept.to_dict(),
             "notes": self.notes,
         }
 
@@ -311,17 +337,29 @@ def _find_topic(stats: RecordingStats, topic: str) -> TopicStats | None:
     return None if key is None else stats.topics[key]
 
 
+def _measured_rate(stats: RecordingStats, ts: TopicStats) -> tuple[float, str | None]:
+    """A topic's measured rate and, when it has too few messages for one
+    (:attr:`TopicStats.rate_note`), why: then the rate is its messages over the whole
+    recording's span (0 when that span is 0), not (n - 1) over its own."""
+    note = ts.rate_note
+    if note is None:
+        return ts.frequency_hz, None
+    start, end = stats.start_ns, stats.end_ns
+    span = (end - start) / 1e9 if start is not None and end is not None else 0.0
+    return (ts.messages / span if span > 0 else 0.0), note
+
+
 def _check_topic(stats: RecordingStats, topic: str, f_expected: float | None) -> TopicCheck:
     ts = _find_topic(stats, topic)
-    f_meas = ts.frequency_hz if ts is not None else 0.0
+    f_meas, note = _measured_rate(stats, ts) if ts is not None else (0.0, None)
     bw = ts.bandwidth_kBps if ts is not None else 0.0
     msgs = ts.messages if ts is not None else 0
     if not f_expected:  # 0 or None: nothing to compare with
         status = TopicStatus.MISSING if ts is None else TopicStatus.NO_EXPECTATION
-        return TopicCheck(topic, f_expected, f_meas, None, None, bw, msgs, status)
+        return TopicCheck(topic, f_expected, f_meas, None, None, bw, msgs, status, note)
     ratio = f_meas / f_expected
     status = TopicStatus.MISSING if ts is None else TopicStatus.OK
-    return TopicCheck(topic, f_expected, f_meas, ratio, 100.0 * abs(ratio - 1.0), bw, msgs, status)
+    return TopicCheck(topic, f_expected, f_meas, ratio, 100.0 * abs(ratio - 1.0), bw, msgs, status, note)
 
 
 def check_run(stats: RecordingStats, plan: Plan, *, cap: bool = False,
@@ -361,12 +399,18 @@ def check_run(stats: RecordingStats, plan: Plan, *, cap: bool = False,
         missing = [t.topic for t in topics if t.status == TopicStatus.MISSING]
         if missing:
             notes.append(f"node {name!r}: planned topic(s) not in the recording (F = 0): {', '.join(missing)}")
+        for t in topics:
+            if t.rate_note is not None:
+                notes.append(f"node {name!r}: {t.topic}: {t.rate_note}: F_measured = its messages over the "
+                             f"recording's span ({t.f_measured:.3g} Hz)")
         nodes.append(NodeCheck(
             node=name, computer=pn.computer, weight=pn.weight, p_expected=pn.performance,
             p_measured=p_meas, ratio=ratio, deviation_pct=_deviation(p_meas, pn.performance),
             counted=counted, topics=topics, parameter=pn.parameter, value=pn.value,
             cpu_expected=pn.cpu, note=note,
         ))
+        if pn.input is not None:
+            _check_input(nodes[-1], stats, pn.input, pn.input_hz, notes)
 
     for n in nodes:
         if metrics and n.node in metrics:
@@ -377,10 +421,12 @@ def check_run(stats: RecordingStats, plan: Plan, *, cap: bool = False,
                                     "nothing to compare (the plan's topics need frequency_hz)")
     overall_e = sum(n.weight * n.p_expected for n in nodes)
     overall_m = sum(n.weight * n.p_measured for n in nodes)
-    unplanned = [UnplannedTopic(t, ts.msgtype, ts.messages, ts.frequency_hz, ts.bandwidth_kBps)
+    unplanned = [UnplannedTopic(t, ts.msgtype, ts.messages, None if ts.rate_note else ts.frequency_hz,
+                                ts.bandwidth_kBps, ts.rate_note)
                  for t, ts in sorted(stats.topics.items()) if t not in planned]
 
     computers = _check_computers(plan, nodes, node_cpu, notes) if node_cpu is not None else []
+    kept = _kept_rates(plan, system, nodes, computers)
     links, media = _check_links(plan, stats, system, notes) if system is not None else ([], [])
     network = _check_network(plan, stats, system, latency or {}) if system is not None else []
     return Validation(
@@ -388,9 +434,43 @@ def check_run(stats: RecordingStats, plan: Plan, *, cap: bool = False,
         tolerance_pct=tolerance, cap=cap, overall_expected=overall_e, overall_measured=overall_m,
         deviation_pct=_deviation(overall_m, overall_e), nodes=nodes, computers=computers,
         links=links, media=media, unplanned_topics=unplanned, cpu_traces=list(cpu_traces),
-        system=system.source if system is not None else None, notes=notes, network=network,
-        chains=list(chains),
+        system=system.source if system is not None else None, notes=notes + (kept.notes if kept else []),
+        network=network, chains=list(chains), kept=kept,
     )
+
+
+def _check_input(n: NodeCheck, stats: RecordingStats, topic: str, expected: float | None, notes: list[str]) -> None:
+    """A driven node's input rate: the plan's against the run's (its input topic's rate)."""
+    n.input, n.input_hz_expected = topic, expected
+    ts = _find_topic(stats, topic)
+    if ts is None:
+        notes.append(f"node {n.node!r}: its input {topic} is not in the recording: no input rate to compare")
+    elif ts.rate_note is not None:
+        n.input_rate_note = ts.rate_note
+        notes.append(f"node {n.node!r}: its input {topic}: {ts.rate_note}")
+    else:
+        n.input_hz_measured = ts.frequency_hz
+
+
+def _kept_rates(plan: Plan, system: System | None, nodes: list[NodeCheck],
+                computers: list[ComputerCheck]) -> KeptRates | None:
+    """The rates the plan keeps (:mod:`perfros_bag.validation.kept`) when a computer is
+    overloaded: measured (the CPU trace) or predicted (its nodes' planned CPU above the
+    capacity of the system's computer, else the plan's). A node traced on a computer whose
+    measured load exceeds its capacity needs what it was measured at (calibration: measured
+    over planned CPU). None when no computer is overloaded either way."""
+    capacities = overloaded_capacities(plan, system)
+    over = {c.name for c in computers if c.overloaded}
+    calibration = {n.node: n.cpu_measured / n.cpu_expected for n in nodes
+                   if n.computer in over and n.cpu_measured is not None and n.cpu_expected}
+    kept = predict_kept(plan, system, capacities, calibration)
+    if not over and not any(c.capped for c in kept.computers):
+        return None
+    measured = {n.node: [t.f_measured for t in n.topics if t.f_expected] for n in nodes}
+    for k in kept.nodes:
+        rates = measured.get(k.node) or []
+        k.f_measured = sum(rates) / len(rates) if rates else None
+    return kept
 
 
 def _compare_metric(n: NodeCheck, value: float | None, system: System | None, notes: list[str]) -> None:

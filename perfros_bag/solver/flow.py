@@ -1,0 +1,225 @@
+"""The heuristics on a system with driven nodes (system.yaml ``input``).
+
+The paper's greedy and greedy+ treat every node's choices as independent. Along the data
+flow they are not: a driven node's choice must be made for the rate its input's publisher
+gives (:meth:`~perfros_bag.system.types.System.flow_choices`). Fix, for every node that
+drives others (a *publisher*), the rates it publishes (its *rate class*), and what is left
+is the paper's problem: each publisher keeps its choices in that class, each driven node
+its choices at that input rate, and every combination of them is consistent. A publisher
+that is itself driven is fixed by its own setting instead (its rates then follow its input).
+So:
+
+- one inner run of the heuristic per assignment of rate classes (:func:`_restricted`);
+- every assignment when there are at most :data:`ENUMERATE` of them (a camera with three
+  rates and a throttle with four: 12), else a coordinate search valued by the paper's
+  greedy (fast): start with every publisher at its lowest class, then, publisher by
+  publisher, keep the class that gives the best plan, until a pass changes nothing or
+  :data:`PASSES` passes have run; greedy+ then runs on the :data:`FINALISTS` best
+  assignments the search saw.
+
+The exact solver needs none of this: its rows tie the choices together
+(:func:`perfros_bag.solver.exact._flow_rows`).
+"""
+
+from __future__ import annotations
+
+import itertools
+import time
+from collections.abc import Iterable, Mapping
+
+from perfros_bag.system.plan import Method, Plan, Status
+from perfros_bag.system.types import Choice, Problem, System
+
+#: at most this many rate-class assignments are all tried; above, a coordinate search
+ENUMERATE = 64
+#: coordinate-search passes over the publishers
+PASSES = 3
+#: greedy+ runs on this many of the coordinate search's best assignments
+FINALISTS = 1
+#: the whole search's time (seconds) when the caller sets none: past it, the best plan found
+#: so far (at least the first assignment's, every publisher at its cheapest) is the answer
+SEARCH_BUDGET_S = 60.0
+
+#: per publisher: the rates it publishes (one per node it drives), or a driven publisher's own setting
+Pick = tuple[float, ...] | int
+Classes = dict[str, Pick]
+
+
+def solve_heuristic(system: System, problem: Problem, choices: dict[str, list[Choice]], method: Method, *,
+                    time_budget: float | None = None) -> Plan:
+    """``method`` (greedy or greedy+) on ``choices``; along the data flow when the system has one."""
+    if not system.has_flow:
+        return _inner(system, problem, choices, method, time_budget)
+    deadline = time.monotonic() + (SEARCH_BUDGET_S if time_budget is None else time_budget)
+    options = _class_options(system, choices)
+    publishers = sorted(options, key=lambda p: system.flow_order.index(p) if p in system.flow_order else -1)
+    tried: dict[tuple[Method, tuple[Pick, ...]], Plan | None] = {}
+
+    def run(classes: Classes, how: Method) -> Plan | None:
+        key = (how, tuple(classes[p] for p in publishers))
+        if key not in tried:
+            restricted = _restricted(system, choices, classes)
+            left = max(deadline - time.monotonic(), 0.0)
+            tried[key] = None if restricted is None else _inner(system, problem, restricted, how, left)
+        return tried[key]
+
+    def late() -> bool:
+        return time.monotonic() > deadline
+
+    combos = 1
+    for p in publishers:
+        combos *= len(options[p])
+    if combos <= ENUMERATE:  # few: every assignment with the method itself
+        for pick in itertools.product(*(options[p] for p in publishers)):
+            if late() and tried:
+                break
+            run(dict(zip(publishers, pick, strict=True)), method)
+        return _best(tried.values(), problem, method, system)
+    # many: a coordinate search valued by the (fast) greedy, then greedy+ on its best few;
+    # a move sets every publisher of one source's tree at once (a camera's rate together
+    # with its detector's setting), one publisher at a time where a tree has too many
+    current: Classes = {p: options[p][0] for p in publishers}
+    best = run(current, Method.GREEDY)
+    seen: list[Classes] = [current]
+    moves: list[list[Classes]] = []
+    for members in _trees(system, publishers):
+        joint = [dict(zip(members, pick, strict=True)) for pick in itertools.product(*(options[p] for p in members))]
+        if len(joint) <= ENUMERATE:
+            moves.append(joint)
+        else:
+            moves.extend([{p: cls} for cls in options[p]] for p in members)
+    for _ in range(PASSES):
+        changed = False
+        for move in moves:
+            for change in move:
+                if late():
+                    break
+                trial = {**current, **change}
+                plan = run(trial, Method.GREEDY)
+                if plan is not None:
+                    seen.append(trial)
+                if _better(plan, best, problem):
+                    best, current, changed = plan, trial, True
+        if not changed:
+            break
+    if method == Method.GREEDY:
+        return _best(tried.values(), problem, method, system)
+    ranked = sorted(seen, key=lambda c: _rank(run(c, Method.GREEDY), problem))
+    finalists: list[Classes] = []
+    for c in ranked:
+        if c not in finalists:
+            finalists.append(c)
+        if len(finalists) == FINALISTS:
+            break
+    for c in finalists:
+        if late() and any(k[0] == method for k in tried):
+            break
+        run(c, method)
+    return _best([plan for (how, _), plan in tried.items() if how == method] or list(tried.values()),
+                 problem, method, system)
+
+
+def _trees(system: System, publishers: list[str]) -> list[list[str]]:
+    """The publishers grouped by the source their data comes from, in ``publishers`` order."""
+    groups: dict[str, list[str]] = {}
+    for p in publishers:
+        root = p
+        while root in system.flow_parent:
+            root = system.flow_parent[root]
+        groups.setdefault(root, []).append(p)
+    return list(groups.values())
+
+
+def _rank(plan: Plan | None, problem: Problem) -> tuple[int, float]:
+    """Sort key: plans first, the best objective first."""
+    if plan is None or plan.status == Status.INFEASIBLE or plan.objective is None:
+        return (1, 0.0)
+    return (0, -plan.objective if problem == Problem.PERFORMANCE else plan.objective)
+
+
+def _inner(system: System, problem: Problem, choices: dict[str, list[Choice]], method: Method,
+           time_budget: float | None) -> Plan:
+    if method == Method.GREEDY_PLUS:
+        from perfros_bag.solver.local import solve_greedy_plus
+
+        return solve_greedy_plus(system, problem, choices, time_budget=time_budget)
+    from perfros_bag.solver.greedy import solve_greedy
+
+    return solve_greedy(system, problem, choices)
+
+
+def _output(system: System, publisher: str, choice: Choice) -> tuple[float, ...]:
+    """The rates a publisher's choice gives the nodes it drives, in their order."""
+    return tuple(system.input_hz(child, choice) for child in system.flow_children[publisher])
+
+
+def _class_options(system: System, choices: Mapping[str, list[Choice]]) -> dict[str, list[Pick]]:
+    """Per publisher, what fixes its rates: a source's rate classes, the lowest total rate
+    first; a driven publisher's own settings, the least CPU per input message first."""
+    out: dict[str, list[Pick]] = {}
+    for p in system.flow_children:
+        if p in system.flow_parent:
+            node = system.node[p]
+            own = sorted({ch.setting for ch in choices[p] if ch.setting is not None},
+                         key=lambda j: (node.settings[j].cpu_per_hz or 0.0, node.settings[j].cpu, j))
+            out[p] = list(own)
+        else:
+            rates: list[tuple[float, ...]] = sorted({_output(system, p, ch) for ch in choices[p]},
+                                                    key=lambda c: (sum(c), c))
+            out[p] = list(rates)
+    return out
+
+
+def _restricted(system: System, choices: Mapping[str, list[Choice]], classes: Classes) -> dict[str, list[Choice]] | None:
+    """The choices consistent with ``classes``: a source publisher's in its rate class, a
+    driven node's at the rate its publisher then gives it (and a driven publisher's at its
+    own setting); None when a node has none left."""
+    out: dict[str, list[Choice]] = {}
+    given: dict[str, tuple[float, ...]] = {}  # publisher -> the rates it gives its children
+    for name, options in choices.items():  # the sources first: driven nodes below, in flow order
+        if name in system.flow_parent:
+            continue
+        kept = options
+        cls = classes.get(name)
+        if isinstance(cls, tuple):
+            kept = [ch for ch in kept if _output(system, name, ch) == cls]
+            given[name] = cls
+        if not kept:
+            return None
+        out[name] = kept
+    for name in system.flow_order:
+        parent = system.flow_parent[name]
+        rate = given[parent][system.flow_children[parent].index(name)]
+        kept = [ch for ch in choices[name] if ch.input_hz == rate]
+        if name in classes:
+            kept = [ch for ch in kept if ch.setting == classes[name]]
+            if kept:
+                given[name] = _output(system, name, kept[0])
+        if not kept:
+            return None
+        out[name] = kept
+    return {name: out[name] for name in choices}
+
+
+def _better(plan: Plan | None, than: Plan | None, problem: Problem) -> bool:
+    if plan is None or plan.status == Status.INFEASIBLE or plan.objective is None:
+        return False
+    if than is None or than.status == Status.INFEASIBLE or than.objective is None:
+        return True
+    if problem == Problem.PERFORMANCE:
+        return plan.objective > than.objective + 1e-9
+    return plan.objective < than.objective - 1e-9
+
+
+def _best(plans: Iterable[Plan | None], problem: Problem, method: Method, system: System) -> Plan:
+    found = list(plans)
+    best: Plan | None = None
+    for plan in found:
+        if _better(plan, best, problem):
+            best = plan
+    if best is not None:
+        best.method = method
+        return best
+    reasons = [p.reason for p in found if p is not None and p.reason]
+    why = reasons[0] if reasons else "no setting of the driven nodes fits any rate their inputs can take"
+    return Plan.infeasible(problem, method, f"{why} (at every input rate tried)", system=system.source)
