@@ -140,6 +140,10 @@ def test_init_drafts_the_replaced_node_as_a_source_of_its_rates(replayed: tuple[
     assert [s["value"] for s in camera["settings"]] == sorted(e.settings["camera"] for e in settings)
     assert IMAGE in camera["topics"] and "/perfros_replay/loop" not in camera["topics"]
     assert {"from": "camera", "to": "detector", "topic": IMAGE} in doc["edges"]
+    # the factors vary the detector's input: init drafts it as driven by the replayed images
+    detector = nodes["detector"]
+    assert detector["input"] == IMAGE
+    assert all(s["cpu_per_hz"] > 0 for s in detector["settings"])
     step = _cli("solve", str(system), "--problem", "1", "--method", "greedy", "--out", str(d / "plan.json"))
     assert step.returncode == 0, step.stderr
 
