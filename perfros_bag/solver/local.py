@@ -24,7 +24,7 @@ import itertools
 import math
 import random
 import time
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 
 import numpy as np
 
@@ -125,7 +125,7 @@ def feasible_start(system: System, problem: Problem, choices: dict[str, list[Cho
         for c in state.computers:
             state.cap[c] = state.maxcap[c]
     order = sorted(range(len(state.groups)), key=lambda gi: (len(state.group_allowed[gi]), -state.group_cpu(gi), gi))
-    budget = [SEARCH_BUDGET]
+    budget = SEARCH_BUDGET
 
     def levels(gi: int) -> list[dict[str, int]]:
         """The lowest settings, and for a lone node the one sending the least traffic."""
@@ -139,22 +139,34 @@ def feasible_start(system: System, problem: Problem, choices: dict[str, list[Cho
                     out.append({n: k})
         return out
 
-    def dfs(i: int) -> bool:
-        if i == len(order):
-            return True
-        gi = order[i]
-        for c in sorted(state.group_allowed[gi], key=lambda c: (-state.free(c), state.computers.index(c))):
-            for lv in levels(gi):
-                budget[0] -= 1
-                if budget[0] < 0:
-                    return False
-                if state.change({n: (c, k) for n, k in lv.items()}) is None:
-                    if dfs(i + 1):
-                        return True
-                    state.change({n: (None, 0) for n in lv})
-        return False
+    def candidates(gi: int) -> Iterator[tuple[str, dict[str, int]]]:
+        """Where and at which levels group ``gi`` may go, the freest computer first (as the
+        state is now)."""
+        comps = sorted(state.group_allowed[gi], key=lambda c: (-state.free(c), state.computers.index(c)))
+        return iter([(c, lv) for c in comps for lv in levels(gi)])
 
-    return state if dfs(0) else None
+    # depth-first search with an explicit stack (a fleet has thousands of groups: no recursion)
+    if not order:
+        return state
+    stack = [candidates(order[0])]
+    applied: list[dict[str, int]] = []  # the levels placed at each depth of the stack
+    while stack:
+        if len(applied) == len(stack):  # the deeper search failed: undo this depth's placement
+            state.change({n: (None, 0) for n in applied.pop()})
+        for c, lv in stack[-1]:
+            budget -= 1
+            if budget < 0:
+                return None
+            if state.change({n: (c, k) for n, k in lv.items()}) is None:
+                applied.append(lv)
+                break
+        else:
+            stack.pop()
+            continue
+        if len(stack) == len(order):
+            return state
+        stack.append(candidates(order[len(stack)]))
+    return None
 
 
 # ---- Problem 1 ------------------------------------------------------------------------
@@ -216,15 +228,23 @@ class Improver:
         return int(math.floor(self.s.cap[comp] * self.scale + 1e-6))
 
     def table(self, comp: str, nodes: frozenset[str]) -> np.ndarray:
+        """The knapsack table of ``nodes`` on ``comp``, built from its longest cached prefix
+        (the nodes in :attr:`State.order`), every prefix cached on the way (no recursion)."""
         key = (comp, nodes)
         t = self.tables.get(key)
-        if t is None:
-            if not nodes:
-                t = np.zeros(self._cap(comp) + 1)
-            else:
-                last = max(nodes, key=self.s.order.__getitem__)
-                t = combine_tables(self.table(comp, nodes - {last}), *self.items[last])[0]
-            self.tables[key] = t
+        if t is not None:
+            return t
+        ordered = sorted(nodes, key=self.s.order.__getitem__)
+        prefixes = [frozenset(ordered[:k]) for k in range(len(ordered) + 1)]
+        k = next((k for k in range(len(ordered), -1, -1) if (comp, prefixes[k]) in self.tables), -1)
+        if k < 0:
+            t = self.tables[(comp, prefixes[0])] = np.zeros(self._cap(comp) + 1)
+            k = 0
+        else:
+            t = self.tables[(comp, prefixes[k])]
+        for j in range(k, len(ordered)):
+            t = combine_tables(t, *self.items[ordered[j]])[0]
+            self.tables[(comp, prefixes[j + 1])] = t
         return t
 
     def value(self, comp: str, base: Iterable[str], extra: Iterable[str] = ()) -> float:
