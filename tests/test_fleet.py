@@ -11,7 +11,7 @@ from typing import Any
 
 import pytest
 
-from perfros_bag.casestudy.instances import fleet_instance, random_instance
+from perfros_bag.casestudy.instances import fleet_instance, random_instance, wifi_fleet_instance
 from perfros_bag.solver import (
     DECOMPOSE_COLUMNS,
     exact_columns,
@@ -96,7 +96,10 @@ def test_progress_reports_incumbent_and_bound() -> None:
     assert seen[-1][0] == pytest.approx(plan.objective) and seen[-1][1] == pytest.approx(plan.bound)
 
 
-def test_not_decomposable_when_the_network_can_bind() -> None:
+def test_not_decomposable_when_traffic_between_blocks_could_fill_the_network() -> None:
+    """A case-study instance whose robot nodes may run on any computer has no private
+    robot: every edge is between blocks, its traffic cannot be priced in a block and could
+    fill the tight wifi, so the instance is the MILP's."""
     system = system_of(random_instance(random.Random(4), tight_network=True))
     choices = fixed_choices(system, Problem.PERFORMANCE)
     assert not decomposable(system, Problem.PERFORMANCE, choices)
@@ -138,19 +141,20 @@ def test_a_bound_is_never_looser_than_the_trivial_one() -> None:
 
 def binding_network(data: dict[str, Any]) -> dict[str, Any]:
     """The fleet with its wifi cut to half of what its links could ever carry: the network
-    can bind, so the instance does not decompose (``solve`` uses the MILP)."""
+    can bind (the decomposition carries it as coupling rows, issue 22)."""
     system = system_of(data)
     inst = exact_mod.prepare_instance(system, Problem.PERFORMANCE, fixed_choices(system, Problem.PERFORMANCE))
     assert not isinstance(inst, str)
     potential, _ = exact_mod._load_bounds(inst, forced=False)
     out = copy.deepcopy(data)
     out["media"][0]["bandwidth_kBps"] = system.medium_load(potential, out["media"][0]["name"]) / 2
-    assert not decomposable(system_of(out), Problem.PERFORMANCE, fixed_choices(system, Problem.PERFORMANCE))
+    assert exact_mod.active_links(exact_mod.prepare_instance(system_of(out), Problem.PERFORMANCE,  # type: ignore[arg-type]
+                                                             fixed_choices(system, Problem.PERFORMANCE)))
     return out
 
 
 FLEET = fleet_instance(200, 20, seed=0)
-LIMITED = [("decomposed", FLEET, 1), ("milp", binding_network(FLEET), 1), ("problem2", FLEET, 2),
+LIMITED = [("decomposed", FLEET, 1), ("binding", binding_network(FLEET), 1), ("problem2", FLEET, 2),
            ("small", fleet_instance(40, 5, seed=1), 1)]
 
 
@@ -193,3 +197,43 @@ def test_a_time_limited_plan_passes_the_checker_and_states_a_proven_bound(
         assert plan.bound == pytest.approx(plan.objective, rel=1e-6)
     else:
         assert plan.bound != pytest.approx(plan.objective, rel=1e-9, abs=0.0)
+
+
+def roomy_server(data: dict[str, Any]) -> dict[str, Any]:
+    """The fleet with server capacity to spare and robots too small for a detector at its
+    best beside their stack: the access points, not the server, limit offloading."""
+    for c in data["computers"]:
+        c["capacity"] = c["capacity"] * 4 if c["kind"] == "server" else min(c["capacity"], 90)
+    return data
+
+
+WIFI = [(f"wifi-{seed}-{'curves' if c else 'settings'}-{per_ap}",
+         roomy_server(wifi_fleet_instance(6, 1, robots_per_ap=per_ap, trackers=2, ap_kBps=2350.0, seed=seed,
+                                          continuous=c)))
+        for seed, c, per_ap in ((1, False, 3), (2, False, 2), (3, True, 3))]
+
+
+@pytest.mark.parametrize(("name", "data"), WIFI, ids=[c[0] for c in WIFI])
+def test_binding_networks_decompose_with_a_proven_bound(name: str, data: dict[str, Any]) -> None:
+    """Issue 22: links and media that can overflow are coupling rows of the decomposition.
+    On small fleets whose access points bind (one detector per access point may be
+    offloaded), the decomposition's bound is at least the exact MILP's optimum, which is at
+    least its plan's objective, and the plan passes the checker."""
+    system = system_of(data, name)
+    choices = fixed_choices(system, Problem.PERFORMANCE)
+    inst = exact_mod.prepare_instance(system, Problem.PERFORMANCE, choices)
+    assert not isinstance(inst, str) and exact_mod.active_links(inst)  # the network can bind
+    assert decomposable(system, Problem.PERFORMANCE, choices)
+    exact = solve_exact(system, Problem.PERFORMANCE, choices, time_limit=60)
+    assert exact.status == Status.OPTIMAL and exact.objective is not None
+    plan = solve_decomposed(system, Problem.PERFORMANCE, choices)
+    assert plan is not None and plan.method == Method.EXACT
+    assert_bounds(system, plan, exact.objective)
+    # the network binds at the optimum: more offloading would pay without it
+    unbound = copy.deepcopy(data)
+    for m in unbound["media"]:
+        m["bandwidth_kBps"] = 1e9
+    for link in unbound["links"]:
+        link["bandwidth_kBps"] = 1e9
+    free = system_of(unbound, name)
+    assert solve_exact(free, Problem.PERFORMANCE, fixed_choices(free, Problem.PERFORMANCE)).objective > exact.objective + 1e-6

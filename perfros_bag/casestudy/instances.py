@@ -309,10 +309,11 @@ AP_kBps = 9000.0  # one access point: three 2.3 MB/s camera streams fit, four do
 
 
 def wifi_fleet_instance(n_robots: int = 90, n_servers: int = 10, *, robots_per_ap: int = 9,
-                        ap_kBps: float = AP_kBps, seed: int = 0, continuous: bool = True) -> dict[str, Any]:
+                        ap_kBps: float = AP_kBps, seed: int = 0, continuous: bool = True,
+                        trackers: int | None = None) -> dict[str, Any]:
     """A fleet whose network binds: :func:`fleet_instance` with ``n_robots + n_servers``
     computers (one stack per robot, the rest of 1,000 nodes per 100 computers camera
-    trackers) plus, per robot, a ``camera<r>`` (on its robot, 2.3 MB/s) feeding a
+    trackers; or ``trackers`` of them) plus, per robot, a ``camera<r>`` (on its robot, 2.3 MB/s) feeding a
     ``detector<r>`` (on its robot or any server) that feeds ``environment<r>``. The robots'
     links to the first server are grouped ``robots_per_ap`` at a time on access points
     ``ap<j>`` (shared media) of ``ap_kBps`` each, so at most ``ap_kBps // 2300`` of an access
@@ -321,15 +322,16 @@ def wifi_fleet_instance(n_robots: int = 90, n_servers: int = 10, *, robots_per_a
     if n_robots < 1 or n_servers < 1 or robots_per_ap < 1:
         raise ValueError("a wifi fleet needs at least one robot, one server and one robot per access point")
     n_computers = n_robots + n_servers
-    if n_computers // 10 != n_servers:
+    if max(1, n_computers // 10) != n_servers:
         raise ValueError("fleet_instance makes one computer in ten a server: n_servers must be (robots+servers)//10")
-    data = fleet_instance(10 * n_computers, n_computers, seed=seed, continuous=continuous)
+    n_nodes = 10 * n_computers if trackers is None else 1 + 6 * n_robots + trackers
+    data = fleet_instance(n_nodes, n_computers, seed=seed, continuous=continuous)
     rng = random.Random(seed + 1)
     servers = [c["name"] for c in data["computers"] if c["kind"] == "server"]
     robots = [c["name"] for c in data["computers"] if c["kind"] == "robot"]
     # weighted like a tracker (a detector) and an environment node (a camera) of this fleet
     weight = {n["name"]: n["weight"] for n in data["nodes"]}
-    w_detector, w_camera = weight["tracker1"] * rng.uniform(0.5, 2.0), weight["environment1"]
+    w_detector, w_camera = weight["amcl1"] * rng.uniform(0.5, 2.0), weight["environment1"]
     for r, robot in enumerate(robots, start=1):
         camera = {"name": f"camera{r}", "weight": w_camera, "residence": [robot], "topics": [f"/camera{r}/out"],
                   "settings": [{"cpu": CAMERA_SETTING[1], "performance": CAMERA_SETTING[2],

@@ -36,7 +36,7 @@ import itertools
 import math
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -63,6 +63,9 @@ REL_TOL = 1e-6  # "optimal": bound - objective within this (relative), as exact.
 FIRST_MIP_SHARE = 0.5  # of the time left, for the MILP over the generated columns
 NEAR_LIMIT = 20_000  # columns the reduced-cost enumeration may add (else it is not tried)
 CG_TOL = 1e-7  # column generation stops when the LP is this close to the bound (relative)
+GREEDY_PLUS_SHARE = 0.1  # of the budget, for greedy+'s first plan when the greedy finds none ...
+GREEDY_PLUS_MAX_S = 2.0  # ... at most this (its local search can take all it is given on a binding network)
+MAX_PATTERNS = 1024  # with network rows: home/away patterns of one block's pricing
 
 
 @dataclass
@@ -79,6 +82,18 @@ class _Item:
 
 
 @dataclass
+class _Edge:
+    """An edge between two items of one block (a class with one instance): it loads the
+    network rows when its ends are on different computers."""
+
+    pub: int  # the publisher's item
+    member: int  # the publisher's position among its item's members
+    sub: int  # the subscriber's item
+    bw: np.ndarray  # kB/s at each kept choice of the publisher
+    home_bw: np.ndarray  # kB/s at each home option of the publisher's item
+
+
+@dataclass
 class _Class:
     """Identical subproblems: a private robot and its groups, or one lone group."""
 
@@ -87,6 +102,8 @@ class _Class:
     items: list[_Item]
     instances: list[list[tuple[str, ...]]]  # per instance, the member names of each item
     home_of: list[str | None]  # per instance, its private robot
+    edges: list[_Edge] = field(default_factory=list)  # with network rows: the block's own edges
+    links: frozenset[int] = frozenset()  # the network rows' links those edges may cross
 
 
 @dataclass
@@ -101,8 +118,11 @@ class _Column:
 class _Model:
     inst: Instance
     relaxed: list[str]
-    cap: np.ndarray  # per relaxed computer
+    cap: np.ndarray  # per coupling row: the relaxed computers' CPU, then the network rows' kB/s
     classes: list[_Class]
+    # network rows (after the CPU rows): per link that can overflow, its row and its medium's row
+    link_rows: dict[int, list[int]] = field(default_factory=dict)
+    reserve: np.ndarray = field(default_factory=lambda: np.zeros(0))  # per row: traffic between blocks, at most
 
 
 def cpu_grid_scale(cpus: Sequence[float]) -> int | None:
@@ -137,8 +157,11 @@ def home_options(inst: Instance, members: tuple[str, ...], scale: int) -> tuple[
     return (np.array(keep, dtype=np.int64), np.array([best[u][0] for u in keep]), [best[u][1] for u in keep])
 
 
-def _model(system: System, inst: Instance) -> _Model | str:
-    """The blocks and classes of a prepared instance, or why it does not decompose."""
+def _model(system: System, inst: Instance, active: set[int] | None = None) -> _Model | str:
+    """The blocks and classes of a prepared instance, or why it does not decompose.
+    ``active``: the links that can overflow (``exact.active_links``): each, and each medium
+    of one, becomes a network row beside the relaxed computers' CPU rows."""
+    active = active or set()
     kind = {c.name: c.kind for c in system.computers}
     robots_of = {g.members: [c for c in g.allowed if kind[c] == "robot"] for g in inst.groups}
     private = {c.name for c in system.computers if c.kind == "robot"}
@@ -181,7 +204,8 @@ def _model(system: System, inst: Instance) -> _Model | str:
         if not gs:
             continue
         cap_units = int(math.floor(inst.cap[home] * scale + 1e-6))
-        sig: tuple[Any, ...] = (cap_units, tuple(sorted((signature(g) for g in gs), key=repr)))
+        sig: tuple[Any, ...] = (cap_units, tuple(sorted((signature(g) for g in gs), key=repr)),
+                                home if active else None)  # with network rows, every block its own class
         gs = sorted(gs, key=lambda g: repr(signature(g)))
         if sig in by_sig:
             cl = classes[by_sig[sig]]
@@ -205,7 +229,69 @@ def _model(system: System, inst: Instance) -> _Model | str:
         by_sig[sig] = len(classes)
         classes.append(_Class(None, 0, [it], [[g.members]], [None]))
     cap = np.array([inst.cap[c] for c in relaxed], dtype=float)
-    return _Model(inst, relaxed, cap, classes)
+    model = _Model(inst, relaxed, cap, classes)
+    if active:
+        why = _network_rows(model, active)
+        if why is not None:
+            return why
+    return model
+
+
+def _network_rows(model: _Model, active: set[int]) -> str | None:
+    """Add the network's coupling rows to ``model``: one per link that can overflow and one
+    per medium of such a link; each block's own edges (both ends in the block) become
+    :class:`_Edge` s priced in its subproblem; the traffic of every other edge (between
+    blocks, to a lone group), at its most, is reserved on the rows it may cross when the
+    plan is made (the bound does not need it: leaving traffic out only relaxes). Returns why
+    the instance does not decompose, or None."""
+    inst, system = model.inst, model.inst.system
+    n_cpu = len(model.relaxed)
+    caps: list[float] = []
+    for li in sorted(active):
+        model.link_rows[li] = [n_cpu + len(caps)]
+        caps.append(system.links[li].bandwidth_kBps)
+    for m in system.media:
+        links = [li for li in system.medium_links[m.name] if li in active]
+        if links:
+            row = n_cpu + len(caps)
+            caps.append(m.bandwidth_kBps)
+            for li in system.medium_links[m.name]:
+                model.link_rows.setdefault(li, []).append(row)
+    reserve = np.zeros(n_cpu + len(caps))
+    where: dict[str, tuple[int, int, int]] = {}  # node -> (class, item, member) inside a block
+    for ci, cl in enumerate(model.classes):
+        if cl.home is not None:
+            for i, members in enumerate(cl.instances[0]):
+                for j, n in enumerate(members):
+                    where[n] = (ci, i, j)
+    for e in system.edges:
+        bw = np.array([system.edge_bandwidth(e, ch) for ch in inst.choices[e.src]])
+        if len(bw) == 0 or bw.max() <= 0:
+            continue
+        _, maybe = exact_mod._crossings(inst, e)
+        rows = [row for li in maybe for row in model.link_rows.get(li, ())]
+        if not rows:
+            continue
+        a, b = where.get(e.src), where.get(e.dst)
+        if a is not None and b is not None and a[0] == b[0]:
+            if a[1] != b[1]:
+                cl = model.classes[a[0]]
+                it = cl.items[a[1]]
+                home_bw = np.array([bw[levels[a[2]]] for levels in it.home_levels]) if it.home_levels else np.zeros(0)
+                cl.edges.append(_Edge(a[1], a[2], b[1], bw, home_bw))
+                cl.links = cl.links | frozenset(li for li in maybe if li in model.link_rows)
+            continue
+        for row in rows:
+            reserve[row] += bw.max()
+    for cl in model.classes:
+        free = sum(1 for it in cl.items if len(it.relaxed) and len(it.home_units))
+        if cl.edges and 2 ** free > MAX_PATTERNS:
+            return f"a block has {free} node groups that may go either way: more than {MAX_PATTERNS} patterns to price"
+    model.cap = np.concatenate([model.cap, np.array(caps)])
+    model.reserve = reserve
+    if np.any(reserve[n_cpu:] >= model.cap[n_cpu:]):
+        return "the traffic between blocks could fill a link or medium"
+    return None
 
 
 def _qualified(system: System, problem: Problem, choices: dict[str, list[Choice]],
@@ -215,9 +301,9 @@ def _qualified(system: System, problem: Problem, choices: dict[str, list[Choice]
     if problem != Problem.PERFORMANCE:
         return None
     inst = exact_mod.prepare_instance(system, problem, choices) if prepared is None else prepared
-    if isinstance(inst, str) or exact_mod.active_links(inst):
+    if isinstance(inst, str):
         return None
-    model = _model(system, inst)
+    model = _model(system, inst, exact_mod.active_links(inst))
     return None if isinstance(model, str) else model
 
 
@@ -249,6 +335,8 @@ def _price(model: _Model, ci: int, lam: np.ndarray) -> tuple[float, _Column]:
     """The class's best column at prices ``lam`` and its reduced value (before the
     convexity dual)."""
     cl = model.classes[ci]
+    if cl.edges and any(lam[row] > 0 for li in cl.links for row in model.link_rows[li]):
+        return _price_network(model, ci, lam)
     offs = [_offload(it, lam) for it in cl.items]
     if cl.home is None:
         red, r, levels = offs[0]
@@ -276,6 +364,106 @@ def _price(model: _Model, ci: int, lam: np.ndarray) -> tuple[float, _Column]:
     return float(table[-1]), _column(model, ci, tuple(parts))
 
 
+def _price_network(model: _Model, ci: int, lam: np.ndarray) -> tuple[float, _Column]:
+    """A block's best column when its own edges' traffic is priced (``lam`` on the network
+    rows): every home/away pattern of its items, in a tree (each item decided in turn, the
+    items that must stay home first; a home item adds its settings to the robot's knapsack
+    table, an away item its best relaxed computer and settings). Each edge's price is taken
+    when the later of its two items is decided: exactly when that one is the publisher away
+    (its computer and setting known) or the publisher home (its setting, in the table);
+    otherwise at its least (the publisher's least traffic, the cheapest route). An edge with
+    both ends home or both away is free. So the returned value is at least the best column's
+    true reduced value (the Lagrangian bound stays a bound), and the column is a real one
+    (its load is computed exactly by :func:`_column`)."""
+    cl = model.classes[ci]
+    home = cl.home_of[0]
+    assert home is not None
+    system = model.inst.system
+    price = {li: float(sum(lam[row] for row in rows)) for li, rows in model.link_rows.items()}
+
+    def route_price(a: str, b: str) -> float:
+        return sum(price.get(li, 0.0) for li in system.route(a, b) or ())
+
+    n = len(cl.items)
+    order = sorted(range(n), key=lambda i: (len(cl.items[i].relaxed) > 0 and len(cl.items[i].home_units) > 0, i))
+    pos = {i: p for p, i in enumerate(order)}
+    later: list[list[_Edge]] = [[] for _ in range(n)]
+    for e in cl.edges:
+        later[e.pub if pos[e.pub] > pos[e.sub] else e.sub].append(e)
+    out_price: list[np.ndarray] = []  # per item: route price home -> each relaxed computer
+    in_price: list[np.ndarray] = []  # per item: route price each relaxed computer -> home
+    for it in cl.items:
+        out_price.append(np.array([route_price(home, model.relaxed[r]) for r in it.relaxed]))
+        in_price.append(np.array([route_price(model.relaxed[r], home) for r in it.relaxed]))
+
+    def home_values(i: int, away: dict[int, bool]) -> np.ndarray:
+        it = cl.items[i]
+        vals = it.home_values.copy()
+        for e in later[i]:
+            other = e.sub if e.pub == i else e.pub
+            if not away[other]:
+                continue
+            if e.pub == i:  # home publisher -> away subscriber: its setting's traffic, the cheapest route
+                vals = vals - e.home_bw * float(out_price[other].min())
+            else:  # away publisher (decided before) -> home: its least traffic, the cheapest route
+                vals = vals - float(e.bw.min()) * float(in_price[other].min())
+        return vals
+
+    def away_value(i: int, away: dict[int, bool]) -> tuple[float, int, tuple[int, ...]]:
+        it = cl.items[i]
+        prices = lam[it.relaxed]
+        total = np.zeros(len(it.relaxed))
+        reds = [val[None, :] - prices[:, None] * cpu[None, :] for cpu, val in zip(it.member_cpu, it.member_val,
+                                                                                  strict=True)]
+        for e in later[i]:
+            other = e.sub if e.pub == i else e.pub
+            if away[other]:
+                continue
+            if e.pub == i:  # away publisher -> home subscriber: exact
+                reds[e.member] = reds[e.member] - in_price[i][:, None] * e.bw[None, :]
+            else:  # home publisher (in the table) -> away subscriber: its least traffic
+                total -= float(e.bw.min()) * out_price[i]
+        picks = []
+        for red in reds:
+            arg = np.argmax(red, axis=1)
+            total += red[np.arange(len(prices)), arg]
+            picks.append(arg)
+        r = int(np.argmax(total))
+        return float(total[r]), int(it.relaxed[r]), tuple(int(p[r]) for p in picks)
+
+    best = -math.inf
+    best_path: tuple[tuple[int, bool, Any], ...] = ()
+    # depth-first over the patterns, an explicit stack: (depth, table, constant, decisions)
+    stack: list[tuple[int, np.ndarray, float, tuple[tuple[int, bool, Any], ...]]] = [
+        (0, np.zeros(cl.cap_units + 1), 0.0, ())]
+    while stack:
+        depth, table, const, path = stack.pop()
+        if depth == n:
+            if float(table[-1]) + const > best:
+                best, best_path = float(table[-1]) + const, path
+            continue
+        i = order[depth]
+        it = cl.items[i]
+        away = {j: a for j, a, _ in path}
+        if len(it.home_units):
+            t, arg = combine_tables(table, it.home_units, home_values(i, away))
+            if np.isfinite(t[-1]):
+                stack.append((depth + 1, t, const, (*path, (i, False, arg))))
+        if len(it.relaxed):
+            v, r, levels = away_value(i, away)
+            stack.append((depth + 1, table, const + v, (*path, (i, True, (r, levels)))))
+    parts: list[tuple[int, tuple[int, ...]]] = [(-1, ())] * n
+    x = cl.cap_units
+    for i, is_away, data in reversed(best_path):
+        if is_away:
+            parts[i] = data
+        else:
+            k = int(data[x])
+            parts[i] = (-1, cl.items[i].home_levels[k])
+            x -= int(cl.items[i].home_units[k])
+    return best, _column(model, ci, tuple(parts))
+
+
 def _column(model: _Model, ci: int, parts: tuple[tuple[int, tuple[int, ...]], ...]) -> _Column:
     cl = model.classes[ci]
     value = 0.0
@@ -285,6 +473,16 @@ def _column(model: _Model, ci: int, parts: tuple[tuple[int, tuple[int, ...]], ..
             value += float(val[k])
             if r >= 0:
                 use[r] = use.get(r, 0.0) + float(cpu[k])
+    if cl.edges:  # the block's own traffic on the network rows, exactly
+        route = model.inst.system.route
+        where = [cl.home_of[0] if r < 0 else model.relaxed[r] for r, _ in parts]
+        for e in cl.edges:
+            a, b = where[e.pub], where[e.sub]
+            if a != b:
+                bw = float(e.bw[parts[e.pub][1][e.member]])
+                for li in route(a, b) or ():  # type: ignore[arg-type]
+                    for row in model.link_rows.get(li, ()):
+                        use[row] = use.get(row, 0.0) + bw
     return _Column(ci, value, use, parts)
 
 
@@ -381,7 +579,7 @@ class _Master:
         self.h.changeObjectiveSense(highspy.ObjSense.kMaximize)
         self.model = model
         inf = highspy.kHighsInf
-        n_cls, n_rel = len(model.classes), len(model.relaxed)
+        n_cls, n_rel = len(model.classes), len(model.cap)  # the relaxed computers' rows, then the network's
         counts = np.array([len(cl.instances) for cl in model.classes], dtype=float)
         lower = np.concatenate([counts, np.full(n_rel, -inf)])
         upper = np.concatenate([counts, model.cap])
@@ -442,6 +640,11 @@ class _Master:
                                      np.full(len(self.columns), self.hs.HighsVarType.kInteger))
         self.h.changeColsBounds(self.n_over, np.arange(self.n_over, dtype=np.int32), np.zeros(self.n_over),
                                 np.zeros(self.n_over))
+        reserve = self.model.reserve
+        if reserve.any():  # the plan leaves room for the traffic between blocks (at its most)
+            rows = np.nonzero(reserve)[0]
+            self.h.changeRowsBounds(len(rows), (self.n_cls + rows).astype(np.int32), np.full(len(rows), -self.hs.kHighsInf),
+                                    self.model.cap[rows] - reserve[rows])
         self.h.setOptionValue("time_limit", max(time_limit, 0.01))
         self.h.setOptionValue("mip_rel_gap", 0.0)
         self.h.setOptionValue("mip_abs_gap", 1e-7)
@@ -503,6 +706,18 @@ def _positions(inst: Instance, assignment: Assignment) -> dict[str, int]:
     return {n: next(i for i, c in enumerate(inst.choices[n]) if c is ch) for n, ch in assignment.choice.items()}
 
 
+def _greedy_plus_start(inst: Instance, choices: dict[str, list[Choice]],
+                       budget: float) -> tuple[Assignment, dict[str, int]] | None:
+    """greedy+'s plan (within ``budget`` seconds) mapped onto the pruned model, None when it
+    finds none: the first incumbent where the paper's greedy gets stuck on the network."""
+    from perfros_bag.solver import start_of
+    from perfros_bag.solver.local import solve_greedy_plus
+
+    plan = solve_greedy_plus(inst.system, inst.problem, choices, time_budget=max(budget, 0.0))
+    raw = start_of(plan, choices) if plan.status != Status.INFEASIBLE else None
+    return exact_mod.start_assignment(inst, raw) if raw is not None else None
+
+
 def _fits(model: _Model, assignment: Assignment) -> bool:
     system = model.inst.system
     load = computer_loads(system, assignment.placement, assignment.choice)
@@ -540,13 +755,15 @@ def solve_decomposed(system: System, problem: Problem, choices: dict[str, list[C
 
     # the paper's greedy: the first columns, and the MILP's start
     mapped = exact_mod.greedy_start(inst, choices)
+    if mapped is None and len(model.cap) > len(model.relaxed):  # a binding network: the greedy gets stuck
+        mapped = _greedy_plus_start(inst, choices, min(GREEDY_PLUS_SHARE * budget, GREEDY_PLUS_MAX_S))
     incumbent: Assignment | None = None
     if mapped is not None:
         incumbent = mapped[0]
         master.add(_column_of(model, *mapped))
     best_value = weighted_performance(system, incumbent.choice) if incumbent is not None else None
     bound = ceiling
-    lam = np.zeros(len(model.relaxed))
+    lam = np.zeros(len(model.cap))
     lp_value: float | None = None
     cg_until = elapsed() + CG_SHARE * max(budget - elapsed(), 0.0)  # what the set-up left, shared
     # column generation: the Lagrangian bound and new columns at the master's prices
@@ -596,7 +813,9 @@ def solve_decomposed(system: System, problem: Problem, choices: dict[str, list[C
             if fits and (best_value is None or value > best_value + 1e-12):
                 incumbent, best_value = found, value
             # all columns a better plan could use were there, and HiGHS proved none better
-            proven = attempt == 1 and complete and optimal_here and fits and value == best_value
+            # (a reserve for the traffic between blocks may have excluded a better plan: no proof then)
+            proven = (attempt == 1 and complete and optimal_here and fits and value == best_value
+                      and not model.reserve.any())
     if incumbent is None:
         return None
     assert best_value is not None
