@@ -124,7 +124,13 @@ def feasible_start(system: System, problem: Problem, choices: dict[str, list[Cho
     if problem == Problem.SERVER_CAPACITY:
         for c in state.computers:
             state.cap[c] = state.maxcap[c]
-    order = sorted(range(len(state.groups)), key=lambda gi: (len(state.group_allowed[gi]), -state.group_cpu(gi), gi))
+    # the most constrained first: fewest computers, then the heaviest traffic (a group that
+    # would fill an access point is placed while its peers' computer still has room), then CPU
+    traffic = [max((state.edge_bw[ei][0] for n in g for ei in state.incident[n]
+                    if state.group_of[state.edges[ei].src] != state.group_of[state.edges[ei].dst]), default=0.0)
+               for g in state.groups]
+    order = sorted(range(len(state.groups)),
+                   key=lambda gi: (len(state.group_allowed[gi]), -traffic[gi], -state.group_cpu(gi), gi))
     budget = SEARCH_BUDGET
 
     def levels(gi: int) -> list[dict[str, int]]:
@@ -139,10 +145,13 @@ def feasible_start(system: System, problem: Problem, choices: dict[str, list[Cho
                     out.append({n: k})
         return out
 
+    robots_first = problem == Problem.SERVER_CAPACITY  # a server's every unit counts against Problem 2
+
     def candidates(gi: int) -> Iterator[tuple[str, dict[str, int]]]:
         """Where and at which levels group ``gi`` may go, the freest computer first (as the
-        state is now)."""
-        comps = sorted(state.group_allowed[gi], key=lambda c: (-state.free(c), state.computers.index(c)))
+        state is now); for Problem 2 the robots first."""
+        comps = sorted(state.group_allowed[gi], key=lambda c: (robots_first and state.kind[c] == "server",
+                                                               -state.free(c), state.computers.index(c)))
         return iter([(c, lv) for c in comps for lv in levels(gi)])
 
     # depth-first search with an explicit stack (a fleet has thousands of groups: no recursion)
