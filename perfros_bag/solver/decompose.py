@@ -44,7 +44,7 @@ import numpy as np
 from perfros_bag.solver import Progress
 from perfros_bag.solver import exact as exact_mod
 from perfros_bag.solver.exact import Group, Instance, quiet_highs, trivial_bound
-from perfros_bag.solver.local import combine_tables, on_grid
+from perfros_bag.solver.local import PLUS_START_MAX_S, combine_tables, on_grid, plus_start
 from perfros_bag.system.plan import Assignment, Method, Plan, Status
 from perfros_bag.system.rules import build_plan, computer_loads, weighted_performance
 from perfros_bag.system.types import Choice, Problem, System
@@ -63,8 +63,7 @@ REL_TOL = 1e-6  # "optimal": bound - objective within this (relative), as exact.
 FIRST_MIP_SHARE = 0.5  # of the time left, for the MILP over the generated columns
 NEAR_LIMIT = 20_000  # columns the reduced-cost enumeration may add (else it is not tried)
 CG_TOL = 1e-7  # column generation stops when the LP is this close to the bound (relative)
-GREEDY_PLUS_SHARE = 0.1  # of the budget, for greedy+'s first plan when the greedy finds none ...
-GREEDY_PLUS_MAX_S = 2.0  # ... at most this (its local search can take all it is given on a binding network)
+GREEDY_PLUS_SHARE = 0.1  # of the budget, for greedy+'s first plan when the greedy finds none (at most local.PLUS_START_MAX_S)
 MAX_PATTERNS = 1024  # with network rows: home/away patterns of one block's pricing
 
 
@@ -706,18 +705,6 @@ def _positions(inst: Instance, assignment: Assignment) -> dict[str, int]:
     return {n: next(i for i, c in enumerate(inst.choices[n]) if c is ch) for n, ch in assignment.choice.items()}
 
 
-def _greedy_plus_start(inst: Instance, choices: dict[str, list[Choice]],
-                       budget: float) -> tuple[Assignment, dict[str, int]] | None:
-    """greedy+'s plan (within ``budget`` seconds) mapped onto the pruned model, None when it
-    finds none: the first incumbent where the paper's greedy gets stuck on the network."""
-    from perfros_bag.solver import start_of
-    from perfros_bag.solver.local import solve_greedy_plus
-
-    plan = solve_greedy_plus(inst.system, inst.problem, choices, time_budget=max(budget, 0.0))
-    raw = start_of(plan, choices) if plan.status != Status.INFEASIBLE else None
-    return exact_mod.start_assignment(inst, raw) if raw is not None else None
-
-
 def _fits(model: _Model, assignment: Assignment) -> bool:
     system = model.inst.system
     load = computer_loads(system, assignment.placement, assignment.choice)
@@ -756,7 +743,7 @@ def solve_decomposed(system: System, problem: Problem, choices: dict[str, list[C
     # the paper's greedy: the first columns, and the MILP's start
     mapped = exact_mod.greedy_start(inst, choices)
     if mapped is None and len(model.cap) > len(model.relaxed):  # a binding network: the greedy gets stuck
-        mapped = _greedy_plus_start(inst, choices, min(GREEDY_PLUS_SHARE * budget, GREEDY_PLUS_MAX_S))
+        mapped = plus_start(inst, choices, min(GREEDY_PLUS_SHARE * budget, PLUS_START_MAX_S))
     incumbent: Assignment | None = None
     if mapped is not None:
         incumbent = mapped[0]
