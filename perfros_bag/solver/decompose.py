@@ -24,10 +24,13 @@ share (the servers) and the network. This solver splits the instance that way:
 - The columns found, made integer (a count per column), are a small MILP that HiGHS
   solves with the paper's greedy's plan as its start: its answer is the plan.
 
-The network is not in the decomposition: it is used only when no link or medium could
-ever overflow (``exact.active_links`` is empty: the fleet's wifi carries a few kB/s per
-robot), and the plan is checked against it all the same. :func:`decomposable` says
-whether an instance qualifies; otherwise ``solve --method exact`` uses the MILP.
+Links and media that could overflow (``exact.active_links``) are coupling rows too, each
+with its price: a block's own edges load them (exactly, per column) and are priced in its
+subproblem by a tree over its home/away patterns (:func:`_price_network`, never above a
+column's true reduced value, so the bound stays a bound); the traffic between blocks is
+reserved on them when the plan is made. The plan is checked against the whole network.
+:func:`decomposable` says whether an instance qualifies; otherwise ``solve --method exact``
+uses the MILP.
 """
 
 from __future__ import annotations
@@ -307,9 +310,11 @@ def _qualified(system: System, problem: Problem, choices: dict[str, list[Choice]
 
 
 def decomposable(system: System, problem: Problem, choices: dict[str, list[Choice]]) -> bool:
-    """Whether :func:`solve_decomposed` applies: Problem 1, a network that can never
-    overflow, CPU levels on a grid; an instance infeasible on its face is left to the
-    exact solver (which names the constraint)."""
+    """Whether :func:`solve_decomposed` applies: Problem 1, CPU levels on a grid, and links
+    or media that can overflow carried as coupling rows (at most :data:`MAX_PATTERNS`
+    home/away patterns per block, traffic between blocks that cannot fill a row on its
+    own); an instance infeasible on its face is left to the exact solver (which names the
+    constraint)."""
     return _qualified(system, problem, choices, None) is not None
 
 
