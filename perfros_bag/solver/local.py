@@ -71,8 +71,34 @@ def solve_greedy_plus(system: System, problem: Problem, choices: dict[str, list[
                 state.cap[c] = state.maxcap[c]
     improver = Improver(state, deadline=deadline)
     improver.run()
+    if len(state.groups) * len(state.computers) > MOVES_LIMIT and problem == Problem.PERFORMANCE:
+        consolidate(improver)
     kick(improver)
     return state.plan(Method.GREEDY_PLUS)
+
+
+def consolidate(improver: Improver) -> None:
+    """On instances too big for relocation moves (:data:`MOVES_LIMIT`): bring groups home
+    from the servers, largest first, to a robot that holds them at their settings (their
+    performance unchanged, the servers' CPU freed for the groups that can only run there),
+    then re-optimise every computer's settings; kept only when Σ w·P rose."""
+    s = improver.s
+    before, snap = improver.current(s.nodes), s.snapshot()
+    away = [gi for gi in range(len(s.groups)) if s.kind[s.place[s.groups[gi][0]] or ""] == "server"
+            and any(s.kind[c] == "robot" for c in s.group_allowed[gi])]
+    moved = 0
+    for gi in sorted(away, key=lambda gi: (-s.group_cpu(gi), gi)):
+        if improver.late():
+            break
+        for c in s.group_allowed[gi]:
+            if s.kind[c] == "robot" and s.move_group(gi, c) is None:
+                moved += 1
+                break
+    if not moved:
+        return
+    improver.run()
+    if improver.current(s.nodes) <= before + 1e-9:
+        s.restore(snap)
 
 
 def plus_start(inst: Instance, choices: dict[str, list[Choice]],
