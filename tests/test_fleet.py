@@ -239,3 +239,22 @@ def test_binding_networks_decompose_with_a_proven_bound(name: str, data: dict[st
     free = system_of(unbound, name)
     unbound_best = solve_exact(free, Problem.PERFORMANCE, fixed_choices(free, Problem.PERFORMANCE)).objective
     assert unbound_best is not None and unbound_best > (plan.bound or 0.0) + 1e-6
+
+
+def test_a_link_too_thin_for_what_must_cross_it_is_named() -> None:
+    """Robot 1's link carries less than its stack must exchange with the servers wherever its
+    nodes run (no single edge is forced across it, so the cheap checks pass): the
+    decomposition proves there is no plan and names the link; the exact MILP agrees."""
+    data = roomy_server(wifi_fleet_instance(6, 1, robots_per_ap=3, trackers=2, ap_kBps=2350.0, seed=1,
+                                            continuous=False))
+    for link in data["links"]:
+        if "robot1" in link["between"]:
+            link["bandwidth_kBps"] = 0.05
+    system = system_of(data, "thin.yaml")
+    choices = fixed_choices(system, Problem.PERFORMANCE)
+    plan = solve_decomposed(system, Problem.PERFORMANCE, choices)
+    assert plan is not None and plan.status == Status.INFEASIBLE
+    assert plan.reason is not None and plan.reason.startswith("link robot1-server1 cannot hold")
+    assert not decomposable(system, Problem.PERFORMANCE, choices)
+    exact = solve_exact(system, Problem.PERFORMANCE, choices, time_limit=60)
+    assert exact.status == Status.INFEASIBLE and "infeasibility was not proven" not in (exact.reason or "")

@@ -50,7 +50,7 @@ from perfros_bag.solver.exact import Group, Instance, quiet_highs, trivial_bound
 from perfros_bag.solver.local import PLUS_START_MAX_S, combine_tables, on_grid, plus_start
 from perfros_bag.system.plan import Assignment, Method, Plan, Status
 from perfros_bag.system.rules import build_plan, computer_loads, weighted_performance
-from perfros_bag.system.types import Choice, Problem, System
+from perfros_bag.system.types import Choice, Edge, Problem, System
 
 __all__ = ["decomposable", "solve_decomposed"]
 
@@ -96,6 +96,19 @@ class _Edge:
 
 
 @dataclass
+class _Outer:
+    """An edge from one item of a block to a node outside it (a lone group, another block):
+    the links it crosses wherever that node runs, per computer of the item, at its least."""
+
+    item: int
+    member: int  # the publisher's position in the item; -1: the item is the subscriber
+    bw: np.ndarray  # the block end publishes: kB/s per kept choice; else [the publisher's least]
+    home_bw: np.ndarray  # the block end publishes: kB/s per home option of the item
+    at_home: tuple[int, ...]  # links (with rows) crossed whatever the other end's computer, item at home
+    away: dict[int, tuple[int, ...]]  # the same per relaxed computer of the item
+
+
+@dataclass
 class _Class:
     """Identical subproblems: a private robot and its groups, or one lone group."""
 
@@ -105,6 +118,7 @@ class _Class:
     instances: list[list[tuple[str, ...]]]  # per instance, the member names of each item
     home_of: list[str | None]  # per instance, its private robot
     edges: list[_Edge] = field(default_factory=list)  # with network rows: the block's own edges
+    outer: list[_Outer] = field(default_factory=list)  # ... and its edges to the rest, at their least
     links: frozenset[int] = frozenset()  # the network rows' links those edges may cross
 
 
@@ -125,6 +139,8 @@ class _Model:
     # network rows (after the CPU rows): per link that can overflow, its row and its medium's row
     link_rows: dict[int, list[int]] = field(default_factory=dict)
     reserve: np.ndarray = field(default_factory=lambda: np.zeros(0))  # per row: traffic between blocks, at most
+    row_names: list[str] = field(default_factory=list)  # per row: "computer C", "link A-B", "medium M"
+    cramped: list[int] = field(default_factory=list)  # rows the traffic between blocks could fill alone
 
 
 def cpu_grid_scale(cpus: Sequence[float]) -> int | None:
@@ -231,12 +247,47 @@ def _model(system: System, inst: Instance, active: set[int] | None = None) -> _M
         by_sig[sig] = len(classes)
         classes.append(_Class(None, 0, [it], [[g.members]], [None]))
     cap = np.array([inst.cap[c] for c in relaxed], dtype=float)
-    model = _Model(inst, relaxed, cap, classes)
+    model = _Model(inst, relaxed, cap, classes, row_names=[f"computer {c}" for c in relaxed])
     if active:
         why = _network_rows(model, active)
         if why is not None:
             return why
     return model
+
+
+def _add_outer(model: _Model, e: Edge, end: tuple[int, int, int], bw: np.ndarray, publishes: bool) -> None:
+    """Record edge ``e`` between a block item (``end``: class, item, member) and the rest:
+    the links with rows that it crosses wherever its other end runs, for each computer of
+    the item (a lower bound on its load, priced in the block and counted in its columns;
+    the reserve covers it at its most all the same)."""
+    inst, system = model.inst, model.inst.system
+    cl = model.classes[end[0]]
+    it = cl.items[end[1]]
+    other = inst.group_of[e.dst if publishes else e.src].allowed
+    home = cl.home_of[0]
+    assert home is not None
+
+    def always(x: str) -> tuple[int, ...]:
+        if x in other:
+            return ()
+        common: set[int] | None = None
+        for o in other:
+            route = system.route(x, o) if publishes else system.route(o, x)
+            links = {li for li in route or () if li in model.link_rows}
+            common = links if common is None else common & links
+        return tuple(sorted(common or ()))
+
+    at_home = always(home)
+    away = {int(r): always(model.relaxed[r]) for r in it.relaxed}
+    if not at_home and not any(away.values()):
+        return
+    if publishes:
+        home_bw = np.array([bw[levels[end[2]]] for levels in it.home_levels]) if it.home_levels else np.zeros(0)
+        cl.outer.append(_Outer(end[1], end[2], bw, home_bw, at_home, away))
+    else:
+        least = float(bw.min())
+        cl.outer.append(_Outer(end[1], -1, np.array([least]), np.full(len(it.home_levels), least), at_home, away))
+    cl.links = cl.links | frozenset(at_home) | frozenset(li for links in away.values() for li in links)
 
 
 def _network_rows(model: _Model, active: set[int]) -> str | None:
@@ -252,11 +303,13 @@ def _network_rows(model: _Model, active: set[int]) -> str | None:
     for li in sorted(active):
         model.link_rows[li] = [n_cpu + len(caps)]
         caps.append(system.links[li].bandwidth_kBps)
+        model.row_names.append(f"link {system.links[li].between[0]}-{system.links[li].between[1]}")
     for m in system.media:
         links = [li for li in system.medium_links[m.name] if li in active]
         if links:
             row = n_cpu + len(caps)
             caps.append(m.bandwidth_kBps)
+            model.row_names.append(f"medium {m.name}")
             for li in system.medium_links[m.name]:
                 model.link_rows.setdefault(li, []).append(row)
     reserve = np.zeros(n_cpu + len(caps))
@@ -285,14 +338,18 @@ def _network_rows(model: _Model, active: set[int]) -> str | None:
             continue
         for row in rows:
             reserve[row] += bw.max()
+        end = a if a is not None else b  # the block end (the publisher's, when both are in blocks)
+        if end is not None:
+            _add_outer(model, e, end, bw, a is not None)
     for cl in model.classes:
         free = sum(1 for it in cl.items if len(it.relaxed) and len(it.home_units))
-        if cl.edges and 2 ** free > MAX_PATTERNS:
+        if (cl.edges or cl.outer) and 2 ** free > MAX_PATTERNS:
             return f"a block has {free} node groups that may go either way: more than {MAX_PATTERNS} patterns to price"
     model.cap = np.concatenate([model.cap, np.array(caps)])
     model.reserve = reserve
-    if np.any(reserve[n_cpu:] >= model.cap[n_cpu:]):
-        return "the traffic between blocks could fill a link or medium"
+    # rows the traffic between blocks could fill on its own: the MILP over the columns cannot
+    # use them (the instance is the whole MILP's), but they may prove the instance infeasible
+    model.cramped = [int(j) for j in np.nonzero(reserve >= model.cap)[0] if j >= n_cpu]
     return None
 
 
@@ -315,7 +372,8 @@ def decomposable(system: System, problem: Problem, choices: dict[str, list[Choic
     home/away patterns per block, traffic between blocks that cannot fill a row on its
     own); an instance infeasible on its face is left to the exact solver (which names the
     constraint)."""
-    return _qualified(system, problem, choices, None) is not None
+    model = _qualified(system, problem, choices, None)
+    return model is not None and not model.cramped
 
 
 # ---- pricing ----------------------------------------------------------------------------
@@ -339,7 +397,7 @@ def _price(model: _Model, ci: int, lam: np.ndarray) -> tuple[float, _Column]:
     """The class's best column at prices ``lam`` and its reduced value (before the
     convexity dual)."""
     cl = model.classes[ci]
-    if cl.edges and any(lam[row] > 0 for li in cl.links for row in model.link_rows[li]):
+    if (cl.edges or cl.outer) and any(lam[row] > 0 for li in cl.links for row in model.link_rows[li]):
         return _price_network(model, ci, lam)
     offs = [_offload(it, lam) for it in cl.items]
     if cl.home is None:
@@ -400,9 +458,21 @@ def _price_network(model: _Model, ci: int, lam: np.ndarray) -> tuple[float, _Col
         out_price.append(np.array([route_price(home, model.relaxed[r]) for r in it.relaxed]))
         in_price.append(np.array([route_price(model.relaxed[r], home) for r in it.relaxed]))
 
+    outer_home = [np.zeros(len(it.home_units)) for it in cl.items]  # per item: the outer edges' price, home
+    outer_away: list[list[np.ndarray]] = [[np.zeros((len(it.relaxed), len(c))) for c in it.member_cpu]
+                                          for it in cl.items]  # per item, member: [relaxed, level]
+    for o in cl.outer:
+        it = cl.items[o.item]
+        at_home = sum(price.get(li, 0.0) for li in o.at_home)
+        outer_home[o.item] = outer_home[o.item] + o.home_bw * at_home
+        per_r = np.array([sum(price.get(li, 0.0) for li in o.away[int(r)]) for r in it.relaxed])
+        m = o.member if o.member >= 0 else 0
+        bws = o.bw if o.member >= 0 else np.full(len(it.member_cpu[0]), o.bw[0])
+        outer_away[o.item][m] = outer_away[o.item][m] + per_r[:, None] * bws[None, :]
+
     def home_values(i: int, away: dict[int, bool]) -> np.ndarray:
         it = cl.items[i]
-        vals = it.home_values.copy()
+        vals = it.home_values - outer_home[i]
         for e in later[i]:
             other = e.sub if e.pub == i else e.pub
             if not away[other]:
@@ -417,8 +487,8 @@ def _price_network(model: _Model, ci: int, lam: np.ndarray) -> tuple[float, _Col
         it = cl.items[i]
         prices = lam[it.relaxed]
         total = np.zeros(len(it.relaxed))
-        reds = [val[None, :] - prices[:, None] * cpu[None, :] for cpu, val in zip(it.member_cpu, it.member_val,
-                                                                                  strict=True)]
+        reds = [val[None, :] - prices[:, None] * cpu[None, :] - out for cpu, val, out
+                in zip(it.member_cpu, it.member_val, outer_away[i], strict=True)]
         for e in later[i]:
             other = e.sub if e.pub == i else e.pub
             if away[other]:
@@ -487,6 +557,12 @@ def _column(model: _Model, ci: int, parts: tuple[tuple[int, tuple[int, ...]], ..
                 for li in route(a, b) or ():  # type: ignore[arg-type]
                     for row in model.link_rows.get(li, ()):
                         use[row] = use.get(row, 0.0) + bw
+    for o in cl.outer:  # its traffic with the rest: at its least
+        r, levels = parts[o.item]
+        bw = float(o.bw[levels[o.member]] if o.member >= 0 else o.bw[0])
+        for li in o.at_home if r < 0 else o.away[r]:
+            for row in model.link_rows[li]:
+                use[row] = use.get(row, 0.0) + bw
     return _Column(ci, value, use, parts)
 
 
@@ -625,6 +701,11 @@ class _Master:
         self.columns.extend(fresh)
         return len(fresh)
 
+    def overflowing(self) -> list[int]:
+        """The rows the last LP overflows (its overflow columns at a positive value), most first."""
+        over = np.asarray(self.h.getSolution().col_value)[:self.n_over]
+        return [int(j) for j in np.argsort(-over) if over[j] > 1e-9]
+
     def solve_lp(self, time_limit: float) -> tuple[float, np.ndarray, np.ndarray] | None:
         self.h.setOptionValue("time_limit", max(time_limit, 0.01))
         self.h.run()
@@ -710,6 +791,29 @@ def _positions(inst: Instance, assignment: Assignment) -> dict[str, int]:
     return {n: next(i for i, c in enumerate(inst.choices[n]) if c is ch) for n, ch in assignment.choice.items()}
 
 
+def _proven_infeasible(model: _Model, rows: Sequence[int], ceiling: float, *, deadline: float) -> str | None:
+    """Why no plan exists, when the Lagrangian bound with a steep price on one of ``rows``
+    alone falls below the least Σ w·P any plan has (every node at its worst setting): for
+    any prices the bound is at least every plan's value, so no plan exists, and that row's
+    computer, link or medium is what cannot hold (the least its blocks must put on it,
+    wherever they run, exceeds it). None when no row proves it (or past ``deadline``)."""
+    system = model.inst.system
+    floor = sum(system.node[n].weight * min(ch.performance for ch in opts) for n, opts in model.inst.choices.items())
+    for j in rows:
+        if time.perf_counter() > deadline:
+            return None
+        steep = 1e6 * (ceiling + 1.0) / max(float(model.cap[j]), 1.0)
+        lam = np.zeros(len(model.cap))
+        lam[j] = steep
+        value, _ = _lagrangian(model, lam)
+        if value < floor - 1e-9 * steep * max(float(model.cap[j]), 1.0) - 1e-6:
+            unit = "CPU" if j < len(model.relaxed) else "kB/s"
+            return (f"{model.row_names[j]} cannot hold what must use it wherever the nodes run: at their least CPU "
+                    f"and traffic they need more than its {float(model.cap[j]):.6g} {unit} (proven: the "
+                    f"decomposition's Lagrangian bound, priced on it alone, is below every plan's value)")
+    return None
+
+
 def _fits(model: _Model, assignment: Assignment) -> bool:
     system = model.inst.system
     load = computer_loads(system, assignment.placement, assignment.choice)
@@ -742,6 +846,11 @@ def solve_decomposed(system: System, problem: Problem, choices: dict[str, list[C
         return None
     inst = model.inst
     ceiling = trivial_bound(system, inst.choices)
+    if model.cramped:  # not for this solver (decomposable() is False), unless such a row proves there is no plan
+        deadline = math.inf if time_limit is None else t0 + time_limit / 2
+        why = _proven_infeasible(model, model.cramped, ceiling, deadline=deadline)
+        return None if why is None else Plan.infeasible(problem, Method.EXACT, why, solve_s=elapsed(),
+                                                         system=system.source)
     budget = NO_LIMIT_S if time_limit is None else time_limit - max(PLAN_SHARE * time_limit, PLAN_MIN_S)
     master = _Master(model, penalty=ceiling + 1.0)
 
@@ -774,6 +883,10 @@ def solve_decomposed(system: System, problem: Problem, choices: dict[str, list[C
         lp_value, _, lam = lp
     if progress is not None:
         progress(best_value, bound, elapsed())
+    if incumbent is None and lp_value is not None:  # no plan yet, and the LP overflows a row: a proof?
+        why = _proven_infeasible(model, master.overflowing(), ceiling, deadline=t0 + budget)
+        if why is not None:
+            return Plan.infeasible(problem, Method.EXACT, why, solve_s=elapsed(), system=system.source)
     # the columns, made integer; then, while a gap is left, every lone group's column that a
     # better plan could use (reduced-cost argument), and the MILP again
     def improved(objective: float) -> None:
