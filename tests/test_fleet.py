@@ -11,7 +11,7 @@ from typing import Any
 
 import pytest
 
-from perfros_bag.casestudy.instances import fleet_instance, random_instance
+from perfros_bag.casestudy.instances import fleet_instance, random_instance, wifi_fleet_instance
 from perfros_bag.solver import (
     DECOMPOSE_COLUMNS,
     exact_columns,
@@ -73,7 +73,13 @@ CASES = ([(f"fleet-{seed}-{'curves' if c else 'settings'}", fleet_instance(40, 5
 
 @pytest.mark.parametrize(("name", "data"), CASES, ids=[c[0] for c in CASES])
 def test_decomposition_against_the_exact_milp(name: str, data: dict[str, Any]) -> None:
-    system = system_of(data, name)
+    plan = decomposition_against_the_milp(system_of(data, name))
+    # with no time limit, the reduced-cost enumeration closes these small instances
+    assert plan.status == Status.OPTIMAL
+
+
+def decomposition_against_the_milp(system: System) -> Plan:
+    """The decomposition's plan, checked against the exact MILP's optimum (assert_bounds)."""
     choices = fixed_choices(system, Problem.PERFORMANCE)
     assert decomposable(system, Problem.PERFORMANCE, choices)
     exact = solve_exact(system, Problem.PERFORMANCE, choices, time_limit=60)
@@ -81,8 +87,7 @@ def test_decomposition_against_the_exact_milp(name: str, data: dict[str, Any]) -
     plan = solve_decomposed(system, Problem.PERFORMANCE, choices)
     assert plan is not None and plan.method == Method.EXACT
     assert_bounds(system, plan, exact.objective)
-    # with no time limit, the reduced-cost enumeration closes these small instances
-    assert plan.status == Status.OPTIMAL
+    return plan
 
 
 def test_progress_reports_incumbent_and_bound() -> None:
@@ -96,7 +101,10 @@ def test_progress_reports_incumbent_and_bound() -> None:
     assert seen[-1][0] == pytest.approx(plan.objective) and seen[-1][1] == pytest.approx(plan.bound)
 
 
-def test_not_decomposable_when_the_network_can_bind() -> None:
+def test_not_decomposable_when_traffic_between_blocks_could_fill_the_network() -> None:
+    """A case-study instance whose robot nodes may run on any computer has no private
+    robot: every edge is between blocks, its traffic cannot be priced in a block and could
+    fill the tight wifi, so the instance is the MILP's."""
     system = system_of(random_instance(random.Random(4), tight_network=True))
     choices = fixed_choices(system, Problem.PERFORMANCE)
     assert not decomposable(system, Problem.PERFORMANCE, choices)
@@ -138,19 +146,20 @@ def test_a_bound_is_never_looser_than_the_trivial_one() -> None:
 
 def binding_network(data: dict[str, Any]) -> dict[str, Any]:
     """The fleet with its wifi cut to half of what its links could ever carry: the network
-    can bind, so the instance does not decompose (``solve`` uses the MILP)."""
+    can bind (the decomposition carries it as coupling rows, issue 22)."""
     system = system_of(data)
     inst = exact_mod.prepare_instance(system, Problem.PERFORMANCE, fixed_choices(system, Problem.PERFORMANCE))
     assert not isinstance(inst, str)
     potential, _ = exact_mod._load_bounds(inst, forced=False)
     out = copy.deepcopy(data)
     out["media"][0]["bandwidth_kBps"] = system.medium_load(potential, out["media"][0]["name"]) / 2
-    assert not decomposable(system_of(out), Problem.PERFORMANCE, fixed_choices(system, Problem.PERFORMANCE))
+    assert exact_mod.active_links(exact_mod.prepare_instance(system_of(out), Problem.PERFORMANCE,  # type: ignore[arg-type]
+                                                             fixed_choices(system, Problem.PERFORMANCE)))
     return out
 
 
 FLEET = fleet_instance(200, 20, seed=0)
-LIMITED = [("decomposed", FLEET, 1), ("milp", binding_network(FLEET), 1), ("problem2", FLEET, 2),
+LIMITED = [("decomposed", FLEET, 1), ("binding", binding_network(FLEET), 1), ("problem2", FLEET, 2),
            ("small", fleet_instance(40, 5, seed=1), 1)]
 
 
@@ -193,3 +202,59 @@ def test_a_time_limited_plan_passes_the_checker_and_states_a_proven_bound(
         assert plan.bound == pytest.approx(plan.objective, rel=1e-6)
     else:
         assert plan.bound != pytest.approx(plan.objective, rel=1e-9, abs=0.0)
+
+
+def roomy_server(data: dict[str, Any]) -> dict[str, Any]:
+    """The fleet with server capacity to spare and robots too small for a detector at its
+    best beside their stack: the access points, not the server, limit offloading."""
+    for c in data["computers"]:
+        c["capacity"] = c["capacity"] * 4 if c["kind"] == "server" else min(c["capacity"], 90)
+    return data
+
+
+WIFI = [(f"wifi-{seed}-{'curves' if c else 'settings'}-{per_ap}",
+         roomy_server(wifi_fleet_instance(6, 1, robots_per_ap=per_ap, trackers=2, ap_kBps=2350.0, seed=seed,
+                                          continuous=c)))
+        for seed, c, per_ap in ((1, False, 3), (2, False, 2), (3, True, 3))]
+
+
+@pytest.mark.parametrize(("name", "data"), WIFI, ids=[c[0] for c in WIFI])
+def test_binding_networks_decompose_with_a_proven_bound(name: str, data: dict[str, Any]) -> None:
+    """Issue 22: links and media that can overflow are coupling rows of the decomposition.
+    On small fleets whose access points bind (one detector per access point may be
+    offloaded), the decomposition's bound is at least the exact MILP's optimum, which is at
+    least its plan's objective, and the plan passes the checker."""
+    system = system_of(data, name)
+    choices = fixed_choices(system, Problem.PERFORMANCE)
+    inst = exact_mod.prepare_instance(system, Problem.PERFORMANCE, choices)
+    assert not isinstance(inst, str) and exact_mod.active_links(inst)  # the network can bind
+    plan = decomposition_against_the_milp(system)
+    assert plan.objective is not None
+    # the network binds at the optimum: more offloading would pay without it
+    unbound = copy.deepcopy(data)
+    for m in unbound["media"]:
+        m["bandwidth_kBps"] = 1e9
+    for link in unbound["links"]:
+        link["bandwidth_kBps"] = 1e9
+    free = system_of(unbound, name)
+    unbound_best = solve_exact(free, Problem.PERFORMANCE, fixed_choices(free, Problem.PERFORMANCE)).objective
+    assert unbound_best is not None and unbound_best > (plan.bound or 0.0) + 1e-6
+
+
+def test_a_link_too_thin_for_what_must_cross_it_is_named() -> None:
+    """Robot 1's link carries less than its stack must exchange with the servers wherever its
+    nodes run (no single edge is forced across it, so the cheap checks pass): the
+    decomposition proves there is no plan and names the link; the exact MILP agrees."""
+    data = roomy_server(wifi_fleet_instance(6, 1, robots_per_ap=3, trackers=2, ap_kBps=2350.0, seed=1,
+                                            continuous=False))
+    for link in data["links"]:
+        if "robot1" in link["between"]:
+            link["bandwidth_kBps"] = 0.05
+    system = system_of(data, "thin.yaml")
+    choices = fixed_choices(system, Problem.PERFORMANCE)
+    plan = solve_decomposed(system, Problem.PERFORMANCE, choices)
+    assert plan is not None and plan.status == Status.INFEASIBLE
+    assert plan.reason is not None and plan.reason.startswith("link robot1-server1 cannot hold")
+    assert not decomposable(system, Problem.PERFORMANCE, choices)
+    exact = solve_exact(system, Problem.PERFORMANCE, choices, time_limit=60)
+    assert exact.status == Status.INFEASIBLE and "infeasibility was not proven" not in (exact.reason or "")

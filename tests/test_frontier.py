@@ -16,7 +16,16 @@ from perfros_bag.cli import app
 from perfros_bag.errors import InputError
 from perfros_bag.solver import fixed_choices, solve
 from perfros_bag.solver.check import check_plan
-from perfros_bag.solver.frontier import capacity_range, frontier, parse_range, with_server_capacity
+from perfros_bag.solver.frontier import (
+    FrontierPoint,
+    capacity_range,
+    frontier,
+    frontier_document,
+    monotone,
+    parse_range,
+    with_server_capacity,
+)
+from perfros_bag.system.plan import Status
 from perfros_bag.system.systemfile import parse_system
 from perfros_bag.system.types import Problem, System
 
@@ -172,3 +181,78 @@ def test_enumerated_frontier_matches_the_milp_point_by_point(seed: int) -> None:
         else:
             assert plan.status == "optimal"
             assert v == pytest.approx(plan.objective, rel=1e-9, abs=1e-9)
+
+
+def test_a_heuristic_frontier_states_no_bound_and_never_falls(tmp_path: Path) -> None:
+    """Issue 22: greedy's frontier on Table II instance 6 stated its own objective as a proven
+    bound (gap 0 %) and fell from 415 to 444 units. Now: no bound, no gap, and each point at
+    least the best plan of any smaller capacity (carried forward, and said so), never above
+    the exact frontier."""
+    system = table2(6)
+    path = tmp_path / "t6.yaml"
+    path.write_text(yaml.safe_dump(table2_instance(6)))
+    out = tmp_path / "frontier.json"
+    result = runner.invoke(app, ["solve", str(path), "--pareto", "auto", "-o", str(out)])  # default method: greedy
+    assert result.exit_code == 0, result.output
+    assert "0.000 %" not in result.output
+    doc = json.loads(out.read_text())
+    assert doc["method"] == "greedy"
+    exact = {round(p.capacity, 6): p for p in frontier(system, method="exact")}
+    running = -1.0
+    carried = 0
+    for p in doc["points"]:
+        assert p["bound"] is None and p["gap"] is None
+        raw = solve(with_server_capacity(system, p["server_capacity"]), 1, "greedy").objective
+        assert raw is not None
+        if raw < running - 1e-12:  # the greedy's own plan here is worse than one that fits
+            carried += 1
+            assert p["carried_from"] is not None and p["carried_from"] < p["server_capacity"]
+            assert p["objective"] == pytest.approx(running)
+        else:
+            assert p["carried_from"] is None and p["objective"] == pytest.approx(raw)
+        running = max(running, raw)
+        best = exact[round(p["server_capacity"], 6)]
+        assert best.status == "optimal" and best.objective is not None
+        assert p["objective"] <= best.objective + 1e-9
+    assert carried >= 1  # the instance of the issue: greedy's plan at 444 is worse than at 415
+
+
+def test_the_picture_labels_only_proven_bounds(monkeypatch: pytest.MonkeyPatch) -> None:
+    import matplotlib.axes
+
+    from perfros_bag.report.frontier_plots import plot_frontier
+
+    labels: list[str] = []
+    real = matplotlib.axes.Axes.plot
+
+    def spy(self: matplotlib.axes.Axes, *args: object, **kw: object) -> object:
+        labels.append(str(kw.get("label")))
+        return real(self, *args, **kw)
+
+    monkeypatch.setattr(matplotlib.axes.Axes, "plot", spy)
+    system = table2(6)
+    heuristic = frontier(system, method="greedy", points=4)
+    plot_frontier(frontier_document(system, heuristic, "greedy")["points"])
+    assert labels and not any("bound" in label for label in labels)
+    labels.clear()
+    unproven = [FrontierPoint(300.0, Status.FEASIBLE, 70.0, 72.0, 1.0), FrontierPoint(400.0, Status.OPTIMAL, 80.0, 80.0, 1.0)]
+    plot_frontier(frontier_document(system, unproven, "exact")["points"])
+    assert "proven bound" in labels
+
+
+def test_monotone_carries_plans_up_and_bounds_down() -> None:
+    """A plan found at a smaller capacity fits at a larger one; a bound proven at a larger
+    capacity holds at a smaller one. Points without a plan below every plan stay as they are."""
+    pts = [FrontierPoint(100.0, Status.INFEASIBLE, None, None, 0.1),
+           FrontierPoint(200.0, Status.FEASIBLE, 50.0, 60.0, 0.1),
+           FrontierPoint(300.0, Status.FEASIBLE, 45.0, 58.0, 0.1),  # worse plan, tighter bound
+           FrontierPoint(400.0, Status.FEASIBLE, 55.0, 55.0, 0.1)]
+    out = monotone(pts)
+    assert [p.objective for p in out] == [None, 50.0, 50.0, 55.0]
+    assert [p.carried_from for p in out] == [None, None, 200.0, None]
+    assert [p.bound for p in out] == [None, 55.0, 55.0, 55.0]
+    assert [str(p.status) for p in out] == ["infeasible", "feasible", "feasible", "optimal"]
+    heuristic = monotone([FrontierPoint(1.0, Status.FEASIBLE, 3.0, None, 0.0),
+                          FrontierPoint(2.0, Status.FEASIBLE, 2.0, None, 0.0)])
+    assert [p.bound for p in heuristic] == [None, None] and [p.gap for p in heuristic] == [None, None]
+    assert heuristic[1].objective == 3.0 and heuristic[1].carried_from == 1.0

@@ -298,3 +298,59 @@ def fleet_instance(n_nodes: int, n_computers: int, *, seed: int = 0, continuous:
     links += [{"between": [servers[0], s], "bandwidth_kBps": 125000.0} for s in servers[1:]]
     return {"cpu_unit": "100 = one robot on-board computer (1.6 GHz dual-core Atom)", "computers": computers,
             "links": links, "media": [{"name": "wifi", "bandwidth_kBps": WIFI_kBps}], "nodes": nodes, "edges": edges}
+
+
+#: the camera and detector :func:`wifi_fleet_instance` adds per robot: settings
+#: ``(value, cpu, performance, frequency_hz, bandwidth_kBps)``. The camera streams 2.3 MB/s
+#: of images to the detector; the detector may run on its robot or on a server.
+CAMERA_SETTING = (None, 5, 100, 30, 2300.0)
+DETECTOR_SETTINGS = ((5, 30, 50, 5, 1.0), (10, 50, 80, 10, 1.0), (15, 70, 100, 15, 1.0))
+AP_kBps = 9000.0  # one access point: three 2.3 MB/s camera streams fit, four do not
+
+
+def wifi_fleet_instance(n_robots: int = 90, n_servers: int = 10, *, robots_per_ap: int = 9,
+                        ap_kBps: float = AP_kBps, seed: int = 0, continuous: bool = True,
+                        trackers: int | None = None) -> dict[str, Any]:
+    """A fleet whose network binds: :func:`fleet_instance` with ``n_robots + n_servers``
+    computers (one stack per robot, the rest of 1,000 nodes per 100 computers camera
+    trackers; or ``trackers`` of them) plus, per robot, a ``camera<r>`` (on its robot, 2.3 MB/s) feeding a
+    ``detector<r>`` (on its robot or any server) that feeds ``environment<r>``. The robots'
+    links to the first server are grouped ``robots_per_ap`` at a time on access points
+    ``ap<j>`` (shared media) of ``ap_kBps`` each, so at most ``ap_kBps // 2300`` of an access
+    point's detectors can be offloaded. ``wifi_fleet_instance()`` (90 robots, 10 servers)
+    has 1,180 nodes on 100 computers."""
+    if n_robots < 1 or n_servers < 1 or robots_per_ap < 1:
+        raise ValueError("a wifi fleet needs at least one robot, one server and one robot per access point")
+    n_computers = n_robots + n_servers
+    if max(1, n_computers // 10) != n_servers:
+        raise ValueError("fleet_instance makes one computer in ten a server: n_servers must be (robots+servers)//10")
+    n_nodes = 10 * n_computers if trackers is None else 1 + 6 * n_robots + trackers
+    data = fleet_instance(n_nodes, n_computers, seed=seed, continuous=continuous)
+    rng = random.Random(seed + 1)
+    servers = [c["name"] for c in data["computers"] if c["kind"] == "server"]
+    robots = [c["name"] for c in data["computers"] if c["kind"] == "robot"]
+    # weighted like a tracker (a detector) and an environment node (a camera) of this fleet
+    weight = {n["name"]: n["weight"] for n in data["nodes"]}
+    w_detector, w_camera = weight["amcl1"] * rng.uniform(0.5, 2.0), weight["environment1"]
+    for r, robot in enumerate(robots, start=1):
+        camera = {"name": f"camera{r}", "weight": w_camera, "residence": [robot], "topics": [f"/camera{r}/out"],
+                  "settings": [{"cpu": CAMERA_SETTING[1], "performance": CAMERA_SETTING[2],
+                                "frequency_hz": CAMERA_SETTING[3], "bandwidth_kBps": CAMERA_SETTING[4]}]}
+        detector = {"name": f"detector{r}", "weight": w_detector, "residence": [robot, *servers],
+                    "parameter": {"name": "rate", "unit": "Hz"}, "topics": [f"/detector{r}/out"],
+                    "settings": [{"value": v, "cpu": c, "performance": p, "frequency_hz": f, "bandwidth_kBps": b}
+                                 for v, c, p, f, b in DETECTOR_SETTINGS]}
+        data["nodes"] += [camera, detector]
+        data["edges"] += [{"from": f"camera{r}", "to": f"detector{r}"},
+                          {"from": f"detector{r}", "to": f"environment{r}"}]
+    total = sum(n["weight"] for n in data["nodes"])
+    for n in data["nodes"]:
+        n["weight"] /= total
+    ap_of = {robot: f"ap{i // robots_per_ap + 1}" for i, robot in enumerate(robots)}
+    for link in data["links"]:
+        robot = next((c for c in link["between"] if c in ap_of), None)
+        if robot is not None:
+            link["medium"] = ap_of[robot]
+            link["bandwidth_kBps"] = ap_kBps
+    data["media"] = [{"name": ap, "bandwidth_kBps": ap_kBps} for ap in sorted(set(ap_of.values()), key=lambda a: int(a[2:]))]
+    return data

@@ -202,7 +202,8 @@ def _frontier(system: System, spec: str, method: str, resolution: float, time_li
         table.add_column(col, justify="left" if col == "status" else "right")
     for p in found:
         gap = "-" if p.gap is None else f"{100 * p.gap:.3f} %"
-        table.add_row(_num(p.capacity), _num(p.objective, 4), _num(p.bound, 4), gap, str(p.status), f"{p.solve_s:.2f}")
+        status = str(p.status) if p.carried_from is None else f"{p.status} (plan of {_num(p.carried_from)})"
+        table.add_row(_num(p.capacity), _num(p.objective, 4), _num(p.bound, 4), gap, status, f"{p.solve_s:.2f}")
     console = err if as_json else out
     console.print(table)
     if out_path is not None and not as_json:

@@ -10,7 +10,9 @@ from perfros_bag.report.figures import png_bytes, subplots
 
 def plot_frontier(points: Sequence[Mapping[str, Any]]) -> bytes:
     """Σ w·P of the best plan per total server capacity, with each point's bound (a
-    frontier document's ``points``); points without a plan are left out (PNG)."""
+    frontier document's ``points``); points without a plan are left out (PNG). Only proven
+    bounds are in a frontier document (a heuristic's points have none): the bound line is
+    drawn, as "proven bound", only through points that have one."""
     solved = [p for p in points if p.get("objective") is not None]
     with subplots(figsize=(6.4, 3.8)) as (fig, ax):
         xs = [float(p["server_capacity"]) for p in solved]

@@ -24,10 +24,13 @@ share (the servers) and the network. This solver splits the instance that way:
 - The columns found, made integer (a count per column), are a small MILP that HiGHS
   solves with the paper's greedy's plan as its start: its answer is the plan.
 
-The network is not in the decomposition: it is used only when no link or medium could
-ever overflow (``exact.active_links`` is empty: the fleet's wifi carries a few kB/s per
-robot), and the plan is checked against it all the same. :func:`decomposable` says
-whether an instance qualifies; otherwise ``solve --method exact`` uses the MILP.
+Links and media that could overflow (``exact.active_links``) are coupling rows too, each
+with its price: a block's own edges load them (exactly, per column) and are priced in its
+subproblem by a tree over its home/away patterns (:func:`_price_network`, never above a
+column's true reduced value, so the bound stays a bound); the traffic between blocks is
+reserved on them when the plan is made. The plan is checked against the whole network.
+:func:`decomposable` says whether an instance qualifies; otherwise ``solve --method exact``
+uses the MILP.
 """
 
 from __future__ import annotations
@@ -36,7 +39,7 @@ import itertools
 import math
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -44,10 +47,10 @@ import numpy as np
 from perfros_bag.solver import Progress
 from perfros_bag.solver import exact as exact_mod
 from perfros_bag.solver.exact import Group, Instance, quiet_highs, trivial_bound
-from perfros_bag.solver.local import combine_tables, on_grid
+from perfros_bag.solver.local import PLUS_START_MAX_S, combine_tables, on_grid, plus_start
 from perfros_bag.system.plan import Assignment, Method, Plan, Status
 from perfros_bag.system.rules import build_plan, computer_loads, weighted_performance
-from perfros_bag.system.types import Choice, Problem, System
+from perfros_bag.system.types import Choice, Edge, Problem, System
 
 __all__ = ["decomposable", "solve_decomposed"]
 
@@ -63,6 +66,8 @@ REL_TOL = 1e-6  # "optimal": bound - objective within this (relative), as exact.
 FIRST_MIP_SHARE = 0.5  # of the time left, for the MILP over the generated columns
 NEAR_LIMIT = 20_000  # columns the reduced-cost enumeration may add (else it is not tried)
 CG_TOL = 1e-7  # column generation stops when the LP is this close to the bound (relative)
+GREEDY_PLUS_SHARE = 0.1  # of the budget, for greedy+'s first plan when the greedy finds none (at most local.PLUS_START_MAX_S)
+MAX_PATTERNS = 1024  # with network rows: home/away patterns of one block's pricing
 
 
 @dataclass
@@ -79,6 +84,31 @@ class _Item:
 
 
 @dataclass
+class _Edge:
+    """An edge between two items of one block (a class with one instance): it loads the
+    network rows when its ends are on different computers."""
+
+    pub: int  # the publisher's item
+    member: int  # the publisher's position among its item's members
+    sub: int  # the subscriber's item
+    bw: np.ndarray  # kB/s at each kept choice of the publisher
+    home_bw: np.ndarray  # kB/s at each home option of the publisher's item
+
+
+@dataclass
+class _Outer:
+    """An edge from one item of a block to a node outside it (a lone group, another block):
+    the links it crosses wherever that node runs, per computer of the item, at its least."""
+
+    item: int
+    member: int  # the publisher's position in the item; -1: the item is the subscriber
+    bw: np.ndarray  # the block end publishes: kB/s per kept choice; else [the publisher's least]
+    home_bw: np.ndarray  # the block end publishes: kB/s per home option of the item
+    at_home: tuple[int, ...]  # links (with rows) crossed whatever the other end's computer, item at home
+    away: dict[int, tuple[int, ...]]  # the same per relaxed computer of the item
+
+
+@dataclass
 class _Class:
     """Identical subproblems: a private robot and its groups, or one lone group."""
 
@@ -87,6 +117,9 @@ class _Class:
     items: list[_Item]
     instances: list[list[tuple[str, ...]]]  # per instance, the member names of each item
     home_of: list[str | None]  # per instance, its private robot
+    edges: list[_Edge] = field(default_factory=list)  # with network rows: the block's own edges
+    outer: list[_Outer] = field(default_factory=list)  # ... and its edges to the rest, at their least
+    links: frozenset[int] = frozenset()  # the network rows' links those edges may cross
 
 
 @dataclass
@@ -101,8 +134,13 @@ class _Column:
 class _Model:
     inst: Instance
     relaxed: list[str]
-    cap: np.ndarray  # per relaxed computer
+    cap: np.ndarray  # per coupling row: the relaxed computers' CPU, then the network rows' kB/s
     classes: list[_Class]
+    # network rows (after the CPU rows): per link that can overflow, its row and its medium's row
+    link_rows: dict[int, list[int]] = field(default_factory=dict)
+    reserve: np.ndarray = field(default_factory=lambda: np.zeros(0))  # per row: traffic between blocks, at most
+    row_names: list[str] = field(default_factory=list)  # per row: "computer C", "link A-B", "medium M"
+    cramped: list[int] = field(default_factory=list)  # rows the traffic between blocks could fill alone
 
 
 def cpu_grid_scale(cpus: Sequence[float]) -> int | None:
@@ -137,8 +175,11 @@ def home_options(inst: Instance, members: tuple[str, ...], scale: int) -> tuple[
     return (np.array(keep, dtype=np.int64), np.array([best[u][0] for u in keep]), [best[u][1] for u in keep])
 
 
-def _model(system: System, inst: Instance) -> _Model | str:
-    """The blocks and classes of a prepared instance, or why it does not decompose."""
+def _model(system: System, inst: Instance, active: set[int] | None = None) -> _Model | str:
+    """The blocks and classes of a prepared instance, or why it does not decompose.
+    ``active``: the links that can overflow (``exact.active_links``): each, and each medium
+    of one, becomes a network row beside the relaxed computers' CPU rows."""
+    active = active or set()
     kind = {c.name: c.kind for c in system.computers}
     robots_of = {g.members: [c for c in g.allowed if kind[c] == "robot"] for g in inst.groups}
     private = {c.name for c in system.computers if c.kind == "robot"}
@@ -181,7 +222,8 @@ def _model(system: System, inst: Instance) -> _Model | str:
         if not gs:
             continue
         cap_units = int(math.floor(inst.cap[home] * scale + 1e-6))
-        sig: tuple[Any, ...] = (cap_units, tuple(sorted((signature(g) for g in gs), key=repr)))
+        sig: tuple[Any, ...] = (cap_units, tuple(sorted((signature(g) for g in gs), key=repr)),
+                                home if active else None)  # with network rows, every block its own class
         gs = sorted(gs, key=lambda g: repr(signature(g)))
         if sig in by_sig:
             cl = classes[by_sig[sig]]
@@ -205,7 +247,110 @@ def _model(system: System, inst: Instance) -> _Model | str:
         by_sig[sig] = len(classes)
         classes.append(_Class(None, 0, [it], [[g.members]], [None]))
     cap = np.array([inst.cap[c] for c in relaxed], dtype=float)
-    return _Model(inst, relaxed, cap, classes)
+    model = _Model(inst, relaxed, cap, classes, row_names=[f"computer {c}" for c in relaxed])
+    if active:
+        why = _network_rows(model, active)
+        if why is not None:
+            return why
+    return model
+
+
+def _add_outer(model: _Model, e: Edge, end: tuple[int, int, int], bw: np.ndarray, publishes: bool) -> None:
+    """Record edge ``e`` between a block item (``end``: class, item, member) and the rest:
+    the links with rows that it crosses wherever its other end runs, for each computer of
+    the item (a lower bound on its load, priced in the block and counted in its columns;
+    the reserve covers it at its most all the same)."""
+    inst, system = model.inst, model.inst.system
+    cl = model.classes[end[0]]
+    it = cl.items[end[1]]
+    other = inst.group_of[e.dst if publishes else e.src].allowed
+    home = cl.home_of[0]
+    assert home is not None
+
+    def always(x: str) -> tuple[int, ...]:
+        if x in other:
+            return ()
+        common: set[int] | None = None
+        for o in other:
+            route = system.route(x, o) if publishes else system.route(o, x)
+            links = {li for li in route or () if li in model.link_rows}
+            common = links if common is None else common & links
+        return tuple(sorted(common or ()))
+
+    at_home = always(home)
+    away = {int(r): always(model.relaxed[r]) for r in it.relaxed}
+    if not at_home and not any(away.values()):
+        return
+    if publishes:
+        home_bw = np.array([bw[levels[end[2]]] for levels in it.home_levels]) if it.home_levels else np.zeros(0)
+        cl.outer.append(_Outer(end[1], end[2], bw, home_bw, at_home, away))
+    else:
+        least = float(bw.min())
+        cl.outer.append(_Outer(end[1], -1, np.array([least]), np.full(len(it.home_levels), least), at_home, away))
+    cl.links = cl.links | frozenset(at_home) | frozenset(li for links in away.values() for li in links)
+
+
+def _network_rows(model: _Model, active: set[int]) -> str | None:
+    """Add the network's coupling rows to ``model``: one per link that can overflow and one
+    per medium of such a link; each block's own edges (both ends in the block) become
+    :class:`_Edge` s priced in its subproblem; the traffic of every other edge (between
+    blocks, to a lone group), at its most, is reserved on the rows it may cross when the
+    plan is made (the bound does not need it: leaving traffic out only relaxes). Returns why
+    the instance does not decompose, or None."""
+    inst, system = model.inst, model.inst.system
+    n_cpu = len(model.relaxed)
+    caps: list[float] = []
+    for li in sorted(active):
+        model.link_rows[li] = [n_cpu + len(caps)]
+        caps.append(system.links[li].bandwidth_kBps)
+        model.row_names.append(f"link {system.links[li].between[0]}-{system.links[li].between[1]}")
+    for m in system.media:
+        links = [li for li in system.medium_links[m.name] if li in active]
+        if links:
+            row = n_cpu + len(caps)
+            caps.append(m.bandwidth_kBps)
+            model.row_names.append(f"medium {m.name}")
+            for li in system.medium_links[m.name]:
+                model.link_rows.setdefault(li, []).append(row)
+    reserve = np.zeros(n_cpu + len(caps))
+    where: dict[str, tuple[int, int, int]] = {}  # node -> (class, item, member) inside a block
+    for ci, cl in enumerate(model.classes):
+        if cl.home is not None:
+            for i, members in enumerate(cl.instances[0]):
+                for j, n in enumerate(members):
+                    where[n] = (ci, i, j)
+    for e in system.edges:
+        bw = np.array([system.edge_bandwidth(e, ch) for ch in inst.choices[e.src]])
+        if len(bw) == 0 or bw.max() <= 0:
+            continue
+        _, maybe = exact_mod._crossings(inst, e)
+        rows = [row for li in maybe for row in model.link_rows.get(li, ())]
+        if not rows:
+            continue
+        a, b = where.get(e.src), where.get(e.dst)
+        if a is not None and b is not None and a[0] == b[0]:
+            if a[1] != b[1]:
+                cl = model.classes[a[0]]
+                it = cl.items[a[1]]
+                home_bw = np.array([bw[levels[a[2]]] for levels in it.home_levels]) if it.home_levels else np.zeros(0)
+                cl.edges.append(_Edge(a[1], a[2], b[1], bw, home_bw))
+                cl.links = cl.links | frozenset(li for li in maybe if li in model.link_rows)
+            continue
+        for row in rows:
+            reserve[row] += bw.max()
+        end = a if a is not None else b  # the block end (the publisher's, when both are in blocks)
+        if end is not None:
+            _add_outer(model, e, end, bw, a is not None)
+    for cl in model.classes:
+        free = sum(1 for it in cl.items if len(it.relaxed) and len(it.home_units))
+        if (cl.edges or cl.outer) and 2 ** free > MAX_PATTERNS:
+            return f"a block has {free} node groups that may go either way: more than {MAX_PATTERNS} patterns to price"
+    model.cap = np.concatenate([model.cap, np.array(caps)])
+    model.reserve = reserve
+    # rows the traffic between blocks could fill on its own: the MILP over the columns cannot
+    # use them (the instance is the whole MILP's), but they may prove the instance infeasible
+    model.cramped = [int(j) for j in np.nonzero(reserve >= model.cap)[0] if j >= n_cpu]
+    return None
 
 
 def _qualified(system: System, problem: Problem, choices: dict[str, list[Choice]],
@@ -215,17 +360,20 @@ def _qualified(system: System, problem: Problem, choices: dict[str, list[Choice]
     if problem != Problem.PERFORMANCE:
         return None
     inst = exact_mod.prepare_instance(system, problem, choices) if prepared is None else prepared
-    if isinstance(inst, str) or exact_mod.active_links(inst):
+    if isinstance(inst, str):
         return None
-    model = _model(system, inst)
+    model = _model(system, inst, exact_mod.active_links(inst))
     return None if isinstance(model, str) else model
 
 
 def decomposable(system: System, problem: Problem, choices: dict[str, list[Choice]]) -> bool:
-    """Whether :func:`solve_decomposed` applies: Problem 1, a network that can never
-    overflow, CPU levels on a grid; an instance infeasible on its face is left to the
-    exact solver (which names the constraint)."""
-    return _qualified(system, problem, choices, None) is not None
+    """Whether :func:`solve_decomposed` applies: Problem 1, CPU levels on a grid, and links
+    or media that can overflow carried as coupling rows (at most :data:`MAX_PATTERNS`
+    home/away patterns per block, traffic between blocks that cannot fill a row on its
+    own); an instance infeasible on its face is left to the exact solver (which names the
+    constraint)."""
+    model = _qualified(system, problem, choices, None)
+    return model is not None and not model.cramped
 
 
 # ---- pricing ----------------------------------------------------------------------------
@@ -249,6 +397,8 @@ def _price(model: _Model, ci: int, lam: np.ndarray) -> tuple[float, _Column]:
     """The class's best column at prices ``lam`` and its reduced value (before the
     convexity dual)."""
     cl = model.classes[ci]
+    if (cl.edges or cl.outer) and any(lam[row] > 0 for li in cl.links for row in model.link_rows[li]):
+        return _price_network(model, ci, lam)
     offs = [_offload(it, lam) for it in cl.items]
     if cl.home is None:
         red, r, levels = offs[0]
@@ -276,6 +426,118 @@ def _price(model: _Model, ci: int, lam: np.ndarray) -> tuple[float, _Column]:
     return float(table[-1]), _column(model, ci, tuple(parts))
 
 
+def _price_network(model: _Model, ci: int, lam: np.ndarray) -> tuple[float, _Column]:
+    """A block's best column when its own edges' traffic is priced (``lam`` on the network
+    rows): every home/away pattern of its items, in a tree (each item decided in turn, the
+    items that must stay home first; a home item adds its settings to the robot's knapsack
+    table, an away item its best relaxed computer and settings). Each edge's price is taken
+    when the later of its two items is decided: exactly when that one is the publisher away
+    (its computer and setting known) or the publisher home (its setting, in the table);
+    otherwise at its least (the publisher's least traffic, the cheapest route). An edge with
+    both ends home or both away is free. So the returned value is at least the best column's
+    true reduced value (the Lagrangian bound stays a bound), and the column is a real one
+    (its load is computed exactly by :func:`_column`)."""
+    cl = model.classes[ci]
+    home = cl.home_of[0]
+    assert home is not None
+    system = model.inst.system
+    price = {li: float(sum(lam[row] for row in rows)) for li, rows in model.link_rows.items()}
+
+    def route_price(a: str, b: str) -> float:
+        return sum(price.get(li, 0.0) for li in system.route(a, b) or ())
+
+    n = len(cl.items)
+    order = sorted(range(n), key=lambda i: (len(cl.items[i].relaxed) > 0 and len(cl.items[i].home_units) > 0, i))
+    pos = {i: p for p, i in enumerate(order)}
+    later: list[list[_Edge]] = [[] for _ in range(n)]
+    for e in cl.edges:
+        later[e.pub if pos[e.pub] > pos[e.sub] else e.sub].append(e)
+    out_price: list[np.ndarray] = []  # per item: route price home -> each relaxed computer
+    in_price: list[np.ndarray] = []  # per item: route price each relaxed computer -> home
+    for it in cl.items:
+        out_price.append(np.array([route_price(home, model.relaxed[r]) for r in it.relaxed]))
+        in_price.append(np.array([route_price(model.relaxed[r], home) for r in it.relaxed]))
+
+    outer_home = [np.zeros(len(it.home_units)) for it in cl.items]  # per item: the outer edges' price, home
+    outer_away: list[list[np.ndarray]] = [[np.zeros((len(it.relaxed), len(c))) for c in it.member_cpu]
+                                          for it in cl.items]  # per item, member: [relaxed, level]
+    for o in cl.outer:
+        it = cl.items[o.item]
+        at_home = sum(price.get(li, 0.0) for li in o.at_home)
+        outer_home[o.item] = outer_home[o.item] + o.home_bw * at_home
+        per_r = np.array([sum(price.get(li, 0.0) for li in o.away[int(r)]) for r in it.relaxed])
+        m = o.member if o.member >= 0 else 0
+        bws = o.bw if o.member >= 0 else np.full(len(it.member_cpu[0]), o.bw[0])
+        outer_away[o.item][m] = outer_away[o.item][m] + per_r[:, None] * bws[None, :]
+
+    def home_values(i: int, away: dict[int, bool]) -> np.ndarray:
+        it = cl.items[i]
+        vals = it.home_values - outer_home[i]
+        for e in later[i]:
+            other = e.sub if e.pub == i else e.pub
+            if not away[other]:
+                continue
+            if e.pub == i:  # home publisher -> away subscriber: its setting's traffic, the cheapest route
+                vals = vals - e.home_bw * float(out_price[other].min())
+            else:  # away publisher (decided before) -> home: its least traffic, the cheapest route
+                vals = vals - float(e.bw.min()) * float(in_price[other].min())
+        return vals
+
+    def away_value(i: int, away: dict[int, bool]) -> tuple[float, int, tuple[int, ...]]:
+        it = cl.items[i]
+        prices = lam[it.relaxed]
+        total = np.zeros(len(it.relaxed))
+        reds = [val[None, :] - prices[:, None] * cpu[None, :] - out for cpu, val, out
+                in zip(it.member_cpu, it.member_val, outer_away[i], strict=True)]
+        for e in later[i]:
+            other = e.sub if e.pub == i else e.pub
+            if away[other]:
+                continue
+            if e.pub == i:  # away publisher -> home subscriber: exact
+                reds[e.member] = reds[e.member] - in_price[i][:, None] * e.bw[None, :]
+            else:  # home publisher (in the table) -> away subscriber: its least traffic
+                total -= float(e.bw.min()) * out_price[i]
+        picks = []
+        for red in reds:
+            arg = np.argmax(red, axis=1)
+            total += red[np.arange(len(prices)), arg]
+            picks.append(arg)
+        r = int(np.argmax(total))
+        return float(total[r]), int(it.relaxed[r]), tuple(int(p[r]) for p in picks)
+
+    best = -math.inf
+    best_path: tuple[tuple[int, bool, Any], ...] = ()
+    # depth-first over the patterns, an explicit stack: (depth, table, constant, decisions)
+    stack: list[tuple[int, np.ndarray, float, tuple[tuple[int, bool, Any], ...]]] = [
+        (0, np.zeros(cl.cap_units + 1), 0.0, ())]
+    while stack:
+        depth, table, const, path = stack.pop()
+        if depth == n:
+            if float(table[-1]) + const > best:
+                best, best_path = float(table[-1]) + const, path
+            continue
+        i = order[depth]
+        it = cl.items[i]
+        away = {j: a for j, a, _ in path}
+        if len(it.home_units):
+            t, arg = combine_tables(table, it.home_units, home_values(i, away))
+            if np.isfinite(t[-1]):
+                stack.append((depth + 1, t, const, (*path, (i, False, arg))))
+        if len(it.relaxed):
+            v, r, levels = away_value(i, away)
+            stack.append((depth + 1, table, const + v, (*path, (i, True, (r, levels)))))
+    parts: list[tuple[int, tuple[int, ...]]] = [(-1, ())] * n
+    x = cl.cap_units
+    for i, is_away, data in reversed(best_path):
+        if is_away:
+            parts[i] = data
+        else:
+            k = int(data[x])
+            parts[i] = (-1, cl.items[i].home_levels[k])
+            x -= int(cl.items[i].home_units[k])
+    return best, _column(model, ci, tuple(parts))
+
+
 def _column(model: _Model, ci: int, parts: tuple[tuple[int, tuple[int, ...]], ...]) -> _Column:
     cl = model.classes[ci]
     value = 0.0
@@ -285,6 +547,22 @@ def _column(model: _Model, ci: int, parts: tuple[tuple[int, tuple[int, ...]], ..
             value += float(val[k])
             if r >= 0:
                 use[r] = use.get(r, 0.0) + float(cpu[k])
+    if cl.edges:  # the block's own traffic on the network rows, exactly
+        route = model.inst.system.route
+        where = [cl.home_of[0] if r < 0 else model.relaxed[r] for r, _ in parts]
+        for e in cl.edges:
+            a, b = where[e.pub], where[e.sub]
+            if a != b:
+                bw = float(e.bw[parts[e.pub][1][e.member]])
+                for li in route(a, b) or ():  # type: ignore[arg-type]
+                    for row in model.link_rows.get(li, ()):
+                        use[row] = use.get(row, 0.0) + bw
+    for o in cl.outer:  # its traffic with the rest: at its least
+        r, levels = parts[o.item]
+        bw = float(o.bw[levels[o.member]] if o.member >= 0 else o.bw[0])
+        for li in o.at_home if r < 0 else o.away[r]:
+            for row in model.link_rows[li]:
+                use[row] = use.get(row, 0.0) + bw
     return _Column(ci, value, use, parts)
 
 
@@ -381,7 +659,7 @@ class _Master:
         self.h.changeObjectiveSense(highspy.ObjSense.kMaximize)
         self.model = model
         inf = highspy.kHighsInf
-        n_cls, n_rel = len(model.classes), len(model.relaxed)
+        n_cls, n_rel = len(model.classes), len(model.cap)  # the relaxed computers' rows, then the network's
         counts = np.array([len(cl.instances) for cl in model.classes], dtype=float)
         lower = np.concatenate([counts, np.full(n_rel, -inf)])
         upper = np.concatenate([counts, model.cap])
@@ -423,6 +701,11 @@ class _Master:
         self.columns.extend(fresh)
         return len(fresh)
 
+    def overflowing(self) -> list[int]:
+        """The rows the last LP overflows (its overflow columns at a positive value), most first."""
+        over = np.asarray(self.h.getSolution().col_value)[:self.n_over]
+        return [int(j) for j in np.argsort(-over) if over[j] > 1e-9]
+
     def solve_lp(self, time_limit: float) -> tuple[float, np.ndarray, np.ndarray] | None:
         self.h.setOptionValue("time_limit", max(time_limit, 0.01))
         self.h.run()
@@ -442,6 +725,11 @@ class _Master:
                                      np.full(len(self.columns), self.hs.HighsVarType.kInteger))
         self.h.changeColsBounds(self.n_over, np.arange(self.n_over, dtype=np.int32), np.zeros(self.n_over),
                                 np.zeros(self.n_over))
+        reserve = self.model.reserve
+        if reserve.any():  # the plan leaves room for the traffic between blocks (at its most)
+            rows = np.nonzero(reserve)[0]
+            self.h.changeRowsBounds(len(rows), (self.n_cls + rows).astype(np.int32), np.full(len(rows), -self.hs.kHighsInf),
+                                    self.model.cap[rows] - reserve[rows])
         self.h.setOptionValue("time_limit", max(time_limit, 0.01))
         self.h.setOptionValue("mip_rel_gap", 0.0)
         self.h.setOptionValue("mip_abs_gap", 1e-7)
@@ -503,6 +791,29 @@ def _positions(inst: Instance, assignment: Assignment) -> dict[str, int]:
     return {n: next(i for i, c in enumerate(inst.choices[n]) if c is ch) for n, ch in assignment.choice.items()}
 
 
+def _proven_infeasible(model: _Model, rows: Sequence[int], ceiling: float, *, deadline: float) -> str | None:
+    """Why no plan exists, when the Lagrangian bound with a steep price on one of ``rows``
+    alone falls below the least Σ w·P any plan has (every node at its worst setting): for
+    any prices the bound is at least every plan's value, so no plan exists, and that row's
+    computer, link or medium is what cannot hold (the least its blocks must put on it,
+    wherever they run, exceeds it). None when no row proves it (or past ``deadline``)."""
+    system = model.inst.system
+    floor = sum(system.node[n].weight * min(ch.performance for ch in opts) for n, opts in model.inst.choices.items())
+    for j in rows:
+        if time.perf_counter() > deadline:
+            return None
+        steep = 1e6 * (ceiling + 1.0) / max(float(model.cap[j]), 1.0)
+        lam = np.zeros(len(model.cap))
+        lam[j] = steep
+        value, _ = _lagrangian(model, lam)
+        if value < floor - 1e-9 * steep * max(float(model.cap[j]), 1.0) - 1e-6:
+            unit = "CPU" if j < len(model.relaxed) else "kB/s"
+            return (f"{model.row_names[j]} cannot hold what must use it wherever the nodes run: at their least CPU "
+                    f"and traffic they need more than its {float(model.cap[j]):.6g} {unit} (proven: the "
+                    f"decomposition's Lagrangian bound, priced on it alone, is below every plan's value)")
+    return None
+
+
 def _fits(model: _Model, assignment: Assignment) -> bool:
     system = model.inst.system
     load = computer_loads(system, assignment.placement, assignment.choice)
@@ -535,18 +846,25 @@ def solve_decomposed(system: System, problem: Problem, choices: dict[str, list[C
         return None
     inst = model.inst
     ceiling = trivial_bound(system, inst.choices)
+    if model.cramped:  # not for this solver (decomposable() is False), unless such a row proves there is no plan
+        deadline = math.inf if time_limit is None else t0 + time_limit / 2
+        why = _proven_infeasible(model, model.cramped, ceiling, deadline=deadline)
+        return None if why is None else Plan.infeasible(problem, Method.EXACT, why, solve_s=elapsed(),
+                                                         system=system.source)
     budget = NO_LIMIT_S if time_limit is None else time_limit - max(PLAN_SHARE * time_limit, PLAN_MIN_S)
     master = _Master(model, penalty=ceiling + 1.0)
 
     # the paper's greedy: the first columns, and the MILP's start
     mapped = exact_mod.greedy_start(inst, choices)
+    if mapped is None and len(model.cap) > len(model.relaxed):  # a binding network: the greedy gets stuck
+        mapped = plus_start(inst, choices, min(GREEDY_PLUS_SHARE * budget, PLUS_START_MAX_S))
     incumbent: Assignment | None = None
     if mapped is not None:
         incumbent = mapped[0]
         master.add(_column_of(model, *mapped))
     best_value = weighted_performance(system, incumbent.choice) if incumbent is not None else None
     bound = ceiling
-    lam = np.zeros(len(model.relaxed))
+    lam = np.zeros(len(model.cap))
     lp_value: float | None = None
     cg_until = elapsed() + CG_SHARE * max(budget - elapsed(), 0.0)  # what the set-up left, shared
     # column generation: the Lagrangian bound and new columns at the master's prices
@@ -565,6 +883,10 @@ def solve_decomposed(system: System, problem: Problem, choices: dict[str, list[C
         lp_value, _, lam = lp
     if progress is not None:
         progress(best_value, bound, elapsed())
+    if incumbent is None and lp_value is not None:  # no plan yet, and the LP overflows a row: a proof?
+        why = _proven_infeasible(model, master.overflowing(), ceiling, deadline=t0 + budget)
+        if why is not None:
+            return Plan.infeasible(problem, Method.EXACT, why, solve_s=elapsed(), system=system.source)
     # the columns, made integer; then, while a gap is left, every lone group's column that a
     # better plan could use (reduced-cost argument), and the MILP again
     def improved(objective: float) -> None:
@@ -596,7 +918,9 @@ def solve_decomposed(system: System, problem: Problem, choices: dict[str, list[C
             if fits and (best_value is None or value > best_value + 1e-12):
                 incumbent, best_value = found, value
             # all columns a better plan could use were there, and HiGHS proved none better
-            proven = attempt == 1 and complete and optimal_here and fits and value == best_value
+            # (a reserve for the traffic between blocks may have excluded a better plan: no proof then)
+            proven = (attempt == 1 and complete and optimal_here and fits and value == best_value
+                      and not model.reserve.any())
     if incumbent is None:
         return None
     assert best_value is not None

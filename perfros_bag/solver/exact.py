@@ -964,6 +964,10 @@ def solve_exact(system: System, problem: Problem, choices: dict[str, list[Choice
                                system=system.source)
     if not has_solution and mapped is None and time_limit is not None:
         mapped = greedy_start(inst, choices)  # the limit came first: the best plan at hand
+        if mapped is None:  # the greedy got stuck (a binding network): greedy+'s, briefly
+            from perfros_bag.solver.local import plus_start
+
+            mapped = plus_start(inst, choices)
     if not has_solution and mapped is not None:  # HiGHS stopped before it found a plan
         return done(mapped[0], known, False)
     if not has_solution:

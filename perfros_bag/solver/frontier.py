@@ -9,6 +9,12 @@ server capacity, from the Problem 2 minimum up to where performance stops rising
   exists); the highest is where Problem 2's plan with every node at its highest setting
   fits them (every node can run at its best: Σ w·P cannot rise further). Each point is Problem 1 solved by ``method`` (default ``exact``: a proven
   optimum, or a plan with its bound and gap when a time limit stops it).
+- Only proven bounds are stated: a heuristic's point (greedy, greedy+) has none (``None``,
+  ``null`` in frontier.json), not its own objective.
+- A frontier never falls as capacity grows: a plan that fits at ``C`` fits at any larger
+  capacity, so a point whose plan is worse than one found at a smaller capacity takes that
+  plan's value and says so (``carried_from``: the capacity it was found at). Likewise a
+  bound proven at ``C`` holds at every smaller capacity (the smallest such bound is kept).
 """
 
 from __future__ import annotations
@@ -26,7 +32,7 @@ from perfros_bag.system.plan import Status
 from perfros_bag.system.types import Problem, System
 
 __all__ = ["DEFAULT_POINTS", "FORMAT", "FrontierPoint", "capacity_range", "frontier", "frontier_document",
-           "parse_range", "read_frontier", "with_server_capacity", "write_frontier"]
+           "monotone", "parse_range", "read_frontier", "with_server_capacity", "write_frontier"]
 
 FORMAT = "perfros-bag frontier 1"
 
@@ -62,8 +68,9 @@ class FrontierPoint:
     capacity: float  # total server capacity
     status: Status
     objective: float | None  # Σ w·P of the best plan found
-    bound: float | None  # no plan at this capacity does better
+    bound: float | None  # proven: no plan at this capacity does better (None: none proven)
     solve_s: float
+    carried_from: float | None = None  # the smaller capacity whose (better) plan this is
 
     @property
     def gap(self) -> float | None:
@@ -156,8 +163,35 @@ def frontier(system: System, *, low: float | None = None, high: float | None = N
         t0 = time.perf_counter()
         plan = solve(with_server_capacity(system, capacity), Problem.PERFORMANCE, method, resolution=resolution,
                      time_limit=time_limit)
-        bound = plan.bound if plan.bound is not None else plan.objective
-        out.append(FrontierPoint(capacity, plan.status, plan.objective, bound, time.perf_counter() - t0))
+        # a heuristic's plan carries no bound: its own objective is not one
+        out.append(FrontierPoint(capacity, plan.status, plan.objective, plan.bound, time.perf_counter() - t0))
+    return monotone(out)
+
+
+def monotone(points: list[FrontierPoint], rel_tol: float = 1e-6) -> list[FrontierPoint]:
+    """``points`` (by increasing capacity) made consistent with what capacity means: each
+    objective is at least the best found at a smaller capacity (that plan fits here too:
+    its value is carried forward, ``carried_from`` its capacity, status ``feasible`` unless
+    the bound here proves it), and each bound is at most any bound proven at a larger
+    capacity (the optimum cannot fall as capacity grows). Points without a plan at every
+    smaller capacity are left as they are."""
+    out = sorted(points, key=lambda p: p.capacity)
+    best: FrontierPoint | None = None  # the best plan at a smaller capacity
+    for p in out:
+        if best is None or best.objective is None or (p.objective is not None and p.objective >= best.objective):
+            best = p if p.objective is not None and (best is None or best.objective is None
+                                                    or p.objective > best.objective) else best
+            continue
+        p.objective, p.status = best.objective, Status.FEASIBLE
+        p.carried_from = best.carried_from if best.carried_from is not None else best.capacity
+    lowest: float | None = None
+    for p in reversed(out):
+        if p.bound is not None:
+            lowest = p.bound if lowest is None else min(lowest, p.bound)
+        if p.objective is not None and lowest is not None:
+            p.bound = max(lowest, p.objective)  # a proven bound is never below a plan that fits
+            if p.bound - p.objective <= rel_tol * max(1.0, abs(p.objective)):
+                p.status = Status.OPTIMAL
     return out
 
 
@@ -169,7 +203,8 @@ def frontier_document(system: System, points: list[FrontierPoint], method: str) 
         "method": method,
         "servers": _servers(system),
         "points": [{"server_capacity": round(p.capacity, 9), "status": str(p.status), "objective": p.objective,
-                    "bound": p.bound, "gap": p.gap, "solve_s": round(p.solve_s, 6)} for p in points],
+                    "bound": p.bound, "gap": p.gap, "solve_s": round(p.solve_s, 6),
+                    "carried_from": None if p.carried_from is None else round(p.carried_from, 9)} for p in points],
     }
 
 
@@ -200,7 +235,7 @@ def read_frontier(path: str | Path) -> dict[str, Any]:
             raise InputError(path, f"{where}.server_capacity: not a finite number")
         if p.get("status") not in tuple(Status):
             raise InputError(path, f"{where}.status: one of {', '.join(Status)}")
-        for key in ("objective", "bound", "gap", "solve_s"):
+        for key in ("objective", "bound", "gap", "solve_s", "carried_from"):
             v = p.get(key)
             if v is not None and (isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v)):
                 raise InputError(path, f"{where}.{key}: not a finite number or null")

@@ -83,25 +83,33 @@ def frontier_values(system: System, high: float, resolution: float = 1.0) -> tup
         robot_values.append({mask: float(t[-1]) for mask, t in subset_tables(r, size).items()})
     full = (1 << len(movable)) - 1
 
-    def best_split(mask: int, i: int) -> float:
-        """The best Σ of the robots' values with the groups of ``mask`` on robots i, i+1, ..."""
-        if i == len(robots):
-            return 0.0 if mask == 0 else -math.inf
-        best = -math.inf
-        sub = mask
-        while True:  # every subset of mask on robot i
-            v = robot_values[i].get(sub)
-            if v is not None and v > -math.inf:
-                best = max(best, v + best_split(mask & ~sub, i + 1))
-            if sub == 0:
-                break
-            sub = (sub - 1) & mask
-        return best
+    # split[mask]: the best Σ of the robots' values with exactly the groups of ``mask`` on
+    # the robots, built robot by robot from the last (a table, not a recursion)
+    split: dict[int, float] = {0: 0.0}
+    if robots:
+        split = {m: v for m, v in robot_values[-1].items() if v > -math.inf}
+    for values_i in reversed(robot_values[:-1]):
+        nxt: dict[int, float] = {}
+        for mask in range(full + 1):
+            best = -math.inf
+            sub = mask
+            while True:  # every subset of mask on this robot, the rest on the later ones
+                v = values_i.get(sub)
+                if v is not None and v > -math.inf:
+                    rest = split.get(mask & ~sub)
+                    if rest is not None:
+                        best = max(best, v + rest)
+                if sub == 0:
+                    break
+                sub = (sub - 1) & mask
+            if best > -math.inf:
+                nxt[mask] = best
+        split = nxt
 
     cells = int(math.floor(high * scale + 1e-6)) + 1
     values = np.full(cells, -np.inf)
     for mask, table in subset_tables(server, cells).items():
-        rest = best_split(full & ~mask, 0)
+        rest = split.get(full & ~mask, -math.inf)
         if rest > -math.inf:
             np.maximum(values, table + rest, out=values)
     return values, scale

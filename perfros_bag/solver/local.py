@@ -24,14 +24,18 @@ import itertools
 import math
 import random
 import time
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from perfros_bag.solver.greedy import run_greedy, upgrade
 from perfros_bag.solver.state import EPS, State
-from perfros_bag.system.plan import Method, Plan
+from perfros_bag.system.plan import Assignment, Method, Plan, Status
 from perfros_bag.system.types import Choice, Problem, System
+
+if TYPE_CHECKING:
+    from perfros_bag.solver.exact import Instance
 
 MAX_ROUNDS = 500
 DP_CELLS = 200_000
@@ -44,6 +48,7 @@ KICKS_IDLE = 12  # stop after this many perturbations without improvement
 KICK_LIMIT = 600  # groups x computers above which no perturbations
 TIME_BUDGET_S = 60.0  # safety net: stop improving after this long (the plan stays feasible)
 SEARCH_BUDGET = 20_000
+PLUS_START_MAX_S = 2.0  # greedy+ as the exact solvers' last resort for a plan: its local search at most this long
 
 
 def solve_greedy_plus(system: System, problem: Problem, choices: dict[str, list[Choice]], *,
@@ -66,8 +71,48 @@ def solve_greedy_plus(system: System, problem: Problem, choices: dict[str, list[
                 state.cap[c] = state.maxcap[c]
     improver = Improver(state, deadline=deadline)
     improver.run()
+    if len(state.groups) * len(state.computers) > MOVES_LIMIT and problem == Problem.PERFORMANCE:
+        consolidate(improver)
     kick(improver)
     return state.plan(Method.GREEDY_PLUS)
+
+
+def consolidate(improver: Improver) -> None:
+    """On instances too big for relocation moves (:data:`MOVES_LIMIT`): bring groups home
+    from the servers, largest first, to a robot that holds them at their settings (their
+    performance unchanged, the servers' CPU freed for the groups that can only run there),
+    then re-optimise every computer's settings; kept only when Σ w·P rose."""
+    s = improver.s
+    before, snap = improver.current(s.nodes), s.snapshot()
+    away = [gi for gi in range(len(s.groups)) if s.kind[s.place[s.groups[gi][0]] or ""] == "server"
+            and any(s.kind[c] == "robot" for c in s.group_allowed[gi])]
+    moved = 0
+    for gi in sorted(away, key=lambda gi: (-s.group_cpu(gi), gi)):
+        if improver.late():
+            break
+        for c in s.group_allowed[gi]:
+            if s.kind[c] == "robot" and s.move_group(gi, c) is None:
+                moved += 1
+                break
+    if not moved:
+        return
+    improver.run()
+    if improver.current(s.nodes) <= before + 1e-9:
+        s.restore(snap)
+
+
+def plus_start(inst: Instance, choices: dict[str, list[Choice]],
+               budget: float = PLUS_START_MAX_S) -> tuple[Assignment, dict[str, int]] | None:
+    """greedy+'s plan (its local search within ``budget`` seconds) mapped onto the exact
+    solvers' pruned model (``exact.start_assignment``), None when it finds none: a plan where
+    the paper's greedy gets stuck (a binding network), for the decomposition's first
+    incumbent and the MILP's answer when its time limit comes first."""
+    from perfros_bag.solver import start_of
+    from perfros_bag.solver.exact import start_assignment
+
+    plan = solve_greedy_plus(inst.system, inst.problem, choices, time_budget=max(budget, 0.0))
+    raw = start_of(plan, choices) if plan.status != Status.INFEASIBLE else None
+    return start_assignment(inst, raw) if raw is not None else None
 
 
 def kick(improver: Improver, *, seed: int = 0) -> None:
@@ -124,8 +169,14 @@ def feasible_start(system: System, problem: Problem, choices: dict[str, list[Cho
     if problem == Problem.SERVER_CAPACITY:
         for c in state.computers:
             state.cap[c] = state.maxcap[c]
-    order = sorted(range(len(state.groups)), key=lambda gi: (len(state.group_allowed[gi]), -state.group_cpu(gi), gi))
-    budget = [SEARCH_BUDGET]
+    # the most constrained first: fewest computers, then the heaviest traffic (a group that
+    # would fill an access point is placed while its peers' computer still has room), then CPU
+    traffic = [max((state.edge_bw[ei][0] for n in g for ei in state.incident[n]
+                    if state.group_of[state.edges[ei].src] != state.group_of[state.edges[ei].dst]), default=0.0)
+               for g in state.groups]
+    order = sorted(range(len(state.groups)),
+                   key=lambda gi: (len(state.group_allowed[gi]), -traffic[gi], -state.group_cpu(gi), gi))
+    budget = SEARCH_BUDGET
 
     def levels(gi: int) -> list[dict[str, int]]:
         """The lowest settings, and for a lone node the one sending the least traffic."""
@@ -139,22 +190,37 @@ def feasible_start(system: System, problem: Problem, choices: dict[str, list[Cho
                     out.append({n: k})
         return out
 
-    def dfs(i: int) -> bool:
-        if i == len(order):
-            return True
-        gi = order[i]
-        for c in sorted(state.group_allowed[gi], key=lambda c: (-state.free(c), state.computers.index(c))):
-            for lv in levels(gi):
-                budget[0] -= 1
-                if budget[0] < 0:
-                    return False
-                if state.change({n: (c, k) for n, k in lv.items()}) is None:
-                    if dfs(i + 1):
-                        return True
-                    state.change({n: (None, 0) for n in lv})
-        return False
+    robots_first = problem == Problem.SERVER_CAPACITY  # a server's every unit counts against Problem 2
 
-    return state if dfs(0) else None
+    def candidates(gi: int) -> Iterator[tuple[str, dict[str, int]]]:
+        """Where and at which levels group ``gi`` may go, the freest computer first (as the
+        state is now); for Problem 2 the robots first."""
+        comps = sorted(state.group_allowed[gi], key=lambda c: (robots_first and state.kind[c] == "server",
+                                                               -state.free(c), state.computers.index(c)))
+        return iter([(c, lv) for c in comps for lv in levels(gi)])
+
+    # depth-first search with an explicit stack (a fleet has thousands of groups: no recursion)
+    if not order:
+        return state
+    stack = [candidates(order[0])]
+    applied: list[dict[str, int]] = []  # the levels placed at each depth of the stack
+    while stack:
+        if len(applied) == len(stack):  # the deeper search failed: undo this depth's placement
+            state.change({n: (None, 0) for n in applied.pop()})
+        for c, lv in stack[-1]:
+            budget -= 1
+            if budget < 0:
+                return None
+            if state.change({n: (c, k) for n, k in lv.items()}) is None:
+                applied.append(lv)
+                break
+        else:
+            stack.pop()
+            continue
+        if len(stack) == len(order):
+            return state
+        stack.append(candidates(order[len(stack)]))
+    return None
 
 
 # ---- Problem 1 ------------------------------------------------------------------------
@@ -216,15 +282,23 @@ class Improver:
         return int(math.floor(self.s.cap[comp] * self.scale + 1e-6))
 
     def table(self, comp: str, nodes: frozenset[str]) -> np.ndarray:
+        """The knapsack table of ``nodes`` on ``comp``, built from its longest cached prefix
+        (the nodes in :attr:`State.order`), every prefix cached on the way (no recursion)."""
         key = (comp, nodes)
         t = self.tables.get(key)
-        if t is None:
-            if not nodes:
-                t = np.zeros(self._cap(comp) + 1)
-            else:
-                last = max(nodes, key=self.s.order.__getitem__)
-                t = combine_tables(self.table(comp, nodes - {last}), *self.items[last])[0]
-            self.tables[key] = t
+        if t is not None:
+            return t
+        ordered = sorted(nodes, key=self.s.order.__getitem__)
+        prefixes = [frozenset(ordered[:k]) for k in range(len(ordered) + 1)]
+        k = next((k for k in range(len(ordered), -1, -1) if (comp, prefixes[k]) in self.tables), -1)
+        if k < 0:
+            t = self.tables[(comp, prefixes[0])] = np.zeros(self._cap(comp) + 1)
+            k = 0
+        else:
+            t = self.tables[(comp, prefixes[k])]
+        for j in range(k, len(ordered)):
+            t = combine_tables(t, *self.items[ordered[j]])[0]
+            self.tables[(comp, prefixes[j + 1])] = t
         return t
 
     def value(self, comp: str, base: Iterable[str], extra: Iterable[str] = ()) -> float:

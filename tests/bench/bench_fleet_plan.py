@@ -20,6 +20,12 @@ under ``/usr/bin/time`` (wall, peak RSS).
     .venv/bin/python tests/bench/bench_fleet_plan.py [--sizes 200x20,500x50,1000x100]
         [--limits 10,30,60] [--random 5] [--cpsat-python /path/to/python]
     .venv/bin/python tests/bench/bench_fleet_plan.py --sizes 1000x100,200x20 --time-limits 1,2,5,10,30
+    .venv/bin/python tests/bench/bench_fleet_plan.py --wifi only [--wifi-parts solvers,p2,cli]
+        [--wifi-limit 60] [--wifi-plus 10]
+
+With ``--wifi also`` (the default) the 1,180-node fleet whose access points bind
+(``wifi_fleet_instance()``, issue 22) runs first: greedy, greedy+ (10 s), plain HiGHS,
+exact (the decomposition with network rows), Problem 2 and the CLI run.
 """
 
 from __future__ import annotations
@@ -35,7 +41,7 @@ import warnings
 from pathlib import Path
 from typing import Any
 
-from perfros_bag.casestudy.instances import fleet_instance, random_instance
+from perfros_bag.casestudy.instances import fleet_instance, random_instance, wifi_fleet_instance
 from perfros_bag.solver import DECOMPOSE_COLUMNS, exact_columns, fixed_choices, solve
 from perfros_bag.solver import exact as exact_mod
 from perfros_bag.solver.check import check_plan
@@ -84,7 +90,8 @@ def cpsat(system: System, limit: float, python: str) -> tuple[Plan | None, float
     return plan, wall, f"{ans['status']}, scaled bound {ans['bound_scaled']:.6f}"
 
 
-def run_instance(label: str, system: System, limit: float, cpsat_python: str | None, highs: bool) -> None:
+def run_instance(label: str, system: System, limit: float, cpsat_python: str | None, highs: bool,
+                 plus_budget: float | None = None) -> Plan | None:
     print(f"\n### {label}: {len(system.nodes)} nodes x {len(system.computers)} computers, limit {limit:g} s",
           flush=True)
     choices = fixed_choices(system, Problem.PERFORMANCE)
@@ -97,7 +104,8 @@ def run_instance(label: str, system: System, limit: float, cpsat_python: str | N
         print(f"  ran {name}: {time.perf_counter() - w:.1f} s", file=sys.stderr, flush=True)
 
     timed("greedy", solve_greedy, system, Problem.PERFORMANCE, choices)
-    timed("greedy+", solve_greedy_plus, system, Problem.PERFORMANCE, choices, time_budget=limit)
+    timed("greedy+", solve_greedy_plus, system, Problem.PERFORMANCE, choices,
+          time_budget=limit if plus_budget is None else plus_budget)
     if highs:
         timed("highs", solve_exact, system, Problem.PERFORMANCE, choices, time_limit=limit)
     timed("exact", solve, system, 1, "exact", time_limit=limit)  # what `solve --method exact` runs
@@ -124,14 +132,37 @@ def run_instance(label: str, system: System, limit: float, cpsat_python: str | N
         print(f"{name:<10} {plan.status!s:<10} {plan.objective:>10.4f} {own:>10} {gap:>17} {wall:>7.2f} "
               f"{cpu:>7.2f}  {'ok' if not problems else problems[:2]} {note}", flush=True)
     print(f"best proven bound {best_bound}")
+    return next((p for name, p, _, _, _ in rows if name == "exact"), None)
 
 
-def problem2(system: System, limit: float) -> None:
+def problem2(system: System, limit: float, settings: dict[str, float] | None = None) -> None:
     w = time.perf_counter()
-    plan = solve(system, 2, "exact", time_limit=limit)
+    plan = solve(system, 2, "exact", time_limit=limit, settings=settings)
     ok = check_plan(system, plan) if plan.status != Status.INFEASIBLE else ["infeasible"]
     print(f"\nProblem 2, {len(system.nodes)} x {len(system.computers)}: {plan.status}, objective {plan.objective}, "
           f"bound {plan.bound}, {time.perf_counter() - w:.2f} s wall, checker {'ok' if not ok else ok}", flush=True)
+
+
+def wifi(limit: float, plus_budget: float, parts: set[str]) -> None:
+    """The 1,180-node fleet whose access points bind (issue 22, ``wifi_fleet_instance()``).
+    ``solvers``: greedy, greedy+ (``plus_budget``), plain HiGHS on the whole MILP, exact (the
+    decomposition with network rows), each ``limit``; ``p2``: Problem 2 (``limit``) at the
+    settings of exact's Problem 1 plan (exact at a third of ``limit``); ``cli``: ``solve
+    --method exact --time-limit limit`` end to end. No CP-SAT: its worker has no network rows."""
+    from perfros_bag.solver import settings_from_plan
+
+    data = wifi_fleet_instance()
+    system = system_of(data, "wifi-fleet")
+    if "solvers" in parts:
+        run_instance("wifi_fleet_instance() (90 robots, 10 servers, 10 access points)", system, limit, None, True,
+                     plus_budget=plus_budget)
+    if "p2" in parts:
+        first = solve(system, 1, "exact", time_limit=limit / 3)
+        print(f"\nProblem 1 for the settings (exact, {limit / 3:g} s): {first.status}, {first.objective}", flush=True)
+        if first.objective is not None:
+            problem2(system, limit, settings_from_plan(first))
+    if "cli" in parts:
+        cli_run(data, limit)
 
 
 def cli_solve(path: Path, system: System, limit: float) -> dict[str, Any]:
@@ -218,8 +249,18 @@ def main() -> int:
                     help="skip plain HiGHS above this many nodes x computers")
     ap.add_argument("--time-limits", default=None,
                     help="only the --time-limit table: these limits (e.g. 1,2,5,10,30) at every size, from the CLI")
+    ap.add_argument("--wifi", choices=("also", "only", "no"), default="also",
+                    help="the 1,180-node fleet whose access points bind (issue 22): also, only it, or not")
+    ap.add_argument("--wifi-limit", type=float, default=60.0, help="seconds per exact solver on the wifi fleet")
+    ap.add_argument("--wifi-plus", type=float, default=10.0, help="greedy+'s time budget on the wifi fleet")
+    ap.add_argument("--wifi-parts", default="solvers,p2,cli", help="solvers (greedy, greedy+, highs, exact), p2, cli")
     args = ap.parse_args()
     t = time.perf_counter()
+    if args.wifi != "no":
+        wifi(args.wifi_limit, args.wifi_plus, set(args.wifi_parts.split(",")))
+        if args.wifi == "only":
+            print(f"\ntotal {time.perf_counter() - t:.1f} s")
+            return 0
     sizes = [(int(s.split("x")[0]), int(s.split("x")[1])) for s in args.sizes.split(",") if s]
     if args.time_limits:
         time_limits(sizes, [float(v) for v in args.time_limits.split(",")])
