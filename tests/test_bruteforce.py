@@ -93,3 +93,16 @@ def test_brute_force_refuses_large_instances() -> None:
     s = parse_system(table2_instance(6), "instance6.yaml")
     with pytest.raises(InputError, match="too large for bruteforce"):
         solve(s, 1, "bruteforce")
+
+
+def test_brute_force_has_no_recursion_limit() -> None:
+    """3,000 nodes with one setting each on one computer: one combination, searched without
+    a call per node (Python's default recursion limit is 1,000)."""
+    import sys
+
+    nodes = [{"name": f"n{i}", "weight": 1, "settings": [{"cpu": 1, "performance": 1 + i % 3}]} for i in range(3000)]
+    s = parse_system({"computers": [{"name": "robot", "kind": "robot", "capacity": 3000}], "nodes": nodes}, "big.yaml")
+    assert len(s.nodes) > 2 * sys.getrecursionlimit()
+    plan = solve(s, 1, "bruteforce")
+    assert plan.status == "optimal" and check_plan(s, plan) == []
+    assert plan.objective == pytest.approx(sum(1 + i % 3 for i in range(3000)) / 3000)

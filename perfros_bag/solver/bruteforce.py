@@ -8,6 +8,7 @@ exact. Tiny instances only: more than :data:`LIMIT` combinations is refused.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 
 from perfros_bag.errors import InputError
 from perfros_bag.system.plan import Assignment, Method, Plan, Status
@@ -54,17 +55,11 @@ def solve_bruteforce(system: System, problem: Problem, choices: dict[str, list[C
             return weighted_performance(system, pick)
         return -sum(load[c.name] for c in system.computers if c.kind == "server")
 
-    def visit(i: int) -> None:
-        if i == len(nodes):
-            if system.network_violation(place, pick, EPS) is not None:
-                return
-            v = value()
-            if not best or v > best[0][0] + EPS:
-                best[:] = [(v, dict(place), dict(pick))]
-            return
+    def options(i: int) -> Iterator[tuple[str, Choice]]:
+        """Node ``i``'s (computer, choice) pairs that keep CPU, coresidence and the data
+        flow with the nodes before it."""
         n = nodes[i]
-        g = group_of[n]
-        fixed = group_at.get(g)
+        fixed = group_at.get(group_of[n])
         for comp in system.allowed(n):
             if fixed is not None and comp != fixed:
                 continue
@@ -73,17 +68,41 @@ def solve_bruteforce(system: System, problem: Problem, choices: dict[str, list[C
                     continue
                 if system.has_flow and system.flow_violation({**pick, n: ch}) is not None:
                     continue
-                load[comp] += ch.cpu
-                place[n], pick[n] = comp, ch
-                if fixed is None:
-                    group_at[g] = comp
-                visit(i + 1)
-                if fixed is None:
-                    del group_at[g]
-                load[comp] -= ch.cpu
-                del place[n], pick[n]
+                yield comp, ch
 
-    visit(0)
+    def undo(i: int) -> None:
+        n = nodes[i]
+        load[place[n]] -= pick[n].cpu
+        if opened[i]:
+            del group_at[group_of[n]]
+        del place[n], pick[n]
+
+    # depth-first with an explicit stack (one iterator per placed node): no recursion limit
+    opened = [False] * len(nodes)  # did node i's placement fix its coresidence group's computer?
+    stack = [options(0)] if nodes else []
+    if not nodes:
+        best[:] = [(value(), {}, {})]
+    while stack:
+        i = len(stack) - 1
+        if nodes[i] in place:
+            undo(i)
+        step = next(stack[-1], None)
+        if step is None:
+            stack.pop()
+            continue
+        n = nodes[i]
+        comp, ch = step
+        load[comp] += ch.cpu
+        place[n], pick[n] = comp, ch
+        opened[i] = group_of[n] not in group_at
+        group_at.setdefault(group_of[n], comp)
+        if i + 1 < len(nodes):
+            stack.append(options(i + 1))
+            continue
+        if system.network_violation(place, pick, EPS) is None:
+            v = value()
+            if not best or v > best[0][0] + EPS:
+                best[:] = [(v, dict(place), dict(pick))]
     if not best:
         return Plan.infeasible(problem, Method.BRUTEFORCE,
                                f"no assignment satisfies the CPU, bandwidth, residence and coresidence "
