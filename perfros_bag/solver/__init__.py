@@ -12,12 +12,17 @@ signature ``(system, problem, choices) -> Plan`` (the exact solver also takes
 
 - ``greedy``      :func:`perfros_bag.solver.greedy.solve_greedy` (the paper's Algorithms 1-3)
 - ``greedy+``     :func:`perfros_bag.solver.local.solve_greedy_plus` (greedy + local search)
+  (with driven nodes both run per rate class of each publisher:
+  :func:`perfros_bag.solver.flow.solve_heuristic`)
 - ``exact``       ``perfros_bag.solver.exact.solve_exact(system, problem, choices, *, time_limit=None)``;
   on Problem 1 above :data:`DECOMPOSE_COLUMNS` columns :func:`solve` uses
   :func:`perfros_bag.solver.decompose.solve_decomposed` (column generation over the
-  fleet's structure, a plan and a proven bound) when the instance qualifies (its network
-  can never overflow, CPU on a grid); otherwise, above :data:`START_COLUMNS`, it first runs greedy+ for
-  :data:`START_SHARE` of ``time_limit`` and passes its plan as the MIP start
+  fleet's structure, a plan and a proven bound) when the instance qualifies (CPU on a
+  grid; links and media that can overflow carried as coupling rows; no driven nodes:
+  :func:`perfros_bag.solver.decompose.decomposable`); otherwise, above
+  :data:`START_COLUMNS`, it first runs greedy+ (along the data flow when there is one,
+  :mod:`perfros_bag.solver.flow`) for :data:`START_SHARE` of ``time_limit`` and passes
+  its plan as the MIP start
 - ``bruteforce``  :func:`perfros_bag.solver.bruteforce.solve_bruteforce` (tiny instances)
 
 ``settings`` (Problem 2) maps node -> **CPU level** (units of the system's CPU scale).
