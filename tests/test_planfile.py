@@ -13,7 +13,7 @@ from perfros_bag.errors import InfeasibleError, InputError
 from perfros_bag.fileio import atomic_write_json
 from perfros_bag.solver import solve
 from perfros_bag.system.plan import Method, Plan, Status
-from perfros_bag.system.planfile import load_plan, parse_plan, save_plan
+from perfros_bag.system.planfile import is_forced, load_plan, parse_plan, save_plan
 from perfros_bag.system.systemfile import load_system
 from perfros_bag.system.types import Problem
 
@@ -94,3 +94,30 @@ def test_plan_coerces_raw_values_to_enums() -> None:
     assert plan.status is Status.OPTIMAL
     with pytest.raises(ValueError):
         Plan(1, "exact", "good")  # type: ignore[arg-type]
+
+
+def _overloaded(**top: Any) -> dict[str, Any]:
+    """HAND_WRITTEN with node a needing 60 CPU units on r1 (capacity 50)."""
+    doc = json.loads(json.dumps(HAND_WRITTEN))
+    doc["nodes"]["a"]["cpu"] = 60.0
+    doc["computers"]["r1"]["cpu"] = 60.0
+    doc.update(top)
+    return doc
+
+
+def test_a_forced_plan_may_exceed_its_computers_and_says_so(tmp_path: Path) -> None:
+    """A node whose cpu exceeds its computer's capacity is refused, unless the plan says
+    ``"forced": true`` (built beyond its computers on purpose); the mark round-trips."""
+    with pytest.raises(InputError, match="node 'a': 'cpu' 60 exceeds the capacity 50 of its computer 'r1'"):
+        parse_plan(_overloaded(), "p.json")
+    with pytest.raises(InputError, match="node 'a': 'cpu' 60 exceeds the capacity 50"):
+        parse_plan(_overloaded(forced=False), "p.json")
+    first, second = tmp_path / "first.json", tmp_path / "second.json"
+    atomic_write_json(first, _overloaded(forced=True))
+    plan = rewrite(first, second)
+    assert second.read_bytes() == first.read_bytes()
+    assert is_forced(plan) and plan.nodes["a"].cpu == 60.0 > plan.computers["r1"].capacity  # type: ignore[operator]
+    assert not is_forced(parse_plan(HAND_WRITTEN, "p.json"))
+    for bad in ("yes", 1, None):
+        with pytest.raises(InputError, match="'forced' must be true or false"):
+            parse_plan(_overloaded(forced=bad), "p.json")

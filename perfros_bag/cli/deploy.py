@@ -38,6 +38,8 @@ def deploy_cmd(
         result = deploy(plan, launch, space, out_dir, duration=duration, units_per_core=units_per_core, cap=cap,
                         tolerance=tolerance, net=net, system_path=system, progress=show)
     render(result.validation, out)
+    if result.record["forced"]:
+        err.print("plan: forced (plan.json \"forced\": true): deployed beyond its computers on purpose", highlight=False)
     capped, network = result.record["cpu_cap"], result.record["network"]
     err.print(f"links: {network['mode']}{' (' + network['reason'] + ')' if network['reason'] else ''}", highlight=False)
     for link in network["links_measured"]:

@@ -72,7 +72,7 @@ def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Pat
     from perfros_bag.rosrun.recorders import require_free_space
     from perfros_bag.sweep.runner import record_run, require_ros_tools
     from perfros_bag.system.names import system_node_name
-    from perfros_bag.system.planfile import load_plan, plan_system
+    from perfros_bag.system.planfile import is_forced, load_plan, plan_system
     from perfros_bag.validation.eq10 import DEFAULT_TOLERANCE, validate_files
 
     plan = load_plan(plan_path)
@@ -156,7 +156,8 @@ def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Pat
                                 tolerance=DEFAULT_TOLERANCE if tolerance is None else tolerance)
     atomic_write_json(outdir / "validation.json", validation.to_dict())
     record: dict[str, Any] = {
-        "format": DEPLOY_FORMAT, "run_id": run_id, "plan": str(plan_path), "launch": str(launch.path),
+        "format": DEPLOY_FORMAT, "run_id": run_id, "plan": str(plan_path), "forced": is_forced(plan),
+        "launch": str(launch.path),
         "duration_s": space.duration_s, "values": dict(run.values), "args": dict(run.args),
         "params": dict(run.params),
         "cpu_cap": {"mode": mode, "reason": reason, "cgroups": groups.mode, "cores": cores,

@@ -157,21 +157,31 @@ def parse_plan(data: Any, path: str = "plan.json") -> Plan:
         raise InputError(path, "the plan has no nodes")
     if plan.status != Status.INFEASIBLE and not plan.computers:
         raise InputError(path, "the plan has no computers")
+    forced = data.get("forced", False)
+    if not isinstance(forced, bool):
+        raise InputError(path, f"plan: 'forced' must be true or false, got {forced!r}")
     for name, n in nodes.items():
         plan.nodes[name] = _parse_node(n, f"node {name!r}", path)
-        _check_placed(plan, name, path)
+        _check_placed(plan, name, path, forced=forced)
     return plan
 
 
-def _check_placed(plan: Plan, name: str, path: str) -> None:
-    """The node's computer is one of the plan's, and the node's CPU fits its capacity."""
+def is_forced(plan: Plan) -> bool:
+    """Whether the plan says ``"forced": true``: built on purpose beyond what its computers
+    hold (e.g. to overload one), so its nodes' CPU may exceed their computer's capacity."""
+    return plan.extra.get("forced") is True
+
+
+def _check_placed(plan: Plan, name: str, path: str, *, forced: bool = False) -> None:
+    """The node's computer is one of the plan's, and (unless the plan is ``forced``) the
+    node's CPU fits its capacity."""
     node = plan.nodes[name]
     computer = plan.computers.get(node.computer)
     if computer is None:
         raise InputError(path, f"node {name!r}: placed on {node.computer!r}, which is not among the plan's computers "
                                f"({', '.join(map(repr, plan.computers)) or 'none'})")
     cap = computer.capacity
-    if cap is not None and node.cpu > cap * (1 + CAPACITY_SLACK) + CAPACITY_SLACK:
+    if not forced and cap is not None and node.cpu > cap * (1 + CAPACITY_SLACK) + CAPACITY_SLACK:
         raise InputError(path, f"node {name!r}: 'cpu' {node.cpu:g} exceeds the capacity {cap:g} of its computer "
                                f"{node.computer!r}")
 

@@ -638,7 +638,7 @@ def validate_files(run: str | Path, plan_path: str | Path, *, cpu: Sequence[str 
                    cap: bool = False) -> Validation:
     """Read the recording, the plan, the CPU trace(s) and the system, then :func:`check_run`."""
     from perfros_bag.ingest import read_recording
-    from perfros_bag.system.planfile import load_plan, plan_system
+    from perfros_bag.system.planfile import is_forced, load_plan, plan_system
 
     if not math.isfinite(tolerance) or tolerance < 0:
         raise InputError(None, f"the tolerance must be a number >= 0, got {tolerance}")
@@ -669,6 +669,13 @@ def validate_files(run: str | Path, plan_path: str | Path, *, cpu: Sequence[str 
                                   PerfrosWarning, stacklevel=2)
                 node_cpu[node] = nc
     latency, chains = measured_latency(run_p, plan, system)
-    return check_run(stats, plan, cap=cap, tolerance=tolerance, system=system, node_cpu=node_cpu,
-                     cpu_traces=[str(t) for t in traces], plan_path=str(plan_p),
-                     metrics=measured_metrics(run_p, plan, system, stats), latency=latency, chains=chains)
+    validation = check_run(stats, plan, cap=cap, tolerance=tolerance, system=system, node_cpu=node_cpu,
+                           cpu_traces=[str(t) for t in traces], plan_path=str(plan_p),
+                           metrics=measured_metrics(run_p, plan, system, stats), latency=latency, chains=chains)
+    if is_forced(plan):
+        validation.notes.append(FORCED_NOTE)
+    return validation
+
+
+#: the note of a validation whose plan is forced (plan.json ``"forced": true``)
+FORCED_NOTE = "the plan is forced (plan.json \"forced\": true): its loads may exceed its computers on purpose"
