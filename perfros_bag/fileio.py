@@ -23,6 +23,7 @@ DOCUMENT_KINDS: dict[str, str] = {
     "perfros-bag/validation@1": "a perfros-bag validation (validation.json)",
     "perfros-bag/info@1": "a perfros-bag recording summary (info --json)",
     "perfros-bag/casestudy-run@1": "a perfros-bag case-study run record (run.json)",
+    "perfros-bag/tune@1": "a perfros-bag tuning loop (tune.json)",
 }
 
 

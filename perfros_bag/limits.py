@@ -55,3 +55,23 @@ def short_repr(obj: Any) -> str:
     except ValueError:  # an int beyond Python's digit limit for str()
         return "an integer too long to print"
     return text if len(text) <= 40 else f"{text[:20]}...({len(text)} characters)"
+
+
+def tree_problem(value: Any, where: str = "") -> str | None:
+    """The first number of a JSON tree (dicts, lists, scalars) that :func:`number_problem`
+    refuses, as ``place: problem`` (``nodes[2].cpu: must be ...``); None when all are fine."""
+    if isinstance(value, dict):
+        for key, item in value.items():
+            found = tree_problem(item, f"{where}.{key}" if where else str(key))
+            if found is not None:
+                return found
+    elif isinstance(value, list):
+        for i, item in enumerate(value):
+            found = tree_problem(item, f"{where}[{i}]")
+            if found is not None:
+                return found
+    elif isinstance(value, float | int) and not isinstance(value, bool):
+        problem = number_problem(value)
+        if problem is not None:
+            return f"{where}: {problem}"
+    return None

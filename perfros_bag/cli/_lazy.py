@@ -50,6 +50,8 @@ VERBS: Mapping[str, Verb] = {
                  "(loads, fits and solves as it is)."),
     "deploy": Verb("perfros_bag.cli.deploy", "Run PLAN on this machine (capped cgroups, shaped links), "
                    "record it and validate it (eq 10)."),
+    "tune": Verb("perfros_bag.cli.tune", "Sweep, fit, solve and deploy APP.launch, then refit on each deployment "
+                 "until its plan holds."),
     "casestudy": Verb("perfros_bag.cli.casestudy", "The paper's case study on real ROS 1 nodes (roscore, rospy, "
                       "rosbag)."),
 }

@@ -27,7 +27,7 @@ from perfros_bag.fileio import (
     read_json,
 )
 from perfros_bag.fitting.modelfile import FittedRelation, read_model
-from perfros_bag.limits import number_problem
+from perfros_bag.limits import tree_problem
 from perfros_bag.report.fit_plots import plot_relations
 from perfros_bag.report.frontier_plots import plot_frontier
 from perfros_bag.report.plan_plots import plot_plan_loads
@@ -95,23 +95,10 @@ def read_validation(path: str | Path) -> dict[str, Any]:
     expect_kind(path, data, validation, {validation})
     if not isinstance(data, dict) or not isinstance(data.get("nodes"), list) or not isinstance(data.get("overall"), dict):
         raise InputError(path, "not a validation (expected a JSON object with a 'nodes' list and an 'overall' object)")
-    _check_numbers(path, data, "")
+    problem = tree_problem(data)  # every number within the stated limits, the place named
+    if problem is not None:
+        raise InputError(path, problem)
     return data
-
-
-def _check_numbers(path: str | Path, value: Any, where: str) -> None:
-    """Every number of a validation within the stated limits (finite, at most 1e12), the
-    place named: the report draws and prints them."""
-    if isinstance(value, dict):
-        for key, item in value.items():
-            _check_numbers(path, item, f"{where}.{key}" if where else str(key))
-    elif isinstance(value, list):
-        for i, item in enumerate(value):
-            _check_numbers(path, item, f"{where}[{i}]")
-    elif isinstance(value, float | int) and not isinstance(value, bool):
-        problem = number_problem(value)
-        if problem is not None:
-            raise InputError(path, f"{where}: {problem}")
 
 
 @dataclass

@@ -1,0 +1,389 @@
+"""``tune``: sweep -> characterise -> fit -> solve -> deploy, then learn from each deployment.
+
+Round k (1, 2, ...) solves Problem 1 on model k-1, deploys the plan here
+(:func:`perfros_bag.sweep.deploy.deploy`: capped cgroups, shaped links) and validates it.
+Model 0 is fitted on the sweep alone; model k on the sweep plus the recordings of rounds
+1..k, each of which holds every node at its planned setting, co-located and capped, as it
+will run. The loop stops when a round's run is within the tolerance (eq 10), when model k's
+plan would deploy exactly what round k deployed, or after ``rounds`` rounds.
+
+How a deployment's recording is weighed in the refit (docs/formats.md, "tune"):
+
+- it is one more characterisation run: its manifest entry (``DIR/manifest.yaml``) gives
+  each varied node the value it ran at, and its CPU comes from the host's trace;
+- where a deployment measured a node at a value, that measurement stands for the value:
+  the sweep's rows of that node at that value are left out of the refit (the sweep ran the
+  node alone and uncapped; averaging both would keep half of the sweep's error exactly
+  where the plan puts its load);
+- a starved node's CPU is a lower bound, not its need. A computer is starved when its
+  cgroup was throttled in at least :data:`THROTTLED_SHARE` of the CFS periods of the
+  recording (deploy.json's ``throttling``). A node on it that kept a share r < 1 of its
+  planned message rate (validation.json's ``ratio``) is taken to need ``measured / r``
+  (its CPU per message at the planned rate; r at least :data:`MIN_KEPT`), and its row's
+  rates and bandwidth are scaled the same way (:data:`RESCALED_COLUMNS`: the row stands
+  for the node as it would run at its planned rate); a starved node without a rate to
+  compare is left out of the refit for that round.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import math
+import warnings
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from perfros_bag.errors import InputError, PerfrosError, PerfrosWarning
+from perfros_bag.tune.tunefile import TUNE_FORMAT, read_tune, write_tune
+
+if TYPE_CHECKING:
+    from perfros_bag.characterisation.csvfile import Row
+    from perfros_bag.characterisation.manifest import RecordingEntry
+    from perfros_bag.system.plan import Plan
+    from perfros_bag.system.types import System
+
+#: a computer whose cgroup was throttled in at least this share of the CFS periods of the
+#: recording is starved: its nodes' CPU is a lower bound
+THROTTLED_SHARE = 0.10
+#: the least kept rate share a starved node's need is scaled by (1 / MIN_KEPT at most)
+MIN_KEPT = 0.05
+#: refit uses of a node's row in a deployment's recording
+USE_MEASURED, USE_RESCALED, USE_LEFT_OUT = "measured", "rescaled to its planned rate", "left out"
+
+#: the columns of a starved node's row that scale with its message rate
+RESCALED_COLUMNS = ("cpu_units_mean", "cpu_units_p95", "frequency_hz", "bandwidth_kBps", "median_rate_hz")
+
+Progress = Callable[[str], None]
+
+
+@dataclass
+class TuneResult:
+    document: dict[str, Any]  # tune.json
+    resumed: int  # rounds finished by an earlier start
+    ran: int  # rounds this start ran
+
+
+def _check_args(rounds: int, tolerance: float, headroom: float, method: str, units_per_core: float) -> None:
+    from perfros_bag.solver import METHODS
+
+    if isinstance(headroom, bool) or not isinstance(headroom, int | float) or not 0.0 <= headroom < 1.0:
+        raise InputError(None, f"headroom must be in [0, 1), got {headroom!r}")
+    if isinstance(rounds, bool) or not isinstance(rounds, int) or rounds < 1:
+        raise InputError(None, f"rounds must be a whole number >= 1, got {rounds!r}")
+    if not math.isfinite(tolerance) or tolerance < 0:
+        raise InputError(None, f"the tolerance must be a number >= 0, got {tolerance!r}")
+    if method not in METHODS:
+        raise InputError(None, f"unknown method {method!r} (one of {', '.join(METHODS)})")
+    if not math.isfinite(units_per_core) or units_per_core <= 0:
+        raise InputError(None, f"CPU units per core must be > 0, got {units_per_core!r}")
+
+
+def tune(launch_path: str | Path, space_path: str | Path, system_path: str | Path, out: str | Path, *,
+         rounds: int = 3, tolerance: float | None = None, method: str = "exact", headroom: float = 0.0,
+         duration: float | None = None, units_per_core: float = 100.0, net: bool = True, interval: float = 0.5,
+         progress: Progress | None = None, on_round: Callable[[dict[str, Any]], None] | None = None) -> TuneResult:
+    """Run the loop into ``out`` (docs/formats.md, "tune"); resumes after the rounds an
+    earlier start finished (``out/tune.json``)."""
+    from perfros_bag.sweep.deploy import deploy
+    from perfros_bag.sweep.launchfile import check_space, read_launch
+    from perfros_bag.sweep.runner import sweep
+    from perfros_bag.sweep.space import load_space
+    from perfros_bag.system.planfile import save_plan
+    from perfros_bag.system.systemfile import load_system
+    from perfros_bag.validation import DEFAULT_TOLERANCE
+
+    tol = DEFAULT_TOLERANCE if tolerance is None else tolerance
+    _check_args(rounds, tol, headroom, method, units_per_core)
+    system = load_system(system_path)
+    system.capacities(1)  # Problem 1 needs every capacity: said now, not after the sweep
+    space = load_space(space_path).with_duration(duration)
+    launch = read_launch(launch_path)
+    check_space(launch, space)
+    outdir = Path(out).absolute()
+    if outdir.exists() and not outdir.is_dir():
+        raise InputError(outdir, "is not a directory, expected the folder to tune into")
+    say = progress or (lambda stage: None)
+    inputs = {"launch": str(Path(launch_path).absolute()), "space": str(Path(space_path).absolute()),
+              "system": str(Path(system_path).absolute()), "system_sha256": _sha256(Path(system_path)),
+              "method": method, "headroom": headroom, "units_per_core": units_per_core}
+    doc = _resume(outdir / "tune.json", inputs)
+    resumed = len(doc["rounds"])
+    doc.update(tolerance_pct=tol, rounds_max=rounds, stopped=None)
+
+    outdir.mkdir(parents=True, exist_ok=True)
+    say("sweep")
+    sweep(launch_path, space_path, outdir / "sweep", duration=duration, interval=interval,
+          progress=lambda i, n, name, stage, frac: say(f"sweep {i + 1}/{n} {name}: {stage}"))
+
+    ran = 0
+    while True:
+        done: list[dict[str, Any]] = doc["rounds"]
+        last = done[-1] if done else None
+        if last is not None and last["within_tolerance"]:
+            doc["stopped"] = {"reason": "within tolerance", "after_round": last["round"]}
+            break
+        if len(done) >= rounds:
+            doc["stopped"] = {"reason": "rounds", "after_round": len(done)}
+            break
+        k = len(done) + 1
+        say(f"round {k}: characterise and fit")
+        model_path = fit_rounds(outdir, system_path, system, done, units_per_core)
+        say(f"round {k}: solve")
+        plan = _solve(model_path, method, headroom)
+        values, placement = _deployed(plan, space, dict(launch.args))
+        if last is not None and values == last["values"] and placement == last["placement"]:
+            doc["stopped"] = {"reason": "plan unchanged", "after_round": last["round"]}
+            break
+        rdir = outdir / f"round-{k}"
+        rdir.mkdir(exist_ok=True)
+        plan_path = rdir / "plan.json"
+        save_plan(plan, plan_path)
+        def deploying(stage: str, frac: float, k: int = k) -> None:
+            say(f"round {k}: deploy: {stage}")
+
+        try:
+            result = deploy(plan_path, launch_path, space_path, rdir, duration=duration, units_per_core=units_per_core,
+                            tolerance=tol, net=net, system_path=system_path, interval=interval,
+                            progress=deploying)
+        except PerfrosError as exc:
+            raise InputError(None, f"round {k}: the deployment failed ({exc}); rounds 1-{k - 1} are kept in "
+                                   f"{outdir / 'tune.json'}" if k > 1 else
+                             f"round {k}: the deployment failed ({exc})") from None
+        say(f"round {k}: refit")
+        entry = round_entry(k, plan, plan_path, model_path, result.record, result.validation.to_dict(), tol)
+        after = fit_rounds(outdir, system_path, system, [*done, entry], units_per_core)
+        _fill_after(entry, after)
+        done.append(entry)
+        ran += 1
+        write_tune(outdir / "tune.json", doc)
+        _plot(outdir, doc)
+        if on_round is not None:
+            on_round(entry)
+    write_tune(outdir / "tune.json", doc)
+    if doc["rounds"]:
+        _plot(outdir, doc)
+    return TuneResult(doc, resumed, ran)
+
+
+def _sha256(path: Path) -> str:
+    try:
+        return hashlib.sha256(path.read_bytes()).hexdigest()
+    except OSError as exc:
+        raise InputError(path, f"cannot read: {exc.strerror or exc}") from None
+
+
+def _resume(path: Path, inputs: dict[str, Any]) -> dict[str, Any]:
+    """The document to continue: tune.json's finished rounds when it exists and was made
+    from the same launch file, space, system (byte for byte), method, headroom and CPU
+    scale; a new one otherwise (an error naming the difference when they differ)."""
+    if not path.exists():
+        return {"format": TUNE_FORMAT, **inputs, "rounds": []}
+    doc = read_tune(path)
+    for key, now in inputs.items():
+        if doc.get(key) != now:
+            raise InputError(path, f"its rounds were made with {key} {doc.get(key)!r}, not {now!r}: tune into "
+                                   "another folder, or delete tune.json to start over")
+    return doc
+
+
+# --------------------------------------------------------------------------- fit
+
+def _host_system(system: System, entries: list[RecordingEntry], units_per_core: float) -> System:
+    """``system`` plus every machine the recordings were measured on, each with the capacity
+    ``logical CPUs x units_per_core`` of its trace (so ``cpu_percent / 100 x units_per_core``
+    units, the scale the plan is emulated in), for characterising only."""
+    from perfros_bag.cpu.trace import read_cpu_trace
+    from perfros_bag.system.types import Computer
+
+    hosts: dict[str, float] = {}
+    for e in entries:
+        if e.computer is not None and e.computer not in hosts and e.cpu is not None and e.cpu.is_file():
+            hosts[e.computer] = read_cpu_trace(e.cpu).logical_cpus * units_per_core
+    kept = tuple(c for c in system.computers if c.name not in hosts)
+    return dataclasses.replace(system, computers=kept + tuple(Computer(h, "robot", cap) for h, cap in hosts.items()))
+
+
+def _entries(outdir: Path, done: list[dict[str, Any]]) -> list[RecordingEntry]:
+    """The sweep's recordings and each finished round's, as ``outdir/manifest.yaml`` lists
+    them (written here: the manifest the refit characterises)."""
+    from perfros_bag.characterisation.manifest import load_manifest, write_manifest
+
+    sweep = load_manifest(outdir / "sweep" / "manifest.yaml")
+    host = next((e.computer for e in sweep.recordings if e.computer), None)
+    items: list[dict[str, Any]] = []
+    for e in sweep.recordings:
+        item: dict[str, Any] = {"path": f"sweep/{e.name}", "settings": dict(e.settings)}
+        if e.cpu is not None:
+            item["cpu"] = str(e.cpu.relative_to(outdir)) if e.cpu.is_relative_to(outdir) else str(e.cpu)
+        if e.computer is not None:
+            item["computer"] = e.computer
+        items.append(item)
+    for r in done:  # the host's own trace: every node in the measurement's units
+        items.append({"path": f"{r['dir']}/run.bag", "cpu": f"{r['dir']}/run.host.cpu.csv",
+                      **({"computer": host} if host else {}), "settings": dict(r["values"])})
+    write_manifest(outdir / "manifest.yaml", items)
+    return list(load_manifest(outdir / "manifest.yaml").recordings)
+
+
+def _same(a: Any, b: Any) -> bool:
+    if isinstance(a, int | float) and isinstance(b, int | float) and not isinstance(a, bool):
+        return math.isclose(float(a), float(b), rel_tol=1e-9, abs_tol=1e-12)
+    return bool(a == b)
+
+
+def weigh(rows: list[Row], done: list[dict[str, Any]]) -> list[Row]:
+    """The rows the refit uses (the rules of this module's docstring): each round's rows as
+    its ``nodes[*].refit`` says (kept, rescaled by ``cpu_factor`` or left out), and the
+    sweep's rows of a node at a value a round measured and kept left out."""
+    out: list[Row] = []
+    measured: list[tuple[str, Any]] = []  # (node, value) a kept deployment row stands for
+    rounds = {f"{r['dir']}/run.bag": r for r in done}
+    for row in rows:
+        r = rounds.get(row.recording)
+        if r is None:
+            continue
+        node = r["nodes"].get(row.node)
+        if node is None:  # not a node of the plan: as any run
+            out.append(row)
+            continue
+        if node["refit"] == USE_LEFT_OUT:
+            continue
+        factor = node.get("cpu_factor") or 1.0
+        if factor != 1.0:  # a starved node as at its planned rate: its CPU, rates and bandwidth
+            scaled: dict[str, Any] = {c: None if getattr(row, c) is None else getattr(row, c) * factor
+                                      for c in RESCALED_COLUMNS}
+            row = dataclasses.replace(row, **scaled)
+        out.append(row)
+        if row.cpu_units_mean is not None:
+            measured.append((row.node, row.value))
+    sweep_rows = [row for row in rows if row.recording not in rounds
+                  and not any(n == row.node and _same(v, row.value) for n, v in measured)]
+    return sweep_rows + out
+
+
+def fit_rounds(outdir: Path, system_path: str | Path, system: System, done: list[dict[str, Any]],
+               units_per_core: float) -> Path:
+    """Characterise the sweep and the finished rounds, weigh the rows (:func:`weigh`) and
+    fit: ``outdir/characterisation-<k>.csv`` and ``outdir/model-<k>.json``, k = len(done)."""
+    from perfros_bag.characterisation.csvfile import write_characterisation
+    from perfros_bag.characterisation.table import characterise
+    from perfros_bag.fitting.build import build_model
+    from perfros_bag.fitting.modelfile import write_model
+
+    entries = _entries(outdir, done)
+    result = characterise(entries, _host_system(system, entries, units_per_core))
+    if result.failures:
+        f = result.failures[0]
+        raise InputError(outdir / "manifest.yaml", f"recording {f.recording}: {f.message}")
+    k = len(done)
+    csv_path, model_path = outdir / f"characterisation-{k}.csv", outdir / f"model-{k}.json"
+    write_characterisation(csv_path, weigh(result.rows, done))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", PerfrosWarning)  # the fit's notes are in model.json
+        model = build_model(system_path, csv_path)
+    write_model(model_path, model.document)
+    return model_path
+
+
+def load_model(model_path: Path) -> System:
+    """model.json's system (its fits' notes are in the file, not repeated as warnings)."""
+    from perfros_bag.system.systemfile import load_system
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", PerfrosWarning)
+        return load_system(model_path)
+
+
+def model_cpu(model: System, node: str, value: Any) -> float | None:
+    """The model's CPU for ``node`` at ``value``: its fitted ``parameter->cpu`` when it has
+    one, else the setting at that value (the only setting of a node without a parameter)."""
+    n = model.node.get(node)
+    if n is None:
+        return None
+    rel = n.relations.get("parameter->cpu")
+    if rel is not None and isinstance(value, int | float) and not isinstance(value, bool):
+        return float(rel(float(value)))
+    if len(n.settings) == 1 and value is None:
+        return n.settings[0].cpu
+    s = next((s for s in n.settings if _same(s.value, value)), None)
+    return None if s is None else s.cpu
+
+
+# --------------------------------------------------------------------------- solve, deploy
+
+def _solve(model_path: Path, method: str, headroom: float) -> Plan:
+    from perfros_bag.solver import solve
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", PerfrosWarning)
+        plan = solve(load_model(model_path), 1, method, headroom=headroom)
+    plan.require_feasible(model_path, "deploy")
+    return plan
+
+
+def _deployed(plan: Plan, space: Any, arg_defaults: dict[str, str | None]) -> tuple[dict[str, Any], dict[str, str]]:
+    """What deploying ``plan`` runs: each varied node's value (as deploy sets it) and each
+    node's computer."""
+    from perfros_bag.sweep.deploy import plan_run
+
+    run = plan_run(plan, space, arg_defaults)
+    return dict(run.values), {n: pn.computer for n, pn in sorted(plan.nodes.items())}
+
+
+def round_entry(k: int, plan: Plan, plan_path: Path, model_path: Path, record: dict[str, Any],
+                validation: dict[str, Any], tolerance: float) -> dict[str, Any]:
+    """Round ``k``'s entry of tune.json from its plan, deploy.json and validation.json: per
+    computer its throttling, per node predicted vs measured CPU and how the refit uses it."""
+    throttling = record.get("throttling") or {}
+    computers: dict[str, dict[str, Any]] = {}
+    for c in validation.get("computers", []):
+        t = throttling.get(c["computer"]) or {}
+        share = t["nr_throttled"] / t["nr_periods"] if t.get("nr_periods") else 0.0
+        computers[c["computer"]] = {"capacity": c["capacity"], "cpu_planned": c["cpu_expected"],
+                                    "cpu_measured": c["cpu_measured"], "throttled_share": round(share, 4),
+                                    "starved": share >= THROTTLED_SHARE}
+    values = dict(record["values"])
+    model = load_model(model_path)
+    nodes: dict[str, dict[str, Any]] = {}
+    for n in validation["nodes"]:
+        # ratio: the node's kept share of its planned rate; None without a rate to compare
+        name, measured = n["node"], n.get("cpu_measured")
+        ratio: float | None = n["ratio"] if n.get("counted") else None
+        starved = computers.get(n["computer"], {}).get("starved", False)
+        factor, use = 1.0, USE_MEASURED
+        if measured is None or (starved and ratio is None):
+            use = USE_LEFT_OUT
+        elif starved and ratio is not None and ratio < 1.0:
+            factor, use = 1.0 / max(ratio, MIN_KEPT), USE_RESCALED
+        value = values.get(name, plan.nodes[name].value if name in plan.nodes else None)
+        nodes[name] = {"computer": n["computer"], "value": value, "cpu_planned": n.get("cpu_expected"),
+                       "cpu_measured": measured, "kept_ratio": ratio, "starved": starved,
+                       "cpu_need": None if measured is None or use == USE_LEFT_OUT else measured * factor,
+                       "cpu_factor": factor, "refit": use,
+                       "model_cpu_before": model_cpu(model, name, value), "model_cpu_after": None}
+    overall = validation["overall"]
+    return {"round": k, "dir": f"round-{k}", "plan": str(plan_path.relative_to(plan_path.parent.parent)),
+            "model": model_path.name, "refit_model": None, "objective": plan.objective,
+            "values": values, "placement": {name: pn.computer for name, pn in sorted(plan.nodes.items())},
+            "expected": overall["expected"], "measured": overall["measured"],
+            "deviation_pct": overall["deviation_pct"], "within_tolerance": overall["deviation_pct"] <= tolerance,
+            "run_id": record["run_id"], "cpu_cap": record["cpu_cap"]["mode"], "network": record["network"]["mode"],
+            "computers": computers, "nodes": nodes}
+
+
+def _fill_after(entry: dict[str, Any], model_path: Path) -> None:
+    entry["refit_model"] = model_path.name
+    model = load_model(model_path)
+    for name, n in entry["nodes"].items():
+        n["model_cpu_after"] = model_cpu(model, name, n["value"])
+
+
+def _plot(outdir: Path, doc: dict[str, Any]) -> None:
+    from perfros_bag.fileio import atomic_open
+    from perfros_bag.report.tune_plots import plot_tune
+
+    with atomic_open(outdir / "tune.png", "wb", encoding=None) as fh:
+        fh.write(plot_tune(doc["rounds"]))

@@ -1,0 +1,246 @@
+"""``tune`` on real ROS 1 with the synthetic node whose CPU is known (casestudy_node.py: v ms of
+CPU work per message at 10 Hz, i.e. 10·v units of 1000 per core, plus rospy's own).
+
+The sweep's record of the top setting is made deliberately wrong (its CPU trace halved, as
+if measured on a machine twice as fast), so the first plan deploys that setting on a
+computer too small for it. The deployment starves (its cgroup throttled, the node keeps a
+share of its rate), the loop takes its recording as one more characterisation run, rescales
+the starved node to its planned rate, refits and deploys a setting that fits. Checked
+against independent sources: the known work per message, the rate Debian's rosbag reader
+counts in the round's bag and the host's raw CPU trace; nothing the rounds started is left
+(processes, cgroups, namespaces). A second start resumes; Ctrl-C and a node dying in a round
+keep the finished rounds and leave nothing.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+
+from perfros_bag.rosrun.cgroups import leftover_groups
+from perfros_bag.rosrun.network import leftover_namespaces
+from perfros_bag.rosrun.processes import leftover_processes
+from perfros_bag.tune.loop import load_model, model_cpu
+from perfros_bag.tune.tunefile import read_tune
+from tests.test_casestudy_e2e import BAG_RATES, ROS_PY, _cgroups_work
+from tests.test_sweep_e2e import BIN, _nothing_left, _running, _tags_and_ports, _wait
+
+pytestmark = pytest.mark.ros
+
+NODE = Path(__file__).resolve().parent.parent / "perfros_bag" / "casestudy" / "nodes" / "casestudy_node.py"
+RATE_HZ = 10
+UNITS = 1000  # CPU units per core: the solver's whole-unit CPU levels are then fine enough
+CAPACITY = 120  # robot1: 12 % of a core; the node needs 10·v (+ rospy's own) at value v
+LOW, HIGH = 5, 15  # ms of CPU work per message: 50 and 150 units
+TOP = "worker-work_ms-15"
+
+
+def _need(value: float) -> float:
+    """The CPU units the node's work alone takes at ``value`` (ms per message, 10 Hz)."""
+    return value * RATE_HZ * UNITS / 1000
+
+
+def _env(d: Path) -> dict[str, str]:
+    return dict(os.environ, ROS_PACKAGE_PATH=str(d / "pkgs"))
+
+
+def _app(d: Path) -> dict[str, Path]:
+    """A ROS package running casestudy_node.py as ``worker``, its launch file, space and system."""
+    assert os.path.exists("/usr/bin/roscore") and os.path.exists(ROS_PY), "make setup-debs"
+    pkg = d / "pkgs" / "perfros_tune"
+    pkg.mkdir(parents=True)
+    (pkg / "package.xml").write_text('<?xml version="1.0"?><package format="2"><name>perfros_tune</name>'
+                                     '<version>0.0.1</version><description>test</description>'
+                                     '<maintainer email="t@t">t</maintainer><license>MIT</license></package>')
+    script = pkg / "worker"
+    script.write_text(f'#!/bin/sh\nexec {ROS_PY} {NODE} "$@"\n')
+    script.chmod(0o755)
+    launch = d / "app.launch"
+    launch.write_text(f'<launch><arg name="work_ms" default="{LOW}"/>'
+                      f'<node name="worker" pkg="perfros_tune" type="worker" args="--name worker --rate {RATE_HZ} '
+                      '--work-ms $(arg work_ms) --pub /worker/out"/></launch>')
+    space = d / "space.yaml"
+    space.write_text(yaml.safe_dump({
+        "duration_s": 3, "settle_s": 1, "design": "one-at-a-time", "startup_timeout_s": 30,
+        "vary": [{"node": "worker", "parameter": {"name": "work_ms", "unit": "ms"}, "arg": "work_ms",
+                  "values": [LOW, HIGH], "default": LOW}]}))
+    system = d / "system.yaml"
+    system.write_text(yaml.safe_dump({
+        "computers": [{"name": "robot1", "kind": "robot", "capacity": CAPACITY}],
+        "nodes": [{"name": "worker", "weight": 1, "parameter": {"name": "work_ms", "unit": "ms"},
+                   "topics": ["/worker/out"], "process": "^/worker$",
+                   "settings": [{"value": LOW, "cpu": _need(LOW), "performance": 50},
+                                {"value": HIGH, "cpu": _need(HIGH), "performance": 100}]}]}, sort_keys=False))
+    return {"launch": launch, "space": space, "system": system}
+
+
+def _tune(d: Path, files: dict[str, Path], out: Path, *extra: str,
+          popen: bool = False) -> Any:
+    args = [str(BIN), "tune", str(files["launch"]), "--space", str(files["space"]), "--system", str(files["system"]),
+            "--out", str(out), "--units-per-core", str(UNITS), "--headroom", "0.1", *extra]
+    if popen:
+        return subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=_env(d))
+    return subprocess.run(args, capture_output=True, text=True, timeout=150, env=_env(d))
+
+
+def _halve_cpu(trace: Path) -> None:
+    """The sweep's wrong record: every sample's cpu_percent halved."""
+    lines = []
+    for line in trace.read_text().splitlines():
+        if line and not line.startswith("#") and not line.startswith("time,"):
+            f = line.split(",")
+            f[4] = repr(float(f[4]) / 2)
+            line = ",".join(f)
+        lines.append(line)
+    trace.write_text("\n".join(lines) + "\n")
+
+
+@pytest.fixture(scope="module")
+def tuned(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    d = tmp_path_factory.mktemp("tune")
+    files = _app(d)
+    out = d / "out"
+    swept = subprocess.run([str(BIN), "sweep", str(files["launch"]), "--space", str(files["space"]),
+                            "--out", str(out / "sweep")], capture_output=True, text=True, timeout=120, env=_env(d))
+    assert swept.returncode == 0, swept.stderr
+    _halve_cpu(out / "sweep" / f"{TOP}.cpu.csv")
+    done = _tune(d, files, out, "--rounds", "3")
+    return {"d": d, "files": files, "out": out, "done": done}
+
+
+def _mean_cpu(trace: Path, node: str) -> float:
+    """Mean CPU units of ``node`` in a raw psutil trace (cpu_percent of one core = 100)."""
+    rows = [line.split(",") for line in trace.read_text().splitlines()
+            if line and not line.startswith("#") and not line.startswith("time,")]
+    values = [float(r[4]) for r in rows if r[2] == node]
+    return sum(values) / len(values) / 100 * UNITS
+
+
+def test_the_loop_learns_the_known_cpu_and_converges(tuned: dict[str, Any]) -> None:
+    done, out = tuned["done"], tuned["out"]
+    assert "Traceback" not in done.stderr
+    doc = read_tune(out / "tune.json")
+    rounds = doc["rounds"]
+    assert done.returncode == 0, done.stderr  # exit 0: the last round is within tolerance
+    assert 2 <= len(rounds) <= 3 and doc["stopped"] == {"reason": "within tolerance", "after_round": len(rounds)}
+    assert "round(s) run, 0 resumed; stopped: within tolerance" in done.stderr
+
+    # round 1: the wrong model puts the top setting on robot1, which cannot hold it
+    first = rounds[0]
+    node = first["nodes"]["worker"]
+    assert first["values"] == {"worker": HIGH} and node["value"] == HIGH
+    before = model_cpu(load_model(out / "model-0.json"), "worker", HIGH)
+    assert before is not None and before < 0.6 * _need(HIGH) <= CAPACITY * 1.5  # what the halved trace says
+    assert node["model_cpu_before"] == pytest.approx(before)
+    if _cgroups_work():
+        assert first["cpu_cap"] != "uncapped" and first["computers"]["robot1"]["starved"]
+        assert first["deviation_pct"] > doc["tolerance_pct"] and not first["within_tolerance"]
+        # independently: the rate Debian's reader counts in the round's bag, the host's raw trace
+        rates = json.loads(subprocess.run([ROS_PY, "-c", BAG_RATES, str(out / "round-1" / "run.bag")],
+                                          capture_output=True, text=True, timeout=60, check=True,
+                                          env={k: v for k, v in os.environ.items() if k != "PYTHONPATH"}).stdout)
+        kept = rates["/worker/out"] / RATE_HZ
+        assert kept < 0.95 and node["kept_ratio"] == pytest.approx(kept, rel=0.1)
+        used = _mean_cpu(out / "round-1" / "run.host.cpu.csv", "/worker")
+        assert used <= CAPACITY * 1.1 and node["cpu_measured"] == pytest.approx(used, rel=0.15)
+        assert node["refit"] == "rescaled to its planned rate"
+        assert node["cpu_need"] == pytest.approx(node["cpu_measured"] / node["kept_ratio"])
+        # the fit moved to the node's real need: the known work per message at the planned rate
+        after = model_cpu(load_model(out / "model-1.json"), "worker", HIGH)
+        assert after == pytest.approx(node["model_cpu_after"])
+        assert abs(after - used / kept) < abs(before - used / kept)
+        assert _need(HIGH) * 0.9 <= after <= _need(HIGH) * 1.3, after
+
+    # the last round: a setting whose known work fits robot1, run within tolerance
+    last = rounds[-1]
+    assert last["within_tolerance"] and last["deviation_pct"] <= doc["tolerance_pct"]
+    assert _need(last["values"]["worker"]) <= CAPACITY
+    assert (out / "tune.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # the manifest the refit characterised: the sweep's runs, then each round's at its values
+    manifest = yaml.safe_load((out / "manifest.yaml").read_text())["recordings"]
+    assert [e["path"] for e in manifest] == ["sweep/worker-work_ms-5.bag", f"sweep/{TOP}.bag"] + [
+        f"round-{r['round']}/run.bag" for r in rounds]
+    assert [e["settings"] for e in manifest[2:]] == [r["values"] for r in rounds]
+    for r in rounds:  # every round's deployment: the plan's value, nothing left
+        record = json.loads((out / r["dir"] / "deploy.json").read_text())
+        assert record["values"] == r["values"] and record["run_id"] == r["run_id"]
+        assert record["leftover_cgroups"] == [] and record["leftover_namespaces"] == []
+        assert leftover_processes(r["run_id"]) == [] and leftover_groups(run_id=r["run_id"]) == []
+        assert leftover_namespaces(f"d{r['run_id']}") == []
+    _nothing_left(out, set(), set())
+
+
+def test_a_second_start_resumes_after_the_finished_rounds(tuned: dict[str, Any]) -> None:
+    out = tuned["out"]
+    assert tuned["done"].returncode == 0, tuned["done"].stderr
+    before = read_tune(out / "tune.json")
+    again = _tune(tuned["d"], tuned["files"], out, "--rounds", "3")
+    assert again.returncode == 0, again.stderr
+    assert f"0 round(s) run, {len(before['rounds'])} resumed" in again.stderr
+    assert read_tune(out / "tune.json") == before
+
+
+def _resume_state(tuned: dict[str, Any], dest: Path) -> Path:
+    """A copy of the tuned folder as it stood after round 1 (tune.json with round 1 only)."""
+    out = dest / "out"
+    shutil.copytree(tuned["out"], out, ignore=shutil.ignore_patterns("round-2", "round-3", "model-2.json",
+                                                                      "model-3.json"))
+    doc = json.loads((out / "tune.json").read_text())
+    doc["rounds"], doc["stopped"] = doc["rounds"][:1], None
+    (out / "tune.json").write_text(json.dumps(doc))
+    return out
+
+
+def test_ctrl_c_in_a_round_keeps_the_finished_rounds_and_leaves_nothing(tuned: dict[str, Any],
+                                                                       tmp_path: Path) -> None:
+    assert tuned["done"].returncode == 0, tuned["done"].stderr
+    out = _resume_state(tuned, tmp_path)
+    kept = (out / "tune.json").read_bytes()
+    proc = _tune(tuned["d"], tuned["files"], out, "--rounds", "3", "--duration", "20", popen=True)
+    try:
+        _wait(lambda: bool(_running(out, str(NODE))), proc, 60, "round 2's node")
+        tags, ports = _tags_and_ports(out)
+        assert len(tags) == 1
+        proc.send_signal(signal.SIGINT)
+        _, stderr = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130, stderr
+    assert "Traceback" not in stderr and "interrupted: finished rounds are kept in tune.json" in stderr
+    _nothing_left(out, tags, ports)
+    for tag in tags:
+        assert leftover_namespaces(f"d{tag}") == [], tag
+    assert (out / "tune.json").read_bytes() == kept
+
+
+def test_a_node_dying_in_a_round_is_one_line_and_keeps_the_finished_rounds(tuned: dict[str, Any],
+                                                                          tmp_path: Path) -> None:
+    assert tuned["done"].returncode == 0, tuned["done"].stderr
+    out = _resume_state(tuned, tmp_path)
+    kept = (out / "tune.json").read_bytes()
+    proc = _tune(tuned["d"], tuned["files"], out, "--rounds", "3", "--duration", "20", popen=True)
+    try:
+        _wait(lambda: bool(_running(out, "__name:=perfros_record")), proc, 60, "round 2's recording")
+        tags, ports = _tags_and_ports(out)
+        victims = _running(out, str(NODE))
+        assert len(victims) == 1
+        victims[0].kill()
+        _, stderr = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 2, stderr
+    lines = [x for x in stderr.splitlines() if x.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: round 2: the deployment failed ("), stderr
+    assert "rounds 1-1 are kept in" in lines[0]
+    _nothing_left(out, tags, ports)
+    assert (out / "tune.json").read_bytes() == kept
