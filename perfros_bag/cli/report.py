@@ -21,10 +21,11 @@ def report(
     validation: Annotated[Path | None, typer.Option(
         "--validation", help="The JSON of validate --json.")] = None,
     frontier: Annotated[Path | None, typer.Option("--frontier", help="frontier.json from solve --pareto.")] = None,
+    tune: Annotated[Path | None, typer.Option("--tune", help="tune.json from tune (the loop's rounds).")] = None,
 ) -> None:
     """Write an HTML report; anything not given is left out."""
     from perfros_bag.report.html import build_report
 
     index = build_report(out_dir, characterisation=characterisation, model=model, plan=plan,
-                         validation=validation, frontier=frontier)
+                         validation=validation, frontier=frontier, tune=tune)
     err.print(f"wrote {escape(str(index))}", highlight=False)

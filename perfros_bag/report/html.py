@@ -335,6 +335,33 @@ def section_frontier(doc: dict[str, Any], images: list[Image]) -> str:
             f"{gains}{_img(img)}{tab}")
 
 
+def section_tune(doc: dict[str, Any], images: list[Image]) -> str:
+    """The tuning loop (``tune``, tune.json): per round the values deployed, expected vs
+    measured Σ w·P, and per node planned vs measured CPU with the fit before and after."""
+    from perfros_bag.report.tune_plots import plot_tune
+
+    rounds = doc["rounds"]
+    stopped = doc.get("stopped") or {}
+    ended = "not yet" if not stopped else f"{stopped['reason']} after round {stopped['after_round']}"
+    summary = (f'<p class="summary">{len(rounds)} round(s); stopped: {esc(ended)}; method {esc(doc.get("method"))}, '
+               f'headroom {esc(fmt(doc.get("headroom")))}, tolerance {esc(fmt(doc.get("tolerance_pct")))} %.</p>')
+    img = Image("tune.png", plot_tune(rounds), "per round: planned vs measured CPU; expected vs measured Σ w·P")
+    images.append(img)
+    per_round = table(("round", "values deployed", "expected Σ w·P", "measured Σ w·P", "deviation %", "starved"),
+                      [(r["round"], ", ".join(f"{n}={v}" for n, v in r["values"].items()), r["expected"],
+                        r["measured"], r["deviation_pct"],
+                        ", ".join(c for c, v in r["computers"].items() if v.get("starved")) or "–")
+                       for r in rounds], text_cols=(1, 5), table_id="tune-rounds",
+                      row_classes=["" if r["within_tolerance"] else "bad" for r in rounds])
+    per_node = table(("round", "node", "computer", "value", "CPU planned", "CPU measured", "kept rate", "need",
+                      "model before", "model after", "refit"),
+                     [(r["round"], name, n["computer"], n["value"], n["cpu_planned"], n["cpu_measured"],
+                       n["kept_ratio"], n["cpu_need"], n["model_cpu_before"], n["model_cpu_after"], n["refit"])
+                      for r in rounds for name, n in r["nodes"].items()], text_cols=(1, 2, 10), table_id="tune-nodes")
+    return (f'<h2 id="tune">The tuning loop: each deployment refits the model</h2>{summary}{_img(img)}'
+            f"{per_round}{per_node}")
+
+
 # ---------------------------------------------------------------------------------------
 # the page
 
@@ -342,17 +369,19 @@ def section_frontier(doc: dict[str, Any], images: list[Image]) -> str:
 def build_report(out_dir: str | Path, *, characterisation: str | Path | None = None,
                  model: str | Path | None = None, plan: str | Path | None = None,
                  validation: str | Path | None = None, frontier: str | Path | None = None,
-                 title: str = "perfros-bag report") -> Path:
+                 tune: str | Path | None = None, title: str = "perfros-bag report") -> Path:
     """Write ``out_dir/index.html`` and its PNGs; returns the page's path. Inputs are read
     (and checked) before anything is written."""
     from perfros_bag.solver.frontier import read_frontier
     from perfros_bag.system.planfile import load_plan
+    from perfros_bag.tune.tunefile import read_tune
 
     char = read_characterisation(characterisation) if characterisation is not None else None
     fits = read_model(model).fits if model is not None else None
     the_plan = load_plan(plan) if plan is not None else None
     val = read_validation(validation) if validation is not None else None
     front = read_frontier(frontier) if frontier is not None else None
+    tuned = read_tune(tune) if tune is not None else None
 
     images: list[Image] = []
     sections: list[str] = []
@@ -362,12 +391,15 @@ def build_report(out_dir: str | Path, *, characterisation: str | Path | None = N
         sections.append(section_validation(val, images))
     if front is not None:
         sections.append(section_frontier(front, images))
+    if tuned is not None and tuned["rounds"]:
+        sections.append(section_tune(tuned, images))
     if fits and any(fits.values()):
         sections.append(section_fits(fits, images))
     if char is not None:
         sections.append(section_characterisation(char))
     sources = [(k, p) for k, p in (("characterisation", characterisation), ("model", model), ("plan", plan),
-                                   ("validation", validation), ("frontier", frontier)) if p is not None]
+                                   ("validation", validation), ("frontier", frontier), ("tune", tune))
+               if p is not None]
     src = "".join(f"<li>{esc(k)}: <code>{esc(p)}</code></li>" for k, p in sources)
     body = "".join(sections) or '<p class="muted">Nothing to report: no input was given.</p>'
     page = (f'<!DOCTYPE html><html lang="en"><head><meta charset="utf-8"><title>{esc(title)}</title>'

@@ -1,0 +1,188 @@
+"""``tune`` without ROS: how a deployment's rows are weighed in the refit, each round's entry
+from deploy.json and validation.json, tune.json's reader, and bad input (one line, exit 2,
+nothing written). The loop itself on real ROS 1: tests/test_tune_e2e.py."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+
+from perfros_bag.characterisation.csvfile import Row
+from perfros_bag.errors import InputError
+from perfros_bag.solver import solve
+from perfros_bag.system.systemfile import load_system
+from perfros_bag.tune.loop import (
+    MIN_KEPT,
+    THROTTLED_SHARE,
+    USE_LEFT_OUT,
+    USE_MEASURED,
+    USE_RESCALED,
+    round_entry,
+    weigh,
+)
+from perfros_bag.tune.tunefile import TUNE_FORMAT, read_tune, write_tune
+from tests.conftest import FIXTURES
+
+BIN = Path(sys.executable).with_name("perfros-bag")
+
+
+def _row(recording: str, node: str, value: Any, cpu: float | None = 10.0, freq: float = 10.0) -> Row:
+    return Row(recording, node, "p", value, f"/{node}/out", "std_msgs/String", 30, 3.0, freq, 1.0, cpu,
+               None if cpu is None else cpu * 1.2, 6, median_rate_hz=freq)
+
+
+def _round(nodes: dict[str, tuple[str, float]]) -> dict[str, Any]:
+    return {"dir": "round-1", "nodes": {n: {"refit": use, "cpu_factor": f} for n, (use, f) in nodes.items()}}
+
+
+def test_a_deployment_supersedes_the_sweep_at_its_values_and_a_starved_node_is_rescaled() -> None:
+    sweep = [_row("sweep/a.bag", "a", 5, 5.0), _row("sweep/b.bag", "a", 15, 8.0), _row("sweep/b.bag", "b", 2, 3.0),
+             _row("sweep/b.bag", "c", 1, 4.0), _row("sweep/b.bag", "d", 1, 1.0)]
+    deployed = [_row("round-1/run.bag", "a", 15, 12.0, freq=8.0), _row("round-1/run.bag", "b", 2, 3.5),
+                _row("round-1/run.bag", "c", 1, 2.0), _row("round-1/run.bag", "other", None, 1.0)]
+    done = [_round({"a": (USE_RESCALED, 1.25), "b": (USE_MEASURED, 1.0), "c": (USE_LEFT_OUT, 1.0)})]
+    out = weigh(sweep + deployed, done)
+    got = {(r.recording, r.node): r for r in out}
+    # a at 15: the sweep's row gone, the starved deployment's row as at its planned rate
+    assert ("sweep/b.bag", "a") not in got and ("sweep/a.bag", "a") in got
+    a = got[("round-1/run.bag", "a")]
+    assert (a.cpu_units_mean, a.cpu_units_p95, a.frequency_hz, a.median_rate_hz, a.bandwidth_kBps) == \
+        pytest.approx((12.0 * 1.25, 14.4 * 1.25, 10.0, 10.0, 1.25))
+    assert a.messages == 30 and a.value == 15  # counts and the value stay as recorded
+    # b measured as it will run: it stands for value 2, the sweep's b at 2 is left out
+    assert ("sweep/b.bag", "b") not in got and got[("round-1/run.bag", "b")].cpu_units_mean == 3.5
+    # c starved without a rate: left out, so the sweep's row of c stays
+    assert ("round-1/run.bag", "c") not in got and got[("sweep/b.bag", "c")].cpu_units_mean == 4.0
+    # a node the plan does not have, and one no round measured: as any run
+    assert ("round-1/run.bag", "other") in got and ("sweep/b.bag", "d") in got
+    assert weigh(sweep, []) == sweep
+
+
+def _plan_and_model(tmp_path: Path) -> tuple[Any, Path]:
+    system = {"computers": [{"name": "r1", "kind": "robot", "capacity": 100}, {"name": "r2", "kind": "robot",
+                                                                             "capacity": 100}],
+              "nodes": [{"name": n, "weight": 0.2, "parameter": {"name": "p"}, "topics": [f"/{n}/out"],
+                         "residence": [c],
+                         "settings": [{"value": 1, "cpu": 10, "performance": 50, "frequency_hz": 10},
+                                      {"value": 2, "cpu": 20, "performance": 100, "frequency_hz": 10}]}
+                        for n, c in (("a", "r1"), ("b", "r1"), ("c", "r1"), ("d", "r2"), ("e", "r1"))]}
+    path = tmp_path / "system.yaml"
+    path.write_text(yaml.safe_dump(system))
+    return solve(load_system(path), 1, "exact"), path
+
+
+def test_a_round_weighs_each_node_by_its_computers_throttling_and_its_kept_rate(tmp_path: Path) -> None:
+    plan, model = _plan_and_model(tmp_path)
+    (tmp_path / "round-1").mkdir()
+    plan_path = tmp_path / "round-1" / "plan.json"
+    periods = 1000
+    record = {"values": {"a": 2, "b": 2, "c": 2, "d": 2, "e": 2}, "run_id": "x1", "cpu_cap": {"mode": "cgroup-v1"},
+              "network": {"mode": "unshaped"},
+              "throttling": {"r1": {"nr_periods": periods, "nr_throttled": THROTTLED_SHARE * periods},
+                             "r2": {"nr_periods": periods, "nr_throttled": THROTTLED_SHARE * periods - 1}}}
+    node = {"a": (30.0, 0.6, True), "b": (25.0, 1.0, True), "c": (28.0, 1.0, False), "d": (30.0, 0.6, True),
+            "e": (None, 1.0, True)}
+    validation = {"overall": {"expected": 100.0, "measured": 80.0, "deviation_pct": 20.0},
+                  "computers": [{"computer": c, "capacity": 100.0, "cpu_expected": 80.0, "cpu_measured": 99.0}
+                                for c in ("r1", "r2")],
+                  "nodes": [{"node": n, "computer": plan.nodes[n].computer, "cpu_expected": 20.0, "cpu_measured": m,
+                             "ratio": r, "counted": counted} for n, (m, r, counted) in node.items()]}
+    entry = round_entry(1, plan, plan_path, model, record, validation, tolerance=5.0)
+    assert entry["computers"]["r1"]["starved"] and not entry["computers"]["r2"]["starved"]
+    n = entry["nodes"]
+    assert n["a"]["refit"] == USE_RESCALED and n["a"]["cpu_need"] == pytest.approx(30.0 / 0.6)  # starved, kept 60 %
+    assert n["b"]["refit"] == USE_MEASURED and n["b"]["cpu_need"] == 25.0  # starved computer, kept its rate
+    assert n["c"]["refit"] == USE_LEFT_OUT and n["c"]["cpu_need"] is None  # starved, no rate to compare
+    assert n["d"]["refit"] == USE_MEASURED and n["d"]["cpu_need"] == 30.0  # its computer was not starved
+    assert n["e"]["refit"] == USE_LEFT_OUT  # no CPU measured
+    assert n["a"]["model_cpu_before"] == 20.0 and n["a"]["value"] == 2  # the system's setting at the value
+    assert not entry["within_tolerance"] and entry["placement"] == {k: v.computer for k, v in plan.nodes.items()}
+    validation["nodes"][0]["ratio"] = 0.001
+    assert round_entry(1, plan, plan_path, model, record, validation, 5.0)["nodes"]["a"]["cpu_factor"] == 1 / MIN_KEPT
+
+
+def _doc(**over: Any) -> dict[str, Any]:
+    r = {"round": 1, "dir": "round-1", "values": {"a": 2}, "placement": {"a": "r1"}, "expected": 1.0,
+         "measured": 1.0, "deviation_pct": 0.0, "within_tolerance": True, "nodes": {}, "computers": {}}
+    return {"format": TUNE_FORMAT, "rounds": [r], "stopped": {"reason": "within tolerance", "after_round": 1},
+            **over}
+
+
+def test_tune_json_reader(tmp_path: Path) -> None:
+    path = tmp_path / "tune.json"
+    write_tune(path, _doc())
+    assert read_tune(path) == _doc()
+    bad = [(_doc(format="perfros-bag/plan@1"), "this is a perfros-bag plan"),
+           (_doc(rounds={}), "'rounds' must be a list"),
+           (_doc(rounds=[{**_doc()["rounds"][0], "round": 2}]), r"rounds\[0\]: 'round' must be 1"),
+           (_doc(rounds=[{"round": 1}]), r"rounds\[0\]: missing 'dir'"),
+           (_doc(stopped={"reason": "bored"}), "'stopped' must be null or name a reason")]
+    for doc, message in bad:
+        path.write_text(json.dumps(doc))
+        with pytest.raises(InputError, match=message):
+            read_tune(path)
+    path.write_text(json.dumps(_doc()).replace('"expected": 1.0', '"expected": 1e300'))
+    with pytest.raises(InputError, match=r"rounds\[0\]\.expected: must be at most"):
+        read_tune(path)
+
+
+def _cli(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([str(BIN), "tune", *args], capture_output=True, text=True, timeout=60)
+
+
+def test_bad_input_is_one_line_exit_2_and_writes_nothing(tmp_path: Path) -> None:
+    app = FIXTURES / "app"
+    out = tmp_path / "out"
+    base = [str(app / "app.launch"), "--space", str(app / "space.yaml"), "--system",
+            str(FIXTURES / "recordings" / "system.yaml"), "--out", str(out)]
+    for extra, message in ((["--headroom", "1"], "headroom must be in [0, 1), got 1.0"),
+                           (["--headroom", "-0.1"], "headroom must be in [0, 1), got -0.1"),
+                           (["--rounds", "0"], "rounds must be a whole number >= 1, got 0"),
+                           (["--method", "magic"], "unknown method 'magic'"),
+                           (["--tolerance", "nan"], "the tolerance must be a number >= 0")):
+        done = _cli(*base, *extra)
+        assert done.returncode == 2, (extra, done.stderr)
+        lines = done.stderr.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith(f"error: {message}"), (extra, lines)
+        assert "Traceback" not in done.stderr and not out.exists()
+    # a tune.json made with another method is not resumed
+    out.mkdir()
+    system = FIXTURES / "recordings" / "system.yaml"
+    made = {"launch": str(app / "app.launch"), "space": str(app / "space.yaml"), "system": str(system),
+            "system_sha256": hashlib.sha256(system.read_bytes()).hexdigest(), "method": "greedy", "headroom": 0.0,
+            "units_per_core": 100.0}
+    (out / "tune.json").write_text(json.dumps({**_doc(), **made}))
+    done = _cli(*base)
+    assert done.returncode == 2 and len(done.stderr.strip().splitlines()) == 1, done.stderr
+    assert "tune.json: its rounds were made with method 'greedy', not 'exact'" in done.stderr
+    assert sorted(p.name for p in out.iterdir()) == ["tune.json"]
+
+
+def test_the_report_has_the_loops_section_only_when_tune_json_is_given(tmp_path: Path) -> None:
+    from perfros_bag.report.html import build_report
+
+    node = {"computer": "r1", "value": 15, "cpu_planned": 77.0, "cpu_measured": 121.0, "kept_ratio": 0.77,
+            "starved": True, "cpu_need": 157.1, "cpu_factor": 1.3, "refit": USE_RESCALED, "model_cpu_before": 77.2,
+            "model_cpu_after": 157.0}
+    first = {**_doc()["rounds"][0], "values": {"worker": 15}, "expected": 99.4, "measured": 76.3,
+             "deviation_pct": 23.3, "within_tolerance": False, "nodes": {"worker": node},
+             "computers": {"r1": {"capacity": 120.0, "starved": True}}}
+    second = {**first, "round": 2, "dir": "round-2", "values": {"worker": 10}, "deviation_pct": 0.1,
+              "within_tolerance": True, "nodes": {"worker": {**node, "value": 10, "refit": USE_MEASURED}},
+              "computers": {"r1": {"capacity": 120.0, "starved": False}}}
+    path = tmp_path / "tune.json"
+    write_tune(path, _doc(rounds=[first, second], stopped={"reason": "within tolerance", "after_round": 2}))
+    page = build_report(tmp_path / "rep", tune=path).read_text()
+    assert '<h2 id="tune">' in page and "stopped: within tolerance after round 2" in page
+    rows = page.split('id="tune-rounds"', 1)[1].split("</table>", 1)[0]
+    assert rows.count("<tr") == 3 and rows.count('class="bad"') == 1 and "worker=15" in rows
+    assert page.split('id="tune-nodes"', 1)[1].split("</table>", 1)[0].count("<tr") == 3
+    assert (tmp_path / "rep" / "tune.png").read_bytes()[:4] == b"\x89PNG"
+    assert 'id="tune"' not in build_report(tmp_path / "none").read_text()
