@@ -244,3 +244,36 @@ def test_a_node_dying_in_a_round_is_one_line_and_keeps_the_finished_rounds(tuned
     assert "rounds 1-1 are kept in" in lines[0]
     _nothing_left(out, tags, ports)
     assert (out / "tune.json").read_bytes() == kept
+
+
+def test_a_forced_plan_beyond_its_computer_deploys_and_says_so(tuned: dict[str, Any], tmp_path: Path) -> None:
+    """The worker at its top setting with its known need (150 units) on robot1 (120): refused
+    as it is, deployed when plan.json says ``"forced": true``; deploy.json and the validation
+    say it was forced."""
+    from perfros_bag.validation.eq10 import FORCED_NOTE
+
+    plan = json.loads((tuned["out"] / "round-1" / "plan.json").read_text())
+    plan["nodes"]["worker"].update(value=HIGH, cpu=_need(HIGH))
+    plan["computers"]["robot1"]["cpu"] = _need(HIGH)
+    files = tuned["files"]
+
+    def deploy(doc: dict[str, Any], name: str) -> subprocess.CompletedProcess[str]:
+        path = tmp_path / f"{name}.json"
+        path.write_text(json.dumps(doc))
+        return subprocess.run([str(BIN), "deploy", str(path), str(files["launch"]), "--space", str(files["space"]),
+                               "--out", str(tmp_path / name), "--system", str(files["system"]), "--duration", "2",
+                               "--units-per-core", str(UNITS)], capture_output=True, text=True, timeout=90,
+                              env=_env(tuned["d"]))
+
+    refused = deploy(plan, "plain")
+    assert refused.returncode == 2 and len(refused.stderr.strip().splitlines()) == 1, refused.stderr
+    assert f"node 'worker': 'cpu' {_need(HIGH):g} exceeds the capacity {CAPACITY:g} of its computer 'robot1'" \
+        in refused.stderr
+    assert not (tmp_path / "plain").exists()
+    done = deploy({**plan, "forced": True}, "forced")
+    assert done.returncode in (0, 1), done.stderr
+    assert "plan: forced" in done.stderr and "Traceback" not in done.stderr
+    record = json.loads((tmp_path / "forced" / "deploy.json").read_text())
+    assert record["forced"] is True and record["values"] == {"worker": HIGH}
+    assert FORCED_NOTE in json.loads((tmp_path / "forced" / "validation.json").read_text())["notes"]
+    assert leftover_processes(record["run_id"]) == [] and leftover_groups(run_id=record["run_id"]) == []
