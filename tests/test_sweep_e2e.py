@@ -436,16 +436,22 @@ rospy.spin()
 """
 
 
-def test_a_topic_that_never_publishes_is_one_line(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    _require_ros()
-    pkg = tmp_path / "pkgs" / "perfros_quiet"
+def ros_package(pkgs: Path, name: str, scripts: dict[str, str]) -> Path:
+    """A ROS package ``pkgs/name`` (for ``ROS_PACKAGE_PATH=pkgs``) with executable ``scripts``."""
+    pkg = pkgs / name
     pkg.mkdir(parents=True)
-    (pkg / "package.xml").write_text('<?xml version="1.0"?><package format="2"><name>perfros_quiet</name>'
+    (pkg / "package.xml").write_text(f'<?xml version="1.0"?><package format="2"><name>{name}</name>'
                                      '<version>0.0.1</version><description>test</description>'
                                      '<maintainer email="t@t">t</maintainer><license>MIT</license></package>')
-    script = pkg / "quiet.py"
-    script.write_text(QUIET_NODE)
-    script.chmod(0o755)
+    for file, text in scripts.items():
+        (pkg / file).write_text(text)
+        (pkg / file).chmod(0o755)
+    return pkg
+
+
+def test_a_topic_that_never_publishes_is_one_line(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    _require_ros()
+    ros_package(tmp_path / "pkgs", "perfros_quiet", {"quiet.py": QUIET_NODE})
     launch = tmp_path / "quiet.launch"
     launch.write_text('<launch><arg name="rate" default="5"/>'
                       '<node name="quiet" pkg="perfros_quiet" type="quiet.py"/></launch>')

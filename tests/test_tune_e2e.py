@@ -19,6 +19,7 @@ import os
 import shutil
 import signal
 import subprocess
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -31,7 +32,7 @@ from perfros_bag.rosrun.processes import leftover_processes
 from perfros_bag.tune.loop import load_model, model_cpu
 from perfros_bag.tune.tunefile import read_tune
 from tests.test_casestudy_e2e import BAG_RATES, ROS_PY, _cgroups_work
-from tests.test_sweep_e2e import BIN, _nothing_left, _running, _tags_and_ports, _wait
+from tests.test_sweep_e2e import BIN, _nothing_left, _running, _tags_and_ports, _wait, ros_package
 
 pytestmark = pytest.mark.ros
 
@@ -55,14 +56,7 @@ def _env(d: Path) -> dict[str, str]:
 def _app(d: Path) -> dict[str, Path]:
     """A ROS package running casestudy_node.py as ``worker``, its launch file, space and system."""
     assert os.path.exists("/usr/bin/roscore") and os.path.exists(ROS_PY), "make setup-debs"
-    pkg = d / "pkgs" / "perfros_tune"
-    pkg.mkdir(parents=True)
-    (pkg / "package.xml").write_text('<?xml version="1.0"?><package format="2"><name>perfros_tune</name>'
-                                     '<version>0.0.1</version><description>test</description>'
-                                     '<maintainer email="t@t">t</maintainer><license>MIT</license></package>')
-    script = pkg / "worker"
-    script.write_text(f'#!/bin/sh\nexec {ROS_PY} {NODE} "$@"\n')
-    script.chmod(0o755)
+    ros_package(d / "pkgs", "perfros_tune", {"worker": f'#!/bin/sh\nexec {ROS_PY} {NODE} "$@"\n'})
     launch = d / "app.launch"
     launch.write_text(f'<launch><arg name="work_ms" default="{LOW}"/>'
                       f'<node name="worker" pkg="perfros_tune" type="worker" args="--name worker --rate {RATE_HZ} '
@@ -199,51 +193,53 @@ def _resume_state(tuned: dict[str, Any], dest: Path) -> Path:
     return out
 
 
-def test_ctrl_c_in_a_round_keeps_the_finished_rounds_and_leaves_nothing(tuned: dict[str, Any],
-                                                                       tmp_path: Path) -> None:
+def _disturb_round_2(tuned: dict[str, Any], tmp_path: Path, ready: str, what: str,
+                     act: Callable[[subprocess.Popen[str]], None]) -> tuple[Path, bytes, int, str]:
+    """Resume the tuned folder after round 1 and, once round 2 runs a process whose command
+    line holds ``ready``, ``act`` on the tune process; then check nothing round 2 started is
+    left and tune.json is as it was. Returns the folder, its tune.json, the exit code and stderr."""
     assert tuned["done"].returncode == 0, tuned["done"].stderr
     out = _resume_state(tuned, tmp_path)
     kept = (out / "tune.json").read_bytes()
     proc = _tune(tuned["d"], tuned["files"], out, "--rounds", "3", "--duration", "20", popen=True)
     try:
-        _wait(lambda: bool(_running(out, str(NODE))), proc, 60, "round 2's node")
+        _wait(lambda: bool(_running(out, ready)), proc, 60, what)
         tags, ports = _tags_and_ports(out)
         assert len(tags) == 1
-        proc.send_signal(signal.SIGINT)
+        act(proc)
         _, stderr = proc.communicate(timeout=60)
     finally:
         if proc.poll() is None:
             proc.kill()
-    assert proc.returncode == 130, stderr
-    assert "Traceback" not in stderr and "interrupted: finished rounds are kept in tune.json" in stderr
+    assert "Traceback" not in stderr
     _nothing_left(out, tags, ports)
     for tag in tags:
         assert leftover_namespaces(f"d{tag}") == [], tag
     assert (out / "tune.json").read_bytes() == kept
+    return out, kept, proc.returncode, stderr
+
+
+def test_ctrl_c_in_a_round_keeps_the_finished_rounds_and_leaves_nothing(tuned: dict[str, Any],
+                                                                       tmp_path: Path) -> None:
+    _out, _kept, code, stderr = _disturb_round_2(tuned, tmp_path, str(NODE), "round 2's node",
+                                                 lambda proc: proc.send_signal(signal.SIGINT))
+    assert code == 130, stderr
+    assert "interrupted: finished rounds are kept in tune.json" in stderr
 
 
 def test_a_node_dying_in_a_round_is_one_line_and_keeps_the_finished_rounds(tuned: dict[str, Any],
                                                                           tmp_path: Path) -> None:
-    assert tuned["done"].returncode == 0, tuned["done"].stderr
-    out = _resume_state(tuned, tmp_path)
-    kept = (out / "tune.json").read_bytes()
-    proc = _tune(tuned["d"], tuned["files"], out, "--rounds", "3", "--duration", "20", popen=True)
-    try:
-        _wait(lambda: bool(_running(out, "__name:=perfros_record")), proc, 60, "round 2's recording")
-        tags, ports = _tags_and_ports(out)
-        victims = _running(out, str(NODE))
+    def kill_the_node(proc: subprocess.Popen[str]) -> None:
+        victims = _running(tmp_path / "out", str(NODE))
         assert len(victims) == 1
         victims[0].kill()
-        _, stderr = proc.communicate(timeout=60)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-    assert proc.returncode == 2, stderr
+
+    out, _kept, code, stderr = _disturb_round_2(tuned, tmp_path, "__name:=perfros_record", "round 2's recording",
+                                                kill_the_node)
+    assert code == 2, stderr
     lines = [x for x in stderr.splitlines() if x.strip()]
     assert len(lines) == 1 and lines[0].startswith("error: round 2: the deployment failed ("), stderr
-    assert "rounds 1-1 are kept in" in lines[0]
-    _nothing_left(out, tags, ports)
-    assert (out / "tune.json").read_bytes() == kept
+    assert f"rounds 1-1 are kept in {out / 'tune.json'}" in lines[0]
 
 
 def test_a_forced_plan_beyond_its_computer_deploys_and_says_so(tuned: dict[str, Any], tmp_path: Path) -> None:
