@@ -122,7 +122,7 @@ def tune(launch_path: str | Path, space_path: str | Path, system_path: str | Pat
     while True:
         done: list[dict[str, Any]] = doc["rounds"]
         last = done[-1] if done else None
-        if last is not None and last["within_tolerance"]:
+        if last is not None and last["deviation_pct"] <= tol:  # this start's tolerance (it may differ)
             doc["stopped"] = {"reason": "within tolerance", "after_round": last["round"]}
             break
         if len(done) >= rounds:
