@@ -191,31 +191,18 @@ def _resume(path: Path, inputs: dict[str, Any]) -> dict[str, Any]:
 
 # --------------------------------------------------------------------------- fit
 
-def _host_system(system: System, entries: list[RecordingEntry], units_per_core: float) -> System:
-    """``system`` plus every machine the recordings were measured on, each with the capacity
-    ``logical CPUs x units_per_core`` of its trace (so ``cpu_percent / 100 x units_per_core``
-    units, the scale the plan is emulated in), for characterising only."""
-    from perfros_bag.cpu.trace import read_cpu_trace
-    from perfros_bag.system.types import Computer
-
-    hosts: dict[str, float] = {}
-    for e in entries:
-        if e.computer is not None and e.computer not in hosts and e.cpu is not None and e.cpu.is_file():
-            hosts[e.computer] = read_cpu_trace(e.cpu).logical_cpus * units_per_core
-    kept = tuple(c for c in system.computers if c.name not in hosts)
-    return dataclasses.replace(system, computers=kept + tuple(Computer(h, "robot", cap) for h, cap in hosts.items()))
-
-
-def _entries(outdir: Path, done: list[dict[str, Any]]) -> list[RecordingEntry]:
+def _entries(outdir: Path, done: list[dict[str, Any]], units_per_core: float) -> list[RecordingEntry]:
     """The sweep's recordings and each finished round's, as ``outdir/manifest.yaml`` lists
-    them (written here: the manifest the refit characterises)."""
+    them (written here: the manifest the refit characterises), every one in the scale the
+    plans are emulated in (``units_per_core``: ``cpu_percent / 100 x units_per_core``)."""
     from perfros_bag.characterisation.manifest import load_manifest, write_manifest
 
     sweep = load_manifest(outdir / "sweep" / "manifest.yaml")
     host = next((e.computer for e in sweep.recordings if e.computer), None)
     items: list[dict[str, Any]] = []
     for e in sweep.recordings:
-        item: dict[str, Any] = {"path": f"sweep/{e.name}", "settings": dict(e.settings)}
+        item: dict[str, Any] = {"path": f"sweep/{e.name}", "units_per_core": units_per_core,
+                                "settings": dict(e.settings)}
         if e.cpu is not None:
             item["cpu"] = str(e.cpu.relative_to(outdir)) if e.cpu.is_relative_to(outdir) else str(e.cpu)
         if e.computer is not None:
@@ -223,7 +210,8 @@ def _entries(outdir: Path, done: list[dict[str, Any]]) -> list[RecordingEntry]:
         items.append(item)
     for r in done:  # the host's own trace: every node in the measurement's units
         items.append({"path": f"{r['dir']}/run.bag", "cpu": f"{r['dir']}/run.host.cpu.csv",
-                      **({"computer": host} if host else {}), "settings": dict(r["values"])})
+                      **({"computer": host} if host else {}), "units_per_core": units_per_core,
+                      "settings": dict(r["values"])})
     write_manifest(outdir / "manifest.yaml", items)
     return list(load_manifest(outdir / "manifest.yaml").recordings)
 
@@ -273,8 +261,8 @@ def fit_rounds(outdir: Path, system_path: str | Path, system: System, done: list
     from perfros_bag.fitting.build import build_model
     from perfros_bag.fitting.modelfile import write_model
 
-    entries = _entries(outdir, done)
-    result = characterise(entries, _host_system(system, entries, units_per_core))
+    entries = _entries(outdir, done, units_per_core)
+    result = characterise(entries, system)
     if result.failures:
         f = result.failures[0]
         raise InputError(outdir / "manifest.yaml", f"recording {f.recording}: {f.message}")
