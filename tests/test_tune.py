@@ -24,6 +24,9 @@ from perfros_bag.tune.loop import (
     USE_LEFT_OUT,
     USE_MEASURED,
     USE_RESCALED,
+    kept_share,
+    load_model,
+    model_cpu,
     round_entry,
     weigh,
 )
@@ -186,3 +189,26 @@ def test_the_report_has_the_loops_section_only_when_tune_json_is_given(tmp_path:
     assert page.split('id="tune-nodes"', 1)[1].split("</table>", 1)[0].count("<tr") == 3
     assert (tmp_path / "rep" / "tune.png").read_bytes()[:4] == b"\x89PNG"
     assert 'id="tune"' not in build_report(tmp_path / "none").read_text()
+
+
+def test_a_driven_node_is_judged_by_what_it_made_of_its_input(tmp_path: Path) -> None:
+    """A driven node's kept share is its output's over its input's (a camera that dropped
+    frames upstream does not make its detector look starved); its model CPU follows the
+    plan's input rate (cpu + cpu_per_hz x F_in)."""
+    assert kept_share({"counted": True, "ratio": 0.4, "input_hz_expected": 10.0, "input_hz_measured": 5.0}) == \
+        pytest.approx(0.8)
+    assert kept_share({"counted": True, "ratio": 0.4, "input_hz_expected": None, "input_hz_measured": None}) == 0.4
+    assert kept_share({"counted": False, "ratio": 1.0}) is None
+    system = {"computers": [{"name": "r1", "kind": "robot", "capacity": 100}],
+              "nodes": [{"name": "cam", "weight": 0.5, "topics": ["/cam/out"],
+                         "settings": [{"cpu": 1, "performance": 100, "frequency_hz": 10}]},
+                        {"name": "det", "weight": 0.5, "input": "/cam/out", "parameter": {"name": "k"},
+                         "topics": ["/det/out"],
+                         "settings": [{"value": 1, "cpu": 2, "cpu_per_hz": 0.5, "performance": 50},
+                                      {"value": 2, "cpu": 2, "cpu_per_hz": 1.5, "performance": 100}]}]}
+    path = tmp_path / "system.yaml"
+    path.write_text(yaml.safe_dump(system))
+    model = load_model(path)
+    assert model_cpu(model, "det", 2, 10.0) == pytest.approx(2 + 1.5 * 10)
+    assert model_cpu(model, "det", 2, 4.0) == pytest.approx(2 + 1.5 * 4)
+    assert model_cpu(model, "det", 3, 10.0) is None and model_cpu(model, "cam", None) == 1

@@ -19,7 +19,8 @@ How a deployment's recording is weighed in the refit (docs/formats.md, "tune"):
   cgroup was throttled in at least :data:`THROTTLED_SHARE` of the CFS periods of the
   recording (deploy.json's ``throttling``). A node on it that kept a share r < 1 of its
   planned message rate (validation.json's ``ratio``) is taken to need ``measured / r``
-  (its CPU per message at the planned rate; r at least :data:`MIN_KEPT`), and its row's
+  (its CPU per message at the planned rate; r at least :data:`MIN_KEPT`; a driven node's r
+  is its output share over its input's, :func:`kept_share`), and its row's
   rates and bandwidth are scaled the same way (:data:`RESCALED_COLUMNS`: the row stands
   for the node as it would run at its planned rate); a starved node without a rate to
   compare is left out of the refit for that round.
@@ -285,19 +286,36 @@ def load_model(model_path: Path) -> System:
         return load_system(model_path)
 
 
-def model_cpu(model: System, node: str, value: Any) -> float | None:
+def model_cpu(model: System, node: str, value: Any, input_hz: float | None = None) -> float | None:
     """The model's CPU for ``node`` at ``value``: its fitted ``parameter->cpu`` when it has
-    one, else the setting at that value (the only setting of a node without a parameter)."""
+    one, else the setting at that value (the only setting of a node without a parameter); a
+    driven node's at ``input_hz`` (:func:`~perfros_bag.system.types.driven_rates`)."""
+    from perfros_bag.system.types import driven_rates
+
     n = model.node.get(node)
     if n is None:
         return None
     rel = n.relations.get("parameter->cpu")
-    if rel is not None and isinstance(value, int | float) and not isinstance(value, bool):
+    if not n.driven and rel is not None and isinstance(value, int | float) and not isinstance(value, bool):
         return float(rel(float(value)))
-    if len(n.settings) == 1 and value is None:
-        return n.settings[0].cpu
-    s = next((s for s in n.settings if _same(s.value, value)), None)
-    return None if s is None else s.cpu
+    s = n.settings[0] if len(n.settings) == 1 and value is None else next(
+        (s for s in n.settings if _same(s.value, value)), None)
+    if s is None:
+        return None
+    return driven_rates(s, input_hz)[0] if n.driven and input_hz is not None else s.cpu
+
+
+def kept_share(node: dict[str, Any]) -> float | None:
+    """The share of its planned rate a node of validation.json kept by itself: its topics'
+    mean F_measured / F_expected; for a driven node, over the share its input kept (what it
+    made of the messages it got); None without a rate to compare."""
+    if not node.get("counted"):
+        return None
+    ratio = float(node["ratio"])
+    given, planned = node.get("input_hz_measured"), node.get("input_hz_expected")
+    if given and planned:
+        return ratio * planned / given
+    return ratio
 
 
 # --------------------------------------------------------------------------- solve, deploy
@@ -339,7 +357,7 @@ def round_entry(k: int, plan: Plan, plan_path: Path, model_path: Path, record: d
     for n in validation["nodes"]:
         # ratio: the node's kept share of its planned rate; None without a rate to compare
         name, measured = n["node"], n.get("cpu_measured")
-        ratio: float | None = n["ratio"] if n.get("counted") else None
+        ratio = kept_share(n)
         starved = computers.get(n["computer"], {}).get("starved", False)
         factor, use = 1.0, USE_MEASURED
         if measured is None or (starved and ratio is None):
@@ -347,11 +365,12 @@ def round_entry(k: int, plan: Plan, plan_path: Path, model_path: Path, record: d
         elif starved and ratio is not None and ratio < 1.0:
             factor, use = 1.0 / max(ratio, MIN_KEPT), USE_RESCALED
         value = values.get(name, plan.nodes[name].value if name in plan.nodes else None)
+        input_hz = plan.nodes[name].input_hz if name in plan.nodes else None
         nodes[name] = {"computer": n["computer"], "value": value, "cpu_planned": n.get("cpu_expected"),
                        "cpu_measured": measured, "kept_ratio": ratio, "starved": starved,
                        "cpu_need": None if measured is None or use == USE_LEFT_OUT else measured * factor,
-                       "cpu_factor": factor, "refit": use,
-                       "model_cpu_before": model_cpu(model, name, value), "model_cpu_after": None}
+                       "cpu_factor": factor, "refit": use, "input_hz": input_hz,
+                       "model_cpu_before": model_cpu(model, name, value, input_hz), "model_cpu_after": None}
     overall = validation["overall"]
     return {"round": k, "dir": f"round-{k}", "plan": str(plan_path.relative_to(plan_path.parent.parent)),
             "model": model_path.name, "refit_model": None, "objective": plan.objective,
@@ -366,7 +385,7 @@ def _fill_after(entry: dict[str, Any], model_path: Path) -> None:
     entry["refit_model"] = model_path.name
     model = load_model(model_path)
     for name, n in entry["nodes"].items():
-        n["model_cpu_after"] = model_cpu(model, name, n["value"])
+        n["model_cpu_after"] = model_cpu(model, name, n["value"], n.get("input_hz"))
 
 
 def _plot(outdir: Path, doc: dict[str, Any]) -> None:
