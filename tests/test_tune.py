@@ -90,7 +90,7 @@ def test_a_round_weighs_each_node_by_its_computers_throttling_and_its_kept_rate(
               "network": {"mode": "unshaped"},
               "throttling": {"r1": {"nr_periods": periods, "nr_throttled": THROTTLED_SHARE * periods},
                              "r2": {"nr_periods": periods, "nr_throttled": THROTTLED_SHARE * periods - 1}}}
-    node = {"a": (30.0, 0.6, True), "b": (25.0, 1.0, True), "c": (28.0, 1.0, False), "d": (30.0, 0.6, True),
+    node = {"a": (30.0, 0.6, True), "b": (25.0, 0.99, True), "c": (28.0, 1.0, False), "d": (30.0, 0.6, True),
             "e": (None, 1.0, True)}
     validation = {"overall": {"expected": 100.0, "measured": 80.0, "deviation_pct": 20.0},
                   "computers": [{"computer": c, "capacity": 100.0, "cpu_expected": 80.0, "cpu_measured": 99.0}
@@ -101,7 +101,7 @@ def test_a_round_weighs_each_node_by_its_computers_throttling_and_its_kept_rate(
     assert entry["computers"]["r1"]["starved"] and not entry["computers"]["r2"]["starved"]
     n = entry["nodes"]
     assert n["a"]["refit"] == USE_RESCALED and n["a"]["cpu_need"] == pytest.approx(30.0 / 0.6)  # starved, kept 60 %
-    assert n["b"]["refit"] == USE_MEASURED and n["b"]["cpu_need"] == 25.0  # starved computer, kept its rate
+    assert n["b"]["refit"] == USE_MEASURED and n["b"]["cpu_need"] == 25.0  # starved computer, kept 99 %
     assert n["c"]["refit"] == USE_LEFT_OUT and n["c"]["cpu_need"] is None  # starved, no rate to compare
     assert n["d"]["refit"] == USE_MEASURED and n["d"]["cpu_need"] == 30.0  # its computer was not starved
     assert n["e"]["refit"] == USE_LEFT_OUT  # no CPU measured

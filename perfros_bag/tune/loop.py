@@ -18,7 +18,8 @@ How a deployment's recording is weighed in the refit (docs/formats.md, "tune"):
 - a starved node's CPU is a lower bound, not its need. A computer is starved when its
   cgroup was throttled in at least :data:`THROTTLED_SHARE` of the CFS periods of the
   recording (deploy.json's ``throttling``). A node on it that kept a share r < 1 of its
-  planned message rate (validation.json's ``ratio``) is taken to need ``measured / r``
+  planned message rate (validation.json's ``ratio``; below :data:`KEPT_ALL`) is taken to
+  need ``measured / r``
   (its CPU per message at the planned rate; r at least :data:`MIN_KEPT`; a driven node's r
   is its output share over its input's, :func:`kept_share`), and its row's
   rates and bandwidth are scaled the same way (:data:`RESCALED_COLUMNS`: the row stands
@@ -51,6 +52,9 @@ if TYPE_CHECKING:
 THROTTLED_SHARE = 0.10
 #: the least kept rate share a starved node's need is scaled by (1 / MIN_KEPT at most)
 MIN_KEPT = 0.05
+#: a node that kept at least this share of its planned rate kept up (a rate measured over a
+#: short recording is that noisy): its CPU counts as measured
+KEPT_ALL = 0.98
 #: refit uses of a node's row in a deployment's recording
 USE_MEASURED, USE_RESCALED, USE_LEFT_OUT = "measured", "rescaled to its planned rate", "left out"
 
@@ -362,7 +366,7 @@ def round_entry(k: int, plan: Plan, plan_path: Path, model_path: Path, record: d
         factor, use = 1.0, USE_MEASURED
         if measured is None or (starved and ratio is None):
             use = USE_LEFT_OUT
-        elif starved and ratio is not None and ratio < 1.0:
+        elif starved and ratio is not None and ratio < KEPT_ALL:
             factor, use = 1.0 / max(ratio, MIN_KEPT), USE_RESCALED
         value = values.get(name, plan.nodes[name].value if name in plan.nodes else None)
         input_hz = plan.nodes[name].input_hz if name in plan.nodes else None
