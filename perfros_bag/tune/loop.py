@@ -17,14 +17,13 @@ How a deployment's recording is weighed in the refit (docs/formats.md, "tune"):
   where the plan puts its load);
 - a starved node's CPU is a lower bound, not its need. A computer is starved when its
   cgroup was throttled in at least :data:`THROTTLED_SHARE` of the CFS periods of the
-  recording (deploy.json's ``throttling``). A node on it that kept a share r < 1 of its
-  planned message rate (validation.json's ``ratio``; below :data:`KEPT_ALL`) is taken to
-  need ``measured / r``
-  (its CPU per message at the planned rate; r at least :data:`MIN_KEPT`; a driven node's r
-  is its output share over its input's, :func:`kept_share`), and its row's
-  rates and bandwidth are scaled the same way (:data:`RESCALED_COLUMNS`: the row stands
-  for the node as it would run at its planned rate); a starved node without a rate to
-  compare is left out of the refit for that round.
+  recording (deploy.json's ``throttling``). A node on it that kept a share r below
+  :data:`KEPT_ALL` of its planned message rate (validation.json's ``ratio``; a driven
+  node's r is its output share over its input's, :func:`kept_share`) is taken to need
+  ``measured / r``, its CPU per message at the planned rate (r at least :data:`MIN_KEPT`),
+  and its row's rates and bandwidth are scaled the same way (:data:`RESCALED_COLUMNS`: the
+  row stands for the node as it would run at its planned rate); a starved node without a
+  rate to compare is left out of the refit for that round.
 """
 
 from __future__ import annotations
