@@ -374,3 +374,26 @@ def test_greedy_plus_within_one_percent_on_the_example_family() -> None:
         gaps.append((exact.objective - plus.objective) / exact.objective)
     assert gaps and max(gaps) <= 0.01 + 1e-12, gaps
     assert all(math.isfinite(g) for g in gaps)
+
+
+def test_driven_wifi_fleet_every_camera_rate_a_knob() -> None:
+    """Issue 22's wifi fleet with each camera's rate a knob and its detector driven (9
+    robots on one access point): exact proves its plan, the greedy's fits and is no better,
+    and the rates chosen load the access point as the plan says."""
+    from perfros_bag.casestudy.instances import wifi_fleet_instance
+
+    s = parse_system(wifi_fleet_instance(9, 1, driven=True), "wifi-driven.yaml")
+    assert sum(1 for n in s.nodes if n.driven) == 9
+    exact = solve(s, 1, "exact")
+    greedy = solve(s, 1, "greedy")
+    assert exact.status == "optimal" and check_plan(s, exact) == []
+    assert greedy.status == "feasible" and check_plan(s, greedy) == []
+    assert greedy.objective is not None and exact.objective is not None
+    assert greedy.objective <= exact.objective + 1e-9
+    for r in range(1, 10):
+        camera, detector = exact.nodes[f"camera{r}"], exact.nodes[f"detector{r}"]
+        assert detector.input_hz == camera.value
+    offloaded = [r for r in range(1, 10) if exact.nodes[f"detector{r}"].computer != f"robot{r}"]
+    stream = sum(exact.nodes[f"camera{r}"].topics[f"/camera{r}/out"].bandwidth_kBps or 0 for r in offloaded)
+    medium = next(m for m in s.media)
+    assert stream <= medium.bandwidth_kBps + 1e-6

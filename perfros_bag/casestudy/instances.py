@@ -308,9 +308,18 @@ DETECTOR_SETTINGS = ((5, 30, 50, 5, 1.0), (10, 50, 80, 10, 1.0), (15, 70, 100, 1
 AP_kBps = 9000.0  # one access point: three 2.3 MB/s camera streams fit, four do not
 
 
+#: ``wifi_fleet_instance(driven=True)``: the camera's rate is a knob (value = Hz, CPU,
+#: performance; 76.7 kB per image: 2.3 MB/s at 30 Hz) and the detector follows it
+#: (system.yaml ``input:``): per own setting (value, base CPU, CPU per frame per second,
+#: performance)
+CAMERA_RATES = ((10, 3.0, 60), (20, 4.0, 85), (30, 5.0, 100))
+CAMERA_FRAME_BYTES = 2300.0 * 1000 / 30
+DRIVEN_DETECTOR = ((1.4, 2.0, 1.0, 50), (1.2, 2.0, 1.8, 80), (1.05, 2.0, 2.4, 100))
+
+
 def wifi_fleet_instance(n_robots: int = 90, n_servers: int = 10, *, robots_per_ap: int = 9,
                         ap_kBps: float = AP_kBps, seed: int = 0, continuous: bool = True,
-                        trackers: int | None = None) -> dict[str, Any]:
+                        trackers: int | None = None, driven: bool = False) -> dict[str, Any]:
     """A fleet whose network binds: :func:`fleet_instance` with ``n_robots + n_servers``
     computers (one stack per robot, the rest of 1,000 nodes per 100 computers camera
     trackers; or ``trackers`` of them) plus, per robot, a ``camera<r>`` (on its robot, 2.3 MB/s) feeding a
@@ -318,7 +327,9 @@ def wifi_fleet_instance(n_robots: int = 90, n_servers: int = 10, *, robots_per_a
     links to the first server are grouped ``robots_per_ap`` at a time on access points
     ``ap<j>`` (shared media) of ``ap_kBps`` each, so at most ``ap_kBps // 2300`` of an access
     point's detectors can be offloaded. ``wifi_fleet_instance()`` (90 robots, 10 servers)
-    has 1,180 nodes on 100 computers."""
+    has 1,180 nodes on 100 computers. With ``driven``, each camera's rate is a knob
+    (:data:`CAMERA_RATES`) and its detector follows it (:data:`DRIVEN_DETECTOR`): a lower
+    rate frees the access point and the detector's CPU wherever it runs."""
     if n_robots < 1 or n_servers < 1 or robots_per_ap < 1:
         raise ValueError("a wifi fleet needs at least one robot, one server and one robot per access point")
     n_computers = n_robots + n_servers
@@ -340,6 +351,13 @@ def wifi_fleet_instance(n_robots: int = 90, n_servers: int = 10, *, robots_per_a
                     "parameter": {"name": "rate", "unit": "Hz"}, "topics": [f"/detector{r}/out"],
                     "settings": [{"value": v, "cpu": c, "performance": p, "frequency_hz": f, "bandwidth_kBps": b}
                                  for v, c, p, f, b in DETECTOR_SETTINGS]}
+        if driven:
+            camera = {**camera, "parameter": {"name": "rate", "unit": "Hz"},
+                      "settings": [{"value": f, "cpu": c, "performance": p, "frequency_hz": f,
+                                    "bandwidth_kBps": CAMERA_FRAME_BYTES * f / 1000} for f, c, p in CAMERA_RATES]}
+            detector = {**detector, "input": f"/camera{r}/out", "parameter": {"name": "scale0"},
+                        "settings": [{"value": v, "cpu": c, "cpu_per_hz": k, "performance": p, "bytes_per_msg": 100.0}
+                                     for v, c, k, p in DRIVEN_DETECTOR]}
         data["nodes"] += [camera, detector]
         data["edges"] += [{"from": f"camera{r}", "to": f"detector{r}"},
                           {"from": f"detector{r}", "to": f"environment{r}"}]

@@ -14,8 +14,9 @@ So:
   rates and a throttle with four: 12), else a coordinate search valued by the paper's
   greedy (fast): start with every publisher at its lowest class, then, publisher by
   publisher, keep the class that gives the best plan, until a pass changes nothing or
-  :data:`PASSES` passes have run; greedy+ then runs on the :data:`FINALISTS` best
-  assignments the search saw.
+  :data:`PASSES` passes have run (when every tree has as many options, a fleet of alike
+  robots, the search starts from the best of "every tree at its k-th option"); greedy+
+  then runs on the :data:`FINALISTS` best assignments the search saw.
 
 The exact solver needs none of this: its rows tie the choices together
 (:func:`perfros_bag.solver.exact._flow_rows`).
@@ -39,6 +40,9 @@ FINALISTS = 1
 #: the whole search's time (seconds) when the caller sets none: past it, the best plan found
 #: so far (at least the first assignment's, every publisher at its cheapest) is the answer
 SEARCH_BUDGET_S = 60.0
+#: greedy+'s own budget (seconds) on the assignment the search found (its local search can
+#: take minutes on a few hundred nodes)
+FINAL_BUDGET_S = 10.0
 
 #: per publisher: the rates it publishes (one per node it drives), or a driven publisher's own setting
 Pick = tuple[float, ...] | int
@@ -54,21 +58,23 @@ def solve_heuristic(system: System, problem: Problem, choices: dict[str, list[Ch
     options = _class_options(system, choices)
     publishers = sorted(options, key=lambda p: system.flow_order.index(p) if p in system.flow_order else -1)
     tried: dict[tuple[Method, tuple[Pick, ...]], Plan | None] = {}
+    combos = 1
+    for p in publishers:
+        combos *= len(options[p])
 
     def run(classes: Classes, how: Method) -> Plan | None:
         key = (how, tuple(classes[p] for p in publishers))
         if key not in tried:
             restricted = _restricted(system, choices, classes)
             left = max(deadline - time.monotonic(), 0.0)
+            if how == Method.GREEDY_PLUS and combos > ENUMERATE:
+                left = min(left, FINAL_BUDGET_S)
             tried[key] = None if restricted is None else _inner(system, problem, restricted, how, left)
         return tried[key]
 
     def late() -> bool:
         return time.monotonic() > deadline
 
-    combos = 1
-    for p in publishers:
-        combos *= len(options[p])
     if combos <= ENUMERATE:  # few: every assignment with the method itself
         for pick in itertools.product(*(options[p] for p in publishers)):
             if late() and tried:
@@ -88,6 +94,20 @@ def solve_heuristic(system: System, problem: Problem, choices: dict[str, list[Ch
             moves.append(joint)
         else:
             moves.extend([{p: cls} for cls in options[p]] for p in members)
+    # a fleet of alike robots: first every tree at its k-th option together (one run each),
+    # the best of them the start of the tree-by-tree moves
+    if len(moves) > 1 and len({len(m) for m in moves}) == 1:
+        for k in range(len(moves[0])):
+            if late():
+                break
+            trial = {**current}
+            for move in moves:
+                trial.update(move[k])
+            plan = run(trial, Method.GREEDY)
+            if plan is not None:
+                seen.append(trial)
+            if _better(plan, best, problem):
+                best, current = plan, trial
     for _ in range(PASSES):
         changed = False
         for move in moves:

@@ -9,8 +9,11 @@
    image) -> a detector (3 settings, CPU per frame) -> a throttled tracker (2 caps) and a
    planner; detectors and trackers may go to the server; the robots share one wifi that
    cannot carry every camera at full rate. Every solver, its objective and time.
+3. Issue 22's wifi fleet with driven cameras (``wifi_fleet_instance(driven=True)``: 1,180
+   nodes, 100 computers, 10 access points; each camera's rate a knob, its detector
+   following it): greedy, greedy+ and exact with ``--time-limit``, objective, bound, time.
 
-    .venv/bin/python tests/bench/bench_flow.py [--seeds 200] [--robots 4,10]
+    .venv/bin/python tests/bench/bench_flow.py [--seeds 200] [--robots 4,10] [--wifi 90] [--time-limit 60]
 """
 
 from __future__ import annotations
@@ -28,6 +31,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from test_flow import random_flow, reference  # noqa: E402
 
+from perfros_bag.casestudy.instances import wifi_fleet_instance  # noqa: E402
 from perfros_bag.solver import solve  # noqa: E402
 from perfros_bag.solver.check import check_plan  # noqa: E402
 from perfros_bag.system.systemfile import parse_system  # noqa: E402
@@ -63,9 +67,9 @@ def vision_fleet(robots: int) -> dict[str, Any]:
             "nodes": nodes, "edges": edges}
 
 
-def timed(system: Any, method: str) -> tuple[Any, float]:
+def timed(system: Any, method: str, time_limit: float | None = None) -> tuple[Any, float]:
     t0 = time.perf_counter()
-    plan = solve(system, 1, method)
+    plan = solve(system, 1, method, time_limit=time_limit)
     return plan, time.perf_counter() - t0
 
 
@@ -73,6 +77,8 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--seeds", type=int, default=200)
     ap.add_argument("--robots", default="4,10")
+    ap.add_argument("--wifi", type=int, default=90, help="robots of the driven wifi fleet (0: skip part 3)")
+    ap.add_argument("--time-limit", type=float, default=60.0)
     args = ap.parse_args()
     warnings.simplefilter("ignore")
 
@@ -114,6 +120,18 @@ def main() -> None:
                 assert check_plan(system, plan) == [], (robots, method)
             print(f"   {robots:>6} {len(system.nodes):>5} {method:>8} {plan.objective or 0:>10.4f} "
                   f"{plan.status:>9} {seconds:>8.2f}", flush=True)
+
+    if args.wifi:
+        servers = max(1, (args.wifi + args.wifi // 9) // 10)
+        system = parse_system(wifi_fleet_instance(args.wifi, servers, driven=True), "wifi-driven")
+        print(f"3. the wifi fleet with driven cameras: {len(system.nodes)} nodes, {len(system.computers)} computers")
+        print(f"   {'method':>8} {'objective':>10} {'bound':>10} {'status':>9} {'seconds':>8}")
+        for method in ("greedy", "greedy+", "exact"):
+            plan, seconds = timed(system, method, args.time_limit if method == "exact" else None)
+            if plan.status != "infeasible":
+                assert check_plan(system, plan) == [], method
+            bound = "-" if plan.bound is None else f"{plan.bound:.4f}"
+            print(f"   {method:>8} {plan.objective or 0:>10.4f} {bound:>10} {plan.status:>9} {seconds:>8.2f}", flush=True)
 
 
 if __name__ == "__main__":
