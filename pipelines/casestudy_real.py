@@ -503,7 +503,9 @@ FULL_RUNS_BEGIN, FULL_RUNS_END = "<!-- casestudy-real-full-runs:begin -->", "<!-
 
 
 def append_full_run(docs: Path, line: str) -> None:
-    """Add ``line`` to the page's list of full runs (kept across runs; made when missing)."""
+    """Add ``line`` to the page's list of full runs (kept across runs; made when missing): on a
+    line of its own that starts with it, exactly as issue 21 asks (a blank line between two
+    runs so that Markdown keeps them apart)."""
     from perfros_bag.fileio import atomic_write_text
 
     text = docs.read_text() if docs.exists() else "# Case study on real nodes\n"
@@ -512,7 +514,7 @@ def append_full_run(docs: Path, line: str) -> None:
                  f"`out/`, as the pipeline wrote it (failures too):\n\n{FULL_RUNS_BEGIN}\n{FULL_RUNS_END}\n")
     head, rest = text.split(FULL_RUNS_BEGIN, 1)
     body, tail = rest.split(FULL_RUNS_END, 1)
-    atomic_write_text(docs, f"{head}{FULL_RUNS_BEGIN}{body.rstrip()}\n- {line}\n{FULL_RUNS_END}{tail}")
+    atomic_write_text(docs, f"{head}{FULL_RUNS_BEGIN}{body.rstrip()}\n\n{line}\n{FULL_RUNS_END}{tail}")
 
 
 def model_errors(results: list[dict[str, Any]]) -> list[dict[str, Any]]:
