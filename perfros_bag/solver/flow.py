@@ -16,7 +16,7 @@ So:
   publisher, keep the class that gives the best plan, until a pass changes nothing or
   :data:`PASSES` passes have run (when every tree has as many options, a fleet of alike
   robots, the search starts from the best of "every tree at its k-th option"); greedy+
-  then runs on the :data:`FINALISTS` best assignments the search saw.
+  then runs on the best assignment it found.
 
 The exact solver needs none of this: its rows tie the choices together
 (:func:`perfros_bag.solver.exact._flow_rows`).
@@ -35,8 +35,6 @@ from perfros_bag.system.types import Choice, Problem, System
 ENUMERATE = 64
 #: coordinate-search passes over the publishers
 PASSES = 3
-#: greedy+ runs on this many of the coordinate search's best assignments
-FINALISTS = 1
 #: the whole search's time (seconds) when the caller sets none: past it, the best plan found
 #: so far (at least the first assignment's, every publisher at its cheapest) is the answer
 SEARCH_BUDGET_S = 60.0
@@ -81,12 +79,11 @@ def solve_heuristic(system: System, problem: Problem, choices: dict[str, list[Ch
                 break
             run(dict(zip(publishers, pick, strict=True)), method)
         return _best(tried.values(), problem, method, system)
-    # many: a coordinate search valued by the (fast) greedy, then greedy+ on its best few;
+    # many: a coordinate search valued by the (fast) greedy, then greedy+ on its best;
     # a move sets every publisher of one source's tree at once (a camera's rate together
     # with its detector's setting), one publisher at a time where a tree has too many
     current: Classes = {p: options[p][0] for p in publishers}
     best = run(current, Method.GREEDY)
-    seen: list[Classes] = [current]
     moves: list[list[Classes]] = []
     for members in _trees(system, publishers):
         joint = [dict(zip(members, pick, strict=True)) for pick in itertools.product(*(options[p] for p in members))]
@@ -104,8 +101,6 @@ def solve_heuristic(system: System, problem: Problem, choices: dict[str, list[Ch
             for move in moves:
                 trial.update(move[k])
             plan = run(trial, Method.GREEDY)
-            if plan is not None:
-                seen.append(trial)
             if _better(plan, best, problem):
                 best, current = plan, trial
     for _ in range(PASSES):
@@ -116,25 +111,13 @@ def solve_heuristic(system: System, problem: Problem, choices: dict[str, list[Ch
                     break
                 trial = {**current, **change}
                 plan = run(trial, Method.GREEDY)
-                if plan is not None:
-                    seen.append(trial)
                 if _better(plan, best, problem):
                     best, current, changed = plan, trial, True
         if not changed:
             break
     if method == Method.GREEDY:
         return _best(tried.values(), problem, method, system)
-    ranked = sorted(seen, key=lambda c: _rank(run(c, Method.GREEDY), problem))
-    finalists: list[Classes] = []
-    for c in ranked:
-        if c not in finalists:
-            finalists.append(c)
-        if len(finalists) == FINALISTS:
-            break
-    for c in finalists:
-        if late() and any(k[0] == method for k in tried):
-            break
-        run(c, method)
+    run(current, method)  # greedy+ on the best assignment the search found
     return _best([plan for (how, _), plan in tried.items() if how == method] or list(tried.values()),
                  problem, method, system)
 
@@ -148,13 +131,6 @@ def _trees(system: System, publishers: list[str]) -> list[list[str]]:
             root = system.flow_parent[root]
         groups.setdefault(root, []).append(p)
     return list(groups.values())
-
-
-def _rank(plan: Plan | None, problem: Problem) -> tuple[int, float]:
-    """Sort key: plans first, the best objective first."""
-    if plan is None or plan.status == Status.INFEASIBLE or plan.objective is None:
-        return (1, 0.0)
-    return (0, -plan.objective if problem == Problem.PERFORMANCE else plan.objective)
 
 
 def _inner(system: System, problem: Problem, choices: dict[str, list[Choice]], method: Method,
