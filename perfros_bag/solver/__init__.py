@@ -149,8 +149,6 @@ def fixed_choices(system: System, problem: Problem, settings: Mapping[str, float
     def fixed(name: str, options: list[Choice]) -> list[Choice]:
         """Problem 2: the driven node's one choice at its input's (fixed) rate: the one at
         ``settings[name]``'s CPU level, else its maximum-CPU one."""
-        if problem == Problem.PERFORMANCE:
-            return options
         if own and name in own:
             return [c for c in options if c.setting == own[name]][:1]
         if settings and name in settings:
@@ -166,7 +164,7 @@ def fixed_choices(system: System, problem: Problem, settings: Mapping[str, float
             return match[:1]
         return [max(options, key=lambda c: (c.cpu, c.performance))]
 
-    out = system.flow_choices(out, fixed)
+    out = system.flow_choices(out, fixed if problem == Problem.SERVER_CAPACITY else None)
     total = sum(len(v) for v in out.values())
     if total > MAX_CHOICES:
         raise InputError(_where(system), f"the driven nodes' settings at every input rate their inputs can take give "
@@ -247,9 +245,9 @@ def _least_setting(node: Node) -> int:
 
 def _setting_with_value(system: System, node: Node, value: float) -> int:
     """The index of the driven node's setting with ``value``."""
-    for j, s in enumerate(node.settings):
-        if s.value is not None and math.isclose(s.value, value, rel_tol=1e-9, abs_tol=1e-9):
-            return j
+    j = node.setting_index(value)
+    if j is not None:
+        return j
     have = ", ".join(f"{s.value:g}" for s in node.settings if s.value is not None) or "none"
     raise InputError(_where(system), f"settings: node {node.name!r} has no setting with value {value:g} "
                                      f"(its values: {have})")
@@ -276,10 +274,11 @@ def settings_from_plan(plan: Plan, system: System | None = None, resolution: flo
     at its one choice there."""
     if system is None or _same_source(plan.system, system.source):
         levels: dict[str, float] = {name: n.cpu for name, n in plan.nodes.items()}
-        for name, n in plan.nodes.items():  # a driven node: its own setting too (by its value)
-            node = system.node.get(name) if system is not None else None
-            if node is not None and node.driven and n.value is not None:
-                levels[name] = DrivenLevel(n.cpu, _setting_with_value(system, node, n.value))  # type: ignore[arg-type]
+        if system is not None:  # a driven node: its own setting too (by its value)
+            for name, n in plan.nodes.items():
+                node = system.node.get(name)
+                if node is not None and node.driven and n.value is not None:
+                    levels[name] = DrivenLevel(n.cpu, _setting_with_value(system, node, n.value))
         return levels
     out = settings_from_values(system, {name: n.value for name, n in plan.nodes.items()
                                         if n.value is not None and name in system.node}, resolution)

@@ -329,6 +329,13 @@ class Node:
     def driven(self) -> bool:
         return self.input is not None
 
+    def setting_index(self, value: float | None) -> int | None:
+        """The index of the first setting whose ``value`` is ``value`` (to 1e-9), else None."""
+        if value is None:
+            return None
+        return next((j for j, s in enumerate(self.settings)
+                     if s.value is not None and math.isclose(s.value, value, rel_tol=1e-9, abs_tol=1e-9)), None)
+
     @property
     def configurable(self) -> bool:
         return self.curve is not None or len(self.settings) > 1

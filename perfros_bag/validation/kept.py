@@ -95,8 +95,8 @@ def planned_settings(plan: Plan, system: System | None) -> tuple[dict[str, Setti
         node = system.node.get(name)
         if node is None or not node.driven or pn.input_hz is None:
             continue
-        s = next((s for s in node.settings if s.value is not None and pn.value is not None
-                  and math.isclose(s.value, pn.value, rel_tol=1e-9, abs_tol=1e-9)), None)
+        j = node.setting_index(pn.value)
+        s = None if j is None else node.settings[j]
         if s is None and len(node.settings) == 1:
             s = node.settings[0]
         if s is None:
