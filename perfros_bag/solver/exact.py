@@ -226,8 +226,7 @@ def _prune_choices(system: System, problem: Problem, node: str, options: Sequenc
     usable = [i for i, ch in enumerate(options) if ch.cpu <= cpu_room + EPS]
     # a node of the data flow is no plain multiple-choice item: a driven node's choices are
     # tied to its input's rate, a publisher's rate loads everything it drives
-    in_flow = system.node[node].input is not None or node in system.flow_children
-    if problem != Problem.PERFORMANCE or len(usable) <= 1 or in_flow:
+    if problem != Problem.PERFORMANCE or len(usable) <= 1 or system.in_flow(node):
         return [options[i] for i in usable], {i: p for p, i in enumerate(usable)}
     out_edges = [e for e in system.edges if e.src == node]
     bws = {i: tuple(system.edge_bandwidth(e, options[i]) for e in out_edges) for i in usable}
@@ -475,7 +474,7 @@ def _grid(inst: Instance, node: str, modelled: Sequence[int]) -> tuple[float, fl
     opts = inst.choices[node]
     if inst.problem != Problem.PERFORMANCE or len(opts) < 3:
         return None
-    if inst.system.node[node].input is not None or node in inst.system.flow_children:
+    if inst.system.in_flow(node):
         return None  # tied to the data flow's rows by its x columns
     lo, step = opts[0].cpu, opts[1].cpu - opts[0].cpu
     if step <= EPS:

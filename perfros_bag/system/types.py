@@ -565,6 +565,10 @@ class System:
             out.setdefault(parent, []).append(child)
         return {k: tuple(v) for k, v in out.items()}
 
+    def in_flow(self, node: str) -> bool:
+        """Is ``node`` driven, or does it drive another (its choice then ties to others')?"""
+        return self.node[node].input is not None or node in self.flow_children
+
     @staticmethod
     def topic_hz(choice: Choice, topic: str) -> float | None:
         """The frequency of ``topic`` at a publisher's choice: its per-topic rate, else the
