@@ -3,25 +3,31 @@
     .venv/bin/python pipelines/casestudy_real.py [--out out/casestudy-real] [--duration 15]
         [--sweep-duration 12] [--instances 1,2,3,4,5,6] [--docs docs/casestudy-real.md]
 
-The application (fixtures/casestudy_real): per robot a camera (image_publisher, 10 Hz, a
-320x240 RGB image the pipeline draws), a HOG people detector (opencv_apps people_detect,
-parameter scale0) and a bilateral smoother (opencv_apps smoothing, parameter kernel_size) on
-its images. Everything runs through the tool's own verbs:
+The application (fixtures/casestudy_real): per robot a camera (image_publisher, a 320x240
+RGB image the pipeline draws, at 5, 7.5 or 10 Hz: a knob the solver chooses), a HOG people
+detector (opencv_apps people_detect, parameter scale0) and a bilateral smoother (opencv_apps
+smoothing, parameter kernel_size), both driven by the camera's images (system.yaml
+``input:``: their CPU follows its rate). Everything runs through the tool's own verbs:
 
-1. ``sweep`` robot 1's application over both parameters (one at a time), ``init`` drafts the
-   system from it, ``characterise`` measures every setting;
+1. ``sweep`` robot 1's application over the three parameters (one at a time), ``init``
+   drafts the system from it (the detectors as driven nodes), ``characterise`` measures
+   every setting;
 2. per instance (robots, capacities, links below): the instance's system.yaml (the drafted
    nodes, once per robot, with the stated performance levels, residence, coresidence and
    weights), robot 1's measurements copied to every robot, ``fit``, ``solve`` Problem 1
    (greedy, greedy+, exact) and Problem 2 (greedy, exact);
 3. ``deploy`` every distinct plan (computers as CPU-capped cgroups, each computer a network
    namespace, links shaped with tc), which records and validates it (eq 10);
-4. RQ3: instance 2's plan with parameters and nodes forced above it on the robot, and
-   instance 4's plan with robot 2's detector forced across a link too small for its images.
+4. ``tune`` each instance: Problem 1 with the model's measured headroom, deployed, refitted
+   on its recording, up to 3 rounds;
+5. RQ3: instance 2's plan with parameters and nodes forced above it on the robot, and
+   instance 4's plan with robot 2's detector forced across a link too small for its images,
+   with the rates each node keeps predicted and measured.
 
 Results: OUT/results.json, OUT/rq2.png, OUT/rq3.png and the results section of
 docs/casestudy-real.md with the commands. A step whose output exists is reused (a run
-whose deploy.json exists is not run again): delete OUT, or one run's folder, to measure again.
+whose deploy.json exists is not run again, tune resumes its rounds): delete OUT, or one
+run's folder, to measure again.
 """
 
 from __future__ import annotations
@@ -56,6 +62,11 @@ KERNEL = [3, 7, 11, 15]
 # pyramid finds more people; a wider bilateral filter removes more noise.
 PERF_PEOPLE = {1.05: 100.0, 1.1: 85.0, 1.2: 60.0, 1.4: 30.0}
 PERF_SMOOTH = {3: 25.0, 7: 55.0, 11: 80.0, 15: 100.0}
+# The camera's frame rate is a knob the solver chooses (the data-flow contract: the detectors
+# are driven by its images, so their CPU follows the rate it picks). Stated performance: a
+# tracker downstream loses little at 7.5 Hz and much at 5 Hz.
+CAMERA_RATES = [5.0, 7.5, 10.0]
+PERF_CAMERA = {5.0: 60.0, 7.5: 85.0, 10.0: 100.0}
 WEIGHTS = {"camera": 0.5, "people": 2.0, "smooth": 1.0}
 UNITS_PER_CORE = 100.0  # CPU units of one core of this machine (what init drafts)
 
@@ -105,19 +116,11 @@ def draw_scene(path: Path) -> None:
     mpimg.imsave(path, img)
 
 
-RATES = [5, 10, 15, 20]  # camera frames per second, for the rate sweep (CPU against rate)
-
-
-def rate_space(duration: float) -> dict[str, Any]:
-    """Robot 1's camera rate varied, the detectors at their defaults (scale0 1.1, kernel 7)."""
-    return {"duration_s": duration, "settle_s": 3, "repeats": 1, "design": "one-at-a-time", "startup_timeout_s": 60,
-            "exclude": EXCLUDE, "vary": [{"node": "/robot1/camera", "parameter": {"name": "publish_rate", "unit": "Hz"},
-                                          "arg": "robot1_rate", "values": RATES, "default": 10}]}
-
-
 def space(robots: int, duration: float) -> dict[str, Any]:
     vary = []
     for k in range(1, robots + 1):
+        vary.append({"node": f"/robot{k}/camera", "parameter": {"name": "publish_rate", "unit": "Hz"},
+                     "arg": f"robot{k}_rate", "values": CAMERA_RATES, "default": 10.0})
         vary.append({"node": f"/robot{k}/people", "parameter": {"name": "scale0", "unit": ""},
                      "arg": f"robot{k}_scale0", "values": SCALE0, "default": 1.1})
         vary.append({"node": f"/robot{k}/smooth", "parameter": {"name": "kernel_size", "unit": "px"},
@@ -136,7 +139,6 @@ def application(out: Path, args: argparse.Namespace) -> Path:
     for n in (1, 2, 3):
         (app / f"space{n}.yaml").write_text(yaml.safe_dump(space(n, args.duration), sort_keys=False))
     (app / "space-sweep.yaml").write_text(yaml.safe_dump(space(1, args.sweep_duration), sort_keys=False))
-    (app / "space-rate.yaml").write_text(yaml.safe_dump(rate_space(args.sweep_duration), sort_keys=False))
     return app
 
 
@@ -152,25 +154,33 @@ def characterise(out: Path, app: Path) -> tuple[Path, dict[str, Any]]:
     return csv_path, yaml.safe_load(draft.read_text())
 
 
-def rate_sweep(out: Path, app: Path) -> list[dict[str, Any]]:
-    """Is a detector's CPU linear in its input rate? ``sweep`` robot 1 at each camera rate,
-    ``init`` + ``characterise`` it, and per rate each node's measured CPU."""
-    rec = out / "rate-sweep"
-    sh([BIN, "sweep", app / "app1.launch", "--space", app / "space-rate.yaml", "--out", rec])
-    sh([BIN, "init", rec, "--out", out / "rate-draft.yaml"])
-    csv_path = out / "rate-characterisation.csv"
-    sh([BIN, "characterise", rec, "--system", out / "rate-draft.yaml", "--out", csv_path])
-    _fields, rows = read_rows(csv_path)
-    rate_of = {r["recording"]: float(r["value"]) for r in rows if r["node"] == "robot1_camera" and r["value"]}
-    cpu: dict[float, dict[str, float]] = {}
+def cpu_against_rate(char_csv: Path, draft: dict[str, Any]) -> list[dict[str, Any]]:
+    """How the detectors' CPU follows the camera's rate, from the sweep: the runs with people
+    and smooth at their defaults (scale0 1.1, kernel 7), per camera rate each node's CPU."""
+    _fields, rows = read_rows(char_csv)
+    values: dict[str, dict[str, float]] = {}
     for r in rows:
-        if r["recording"] in rate_of and r["node"].startswith("robot1_") and r["cpu_units_mean"]:
-            cpu.setdefault(rate_of[r["recording"]], {})[kind(r["node"])] = float(r["cpu_units_mean"])
+        if r["node"].startswith("robot1_") and r["value"]:
+            values.setdefault(r["recording"], {})[kind(r["node"])] = float(r["value"])
+    rate_of = {rec: v["camera"] for rec, v in values.items()
+               if "camera" in v and v.get("people") == 1.1 and v.get("smooth") == 7}
+    cpu: dict[float, dict[str, float]] = {}
     out_hz: dict[float, float] = {}
     for r in rows:
-        if r["recording"] in rate_of and r["topic"] == "/robot1/people/found" and r["frequency_hz"]:
+        if r["recording"] not in rate_of:
+            continue
+        if r["node"].startswith("robot1_") and r["cpu_units_mean"]:
+            cpu.setdefault(rate_of[r["recording"]], {})[kind(r["node"])] = float(r["cpu_units_mean"])
+        if r["topic"] == "/robot1/people/found" and r["frequency_hz"]:
             out_hz[rate_of[r["recording"]]] = float(r["frequency_hz"])
-    return [{"rate_hz": rate, **cpu[rate], "people_hz": out_hz.get(rate)} for rate in sorted(cpu)]
+    line: dict[str, tuple[float, float]] = {}  # init's drafted line CPU = cpu + cpu_per_hz x rate
+    for n in draft["nodes"]:
+        want = {"robot1_people": 1.1, "robot1_smooth": 7}.get(n["name"])
+        s = next((s for s in n["settings"] if want is not None and s.get("value") == want and "cpu_per_hz" in s), None)
+        if s is not None:
+            line[kind(n["name"])] = (float(s["cpu"]), float(s["cpu_per_hz"]))
+    return [{"rate_hz": rate, **cpu[rate], "people_hz": out_hz.get(rate),
+             **{f"{k}_line": a + b * rate for k, (a, b) in line.items()}} for rate in sorted(cpu)]
 
 
 def kind(node: str) -> str:
@@ -186,7 +196,8 @@ def instance_system(inst: Instance, draft: dict[str, Any]) -> dict[str, Any]:
         for what, src in base.items():
             node = json.loads(json.dumps(src).replace("/robot1/", f"/robot{k}/").replace("robot1_", f"robot{k}_"))
             node["weight"] = round(WEIGHTS[what] / (robots * sum(WEIGHTS.values())), 6)
-            levels: dict[str, dict[Any, float]] = {"people": PERF_PEOPLE, "smooth": PERF_SMOOTH}
+            levels: dict[str, dict[Any, float]] = {"camera": PERF_CAMERA, "people": PERF_PEOPLE,
+                                                   "smooth": PERF_SMOOTH}
             perf = levels.get(what)
             for s in node["settings"]:
                 s["performance"] = 100.0 if perf is None else perf[s["value"]]
@@ -227,11 +238,10 @@ def instance_csv(rows: list[dict[str, str]], robots: int) -> list[dict[str, str]
 # ---------------------------------------------------------------- 2. fit + solve
 
 METHODS = (("p1-greedy", 1, "greedy"), ("p1-greedy+", 1, "greedy+"), ("p1-exact", 1, "exact"),
-           ("p1-exact-p95", 1, "exact"),
-           ("p2-greedy", 2, "greedy"), ("p2-exact", 2, "exact"), ("p2-exact-p95", 2, "exact"))
-# *-p95: on the model fitted with `fit --cpu p95` (each setting's CPU the 95th percentile of
-# its samples): plans with room for the nodes' bursts (Problem 2: for the settings of the
-# mean model's Problem 1 plan).
+           ("p2-greedy", 2, "greedy"), ("p2-exact", 2, "exact"))
+# The paper's plans: on the model as fitted, no headroom (Problem 2: the smallest server for
+# the settings of Problem 1's exact plan). The tuned plans (`tune`, below) add the model's
+# measured headroom and learn from each deployment.
 
 
 def fit_and_solve(out: Path, char_csv: Path, draft: dict[str, Any], numbers: list[int]) -> dict[int, dict[str, Path]]:
@@ -248,15 +258,13 @@ def fit_and_solve(out: Path, char_csv: Path, draft: dict[str, Any], numbers: lis
         write_rows(inst_csv, fields, instance_csv(rows, len(inst.robot_capacity)))
         model = d / "model.json"
         sh([BIN, "fit", sys_path, inst_csv, "--out", model] + (["--plots", d / "fit-plots"] if i == 1 else []))
-        sh([BIN, "fit", sys_path, inst_csv, "--out", d / "model-p95.json", "--cpu", "p95"])
         plans[i] = {}
         for key, problem, method in METHODS:
             p = d / f"plan-{key}.json"
             # Problem 2: the smallest server for the settings of Problem 1's optimal plan
             given = ["--settings", plans[i]["p1-exact"]] if problem == 2 else []
             p.unlink(missing_ok=True)
-            which = d / "model-p95.json" if key.endswith("-p95") else model
-            done = sh([BIN, "solve", which, "--problem", str(problem), "--method", method, *given, "--out", p],
+            done = sh([BIN, "solve", model, "--problem", str(problem), "--method", method, *given, "--out", p],
                       ok=(0, 2))
             if done.returncode == 0:
                 plans[i][key] = p
@@ -324,7 +332,7 @@ def deploy_all(out: Path, app: Path, plans: dict[int, dict[str, Path]], args: ar
     results = []
     for i, ps in plans.items():
         robots = len(INSTANCES[i].robot_capacity)
-        system = out / f"instance{i}" / "system.yaml"
+        system = out / f"instance{i}" / "model.json"  # the fitted model: validate knows every setting a plan may pick
         done: dict[str, dict[str, Any]] = {}
         for key in ps:
             plan = json.loads(ps[key].read_text())
@@ -351,6 +359,45 @@ def deploy_all(out: Path, app: Path, plans: dict[int, dict[str, Path]], args: ar
     return results
 
 
+# ---------------------------------------------------------------- 3b. the loop (tune)
+
+TUNE_ROUNDS = 3  # issue 21: the loop converges in at most 3 rounds
+TUNE_TOLERANCE = 2.5  # % (eq 10): a round within it ends the loop
+TUNED: dict[int, dict[str, Any]] = {}  # instance -> tune.json
+
+
+def tune_all(out: Path, app: Path, numbers: list[int], args: argparse.Namespace, bar: Any) -> list[dict[str, Any]]:
+    """Per instance, ``tune`` from the instance's characterisation (``--base``: robot 1's
+    sweep copied to each robot), with the model's measured headroom (``--headroom auto``):
+    each round solves Problem 1 exactly, deploys, validates and refits on the recording.
+    Each round is one RQ2 row (plan ``p1-tuned-rK``). tune resumes its finished rounds."""
+    results = []
+    for i in numbers:
+        robots = len(INSTANCES[i].robot_capacity)
+        d = out / f"instance{i}"
+        cmd: list[object] = [BIN, "tune", app / f"app{robots}.launch", "--space", app / f"space{robots}.yaml",
+                             "--system", d / "system.yaml", "--base", d / "characterisation.csv", "--out", d / "tune",
+                             "--rounds", TUNE_ROUNDS, "--tolerance", TUNE_TOLERANCE, "--headroom", "auto",
+                             "--duration", f"{args.duration:g}", "--units-per-core", f"{UNITS_PER_CORE:g}"]
+        err.print(f"[bold]instance {i}[/]: tune (up to {TUNE_ROUNDS} rounds) -> {rel(d / 'tune')}")
+        sh(cmd)
+        doc = json.loads((d / "tune" / "tune.json").read_text())
+        TUNED[i] = doc
+        for r in doc["rounds"]:
+            run_dir = d / "tune" / r["dir"]
+            plan = json.loads((run_dir / "plan.json").read_text())
+            res = {"record": json.loads((run_dir / "deploy.json").read_text()),
+                   "validation": json.loads((run_dir / "validation.json").read_text())}
+            row = {"instance": i, "plan": f"p1-tuned-r{r['round']}", "problem": 1, "method": plan["method"],
+                   "objective": plan["objective"], "status": plan["status"], "run": rel(run_dir),
+                   "round": r["round"], "last_round": r is doc["rounds"][-1], **summarise(res)}
+            results.append(row)
+            err.print(f"instance {i} tune round {r['round']}: expected {row['expected']:.2f} measured "
+                      f"{row['measured']:.2f} ({row['deviation_pct']:.2f} %)")
+        bar[0].advance(bar[1])
+    return results
+
+
 # ---------------------------------------------------------------- 4. RQ3
 
 def forced(out: Path, name: str, source: Path, change: dict[str, tuple[str | None, float | None]]) -> Path:
@@ -366,19 +413,25 @@ def forced(out: Path, name: str, source: Path, change: dict[str, tuple[str | Non
     model = source.parent / "model.json"
     system = load_system(model)
     placement = {n: pn.computer for n, pn in plan.nodes.items()}
-    choice = {}
+    setting = {}
     for node in system.nodes:
         pn = plan.nodes[node.name]
         computer, value = change.get(node.name, (None, None))
         if computer is not None:
             placement[node.name] = computer
         want = pn.value if value is None else value
-        choice[node.name] = min(node.settings, key=lambda s: abs((s.value or 0.0) - (want or 0.0))) \
-            if node.settings else None
+        setting[node.name] = min(range(len(node.settings)), key=lambda k: abs((node.settings[k].value or 0.0)
+                                                                                - (want or 0.0)))
     from perfros_bag.system.types import Choice, Problem
 
-    choices = {n: Choice(0, s.cpu, s.performance, s.value, s.frequency_hz, s.bandwidth_kBps, s.topics)
-               for n, s in choice.items() if s is not None}
+    choices: dict[str, Choice] = {}
+    for node in system.nodes:  # sources first: a driven node's CPU and rate follow its input's
+        if not node.driven:
+            s = node.settings[setting[node.name]]
+            choices[node.name] = Choice(0, s.cpu, s.performance, s.value, s.frequency_hz, s.bandwidth_kBps, s.topics)
+    for name in system.flow_order:
+        input_hz = system.input_hz(name, choices[system.flow_parent[name]])
+        choices[name] = system.driven_choice(system.node[name], setting[name], input_hz)
     new = build_plan(system, Assignment(placement, choices), problem=Problem.PERFORMANCE, method=f"forced ({name})",
                      status=Status.FEASIBLE)
     new.extra["forced"] = True  # beyond its computers on purpose: plan.json's reader and deploy accept it
@@ -408,7 +461,7 @@ def rq3(out: Path, app: Path, plans: dict[int, dict[str, Path]], args: argparse.
                         forced(d, "link-over", base, {"robot2_people": ("server", None)}), "link", "robot2"))
     for label, i, plan_path, what, where in configs:
         robots = len(INSTANCES[i].robot_capacity)
-        system = out / f"instance{i}" / "system.yaml"
+        system = out / f"instance{i}" / "model.json"  # the fitted model: validate knows every setting a plan may pick
         if plan_path.parent == d:
             res = deploy(plan_path, robots, system, d / f"run-{plan_path.stem}", app, args, f"RQ3 {label}")
         else:  # the instance's own plan: its RQ2 run
@@ -429,6 +482,13 @@ def rq3(out: Path, app: Path, plans: dict[int, dict[str, Path]], args: argparse.
             behind = [n["f_ratio"] for n in s["nodes"].values() if n["computer"] == where and n["f_ratio"] is not None]
             row["slowest_ratio"] = min(behind) if behind else None
             row["observed_overload"] = bool(behind and min(behind) < 0.95)
+            # beyond the paper: the rates each node on it keeps, predicted (validate's kept
+            # rates: a proportional CPU share, propagated down the data flow) vs measured
+            kept = (res["validation"].get("kept") or {}).get("nodes") or []
+            row["kept"] = [{"node": k["node"], "predicted": k["f_predicted"] / k["f_planned"],
+                            "measured": k["f_measured"] / k["f_planned"]}
+                           for k in kept if k["computer"] == where and k.get("f_planned")
+                           and k.get("f_predicted") is not None and k.get("f_measured") is not None]
         else:
             link = next(x for x in s["links"] if where in x["between"])
             use = next((x for x in s["link_use"] if x["from"] == where), None)
@@ -454,7 +514,7 @@ def computer_errors(results: list[dict[str, Any]]) -> dict[str, Any]:
     comp: dict[str, list[tuple[float, float]]] = {"robot": [], "server": []}
     camera: dict[str, list[float]] = {"robot": [], "server": []}
     for r in results:
-        if r["run"] in seen or r["plan"].endswith("p95"):  # the mean model's predictions only
+        if r["run"] in seen:
             continue
         seen.add(r["run"])
         for name, c in r["computers"].items():
@@ -518,12 +578,12 @@ def append_full_run(docs: Path, line: str) -> None:
 
 
 def model_errors(results: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """Per node kind: CPU predicted by the fit vs measured, frequency ratio, over every
-    deployment (each run once)."""
+    """Per node kind: CPU predicted by the fit vs measured, frequency ratio, over the given
+    deployments (each run once)."""
     seen: set[str] = set()
     acc: dict[str, dict[str, list[float]]] = {}
     for r in results:
-        if r["run"] in seen or r["plan"].endswith("p95"):  # the mean model's predictions only
+        if r["run"] in seen:
             continue
         seen.add(r["run"])
         for name, n in r["nodes"].items():
@@ -558,7 +618,7 @@ def plots(out: Path, results: list[dict[str, Any]], rq3_rows: list[dict[str, Any
         rows = [r for r in results if r["problem"] == problem]
         xs = list(range(len(rows)))
         ax.bar(xs, [r["measured"] / r["expected"] for r in rows], 0.6,
-               color=["tab:orange" if r["plan"].endswith("p95") else "tab:blue" for r in rows])
+               color=["tab:orange" if "tuned" in r["plan"] else "tab:blue" for r in rows])
         ax.axhline(1.0, color="grey", lw=0.8)
         for y in (0.975, 1.025):
             ax.axhline(y, color="grey", lw=0.6, ls=":")
@@ -566,6 +626,8 @@ def plots(out: Path, results: list[dict[str, Any]], rq3_rows: list[dict[str, Any
         ax.set_xticks(xs, [f"{r['instance']} {r['plan'].split('-', 1)[1]}" for r in rows], fontsize=7, rotation=90)
         ax.set_title(f"Problem {problem}: measured / expected Σ w·P (eq 10)", fontsize=10)
     axes[0].set_ylabel("measured / expected (dotted: ±2.5 %)")
+    axes[0].text(0.01, 0.02, "blue: the paper's plans; orange: tune's rounds (measured headroom)",
+                 transform=axes[0].transAxes, fontsize=7)
     fig.tight_layout()
     fig.savefig(out / "rq2.png", dpi=110)
     plt.close(fig)
@@ -589,7 +651,13 @@ def f(x: Any, nd: int = 2) -> str:
     return "-" if x is None else f"{x:.{nd}f}"
 
 
-def markdown(results: list[dict[str, Any]], rq3_rows: list[dict[str, Any]], errors: list[dict[str, Any]],
+def kept_cell(r: dict[str, Any]) -> str:
+    """RQ3: each node's kept share of its planned rate, predicted (validate's kept rates) / measured."""
+    kept = r.get("kept") or []
+    return "; ".join(f"{kind(k['node'])} {100 * k['predicted']:.0f} / {100 * k['measured']:.0f} %" for k in kept) or "-"
+
+
+def markdown(results: list[dict[str, Any]], rq3_rows: list[dict[str, Any]], errors: dict[str, list[dict[str, Any]]],
              computers: dict[str, Any], rates: list[dict[str, Any]], args: argparse.Namespace, argv: list[str],
              started: str, seconds: float) -> str:
     lines = [f"Pipeline run {started} (UTC), {seconds / 60:.1f} min wall on this 2-core machine, "
@@ -611,12 +679,12 @@ def markdown(results: list[dict[str, Any]], rq3_rows: list[dict[str, Any]], erro
         lines.append(f"| {r['instance']} | {r['plan']} | {f(r['objective'])} | {r['status']} | {f(r['expected'])} | "
                      f"{f(r['measured'])} | {f(r['deviation_pct'])} | {f(r['freq_dev_mean_pct'])} | {r['cpu_cap']} | "
                      f"{r['net']} | {r['run'].rsplit('/', 1)[-1]} |")
-    groups = (("Problem 1, planned on the mean CPU", lambda r: r["problem"] == 1 and not r["plan"].endswith("p95")),
-              ("Problem 1, planned on the p95 CPU (`fit --cpu p95`)",
-               lambda r: r["problem"] == 1 and r["plan"].endswith("p95")),
-              ("Problem 2, server sized on the mean CPU", lambda r: r["problem"] == 2 and not r["plan"].endswith("p95")),
-              ("Problem 2, server sized on the p95 CPU (`fit --cpu p95`)",
-               lambda r: r["problem"] == 2 and r["plan"].endswith("p95")))
+    groups = (("Problem 1, the paper's plans (the model as fitted, no headroom)",
+               lambda r: r["problem"] == 1 and "tuned" not in r["plan"]),
+              ("Problem 1, tune's rounds (measured headroom, refitted after each round)",
+               lambda r: "tuned" in r["plan"]),
+              ("Problem 1, tune's last round per instance", lambda r: r.get("last_round", False)),
+              ("Problem 2, server sized by the paper's method", lambda r: r["problem"] == 2))
     for label, member in groups:
         plans_in = [r for r in results if member(r)]
         rows = distinct_deployments(plans_in)
@@ -637,8 +705,9 @@ def markdown(results: list[dict[str, Any]], rq3_rows: list[dict[str, Any]], erro
     if rq3_rows:
         lines += ["### RQ3: settings and placements forced above the plan", "",
                   "| configuration | resource | predicted load | capacity | overload predicted | observed load "
-                  "| observed overload | evidence | expected Σ w·P | measured Σ w·P | mean freq. dev. % |",
-                  "|---|---|---|---|---|---|---|---|---|---|---|"]
+                  "| observed overload | evidence | kept rate per node, predicted / measured "
+                  "| expected Σ w·P | measured Σ w·P | mean freq. dev. % |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|---|"]
         for r in rq3_rows:
             if r["what"] == "cpu":
                 evidence = (f"CFS throttled {f(None if r.get('throttled') is None else 100 * r['throttled'], 0)} % "
@@ -649,19 +718,51 @@ def markdown(results: list[dict[str, Any]], rq3_rows: list[dict[str, Any]], erro
                 resource = f"link {r['where']}-server (kB/s)"
             lines.append(f"| {r['config']} | {resource} | {f(r['predicted_load'], 1)} | {f(r['capacity'], 0)} | "
                          f"{'yes' if r['predicted_overload'] else 'no'} | {f(r['observed_load'], 1)} | "
-                         f"{'yes' if r['observed_overload'] else 'no'} | {evidence} | {f(r['expected'])} | "
+                         f"{'yes' if r['observed_overload'] else 'no'} | {evidence} | {kept_cell(r)} | {f(r['expected'])} | "
                          f"{f(r['measured'])} | {f(r['freq_dev_mean_pct'])} |")
         agree = all(r["predicted_overload"] == r["observed_overload"] for r in rq3_rows)
         lines += ["", f"Every prediction matched the observation: **{'yes' if agree else 'no'}**.", "",
                   "![RQ3](casestudy-real/rq3.png)", ""]
-    if errors:
-        lines += ["### The model's error per node (every deployment of a mean-CPU plan once)", "",
+    if TUNED:
+        lines += ["### The loop (`tune`): each instance's rounds", "",
+                  f"`tune --base instance/characterisation.csv --headroom auto --rounds {TUNE_ROUNDS} --tolerance "
+                  f"{TUNE_TOLERANCE:g}`: each round solves Problem 1 exactly with the model's measured headroom, "
+                  "deploys, validates, and refits on the recording.", "",
+                  "| instance | round | values deployed | objective | margin kept (units) | expected Σ w·P "
+                  "| measured Σ w·P | deviation % | starved | refit: CPU the model gives the deployed settings, "
+                  "before -> after |", "|---|---|---|---|---|---|---|---|---|---|"]
+        for i, doc in sorted(TUNED.items()):
+            for r in doc["rounds"]:
+                plan = json.loads((args.out.resolve() / f"instance{i}" / "tune" / r["dir"] / "plan.json").read_text())
+                margin = sum(c.get("margin") or 0.0 for c in plan["computers"].values())
+                before = sum(n["model_cpu_before"] or 0.0 for n in r["nodes"].values())
+                after = sum(n["model_cpu_after"] or 0.0 for n in r["nodes"].values())
+                starved = [c for c, v in r["computers"].items() if v["starved"]]
+                values = ", ".join(f"{n.split('_', 1)[1] if n.startswith('robot1_') else n}={v:g}"
+                                   if isinstance(v, int | float) else f"{n}={v}" for n, v in r["values"].items())
+                lines.append(f"| {i} | {r['round']} | {values} | {f(r['objective'])} | {f(margin, 1)} | "
+                             f"{f(r['expected'])} | {f(r['measured'])} | {f(r['deviation_pct'])} | "
+                             f"{', '.join(starved) or '-'} | {f(before, 1)} -> {f(after, 1)} |")
+            stop = doc.get("stopped") or {}
+            lines.append(f"| {i} | stopped | {stop.get('reason', '-')} after round {stop.get('after_round', '-')} "
+                         "| | | | | | | |")
+        worst = max(len(doc["rounds"]) for doc in TUNED.values())
+        per = ", ".join(f"{i}: {len(d['rounds'])}" for i, d in sorted(TUNED.items()))
+        lines += ["", f"Rounds per instance: {per} "
+                  f"(at most {worst}; goal: at most {TUNE_ROUNDS}).", ""]
+    for key, title in (("after_loop", "after the loop: each instance's last `tune` round"),
+                       ("paper", "the paper's plans: every deployment of a plan solved without headroom, once")):
+        rows = errors.get(key) or []
+        if not rows:
+            continue
+        lines += [f"### The model's CPU error per node, {title}", "",
                   "| node | runs | CPU predicted (mean units) | CPU measured (mean units) | mean CPU error % "
                   "| mean abs. CPU error % | mean freq. deviation % |", "|---|---|---|---|---|---|---|"]
-        for e in errors:
+        for e in rows:
             lines.append(f"| {e['node']} | {e['runs']} | {f(e['cpu_predicted_mean'])} | {f(e['cpu_measured_mean'])} | "
                          f"{f(e['cpu_error_mean_pct'], 1)} | {f(e['cpu_abs_error_mean_pct'], 1)} | "
                          f"{f(e['freq_dev_mean_pct'], 2)} |")
+        lines.append("")
     if computers:
         lines += ["", "Per computer, the model's sum of its nodes' CPU against the capped group's measured CPU "
                   "(is CPU additive when nodes share a computer?):", "",
@@ -676,16 +777,14 @@ def markdown(results: list[dict[str, Any]], rq3_rows: list[dict[str, Any]], erro
                   f"({on_robot[1]} runs); on the server (its images sent across the link): {f(on_server[0], 3)} units "
                   f"({on_server[1]} runs). The model gives the camera one CPU figure wherever its subscribers run."]
     if rates:
-        ref = next((r for r in rates if r["rate_hz"] == 10), rates[0])
-        lines += ["", "CPU against the camera's rate (robot 1 swept at each rate, people at scale0 1.1, smooth at "
-                  "kernel 7): measured, and what a line through the origin and the 10 Hz point predicts (the "
-                  "model treats each node's CPU as fixed by its own parameter; here it follows its input):", "",
-                  "| camera Hz | people output Hz | camera CPU | people CPU | people if linear | smooth CPU "
-                  "| smooth if linear |", "|---|---|---|---|---|---|---|"]
+        lines += ["", "CPU against the camera's rate (robot 1's sweep runs with people at scale0 1.1 and smooth at "
+                  "kernel 7): measured, and the line `init` drafted for each driven node (CPU = cpu + cpu_per_hz x "
+                  "input rate, least squares over these runs):", "",
+                  "| camera Hz | people output Hz | camera CPU | people CPU | people, drafted line | smooth CPU "
+                  "| smooth, drafted line |", "|---|---|---|---|---|---|---|"]
         for r in rates:
-            k = r["rate_hz"] / ref["rate_hz"]
             lines.append(f"| {r['rate_hz']:g} | {f(r.get('people_hz'))} | {f(r.get('camera'), 3)} | {f(r.get('people'))} | "
-                         f"{f(ref.get('people', 0) * k)} | {f(r.get('smooth'))} | {f(ref.get('smooth', 0) * k)} |")
+                         f"{f(r.get('people_line'))} | {f(r.get('smooth'))} | {f(r.get('smooth_line'))} |")
     lines += ["", "### Commands", "", "```",
               f"make casestudy-real   # = .venv/bin/python pipelines/casestudy_real.py {' '.join(argv)}",
               *dict.fromkeys(COMMANDS), "```", ""]
@@ -701,6 +800,7 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--docs", type=Path, default=ROOT / "docs" / "casestudy-real.md")
     ap.add_argument("--no-docs", action="store_true", help="leave the docs page alone")
     ap.add_argument("--skip-rq3", action="store_true")
+    ap.add_argument("--skip-tune", action="store_true", help="no tune loop (not a full run)")
     args = ap.parse_args(argv)
     numbers = [int(x) for x in args.instances.split(",") if x.strip()]
     unknown = [n for n in numbers if n not in INSTANCES]
@@ -708,7 +808,8 @@ def main(argv: list[str]) -> int:
         raise SystemExit(f"error: no instance {unknown[0]} (there are {', '.join(map(str, INSTANCES))})")
     out: Path = args.out.resolve()
     # a full run: every instance and RQ3 from an empty out/; its line goes into the docs page
-    full = (not out.exists() or not any(out.iterdir())) and set(numbers) == set(INSTANCES) and not args.skip_rq3
+    full = (not out.exists() or not any(out.iterdir())) and set(numbers) == set(INSTANCES) and not args.skip_rq3 \
+        and not args.skip_tune
     out.mkdir(parents=True, exist_ok=True)
     started, t0 = datetime.now(UTC).strftime("%Y-%m-%d %H:%M"), time.monotonic()
     try:
@@ -726,14 +827,18 @@ def run(out: Path, numbers: list[int], args: argparse.Namespace, argv: list[str]
 
     app = application(out, args)
     char_csv, draft = characterise(out, app)
-    rates = rate_sweep(out, app)
+    rates = cpu_against_rate(char_csv, draft)
     plans = fit_and_solve(out, char_csv, draft, numbers)
     with Progress(TextColumn("deployments"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                   console=err) as progress:
-        bar = (progress, progress.add_task("", total=sum(map(len, plans.values())) + (0 if args.skip_rq3 else 6)))
+        bar = (progress, progress.add_task("", total=sum(map(len, plans.values())) + len(numbers)
+                                           + (0 if args.skip_rq3 else 6)))
         results = deploy_all(out, app, plans, args, bar)
+        results += [] if args.skip_tune else tune_all(out, app, numbers, args, bar)
         rq3_rows = [] if args.skip_rq3 else rq3(out, app, plans, args, bar)
-    errors, computers = model_errors(results), computer_errors(results)
+    errors = {"paper": model_errors([r for r in results if "tuned" not in r["plan"]]),
+              "after_loop": model_errors([r for r in results if r.get("last_round")])}
+    computers = computer_errors(results)
     seconds = time.monotonic() - t0
     distinct = rq2_distinct(results)
     line = full_run_line(f"{started} UTC", distinct)

@@ -77,3 +77,78 @@ def test_rq3_forced_plans_exceed_their_computer_and_are_marked(tmp_path: Path) -
     del unmarked["forced"]
     with pytest.raises(InputError, match=f"node '{hungry.name}': 'cpu' .* exceeds the capacity"):
         parse_plan(unmarked, str(path))
+
+
+DRIVEN_SYSTEM = {
+    "computers": [{"name": "robot1", "kind": "robot", "capacity": 20}, {"name": "server", "kind": "server",
+                                                                          "capacity": 40}],
+    "links": [{"between": ["robot1", "server"], "bandwidth_kBps": 3000}],
+    "nodes": [
+        {"name": "robot1_camera", "weight": 0.2, "residence": ["robot1"], "topics": ["/robot1/camera/image_raw"],
+         "parameter": {"name": "publish_rate", "unit": "Hz"},
+         "settings": [{"value": 5.0, "cpu": 0.4, "performance": 60, "frequency_hz": 5, "bandwidth_kBps": 1150},
+                      {"value": 10.0, "cpu": 0.8, "performance": 100, "frequency_hz": 10, "bandwidth_kBps": 2300}]},
+        {"name": "robot1_people", "weight": 0.8, "input": "/robot1/camera/image_raw",
+         "topics": ["/robot1/people/found"], "parameter": {"name": "scale0", "unit": ""},
+         "settings": [{"value": 1.1, "cpu": 0.5, "cpu_per_hz": 2.0, "performance": 85, "bytes_per_msg": 100},
+                      {"value": 1.4, "cpu": 0.5, "cpu_per_hz": 0.8, "performance": 30, "bytes_per_msg": 100}]},
+    ],
+    "edges": [{"from": "robot1_camera", "to": "robot1_people"}],
+}
+
+
+def test_rq3_forced_plan_of_driven_nodes_follows_the_forced_camera_rate(tmp_path: Path) -> None:
+    """A detector forced onto the robot with its camera forced to 10 Hz: its CPU is the
+    data-flow rule's cpu + cpu_per_hz x 10, computed here from the system's numbers."""
+    from perfros_bag.solver import solve
+    from perfros_bag.system.planfile import save_plan
+    from perfros_bag.system.systemfile import load_system
+
+    d = tmp_path / "inst"
+    d.mkdir()
+    (d / "model.json").write_text(json.dumps(DRIVEN_SYSTEM))
+    base = d / "plan.json"
+    save_plan(solve(load_system(d / "model.json"), 1, "exact"), base)
+    path = cs.forced(tmp_path, "over", base, {"robot1_camera": (None, 10.0), "robot1_people": ("robot1", 1.1)})
+    plan = load_plan(path)
+    people = plan.nodes["robot1_people"]
+    assert people.computer == "robot1" and people.value == 1.1
+    assert people.input_hz == 10.0
+    assert people.cpu == pytest.approx(0.5 + 2.0 * 10.0)
+    assert plan.computers["robot1"].cpu == pytest.approx(0.8 + 0.5 + 2.0 * 10.0)
+    # at 5 Hz the same detector needs what the rule gives at 5 Hz
+    path5 = cs.forced(tmp_path, "five", base, {"robot1_camera": (None, 5.0), "robot1_people": ("robot1", 1.1)})
+    assert load_plan(path5).nodes["robot1_people"].cpu == pytest.approx(0.5 + 2.0 * 5.0)
+
+
+def test_cpu_against_rate_reads_the_default_runs_and_the_drafted_line(tmp_path: Path) -> None:
+    fields = ["recording", "node", "parameter", "value", "topic", "msgtype", "messages", "duration_s",
+              "frequency_hz", "bandwidth_kBps", "cpu_units_mean", "cpu_units_p95", "cpu_samples"]
+
+    def row(rec: str, node: str, value: str, cpu: str, topic: str = "", hz: str = "") -> dict[str, str]:
+        r = dict.fromkeys(fields, "")
+        r.update(recording=rec, node=node, value=value, cpu_units_mean=cpu, topic=topic, frequency_hz=hz)
+        return r
+
+    rows = []
+    for rec, (rate, scale, kernel, people_cpu) in {"a": (5.0, 1.1, 7, 11.0), "b": (10.0, 1.1, 7, 21.0),
+                                                   "c": (10.0, 1.4, 7, 9.0)}.items():
+        rows += [row(rec, "robot1_camera", str(rate), "0.5"),
+                 row(rec, "robot1_people", str(scale), str(people_cpu), "/robot1/people/found", str(rate)),
+                 row(rec, "robot1_smooth", str(kernel), "3.0")]
+    csv_path = tmp_path / "c.csv"
+    cs.write_rows(csv_path, fields, rows)
+    draft = {"nodes": [{"name": "robot1_people", "settings": [{"value": 1.1, "cpu": 1.0, "cpu_per_hz": 2.0}]},
+                       {"name": "robot1_smooth", "settings": [{"value": 7, "cpu": 0.0, "cpu_per_hz": 0.3}]}]}
+    got = cs.cpu_against_rate(csv_path, draft)
+    assert [g["rate_hz"] for g in got] == [5.0, 10.0]  # run c has people at 1.4: not a default run
+    assert got[0]["people"] == 11.0 and got[1]["people"] == 21.0 and got[1]["people_hz"] == 10.0
+    assert got[0]["people_line"] == pytest.approx(1.0 + 2.0 * 5.0)
+    assert got[1]["smooth_line"] == pytest.approx(0.3 * 10.0)
+
+
+def test_rq3_kept_cell_states_predicted_and_measured_shares() -> None:
+    row = {"kept": [{"node": "robot1_people", "predicted": 0.5, "measured": 0.53},
+                    {"node": "robot1_smooth", "predicted": 1.0, "measured": 0.98}]}
+    assert cs.kept_cell(row) == "people 50 / 53 %; smooth 100 / 98 %"
+    assert cs.kept_cell({}) == "-"
