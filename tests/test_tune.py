@@ -189,6 +189,10 @@ def test_the_report_has_the_loops_section_only_when_tune_json_is_given(tmp_path:
     assert page.split('id="tune-nodes"', 1)[1].split("</table>", 1)[0].count("<tr") == 3
     assert (tmp_path / "rep" / "tune.png").read_bytes()[:4] == b"\x89PNG"
     assert 'id="tune"' not in build_report(tmp_path / "none").read_text()
+    assert "base characterisation" not in page
+    write_tune(path, _doc(rounds=[first], stopped=None, base="/abs/base.csv", base_sha256="0" * 64))
+    assert "fitted on the base characterisation /abs/base.csv (no sweep)" in \
+        build_report(tmp_path / "based", tune=path).read_text()
 
 
 def test_a_driven_node_is_judged_by_what_it_made_of_its_input(tmp_path: Path) -> None:
