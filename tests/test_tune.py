@@ -189,6 +189,10 @@ def test_the_report_has_the_loops_section_only_when_tune_json_is_given(tmp_path:
     assert page.split('id="tune-nodes"', 1)[1].split("</table>", 1)[0].count("<tr") == 3
     assert (tmp_path / "rep" / "tune.png").read_bytes()[:4] == b"\x89PNG"
     assert 'id="tune"' not in build_report(tmp_path / "none").read_text()
+    assert "base characterisation" not in page
+    write_tune(path, _doc(rounds=[first], stopped=None, base="/abs/base.csv", base_sha256="0" * 64))
+    assert "fitted on the base characterisation /abs/base.csv (no sweep)" in \
+        build_report(tmp_path / "based", tune=path).read_text()
 
 
 def test_a_driven_node_is_judged_by_what_it_made_of_its_input(tmp_path: Path) -> None:
@@ -212,3 +216,168 @@ def test_a_driven_node_is_judged_by_what_it_made_of_its_input(tmp_path: Path) ->
     assert model_cpu(model, "det", 2, 10.0) == pytest.approx(2 + 1.5 * 10)
     assert model_cpu(model, "det", 2, 4.0) == pytest.approx(2 + 1.5 * 4)
     assert model_cpu(model, "det", 3, 10.0) is None and model_cpu(model, "cam", None) == 1
+
+
+# --------------------------------------------------------------------------- driven nodes, --base
+
+def _driven_row(recording: str, value: Any, input_hz: float | None, cpu: float = 10.0) -> Row:
+    return Row(recording, "det", "scale", value, "/det/out", "std_msgs/String", 30, 3.0, input_hz or 10.0, 1.0, cpu,
+               cpu * 1.2, 6, median_rate_hz=input_hz, input_hz=input_hz)
+
+
+def test_a_driven_nodes_deployment_stands_for_its_value_at_the_input_rate_it_measured() -> None:
+    """A paper node's deployment row stands for its value (every sweep row there left out); a
+    driven node's for its value at its measured input rate: the sweep's rows at that value
+    within 10 % of that rate are left out, the line's other rates stay."""
+    from perfros_bag.tune.loop import SAME_INPUT
+
+    sweep = [_driven_row(f"sweep/r{f:g}_s2.bag", 2, f) for f in (5.0, 9.2, 10.0, 11.6, 20.0)]
+    sweep += [_driven_row("sweep/r10_s1.bag", 1, 10.0), _driven_row("sweep/none_s3.bag", 3, None)]
+    sweep += [_row(f"sweep/r{f:g}_s2.bag", "a", 2, 5.0) for f in (5.0, 10.0)]
+    deployed = [_driven_row("round-1/run.bag", 2, 10.5, cpu=14.0), _row("round-1/run.bag", "a", 2, 6.0)]
+    done = [_round({"det": (USE_MEASURED, 1.0), "a": (USE_MEASURED, 1.0)})]
+    got = {(r.recording, r.node) for r in weigh(sweep + deployed, done, driven={"det"})}
+    # within 10 % of 10.5 Hz ([9.45, 11.55]): 10 only; 9.2 and 11.6 are just outside
+    assert SAME_INPUT == 0.10
+    assert ("sweep/r10_s2.bag", "det") not in got
+    assert {("sweep/r5_s2.bag", "det"), ("sweep/r9.2_s2.bag", "det"), ("sweep/r11.6_s2.bag", "det"),
+            ("sweep/r20_s2.bag", "det")} <= got
+    # other values, and a sweep row without an input rate, stay; the deployment's row is kept
+    assert {("sweep/r10_s1.bag", "det"), ("sweep/none_s3.bag", "det"), ("round-1/run.bag", "det")} <= got
+    # the paper node: every sweep row at the deployed value left out
+    assert not any(rec.startswith("sweep/") and node == "a" for rec, node in got) and ("round-1/run.bag", "a") in got
+    # the same rows weighed as a paper node: every sweep row of det at 2 left out (the old rule)
+    plain = {(r.recording, r.node) for r in weigh(sweep + deployed, done)}
+    assert not any(rec.endswith("_s2.bag") and node == "det" for rec, node in plain)
+    # a driven deployment row without an input rate stands for nothing
+    blind = [_driven_row("round-1/run.bag", 2, None, cpu=14.0)]
+    kept = weigh(sweep + blind, done, driven={"det"})
+    assert sum(r.node == "det" and r.recording.startswith("sweep/") for r in kept) == 7
+
+
+def test_a_starved_driven_node_is_rescaled_at_the_input_rate_it_got() -> None:
+    """Its kept share r is its output's over its input's, so measured / r is its need for
+    every message it got: CPU, output rate and bandwidth scale by 1 / r, its input_hz stays
+    (one point of its line: output over input stays its out_per_in)."""
+    row = _driven_row("round-1/run.bag", 2, 8.0, cpu=12.0)
+    row = Row(**{**row.__dict__, "frequency_hz": 6.0, "median_rate_hz": 6.0, "bandwidth_kBps": 0.6})
+    r = kept_share({"counted": True, "ratio": 0.6, "input_hz_expected": 10.0, "input_hz_measured": 8.0})
+    assert r == pytest.approx(0.75)  # it made 6 of the 8 messages a second it got
+    out = weigh([row], [_round({"det": (USE_RESCALED, 1 / r)})], driven={"det"})[0]
+    assert out.input_hz == 8.0 and out.frequency_hz == pytest.approx(8.0) and out.median_rate_hz == pytest.approx(8.0)
+    assert out.cpu_units_mean == pytest.approx(16.0) and out.bandwidth_kBps == pytest.approx(0.8)
+
+
+def _fake_round(monkeypatch: pytest.MonkeyPatch, out: Path, round_rows: list[Row]) -> None:
+    """Round 1's folder, its recording characterised as ``round_rows`` (no ROS)."""
+    from perfros_bag.characterisation import table
+
+    (out / "round-1").mkdir(parents=True)
+    for name in ("run.bag", "run.host.cpu.csv"):
+        (out / "round-1" / name).write_bytes(b"")
+
+    def characterise(entries: Any, system: Any = None, **_: Any) -> Any:
+        assert [e.name for e in entries] == ["round-1/run.bag"]  # the rounds' recordings only: no sweep
+        return table.Result(list(round_rows), [], len(entries))
+
+    monkeypatch.setattr(table, "characterise", characterise)
+
+
+def test_a_base_run_fits_model_0_on_the_base_and_each_refit_on_it_plus_the_rounds(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """--base: model 0 is the fit of the base rows; model 1 the base rows (weighed as the
+    sweep's) plus round 1's. The driven detector deployed at value 1 with the camera at 10 Hz
+    keeps its base rows at 5 and 20 Hz and gains the deployment's point; the camera (a paper
+    node) at 10 is the deployment's alone. Expected lines computed here with numpy."""
+    from perfros_bag.characterisation.csvfile import read_characterisation
+    from perfros_bag.fitting.build import build_model
+    from perfros_bag.fitting.modelfile import read_model
+    from perfros_bag.tune.loop import fit_rounds
+    from tests.test_fit_driven import detector_settings, lstsq, rows, system_yaml, write_inputs
+
+    base_table = rows()
+    sys_path, base = write_inputs(tmp_path, system_yaml(), base_table)
+    system = load_system(sys_path)
+    out = tmp_path / "out"
+    out.mkdir()
+    m0 = fit_rounds(out, sys_path, system, [], 100.0, base=base)
+    assert not (out / "sweep").exists() and not (out / "manifest.yaml").exists()
+    assert read_characterisation(out / "characterisation-0.csv").rows == base_table
+    with pytest.warns(Warning):
+        direct = build_model(sys_path, base).document.to_json()
+    assert read_model(m0).to_json()["system"] == direct["system"]
+
+    f_in = 10.2  # the deployment's measured camera rate: within 10 % of the base's 9.97 Hz
+    deployed = [Row("round-1/run.bag", "camera", "rate", 10, "/camera/image", "sensor_msgs/Image", 30, 3.0, f_in,
+                    1020.0, 7.5, 8.0, 6),
+                Row("round-1/run.bag", "detector", "scale", 1.0, "/det/out", "std_msgs/String", 30, 3.0, f_in, 4.08,
+                    2.0 + 3.0 * f_in + 4.0, 40.0, 6, input_hz=f_in)]
+    _fake_round(monkeypatch, out, deployed)
+    done = [{"dir": "round-1", "values": {"camera": 10, "detector": 1.0},
+             "nodes": {"camera": {"refit": USE_MEASURED, "cpu_factor": 1.0},
+                       "detector": {"refit": USE_MEASURED, "cpu_factor": 1.0}}}]
+    m1 = fit_rounds(out, sys_path, system, done, 100.0, base=base)
+    manifest = yaml.safe_load((out / "manifest.yaml").read_text())["recordings"]
+    assert [e["path"] for e in manifest] == ["round-1/run.bag"]
+    used = read_characterisation(out / "characterisation-1.csv").rows
+    det1 = [r for r in used if r.node == "detector" and r.value == 1.0]
+    assert sorted(r.input_hz or 0 for r in det1) == [4.98, f_in, 19.9]
+    points = [(r.input_hz or 0.0, r.cpu_units_mean or 0.0) for r in det1]
+    line = lstsq(points)
+    got = detector_settings(read_model(m1).to_json())[1.0]
+    assert (got["cpu"], got["cpu_per_hz"]) == pytest.approx(line, rel=1e-7)
+    assert got["cpu"] == pytest.approx(2.0 + 4.0 / 3, rel=0.2)  # the 4 units more at 10 Hz lift the base
+    # the other detector values keep every base row; the camera at 10 is the deployment's alone
+    assert sum(r.node == "detector" and r.value != 1.0 for r in used) == 6
+    cam10 = [r for r in used if r.node == "camera" and r.value == 10]
+    assert [r.recording for r in cam10] == ["round-1/run.bag"]
+    camera = next(n for n in read_model(m1).to_json()["system"]["nodes"] if n["name"] == "camera")
+    assert next(s for s in camera["settings"] if s["value"] == 10)["cpu"] == pytest.approx(7.5)
+
+
+def test_base_rows_named_like_a_round_are_renamed(tmp_path: Path) -> None:
+    from perfros_bag.characterisation.csvfile import write_characterisation
+    from perfros_bag.tune.loop import BASE_PREFIX, base_rows
+
+    path = tmp_path / "base.csv"
+    write_characterisation(path, [_row("round-1/run.bag", "a", 1), _row("sweep/round-1/run.bag", "a", 2),
+                                  _row("x.bag", "a", 3)])
+    assert [r.recording for r in base_rows(path)] == [f"{BASE_PREFIX}round-1/run.bag", "sweep/round-1/run.bag",
+                                                      "x.bag"]
+
+
+def test_a_bad_or_different_base_is_one_line_exit_2(tmp_path: Path) -> None:
+    from tests.test_fit_driven import rows, system_yaml, write_inputs
+
+    app = FIXTURES / "app"
+    sys_path, base = write_inputs(tmp_path, system_yaml(), rows())
+    out = tmp_path / "out"
+    args = [str(app / "app.launch"), "--space", str(app / "space.yaml"), "--system", str(sys_path), "--out", str(out)]
+    other = tmp_path / "other.csv"
+    other.write_text("recording,node,value,topic,frequency_hz,bandwidth_kBps,cpu_units_mean\nx.bag,nobody,1,/t,1,1,1\n")
+    for path, message in ((tmp_path / "missing.csv", "missing.csv: "),
+                          (sys_path, "system.yaml: "),
+                          (other, f"{other}: no row names a node of {sys_path}")):
+        done = _cli(*args, "--base", str(path))
+        assert done.returncode == 2, (path, done.stderr)
+        lines = done.stderr.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith("error: ") and message in lines[0], lines
+        assert "Traceback" not in done.stderr and not out.exists()
+    # a tune.json made from another base (or the same path with other bytes) is not resumed
+    out.mkdir()
+    made = {"launch": str(app / "app.launch"), "space": str(app / "space.yaml"), "system": str(sys_path),
+            "system_sha256": hashlib.sha256(sys_path.read_bytes()).hexdigest(), "method": "exact",
+            "headroom": 0.0, "units_per_core": 100.0}
+    for stored, message in (({"base": str(other), "base_sha256": "0" * 64}, f"made with base '{other}', not '{base}'"),
+                            ({"base": str(base), "base_sha256": "0" * 64}, "made with base_sha256 '000"),
+                            ({}, f"made with base None, not '{base}'")):
+        (out / "tune.json").write_text(json.dumps({**_doc(), **made, **stored}))
+        done = _cli(*args, "--base", str(base))
+        assert done.returncode == 2 and len(done.stderr.strip().splitlines()) == 1, done.stderr
+        assert f"tune.json: its rounds were made with {message.split('made with ')[1]}" in done.stderr, done.stderr
+        assert sorted(p.name for p in out.iterdir()) == ["tune.json"]
+    # and a swept tune.json's folder is not resumed with a base, nor a base's without one
+    (out / "tune.json").write_text(json.dumps({**_doc(), **made, "base": str(base),
+                                               "base_sha256": hashlib.sha256(base.read_bytes()).hexdigest()}))
+    done = _cli(*args)
+    assert done.returncode == 2 and f"made with base '{base}', not None" in done.stderr, done.stderr

@@ -182,6 +182,36 @@ def test_a_second_start_resumes_after_the_finished_rounds(tuned: dict[str, Any])
     assert read_tune(out / "tune.json") == before
 
 
+def test_tune_base_starts_from_a_characterisation_without_sweeping(tuned: dict[str, Any], tmp_path: Path) -> None:
+    """``--base``: the tuned folder's model-0 characterisation (the halved sweep) as the base
+    of a new loop: no sweep, model 0 the same fit, round 1 deploys the same wrong plan, and the
+    refit is the base plus round 1's recording (one round only: stopped after it)."""
+    out = tuned["out"]
+    assert tuned["done"].returncode == 0, tuned["done"].stderr
+    base = tmp_path / "base.csv"
+    shutil.copyfile(out / "characterisation-0.csv", base)
+    new = tmp_path / "based"
+    done = _tune(tuned["d"], tuned["files"], new, "--rounds", "1", "--base", str(base))
+    assert done.returncode in (0, 1) and "Traceback" not in done.stderr, done.stderr
+    assert not (new / "sweep").exists()
+    doc = read_tune(new / "tune.json")
+    assert doc["base"] == str(base) and len(doc["base_sha256"]) == 64 and len(doc["rounds"]) == 1
+    assert json.loads((new / "model-0.json").read_text())["system"] == \
+        json.loads((out / "model-0.json").read_text())["system"]
+    assert doc["rounds"][0]["values"] == {"worker": HIGH}  # the base's wrong model, as the sweep's
+    manifest = yaml.safe_load((new / "manifest.yaml").read_text())["recordings"]
+    assert [e["path"] for e in manifest] == ["round-1/run.bag"]
+    rows = (new / "characterisation-1.csv").read_text()
+    assert "round-1/run.bag" in rows and "sweep/worker-work_ms-5.bag" in rows  # the base's rows kept
+    if _cgroups_work():
+        assert doc["rounds"][0]["nodes"]["worker"]["refit"] == "rescaled to its planned rate"
+        after = model_cpu(load_model(new / "model-1.json"), "worker", HIGH)
+        assert after is not None and _need(HIGH) * 0.9 <= after <= _need(HIGH) * 1.3, after
+    run_id = doc["rounds"][0]["run_id"]
+    assert leftover_processes(run_id) == [] and leftover_groups(run_id=run_id) == []
+    _nothing_left(new, set(), set())
+
+
 def _resume_state(tuned: dict[str, Any], dest: Path) -> Path:
     """A copy of the tuned folder as it stood after round 1 (tune.json with round 1 only)."""
     out = dest / "out"

@@ -1,4 +1,4 @@
-"""``perfros-bag tune APP.launch --space space.yaml --system system.yaml --out DIR``: the loop."""
+"""``perfros-bag tune APP.launch --space space.yaml --system system.yaml --out DIR [--base CSV]``: the loop."""
 
 from __future__ import annotations
 
@@ -52,6 +52,7 @@ def tune_cmd(
     duration: float | None = typer.Option(None, "--duration", "-d", help="Seconds recorded per sweep run and deployment (default: space.yaml's duration_s)."),
     units_per_core: float = typer.Option(100.0, "--units-per-core", help="CPU units of one core (init drafts 100)."),
     net: bool = typer.Option(True, "--net/--no-net", help="Emulate the system's links in each deployment (root)."),
+    base: Path | None = typer.Option(None, "--base", metavar="CHARACTERISATION.csv", help="Start from this characterisation instead of sweeping: model 0 is fitted on it, each refit on it plus the rounds' recordings (same CPU scale as --units-per-core)."),  # noqa: B008
 ) -> None:
     """Sweep, fit, solve and deploy APP.launch, then refit on each deployment until its plan holds."""
     from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
@@ -71,7 +72,7 @@ def tune_cmd(
 
         result = tune(launch, space, system, out_dir, rounds=rounds, tolerance=tolerance, method=method,
                       headroom=headroom, duration=duration, units_per_core=units_per_core, net=net,
-                      progress=show, on_round=finished)
+                      progress=show, on_round=finished, base=base)
     doc = result.document
     if doc["rounds"]:
         render_rounds(doc["rounds"])

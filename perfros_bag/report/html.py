@@ -345,6 +345,8 @@ def section_tune(doc: dict[str, Any], images: list[Image]) -> str:
     ended = "not yet" if not stopped else f"{stopped['reason']} after round {stopped['after_round']}"
     summary = (f'<p class="summary">{len(rounds)} round(s); stopped: {esc(ended)}; method {esc(doc.get("method"))}, '
                f'headroom {esc(fmt(doc.get("headroom")))}, tolerance {esc(fmt(doc.get("tolerance_pct")))} %.</p>')
+    if doc.get("base"):  # tune --base: model 0 is that characterisation's fit, not a sweep's
+        summary += f'<p>Model 0: fitted on the base characterisation {esc(doc["base"])} (no sweep).</p>'
     img = Image("tune.png", plot_tune(rounds), "per round: planned vs measured CPU; expected vs measured Σ w·P")
     images.append(img)
     per_round = table(("round", "values deployed", "expected Σ w·P", "measured Σ w·P", "deviation %", "starved"),

@@ -1,6 +1,7 @@
 """The loop from a launch file to a plan that holds (``perfros-bag tune``).
 
-- :mod:`~perfros_bag.tune.loop` - sweep (or reuse it), characterise, fit, solve, deploy and
+- :mod:`~perfros_bag.tune.loop` - sweep (or reuse it, or start from a base
+  characterisation), characterise, fit, solve, deploy and
   validate; then each deployment's recording as one more characterisation run, refit,
   re-solve, deploy again, until the run is within tolerance, the plan stops changing or the
   rounds run out.

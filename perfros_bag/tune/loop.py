@@ -15,6 +15,12 @@ How a deployment's recording is weighed in the refit (docs/formats.md, "tune"):
   the sweep's rows of that node at that value are left out of the refit (the sweep ran the
   node alone and uncapped; averaging both would keep half of the sweep's error exactly
   where the plan puts its load);
+- a driven node (system.yaml ``input:``) is measured at a value *and an input rate*: the
+  sweep ran each value at several input rates (its CPU-vs-input-rate line needs two), the
+  deployment at one. Its deployment row stands for (value, input rate): only the sweep's
+  rows of that node at that value whose ``input_hz`` is within :data:`SAME_INPUT` of the
+  deployment row's measured ``input_hz`` are left out; the others keep the line's other
+  rates, and the deployment adds its point (a row without ``input_hz`` stands for nothing);
 - a starved node's CPU is a lower bound, not its need. A computer is starved when its
   cgroup was throttled in at least :data:`THROTTLED_SHARE` of the CFS periods of the
   recording (deploy.json's ``throttling``). A node on it that kept a share r below
@@ -23,7 +29,15 @@ How a deployment's recording is weighed in the refit (docs/formats.md, "tune"):
   ``measured / r``, its CPU per message at the planned rate (r at least :data:`MIN_KEPT`),
   and its row's rates and bandwidth are scaled the same way (:data:`RESCALED_COLUMNS`: the
   row stands for the node as it would run at its planned rate); a starved node without a
-  rate to compare is left out of the refit for that round.
+  rate to compare is left out of the refit for that round. A driven node's ``input_hz``
+  is not scaled: r is its output share over its input's, so ``measured / r`` is its need
+  for every message it got, at the input rate measured (the row's ``input_hz``, the planned
+  one unless its upstream fell short): one point of its line, which gives its need at the
+  planned input rate.
+
+With ``base`` (a characterisation.csv, e.g. a sweep's made elsewhere) nothing is swept:
+model 0 is fitted on the base rows alone, and model k on the base rows (weighed as the
+sweep's are) plus the rounds' recordings.
 """
 
 from __future__ import annotations
@@ -31,8 +45,9 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import math
+import re
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -56,6 +71,14 @@ MIN_KEPT = 0.05
 KEPT_ALL = 0.98
 #: refit uses of a node's row in a deployment's recording
 USE_MEASURED, USE_RESCALED, USE_LEFT_OUT = "measured", "rescaled to its planned rate", "left out"
+
+#: a driven node's deployment row stands for the sweep's rows at its value whose input rate
+#: is within this share of the deployment's measured input rate
+SAME_INPUT = 0.10
+#: a base row's recording named like a round's (``round-K/run.bag``) is renamed with this
+#: prefix: it is not this loop's round K
+BASE_PREFIX = "base:"
+_ROUND_RECORDING = re.compile(r"round-\d+/run\.bag")
 
 #: the columns of a starved node's row that scale with its message rate
 RESCALED_COLUMNS = ("cpu_units_mean", "cpu_units_p95", "frequency_hz", "bandwidth_kBps", "median_rate_hz")
@@ -88,9 +111,11 @@ def _check_args(rounds: int, tolerance: float, headroom: float, method: str, uni
 def tune(launch_path: str | Path, space_path: str | Path, system_path: str | Path, out: str | Path, *,
          rounds: int = 3, tolerance: float | None = None, method: str = "exact", headroom: float = 0.0,
          duration: float | None = None, units_per_core: float = 100.0, net: bool = True, interval: float = 0.5,
-         progress: Progress | None = None, on_round: Callable[[dict[str, Any]], None] | None = None) -> TuneResult:
+         progress: Progress | None = None, on_round: Callable[[dict[str, Any]], None] | None = None,
+         base: str | Path | None = None) -> TuneResult:
     """Run the loop into ``out`` (docs/formats.md, "tune"); resumes after the rounds an
-    earlier start finished (``out/tune.json``)."""
+    earlier start finished (``out/tune.json``). ``base``: a characterisation.csv to start
+    from instead of sweeping (the launch file and space still say how to deploy)."""
     from perfros_bag.sweep.deploy import deploy
     from perfros_bag.sweep.launchfile import check_space, read_launch
     from perfros_bag.sweep.runner import sweep
@@ -106,6 +131,9 @@ def tune(launch_path: str | Path, space_path: str | Path, system_path: str | Pat
     space = load_space(space_path).with_duration(duration)
     launch = read_launch(launch_path)
     check_space(launch, space)
+    base_path = None if base is None else Path(base).absolute()
+    if base_path is not None:
+        check_base(base_path, system_path)
     outdir = Path(out).absolute()
     if outdir.exists() and not outdir.is_dir():
         raise InputError(outdir, "is not a directory, expected the folder to tune into")
@@ -113,14 +141,16 @@ def tune(launch_path: str | Path, space_path: str | Path, system_path: str | Pat
     inputs = {"launch": str(Path(launch_path).absolute()), "space": str(Path(space_path).absolute()),
               "system": str(Path(system_path).absolute()), "system_sha256": _sha256(Path(system_path)),
               "method": method, "headroom": headroom, "units_per_core": units_per_core}
-    doc = _resume(outdir / "tune.json", inputs)
+    from_base = {} if base_path is None else {"base": str(base_path), "base_sha256": _sha256(base_path)}
+    doc = _resume(outdir / "tune.json", inputs, from_base)
     resumed = len(doc["rounds"])
     doc.update(tolerance_pct=tol, rounds_max=rounds, stopped=None)
 
     outdir.mkdir(parents=True, exist_ok=True)
-    say("sweep")
-    sweep(launch_path, space_path, outdir / "sweep", duration=duration, interval=interval,
-          progress=lambda i, n, name, stage, frac: say(f"sweep {i + 1}/{n} {name}: {stage}"))
+    if base_path is None:
+        say("sweep")
+        sweep(launch_path, space_path, outdir / "sweep", duration=duration, interval=interval,
+              progress=lambda i, n, name, stage, frac: say(f"sweep {i + 1}/{n} {name}: {stage}"))
 
     ran = 0
     while True:
@@ -134,7 +164,7 @@ def tune(launch_path: str | Path, space_path: str | Path, system_path: str | Pat
             break
         k = len(done) + 1
         say(f"round {k}: characterise and fit")
-        model_path = fit_rounds(outdir, system_path, system, done, units_per_core)
+        model_path = fit_rounds(outdir, system_path, system, done, units_per_core, base=base_path)
         say(f"round {k}: solve")
         plan = _solve(model_path, method, headroom)
         values, placement = _deployed(plan, space, dict(launch.args))
@@ -158,7 +188,7 @@ def tune(launch_path: str | Path, space_path: str | Path, system_path: str | Pat
                              f"round {k}: the deployment failed ({exc})") from None
         say(f"round {k}: refit")
         entry = round_entry(k, plan, plan_path, model_path, result.record, result.validation.to_dict(), tol)
-        after = fit_rounds(outdir, system_path, system, [*done, entry], units_per_core)
+        after = fit_rounds(outdir, system_path, system, [*done, entry], units_per_core, base=base_path)
         _fill_after(entry, after)
         done.append(entry)
         ran += 1
@@ -179,14 +209,18 @@ def _sha256(path: Path) -> str:
         raise InputError(path, f"cannot read: {exc.strerror or exc}") from None
 
 
-def _resume(path: Path, inputs: dict[str, Any]) -> dict[str, Any]:
+def _resume(path: Path, inputs: dict[str, Any], from_base: dict[str, Any] | None = None) -> dict[str, Any]:
     """The document to continue: tune.json's finished rounds when it exists and was made
     from the same launch file, space, system (byte for byte), method, headroom and CPU
-    scale; a new one otherwise (an error naming the difference when they differ)."""
+    scale, and the same base characterisation (byte for byte; none when ``from_base`` is
+    empty: a document without ``base`` was swept); a new one otherwise (an error naming the
+    difference when they differ)."""
+    from_base = from_base or {}
     if not path.exists():
-        return {"format": TUNE_FORMAT, **inputs, "rounds": []}
+        return {"format": TUNE_FORMAT, **inputs, **from_base, "rounds": []}
     doc = read_tune(path)
-    for key, now in inputs.items():
+    checked = {**inputs, "base": from_base.get("base"), "base_sha256": from_base.get("base_sha256")}
+    for key, now in checked.items():
         if doc.get(key) != now:
             raise InputError(path, f"its rounds were made with {key} {doc.get(key)!r}, not {now!r}: tune into "
                                    "another folder, or delete tune.json to start over")
@@ -195,16 +229,22 @@ def _resume(path: Path, inputs: dict[str, Any]) -> dict[str, Any]:
 
 # --------------------------------------------------------------------------- fit
 
-def _entries(outdir: Path, done: list[dict[str, Any]], units_per_core: float) -> list[RecordingEntry]:
-    """The sweep's recordings and each finished round's, as ``outdir/manifest.yaml`` lists
-    them (written here: the manifest the refit characterises), every one in the scale the
-    plans are emulated in (``units_per_core``: ``cpu_percent / 100 x units_per_core``)."""
+def _entries(outdir: Path, done: list[dict[str, Any]], units_per_core: float,
+             swept: bool = True) -> list[RecordingEntry]:
+    """The sweep's recordings (none when not ``swept``: a base characterisation stands for
+    them) and each finished round's, as ``outdir/manifest.yaml`` lists them (written here:
+    the manifest the refit characterises), every one in the scale the plans are emulated in
+    (``units_per_core``: ``cpu_percent / 100 x units_per_core``)."""
     from perfros_bag.characterisation.manifest import load_manifest, write_manifest
+    from perfros_bag.sweep.runner import computer_name
 
-    sweep = load_manifest(outdir / "sweep" / "manifest.yaml")
-    host = next((e.computer for e in sweep.recordings if e.computer), None)
+    if swept:
+        sweep = load_manifest(outdir / "sweep" / "manifest.yaml").recordings
+        host = next((e.computer for e in sweep if e.computer), None)
+    else:
+        sweep, host = (), computer_name()
     items: list[dict[str, Any]] = []
-    for e in sweep.recordings:
+    for e in sweep:
         item: dict[str, Any] = {"path": f"sweep/{e.name}", "units_per_core": units_per_core,
                                 "settings": dict(e.settings)}
         if e.cpu is not None:
@@ -226,12 +266,14 @@ def _same(a: Any, b: Any) -> bool:
     return bool(a == b)
 
 
-def weigh(rows: list[Row], done: list[dict[str, Any]]) -> list[Row]:
+def weigh(rows: list[Row], done: list[dict[str, Any]], driven: Collection[str] = ()) -> list[Row]:
     """The rows the refit uses (the rules of this module's docstring): each round's rows as
     its ``nodes[*].refit`` says (kept, rescaled by ``cpu_factor`` or left out), and the
-    sweep's rows of a node at a value a round measured and kept left out."""
+    sweep's rows of a node at a value a round measured and kept left out; of a node in
+    ``driven``, only those at that value and about the input rate the round measured
+    (:data:`SAME_INPUT`). Rows of recordings no round made are the sweep's (or the base's)."""
     out: list[Row] = []
-    measured: list[tuple[str, Any]] = []  # (node, value) a kept deployment row stands for
+    measured: list[Row] = []  # the kept deployment rows: each stands for its (node, value[, input rate])
     rounds = {f"{r['dir']}/run.bag": r for r in done}
     for row in rows:
         r = rounds.get(row.recording)
@@ -250,29 +292,70 @@ def weigh(rows: list[Row], done: list[dict[str, Any]]) -> list[Row]:
             row = dataclasses.replace(row, **scaled)
         out.append(row)
         if row.cpu_units_mean is not None:
-            measured.append((row.node, row.value))
-    sweep_rows = [row for row in rows if row.recording not in rounds
-                  and not any(n == row.node and _same(v, row.value) for n, v in measured)]
+            measured.append(row)
+
+    def superseded(row: Row) -> bool:
+        for m in measured:
+            if m.node != row.node or not _same(m.value, row.value):
+                continue
+            if row.node not in driven:
+                return True
+            if m.input_hz is not None and row.input_hz is not None and \
+                    abs(row.input_hz - m.input_hz) <= SAME_INPUT * m.input_hz:
+                return True
+        return False
+
+    sweep_rows = [row for row in rows if row.recording not in rounds and not superseded(row)]
     return sweep_rows + out
 
 
+def check_base(path: Path, system_path: str | Path) -> None:
+    """A base characterisation ``tune`` can start from: readable, naming nodes of the
+    system and fitting it (tried now, before anything runs); every problem an
+    :class:`InputError` naming ``path``."""
+    from perfros_bag.fitting.build import build_model
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", PerfrosWarning)
+            build_model(system_path, path)
+    except InputError as exc:
+        if exc.path == str(path):
+            raise
+        raise InputError(path, f"cannot fit the system on it: {exc}") from None
+    except PerfrosError as exc:
+        raise InputError(path, f"cannot fit the system on it: {exc}") from None
+
+
+def base_rows(path: Path) -> list[Row]:
+    """The rows of a base characterisation, a recording named like one of the loop's rounds
+    renamed with :data:`BASE_PREFIX` (the refit tells the rounds' rows by their recording)."""
+    from perfros_bag.characterisation.csvfile import read_characterisation
+
+    return [dataclasses.replace(r, recording=BASE_PREFIX + r.recording) if _ROUND_RECORDING.fullmatch(r.recording)
+            else r for r in read_characterisation(path).rows]
+
+
 def fit_rounds(outdir: Path, system_path: str | Path, system: System, done: list[dict[str, Any]],
-               units_per_core: float) -> Path:
-    """Characterise the sweep and the finished rounds, weigh the rows (:func:`weigh`) and
-    fit: ``outdir/characterisation-<k>.csv`` and ``outdir/model-<k>.json``, k = len(done)."""
+               units_per_core: float, base: Path | None = None) -> Path:
+    """Characterise the sweep (or take ``base``'s rows instead) and the finished rounds,
+    weigh the rows (:func:`weigh`) and fit: ``outdir/characterisation-<k>.csv`` and
+    ``outdir/model-<k>.json``, k = len(done)."""
     from perfros_bag.characterisation.csvfile import write_characterisation
     from perfros_bag.characterisation.table import characterise
     from perfros_bag.fitting.build import build_model
     from perfros_bag.fitting.modelfile import write_model
 
-    entries = _entries(outdir, done, units_per_core)
-    result = characterise(entries, system)
-    if result.failures:
-        f = result.failures[0]
-        raise InputError(outdir / "manifest.yaml", f"recording {f.recording}: {f.message}")
+    rows = [] if base is None else base_rows(base)
+    if base is None or done:
+        result = characterise(_entries(outdir, done, units_per_core, swept=base is None), system)
+        if result.failures:
+            f = result.failures[0]
+            raise InputError(outdir / "manifest.yaml", f"recording {f.recording}: {f.message}")
+        rows += result.rows
     k = len(done)
     csv_path, model_path = outdir / f"characterisation-{k}.csv", outdir / f"model-{k}.json"
-    write_characterisation(csv_path, weigh(result.rows, done))
+    write_characterisation(csv_path, weigh(rows, done, {n.name for n in system.nodes if n.driven}))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", PerfrosWarning)  # the fit's notes are in model.json
         model = build_model(system_path, csv_path)
