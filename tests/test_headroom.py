@@ -442,3 +442,43 @@ def test_tune_takes_auto() -> None:
     _check_args(3, 5.0, "auto", "exact", 100.0)
     with pytest.raises(InputError, match=r"headroom must be in \[0, 1\), got 'automatic'"):
         _check_args(3, 5.0, "automatic", "exact", 100.0)
+
+
+def test_tune_cli_headroom(tmp_path: Any) -> None:
+    from tests.conftest import FIXTURES
+
+    out = tmp_path / "out"
+    base = [sys.executable, "-m", "perfros_bag", "tune", str(FIXTURES / "app" / "app.launch"), "--space",
+            str(FIXTURES / "app" / "space.yaml"), "--system", str(FIXTURES / "recordings" / "system.yaml"),
+            "--out", str(out)]
+    for bad, line in (("automatic", "error: --headroom must be 'auto' or a number in [0, 1), got 'automatic'"),
+                      ("1", "error: headroom must be in [0, 1), got 1.0")):
+        done = subprocess.run([*base, "--headroom", bad], capture_output=True, text=True, timeout=60)
+        assert done.returncode == 2 and done.stderr.strip().splitlines()[0].startswith(line), done.stderr
+        assert len(done.stderr.strip().splitlines()) == 1 and not out.exists()
+
+
+def test_fit_p95_has_no_burst(tmp_path: Any) -> None:
+    import json
+    import statistics
+
+    from perfros_bag.fitting.build import build_model
+    from perfros_bag.fitting.modelfile import write_model
+    from perfros_bag.system.types import Curve
+
+    _fit_small(tmp_path)  # writes system.yaml and char.csv
+    with pytest.warns():
+        result = build_model(tmp_path / "system.yaml", tmp_path / "char.csv", cpu="p95")
+    write_model(tmp_path / "p95.json", result.document)
+    det = next(n for n in json.loads((tmp_path / "p95.json").read_text())["system"]["nodes"] if n["name"] == "det")
+    p2c = det["relations"]["parameter->cpu"]
+    curve = Curve(p2c["form"], tuple(p2c["coef"]), tuple(p2c["domain"]), p2c["scale"])
+    for s in det["settings"]:
+        runs = DET_RUNS.get(s["value"])
+        if runs is None:
+            continue
+        p95s = [p for _, p in runs]
+        mean = sum(p95s) / len(p95s)
+        spread = statistics.stdev(p95s) if len(p95s) > 1 else 0.0
+        assert s["cpu"] == pytest.approx(mean)
+        assert s["cpu_error"] == pytest.approx(max(spread + abs(curve(s["value"]) - mean), FAIR * mean), rel=1e-7)

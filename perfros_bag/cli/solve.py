@@ -169,6 +169,8 @@ def solve(
         print(json_text(plan_document(plan), indent=2))
     plan.require_feasible(system_path)
     print_plan(err if as_json else out, plan)
+    if plan.reason:  # a feasible plan's note (--headroom auto on a model without errors)
+        err.print(f"note: {plan.reason}", highlight=False, soft_wrap=True)
     if out_path is not None and not as_json:
         out.print(f"plan written to {out_path}", highlight=False)
 
