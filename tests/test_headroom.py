@@ -482,3 +482,15 @@ def test_fit_p95_has_no_burst(tmp_path: Any) -> None:
         spread = statistics.stdev(p95s) if len(p95s) > 1 else 0.0
         assert s["cpu"] == pytest.approx(mean)
         assert s["cpu_error"] == pytest.approx(max(spread + abs(curve(s["value"]) - mean), FAIR * mean), rel=1e-7)
+
+
+def test_tune_solves_each_round_with_auto(tmp_path: Any) -> None:
+    from perfros_bag.tune.loop import _solve
+
+    path = tmp_path / "system.yaml"
+    path.write_text(yaml.safe_dump(SMALL))
+    plan = _solve(path, "exact", "auto")
+    assert plan.extra["headroom"] == "auto"
+    assert check_plan(parse_system(copy.deepcopy(SMALL), "small.yaml"), plan) == []
+    assert plan.objective == pytest.approx(solve(parse_system(copy.deepcopy(SMALL), "s.yaml"), 1, "exact",
+                                                 headroom="auto").objective)
