@@ -50,6 +50,21 @@ def parse_settings(system: System, text: str, resolution: float) -> dict[str, fl
     return result
 
 
+def parse_headroom(text: str, *, check_range: bool = True) -> float | str:
+    """``--headroom``: ``auto`` (keep each node's measured CPU error free) or a share of every
+    computer's capacity in [0, 1) (``check_range`` False: any number, the caller checks it);
+    anything else is an :class:`InputError`."""
+    if text.strip().lower() == "auto":
+        return "auto"
+    try:
+        value = float(text)
+    except ValueError:
+        raise InputError(None, f"--headroom must be 'auto' or a number in [0, 1), got {text!r}") from None
+    if check_range and not 0.0 <= value < 1.0:
+        raise InputError(None, f"--headroom must be in [0, 1), got {value}")
+    return value
+
+
 def _num(x: float | None, digits: int = 2) -> str:
     return "-" if x is None else f"{x:.{digits}f}".rstrip("0").rstrip(".") if digits else f"{x:.0f}"
 
@@ -68,11 +83,12 @@ def print_plan(console: Console, plan: Plan) -> None:
         nodes.add_row(*row, *((_num(n.input_hz),) if flow else ()))
     console.print(nodes)
     comps = Table(title="computers", title_justify="left")
-    for col in ("computer", "kind", "CPU", "capacity", "use"):
+    kept = any(c.margin for c in plan.computers.values())  # --headroom: the CPU each keeps free
+    for col in ("computer", "kind", "CPU", "capacity", "use") + (("margin",) if kept else ()):
         comps.add_column(col, justify="left" if col in ("computer", "kind") else "right")
     for name, c in plan.computers.items():
         use = f"{100 * c.cpu / c.capacity:.1f} %" if c.capacity else "-"
-        comps.add_row(name, c.kind, _num(c.cpu), _num(c.capacity), use)
+        comps.add_row(name, c.kind, _num(c.cpu), _num(c.capacity), use, *((_num(c.margin),) if kept else ()))
     console.print(comps)
     if plan.links:
         links = Table(title="links", title_justify="left")
@@ -102,9 +118,11 @@ def solve(
     time_limit: Annotated[float | None, typer.Option(
         "--time-limit", help="exact: S seconds of wall clock for the solve, counted after reading the input "
                              "(best plan so far and its proven bound, status feasible)")] = None,
-    headroom: Annotated[float, typer.Option(
-        "--headroom", help="share of every computer's capacity the plan keeps free, in [0, 1) "
-                           "(plan.json gives each computer its margin)")] = 0.0,
+    headroom: Annotated[str, typer.Option(
+        "--headroom", metavar="H|auto",
+        help="share of every computer's capacity the plan keeps free, in [0, 1), or auto: each node's "
+             "measured CPU error (model.json cpu_error, at least 10 % of its CPU) (plan.json gives each "
+             "computer its margin)")] = "0",
     pareto: Annotated[str | None, typer.Option(
         "--pareto", metavar="RANGE", help="Problem 1 per total server capacity: auto, LO:HI or LO:HI:POINTS "
                                           "(-o writes frontier.json and a PNG beside it)")] = None,
@@ -123,8 +141,7 @@ def solve(
         raise InputError(None, f"--resolution must be > 0, got {resolution}")
     if time_limit is not None and not time_limit > 0:
         raise InputError(None, f"--time-limit must be > 0, got {time_limit}")
-    if not 0.0 <= headroom < 1.0:
-        raise InputError(None, f"--headroom must be in [0, 1), got {headroom}")
+    kept = parse_headroom(headroom)
     if time_limit is not None and method != "exact":
         warnings.warn(f"--time-limit applies to --method exact only; {method} ignores it", PerfrosWarning, stacklevel=1)
     system = load_system(system_path)
@@ -141,7 +158,7 @@ def solve(
     try:
         with _live_progress(method == "exact") as progress:
             plan = run(system, problem, method, resolution=resolution, settings=fixed, time_limit=time_limit,
-                       progress=progress, headroom=headroom)
+                       progress=progress, headroom=kept)
     except ValueError as exc:  # a model that cannot be evaluated (e.g. a curve off its domain)
         raise InputError(system_path, str(exc)) from None
     if out_path is not None:
@@ -152,6 +169,8 @@ def solve(
         print(json_text(plan_document(plan), indent=2))
     plan.require_feasible(system_path)
     print_plan(err if as_json else out, plan)
+    if plan.reason:  # a feasible plan's note (--headroom auto on a model without errors)
+        err.print(f"note: {plan.reason}", highlight=False, soft_wrap=True)
     if out_path is not None and not as_json:
         out.print(f"plan written to {out_path}", highlight=False)
 

@@ -48,7 +48,7 @@ def tune_cmd(
     rounds: int = typer.Option(3, "--rounds", "-n", help="Most deployments (rounds) to run."),
     tolerance: float | None = typer.Option(None, "--tolerance", help="A round whose overall deviation (eq 10) is at most this % ends the loop (default 5)."),
     method: str = typer.Option("exact", "--method", "-m", help="Solver: greedy, greedy+, exact, bruteforce."),
-    headroom: float = typer.Option(0.0, "--headroom", help="Share of every computer's capacity each plan keeps free, in [0, 1)."),
+    headroom: str = typer.Option("0", "--headroom", metavar="H|auto", help="Share of every computer's capacity each plan keeps free, in [0, 1), or auto: each node's measured CPU error (solve --headroom)."),
     duration: float | None = typer.Option(None, "--duration", "-d", help="Seconds recorded per sweep run and deployment (default: space.yaml's duration_s)."),
     units_per_core: float = typer.Option(100.0, "--units-per-core", help="CPU units of one core (init drafts 100)."),
     net: bool = typer.Option(True, "--net/--no-net", help="Emulate the system's links in each deployment (root)."),
@@ -57,8 +57,10 @@ def tune_cmd(
     """Sweep, fit, solve and deploy APP.launch, then refit on each deployment until its plan holds."""
     from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 
+    from perfros_bag.cli.solve import parse_headroom
     from perfros_bag.tune.loop import tune
 
+    kept = parse_headroom(headroom, check_range=False)  # tune() says what is wrong with a number
     with Progress(SpinnerColumn(), TextColumn("tune"), TimeElapsedColumn(), TextColumn("{task.description}"),
                   console=err, transient=True) as progress:
         task = progress.add_task("", total=None)
@@ -71,7 +73,7 @@ def tune_cmd(
                                    f"{_f(r['measured'], 2)} ({_f(r['deviation_pct'], 2)} %)", highlight=False)
 
         result = tune(launch, space, system, out_dir, rounds=rounds, tolerance=tolerance, method=method,
-                      headroom=headroom, duration=duration, units_per_core=units_per_core, net=net,
+                      headroom=kept, duration=duration, units_per_core=units_per_core, net=net,
                       progress=show, on_round=finished, base=base)
     doc = result.document
     if doc["rounds"]:

@@ -24,6 +24,7 @@ from typing import Any, Protocol, TypeVar
 from perfros_bag.characterisation.csvfile import CharacterisationFile, Row, read_characterisation
 from perfros_bag.characterisation.settings import by_setting
 from perfros_bag.errors import InputError, PerfrosWarning
+from perfros_bag.fitting.cpu_error import Runs, driven_errors, node_errors
 from perfros_bag.fitting.modelfile import (
     DrivenSetting,
     FittedRelation,
@@ -107,6 +108,32 @@ def measured_settings(table: CharacterisationFile, system: System, cpu: str = "m
     return out
 
 
+def error_runs(table: CharacterisationFile, system: System, cpu: str = "mean") -> dict[str, list[Runs]]:
+    """Per node of ``system`` and measured value: each run's CPU statistic (``cpu``), its p95
+    and, for a driven node, its input rate (a driven node's run without one is left out):
+    what each setting's CPU error is computed from (:mod:`perfros_bag.fitting.cpu_error`)."""
+    rows = node_rows(table, system)
+    inputs = input_rates(rows)
+    out: dict[str, list[Runs]] = {}
+    for s in by_setting(rows, {n.name: n.topics for n in system.nodes}):
+        driven = system.node[s.node].driven
+        xs: list[float] = []
+        p95s: list[float | None] = []
+        fins: list[float] = []
+        for m in s.recordings:
+            x = m.cpu if cpu == "mean" else m.cpu_p95
+            f = inputs.get((s.node, m.recording))
+            if x is None or (driven and f is None):
+                continue
+            xs.append(x)
+            p95s.append(m.cpu_p95)
+            if f is not None and driven:
+                fins.append(f)
+        value = None if s.value is None else float(s.value)
+        out.setdefault(s.node, []).append(Runs(value, tuple(xs), tuple(p95s), tuple(fins)))
+    return out
+
+
 def metric_means(table: CharacterisationFile, system: System) -> dict[str, dict[float, float]]:
     """Per node of ``system`` with a ``metric``: parameter value -> its ``metric_value``,
     the mean over the recordings at that value (one value per recording: characterise
@@ -179,6 +206,7 @@ def build_model(system_path: str | Path, characterisation_path: str | Path, *, c
     if unmeasured:
         warn(f"{csv_path}: no rows for node(s) {', '.join(unmeasured)}: kept the numbers of {sys_path}")
     samples = driven_samples(table, system, cpu) if system.has_flow else {}
+    runs = error_runs(table, system, cpu)
     driven: dict[str, list[DrivenSetting]] = {}
     for node in system.nodes:
         if node.name not in measured:
@@ -187,8 +215,10 @@ def build_model(system_path: str | Path, characterisation_path: str | Path, *, c
         if node.driven:
             fits_n, driven[node.name] = _fit_driven_node(node, samples.get(node.name, {}), raw_nodes[node.name],
                                                          warn, sys_path, perf)
+            driven_errors(raw_nodes[node.name], driven[node.name], runs.get(node.name, []), fits_n)
         else:
             fits_n = _fit_node(node, measured[node.name], raw_nodes[node.name], warn, sys_path, perf)
+            node_errors(raw_nodes[node.name], runs.get(node.name, []), fits_n.get("parameter->cpu") if fits_n else None)
         if fits_n:
             fits[node.name] = fits_n
     document = ModelDocument(sys_path, csv_path, doc_system,

@@ -50,7 +50,7 @@ METHODS: tuple[str, ...] = tuple(Method)
 
 __all__ = ["DECOMPOSE_COLUMNS", "DrivenLevel", "MAX_CHOICES", "METHODS", "Progress", "START_COLUMNS", "START_SHARE",
            "check_resolution", "choice_count", "exact_columns", "fixed_choices", "lowest_settings", "settings_from_plan",
-           "with_headroom",
+           "with_headroom", "AUTO", "check_headroom", "inflate_choices",
            "settings_from_values", "solve", "start_of"]
 
 
@@ -301,14 +301,31 @@ def _same_source(a: str | None, b: str | None) -> bool:
         return a == b
 
 
+#: ``headroom`` that keeps each node's measured CPU error free (:mod:`perfros_bag.system.cpuerror`)
+AUTO = "auto"
+
+
+def check_headroom(headroom: object) -> float | str:
+    """``headroom`` when it is :data:`AUTO` or a number in [0, 1); else an
+    :class:`~perfros_bag.errors.InputError`."""
+    if headroom == AUTO:
+        return AUTO
+    if isinstance(headroom, bool) or not isinstance(headroom, int | float) or not 0.0 <= headroom < 1.0:
+        raise InputError(None, f"headroom must be in [0, 1), got {headroom!r} (or {AUTO!r}: the model's measured errors)")
+    return float(headroom)
+
+
 def solve(system: System, problem: int, method: str, *, resolution: float = 1.0,
           settings: Mapping[str, float] | None = None, time_limit: float | None = None,
-          progress: Progress | None = None, headroom: float = 0.0) -> Plan:
+          progress: Progress | None = None, headroom: float | str = 0.0) -> Plan:
     """Solve Problem ``problem`` (1 or 2) with ``method`` (a :class:`Method`); the
     returned plan carries ``solve_s``.
 
     ``headroom`` (in [0, 1)): the share of every computer's capacity the plan keeps free
     (:func:`with_headroom`); each computer's ``margin`` in the plan says how much.
+    ``headroom="auto"`` (:data:`AUTO`): every node's choice needs its CPU plus its measured
+    error (:func:`inflate_choices`) for the solve; the plan states the model's CPU and each
+    computer's ``margin``, the sum of its nodes' errors.
 
     An infeasible instance gives a plan with status ``infeasible`` and a ``reason`` (not an
     exception: :meth:`Plan.require_feasible` turns it into one); bad input (unknown method,
@@ -320,8 +337,9 @@ def solve(system: System, problem: int, method: str, *, resolution: float = 1.0,
         raise InputError(None, f"unknown method {method!r} (one of {', '.join(METHODS)})")
     the_problem, the_method = Problem(problem), Method(method)
     system.capacities(the_problem)  # every capacity the problem needs is there
-    if isinstance(headroom, bool) or not isinstance(headroom, int | float) or not 0.0 <= headroom < 1.0:
-        raise InputError(None, f"headroom must be in [0, 1), got {headroom!r}")
+    headroom = check_headroom(headroom)
+    if isinstance(headroom, str):
+        return _solve_auto(system, the_problem, the_method, settings, resolution, time_limit, progress)
     if headroom > 0:
         plan = solve(with_headroom(system, headroom), problem, method, resolution=resolution, settings=settings,
                      time_limit=time_limit, progress=progress)
@@ -335,6 +353,84 @@ def solve(system: System, problem: int, method: str, *, resolution: float = 1.0,
     if plan.system is None:
         plan.system = system.source
     return plan
+
+
+def inflate_choices(system: System, choices: Mapping[str, list[Choice]]
+                    ) -> tuple[dict[str, list[Choice]], dict[str, list[Choice]]]:
+    """Each choice with its CPU raised by its measured error
+    (:func:`perfros_bag.system.cpuerror.choice_error`), sorted by that CPU and re-indexed;
+    and, position by position, the choice it was made from."""
+    import dataclasses
+
+    from perfros_bag.system.cpuerror import choice_error
+
+    inflated: dict[str, list[Choice]] = {}
+    real: dict[str, list[Choice]] = {}
+    for name, options in choices.items():
+        node = system.node[name]
+        pairs = sorted(((dataclasses.replace(c, cpu=c.cpu + choice_error(node, c)), c) for c in options),
+                       key=lambda pair: pair[0].cpu)
+        inflated[name] = [dataclasses.replace(up, index=i) for i, (up, _) in enumerate(pairs)]
+        real[name] = [c for _, c in pairs]
+    return inflated, real
+
+
+def _solve_auto(system: System, problem: Problem, method: Method, settings: Mapping[str, float] | None,
+                resolution: float, time_limit: float | None, progress: Progress | None) -> Plan:
+    """``headroom="auto"``: solve on the inflated choices, then state the plan on the model."""
+    from perfros_bag.system.cpuerror import FAIR_SHARE, states_errors
+
+    start = time.perf_counter()
+    deadline = None if time_limit is None else start + time_limit
+    inflated, real = inflate_choices(system, fixed_choices(system, problem, settings, resolution))
+    plan = _dispatch(system, problem, method, inflated, deadline, progress)
+    plan.solve_s = time.perf_counter() - start
+    plan.method = method
+    if plan.system is None:
+        plan.system = system.source
+    plan.extra["headroom"] = AUTO
+    if plan.status == Status.INFEASIBLE:
+        plan.reason = f"{plan.reason} (with each node's measured CPU error kept free: headroom auto)"
+        return plan
+    _give_back_errors(system, plan, inflated, real)
+    if not states_errors(system):
+        plan.reason = (f"headroom auto: the model states no cpu_error, so each node keeps only the floor, "
+                       f"{100 * FAIR_SHARE:g} % of its CPU, free")
+    return plan
+
+
+def _give_back_errors(system: System, plan: Plan, inflated: Mapping[str, list[Choice]],
+                      real: Mapping[str, list[Choice]]) -> None:
+    """A plan solved on :func:`inflate_choices`' choices, stated on the model: each node's
+    ``cpu`` its real choice's; each computer's ``cpu`` the sum of those and its ``margin`` the
+    sum of its nodes' errors (a Problem 2 server sized to load + margin)."""
+    load = {c.name: 0.0 for c in system.computers}
+    margin = {c.name: 0.0 for c in system.computers}
+    for node in system.nodes:
+        pn = plan.nodes[node.name]
+        k = next((i for i, c in enumerate(inflated[node.name])
+                  if math.isclose(c.cpu, pn.cpu, rel_tol=1e-9, abs_tol=1e-9)
+                  and math.isclose(c.performance, pn.performance, rel_tol=1e-9, abs_tol=1e-9)
+                  and _same_number(c.value, pn.value)
+                  and (node.input is None or _same_number(c.input_hz, pn.input_hz))), None)
+        if k is None:  # pragma: no cover - every solver plans one of the choices it was given
+            raise AssertionError(f"node {node.name!r}: the plan's CPU {pn.cpu:g} is none of its inflated choices")
+        up, own = inflated[node.name][k], real[node.name][k]
+        pn.cpu = own.cpu
+        load[pn.computer] += own.cpu
+        margin[pn.computer] += up.cpu - own.cpu
+    sized = plan.problem == Problem.SERVER_CAPACITY
+    for name, pc in plan.computers.items():
+        pc.cpu = round(load[name], 9)
+        pc.margin = round(margin[name], 9)
+        if sized and system.computer[name].kind == "server":
+            pc.capacity = pc.cpu + pc.margin
+
+
+def _same_number(a: float | None, b: float | None) -> bool:
+    if a is None or b is None:
+        return a is None and b is None
+    return math.isclose(a, b, rel_tol=1e-9, abs_tol=1e-9)
 
 
 def with_headroom(system: System, headroom: float) -> System:

@@ -50,12 +50,15 @@ LINK_KEYS = {"between", "bandwidth_kBps", "medium"}
 MEDIUM_KEYS = {"name", "bandwidth_kBps"}
 NODE_KEYS = {
     "name", "weight", "residence", "coresidence", "parameter", "topics", "process",
-    "settings", "curve", "launch", "relations", "metric", "input",
+    "settings", "curve", "launch", "relations", "metric", "input", "cpu_error_between",
 }
 METRIC_KEYS = {"topic", "field", "aggregate", "better", "range"}
-SETTING_KEYS = {"value", "cpu", "performance", "frequency_hz", "bandwidth_kBps", "topics"}
-#: a driven node's setting (``input:``) also says how it follows its input rate
-DRIVEN_KEYS = {"cpu_per_hz", "out_per_in", "max_frequency_hz", "bytes_per_msg"}
+#: ``cpu_error`` (optional, CPU units >= 0): what the setting may need beyond its ``cpu``
+#: (measured headroom, perfros_bag.system.cpuerror; ``fit`` writes it)
+SETTING_KEYS = {"value", "cpu", "performance", "frequency_hz", "bandwidth_kBps", "topics", "cpu_error"}
+#: a driven node's setting (``input:``) also says how it follows its input rate, and its
+#: error as a share of its CPU (``cpu_error_share``, >= 0) instead of ``cpu_error``
+DRIVEN_KEYS = {"cpu_per_hz", "out_per_in", "max_frequency_hz", "bytes_per_msg", "cpu_error_share"}
 TOPIC_RATE_KEYS = {"frequency_hz", "bandwidth_kBps"}
 PARAMETER_KEYS = {"name", "unit", "type"}
 CURVE_KEYS = {"form", "coef", "cpu", "domain", "scale"}
@@ -410,8 +413,11 @@ def _nodes(ctx: _Ctx, raw: Any, computers: set[str]) -> list[Node]:
             launch = {k: ctx.name(v, f"{where}: launch.{k}", LAUNCH_NAME_KINDS[k]) for k, v in lm.items()}
 
         metric = _metric(ctx, m["metric"], f"{where}: metric") if m.get("metric") is not None else None
+        between = ctx.opt_number(m.get("cpu_error_between"), f"{where}: cpu_error_between", nonneg=True)
+        if between is not None and curve is None:
+            raise ctx.fail(f"{where}: cpu_error_between", "only a node with a curve has CPU levels between its settings")
         out.append(Node(name, weight, settings, curve, residence, coresidence, parameter,
-                        topics, process, launch, relations, metric, driven_by))
+                        topics, process, launch, relations, metric, driven_by, between))
     return out
 
 
@@ -445,6 +451,9 @@ def _setting(ctx: _Ctx, raw: Any, where: str, *, driven: bool = False) -> Settin
         extra = sorted(k for k in DRIVEN_KEYS if k in m)
         if extra:
             raise ctx.fail(where, f"{', '.join(extra)}: only a driven node (one with input:) follows an input rate")
+    elif "cpu_error" in m:
+        raise ctx.fail(f"{where}.cpu_error", "a driven node (input:) states its error relative to its CPU: "
+                                             "cpu_error_share")
     topics: dict[str, TopicRate] = {}
     if m.get("topics") is not None:
         tm = ctx.mapping(m["topics"], f"{where}.topics", set(m["topics"]) if isinstance(m["topics"], Mapping) else set())
@@ -467,6 +476,8 @@ def _setting(ctx: _Ctx, raw: Any, where: str, *, driven: bool = False) -> Settin
         out_per_in=ctx.opt_number(m.get("out_per_in"), f"{where}.out_per_in", nonneg=True),
         max_frequency_hz=ctx.opt_number(m.get("max_frequency_hz"), f"{where}.max_frequency_hz", nonneg=True),
         bytes_per_msg=ctx.opt_number(m.get("bytes_per_msg"), f"{where}.bytes_per_msg", nonneg=True),
+        cpu_error=ctx.opt_number(m.get("cpu_error"), f"{where}.cpu_error", nonneg=True),
+        cpu_error_share=ctx.opt_number(m.get("cpu_error_share"), f"{where}.cpu_error_share", nonneg=True),
     )
 
 

@@ -176,6 +176,10 @@ class Setting:
     out_per_in: float | None = None  # driven only: output messages per input message (default 1)
     max_frequency_hz: float | None = None  # driven only: the output's cap (a throttle), none when absent
     bytes_per_msg: float | None = None  # driven only: bytes of all its topics per output message
+    # measured headroom (perfros_bag.system.cpuerror): CPU units it may need beyond ``cpu``;
+    # a driven node's as a share of its CPU at any input rate
+    cpu_error: float | None = None
+    cpu_error_share: float | None = None  # driven only
 
 
 def driven_rates(setting: Setting, input_hz: float) -> tuple[float, float, float]:
@@ -324,6 +328,9 @@ class Node:
     relations: dict[str, Curve] = field(default_factory=dict)
     metric: Metric | None = None  # measured performance (system.yaml ``metric``)
     input: str | None = None  # the topic that drives it (system.yaml ``input``); None: a paper node
+    #: a curve node: CPU units a level between its settings carries beyond their interpolated
+    #: errors (perfros_bag.system.cpuerror; ``fit``: the parameter->cpu fit's leave-one-out RMSE)
+    cpu_error_between: float | None = None
 
     @property
     def driven(self) -> bool:

@@ -93,11 +93,10 @@ class TuneResult:
     ran: int  # rounds this start ran
 
 
-def _check_args(rounds: int, tolerance: float, headroom: float, method: str, units_per_core: float) -> None:
-    from perfros_bag.solver import METHODS
+def _check_args(rounds: int, tolerance: float, headroom: float | str, method: str, units_per_core: float) -> None:
+    from perfros_bag.solver import METHODS, check_headroom
 
-    if isinstance(headroom, bool) or not isinstance(headroom, int | float) or not 0.0 <= headroom < 1.0:
-        raise InputError(None, f"headroom must be in [0, 1), got {headroom!r}")
+    check_headroom(headroom)  # a number in [0, 1) or "auto"
     if isinstance(rounds, bool) or not isinstance(rounds, int) or rounds < 1:
         raise InputError(None, f"rounds must be a whole number >= 1, got {rounds!r}")
     if not math.isfinite(tolerance) or tolerance < 0:
@@ -109,7 +108,7 @@ def _check_args(rounds: int, tolerance: float, headroom: float, method: str, uni
 
 
 def tune(launch_path: str | Path, space_path: str | Path, system_path: str | Path, out: str | Path, *,
-         rounds: int = 3, tolerance: float | None = None, method: str = "exact", headroom: float = 0.0,
+         rounds: int = 3, tolerance: float | None = None, method: str = "exact", headroom: float | str = 0.0,
          duration: float | None = None, units_per_core: float = 100.0, net: bool = True, interval: float = 0.5,
          progress: Progress | None = None, on_round: Callable[[dict[str, Any]], None] | None = None,
          base: str | Path | None = None) -> TuneResult:
@@ -406,7 +405,7 @@ def kept_share(node: dict[str, Any]) -> float | None:
 
 # --------------------------------------------------------------------------- solve, deploy
 
-def _solve(model_path: Path, method: str, headroom: float) -> Plan:
+def _solve(model_path: Path, method: str, headroom: float | str) -> Plan:
     from perfros_bag.solver import solve
 
     with warnings.catch_warnings():
