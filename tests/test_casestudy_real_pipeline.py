@@ -152,3 +152,16 @@ def test_rq3_kept_cell_states_predicted_and_measured_shares() -> None:
                     {"node": "robot1_smooth", "predicted": 1.0, "measured": 0.98}]}
     assert cs.kept_cell(row) == "people 50 / 53 %; smooth 100 / 98 %"
     assert cs.kept_cell({}) == "-"
+
+
+def test_rq2_leaves_the_no_headroom_contrast_out_and_tune_shares_a_deployment() -> None:
+    rows = [_row("i1/run-p1-exact", "p1-exact", 1.0), _row("i1/tune/round-1", "p1-tuned-r1", 1.5),
+            _row("i1/run-p1-exact-nomargin", "p1-exact-nomargin", 9.0), _row("i1/run-p1-exact", "p2-exact", 3.0)]
+    assert cs.rq2_distinct(rows) == {"deployments": 2, "plans": 3, "mean_abs_deviation_pct": (1.0 + 1.5) / 2}
+
+
+def test_signature_ignores_float_noise_in_values() -> None:
+    a = {"nodes": {"n": {"computer": "r", "value": 1.09375}}, "computers": {"r": {"capacity": 15.0}}}
+    b = {"nodes": {"n": {"computer": "r", "value": 1.09375 + 1e-12}}, "computers": {"r": {"capacity": 15.0}}}
+    c = {"nodes": {"n": {"computer": "r", "value": 1.1}}, "computers": {"r": {"capacity": 15.0}}}
+    assert cs.signature(a) == cs.signature(b) != cs.signature(c)
