@@ -171,6 +171,12 @@ def test_a_plan_runs_across_a_shaped_link_and_validates(deployed: dict[str, Any]
 def test_a_deploy_leaves_no_namespace_cgroup_process_or_interface(deployed: dict[str, Any]) -> None:
     record = json.loads((deployed["run"] / "deploy.json").read_text())
     assert record["leftover_namespaces"] == [] and record["leftover_cgroups"] == []
+    # the machine's speed as the run began: in deploy.json, the manifest and both traces
+    entry = yaml.safe_load((deployed["run"] / "manifest.yaml").read_text())["recordings"][0]
+    assert record["speed_factor"] is not None and record["speed_factor"] > 0
+    assert entry["speed_factor"] == record["speed_factor"]
+    for trace in ("run.cpu.csv", "run.host.cpu.csv"):
+        assert "# speed_factor=" in (deployed["run"] / trace).read_text()
     assert leftover_namespaces(f"d{record['run_id']}") == []
     assert leftover_groups(run_id=record["run_id"]) == []
     assert leftover_processes(record["run_id"]) == []

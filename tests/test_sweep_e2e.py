@@ -29,6 +29,7 @@ import pytest
 import yaml
 
 from perfros_bag.characterisation.manifest import load_manifest
+from perfros_bag.cpu.trace import read_cpu_trace
 from perfros_bag.rosrun.cgroups import leftover_groups
 from perfros_bag.rosrun.processes import RUN_ENV, leftover_processes
 from tests.conftest import FIXTURES
@@ -191,6 +192,9 @@ def test_sweep_records_every_setting_and_leaves_nothing(swept: tuple[Path, Path,
     assert settings == [(5, 100), (5, 200), (10, 100), (10, 200)]
     for e in manifest.recordings:
         assert e.path.is_file() and e.cpu is not None and e.cpu.is_file()
+        # the machine's speed as record-cpu measured it, in the trace and in the manifest
+        assert e.speed_factor is not None and e.speed_factor > 0
+        assert read_cpu_trace(e.cpu).speed_factor == pytest.approx(e.speed_factor, rel=1e-3)
     assert not (out / ".sweep").exists()
 
     # graph.yaml: the launch file's nodes with their PIDs and programs, and its remapping

@@ -48,9 +48,16 @@ class Row:
     # the data flow: the measured rate of the node's input topic (system.yaml ``input``) in
     # this recording; empty for a node without one
     input_hz: float | None = None
+    # the machine's speed in the row's recording (perfros_bag.cpu.speed: manifest entry's
+    # ``speed_factor``, else the CPU trace's ``# speed_factor=``); recorded, never applied
+    speed_factor: float | None = None
 
 
-COLUMNS: tuple[str, ...] = tuple(f.name for f in fields(Row))
+#: Columns written only when some row has a value (appended after the others, in this order).
+OPTIONAL_COLUMNS: tuple[str, ...] = ("speed_factor",)
+#: The columns always written, in order.
+COLUMNS: tuple[str, ...] = tuple(f.name for f in fields(Row) if f.name not in OPTIONAL_COLUMNS)
+ALL_COLUMNS: tuple[str, ...] = COLUMNS + OPTIONAL_COLUMNS
 #: The columns a characterisation.csv must have (the others came later: optional).
 REQUIRED_COLUMNS = ("recording", "node", "value", "topic", "frequency_hz", "bandwidth_kBps", "cpu_units_mean")
 _INT_COLUMNS = frozenset({"messages", "cpu_samples"})
@@ -68,13 +75,21 @@ def _cell(v: Any) -> str:
     return str(v)
 
 
+def columns_for(rows: Iterable[Row]) -> tuple[str, ...]:
+    """:data:`COLUMNS`, then each of :data:`OPTIONAL_COLUMNS` that some row fills."""
+    rows = list(rows)
+    return COLUMNS + tuple(c for c in OPTIONAL_COLUMNS if any(getattr(r, c) is not None for r in rows))
+
+
 def rows_csv(rows: Iterable[Row]) -> str:
     """The file's text: the header, then one line per row."""
+    rows = list(rows)
+    columns = columns_for(rows)
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
-    w.writerow(COLUMNS)
+    w.writerow(columns)
     for r in rows:
-        w.writerow([_cell(getattr(r, c)) for c in COLUMNS])
+        w.writerow([_cell(getattr(r, c)) for c in columns])
     return buf.getvalue()
 
 
@@ -155,7 +170,7 @@ def parse_value(text: str) -> SettingValue | None:
 
 def _row(cells: dict[str, str]) -> Row:
     kw: dict[str, Any] = {}
-    for name in COLUMNS:
+    for name in ALL_COLUMNS:
         text = cells.get(name, "").strip()
         try:
             if name in ("recording", "node"):

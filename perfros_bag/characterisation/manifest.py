@@ -9,6 +9,8 @@ settings (design.md contract)::
                                      #   CPU trace when units_per_core is not given)
         units_per_core: 100          # optional: CPU units of one busy core of that machine
         settings: {tracker1: 10}     # node -> parameter value in this run
+        speed_factor: 1.02           # optional: the machine's speed during the run
+                                     #   (perfros_bag.cpu.speed; recorded, never applied)
 
 ``units_per_core`` fixes the scale of the measurement itself (``sweep`` writes
 :data:`SWEEP_UNITS_PER_CORE`): the trace is then normalised as ``cpu_percent / 100 x
@@ -34,7 +36,7 @@ from perfros_bag.limits import number_problem
 from perfros_bag.system.names import NameKind, name_problem
 
 TOP_KEYS = {"system", "recordings"}
-ENTRY_KEYS = {"path", "cpu", "computer", "units_per_core", "settings"}
+ENTRY_KEYS = {"path", "cpu", "computer", "units_per_core", "settings", "speed_factor"}
 #: The scale ``sweep`` records its runs in (and ``init`` drafts this machine with): 100 CPU
 #: units = one busy core of the machine the sweep ran on.
 SWEEP_UNITS_PER_CORE = 100
@@ -52,6 +54,7 @@ class RecordingEntry:
     computer: str | None = None
     settings: Mapping[str, SettingValue] = field(default_factory=dict)
     units_per_core: float | None = None  # the measurement's own scale; None: the computer's capacity
+    speed_factor: float | None = None  # the machine's speed in this run (perfros_bag.cpu.speed); None: unknown
 
 
 @dataclass(frozen=True)
@@ -154,7 +157,15 @@ def parse_manifest(data: Any, path: Path) -> Manifest:
             if problem is not None:
                 raise fail(f"{where}.units_per_core", problem)
             units = float(units)
-        entries.append(RecordingEntry(rec, rel, cpu, computer, settings, units))
+        speed = item.get("speed_factor")
+        if speed is not None:
+            from perfros_bag.cpu.speed import speed_problem
+
+            problem = speed_problem(speed)
+            if problem is not None:
+                raise fail(f"{where}.speed_factor", problem)
+            speed = float(speed)
+        entries.append(RecordingEntry(rec, rel, cpu, computer, settings, units, speed))
     return Manifest(path, system, tuple(entries))
 
 

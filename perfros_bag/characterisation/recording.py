@@ -90,8 +90,10 @@ def characterise_recording(entry: RecordingEntry, system: System | None = None, 
     delays = delays or {}
     start, end = stats.start_ns, stats.end_ns
     cpu: dict[str, NodeCpu] = {}
+    speed = entry.speed_factor  # recorded on every row, never applied (docs/benchmarks.md)
     if entry.cpu is not None:
         trace = read_cpu_trace(entry.cpu)
+        speed = speed if speed is not None else trace.speed_factor
         capacity = _capacity(entry, system, trace.logical_cpus)
         patterns = None if system is None else {n.name: n.process for n in system.nodes}
         cpu = node_cpu(trace, capacity, start_ns=start, end_ns=end, nodes=patterns)
@@ -139,7 +141,7 @@ def characterise_recording(entry: RecordingEntry, system: System | None = None, 
         topics = by_node.get(node, [])
         if not topics:
             rows.append(Row(entry.name, node, parameter, value, None, None, None, span, None, None,
-                            mean, p95, samples, metric_value=metric, input_hz=input_hz))
+                            mean, p95, samples, metric_value=metric, input_hz=input_hz, speed_factor=speed))
             continue
         for topic in topics:
             ts = stats.topics[topic]
@@ -149,7 +151,8 @@ def characterise_recording(entry: RecordingEntry, system: System | None = None, 
                             ts.median_rate_hz, ts.p95_gap_s, metric_value=metric,
                             latency_p50_s=delay.p50_s if delay else None,
                             latency_p95_s=delay.p95_s if delay else None,
-                            latency_max_s=delay.max_s if delay else None, input_hz=input_hz))
+                            latency_max_s=delay.max_s if delay else None, input_hz=input_hz,
+                            speed_factor=speed))
     return rows
 
 

@@ -154,10 +154,15 @@ def _characterise_dask(entries: Sequence[RecordingEntry], system: System | None,
 
 
 def rows_json(rows: Iterable[Row]) -> list[dict[str, Any]]:
+    from perfros_bag.characterisation.csvfile import OPTIONAL_COLUMNS, columns_for
+
+    rows = list(rows)
+    absent = set(OPTIONAL_COLUMNS) - set(columns_for(rows))  # as in the CSV: only when some row has it
     out = []
     for r in rows:
         d = asdict(r)
-        out.append({k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in d.items()})
+        out.append({k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in d.items()
+                    if k not in absent})
     return out
 
 

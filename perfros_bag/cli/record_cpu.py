@@ -19,6 +19,8 @@ def record_cpu_cmd(
     out_path: Path = typer.Option(..., "--out", "-o", help="The CPU trace to write (<stem>.cpu.csv)."),  # noqa: B008
     duration: float | None = typer.Option(None, "--duration", "-d", min=0.0, help="Stop after S seconds."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No live status on stderr."),
+    speed: bool = typer.Option(True, "--speed/--no-speed",
+                               help="Measure the machine's speed first (~0.2 s of CPU): '# speed_factor=' in the trace."),
 ) -> None:
     """Sample CPU % and RSS of matching processes until the duration ends, Ctrl-C, or COMMAND exits."""
     import time
@@ -40,7 +42,7 @@ def record_cpu_cmd(
                             description=f"{rows} processes, {seen[0]} rows -> {out_path}")
 
         rc = record_cpu(out_path, list(match or []), interval, duration=duration,
-                        command=list(command_args or []) or None, on_round=status)
+                        command=list(command_args or []) or None, on_round=status, speed=speed)
     if not quiet:
         err.print(f"wrote {out_path} ({seen[0]} samples)", highlight=False)
     if rc:

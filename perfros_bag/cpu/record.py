@@ -125,8 +125,12 @@ class CpuRecorder:
 def record_cpu(out: str | Path, patterns: Sequence[str], interval: float = 0.5, *,
                duration: float | None = None, command: Sequence[str] | None = None,
                stop: threading.Event | None = None, handle_signals: bool = True,
-               on_round: Callable[[int, int], None] | None = None) -> int:
+               on_round: Callable[[int, int], None] | None = None, speed: bool = True) -> int:
     """Record a CPU trace to ``out`` (written atomically when the recording ends).
+
+    With ``speed`` the machine's speed is measured first (~0.2 s of CPU, before COMMAND
+    starts: :func:`perfros_bag.cpu.speed.measure_speed`) and written as ``# speed_factor=``
+    and ``# reference_s=`` comment lines.
 
     Stops when ``duration`` seconds have passed, ``stop`` is set, SIGINT/SIGTERM arrive
     (with ``handle_signals``; they are forwarded to COMMAND), or ``command`` exits.
@@ -162,6 +166,11 @@ def record_cpu(out: str | Path, patterns: Sequence[str], interval: float = 0.5, 
         for sig in (signal.SIGINT, signal.SIGTERM):
             old_handlers[sig] = signal.signal(sig, on_signal)
     rc = 0
+    measured = None
+    if speed:
+        from perfros_bag.cpu.speed import measure_speed
+
+        measured = measure_speed()
     try:
         if command:
             try:
@@ -171,7 +180,9 @@ def record_cpu(out: str | Path, patterns: Sequence[str], interval: float = 0.5, 
         recorder = CpuRecorder(patterns, interval, root_pid=child.pid if child else None)
         try:
             with atomic_open(out, "w") as handle:
-                handle.write(trace_header(socket.gethostname(), psutil.cpu_count(logical=True) or 1, interval))
+                handle.write(trace_header(socket.gethostname(), psutil.cpu_count(logical=True) or 1, interval,
+                                          speed_factor=None if measured is None else measured.factor,
+                                          reference_s=None if measured is None else measured.reference_s))
                 rc = _loop(recorder, handle, interval, duration, child, stop, on_round)
         except OSError as exc:
             raise InputError(out, f"cannot write the CPU trace: {exc.strerror or exc}") from None

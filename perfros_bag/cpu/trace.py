@@ -7,6 +7,8 @@ File format (design.md contract)::
     # host=NAME
     # logical_cpus=N
     # interval_s=X
+    # speed_factor=F           (optional: the machine's speed, perfros_bag.cpu.speed)
+    # reference_s=S            (optional: the reference workload's CPU seconds behind F)
     time,pid,node,process,cpu_percent,rss_bytes
     1700000000.500,4242,tracker1,python3,81.2,52428800
 
@@ -14,6 +16,9 @@ File format (design.md contract)::
 busy over the previous interval). One sampling round writes one ``time`` for all the
 processes it saw, so a node's CPU at a sample time is the sum over its processes.
 CPU units on a computer of capacity R with N logical cores: ``cpu_percent / (100 N) * R``.
+``record-cpu`` measures the machine's speed as it starts (:func:`perfros_bag.cpu.speed.measure_speed`)
+and writes it as ``# speed_factor=`` (and ``# reference_s=``); traces without it stay valid
+(``speed_factor`` None). It is recorded, not applied: CPU figures are never rescaled by it.
 """
 
 from __future__ import annotations
@@ -48,6 +53,8 @@ class CpuTrace:
     logical_cpus: int
     host: str | None = None
     interval_s: float | None = None
+    speed_factor: float | None = None  # ``# speed_factor=``: REFERENCE_S / the reference workload's seconds
+    reference_s: float | None = None  # ``# reference_s=``: the reference workload's best CPU seconds
     time: npt.NDArray[np.float64] = field(default_factory=lambda: np.empty(0))
     pid: npt.NDArray[np.int64] = field(default_factory=lambda: np.empty(0, dtype=np.int64))
     node: list[str] = field(default_factory=list)
@@ -106,12 +113,13 @@ def parse_cpu_trace(text: str, path: str | Path = "<cpu trace>", *, fast: bool =
     if tuple(header[: len(TRACE_COLUMNS)]) != TRACE_COLUMNS:
         raise InputError(p, f"line {lineno}: bad header {header_line!r} (expected '{','.join(TRACE_COLUMNS)}')")
     ncpu, interval = _meta(p, meta)
+    speed, reference = (_positive(p, meta, key) for key in ("speed_factor", "reference_s"))
     rest = text[pos:]
     parsed = _rows_fast(rest) if fast and len(header) == len(TRACE_COLUMNS) else None
     if parsed is None:
         parsed = _rows_slow(p, rest.splitlines(), len(header), lineno + 1)
     times, pids, nodes, procs, cpus, rsss = parsed
-    return CpuTrace(p, ncpu, meta.get("host"), interval, times, pids, nodes, procs, cpus, rsss)
+    return CpuTrace(p, ncpu, meta.get("host"), interval, speed, reference, times, pids, nodes, procs, cpus, rsss)
 
 
 def _meta(p: Path, meta: Mapping[str, str]) -> tuple[int, float | None]:
@@ -132,6 +140,23 @@ def _meta(p: Path, meta: Mapping[str, str]) -> tuple[int, float | None]:
         if not (math.isfinite(interval) and interval > 0):
             raise InputError(p, f"interval_s must be > 0, got {meta['interval_s']!r}")
     return ncpu, interval
+
+
+def _positive(p: Path, meta: Mapping[str, str], key: str) -> float | None:
+    """An optional comment value that must be a finite number > 0 (None when absent)."""
+    raw = meta.get(key)
+    if raw is None or not raw.strip():
+        return None
+    from perfros_bag.cpu.speed import speed_problem
+
+    try:
+        value = float(raw)
+    except ValueError:
+        raise InputError(p, f"{key}={raw!r} is not a number") from None
+    problem = speed_problem(value)
+    if problem is not None:
+        raise InputError(p, f"{key} {problem.replace(repr(value), repr(raw))}")
+    return value
 
 
 _Rows = tuple[npt.NDArray[np.float64], npt.NDArray[np.int64], list[str], list[str],
@@ -296,21 +321,49 @@ def node_cpu(trace: CpuTrace, capacity: float, *, start_ns: int | None = None,
     return {n: result[n] for n in order}
 
 
+def trace_speed(path: str | Path) -> float | None:
+    """A trace's ``# speed_factor=`` (None when it has none, or cannot be read): the comment
+    lines only, for writers of manifests (``sweep``, ``deploy``)."""
+    try:
+        with open(path, encoding="utf-8", errors="replace") as handle:
+            for line in handle:
+                if not line.startswith("#"):
+                    break
+                key, _, value = line.lstrip("#").strip().partition("=")
+                if key.strip() == "speed_factor":
+                    from perfros_bag.cpu.speed import speed_problem
+
+                    try:
+                        factor = float(value)
+                    except ValueError:
+                        return None
+                    return factor if speed_problem(factor) is None else None
+    except OSError:
+        return None
+    return None
+
+
 # --------------------------------------------------------------------------- writing
 
 
-def trace_header(host: str, logical_cpus: int, interval_s: float) -> str:
-    return (f"# host={host}\n# logical_cpus={logical_cpus}\n# interval_s={interval_s:g}\n"
+def trace_header(host: str, logical_cpus: int, interval_s: float, *, speed_factor: float | None = None,
+                 reference_s: float | None = None) -> str:
+    """The comment lines and the header; ``speed_factor`` / ``reference_s`` only when given."""
+    extra = "" if speed_factor is None else f"# speed_factor={speed_factor:.4g}\n"
+    extra += "" if reference_s is None else f"# reference_s={reference_s:.6g}\n"
+    return (f"# host={host}\n# logical_cpus={logical_cpus}\n# interval_s={interval_s:g}\n{extra}"
             + ",".join(TRACE_COLUMNS) + "\n")
 
 
 def write_cpu_trace(path: str | Path, rows: Iterable[Sequence[Any]], *, host: str,
-                    logical_cpus: int, interval_s: float) -> None:
+                    logical_cpus: int, interval_s: float, speed_factor: float | None = None,
+                    reference_s: float | None = None) -> None:
     """Write a whole trace atomically (rows in :data:`TRACE_COLUMNS` order)."""
     from perfros_bag.fileio import atomic_open
 
     with atomic_open(path, "w") as handle:
-        handle.write(trace_header(host, logical_cpus, interval_s))
+        handle.write(trace_header(host, logical_cpus, interval_s, speed_factor=speed_factor,
+                                  reference_s=reference_s))
         writer = csv.writer(handle, lineterminator="\n")
         for row in rows:
             writer.writerow(format_row(row))

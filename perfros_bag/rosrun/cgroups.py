@@ -203,7 +203,8 @@ def emulated_trace(raw: Path, dest: Path, where: dict[str, str], capacity: dict[
         rows.append((t, pid, label, proc, cpu * tr.logical_cpus * units_per_core / capacity[comp], rss))
     write_cpu_trace(dest, rows, host=f"{tr.host or 'host'} (emulated computers: cpu_percent scaled by "
                     f"N*{units_per_core:g}/capacity; raw psutil trace: {raw.name})",
-                    logical_cpus=tr.logical_cpus, interval_s=tr.interval_s or 0.5)
+                    logical_cpus=tr.logical_cpus, interval_s=tr.interval_s or 0.5,
+                    speed_factor=tr.speed_factor, reference_s=tr.reference_s)
 
 
 def computer_cores(plan: Plan, units_per_core: float,

@@ -67,6 +67,7 @@ def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Pat
            system_path: str | Path | None = None,
            progress: Callable[[str, float], None] | None = None) -> DeployResult:
     from perfros_bag.characterisation.manifest import write_manifest
+    from perfros_bag.cpu.trace import trace_speed
     from perfros_bag.rosrun.cgroups import CpuGroups, computer_cores, emulated_trace
     from perfros_bag.rosrun.network import Network
     from perfros_bag.rosrun.recorders import require_free_space
@@ -151,13 +152,17 @@ def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Pat
     emulated_trace(host_trace, outdir / "run.cpu.csv", by_ros_name,
                    {c: n * units_per_core for c, n in cores.items()}, units_per_core)
     write_graph(outdir / "graph.yaml", graph)
-    write_manifest(outdir / "manifest.yaml", [{"path": "run.bag", "cpu": "run.cpu.csv", "settings": dict(run.values)}])
+    speed = trace_speed(host_trace)  # measured by record-cpu as the run began
+    entry: dict[str, Any] = {"path": "run.bag", "cpu": "run.cpu.csv", "settings": dict(run.values)}
+    if speed is not None:
+        entry["speed_factor"] = round(speed, 4)
+    write_manifest(outdir / "manifest.yaml", [entry])
     validation = validate_files(outdir / "run.bag", plan_path, cpu=[outdir / "run.cpu.csv"],
                                 tolerance=DEFAULT_TOLERANCE if tolerance is None else tolerance)
     atomic_write_json(outdir / "validation.json", validation.to_dict())
     record: dict[str, Any] = {
         "format": DEPLOY_FORMAT, "run_id": run_id, "plan": str(plan_path), "forced": is_forced(plan),
-        "launch": str(launch.path),
+        "launch": str(launch.path), "speed_factor": None if speed is None else round(speed, 4),
         "duration_s": space.duration_s, "values": dict(run.values), "args": dict(run.args),
         "params": dict(run.params),
         "cpu_cap": {"mode": mode, "reason": reason, "cgroups": groups.mode, "cores": cores,

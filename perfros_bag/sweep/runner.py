@@ -119,6 +119,8 @@ def require_ros_tools() -> None:
 def sweep(launch_path: str | Path, space_path: str | Path, out: str | Path, *, duration: float | None = None,
           interval: float = 0.5, progress: Progress | None = None) -> SweepResult:
     """Record every run of ``space_path`` not yet recorded in ``out``."""
+    from perfros_bag.cpu.trace import trace_speed
+
     space = load_space(space_path).with_duration(duration)
     launch = read_launch(launch_path)
     check_space(launch, space)
@@ -165,6 +167,9 @@ def sweep(launch_path: str | Path, space_path: str | Path, out: str | Path, *, d
         entries[f"{run.name}.bag"] = {"path": f"{run.name}.bag", "cpu": f"{run.name}.cpu.csv",
                                       "computer": computer_name(), "units_per_core": SWEEP_UNITS_PER_CORE,
                                       "settings": settings}
+        speed = trace_speed(outdir / f"{run.name}.cpu.csv")  # measured by record-cpu as the run began
+        if speed is not None:
+            entries[f"{run.name}.bag"]["speed_factor"] = round(speed, 4)
         write_manifest(manifest_path, list(entries.values()), system_ref)
         write_graph(outdir / "graph.yaml", graph)
         result.recorded.append(run.name)
@@ -672,6 +677,6 @@ def _node_trace(raw: Path, graph: Graph) -> Path:
             rows.append((t, int(pid), node, proc, cpu, int(rss)))
     dest = raw.with_name("node.cpu.csv")
     write_cpu_trace(dest, rows, host=tr.host or socket.gethostname(), logical_cpus=tr.logical_cpus,
-                    interval_s=tr.interval_s or 0.5)
+                    interval_s=tr.interval_s or 0.5, speed_factor=tr.speed_factor, reference_s=tr.reference_s)
     return dest
 

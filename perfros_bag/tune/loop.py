@@ -250,6 +250,8 @@ def _entries(outdir: Path, done: list[dict[str, Any]], units_per_core: float,
             item["cpu"] = str(e.cpu.relative_to(outdir)) if e.cpu.is_relative_to(outdir) else str(e.cpu)
         if e.computer is not None:
             item["computer"] = e.computer
+        if e.speed_factor is not None:
+            item["speed_factor"] = e.speed_factor
         items.append(item)
     for r in done:  # the host's own trace: every node in the measurement's units
         items.append({"path": f"{r['dir']}/run.bag", "cpu": f"{r['dir']}/run.host.cpu.csv",
