@@ -369,6 +369,43 @@ def deploy_all(out: Path, app: Path, plans: dict[int, dict[str, Path]], args: ar
     return results
 
 
+# ---------------------------------------------------------------- 0. the emulated computers, measured
+
+FAIRNESS_FACTORS = "1.0,1.1,1.25"
+
+
+def fairness(out: Path) -> dict[str, Any]:
+    """Is a capped cgroup a fair small computer for each detector? tests/bench/bench_cgroup_fairness.py
+    caps one node at 1.0x, 1.1x and 1.25x of its measured need and counts the frames it keeps
+    (the floor of the measured headroom, docs/solvers.md, rests on it). Reused when done."""
+    path = out / "fairness.json"
+    if not path.exists():
+        err.print("[bold]cgroup fairness[/]: each detector capped at 1.0x, 1.1x, 1.25x of its need")
+        sh([sys.executable, ROOT / "tests" / "bench" / "bench_cgroup_fairness.py", "--nodes", "people,smooth",
+            "--factors", FAIRNESS_FACTORS, "--out", path])
+    doc: dict[str, Any] = json.loads(path.read_text())
+    return doc
+
+
+def fairness_lines(doc: dict[str, Any]) -> list[str]:
+    factors = [float(x) for x in doc["factors"]]
+    lines = ["### The emulated computers, measured (`tests/bench/bench_cgroup_fairness.py`)", "",
+             "Each detector with the camera at 10 Hz, its CPU need measured uncapped, then only its process "
+             "capped at a multiple of that need; the share of the camera's frames it kept (the floor of "
+             "`--headroom auto`, docs/solvers.md, rests on this):", "",
+             "| node | need before / after (% of a core) | " + " | ".join(f"kept at {x:g}x" for x in factors) + " |",
+             "|---|---|" + "---|" * len(factors)]
+    for key, r in doc["nodes"].items():
+        kept = {float(c["factor"]): c["kept"] for c in r["capped"]}
+        after = r.get("need_after_cores")
+        lines.append(f"| {key} ({r['executable']}) | {100 * r['need_cores']:.1f} / "
+                     f"{'-' if after is None else f'{100 * after:.1f}'} | "
+                     + " | ".join("-" if kept.get(x) is None else f"{100 * kept[x]:.1f} %" for x in factors) + " |")
+    lines += ["", f"Leftover processes: {len(doc.get('leftover_processes') or [])}, leftover cgroups: "
+              f"{len(doc.get('leftover_cgroups') or [])}; {doc.get('wall_s')} s.", ""]
+    return lines
+
+
 # ---------------------------------------------------------------- 3b. the loop (tune)
 
 TUNE_ROUNDS = 3  # issue 21: the loop converges in at most 3 rounds
@@ -672,7 +709,7 @@ def kept_cell(r: dict[str, Any]) -> str:
 
 def markdown(results: list[dict[str, Any]], rq3_rows: list[dict[str, Any]], errors: dict[str, list[dict[str, Any]]],
              computers: dict[str, Any], rates: list[dict[str, Any]], args: argparse.Namespace, argv: list[str],
-             started: str, seconds: float) -> str:
+             started: str, seconds: float, fair: dict[str, Any] | None = None) -> str:
     lines = [f"Pipeline run {started} (UTC), {seconds / 60:.1f} min wall on this 2-core machine, "
              f"{DEPLOYS['ran']} deployment(s) run and {DEPLOYS['reused']} reused from an earlier start "
              f"({UNITS_PER_CORE:g} CPU units = one core; {args.duration:g} s recorded per deployment, "
@@ -739,6 +776,8 @@ def markdown(results: list[dict[str, Any]], rq3_rows: list[dict[str, Any]], erro
         agree = all(r["predicted_overload"] == r["observed_overload"] for r in rq3_rows)
         lines += ["", f"Every prediction matched the observation: **{'yes' if agree else 'no'}**.", "",
                   "![RQ3](casestudy-real/rq3.png)", ""]
+    if fair:
+        lines += fairness_lines(fair)
     if TUNED:
         lines += ["### The loop (`tune`): each instance's rounds", "",
                   f"`tune --base instance/characterisation.csv --headroom auto --rounds {TUNE_ROUNDS} --tolerance "
@@ -817,6 +856,7 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--no-docs", action="store_true", help="leave the docs page alone")
     ap.add_argument("--skip-rq3", action="store_true")
     ap.add_argument("--skip-tune", action="store_true", help="no tune loop (not a full run)")
+    ap.add_argument("--skip-fairness", action="store_true", help="no cgroup fairness bench (not a full run)")
     args = ap.parse_args(argv)
     numbers = [int(x) for x in args.instances.split(",") if x.strip()]
     unknown = [n for n in numbers if n not in INSTANCES]
@@ -825,7 +865,7 @@ def main(argv: list[str]) -> int:
     out: Path = args.out.resolve()
     # a full run: every instance and RQ3 from an empty out/; its line goes into the docs page
     full = (not out.exists() or not any(out.iterdir())) and set(numbers) == set(INSTANCES) and not args.skip_rq3 \
-        and not args.skip_tune
+        and not args.skip_tune and not args.skip_fairness
     out.mkdir(parents=True, exist_ok=True)
     started, t0 = datetime.now(UTC).strftime("%Y-%m-%d %H:%M"), time.monotonic()
     try:
@@ -842,6 +882,7 @@ def run(out: Path, numbers: list[int], args: argparse.Namespace, argv: list[str]
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
     app = application(out, args)
+    fair = None if args.skip_fairness else fairness(out)
     char_csv, draft = characterise(out, app)
     rates = cpu_against_rate(char_csv, draft)
     plans = fit_and_solve(out, char_csv, draft, numbers)
@@ -861,10 +902,11 @@ def run(out: Path, numbers: list[int], args: argparse.Namespace, argv: list[str]
     (out / "results.json").write_text(json.dumps({"rq2": results, "rq2_distinct": distinct, "rq3": rq3_rows,
                                                   "model_errors": errors,
                                                   "computer_errors": computers, "cpu_against_rate": rates,
+                                                  "fairness": fair,
                                                   "no_plan": FAILED, "full_run": full, "full_run_line": line,
                                                   "seconds": seconds}, indent=1, default=str))
     plots(out, results, rq3_rows)
-    section = markdown(results, rq3_rows, errors, computers, rates, args, argv, started, seconds)
+    section = markdown(results, rq3_rows, errors, computers, rates, args, argv, started, seconds, fair)
     (out / "results.md").write_text(section)
     if not args.no_docs:
         write_section(args.docs, "casestudy-real", section, out, ("rq2.png", "rq3.png"), "Case study on real nodes")

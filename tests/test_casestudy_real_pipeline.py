@@ -165,3 +165,12 @@ def test_signature_ignores_float_noise_in_values() -> None:
     b = {"nodes": {"n": {"computer": "r", "value": 1.09375 + 1e-12}}, "computers": {"r": {"capacity": 15.0}}}
     c = {"nodes": {"n": {"computer": "r", "value": 1.1}}, "computers": {"r": {"capacity": 15.0}}}
     assert cs.signature(a) == cs.signature(b) != cs.signature(c)
+
+
+def test_fairness_lines_state_each_cap_and_the_leftovers() -> None:
+    doc = {"factors": [1.0, 1.25], "wall_s": 90.0, "leftover_processes": [], "leftover_cgroups": [],
+           "nodes": {"people": {"executable": "people_detect", "need_cores": 0.416, "need_after_cores": 0.38,
+                                "capped": [{"factor": 1.0, "kept": 0.912}, {"factor": 1.25, "kept": 1.0}]}}}
+    lines = cs.fairness_lines(doc)
+    assert "| people (people_detect) | 41.6 / 38.0 | 91.2 % | 100.0 % |" in lines
+    assert any(line.startswith("Leftover processes: 0, leftover cgroups: 0") for line in lines)

@@ -93,7 +93,7 @@ def test_cli_headroom(tmp_path: Any) -> None:
 # Every expected number below is computed here from the rows written or the system stated
 # (the rule of docs/solvers.md, "Headroom"), never taken from a solver run.
 
-FAIR = 0.10  # docs/solvers.md: FAIR_SHARE
+FAIR = 0.25  # docs/solvers.md: FAIR_SHARE
 
 
 def test_fair_share_is_the_one_constant() -> None:
@@ -343,7 +343,7 @@ def test_auto_without_any_error_keeps_the_floor_and_says_so() -> None:
     system = parse_system(data, "plain.yaml")
     plan = solve(system, 1, "exact", headroom="auto")
     assert check_plan(system, plan) == []
-    assert plan.reason is not None and "no cpu_error" in plan.reason and "10 %" in plan.reason
+    assert plan.reason is not None and "no cpu_error" in plan.reason and "25 %" in plan.reason
     for pc in plan.computers.values():
         assert pc.margin == pytest.approx(FAIR * pc.cpu)
 
