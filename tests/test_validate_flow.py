@@ -229,3 +229,22 @@ def test_cpu_trace_overload_gives_kept_rates_through_the_cli(tmp_path: Path, sol
     assert k["detector"]["input_hz_predicted"] == pytest.approx(f_in, rel=1e-6)
     assert k["camera"]["f_predicted"] == pytest.approx(f_in, rel=1e-6)  # the camera keeps what the detector gets
     assert k["camera"]["f_measured"] == pytest.approx(20)
+
+
+def test_validate_files_takes_a_plan_already_read_and_does_not_read_it_again(
+        tmp_path: Path, solved: tuple[Path, Path, Any], monkeypatch: pytest.MonkeyPatch) -> None:
+    """deploy reads plan.json once for the deployment and its validation (known debt: twice)."""
+    import perfros_bag.system.planfile as planfile
+    from perfros_bag.validation.eq10 import validate_files
+
+    _, plan_path, plan = solved
+    run = tmp_path / "run.mcap"
+    write_run(run, {"/cam": 20, "/det": 10, "/trk": 5})
+    reads: list[Path] = []
+    real = planfile.load_plan
+    monkeypatch.setattr(planfile, "load_plan", lambda p: reads.append(Path(p)) or real(p))
+    given = validate_files(run, plan_path, plan=plan)
+    assert reads == []
+    again = validate_files(run, plan_path)
+    assert reads == [plan_path]
+    assert given.to_dict()["overall"] == again.to_dict()["overall"]

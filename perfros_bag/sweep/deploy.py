@@ -158,7 +158,7 @@ def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Pat
         entry["speed_factor"] = round(speed, 4)
     write_manifest(outdir / "manifest.yaml", [entry])
     validation = validate_files(outdir / "run.bag", plan_path, cpu=[outdir / "run.cpu.csv"],
-                                tolerance=DEFAULT_TOLERANCE if tolerance is None else tolerance)
+                                tolerance=DEFAULT_TOLERANCE if tolerance is None else tolerance, plan=plan)
     atomic_write_json(outdir / "validation.json", validation.to_dict())
     record: dict[str, Any] = {
         "format": DEPLOY_FORMAT, "run_id": run_id, "plan": str(plan_path), "forced": is_forced(plan),

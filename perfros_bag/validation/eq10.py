@@ -635,15 +635,17 @@ def default_cpu_trace(run: str | Path) -> Path | None:
 
 def validate_files(run: str | Path, plan_path: str | Path, *, cpu: Sequence[str | Path] | None = None,
                    system_path: str | Path | None = None, tolerance: float = DEFAULT_TOLERANCE,
-                   cap: bool = False) -> Validation:
-    """Read the recording, the plan, the CPU trace(s) and the system, then :func:`check_run`."""
+                   cap: bool = False, plan: Plan | None = None) -> Validation:
+    """Read the recording, the plan, the CPU trace(s) and the system, then :func:`check_run`.
+    ``plan``: ``plan_path`` already read (``deploy`` reads it once, for both)."""
     from perfros_bag.ingest import read_recording
     from perfros_bag.system.planfile import is_forced, load_plan, plan_system
 
     if not math.isfinite(tolerance) or tolerance < 0:
         raise InputError(None, f"the tolerance must be a number >= 0, got {tolerance}")
     run_p, plan_p = Path(run), Path(plan_path)
-    plan = load_plan(plan_p)
+    if plan is None:
+        plan = load_plan(plan_p)
     plan.require_feasible(plan_p, "validate")  # before the recording is read
     if not run_p.exists():
         raise InputError(run_p, "recording not found")
