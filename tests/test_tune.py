@@ -381,3 +381,14 @@ def test_a_bad_or_different_base_is_one_line_exit_2(tmp_path: Path) -> None:
                                                "base_sha256": hashlib.sha256(base.read_bytes()).hexdigest()}))
     done = _cli(*args)
     assert done.returncode == 2 and f"made with base '{base}', not None" in done.stderr, done.stderr
+
+
+def test_a_round_holds_only_within_tolerance_and_with_no_computer_starved() -> None:
+    from perfros_bag.tune.loop import holds
+
+    fine = {"deviation_pct": 1.0, "computers": {"r1": {"starved": False}, "server": {"starved": False}}}
+    assert holds(fine, 2.5)
+    assert not holds({**fine, "deviation_pct": 3.0}, 2.5)
+    # within tolerance, but the server's cap held it back: not a plan that holds
+    assert not holds({**fine, "computers": {"r1": {"starved": False}, "server": {"starved": True}}}, 2.5)
+    assert holds({"deviation_pct": 0.0, "computers": {}}, 0.0)

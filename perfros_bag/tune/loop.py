@@ -4,7 +4,8 @@ Round k (1, 2, ...) solves Problem 1 on model k-1, deploys the plan here
 (:func:`perfros_bag.sweep.deploy.deploy`: capped cgroups, shaped links) and validates it.
 Model 0 is fitted on the sweep alone; model k on the sweep plus the recordings of rounds
 1..k, each of which holds every node at its planned setting, co-located and capped, as it
-will run. The loop stops when a round's run is within the tolerance (eq 10), when model k's
+will run. The loop stops when a round holds (:func:`holds`: within the tolerance, eq 10, and
+no computer starved), when model k's
 plan would deploy exactly what round k deployed, or after ``rounds`` rounds.
 
 How a deployment's recording is weighed in the refit (docs/formats.md, "tune"):
@@ -155,7 +156,7 @@ def tune(launch_path: str | Path, space_path: str | Path, system_path: str | Pat
     while True:
         done: list[dict[str, Any]] = doc["rounds"]
         last = done[-1] if done else None
-        if last is not None and last["deviation_pct"] <= tol:  # this start's tolerance (it may differ)
+        if last is not None and holds(last, tol):  # this start's tolerance (it may differ)
             doc["stopped"] = {"reason": "within tolerance", "after_round": last["round"]}
             break
         if len(done) >= rounds:
@@ -463,9 +464,19 @@ def round_entry(k: int, plan: Plan, plan_path: Path, model_path: Path, record: d
             "model": model_path.name, "refit_model": None, "objective": plan.objective,
             "values": values, "placement": {name: pn.computer for name, pn in sorted(plan.nodes.items())},
             "expected": overall["expected"], "measured": overall["measured"],
-            "deviation_pct": overall["deviation_pct"], "within_tolerance": overall["deviation_pct"] <= tolerance,
+            "deviation_pct": overall["deviation_pct"],
+            "within_tolerance": overall["deviation_pct"] <= tolerance and not any(c["starved"] for c in computers.values()),
             "run_id": record["run_id"], "cpu_cap": record["cpu_cap"]["mode"], "network": record["network"]["mode"],
             "computers": computers, "nodes": nodes}
+
+
+def holds(entry: dict[str, Any], tolerance: float) -> bool:
+    """Does a round's plan hold? Its deviation (eq 10) is within ``tolerance`` and no computer
+    was starved (throttled in at least :data:`THROTTLED_SHARE` of the CFS periods): a plan that
+    met its performance on a computer its cap held back met it by luck, and is learned from
+    again (its starved nodes' CPU rescaled to their planned rate)."""
+    return bool(entry["deviation_pct"] <= tolerance
+                and not any(c.get("starved") for c in (entry.get("computers") or {}).values()))
 
 
 def _fill_after(entry: dict[str, Any], model_path: Path) -> None:
