@@ -383,12 +383,17 @@ def test_a_bad_or_different_base_is_one_line_exit_2(tmp_path: Path) -> None:
     assert done.returncode == 2 and f"made with base '{base}', not None" in done.stderr, done.stderr
 
 
-def test_a_round_holds_only_within_tolerance_and_with_no_computer_starved() -> None:
-    from perfros_bag.tune.loop import holds
+def test_a_round_holds_only_within_tolerance_and_with_no_node_held_back_by_its_cap() -> None:
+    from perfros_bag.tune.loop import KEPT_ALL, holds
 
-    fine = {"deviation_pct": 1.0, "computers": {"r1": {"starved": False}, "server": {"starved": False}}}
-    assert holds(fine, 2.5)
+    def node(starved: bool, kept: float | None) -> dict[str, object]:
+        return {"starved": starved, "kept_ratio": kept}
+
+    fine = {"deviation_pct": 1.0, "nodes": {"a": node(False, 1.0), "b": node(True, 0.995)}}
+    assert holds(fine, 2.5)  # b's computer was throttled, but b kept its rate: a burst, not a lack
     assert not holds({**fine, "deviation_pct": 3.0}, 2.5)
-    # within tolerance, but the server's cap held it back: not a plan that holds
-    assert not holds({**fine, "computers": {"r1": {"starved": False}, "server": {"starved": True}}}, 2.5)
-    assert holds({"deviation_pct": 0.0, "computers": {}}, 0.0)
+    # within tolerance, but a node on a throttled computer fell behind: not a plan that holds
+    assert not holds({**fine, "nodes": {"a": node(False, 1.0), "b": node(True, KEPT_ALL - 0.01)}}, 2.5)
+    # behind on a computer that was not throttled (its input fell): judged by the deviation
+    assert holds({**fine, "nodes": {"a": node(False, 0.9)}}, 2.5)
+    assert holds({"deviation_pct": 0.0, "nodes": {"c": node(True, None)}}, 0.0)
