@@ -326,7 +326,15 @@ def test_a_base_run_fits_model_0_on_the_base_and_each_refit_on_it_plus_the_round
     line = lstsq(points)
     got = detector_settings(read_model(m1).to_json())[1.0]
     assert (got["cpu"], got["cpu_per_hz"]) == pytest.approx(line, rel=1e-7)
-    assert got["cpu"] == pytest.approx(2.0 + 4.0 / 3, rel=0.2)  # the 4 units more at 10 Hz lift the base
+    # calibration: the base's detector rows scaled by the deployment's CPU over model 0's at
+    # the same value and input rate (computed here from model 0's line); the round's own row not
+    m0_det = detector_settings(read_model(m0).to_json())[1.0]
+    factor = (2.0 + 3.0 * f_in + 4.0) / (m0_det["cpu"] + m0_det["cpu_per_hz"] * f_in)
+    assert factor > 1.05  # the 4 units more at 10 Hz
+    original = {(r.recording, r.value): r.cpu_units_mean for r in base_table if r.node == "detector"}
+    for r in used:
+        if r.node == "detector" and r.recording != "round-1/run.bag":
+            assert r.cpu_units_mean == pytest.approx(original[(r.recording, r.value)] * factor)
     # the other detector values keep every base row; the camera at 10 is the deployment's alone
     assert sum(r.node == "detector" and r.value != 1.0 for r in used) == 6
     cam10 = [r for r in used if r.node == "camera" and r.value == 10]
@@ -397,3 +405,34 @@ def test_a_round_holds_only_within_tolerance_and_with_no_node_held_back_by_its_c
     # behind on a computer that was not throttled (its input fell): judged by the deviation
     assert holds({**fine, "nodes": {"a": node(False, 0.9)}}, 2.5)
     assert holds({"deviation_pct": 0.0, "nodes": {"c": node(True, None)}}, 0.0)
+
+
+def test_calibration_carries_how_a_node_ran_in_the_deployments_to_the_values_they_did_not_run() -> None:
+    """Model 0 (the sweep's fit) says a needs 10 at value 1 and 20 at value 2; a deployment ran
+    a at value 2 with 25 (x1.25): the sweep's rows of a at every value are scaled by 1.25, the
+    round's own row is not; b was never deployed and keeps its rows; bounds hold."""
+    from perfros_bag.system.systemfile import parse_system
+    from perfros_bag.tune.loop import CALIBRATION_BOUNDS, calibrate
+
+    model0 = parse_system({"computers": [{"name": "r1", "kind": "robot", "capacity": 100}],
+                           "nodes": [{"name": n, "weight": 0.5, "parameter": {"name": "p"}, "topics": [f"/{n}/out"],
+                                      "settings": [{"value": 1, "cpu": 10, "performance": 50, "frequency_hz": 10},
+                                                   {"value": 2, "cpu": 20, "performance": 100, "frequency_hz": 10}]}
+                                     for n in ("a", "b")]})
+    sweep = [_row("sweep/x.bag", "a", 1, 10.0), _row("sweep/y.bag", "a", 2, 20.0), _row("sweep/x.bag", "b", 1, 10.0)]
+    deployed = [_row("round-1/run.bag", "a", 2, 25.0)]
+    out, factors = calibrate(sweep + deployed, [{"dir": "round-1"}], model0)
+    assert factors == {"a": pytest.approx(1.25)}
+    got = {(r.recording, r.node): r for r in out}
+    assert got[("sweep/x.bag", "a")].cpu_units_mean == pytest.approx(12.5)
+    assert got[("sweep/x.bag", "a")].cpu_units_p95 == pytest.approx(12.0 * 1.25)
+    assert got[("sweep/y.bag", "a")].cpu_units_mean == pytest.approx(25.0)
+    assert got[("round-1/run.bag", "a")].cpu_units_mean == 25.0  # the round's own row as measured
+    assert got[("sweep/x.bag", "b")].cpu_units_mean == 10.0
+    # a deployment at ten times the sweep: the factor stops at the upper bound
+    _, capped = calibrate(sweep + [_row("round-1/run.bag", "a", 2, 200.0)], [{"dir": "round-1"}], model0)
+    assert capped["a"] == CALIBRATION_BOUNDS[1]
+    assert calibrate(sweep, [], model0) == (sweep, {})
+    # a starved round's rescaled row sets no factor
+    starved = [{"dir": "round-1", "nodes": {"a": {"refit": USE_RESCALED}}}]
+    assert calibrate(sweep + deployed, starved, model0) == (sweep + deployed, {})

@@ -34,7 +34,10 @@ How a deployment's recording is weighed in the refit (docs/formats.md, "tune"):
   is not scaled: r is its output share over its input's, so ``measured / r`` is its need
   for every message it got, at the input rate measured (the row's ``input_hz``, the planned
   one unless its upstream fell short): one point of its line, which gives its need at the
-  planned input rate.
+  planned input rate;
+- each node a round measured is calibrated (:func:`calibrate`): the sweep's rows of it, at
+  every value, are scaled by its CPU in the rounds over model 0's at the same values, so a
+  value no round ran is predicted in the deployments' scale.
 
 With ``base`` (a characterisation.csv, e.g. a sweep's made elsewhere) nothing is swept:
 model 0 is fitted on the base rows alone, and model k on the base rows (weighed as the
@@ -338,6 +341,52 @@ def base_rows(path: Path) -> list[Row]:
             else r for r in read_characterisation(path).rows]
 
 
+#: a node's calibration factor is kept within these bounds (a deployment that ran its node
+#: at a fifth of the sweep's CPU says more about the run than about the node)
+CALIBRATION_BOUNDS = (0.5, 2.0)
+
+
+def calibrate(rows: list[Row], done: list[dict[str, Any]], model0: System) -> tuple[list[Row], dict[str, float]]:
+    """The sweep's (or base's) rows of each node the rounds measured, scaled by how that node
+    ran in the deployments: factor = Σ its CPU in the rounds' kept rows / Σ model 0's CPU at
+    the same values (and input rates), model 0 being the fit on the sweep alone. A deployment
+    runs the node as it will run (co-located, capped, its input across a link where the plan
+    puts it there), which a sweep on one computer does not; the factor carries that to the
+    values the rounds did not run, so a refit's next plan is not predicted from the sweep's
+    scale again. Only rows that measured the node as it ran unhindered (refit ``measured``)
+    set a factor: a starved node's rescaled need is an estimate. The rounds' own rows are not
+    scaled. Returns the rows and node -> factor."""
+    by_run = {f"{r['dir']}/run.bag": r for r in done}
+    rounds = set(by_run)
+    measured: dict[str, float] = {}
+    predicted: dict[str, float] = {}
+    seen: set[tuple[str, str]] = set()
+    for row in rows:
+        if row.recording not in rounds or row.cpu_units_mean is None or (row.recording, row.node) in seen:
+            continue
+        use = (by_run[row.recording].get("nodes") or {}).get(row.node, {}).get("refit", USE_MEASURED)
+        if use != USE_MEASURED:  # a starved node's rescaled need is an estimate: not a scale to carry
+            continue
+        seen.add((row.recording, row.node))
+        node = model0.node.get(row.node)
+        pred = model_cpu(model0, row.node, row.value, row.input_hz if node is not None and node.driven else None)
+        if pred is None or not math.isfinite(pred) or pred <= 0:
+            continue
+        measured[row.node] = measured.get(row.node, 0.0) + row.cpu_units_mean
+        predicted[row.node] = predicted.get(row.node, 0.0) + pred
+    lo, hi = CALIBRATION_BOUNDS
+    factors = {n: min(hi, max(lo, measured[n] / predicted[n])) for n in measured}
+    out: list[Row] = []
+    for row in rows:
+        f = factors.get(row.node)
+        if f is not None and row.recording not in rounds:
+            scaled: dict[str, Any] = {c: None if getattr(row, c) is None else getattr(row, c) * f
+                                      for c in ("cpu_units_mean", "cpu_units_p95")}
+            row = dataclasses.replace(row, **scaled)
+        out.append(row)
+    return out, factors
+
+
 def fit_rounds(outdir: Path, system_path: str | Path, system: System, done: list[dict[str, Any]],
                units_per_core: float, base: Path | None = None) -> Path:
     """Characterise the sweep (or take ``base``'s rows instead) and the finished rounds,
@@ -357,7 +406,10 @@ def fit_rounds(outdir: Path, system_path: str | Path, system: System, done: list
         rows += result.rows
     k = len(done)
     csv_path, model_path = outdir / f"characterisation-{k}.csv", outdir / f"model-{k}.json"
-    write_characterisation(csv_path, weigh(rows, done, {n.name for n in system.nodes if n.driven}))
+    weighed = weigh(rows, done, {n.name for n in system.nodes if n.driven})
+    if done and (outdir / "model-0.json").exists():
+        weighed, _factors = calibrate(weighed, done, load_model(outdir / "model-0.json"))
+    write_characterisation(csv_path, weighed)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", PerfrosWarning)  # the fit's notes are in model.json
         model = build_model(system_path, csv_path)
