@@ -457,12 +457,16 @@ def _kept_rates(plan: Plan, system: System | None, nodes: list[NodeCheck],
     """The rates the plan keeps (:mod:`perfros_bag.validation.kept`) when a computer is
     overloaded: measured (the CPU trace) or predicted (its nodes' planned CPU above the
     capacity of the system's computer, else the plan's). A node traced on a computer whose
-    measured load exceeds its capacity needs what it was measured at (calibration: measured
-    over planned CPU). None when no computer is overloaded either way."""
+    measured load exceeds its capacity needs what it was measured at when that is more than
+    planned (calibration: measured over planned CPU). None when no computer is overloaded
+    either way."""
     capacities = overloaded_capacities(plan, system)
     over = {c.name for c in computers if c.overloaded}
+    # only where the run showed more: on a capped computer a node's measured CPU is what its
+    # share gave it, not its need (taking it as the need would predict that nothing is lost)
     calibration = {n.node: n.cpu_measured / n.cpu_expected for n in nodes
-                   if n.computer in over and n.cpu_measured is not None and n.cpu_expected}
+                   if n.computer in over and n.cpu_measured is not None and n.cpu_expected
+                   and n.cpu_measured > n.cpu_expected}
     kept = predict_kept(plan, system, capacities, calibration)
     if not over and not any(c.capped for c in kept.computers):
         return None
