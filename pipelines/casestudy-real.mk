@@ -2,9 +2,12 @@
 # opencv_apps people_detect and smoothing), computers as CPU-capped cgroups and links as
 # tc-shaped network namespaces. Long (~20-30 min); not part of `make test` or `make demo`.
 #
-#   make casestudy-real   sweep -> init -> characterise -> fit -> solve (P1, P2; greedy, greedy+,
-#                         exact) for 6 instances -> deploy + validate every distinct plan -> RQ3;
-#                         results in $(OUT)/casestudy-real/ and docs/casestudy-real.md
+#   make casestudy-real   cgroup fairness bench -> sweep (camera rate + both detectors) -> init
+#                         (detectors drafted as driven) -> characterise -> fit -> solve with
+#                         measured headroom (P1, P2; greedy, greedy+, exact) for 6 instances ->
+#                         tune per instance (--base, --headroom auto) -> deploy + validate every
+#                         distinct plan -> the final model's plan deployed afresh -> RQ3;
+#                         ~20 min; results in $(OUT)/casestudy-real/ and docs/casestudy-real.md
 #
 # Needs root (cgroups, namespaces) and Debian's ROS 1 + opencv_apps (setup-debs installs them).
 # Finished runs are reused: delete $(OUT)/casestudy-real (or one run folder) to measure again.
