@@ -338,20 +338,23 @@ def solve(system: System, problem: int, method: str, *, resolution: float = 1.0,
     the_problem, the_method = Problem(problem), Method(method)
     system.capacities(the_problem)  # every capacity the problem needs is there
     headroom = check_headroom(headroom)
-    if isinstance(headroom, str):
-        return _solve_auto(system, the_problem, the_method, settings, resolution, time_limit, progress)
-    if headroom > 0:
+    if not isinstance(headroom, str) and headroom > 0:
         plan = solve(with_headroom(system, headroom), problem, method, resolution=resolution, settings=settings,
                      time_limit=time_limit, progress=progress)
         return _give_back(system, plan, headroom)
     start = time.perf_counter()  # --time-limit counts from here: the choices, the set-up and the solve
     deadline = None if time_limit is None else start + time_limit
     choices = fixed_choices(system, the_problem, settings, resolution)
+    real: dict[str, list[Choice]] = {}
+    if headroom == AUTO:  # every choice raised by its measured error; the plan stated on the model after
+        choices, real = inflate_choices(system, choices)
     plan = _dispatch(system, the_problem, the_method, choices, deadline, progress)
     plan.solve_s = time.perf_counter() - start
     plan.method = the_method
     if plan.system is None:
         plan.system = system.source
+    if headroom == AUTO:
+        _give_back_errors(system, plan, choices, real)
     return plan
 
 
@@ -375,35 +378,21 @@ def inflate_choices(system: System, choices: Mapping[str, list[Choice]]
     return inflated, real
 
 
-def _solve_auto(system: System, problem: Problem, method: Method, settings: Mapping[str, float] | None,
-                resolution: float, time_limit: float | None, progress: Progress | None) -> Plan:
-    """``headroom="auto"``: solve on the inflated choices, then state the plan on the model."""
-    from perfros_bag.system.cpuerror import FAIR_SHARE, states_errors
-
-    start = time.perf_counter()
-    deadline = None if time_limit is None else start + time_limit
-    inflated, real = inflate_choices(system, fixed_choices(system, problem, settings, resolution))
-    plan = _dispatch(system, problem, method, inflated, deadline, progress)
-    plan.solve_s = time.perf_counter() - start
-    plan.method = method
-    if plan.system is None:
-        plan.system = system.source
-    plan.extra["headroom"] = AUTO
-    if plan.status == Status.INFEASIBLE:
-        plan.reason = f"{plan.reason} (with each node's measured CPU error kept free: headroom auto)"
-        return plan
-    _give_back_errors(system, plan, inflated, real)
-    if not states_errors(system):
-        plan.reason = (f"headroom auto: the model states no cpu_error, so each node keeps only the floor, "
-                       f"{100 * FAIR_SHARE:g} % of its CPU, free")
-    return plan
-
-
 def _give_back_errors(system: System, plan: Plan, inflated: Mapping[str, list[Choice]],
                       real: Mapping[str, list[Choice]]) -> None:
     """A plan solved on :func:`inflate_choices`' choices, stated on the model: each node's
     ``cpu`` its real choice's; each computer's ``cpu`` the sum of those and its ``margin`` the
-    sum of its nodes' errors (a Problem 2 server sized to load + margin)."""
+    sum of its nodes' errors (a Problem 2 server sized to load + margin). An infeasible plan's
+    reason says the errors were kept free; a model without any error keeps the floor only."""
+    from perfros_bag.system.cpuerror import FAIR_SHARE, states_errors
+
+    plan.extra["headroom"] = AUTO
+    if plan.status == Status.INFEASIBLE:
+        plan.reason = f"{plan.reason} (with each node's measured CPU error kept free: headroom auto)"
+        return
+    if not states_errors(system):
+        plan.reason = (f"headroom auto: the model states no cpu_error, so each node keeps only the floor, "
+                       f"{100 * FAIR_SHARE:g} % of its CPU, free")
     load = {c.name: 0.0 for c in system.computers}
     margin = {c.name: 0.0 for c in system.computers}
     for node in system.nodes:
