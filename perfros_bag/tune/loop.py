@@ -258,7 +258,7 @@ def _entries(outdir: Path, done: list[dict[str, Any]], units_per_core: float,
             item["speed_factor"] = e.speed_factor
         items.append(item)
     for r in done:  # the host's own trace: every node in the measurement's units
-        items.append({"path": f"{r['dir']}/run.bag", "cpu": f"{r['dir']}/run.host.cpu.csv",
+        items.append({"path": round_recording(r), "cpu": f"{r['dir']}/run.host.cpu.csv",
                       **({"computer": host} if host else {}), "units_per_core": units_per_core,
                       "settings": dict(r["values"])})
     write_manifest(outdir / "manifest.yaml", items)
@@ -271,6 +271,17 @@ def _same(a: Any, b: Any) -> bool:
     return bool(a == b)
 
 
+def round_recording(entry: dict[str, Any]) -> str:
+    """A round's recording as the refit's manifest names it (and so its rows' ``recording``)."""
+    return f"{entry['dir']}/run.bag"
+
+
+def _scaled(row: Row, columns: Collection[str], factor: float) -> Row:
+    """``row`` with ``columns`` (those it has) multiplied by ``factor``."""
+    values: dict[str, Any] = {c: None if getattr(row, c) is None else getattr(row, c) * factor for c in columns}
+    return dataclasses.replace(row, **values)
+
+
 def weigh(rows: list[Row], done: list[dict[str, Any]], driven: Collection[str] = ()) -> list[Row]:
     """The rows the refit uses (the rules of this module's docstring): each round's rows as
     its ``nodes[*].refit`` says (kept, rescaled by ``cpu_factor`` or left out), and the
@@ -279,7 +290,7 @@ def weigh(rows: list[Row], done: list[dict[str, Any]], driven: Collection[str] =
     (:data:`SAME_INPUT`). Rows of recordings no round made are the sweep's (or the base's)."""
     out: list[Row] = []
     measured: list[Row] = []  # the kept deployment rows: each stands for its (node, value[, input rate])
-    rounds = {f"{r['dir']}/run.bag": r for r in done}
+    rounds = {round_recording(r): r for r in done}
     for row in rows:
         r = rounds.get(row.recording)
         if r is None:
@@ -292,9 +303,7 @@ def weigh(rows: list[Row], done: list[dict[str, Any]], driven: Collection[str] =
             continue
         factor = node.get("cpu_factor") or 1.0
         if factor != 1.0:  # a starved node as at its planned rate: its CPU, rates and bandwidth
-            scaled: dict[str, Any] = {c: None if getattr(row, c) is None else getattr(row, c) * factor
-                                      for c in RESCALED_COLUMNS}
-            row = dataclasses.replace(row, **scaled)
+            row = _scaled(row, RESCALED_COLUMNS, factor)
         out.append(row)
         if row.cpu_units_mean is not None:
             measured.append(row)
@@ -356,20 +365,18 @@ def calibrate(rows: list[Row], done: list[dict[str, Any]], model0: System) -> tu
     scale again. Only rows that measured the node as it ran unhindered (refit ``measured``)
     set a factor: a starved node's rescaled need is an estimate. The rounds' own rows are not
     scaled. Returns the rows and node -> factor."""
-    by_run = {f"{r['dir']}/run.bag": r for r in done}
-    rounds = set(by_run)
+    by_run = {round_recording(r): r for r in done}
     measured: dict[str, float] = {}
     predicted: dict[str, float] = {}
     seen: set[tuple[str, str]] = set()
     for row in rows:
-        if row.recording not in rounds or row.cpu_units_mean is None or (row.recording, row.node) in seen:
+        if row.recording not in by_run or row.cpu_units_mean is None or (row.recording, row.node) in seen:
             continue
         use = (by_run[row.recording].get("nodes") or {}).get(row.node, {}).get("refit", USE_MEASURED)
         if use != USE_MEASURED:  # a starved node's rescaled need is an estimate: not a scale to carry
             continue
         seen.add((row.recording, row.node))
-        node = model0.node.get(row.node)
-        pred = model_cpu(model0, row.node, row.value, row.input_hz if node is not None and node.driven else None)
+        pred = model_cpu(model0, row.node, row.value, row.input_hz)  # input_hz counts for a driven node only
         if pred is None or not math.isfinite(pred) or pred <= 0:
             continue
         measured[row.node] = measured.get(row.node, 0.0) + row.cpu_units_mean
@@ -379,11 +386,7 @@ def calibrate(rows: list[Row], done: list[dict[str, Any]], model0: System) -> tu
     out: list[Row] = []
     for row in rows:
         f = factors.get(row.node)
-        if f is not None and row.recording not in rounds:
-            scaled: dict[str, Any] = {c: None if getattr(row, c) is None else getattr(row, c) * f
-                                      for c in ("cpu_units_mean", "cpu_units_p95")}
-            row = dataclasses.replace(row, **scaled)
-        out.append(row)
+        out.append(row if f is None or row.recording in by_run else _scaled(row, ("cpu_units_mean", "cpu_units_p95"), f))
     return out, factors
 
 
