@@ -343,11 +343,9 @@ def deploy_all(out: Path, app: Path, plans: dict[int, dict[str, Path]], args: ar
         robots = len(INSTANCES[i].robot_capacity)
         system = out / f"instance{i}" / "model.json"  # the fitted model: validate knows every setting a plan may pick
         done: dict[str, dict[str, Any]] = {}
-        for r in TUNED.get(i, {}).get("rounds", []):  # tune's rounds: a plan equal to one shares its run
-            run_dir = out / f"instance{i}" / "tune" / r["dir"]
-            done.setdefault(signature(json.loads((run_dir / "plan.json").read_text())), {
-                "run": rel(run_dir), "record": json.loads((run_dir / "deploy.json").read_text()),
-                "validation": json.loads((run_dir / "validation.json").read_text())})
+        for r in ROUNDS.get(i, []):  # tune's rounds: a plan equal to one shares its run
+            done.setdefault(signature(r["plan"]), {"run": r["run"], "record": r["record"],
+                                                   "validation": r["validation"]})
         for key in ps:
             plan = json.loads(ps[key].read_text())
             sig = signature(plan)
@@ -415,6 +413,8 @@ def fairness_lines(doc: dict[str, Any]) -> list[str]:
 TUNE_ROUNDS = 3  # issue 21: the loop converges in at most 3 rounds
 TUNE_TOLERANCE = 2.5  # % (eq 10): a round within it ends the loop
 TUNED: dict[int, dict[str, Any]] = {}  # instance -> tune.json
+# instance -> per round (tune.json's order): its run folder, plan.json and deploy/validation, read once
+ROUNDS: dict[int, list[dict[str, Any]]] = {}
 
 
 def tune_all(out: Path, app: Path, numbers: list[int], args: argparse.Namespace, bar: Any) -> list[dict[str, Any]]:
@@ -434,11 +434,13 @@ def tune_all(out: Path, app: Path, numbers: list[int], args: argparse.Namespace,
         sh(cmd, ok=(0, 1))  # 1: stopped without a round that holds (plan unchanged, or the last round)
         doc = json.loads((d / "tune" / "tune.json").read_text())
         TUNED[i] = doc
+        ROUNDS[i] = []
         for r in doc["rounds"]:
             run_dir = d / "tune" / r["dir"]
             plan = json.loads((run_dir / "plan.json").read_text())
             res = {"record": json.loads((run_dir / "deploy.json").read_text()),
                    "validation": json.loads((run_dir / "validation.json").read_text())}
+            ROUNDS[i].append({"run": rel(run_dir), "plan": plan, **res})
             row = {"instance": i, "plan": f"p1-tuned-r{r['round']}", "problem": 1, "method": plan["method"],
                    "objective": plan["objective"], "status": plan["status"], "run": rel(run_dir),
                    "round": r["round"], "last_round": r is doc["rounds"][-1], **summarise(res)}
@@ -827,9 +829,8 @@ def markdown(results: list[dict[str, Any]], rq3_rows: list[dict[str, Any]], erro
                   "| measured Σ w·P | deviation % | starved | refit: CPU the model gives the deployed settings, "
                   "before -> after |", "|---|---|---|---|---|---|---|---|---|---|"]
         for i, doc in sorted(TUNED.items()):
-            for r in doc["rounds"]:
-                plan = json.loads((args.out.resolve() / f"instance{i}" / "tune" / r["dir"] / "plan.json").read_text())
-                margin = sum(c.get("margin") or 0.0 for c in plan["computers"].values())
+            for r, ran in zip(doc["rounds"], ROUNDS[i], strict=True):
+                margin = sum(c.get("margin") or 0.0 for c in ran["plan"]["computers"].values())
                 before = sum(n["model_cpu_before"] or 0.0 for n in r["nodes"].values())
                 after = sum(n["model_cpu_after"] or 0.0 for n in r["nodes"].values())
                 starved = [c for c, v in r["computers"].items() if v["starved"]]
