@@ -32,6 +32,7 @@ from perfros_bag.fitting.modelfile import (
     ModelDocument,
     Stat,
     round9,
+    same_value,
 )
 from perfros_bag.fitting.regression import FitError, clip_domain, fit_curve
 from perfros_bag.system.systemfile import parse_system, read_system_data
@@ -166,12 +167,6 @@ def metric_performance(node: Node, means: dict[float, float]) -> dict[float, flo
 
 # --- building the model -----------------------------------------------------------------
 
-def _same(a: float | None, b: float | None) -> bool:
-    if a is None or b is None:
-        return a is None and b is None
-    return abs(a - b) <= 1e-9 * max(1.0, abs(a), abs(b))
-
-
 class _Warn:
     def __init__(self) -> None:
         self.messages: list[str] = []
@@ -240,7 +235,7 @@ _V = TypeVar("_V", bound=_Valued)
 
 def _match(node: Node, value: float | None, measured: list[_V]) -> _V | None:
     for m in measured:
-        if _same(m.value, value):
+        if same_value(m.value, value):
             return m
     if len(node.settings) == 1 and len(measured) == 1:
         return measured[0]
@@ -262,7 +257,7 @@ def _performance_source(node: Node, means: dict[float, float], warn: _Warn) -> d
 
 
 def _measured_perf(perf: dict[float, float], value: float | None) -> float | None:
-    return next((p for v, p in perf.items() if _same(v, value)), None)
+    return next((p for v, p in perf.items() if same_value(v, value)), None)
 
 
 def _fit_node(node: Node, measured: list[MeasuredSetting], raw: dict[str, Any], warn: _Warn,
@@ -579,7 +574,7 @@ def _fit_driven_node(node: Node, samples: dict[float | None, list[DrivenSample]]
     common_cap = next(iter(caps)) if len(caps) == 1 else None
     measures: list[_DrivenMeasure] = []
     for value, ss in samples.items():
-        own = next((s for s in node.settings if _same(s.value, value)), None)
+        own = next((s for s in node.settings if same_value(s.value, value)), None)
         try:
             measures.append(_driven_measure(value, ss, own.max_frequency_hz if own is not None else common_cap))
         except FitError as exc:
@@ -677,7 +672,7 @@ def _grid_settings(node: Node, fits: dict[str, FittedRelation], means: dict[str,
     for i in range(GRID_POINTS):
         v = lo + (hi - lo) * i / (GRID_POINTS - 1)
         v = float(round(v)) if integer else round9(v)
-        if lo <= v <= hi and not any(_same(v, t) for t in taken + values):
+        if lo <= v <= hi and not any(same_value(v, t) for t in taken + values):
             values.append(v)
 
     def at(rel: str, v: float) -> float | None:

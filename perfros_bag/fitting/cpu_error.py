@@ -30,7 +30,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from perfros_bag.fitting.modelfile import DrivenSetting, FittedRelation, round9
+from perfros_bag.fitting.modelfile import DrivenSetting, FittedRelation, round9, same_value
 from perfros_bag.system.cpuerror import FAIR_SHARE
 
 
@@ -69,14 +69,8 @@ def interpolate(points: Sequence[tuple[float, float]], x: float) -> float | None
     return None  # pragma: no cover - x < the last point's x
 
 
-def _same(a: float | None, b: float | None) -> bool:
-    if a is None or b is None:
-        return a is None and b is None
-    return abs(a - b) <= 1e-9 * max(1.0, abs(a), abs(b))
-
-
 def _find(runs: Sequence[Runs], value: float | None, single: bool) -> Runs | None:
-    match = next((r for r in runs if _same(r.value, value)), None)
+    match = next((r for r in runs if same_value(r.value, value)), None)
     if match is None and single and len(runs) == 1:
         return runs[0]
     return match

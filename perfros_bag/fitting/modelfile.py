@@ -33,6 +33,14 @@ def round9(v: float) -> float:
     return float(f"{v:.9g}") if math.isfinite(v) else v
 
 
+def same_value(a: float | None, b: float | None) -> bool:
+    """Two parameter values are the same setting: equal to 1e-9 (relative, at least absolute
+    for values below 1), or both None."""
+    if a is None or b is None:
+        return a is None and b is None
+    return abs(a - b) <= 1e-9 * max(1.0, abs(a), abs(b))
+
+
 def round6(v: float) -> float:
     """6 significant digits (R², leave-one-out errors as written)."""
     return float(f"{v:.6g}") if math.isfinite(v) else v
