@@ -104,7 +104,7 @@ def imports(known: Mapping[str, Path], *, typing: bool = False) -> Iterator[Impo
 LAYERS = ("shared", "system", "cpu", "ingest", "characterisation", "fitting", "solver", "validation", "rosrun",
           "sweep", "export", "casestudy", "tune", "report", "cli")
 #: the package root's own modules: the shared helpers, and the entry points with the public API
-ROOT_LAYERS = {"errors": "shared", "limits": "shared", "fileio": "shared",
+ROOT_LAYERS = {"errors": "shared", "limits": "shared", "fileio": "shared", "doccheck": "shared",
                "entry": "cli", "__main__": "cli", "": "cli"}
 
 

@@ -14,8 +14,9 @@ from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
+from perfros_bag.doccheck import Doc
 from perfros_bag.errors import InputError, PerfrosWarning
-from perfros_bag.fileio import SYSTEM_KIND, expect_kind, file_kind, kind_of, read_yaml, unknown_keys
+from perfros_bag.fileio import SYSTEM_KIND, expect_kind, file_kind, kind_of, read_yaml
 from perfros_bag.limits import MAX_COEFFICIENT, MAX_MAGNITUDE, number_problem
 from perfros_bag.system.modelpart import read_model_system
 from perfros_bag.system.names import (
@@ -73,32 +74,11 @@ LAUNCH_NAME_KINDS = {"package": NameKind.PACKAGE, "type": NameKind.EXECUTABLE, "
                      "name": NameKind.NODE, "namespace": NameKind.NAMESPACE}
 
 
-class _Ctx:
-    """Where we are in the file, for error messages."""
+class _Ctx(Doc):
+    """Where we are in the file, for error messages (:class:`~perfros_bag.doccheck.Doc`),
+    and system.yaml's own checks."""
 
-    def __init__(self, path: str) -> None:
-        self.path = path
-
-    def fail(self, where: str, problem: str) -> InputError:
-        return InputError(self.path, f"{where}: {problem}" if where else problem)
-
-    def mapping(self, obj: Any, where: str, allowed: set[str], required: set[str] = frozenset()) -> Mapping[str, Any]:  # type: ignore[assignment]
-        if not isinstance(obj, Mapping):
-            raise self.fail(where, f"expected a mapping, got {kind_of(obj)}")
-        unknown = unknown_keys(obj, allowed)
-        if unknown:
-            raise self.fail(where, unknown)
-        missing = sorted(k for k in required if k not in obj)
-        if missing:
-            raise self.fail(where, f"missing required field(s) {', '.join(repr(k) for k in missing)}")
-        return obj
-
-    def number(self, obj: Any, where: str, *, positive: bool = False, nonneg: bool = False,
-               limit: float = MAX_MAGNITUDE) -> float:
-        problem = number_problem(obj, positive=positive, nonneg=nonneg, limit=limit)
-        if problem is not None:
-            raise self.fail(where, problem)
-        return float(obj)
+    path: str  # the source as the system states it (System.source)
 
     def label(self, obj: Any, where: str) -> str | None:
         """A free-text label (a unit): text, or a finite number taken as text; None stays None."""
@@ -107,14 +87,6 @@ class _Ctx:
         if number_problem(obj, limit=math.inf) is not None:
             raise self.fail(where, f"must be text, got {kind_of(obj)} {obj!r}"[:200])
         return str(obj)
-
-    def opt_number(self, obj: Any, where: str, **kw: bool) -> float | None:
-        return None if obj is None else self.number(obj, where, **kw)
-
-    def string(self, obj: Any, where: str) -> str:
-        if not isinstance(obj, str) or not obj.strip():
-            raise self.fail(where, f"must be a non-empty string, got {obj!r}")
-        return obj
 
     def name(self, obj: Any, where: str, kind: NameKind) -> str:
         """A name ROS can use (:mod:`perfros_bag.system.names`); one valid for ROS 1 only
@@ -139,11 +111,7 @@ class _Ctx:
         return tuple(self.string(x, f"{where}[{i}]") for i, x in enumerate(obj))
 
     def seq(self, obj: Any, where: str) -> list[Any]:
-        if obj is None:
-            return []
-        if not isinstance(obj, list):
-            raise self.fail(where, f"must be a list, got {kind_of(obj)}")
-        return obj
+        return [] if obj is None else self.items(obj, where)
 
     def named(self, obj: Any, section: str, what: str, allowed: set[str], required: set[str], *,
               at_least_one: bool = True, kind: NameKind | None = None) -> Iterator[tuple[str, str, Mapping[str, Any]]]:
