@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from perfros_bag.doccheck import Doc
 from perfros_bag.errors import InputError
 from perfros_bag.fileio import (
     DOCUMENT_KINDS,
@@ -22,7 +23,7 @@ from perfros_bag.fileio import (
     kind_of,
     read_json,
 )
-from perfros_bag.limits import MAX_COEFFICIENT, MAX_MAGNITUDE, number_problem, short_repr
+from perfros_bag.limits import MAX_COEFFICIENT, MAX_MAGNITUDE, short_repr
 from perfros_bag.system.modelpart import MODEL_FORMAT
 from perfros_bag.system.types import Curve, CurveForm, curve_form
 
@@ -208,37 +209,18 @@ def write_model(path: str | Path, document: ModelDocument) -> None:
 # --------------------------------------------------------------------------- reading
 
 
-class _Doc:
-    """Checks with the place in the document named in the error."""
+class _Doc(Doc):
+    """Checks with the place in the document named in the error (JSON's words: an object)."""
 
-    def __init__(self, path: Path) -> None:
-        self.path = path
+    container = "an object"
+    list_wording = "expected a list"
 
-    def fail(self, where: str, problem: str) -> InputError:
-        return InputError(self.path, f"{where}: {problem}")
-
-    def mapping(self, obj: Any, where: str) -> Mapping[str, Any]:
-        if not isinstance(obj, Mapping):
-            raise self.fail(where, f"expected an object, got {kind_of(obj)}")
-        return obj
-
-    def items(self, obj: Any, where: str) -> list[Any]:
-        if not isinstance(obj, list):
-            raise self.fail(where, f"expected a list, got {kind_of(obj)}")
-        return obj
-
-    def number(self, obj: Any, where: str, *, nonneg: bool = False, positive: bool = False,
+    def number(self, obj: Any, where: str, *, positive: bool = False, nonneg: bool = False,
                limit: float = MAX_MAGNITUDE) -> float:
         """A finite number within ``limit`` (:mod:`perfros_bag.limits`)."""
         if isinstance(obj, bool) or not isinstance(obj, int | float):
             raise self.fail(where, f"expected a number, got {obj!r}")
-        problem = number_problem(obj, nonneg=nonneg, positive=positive, limit=limit)
-        if problem is not None:
-            raise self.fail(where, problem)
-        return float(obj)
-
-    def opt_number(self, obj: Any, where: str, *, nonneg: bool = False) -> float | None:
-        return None if obj is None else self.number(obj, where, nonneg=nonneg)
+        return super().number(obj, where, positive=positive, nonneg=nonneg, limit=limit)
 
     def string(self, obj: Any, where: str) -> str:
         if not isinstance(obj, str):
