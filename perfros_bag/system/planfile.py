@@ -11,6 +11,7 @@ import warnings
 from pathlib import Path
 from typing import Any
 
+from perfros_bag.doccheck import Doc
 from perfros_bag.errors import InputError, PerfrosWarning
 from perfros_bag.fileio import DOCUMENT_KINDS, atomic_write_json, expect_kind, read_json
 from perfros_bag.limits import number_problem
@@ -89,17 +90,17 @@ def _num(d: dict[str, Any], key: str, where: str, path: str, *, optional: bool =
     if v is None:
         if optional:
             return None
-        raise InputError(path, f"{where}: missing {key!r}")
+        raise Doc(path).fail(where, f"missing {key!r}")
     problem = number_problem(v, nonneg=nonneg, positive=positive)
     if problem is not None:
-        raise InputError(path, f"{where}: {key!r} {problem}")
+        raise Doc(path).fail(where, f"{key!r} {problem}")
     return float(v)
 
 
 def _text(d: dict[str, Any], key: str, where: str, path: str) -> str | None:
     v = d.get(key)
     if v is not None and not isinstance(v, str):
-        raise InputError(path, f"{where}: {key!r} must be a string, got {type(v).__name__}")
+        raise Doc(path).fail(where, f"{key!r} must be a string, got {type(v).__name__}")
     return v
 
 
@@ -187,17 +188,18 @@ def _check_placed(plan: Plan, name: str, path: str, *, forced: bool = False) -> 
 
 
 def _parse_node(n: Any, where: str, path: str) -> PlannedNode:
+    fail = Doc(path).fail
     if not isinstance(n, dict):
-        raise InputError(path, f"{where}: must be an object")
+        raise fail(where, "must be an object")
     if not isinstance(n.get("computer"), str):
-        raise InputError(path, f"{where}: missing 'computer'")
+        raise fail(where, "missing 'computer'")
     topics: dict[str, PlannedTopic] = {}
     raw_topics = n.get("topics") or {}
     if not isinstance(raw_topics, dict):
-        raise InputError(path, f"{where}: topics must be an object")
+        raise fail(where, "topics must be an object")
     for t, r in raw_topics.items():
         if not isinstance(r, dict):
-            raise InputError(path, f"{where}: topic {t!r} must be an object")
+            raise fail(where, f"topic {t!r} must be an object")
         topics[t] = PlannedTopic(_num(r, "frequency_hz", f"{where} topic {t!r}", path, nonneg=True),
                                  _num(r, "bandwidth_kBps", f"{where} topic {t!r}", path, nonneg=True))
     return PlannedNode(
