@@ -30,8 +30,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from perfros_bag.errors import InputError
-from perfros_bag.fileio import MANIFEST_KIND, expect_kind, read_yaml, unknown_keys
+from perfros_bag.doccheck import Doc
+from perfros_bag.fileio import MANIFEST_KIND, expect_kind, read_yaml
 from perfros_bag.limits import number_problem
 from perfros_bag.system.names import NameKind, name_problem
 
@@ -98,17 +98,12 @@ def load_manifest(path: str | Path) -> Manifest:
 
 
 def parse_manifest(data: Any, path: Path) -> Manifest:
-    def fail(where: str, problem: str) -> InputError:
-        return InputError(path, f"{where}: {problem}" if where else problem)
-
+    doc = Doc(path)
+    fail = doc.fail
     if data is None:
         raise fail("", "the manifest is empty (expected 'recordings:')")
     expect_kind(path, data, MANIFEST_KIND, {MANIFEST_KIND})
-    if not isinstance(data, Mapping):
-        raise fail("", f"expected a mapping with 'recordings:', got {type(data).__name__}")
-    unknown = unknown_keys(data, TOP_KEYS)
-    if unknown:
-        raise fail("", unknown)
+    doc.mapping(data, "", TOP_KEYS, expected="a mapping with 'recordings:'", got=type(data).__name__)
     base = path.parent
     system: Path | None = None
     if data.get("system") is not None:
@@ -126,11 +121,7 @@ def parse_manifest(data: Any, path: Path) -> Manifest:
         where = f"recordings[{i}]"
         if isinstance(item, str):
             item = {"path": item}
-        if not isinstance(item, Mapping):
-            raise fail(where, f"expected a mapping with 'path:', got {type(item).__name__}")
-        bad = unknown_keys(item, ENTRY_KEYS)
-        if bad:
-            raise fail(where, bad)
+        doc.mapping(item, where, ENTRY_KEYS, expected="a mapping with 'path:'", got=type(item).__name__)
         rel = item.get("path")
         if not isinstance(rel, str) or not rel.strip():
             raise fail(f"{where}.path", f"must be a file or directory name, got {rel!r}")
