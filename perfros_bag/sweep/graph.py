@@ -25,7 +25,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from perfros_bag.errors import InputError, PerfrosError
+from perfros_bag.doccheck import Doc
+from perfros_bag.errors import PerfrosError
 from perfros_bag.fileio import atomic_write_text, read_yaml
 from perfros_bag.rosrun.master import master_call, master_state, node_call
 
@@ -137,20 +138,17 @@ def write_graph(path: str | Path, graph: Graph) -> None:
 def read_graph(path: str | Path) -> Graph:
     p = Path(path)
     data = read_yaml(p)
-
-    def fail(problem: str) -> InputError:
-        return InputError(p, problem)
-
+    fail = Doc(p).fail
     if not isinstance(data, dict) or data.get("format") != GRAPH_FORMAT:
         got = data.get("format") if isinstance(data, dict) else type(data).__name__
-        raise fail(f"not a graph.yaml (format {got!r}, expected {GRAPH_FORMAT!r})")
+        raise fail("", f"not a graph.yaml (format {got!r}, expected {GRAPH_FORMAT!r})")
     nodes = []
     for i, raw in enumerate(data.get("nodes") or []):
         if not isinstance(raw, dict) or not isinstance(raw.get("name"), str) or not raw["name"]:
-            raise fail(f"nodes[{i}]: expected {{name, pid, executable}}, got {raw!r}")
+            raise fail(f"nodes[{i}]", f"expected {{name, pid, executable}}, got {raw!r}")
         pid = raw.get("pid")
         if pid is not None and (isinstance(pid, bool) or not isinstance(pid, int)):
-            raise fail(f"nodes[{i}].pid: must be a whole number, got {pid!r}")
+            raise fail(f"nodes[{i}].pid", f"must be a whole number, got {pid!r}")
         exe = raw.get("executable")
         replay = raw.get("replay")
         replayed = None
@@ -158,19 +156,19 @@ def read_graph(path: str | Path) -> Graph:
             factor = replay.get("factor") if isinstance(replay, dict) else None
             if not isinstance(replay, dict) or not isinstance(replay.get("recording"), str) \
                     or isinstance(factor, bool) or not isinstance(factor, int | float) or not factor > 0:
-                raise fail(f"nodes[{i}].replay: expected {{recording, factor > 0}}, got {replay!r}")
+                raise fail(f"nodes[{i}].replay", f"expected {{recording, factor > 0}}, got {replay!r}")
             replayed = Replayed(replay["recording"], float(factor))
         nodes.append(GraphNode(raw["name"], pid, None if exe is None else str(exe), bool(raw.get("launched", True)),
                                replayed))
     topics = []
     for i, raw in enumerate(data.get("topics") or []):
         if not isinstance(raw, dict) or not isinstance(raw.get("name"), str) or not raw["name"]:
-            raise fail(f"topics[{i}]: expected {{name, type, publishers, subscribers}}, got {raw!r}")
+            raise fail(f"topics[{i}]", f"expected {{name, type, publishers, subscribers}}, got {raw!r}")
         lists = {}
         for key in ("publishers", "subscribers"):
             val = raw.get(key) or []
             if not isinstance(val, list) or not all(isinstance(x, str) for x in val):
-                raise fail(f"topics[{i}].{key}: must be a list of node names, got {val!r}")
+                raise fail(f"topics[{i}].{key}", f"must be a list of node names, got {val!r}")
             lists[key] = tuple(val)
         ty = raw.get("type")
         topics.append(GraphTopic(raw["name"], None if ty is None else str(ty), lists["publishers"], lists["subscribers"]))
