@@ -31,11 +31,25 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from perfros_bag.characterisation.manifest import SWEEP_UNITS_PER_CORE, load_manifest
+from perfros_bag.characterisation.table import characterise, check_settings, table_one
+from perfros_bag.cpu.trace import read_cpu_trace
 from perfros_bag.errors import InputError, PerfrosWarning
 from perfros_bag.fileio import atomic_write_text
+from perfros_bag.ingest import read_recording
+from perfros_bag.ingest.rosgraph import read_graph as read_recording_graph
+from perfros_bag.sweep.driven import (
+    INPUT_VARIED,
+    RATIO_TOLERANCE,
+    draft_settings,
+    find_inputs,
+    per_run,
+)
 from perfros_bag.sweep.graph import Graph, GraphNode, GraphTopic, read_graph
+from perfros_bag.sweep.runner import computer_name
 from perfros_bag.sweep.space import Space, load_space
 from perfros_bag.system.names import NameKind, name_problem, system_node_name
+from perfros_bag.system.systemfile import parse_system
 
 if TYPE_CHECKING:
     from perfros_bag.characterisation.manifest import Manifest
@@ -70,8 +84,6 @@ class Draft:
 
 def draft_system(directory: str | Path, out: str | Path) -> Draft:
     """Write the drafted system.yaml to ``out``; returns its text and nodes."""
-    from perfros_bag.characterisation.table import characterise, check_settings
-
     d = Path(directory)
     manifest = _manifest(d)
     values = _values(manifest)
@@ -101,8 +113,6 @@ def draft_system(directory: str | Path, out: str | Path) -> Draft:
         result = characterise(manifest.recordings, skeleton)
     if result.failures:
         raise InputError(result.failures[0].recording, result.failures[0].message)
-    from perfros_bag.sweep.driven import find_inputs, per_run
-
     by_run = per_run(result.rows)
     follows = find_inputs(skeleton.nodes, graph, by_run, {node_name(n.name): n.name for n in app})
     text = _render(d, graph, skeleton, result.rows, values, machine, graph_path.exists(), follows, by_run)
@@ -112,8 +122,6 @@ def draft_system(directory: str | Path, out: str | Path) -> Draft:
 
 
 def _manifest(d: Path) -> Manifest:
-    from perfros_bag.characterisation.manifest import load_manifest
-
     if not d.is_dir():
         raise InputError(d, "not a directory (expected the folder sweep recorded into)")
     path = d / "manifest.yaml"
@@ -154,10 +162,6 @@ class _Machine:
 
 def _computer(manifest: Manifest) -> _Machine:
     """This machine, as the runs measured it."""
-    from perfros_bag.characterisation.manifest import SWEEP_UNITS_PER_CORE
-    from perfros_bag.cpu.trace import read_cpu_trace
-    from perfros_bag.sweep.runner import computer_name
-
     names = {e.computer for e in manifest.recordings if e.computer}
     if len(names) > 1:
         raise InputError(manifest.path, f"the runs name several computers ({', '.join(sorted(names))}): "
@@ -188,9 +192,6 @@ def _graph_from_recordings(manifest: Manifest) -> Graph:
     :func:`perfros_bag.ingest.rosgraph.read_graph`) of every recording; a topic no callerid
     names (ROS 2 records none) goes to the node whose name is its namespace (``/detector``
     publishes ``/detector/circles``; the longest such name)."""
-    from perfros_bag.ingest import read_recording
-    from perfros_bag.ingest.rosgraph import read_graph as read_recording_graph
-
     names: dict[str, None] = {}
     types: dict[str, str] = {}
     publishers: dict[str, set[str]] = {}
@@ -222,8 +223,6 @@ def _output_topics(node: GraphNode, graph: Graph) -> tuple[str, ...]:
 def _skeleton(app: Sequence[GraphNode], graph: Graph, values: Mapping[str, list[float]],
               parameters: Mapping[str, tuple[str, str | None]], machine: _Machine) -> Any:
     """The system the runs are characterised with: the nodes, their topics and patterns."""
-    from perfros_bag.system.systemfile import parse_system
-
     nodes = []
     for n in app:
         name = node_name(n.name)
@@ -264,8 +263,6 @@ def _render(d: Path, graph: Graph, skeleton: Any, rows: Sequence[Row], values: M
             machine: _Machine, from_graph: bool, follows: Mapping[str, Follow],
             by_run: Mapping[str, Mapping[str, RunMeasure]]) -> str:
     import yaml
-
-    from perfros_bag.characterisation.table import table_one
 
     def flow(obj: Any) -> str:  # one line of YAML, names quoted where YAML needs it
         return yaml.safe_dump([obj], default_flow_style=True, sort_keys=False, width=1 << 20).strip()[1:-1]
@@ -334,8 +331,6 @@ def _render(d: Path, graph: Graph, skeleton: Any, rows: Sequence[Row], values: M
 def _render_driven(node: Any, exe: str, keys: Sequence[int | float | None], weight: float, follow: Follow,
                    runs: Mapping[str, RunMeasure], flow: Callable[[Any], str]) -> list[str]:
     """A driven node's lines (perfros_bag/sweep/driven.py: the rule and the numbers)."""
-    from perfros_bag.sweep.driven import INPUT_VARIED, RATIO_TOLERANCE, draft_settings
-
     drafted = draft_settings(node.topics, runs, follow)
     missing = [k for k in keys if repr(k) not in drafted]
     if missing:
@@ -440,8 +435,6 @@ def _edges(graph: Graph, nodes: Sequence[Any]) -> list[dict[str, str]]:
 def _check_loads(text: str, out: Path) -> None:
     """The draft must load as a system.yaml (a bug here, not the user's input)."""
     import yaml
-
-    from perfros_bag.system.systemfile import parse_system
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", PerfrosWarning)

@@ -56,9 +56,23 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from perfros_bag.characterisation import table
+from perfros_bag.characterisation.csvfile import read_characterisation, write_characterisation
+from perfros_bag.characterisation.manifest import load_manifest, write_manifest
 from perfros_bag.errors import InputError, PerfrosError, PerfrosWarning
 from perfros_bag.fileio import atomic_open
+from perfros_bag.fitting.build import build_model
+from perfros_bag.fitting.modelfile import write_model
+from perfros_bag.solver import METHODS, check_headroom, solve
+from perfros_bag.sweep.deploy import deploy, plan_run
+from perfros_bag.sweep.launchfile import check_space, read_launch
+from perfros_bag.sweep.runner import computer_name, sweep
+from perfros_bag.sweep.space import load_space
+from perfros_bag.system.planfile import save_plan
+from perfros_bag.system.systemfile import load_system
+from perfros_bag.system.types import driven_rates
 from perfros_bag.tune.tunefile import TUNE_FORMAT, read_tune, write_tune
+from perfros_bag.validation import DEFAULT_TOLERANCE
 
 if TYPE_CHECKING:
     from perfros_bag.characterisation.csvfile import Row
@@ -101,8 +115,6 @@ class TuneResult:
 
 
 def _check_args(rounds: int, tolerance: float, headroom: float | str, method: str, units_per_core: float) -> None:
-    from perfros_bag.solver import METHODS, check_headroom
-
     check_headroom(headroom)  # a number in [0, 1) or "auto"
     if isinstance(rounds, bool) or not isinstance(rounds, int) or rounds < 1:
         raise InputError(None, f"rounds must be a whole number >= 1, got {rounds!r}")
@@ -125,14 +137,6 @@ def tune(launch_path: str | Path, space_path: str | Path, system_path: str | Pat
     ``plot``: the rounds -> a PNG, written to ``out/tune.png`` after every round (the CLI
     passes :func:`perfros_bag.report.tune_plots.plot_tune`: the report sits above the
     loop, whose tune.json it reads)."""
-    from perfros_bag.sweep.deploy import deploy
-    from perfros_bag.sweep.launchfile import check_space, read_launch
-    from perfros_bag.sweep.runner import sweep
-    from perfros_bag.sweep.space import load_space
-    from perfros_bag.system.planfile import save_plan
-    from perfros_bag.system.systemfile import load_system
-    from perfros_bag.validation import DEFAULT_TOLERANCE
-
     tol = DEFAULT_TOLERANCE if tolerance is None else tolerance
     _check_args(rounds, tol, headroom, method, units_per_core)
     system = load_system(system_path)
@@ -244,9 +248,6 @@ def _entries(outdir: Path, done: list[dict[str, Any]], units_per_core: float,
     them) and each finished round's, as ``outdir/manifest.yaml`` lists them (written here:
     the manifest the refit characterises), every one in the scale the plans are emulated in
     (``units_per_core``: ``cpu_percent / 100 x units_per_core``)."""
-    from perfros_bag.characterisation.manifest import load_manifest, write_manifest
-    from perfros_bag.sweep.runner import computer_name
-
     if swept:
         sweep = load_manifest(outdir / "sweep" / "manifest.yaml").recordings
         host = next((e.computer for e in sweep if e.computer), None)
@@ -333,8 +334,6 @@ def check_base(path: Path, system_path: str | Path) -> None:
     """A base characterisation ``tune`` can start from: readable, naming nodes of the
     system and fitting it (tried now, before anything runs); every problem an
     :class:`InputError` naming ``path``."""
-    from perfros_bag.fitting.build import build_model
-
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", PerfrosWarning)
@@ -350,8 +349,6 @@ def check_base(path: Path, system_path: str | Path) -> None:
 def base_rows(path: Path) -> list[Row]:
     """The rows of a base characterisation, a recording named like one of the loop's rounds
     renamed with :data:`BASE_PREFIX` (the refit tells the rounds' rows by their recording)."""
-    from perfros_bag.characterisation.csvfile import read_characterisation
-
     return [dataclasses.replace(r, recording=BASE_PREFIX + r.recording) if _ROUND_RECORDING.fullmatch(r.recording)
             else r for r in read_characterisation(path).rows]
 
@@ -401,14 +398,9 @@ def fit_rounds(outdir: Path, system_path: str | Path, system: System, done: list
     """Characterise the sweep (or take ``base``'s rows instead) and the finished rounds,
     weigh the rows (:func:`weigh`) and fit: ``outdir/characterisation-<k>.csv`` and
     ``outdir/model-<k>.json``, k = len(done)."""
-    from perfros_bag.characterisation.csvfile import write_characterisation
-    from perfros_bag.characterisation.table import characterise
-    from perfros_bag.fitting.build import build_model
-    from perfros_bag.fitting.modelfile import write_model
-
     rows = [] if base is None else base_rows(base)
     if base is None or done:
-        result = characterise(_entries(outdir, done, units_per_core, swept=base is None), system)
+        result = table.characterise(_entries(outdir, done, units_per_core, swept=base is None), system)
         if result.failures:
             f = result.failures[0]
             raise InputError(outdir / "manifest.yaml", f"recording {f.recording}: {f.message}")
@@ -428,8 +420,6 @@ def fit_rounds(outdir: Path, system_path: str | Path, system: System, done: list
 
 def load_model(model_path: Path) -> System:
     """model.json's system (its fits' notes are in the file, not repeated as warnings)."""
-    from perfros_bag.system.systemfile import load_system
-
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", PerfrosWarning)
         return load_system(model_path)
@@ -439,8 +429,6 @@ def model_cpu(model: System, node: str, value: Any, input_hz: float | None = Non
     """The model's CPU for ``node`` at ``value``: its fitted ``parameter->cpu`` when it has
     one, else the setting at that value (the only setting of a node without a parameter); a
     driven node's at ``input_hz`` (:func:`~perfros_bag.system.types.driven_rates`)."""
-    from perfros_bag.system.types import driven_rates
-
     n = model.node.get(node)
     if n is None:
         return None
@@ -470,8 +458,6 @@ def kept_share(node: dict[str, Any]) -> float | None:
 # --------------------------------------------------------------------------- solve, deploy
 
 def _solve(model_path: Path, method: str, headroom: float | str) -> Plan:
-    from perfros_bag.solver import solve
-
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", PerfrosWarning)
         plan = solve(load_model(model_path), 1, method, headroom=headroom)
@@ -482,8 +468,6 @@ def _solve(model_path: Path, method: str, headroom: float | str) -> Plan:
 def _deployed(plan: Plan, space: Any, arg_defaults: dict[str, str | None]) -> tuple[dict[str, Any], dict[str, str]]:
     """What deploying ``plan`` runs: each varied node's value (as deploy sets it) and each
     node's computer."""
-    from perfros_bag.sweep.deploy import plan_run
-
     run = plan_run(plan, space, arg_defaults)
     return dict(run.values), {n: pn.computer for n, pn in sorted(plan.nodes.items())}
 
