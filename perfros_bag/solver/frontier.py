@@ -98,6 +98,12 @@ class FrontierPoint:
             return None
         return max(self.bound - self.objective, 0.0) / max(abs(self.objective), 1e-12)
 
+    def to_json(self) -> dict[str, Any]:
+        """The point as frontier.json holds it (docs/formats.md, the one place)."""
+        return {"server_capacity": round(self.capacity, 9), "status": str(self.status), "objective": self.objective,
+                "bound": self.bound, "gap": self.gap, "solve_s": round(self.solve_s, 6),
+                "carried_from": None if self.carried_from is None else round(self.carried_from, 9)}
+
 
 def _servers(system: System) -> list[str]:
     servers = [c.name for c in system.computers if c.kind == "server"]
@@ -305,9 +311,7 @@ def frontier_document(system: System, points: list[FrontierPoint], method: str) 
         "system": system.source,
         "method": method,
         "servers": _servers(system),
-        "points": [{"server_capacity": round(p.capacity, 9), "status": str(p.status), "objective": p.objective,
-                    "bound": p.bound, "gap": p.gap, "solve_s": round(p.solve_s, 6),
-                    "carried_from": None if p.carried_from is None else round(p.carried_from, 9)} for p in points],
+        "points": [p.to_json() for p in points],
     }
 
 
