@@ -16,8 +16,8 @@ from typing import Any
 
 from perfros_bag.errors import InputError, PerfrosWarning
 from perfros_bag.fileio import SYSTEM_KIND, expect_kind, file_kind, kind_of, read_yaml, unknown_keys
-from perfros_bag.fitting.modelfile import read_model_system
 from perfros_bag.limits import MAX_COEFFICIENT, MAX_MAGNITUDE, number_problem
+from perfros_bag.system.modelpart import read_model_system
 from perfros_bag.system.names import (
     NameKind,
     address_problem,
