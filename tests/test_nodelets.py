@@ -230,3 +230,46 @@ def test_container_is_coresidence_and_the_checker_refuses_a_split(tmp_path: Path
     lines = [x for x in done.stderr.splitlines() if x.strip()]
     assert len(lines) == 1 and "container mgr" in lines[0] and "split.json" in lines[0], done.stderr
     assert not (tmp_path / "x.launch").exists()
+
+
+def test_ros2_export_writes_a_container_per_computer(tmp_path: Path) -> None:
+    """Per computer, a ``<node_container>`` with a ``<composable_node>`` per hosted node, the
+    element and attribute names of ROS 2's "Launching composable nodes" guide (XML)."""
+    import xml.etree.ElementTree as ET
+
+    from perfros_bag.export.writers import ros2_launch_path
+
+    doc = _doc()
+    doc["nodes"][2]["launch"] = {"package": "opencv_apps", "type": "people_detect"}  # type: ignore[index]
+    (tmp_path / "s.yaml").write_text(yaml.safe_dump(doc))
+    plan = tmp_path / "plan.json"
+    done = subprocess.run([str(BIN), "solve", str(tmp_path / "s.yaml"), "--problem", "1", "--method", "exact",
+                           "--out", str(plan)], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    out = tmp_path / "params.yaml"
+    done = subprocess.run([str(BIN), "export", str(plan), "--format", "ros2-params", "--system", str(tmp_path / "s.yaml"),
+                           "--out", str(out)], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    where = {n: p.computer for n, p in load_plan(plan).nodes.items()}
+    hosted = {n["name"]: n["container"] for n in doc["nodes"] if "container" in n}  # type: ignore[index, union-attr]
+    seen: dict[str, str] = {}
+    for computer in sorted(set(where.values())):
+        root = ET.parse(ros2_launch_path(out, computer)).getroot()
+        assert root.tag == "launch"
+        for el in root:
+            if el.tag == "node":
+                assert set(el.attrib) >= {"pkg", "exec", "name"}
+                seen[el.get("name") or ""] = computer
+            elif el.tag == "node_container":
+                assert set(el.attrib) == {"pkg", "exec", "name", "namespace"}
+                assert (el.get("pkg"), el.get("exec")) == ("rclcpp_components", "component_container")
+                seen[el.get("name") or ""] = computer
+                members = [c for c in el if c.tag == "composable_node"]
+                assert sorted(c.get("name") for c in members) == sorted(m for m, h in hosted.items()
+                                                                       if h == el.get("name"))
+                for c in members:
+                    assert set(c.attrib) >= {"pkg", "plugin", "name"}
+                    seen[c.get("name") or ""] = computer
+                plugins = {c.get("name"): c.get("plugin") for c in members}
+                assert plugins["a"] == "people_detect"
+    assert seen == where  # every node once, on its plan computer, the hosted ones inside their container
