@@ -273,3 +273,17 @@ def test_ros2_export_writes_a_container_per_computer(tmp_path: Path) -> None:
                 plugins = {c.get("name"): c.get("plugin") for c in members}
                 assert plugins["a"] == "people_detect"
     assert seen == where  # every node once, on its plan computer, the hosted ones inside their container
+
+
+def test_a_nodelet_with_only_its_bond_is_a_warning() -> None:
+    from perfros_bag.errors import PerfrosWarning
+    from perfros_bag.sweep.draft import _warn_members
+
+    doc = _doc()
+    doc["nodes"][2]["topics"] = ["/a/out"]  # type: ignore[index]
+    system = parse_system(doc, "s.yaml")  # b publishes nothing of its own (only its bond)
+    with pytest.warns(PerfrosWarning) as got:
+        _warn_members(system, [])
+    messages = [str(w.message) for w in got]
+    assert messages == ["node b: a nodelet of mgr whose only published topic is its bond: drafted with no topics "
+                        "(performance 100, no rate)"]
