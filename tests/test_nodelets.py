@@ -287,3 +287,17 @@ def test_a_nodelet_with_only_its_bond_is_a_warning() -> None:
     messages = [str(w.message) for w in got]
     assert messages == ["node b: a nodelet of mgr whose only published topic is its bond: drafted with no topics "
                         "(performance 100, no rate)"]
+
+
+def test_a_step_the_runs_spread_hides_is_a_warning() -> None:
+    # a's step (1 -> 2) is 20 units, b's 0.2: runs repeated with a spread of +-2 units
+    design = [(1, 1), (2, 1), (1, 2)] * 3
+    spread = [2.0, -2.0, 1.5, -1.5, 0.5, -0.5, 2.0, -2.0, 0.0]
+    totals = {f"r{i}": 10 + 20 * (va - 1) + 0.2 * (vb - 1) + spread[i] for i, (va, vb) in enumerate(design)}
+    values = {f"r{i}": {"a": va, "b": vb} for i, (va, vb) in enumerate(design)}
+    values["alone"] = {"a": 1, "b": 1}
+    rows, _ = _rows(totals, values, alone={"alone": {"a": 8.0, "b": 2.0}})
+    s = fit_split(rows, "mgr", ["a", "b"], {"alone": ("a", "b")})
+    assert s is not None
+    assert [n.split(":")[0] for n in s.notes] == ["node b"]
+    assert "at value 2" in s.notes[0] and "standard error" in s.notes[0]

@@ -20,6 +20,9 @@ which nodelet used the CPU. The split is fitted over the runs:
 - nodelet k at value v then gets ``lambda S_k + d_k(v)`` (clipped at 0) plus its own
   loader process's CPU; the container keeps the run's residual ``M_r - sum_k c_k(v_kr)``
   (clipped at 0): its own work beyond the fitted sum;
+- with more runs than unknowns (``repeats``), each step ``d_k(v)`` whose size is under twice
+  its standard error (the residuals' variance x ``(A^T A)^-1``) is a warning: the runs'
+  spread in the container's CPU hides that nodelet's setting there;
 - without a standalone run of a nodelet, ``S_k`` = 1 for every nodelet of that container (its
   reference level split evenly) and a warning says so; a nodelet the runs cannot separate
   (the system's design matrix has a rank below its unknowns) is a warning too.
@@ -103,6 +106,15 @@ def fit_split(rows: Sequence[Row], host: str, members: Sequence[str],
     if rank < a.shape[1]:
         notes.append(f"container {host}: the runs do not separate its nodelets' settings (rank {rank} of "
                      f"{a.shape[1]}): vary one nodelet's setting at a time")
+    dof = len(inside) - a.shape[1]
+    if rank == a.shape[1] and dof > 0:  # repeated runs: is each value's step above the runs' own spread?
+        sigma2 = float(np.sum((b - a @ coef) ** 2)) / dof
+        se = np.sqrt(np.maximum(np.diag(np.linalg.inv(a.T @ a)) * sigma2, 0.0))
+        for j, (k, v) in enumerate(columns):
+            if abs(coef[1 + j]) < 2 * se[1 + j]:
+                notes.append(f"node {k}: at value {v} its step over its value {ref[k]} ({coef[1 + j]:+.3g} CPU units) "
+                             f"is within twice its standard error ({se[1 + j]:.3g}): the runs' spread in "
+                             f"{host}'s CPU hides it, so its share there is uncertain")
     factor = float(coef[0])
     cpu: dict[str, dict[str, float]] = {k: {ref[k]: max(0.0, factor * anchors[k])} for k in members}
     for j, (k, v) in enumerate(columns):
