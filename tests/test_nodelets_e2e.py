@@ -9,6 +9,7 @@ given adds up to what the manager and the loaders' processes measured."""
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -41,7 +42,7 @@ def _cli(*args: str, timeout: float = 300) -> subprocess.CompletedProcess[str]:
 
 def _space(path: Path) -> Path:
     doc = yaml.safe_load((FIXTURES / "nodelet" / "space.yaml").read_text())
-    doc.update(duration_s=3, settle_s=0.5)
+    doc.update(duration_s=5, settle_s=0.5)  # record-cpu's first samples come late under load
     doc["vary"][0]["values"] = [1.1, 1.4]
     doc["vary"][0]["default"] = 1.4
     path.write_text(yaml.safe_dump(doc, sort_keys=False))
@@ -89,6 +90,7 @@ def test_sweep_init_characterise_per_nodelet(tmp_path: Path) -> None:
 
     split = characterise(manifest.recordings, system)
     assert split.splits and not split.failures
+    assert sorted(split.splits[0].reference) == ["people", "smooth"]  # anchored on the standalone run
     raw_doc = yaml.safe_load((tmp_path / "system.yaml").read_text())
     for n in raw_doc["nodes"]:
         n.pop("container", None)
@@ -108,6 +110,30 @@ def test_sweep_init_characterise_per_nodelet(tmp_path: Path) -> None:
     # the detector's work moves with its own setting: more scales (1.1) cost more than fewer (1.4)
     cpu = {s.value: s.cpu for s in system.node["people"].settings}
     assert cpu[1.1] > cpu[1.4]
+
+    # deploy across two emulated computers: the camera on the robot, the manager and its
+    # nodelets (membership kept) on the server, each nodelet loaded into its manager there
+    doc = yaml.safe_load((tmp_path / "system.yaml").read_text())
+    robot = doc["computers"][0]["name"]
+    doc["computers"].append({"name": "server", "kind": "server", "capacity": 200})
+    doc["links"] = [{"between": [robot, "server"], "bandwidth_kBps": 20000}]
+    for n in doc["nodes"]:
+        n["residence"] = [robot] if n["name"] == "camera" else ["server"]
+    (tmp_path / "two.yaml").write_text(yaml.safe_dump(doc, sort_keys=False))
+    for args in (("characterise", str(runs), "--system", str(tmp_path / "two.yaml"), "--out", str(tmp_path / "c.csv")),
+                 ("fit", str(tmp_path / "two.yaml"), str(tmp_path / "c.csv"), "--out", str(tmp_path / "m.json")),
+                 ("solve", str(tmp_path / "m.json"), "--problem", "1", "--method", "exact", "--out",
+                  str(tmp_path / "plan.json")),
+                 ("deploy", str(tmp_path / "plan.json"), str(LAUNCH), "--space", str(tmp_path / "space.yaml"),
+                  "--out", str(tmp_path / "dep"), "--duration", "4", "--system", str(tmp_path / "two.yaml"))):
+        done = _cli(*args)
+        assert done.returncode == 0, (args[0], done.stderr)
+    deployed = json.loads((tmp_path / "dep" / "deploy.json").read_text())
+    assert {n: x["computer"] for n, x in deployed["nodes"].items()} == {
+        "/camera": robot, "/vision_manager": "server", "/people": "server", "/smooth": "server"}
+    assert deployed["leftover_cgroups"] == [] and deployed["leftover_namespaces"] == []
+    valid = json.loads((tmp_path / "dep" / "validation.json").read_text())
+    assert valid["overall"]["passed"], valid["overall"]
 
 
 @pytest.mark.parametrize(("edit", "message"), [
