@@ -134,6 +134,15 @@ def test_sweep_init_characterise_per_nodelet(tmp_path: Path) -> None:
     assert deployed["leftover_cgroups"] == [] and deployed["leftover_namespaces"] == []
     valid = json.loads((tmp_path / "dep" / "validation.json").read_text())
     assert valid["overall"]["passed"], valid["overall"]
+    # export --launch keeps the membership: each loader loads into its manager, on its machine
+    done = _cli("export", str(tmp_path / "plan.json"), "--format", "roslaunch", "--launch", str(LAUNCH), "--space",
+                str(tmp_path / "space.yaml"), "--system", str(tmp_path / "two.yaml"), "--out",
+                str(tmp_path / "planned.launch"))
+    assert done.returncode == 0, done.stderr
+    planned = {n.get("name"): n for n in ET.parse(tmp_path / "planned.launch").getroot().iter("node")}
+    for name, (kind, manager) in xml.items():
+        assert (planned[name].get("args") or "").split() == ["load", kind, manager]
+        assert planned[name].get("machine") == planned[manager].get("machine") == "server"
 
 
 @pytest.mark.parametrize(("edit", "message"), [
