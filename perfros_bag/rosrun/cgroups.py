@@ -14,6 +14,7 @@ run is marked uncapped. :meth:`CpuGroups.remove` deletes every group it created.
 
 from __future__ import annotations
 
+import math
 import os
 import time
 import warnings
@@ -30,6 +31,8 @@ if TYPE_CHECKING:
 CGROUP_ROOT = Path(os.environ.get("PERFROS_CGROUP_ROOT", "/sys/fs/cgroup"))
 PREFIX = "perfros-"
 PERIOD_US = 100_000
+MIN_QUOTA_US = 1000  # the kernel's smallest CFS quota (v1 and v2)
+MAX_PERIOD_US = 1_000_000  # the kernel's longest CFS period
 WEIGHT_V1 = 10240  # cpu.shares (default 1024)
 WEIGHT_V2 = 1000  # cpu.weight (default 100)
 
@@ -50,6 +53,7 @@ class CpuGroups:
     run_id: str
     cores: dict[str, float]  # computer -> cores of CPU time
     root: Path = CGROUP_ROOT
+    period_us: int = PERIOD_US  # the CFS bandwidth period (quota = cores x period)
     mode: str = "uncapped"  # "cgroup-v1" | "cgroup-v2" | "uncapped"
     reason: str = ""
     dirs: dict[str, Path] = field(default_factory=dict)
@@ -69,8 +73,8 @@ class CpuGroups:
                     d = base / f"{PREFIX}{self.run_id}-{comp}"
                     d.mkdir()
                     self.dirs[comp] = d
-                    (d / "cpu.cfs_period_us").write_text(str(PERIOD_US))
-                    (d / "cpu.cfs_quota_us").write_text(str(_quota_us(cores)) if capped else "-1")
+                    (d / "cpu.cfs_period_us").write_text(str(self.group_period_us(comp)))
+                    (d / "cpu.cfs_quota_us").write_text(str(self._quota(comp)) if capped else "-1")
                     (d / "cpu.shares").write_text(str(WEIGHT_V1))
                 self.mode = "cgroup-v1"
             elif version == "v2":
@@ -81,7 +85,7 @@ class CpuGroups:
                     d = self.root / f"{PREFIX}{self.run_id}-{comp}"
                     d.mkdir()
                     self.dirs[comp] = d
-                    (d / "cpu.max").write_text(f"{_quota_us(cores) if capped else 'max'} {PERIOD_US}")
+                    (d / "cpu.max").write_text(f"{self._quota(comp) if capped else 'max'} {self.group_period_us(comp)}")
                     (d / "cpu.weight").write_text(str(WEIGHT_V2))
                 self.mode = "cgroup-v2"
             else:
@@ -108,12 +112,25 @@ class CpuGroups:
                 raise OSError(f"cannot move a process into {self.dirs[comp]}: {done.stderr.strip() or done.returncode}")
 
     def apply(self) -> None:
-        """Set every group's CPU quota (the nodes start uncapped: rospy's imports are slow)."""
+        """Set every group's CPU quota and period (the nodes start uncapped: rospy's imports
+        are slow); the period may have changed since :meth:`create` (the benchmarks')."""
         for comp, d in self.dirs.items():
-            if self.mode == "cgroup-v1":
-                (d / "cpu.cfs_quota_us").write_text(str(_quota_us(self.cores[comp])))
+            quota, period = self._quota(comp), self.group_period_us(comp)
+            if self.mode == "cgroup-v1":  # no quota while the period changes: quota/period is checked
+                (d / "cpu.cfs_quota_us").write_text("-1")
+                (d / "cpu.cfs_period_us").write_text(str(period))
+                (d / "cpu.cfs_quota_us").write_text(str(quota))
             elif self.mode == "cgroup-v2":
-                (d / "cpu.max").write_text(f"{_quota_us(self.cores[comp])} {PERIOD_US}")
+                (d / "cpu.max").write_text(f"{quota} {period}")
+
+    def group_period_us(self, computer: str) -> int:
+        """The CFS period of ``computer``'s group: :attr:`period_us`, made longer where the
+        quota would fall under the kernel's 1 ms minimum (a computer of less than
+        1 ms / period cores: e.g. under 0.2 cores at 5 ms), so the cap stays its size."""
+        return group_period_us(self.cores[computer], self.period_us)
+
+    def _quota(self, computer: str) -> int:
+        return _quota_us(self.cores[computer], self.group_period_us(computer))
 
     def procs_file(self, computer: str) -> Path | None:
         d = self.dirs.get(computer)
@@ -166,8 +183,16 @@ class CpuGroups:
         return left
 
 
-def _quota_us(cores: float) -> int:
-    return max(1000, int(round(cores * PERIOD_US)))
+def _quota_us(cores: float, period_us: int = PERIOD_US) -> int:
+    return max(MIN_QUOTA_US, int(round(cores * period_us)))
+
+
+def group_period_us(cores: float, period_us: int = PERIOD_US) -> int:
+    """The period for a group of ``cores``: ``period_us``, or the shortest that keeps its
+    quota at the kernel's minimum (:data:`MIN_QUOTA_US`), at most :data:`MAX_PERIOD_US`."""
+    if cores <= 0 or cores * period_us >= MIN_QUOTA_US:
+        return period_us
+    return min(MAX_PERIOD_US, math.ceil(MIN_QUOTA_US / cores))
 
 
 def leftover_groups(root: Path = CGROUP_ROOT, run_id: str | None = None) -> list[Path]:
@@ -191,20 +216,19 @@ def emulated_trace(raw: Path, dest: Path, where: dict[str, str], capacity: dict[
     ``cpu_percent / 100 * units_per_core`` CPU units, as it should. Rows of processes that
     are not plan nodes are dropped. The raw trace stays beside it (``run.host.cpu.csv``).
     """
-    from perfros_bag.cpu.trace import read_cpu_trace, write_cpu_trace
+    from perfros_bag.cpu.trace import has_threads, read_cpu_trace, trace_rows, write_cpu_trace
 
     tr = read_cpu_trace(raw)
     rows = []
-    for t, pid, label, proc, cpu, rss in zip(tr.time.tolist(), tr.pid.tolist(), tr.node, tr.process,
-                                             tr.cpu_percent.tolist(), tr.rss_bytes.tolist(), strict=True):
-        comp = where.get(label)
+    for row in trace_rows(tr):
+        comp = where.get(row[2])
         if comp is None:
             continue
-        rows.append((t, pid, label, proc, cpu * tr.logical_cpus * units_per_core / capacity[comp], rss))
+        rows.append((*row[:4], row[4] * tr.logical_cpus * units_per_core / capacity[comp], *row[5:]))
     write_cpu_trace(dest, rows, host=f"{tr.host or 'host'} (emulated computers: cpu_percent scaled by "
                     f"N*{units_per_core:g}/capacity; raw psutil trace: {raw.name})",
                     logical_cpus=tr.logical_cpus, interval_s=tr.interval_s or 0.5,
-                    speed_factor=tr.speed_factor, reference_s=tr.reference_s)
+                    speed_factor=tr.speed_factor, reference_s=tr.reference_s, threads=has_threads(tr))
 
 
 def computer_cores(plan: Plan, units_per_core: float,

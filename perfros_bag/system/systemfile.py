@@ -50,12 +50,14 @@ LINK_KEYS = {"between", "bandwidth_kBps", "medium"}
 MEDIUM_KEYS = {"name", "bandwidth_kBps"}
 NODE_KEYS = {
     "name", "weight", "residence", "coresidence", "parameter", "topics", "process",
-    "settings", "curve", "launch", "relations", "metric", "input", "cpu_error_between",
+    "settings", "curve", "launch", "relations", "metric", "input", "cpu_error_between", "threads",
 }
 METRIC_KEYS = {"topic", "field", "aggregate", "better", "range"}
 #: ``cpu_error`` (optional, CPU units >= 0): what the setting may need beyond its ``cpu``
 #: (measured headroom, perfros_bag.system.cpuerror; ``fit`` writes it)
-SETTING_KEYS = {"value", "cpu", "performance", "frequency_hz", "bandwidth_kBps", "topics", "cpu_error"}
+#: ``threads`` (optional, >= 1, on a node or a setting): its busy threads, its weight in the
+#: CFS share of an overloaded computer (perfros_bag.system.cpushare; ``fit`` writes the node's)
+SETTING_KEYS = {"value", "cpu", "performance", "frequency_hz", "bandwidth_kBps", "topics", "cpu_error", "threads"}
 #: a driven node's setting (``input:``) also says how it follows its input rate, and its
 #: error as a share of its CPU (``cpu_error_share``, >= 0) instead of ``cpu_error``
 DRIVEN_KEYS = {"cpu_per_hz", "out_per_in", "max_frequency_hz", "bytes_per_msg", "cpu_error_share"}
@@ -416,9 +418,18 @@ def _nodes(ctx: _Ctx, raw: Any, computers: set[str]) -> list[Node]:
         between = ctx.opt_number(m.get("cpu_error_between"), f"{where}: cpu_error_between", nonneg=True)
         if between is not None and curve is None:
             raise ctx.fail(f"{where}: cpu_error_between", "only a node with a curve has CPU levels between its settings")
+        threads = _threads(ctx, m.get("threads"), f"{where}: threads")
         out.append(Node(name, weight, settings, curve, residence, coresidence, parameter,
-                        topics, process, launch, relations, metric, driven_by, between))
+                        topics, process, launch, relations, metric, driven_by, between, threads))
     return out
+
+
+def _threads(ctx: _Ctx, raw: Any, where: str) -> float | None:
+    """An optional busy-thread count: a number >= 1."""
+    value = ctx.opt_number(raw, where, positive=True)
+    if value is not None and value < 1:
+        raise ctx.fail(where, f"must be >= 1 (busy threads), got {raw!r}")
+    return value
 
 
 def _metric(ctx: _Ctx, raw: Any, where: str) -> Metric:
@@ -478,6 +489,7 @@ def _setting(ctx: _Ctx, raw: Any, where: str, *, driven: bool = False) -> Settin
         bytes_per_msg=ctx.opt_number(m.get("bytes_per_msg"), f"{where}.bytes_per_msg", nonneg=True),
         cpu_error=ctx.opt_number(m.get("cpu_error"), f"{where}.cpu_error", nonneg=True),
         cpu_error_share=ctx.opt_number(m.get("cpu_error_share"), f"{where}.cpu_error_share", nonneg=True),
+        threads=_threads(ctx, m.get("threads"), f"{where}.threads"),
     )
 
 

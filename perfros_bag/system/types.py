@@ -180,6 +180,7 @@ class Setting:
     # a driven node's as a share of its CPU at any input rate
     cpu_error: float | None = None
     cpu_error_share: float | None = None  # driven only
+    threads: float | None = None  # busy threads at this setting (None: the node's)
 
 
 def driven_rates(setting: Setting, input_hz: float) -> tuple[float, float, float]:
@@ -331,6 +332,15 @@ class Node:
     #: a curve node: CPU units a level between its settings carries beyond their interpolated
     #: errors (perfros_bag.system.cpuerror; ``fit``: the parameter->cpu fit's leave-one-out RMSE)
     cpu_error_between: float | None = None
+    #: its busy threads (system.yaml ``threads``; ``fit`` measures them): its weight in the CFS
+    #: share of an overloaded computer (perfros_bag.system.cpushare); None: one
+    threads: float | None = None
+
+    def threads_at(self, value: float | None) -> float:
+        """Busy threads at the setting of ``value`` (that setting's, else the node's, else 1)."""
+        j = self.setting_index(value)
+        at = self.settings[j].threads if j is not None else None
+        return at if at is not None else (self.threads if self.threads is not None else 1.0)
 
     @property
     def driven(self) -> bool:
