@@ -129,6 +129,12 @@ class CpuGroups:
         1 ms / period cores: e.g. under 0.2 cores at 5 ms), so the cap stays its size."""
         return group_period_us(self.cores[computer], self.period_us)
 
+    def cap_record(self) -> dict[str, object]:
+        """What deploy.json's ``cpu_cap`` states of the CFS bandwidth: ``period_us`` (the
+        default period) and ``periods_us`` (each computer's group: longer where its quota
+        would fall under 1 ms)."""
+        return {"period_us": self.period_us, "periods_us": {c: self.group_period_us(c) for c in self.cores}}
+
     def _quota(self, computer: str) -> int:
         return _quota_us(self.cores[computer], self.group_period_us(computer))
 
