@@ -3,6 +3,14 @@
 A computer of capacity R CPU units gets ``R / units_per_core`` cores of CPU time
 (CFS bandwidth: ``cpu.cfs_quota_us`` on cgroup v1, ``cpu.max`` on cgroup v2) and a large
 CPU weight, so the emulated computers are not starved by unrelated load on the host.
+
+The bandwidth period is :data:`PERIOD_US`, 10 ms (v1 and v2 alike). A group that spends its
+quota waits for the next period: with the kernel's default 100 ms a light node on a busy
+computer was stalled up to 100 ms at a time (p95 of 94-140 ms where its p50 was 20 ms), fast
+between stalls, which no real computer of that size does. At 10 ms a message is served at
+about the computer's speed (its CPU per message / its cores), as a smaller computer would
+serve it; 5 ms is no better on this kernel (its bandwidth slice is 5 ms) and throttles twice
+as often. Measured: docs/benchmarks.md, "CFS period" (tests/bench/bench_cfs_period.py).
 A process joins its computer's group before it execs (see :meth:`CpuGroups.wrap`), so
 its whole life is capped.
 
@@ -30,7 +38,7 @@ if TYPE_CHECKING:
 
 CGROUP_ROOT = Path(os.environ.get("PERFROS_CGROUP_ROOT", "/sys/fs/cgroup"))
 PREFIX = "perfros-"
-PERIOD_US = 100_000
+PERIOD_US = 10_000  # the CFS bandwidth period (was 100_000 before issue 29: see the module's docstring)
 MIN_QUOTA_US = 1000  # the kernel's smallest CFS quota (v1 and v2)
 MAX_PERIOD_US = 1_000_000  # the kernel's longest CFS period
 WEIGHT_V1 = 10240  # cpu.shares (default 1024)
