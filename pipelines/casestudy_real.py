@@ -743,12 +743,13 @@ def latency_summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
                   "error_ms_small": sum(small) / len(small) if small else None, "n_small": len(small)}
     held = total = 0
     for r in rows:
-        budgets = [(r.get(f"{q}_ms"), r.get(f"budget_{q}_ms")) for q in ("p50", "p95")]
-        budgets = [(m, b) for m, b in budgets if b is not None]
-        if not budgets or any(m is None for m, _ in budgets):
+        pairs = [(r.get(f"{q}_ms"), r.get(f"budget_{q}_ms")) for q in ("p50", "p95")]
+        budgets = [(m, float(b)) for m, b in pairs if b is not None]
+        measured = [(float(m), b) for m, b in budgets if m is not None]
+        if not budgets or len(measured) < len(budgets):
             continue
         total += 1
-        held += all(m <= BUDGET_SLACK * b for m, b in budgets)
+        held += all(m <= BUDGET_SLACK * b for m, b in measured)
     return {**out, "chain_deployments": len(counted), "budgets_held": held, "budgets": total}
 
 

@@ -22,7 +22,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from perfros_bag.cpu.record import busy_threads
-from perfros_bag.cpu.trace import has_threads, node_cpu, parse_cpu_trace, read_cpu_trace, write_cpu_trace
+from perfros_bag.cpu.trace import (
+    has_threads,
+    node_cpu,
+    parse_cpu_trace,
+    read_cpu_trace,
+    write_cpu_trace,
+)
 from perfros_bag.errors import InputError
 from perfros_bag.system.systemfile import parse_system
 
@@ -192,7 +198,11 @@ def test_fit_writes_each_nodes_mean_busy_threads(tmp_path: Path) -> None:
     """Characterisation rows with ``threads`` (two topics of one recording: counted once):
     the model's system part gets the mean over the recordings, rounded to 0.01, at least 1;
     a node without the column gets none."""
-    from perfros_bag.characterisation.csvfile import Row, read_characterisation, write_characterisation
+    from perfros_bag.characterisation.csvfile import (
+        Row,
+        read_characterisation,
+        write_characterisation,
+    )
     from perfros_bag.fitting.build import build_model
     from perfros_bag.fitting.modelfile import write_model
 

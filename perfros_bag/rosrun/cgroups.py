@@ -77,7 +77,7 @@ class CpuGroups:
         try:
             if version == "v1":
                 base = self.root / "cpu"
-                for comp, cores in self.cores.items():
+                for comp in self.cores:
                     d = base / f"{PREFIX}{self.run_id}-{comp}"
                     d.mkdir()
                     self.dirs[comp] = d
@@ -89,7 +89,7 @@ class CpuGroups:
                 ctl = self.root / "cgroup.subtree_control"
                 if "cpu" not in ctl.read_text().split():
                     ctl.write_text("+cpu")
-                for comp, cores in self.cores.items():
+                for comp in self.cores:
                     d = self.root / f"{PREFIX}{self.run_id}-{comp}"
                     d.mkdir()
                     self.dirs[comp] = d

@@ -82,7 +82,12 @@ def measure(periods_ms: list[float], repeats: int = 2, window: float = 10.0, cap
     """Run the bench; the result document (see the module's docstring)."""
     from perfros_bag.rosrun.cgroups import CpuGroups, cgroup_version, leftover_groups
     from perfros_bag.rosrun.master import start_roscore
-    from perfros_bag.rosrun.processes import Processes, leftover_processes, ros_env, sigterm_as_interrupt
+    from perfros_bag.rosrun.processes import (
+        Processes,
+        leftover_processes,
+        ros_env,
+        sigterm_as_interrupt,
+    )
 
     if os.geteuid() != 0 or cgroup_version() == "none":
         raise SystemExit("bench_cfs_period: needs root and a cgroup cpu controller (v1 or v2)")
