@@ -202,6 +202,9 @@ def test_the_fit_recovers_overhead_scale_and_p95_ratio_from_sweep_rows() -> None
         rows.append(_row(rec, "camera", "/camera/image_raw", 5, rate, 0.0005, 0.001))
         rows.append(_row(rec, "detector", "/detector/found", cpu, rate,
                          overhead + scale * s, overhead + ratio * scale * s, input_hz=rate))
+    # a run whose detector fell behind (4 of 10 frames): the sweep machine's contention, not fitted
+    rows.append(_row("behind", "camera", "/camera/image_raw", 5, 10, 0.0005, 0.001))
+    rows.append(_row("behind", "detector", "/detector/found", 8.5, 4.0, 0.48, 0.75, input_hz=10))
     fit = fit_latency(rows, system)
     assert fit.params.overhead_ms == pytest.approx(1000 * overhead, rel=1e-6)
     assert fit.params.service_scale["detector"] == pytest.approx(scale, rel=1e-6)

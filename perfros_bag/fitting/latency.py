@@ -7,7 +7,9 @@ when ``a``'s publisher is a source: the chain starts at its stamp). The sweep ru
 on this machine, uncapped, without links, so the model's hop there is
 ``overhead + scale_n x g`` with ``g = S + W50`` at ``S = w / units_per_core`` (one core: the
 node is not capped) and its M/D/1 wait at ``rho = lam x w / units_per_core``
-(:mod:`perfros_bag.system.latency`). Least squares over every (node, run) gives the one
+(:mod:`perfros_bag.system.latency`). A run where the node fell behind its input (published
+less than 90 % of what its input asked) is left out: its delay is the sweep machine's
+contention, bounded by the queue. Least squares over every (node, run) gives the one
 ``overhead_ms`` (>= 0) and each node's ``service_scale`` (> 0); each node's ``p95_ratio`` is the
 median over its runs of what its measured p95 leaves for ``ratio x S``, at least 1. The
 in-sample error (mean |predicted - measured| / measured, p50 and p95) is written beside them
@@ -87,6 +89,8 @@ def hop_samples(rows: Sequence[Row], system: System, units_per_core: float) -> l
             lam = rb.input_hz or (ra.frequency_hz if ra is not None else None)
             if not lam or rb.cpu_units_mean is None or lam <= 0:
                 continue
+            if _fell_behind(system, name, rb, lam):
+                continue
             w = rb.cpu_units_mean / lam
             s = w / units_per_core
             p50 = (rb.latency_p50_s or 0.0) - base50
@@ -96,6 +100,24 @@ def hop_samples(rows: Sequence[Row], system: System, units_per_core: float) -> l
             if all((o.node, o.recording) != (name, rec) for o in out):  # its first stamped output
                 out.append(HopSample(name, rec, s, lam * s, p50, p95))
     return out
+
+
+#: a run whose node published less than this share of what its input asks is left out
+KEPT_SHARE = 0.9
+
+
+def _fell_behind(system: System, name: str, row: Row, lam: float) -> bool:
+    """Did the node fall behind its input in this run (its output below ``KEPT_SHARE`` of
+    ``out_per_in x lam`` at its setting)? Its latency then measures the sweep machine's
+    contention, bounded by the queue, not the node: such runs are not fitted."""
+    node = system.node[name]
+    j = node.setting_index(row.value if isinstance(row.value, int | float) else None)
+    setting = node.settings[j] if j is not None else None
+    ratio = 1.0 if setting is None or setting.out_per_in is None else setting.out_per_in
+    want = ratio * lam
+    if setting is not None and setting.max_frequency_hz is not None:
+        want = min(want, setting.max_frequency_hz)
+    return row.frequency_hz is not None and row.frequency_hz < KEPT_SHARE * want
 
 
 def _g50(smp: HopSample, params: LatencyParams) -> float:
