@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import math
 import statistics
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -203,12 +203,3 @@ def params_json(params: LatencyParams) -> dict[str, Any]:
             "node_p95_ratio": {n: round(v, 6) for n, v in sorted(params.node_p95_ratio.items())},
             "source": params.source}
 
-
-def calibrated(params: LatencyParams, ratios: Mapping[str, float]) -> LatencyParams:
-    """``params`` with each node's service scale multiplied by its measured / predicted
-    service ratio (``tune``: a deployment's hops measured beside their prediction)."""
-    scale = dict(params.service_scale)
-    for n, r in ratios.items():
-        if r > 0 and math.isfinite(r):
-            scale[n] = scale.get(n, 1.0) * r
-    return replace(params, service_scale=scale, source="tune")
