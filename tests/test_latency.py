@@ -218,3 +218,24 @@ def test_a_hop_never_measured_is_a_warning_naming_the_chain() -> None:
     fit = fit_latency(rows, system)
     assert fit.samples == [] and len(fit.warnings) == 1
     assert "chain 'vision': no measured latency for its hop node(s) detector" in fit.warnings[0]
+
+
+def test_tune_refits_the_service_scale_from_a_deployment_beside_its_prediction(tmp_path: Path) -> None:
+    from perfros_bag.tune.loop import _recalibrate_latency
+
+    data = yaml.safe_load(SYSTEM)
+    data["latency"] = {"overhead_ms": 2.0, "service_scale": {"detector": 3.0}}
+    (tmp_path / "model-0.json").write_text(json.dumps({"format": "perfros-bag/model@1", "system": data}))
+    (tmp_path / "round-1").mkdir()
+    hop = {"from": "/camera/image_raw", "node": "detector", "to": "/detector/found", "computer": "server",
+           "predicted_ms": {"p50": 140.0, "p95": 200.0}, "service_ms": 50.0, "wait_ms": 8.0, "transfer_ms": 80.0}
+    (tmp_path / "round-1" / "plan.json").write_text(json.dumps({"chains": [{"name": "vision", "hops": [hop]}]}))
+    measured = {"name": "vision", "p50_s": 0.1, "hops": [{"from": "/camera/image_raw", "to": "/detector/found",
+                                                          "p50_s": 0.1}]}
+    (tmp_path / "round-1" / "validation.json").write_text(json.dumps({"chains": [measured]}))
+    doc_system = json.loads(json.dumps(data))
+    doc_system["latency"]["service_scale"] = {"detector": 2.5}  # this round's fit from the sweep
+    _recalibrate_latency(tmp_path, doc_system, [{"dir": "round-1", "model": "model-0.json"}])
+    # the node's part: 100 ms measured - 2 ms overhead - 80 ms transfer = 18 ms, over 58 ms predicted
+    assert doc_system["latency"]["service_scale"]["detector"] == pytest.approx(3.0 * 18 / 58, rel=1e-6)
+    assert doc_system["latency"]["source"] == "tune"
