@@ -229,13 +229,31 @@ def build_model(system_path: str | Path, characterisation_path: str | Path, *, c
             fits[node.name] = fits_n
     for name, threads in node_threads(table, system).items():
         raw_nodes[name]["threads"] = threads
+    latency_fit = _fit_latency(table, system, doc_system, warn)
     document = ModelDocument(sys_path, csv_path, doc_system,
                              {n: dict(fs) for n, fs in fits.items()},
-                             measured, warn.messages, cpu_statistic=cpu, driven=driven)
+                             measured, warn.messages, cpu_statistic=cpu, driven=driven, latency_fit=latency_fit)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", PerfrosWarning)
         final = parse_system(doc_system, sys_path)  # what solve will read: must load
     return ModelResult(document, fits, final, warn.messages)
+
+
+def _fit_latency(table: CharacterisationFile, system: System, doc_system: dict[str, Any],
+                 warn: _Warn) -> dict[str, Any] | None:
+    """The latency model's parameters fitted to the sweep's hop latencies into the model's
+    ``system.latency`` (perfros_bag.fitting.latency); its summary, or None when nothing was fitted."""
+    if not system.has_flow:
+        return None
+    from perfros_bag.fitting.latency import fit_latency, params_json
+
+    fitted = fit_latency(node_rows(table, system), system)
+    for w in fitted.warnings:
+        warn(f"{table.path}: {w}")
+    if not fitted.samples:
+        return None
+    doc_system["latency"] = params_json(fitted.params)
+    return fitted.to_json()
 
 
 class _Valued(Protocol):

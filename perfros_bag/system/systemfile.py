@@ -29,10 +29,12 @@ from perfros_bag.system.types import (
     CURVE_FORMS,
     Aggregate,
     Better,
+    Budget,
     Chain,
     Computer,
     Curve,
     Edge,
+    LatencyParams,
     Link,
     Medium,
     Metric,
@@ -43,8 +45,12 @@ from perfros_bag.system.types import (
     TopicRate,
 )
 
-TOP_KEYS = {"cpu_unit", "computers", "links", "media", "nodes", "edges", "machines", "chains"}
-CHAIN_KEYS = {"name", "topics"}
+TOP_KEYS = {"cpu_unit", "computers", "links", "media", "nodes", "edges", "machines", "chains", "latency"}
+CHAIN_KEYS = {"name", "topics", "budget_ms"}
+BUDGET_KEYS = {"p50", "p95"}
+#: system.yaml ``latency:`` (the latency model's parameters, perfros_bag.system.latency)
+LATENCY_KEYS = {"units_per_core", "overhead_ms", "queue_factor", "p95_ratio", "queue_size", "link_efficiency",
+                "service_scale", "node_p95_ratio", "source"}
 COMPUTER_KEYS = {"name", "kind", "capacity", "max_capacity"}
 LINK_KEYS = {"between", "bandwidth_kBps", "medium"}
 MEDIUM_KEYS = {"name", "bandwidth_kBps"}
@@ -217,11 +223,60 @@ def parse_system(data: Any, source: str = "system.yaml") -> System:
         nodes = [_reweight(n, n.weight / total) for n in nodes]
 
     chains = _chains(ctx, top.get("chains"), nodes, edges)
+    latency = _latency(ctx, top.get("latency"), node_names)
     system = System(tuple(computers), tuple(nodes), tuple(links), tuple(media), tuple(edges),
-                    cpu_unit, machines, source, chains)
+                    cpu_unit, machines, source, chains, latency)
     _check_groups(ctx, system)
     _check_flow(ctx, system)
+    _check_budgets(ctx, system)
     return system
+
+
+def _check_budgets(ctx: _Ctx, system: System) -> None:
+    """A chain with a budget must be one the latency model can follow, hop by hop."""
+    from perfros_bag.system.latency import chain_hops
+
+    for chain in system.chains:
+        if chain.budget_ms is None:
+            continue
+        hops = chain_hops(system, chain)
+        if isinstance(hops, str):
+            raise ctx.fail(f"chain {chain.name!r}: budget_ms", f"its latency cannot be predicted: {hops}")
+
+
+def _latency(ctx: _Ctx, raw: Any, nodes: set[str]) -> LatencyParams:
+    """``latency: {units_per_core, overhead_ms, queue_factor, p95_ratio, queue_size,
+    link_efficiency, service_scale: {node: x}, node_p95_ratio: {node: x}, source}``, every
+    field optional (the defaults of :class:`LatencyParams`)."""
+    if raw is None:
+        return LatencyParams()
+    m = ctx.mapping(raw, "latency", LATENCY_KEYS)
+    base = LatencyParams()
+    kw: dict[str, Any] = {}
+    for key in ("units_per_core", "p95_ratio", "link_efficiency"):
+        if m.get(key) is not None:
+            kw[key] = ctx.number(m[key], f"latency.{key}", positive=True)
+    for key in ("overhead_ms", "queue_factor"):
+        if m.get(key) is not None:
+            kw[key] = ctx.number(m[key], f"latency.{key}", nonneg=True)
+    if kw.get("p95_ratio", base.p95_ratio) < 1:
+        raise ctx.fail("latency.p95_ratio", f"must be at least 1, got {kw['p95_ratio']:g}")
+    if kw.get("link_efficiency", base.link_efficiency) > 1:
+        raise ctx.fail("latency.link_efficiency", f"must be at most 1, got {kw['link_efficiency']:g}")
+    if m.get("queue_size") is not None:
+        q = ctx.number(m["queue_size"], "latency.queue_size", positive=True)
+        if q != int(q):
+            raise ctx.fail("latency.queue_size", f"must be a whole number of messages, got {q:g}")
+        kw["queue_size"] = int(q)
+    for key in ("service_scale", "node_p95_ratio"):
+        per = ctx.mapping(m.get(key) or {}, f"latency.{key}", nodes)
+        kw[key] = {str(n): ctx.number(v, f"latency.{key}.{n}", positive=True) for n, v in per.items()}
+        low = [n for n, v in kw[key].items() if key == "node_p95_ratio" and v < 1]
+        if low:
+            raise ctx.fail(f"latency.{key}.{low[0]}", "must be at least 1")
+    if m.get("source") is not None:
+        kw["source"] = ctx.string(m["source"], "latency.source")
+    return LatencyParams(**kw)
 
 
 def _check_flow(ctx: _Ctx, system: System) -> None:
@@ -523,8 +578,21 @@ def _chains(ctx: _Ctx, raw: Any, nodes: list[Node], edges: list[Edge]) -> tuple[
         for i, t in enumerate(topics):
             if t not in known:
                 raise ctx.fail(f"{where}: topics[{i}]", f"{t!r} is not a topic of any node or edge of the system")
-        out.append(Chain(name, topics))
+        out.append(Chain(name, topics, _budget(ctx, m.get("budget_ms"), f"{where}: budget_ms")))
     return tuple(out)
+
+
+def _budget(ctx: _Ctx, raw: Any, where: str) -> Budget | None:
+    """``budget_ms: {p50: X, p95: Y}`` (either or both): positive, finite milliseconds."""
+    if raw is None:
+        return None
+    m = ctx.mapping(raw, where, BUDGET_KEYS)
+    bounds = {k: ctx.number(m[k], f"{where}.{k}", positive=True) for k in ("p50", "p95") if m.get(k) is not None}
+    if not bounds:
+        raise ctx.fail(where, "give p50, p95 or both (milliseconds)")
+    if "p50" in bounds and "p95" in bounds and bounds["p95"] < bounds["p50"]:
+        raise ctx.fail(where, f"p95 {bounds['p95']:g} ms is below p50 {bounds['p50']:g} ms")
+    return Budget(bounds.get("p50"), bounds.get("p95"))
 
 
 def _machines(ctx: _Ctx, raw: Any, computers: set[str]) -> dict[str, dict[str, str]]:
