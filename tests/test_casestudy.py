@@ -137,6 +137,21 @@ def test_group_period_keeps_the_quota_at_the_kernels_minimum(cores: float, perio
     assert PERIOD_US == 10_000  # the default measured in docs/benchmarks.md, "CFS period"
 
 
+def test_period_from_the_environment(monkeypatch: pytest.MonkeyPatch) -> None:
+    from perfros_bag.errors import InputError
+    from perfros_bag.rosrun.cgroups import PERIOD_ENV
+
+    monkeypatch.delenv(PERIOD_ENV, raising=False)
+    assert CpuGroups("t", {"r": 0.5}).period_us == PERIOD_US
+    monkeypatch.setenv(PERIOD_ENV, "100000")
+    groups = CpuGroups("t", {"r": 0.5})
+    assert groups.period_us == 100_000 and groups.cap_record()["periods_us"] == {"r": 100_000}
+    for bad in ("10ms", "999", "2000000"):
+        monkeypatch.setenv(PERIOD_ENV, bad)
+        with pytest.raises(InputError, match=PERIOD_ENV):
+            CpuGroups("t", {"r": 0.5})
+
+
 def test_emulated_trace_keeps_the_busy_threads(tmp_path: Path) -> None:
     raw = tmp_path / "run.host.cpu.csv"
     rows = [(100.0 + k, 11, "model1", "python3", 10.0, 0, 1.0 + k) for k in range(3)]

@@ -10,7 +10,10 @@ computer was stalled up to 100 ms at a time (p95 of 94-140 ms where its p50 was 
 between stalls, which no real computer of that size does. At 10 ms a message is served at
 about the computer's speed (its CPU per message / its cores), as a smaller computer would
 serve it; 5 ms is no better on this kernel (its bandwidth slice is 5 ms) and throttles twice
-as often. Measured: docs/benchmarks.md, "CFS period" (tests/bench/bench_cfs_period.py).
+as often. Measured: docs/benchmarks.md, "CFS period" (tests/bench/bench_cfs_period.py), which
+also states the risk: on a machine loaded by other work, a group with little headroom lost
+more frames at 10 ms than at 100 ms. ``PERFROS_CFS_PERIOD_US`` (:data:`PERIOD_ENV`) sets
+another period for a run.
 A process joins its computer's group before it execs (see :meth:`CpuGroups.wrap`), so
 its whole life is capped.
 
@@ -39,6 +42,9 @@ if TYPE_CHECKING:
 CGROUP_ROOT = Path(os.environ.get("PERFROS_CGROUP_ROOT", "/sys/fs/cgroup"))
 PREFIX = "perfros-"
 PERIOD_US = 10_000  # the CFS bandwidth period (was 100_000 before issue 29: see the module's docstring)
+#: environment variable overriding :data:`PERIOD_US` for a run (µs, 1000-1000000), e.g. 100000
+#: to emulate as before issue 29
+PERIOD_ENV = "PERFROS_CFS_PERIOD_US"
 MIN_QUOTA_US = 1000  # the kernel's smallest CFS quota (v1 and v2)
 MAX_PERIOD_US = 1_000_000  # the kernel's longest CFS period
 WEIGHT_V1 = 10240  # cpu.shares (default 1024)
@@ -61,7 +67,8 @@ class CpuGroups:
     run_id: str
     cores: dict[str, float]  # computer -> cores of CPU time
     root: Path = CGROUP_ROOT
-    period_us: int = PERIOD_US  # the CFS bandwidth period (quota = cores x period)
+    period_us: int = field(default_factory=lambda: default_period_us())  # the CFS period (quota = cores x period)
+    burst: float = 0.0  # CFS burst as a share of the quota (0-1; kernels >= 5.14), 0: none
     mode: str = "uncapped"  # "cgroup-v1" | "cgroup-v2" | "uncapped"
     reason: str = ""
     dirs: dict[str, Path] = field(default_factory=dict)
@@ -130,6 +137,15 @@ class CpuGroups:
                 (d / "cpu.cfs_quota_us").write_text(str(quota))
             elif self.mode == "cgroup-v2":
                 (d / "cpu.max").write_text(f"{quota} {period}")
+            burst = self._burst_file(d)
+            if burst is not None:  # at most the quota (the kernel's rule): written after it
+                burst.write_text(str(int(min(1.0, max(0.0, self.burst)) * quota)))
+
+    def _burst_file(self, d: Path) -> Path | None:
+        """The group's CFS burst file (``cpu.cfs_burst_us`` v1, ``cpu.max.burst`` v2), None
+        where the kernel has none."""
+        f = d / ("cpu.cfs_burst_us" if self.mode == "cgroup-v1" else "cpu.max.burst")
+        return f if self.mode != "uncapped" and f.exists() else None
 
     def group_period_us(self, computer: str) -> int:
         """The CFS period of ``computer``'s group: :attr:`period_us`, made longer where the
@@ -141,7 +157,8 @@ class CpuGroups:
         """What deploy.json's ``cpu_cap`` states of the CFS bandwidth: ``period_us`` (the
         default period) and ``periods_us`` (each computer's group: longer where its quota
         would fall under 1 ms)."""
-        return {"period_us": self.period_us, "periods_us": {c: self.group_period_us(c) for c in self.cores}}
+        return {"period_us": self.period_us, "periods_us": {c: self.group_period_us(c) for c in self.cores},
+                "burst": self.burst}
 
     def _quota(self, computer: str) -> int:
         return _quota_us(self.cores[computer], self.group_period_us(computer))
@@ -195,6 +212,20 @@ class CpuGroups:
             if d not in left:
                 del self.dirs[comp]
         return left
+
+
+def default_period_us() -> int:
+    """:data:`PERIOD_US`, or :data:`PERIOD_ENV`'s value when set (a bad one is an InputError)."""
+    raw = os.environ.get(PERIOD_ENV, "").strip()
+    if not raw:
+        return PERIOD_US
+    try:
+        value = int(raw)
+    except ValueError:
+        raise InputError(None, f"{PERIOD_ENV}={raw!r} is not a whole number of microseconds") from None
+    if not MIN_QUOTA_US <= value <= MAX_PERIOD_US:
+        raise InputError(None, f"{PERIOD_ENV}={value} must be {MIN_QUOTA_US}-{MAX_PERIOD_US} µs (the kernel's range)")
+    return value
 
 
 def _quota_us(cores: float, period_us: int = PERIOD_US) -> int:

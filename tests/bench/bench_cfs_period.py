@@ -15,7 +15,7 @@ its output messages over the camera's in the bag. An uncapped window first is th
 
     .venv/bin/python tests/bench/bench_cfs_period.py [--out FILE.json] [--window 10]
         [--periods 100,10,5] [--repeats 2] [--cap 1.5] [--scale0 1.05] [--kernel 15]
-        [--robot people,smooth]
+        [--robot people,smooth] [--burst 1.0] [--pin]
 
 Prints a table and the load average; ``--out`` writes the JSON. Everything it starts carries
 a run tag and is stopped, and its cgroup removed, on exit, Ctrl-C, SIGTERM or an error (the
@@ -76,9 +76,31 @@ def _window(procs: Any, tmp: Path, tag: str, seconds: float, groups: Any, measur
     return out
 
 
+def _pin(pids: list[int], cpus: list[int]) -> None:
+    """Every thread of ``pids`` (and their children) onto ``cpus``."""
+    import psutil
+
+    for pid in pids:
+        try:
+            procs = [psutil.Process(pid), *psutil.Process(pid).children(recursive=True)]
+        except psutil.Error:
+            continue
+        for proc in procs:
+            try:
+                tids = os.listdir(f"/proc/{proc.pid}/task")
+            except OSError:
+                continue
+            for tid in tids:
+                try:
+                    os.sched_setaffinity(int(tid), cpus)
+                except OSError:
+                    pass
+
+
 def measure(periods_ms: list[float], repeats: int = 2, window: float = 10.0, cap: float = 1.5,
             scale0: float = 1.05, kernel: int = 15, settle: float = 2.0, warmup: float = 6.0,
-            log: Any = print, measured: tuple[str, ...] = MEASURED) -> dict[str, Any]:
+            log: Any = print, measured: tuple[str, ...] = MEASURED, burst: float = 0.0,
+            pin: bool = False) -> dict[str, Any]:
     """Run the bench; the result document (see the module's docstring)."""
     from perfros_bag.rosrun.cgroups import CpuGroups, cgroup_version, leftover_groups
     from perfros_bag.rosrun.master import start_roscore
@@ -126,16 +148,23 @@ def measure(periods_ms: list[float], repeats: int = 2, window: float = 10.0, cap
             rows.append({"option": "uncapped", "period_ms": None, "repeat": 1, "quota_cores": None, **base})
             log(f"uncapped: need {100 * need:.1f} % of a core; " + _line(base))
             groups.cores[ROBOT] = cap * need
+            options = [(p, 0.0, False) for p in periods_ms]
+            options += [(p, burst, False) for p in periods_ms if burst > 0 and p < 100]
+            options += [(p, 0.0, True) for p in periods_ms if pin and p < 100]
+            every = sorted(os.sched_getaffinity(0))
             for r in range(1, repeats + 1):
-                for p in periods_ms:
-                    groups.period_us = int(round(p * 1000))
+                for p, b, pinned in options:
+                    groups.period_us, groups.burst = int(round(p * 1000)), b
                     groups.apply()
+                    _pin(pids, every[-1:] if pinned else every)
                     time.sleep(settle)
-                    w = _window(procs, tmp, f"p{p:g}r{r}", window, groups, measured)
-                    rows.append({"option": f"CFS period {p:g} ms", "period_ms": p, "repeat": r,
+                    name = (f"CFS period {p:g} ms" + (f" + burst {b:g}x quota" if b else "")
+                            + (" + pinned to 1 CPU" if pinned else ""))
+                    w = _window(procs, tmp, f"p{p:g}b{b:g}r{r}", window, groups, measured)
+                    rows.append({"option": name, "period_ms": p, "burst": b, "pinned": pinned, "repeat": r,
                                  "quota_cores": round(groups.cores[ROBOT], 4),
                                  "period_us": groups.group_period_us(ROBOT), **w})
-                    log(f"period {p:g} ms (repeat {r}): " + _line(w))
+                    log(f"{name} (repeat {r}): " + _line(w))
     finally:
         procs.stop()
         procs.kill_leftovers()
@@ -187,6 +216,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scale0", type=float, default=1.05)
     ap.add_argument("--kernel", type=int, default=15)
     ap.add_argument("--robot", default=",".join(MEASURED), help="the nodes on the robot beside the camera")
+    ap.add_argument("--pin", action="store_true", help="also each period under 100 ms with the robot pinned to one CPU")
+    ap.add_argument("--burst", type=float, default=0.0,
+                    help="also each period under 100 ms with this CFS burst (share of the quota, 0-1)")
     args, _unknown = ap.parse_known_args(argv)  # tests/bench/run.py passes its own arguments to all
     periods = [float(p) for p in args.periods.split(",") if p.strip()]
     if not periods or any(not (1 <= p <= 1000) for p in periods) or args.repeats < 1:
@@ -196,7 +228,8 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f"--robot: some of {', '.join(MEASURED)}")
     try:
         doc = measure(periods, args.repeats, args.window, args.cap, args.scale0, args.kernel,
-                      log=lambda s: print(s, flush=True), measured=robot)
+                      log=lambda s: print(s, flush=True), measured=robot, burst=args.burst,
+                      pin=args.pin)
     except KeyboardInterrupt:
         print("interrupted: everything the bench started is stopped", file=sys.stderr)
         return 130
