@@ -28,9 +28,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-import tempfile
 import time
-import uuid
 from pathlib import Path
 from typing import Any
 
@@ -38,7 +36,7 @@ ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench_cgroup_fairness import INPUT, NODES, RATE_HZ, _cpu_s  # noqa: E402  (the same nodes)
+from bench_cgroup_fairness import INPUT, NODES, RATE_HZ, _cpu_s, bench_run  # noqa: E402  (the same nodes)
 
 ROBOT = "robot"
 MEASURED = ("people", "smooth")  # the nodes on the robot by default: their latency and kept rate are measured
@@ -102,85 +100,52 @@ def measure(periods_ms: list[float], repeats: int = 2, window: float = 10.0, cap
             log: Any = print, measured: tuple[str, ...] = MEASURED, burst: float = 0.0,
             pin: bool = False) -> dict[str, Any]:
     """Run the bench; the result document (see the module's docstring)."""
-    from perfros_bag.rosrun.cgroups import CpuGroups, cgroup_version, leftover_groups
     from perfros_bag.rosrun.master import start_roscore
-    from perfros_bag.rosrun.processes import (
-        Processes,
-        leftover_processes,
-        ros_env,
-        sigterm_as_interrupt,
-    )
 
-    if os.geteuid() != 0 or cgroup_version() == "none":
-        raise SystemExit("bench_cfs_period: needs root and a cgroup cpu controller (v1 or v2)")
-    run_id = f"period{uuid.uuid4().hex[:8]}"
-    tmp = Path(tempfile.mkdtemp(prefix="bench-period-"))
-    sys.path.insert(0, str(ROOT / "pipelines"))
-    from casestudy_real import draw_scene  # the case study's own 320x240 scene
-
-    scene = tmp / "scene.png"
-    draw_scene(scene)
-    (tmp / "ros").mkdir()
-    procs = Processes(run_id, ros_env(run_id, tmp / "ros"))
-    groups = CpuGroups(run_id, {ROBOT: 1.0})
     rows: list[dict[str, Any]] = []
     started = time.monotonic()
     load_before = os.getloadavg()
     need = 0.0
-    try:
-        with sigterm_as_interrupt():
-            groups.create(capped=False)
-            if not groups.capped:
-                raise SystemExit(f"bench_cfs_period: no cgroups ({groups.reason})")
-            uri = start_roscore(procs, tmp, 30.0)
-            log(f"roscore at {uri}; run tag {run_id}")
-            opts = {"scale0": f"{scale0:g}", "kernel": str(kernel)}
-            pids = []
-            for key in ("camera", *measured):
-                name, exe, extra, _topic = NODES[key]
-                argv = ([exe, str(scene), f"_publish_rate:={RATE_HZ:g}", f"__name:={name}"] if key == "camera"
-                        else [exe, *(a % opts for a in extra), f"__name:={name}"])
-                pids.append(procs.start(key, groups.wrap(ROBOT, argv), tmp / f"{key}.log").popen.pid)
-            time.sleep(warmup)
-            cpu0, t0 = sum(_cpu_s(p) for p in pids), time.monotonic()
-            base = _window(procs, tmp, "uncapped", window, groups, measured)
-            need = (sum(_cpu_s(p) for p in pids) - cpu0) / (time.monotonic() - t0)
-            rows.append({"option": "uncapped", "period_ms": None, "repeat": 1, "quota_cores": None, **base})
-            log(f"uncapped: need {100 * need:.1f} % of a core; " + _line(base))
-            groups.cores[ROBOT] = cap * need
-            options = [(p, 0.0, False) for p in periods_ms]
-            options += [(p, burst, False) for p in periods_ms if burst > 0 and p < 100]
-            options += [(p, 0.0, True) for p in periods_ms if pin and p < 100]
-            every = sorted(os.sched_getaffinity(0))
-            for r in range(1, repeats + 1):
-                for p, b, pinned in options:
-                    groups.period_us, groups.burst = int(round(p * 1000)), b
-                    groups.apply()
-                    _pin(pids, every[-1:] if pinned else every)
-                    time.sleep(settle)
-                    name = (f"CFS period {p:g} ms" + (f" + burst {b:g}x quota" if b else "")
-                            + (" + pinned to 1 CPU" if pinned else ""))
-                    w = _window(procs, tmp, f"p{p:g}b{b:g}r{r}", window, groups, measured)
-                    rows.append({"option": name, "period_ms": p, "burst": b, "pinned": pinned, "repeat": r,
-                                 "quota_cores": round(groups.cores[ROBOT], 4),
-                                 "period_us": groups.group_period_us(ROBOT), **w})
-                    log(f"{name} (repeat {r}): " + _line(w))
-    finally:
-        procs.stop()
-        procs.kill_leftovers()
-        left_groups = groups.remove()
-        import shutil
-
-        shutil.rmtree(tmp, ignore_errors=True)
-    deadline = time.monotonic() + 5
-    while leftover_processes(run_id) and time.monotonic() < deadline:
-        time.sleep(0.2)
+    with bench_run("bench_cfs_period", "period", {ROBOT: 1.0}) as run:
+        procs, groups, tmp, scene, run_id = run.procs, run.groups, run.tmp, run.scene, run.run_id
+        uri = start_roscore(procs, tmp, 30.0)
+        log(f"roscore at {uri}; run tag {run_id}")
+        opts = {"scale0": f"{scale0:g}", "kernel": str(kernel)}
+        pids = []
+        for key in ("camera", *measured):
+            name, exe, extra, _topic = NODES[key]
+            argv = ([exe, str(scene), f"_publish_rate:={RATE_HZ:g}", f"__name:={name}"] if key == "camera"
+                    else [exe, *(a % opts for a in extra), f"__name:={name}"])
+            pids.append(procs.start(key, groups.wrap(ROBOT, argv), tmp / f"{key}.log").popen.pid)
+        time.sleep(warmup)
+        cpu0, t0 = sum(_cpu_s(p) for p in pids), time.monotonic()
+        base = _window(procs, tmp, "uncapped", window, groups, measured)
+        need = (sum(_cpu_s(p) for p in pids) - cpu0) / (time.monotonic() - t0)
+        rows.append({"option": "uncapped", "period_ms": None, "repeat": 1, "quota_cores": None, **base})
+        log(f"uncapped: need {100 * need:.1f} % of a core; " + _line(base))
+        groups.cores[ROBOT] = cap * need
+        options = [(p, 0.0, False) for p in periods_ms]
+        options += [(p, burst, False) for p in periods_ms if burst > 0 and p < 100]
+        options += [(p, 0.0, True) for p in periods_ms if pin and p < 100]
+        every = sorted(os.sched_getaffinity(0))
+        for r in range(1, repeats + 1):
+            for p, b, pinned in options:
+                groups.period_us, groups.burst = int(round(p * 1000)), b
+                groups.apply()
+                _pin(pids, every[-1:] if pinned else every)
+                time.sleep(settle)
+                name = (f"CFS period {p:g} ms" + (f" + burst {b:g}x quota" if b else "")
+                        + (" + pinned to 1 CPU" if pinned else ""))
+                w = _window(procs, tmp, f"p{p:g}b{b:g}r{r}", window, groups, measured)
+                rows.append({"option": name, "period_ms": p, "burst": b, "pinned": pinned, "repeat": r,
+                             "quota_cores": round(groups.cores[ROBOT], 4),
+                             "period_us": groups.group_period_us(ROBOT), **w})
+                log(f"{name} (repeat {r}): " + _line(w))
     return {"format": "perfros-bag/bench-cfs-period@1", "run_id": run_id, "cgroups": groups.mode,
             "window_s": window, "cap": cap, "robot": ["camera", *measured], "need_cores": round(need, 4), "scale0": scale0, "kernel": kernel,
             "rate_hz": RATE_HZ, "wall_s": round(time.monotonic() - started, 1),
             "load_average": {"before": load_before, "after": os.getloadavg()}, "rows": rows,
-            "leftover_processes": leftover_processes(run_id),
-            "leftover_cgroups": [str(p) for p in left_groups + leftover_groups(run_id=run_id)]}
+            **run.leftovers()}
 
 
 def _line(w: dict[str, Any]) -> str:
