@@ -188,11 +188,13 @@ def kind(node: str) -> str:
 
 
 #: Latency budgets (system.yaml chains' ``budget_ms``), per chain kind, on the instances listed:
-#: camera -> people within a p95 the detector misses when its images cross a 3,000 kB/s link
-#: (a 230 kB frame alone takes 77 ms there, the issue's 145 ms p50 offloaded against 57 ms on
-#: the robot), so the budget keeps it on its robot where the unbudgeted plan offloads it;
-#: camera -> smooth is measured and predicted without a budget.
-PEOPLE_BUDGET_MS = {"p95": 120.0}
+#: camera -> people within a p95 that the unbudgeted plan's detector (scale0 1.05 at 10 Hz)
+#: misses. The latency model (docs/solvers.md, "Latency") predicted, on quiet-machine numbers
+#: and a 10 ms CFS period, 211-244 ms p95 for it offloaded to instance 1's server (its 230 kB
+#: frames cross a 3,000 kB/s link: 77 ms each) and 424 ms on its 0.25-core robot; scale0 1.4
+#: on the robot 157 ms. So 200 ms binds (the plan must change the detector's setting or
+#: place) and lighter plans meet it. camera -> smooth is measured and predicted, unbudgeted.
+PEOPLE_BUDGET_MS = {"p95": 200.0}
 BUDGET_INSTANCES = (1, 3, 6)
 
 
@@ -207,6 +209,9 @@ def instance_chains(robots: int, draft: dict[str, Any], budgeted: bool,
         for what in ("people", "smooth"):
             node = base.get(what)
             if node is None or not node.get("input") or not node.get("topics"):
+                if k == 1:  # said once: a node init did not draft as driven has no stamp to follow
+                    err.print(f"[yellow]warning[/]: no chain camera -> {what}: the draft's robot1_{what} is not "
+                              "driven by the camera (init did not see its rate follow the camera's)")
                 continue
             topics = [str(t).replace("/robot1/", f"/robot{k}/") for t in (node["input"], node["topics"][0])]
             chain: dict[str, Any] = {"name": f"robot{k}_{what}", "topics": topics}
@@ -303,6 +308,9 @@ def fit_and_solve(out: Path, char_csv: Path, draft: dict[str, Any], numbers: lis
                 continue
             p = d / f"plan-{key}.json"
             # Problem 2: the smallest server for the settings of Problem 1's optimal plan
+            if problem == 2 and "p1-exact" not in plans[i]:
+                FAILED.append({"instance": i, "plan": key, "why": "no Problem 1 exact plan to take the settings from"})
+                continue
             given = ["--settings", plans[i]["p1-exact"]] if problem == 2 else []
             p.unlink(missing_ok=True)
             headroom = [] if key.endswith(NO_MARGIN) else ["--headroom", "auto"]
