@@ -36,7 +36,7 @@ VERBS: Mapping[str, Verb] = {
                 "performance per configurable node."),
     "info": Verb("perfros_bag.cli.info", "Per-topic table like `rosbag info` / `ros2 bag info`, with rates and "
                  "bandwidth."),
-    "record-cpu": Verb("perfros_bag.cli.record_cpu", "Sample CPU %, RSS and busy threads of matching processes until the "
+    "record-cpu": Verb("perfros_bag.cli.record_cpu", "Sample CPU % and RSS of matching processes until the "
                        "duration ends, Ctrl-C, or COMMAND exits."),
     "report": Verb("perfros_bag.cli.report", "Write an HTML report; anything not given is left out."),
     "solve": Verb("perfros_bag.cli.solve", "Choose a setting and a computer for every node (the paper's "

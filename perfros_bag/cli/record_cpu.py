@@ -22,7 +22,7 @@ def record_cpu_cmd(
     speed: bool = typer.Option(True, "--speed/--no-speed",
                                help="Measure the machine's speed first (~0.2 s of CPU): '# speed_factor=' in the trace."),
 ) -> None:
-    """Sample CPU %, RSS and busy threads of matching processes until the duration ends, Ctrl-C, or COMMAND exits."""
+    """Sample CPU % and RSS of matching processes until the duration ends, Ctrl-C, or COMMAND exits."""
     import time
 
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
