@@ -1,0 +1,199 @@
+"""Latency budgets in the solvers (system.yaml ``budget_ms``, docs/solvers.md "Latency budgets").
+
+Every method returns only plans whose predicted latency (:mod:`perfros_bag.system.latency`,
+the one rule) keeps every budgeted chain within its budget:
+
+- **exact**: lazy no-good cuts. The MILP is solved; when its optimum breaks a budget, a cut
+  removes every assignment that holds what made that prediction (:func:`cut_of`), and it is
+  solved again. The latency rule is monotone in the load it sees: more CPU planned beside a
+  hop node, or more traffic on a link or medium of a hop's route, never makes the hop faster.
+  So every assignment that contains the violating one's hop nodes, their inputs' publishers,
+  the nodes sharing their computers and the edges loading their routes (same choices, same
+  computers) breaks the budget too, and the cut removes only plans that break it. The last
+  solve is proven optimal over the plans that keep the budget (tests: equal to brute force).
+- **greedy, greedy+**: their plan, or, when it breaks a budget, the best re-placement of the
+  broken chains' hop nodes at the same settings (every computer they may use, at most
+  :data:`REPAIR_LIMIT` placements); none: no plan (infeasible, the reason names the chain).
+- **bruteforce**: every assignment is checked.
+
+A budget no plan can meet is one line naming the chain and a lower bound on its latency
+(:func:`impossible_budget`).
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+from perfros_bag.system.latency import budget_violation, chain_hops, fastest_bound, predict_chain
+from perfros_bag.system.plan import Assignment
+from perfros_bag.system.rules import computer_loads, server_sizes
+from perfros_bag.system.types import Chain, Choice, Problem, System
+
+#: greedy / greedy+'s repair tries at most this many placements of a chain's hop nodes
+REPAIR_LIMIT = 20_000
+#: the exact solver adds at most this many cuts
+MAX_CUTS = 2_000
+
+
+def budgeted(system: System) -> list[Chain]:
+    """The chains with a budget."""
+    return [c for c in system.chains if c.budget_ms is not None]
+
+
+def capacities_of(system: System, problem: Problem, assignment: Assignment) -> dict[str, float]:
+    """Each computer's CPU for the latency rule: its capacity, a Problem 2 server's sized one
+    (the assignment's, else its load)."""
+    out: dict[str, float] = {}
+    sized = server_sizes(system, assignment.placement, assignment.choice) if problem == Problem.SERVER_CAPACITY else {}
+    for c in system.computers:
+        if problem == Problem.SERVER_CAPACITY and c.kind == "server":
+            out[c.name] = assignment.capacities.get(c.name, sized.get(c.name, 0.0))
+        else:
+            out[c.name] = c.capacity if c.capacity is not None else math.inf
+    return out
+
+
+def violation(system: System, problem: Problem, assignment: Assignment) -> str | None:
+    """Why an assignment breaks a budget, or None."""
+    if not budgeted(system):
+        return None
+    return budget_violation(system, assignment.placement, assignment.choice, capacities_of(system, problem, assignment))
+
+
+def broken_chains(system: System, problem: Problem, assignment: Assignment) -> list[Chain]:
+    caps = capacities_of(system, problem, assignment)
+    loads = system.link_loads(assignment.placement, assignment.choice)
+    return [c for c in budgeted(system)
+            if predict_chain(system, c, assignment.placement, assignment.choice, caps, loads).over_budget()]
+
+
+@dataclass(frozen=True)
+class CutTerm:
+    """``node`` at choice ``choice`` (None: any choice) on ``computer``; ``negate``: the term
+    counts ``1 -`` that (the node is *not* there)."""
+
+    node: str
+    choice: Choice | None
+    computer: str
+    negate: bool = False
+
+
+def cut_of(system: System, problem: Problem, assignment: Assignment, chain: Chain) -> list[CutTerm]:
+    """The terms of a no-good cut ``sum(terms) <= len(terms) - 1`` removing ``assignment`` and
+    every assignment whose ``chain`` is at least as late by the rule's monotonicity (module
+    doc). Problem 2 sizes servers to their load, which is not monotone: there the hop
+    computers' exact membership is fixed in the cut."""
+    place, choice = assignment.placement, assignment.choice
+    hops = chain_hops(system, chain)
+    assert not isinstance(hops, str)
+    terms: dict[tuple[str, str, bool], CutTerm] = {}
+
+    def add(node: str, with_choice: bool = True) -> None:
+        terms[(node, place[node], False)] = CutTerm(node, choice[node] if with_choice else None, place[node])
+
+    comps: set[str] = set()
+    links: set[int] = set()
+    for hop in hops:
+        parent = system.publishers[hop.src][0]
+        add(hop.node)
+        add(parent)
+        comps.add(place[hop.node])
+        route = system.route(place[parent], place[hop.node]) or ()
+        links.update(route)
+    for n, c in place.items():
+        if c in comps:
+            add(n)
+    if problem == Problem.SERVER_CAPACITY:
+        for n in system.node:
+            for c in comps:
+                if place[n] != c and c in system.allowed(n):
+                    terms[(n, c, True)] = CutTerm(n, None, c, negate=True)
+    media = {system.links[li].medium for li in links if system.links[li].medium is not None}
+    links |= {li for m in media for li in system.medium_links[m or ""]}
+    for _, edge, crossed in system.edge_routes(place):
+        if crossed and links.intersection(crossed):
+            add(edge.src)
+            if (edge.dst, place[edge.dst], False) not in terms:
+                add(edge.dst, with_choice=False)
+    return list(terms.values())
+
+
+def impossible_budget(system: System, choices: Mapping[str, Sequence[Choice]], chain: Chain | None = None) -> str | None:
+    """A chain whose budget is below a lower bound of its latency over every plan (each hop at
+    its fastest choice, alone on the largest computer it may use, beside its input), named
+    with that bound; None when every budget may be met. ``chain``: only that one."""
+    for c in [chain] if chain is not None else budgeted(system):
+        if c is None or c.budget_ms is None:
+            continue
+        bound = fastest_bound(system, c, choices)
+        if bound is None:
+            continue
+        got = {"p50": bound[0], "p95": bound[1]}
+        for q, b in c.budget_ms.items():
+            if got[q] > b:
+                return (f"chain {c.name!r}: no plan keeps its predicted {q} within its budget of {b:g} ms: "
+                        f"the least any plan can reach is {got[q]:.4g} ms")
+    return None
+
+
+def no_plan_within(system: System, choices: Mapping[str, Sequence[Choice]], what: str) -> str:
+    """The reason of a solve that found no plan within the budgets: the first budgeted chain
+    with its lower bound."""
+    parts = []
+    for c in budgeted(system):
+        bound = fastest_bound(system, c, choices)
+        if bound is not None:
+            assert c.budget_ms is not None
+            parts.append(f"chain {c.name!r} (budget {', '.join(f'{q} {b:g} ms' for q, b in c.budget_ms.items())}; "
+                         f"no plan goes below p50 {bound[0]:.4g} / p95 {bound[1]:.4g} ms)")
+    return f"{what} keeps the latency budgets of " + "; ".join(parts)
+
+
+def repair(system: System, problem: Problem, assignment: Assignment, fits: object) -> Assignment | None:
+    """The best re-placement (same choices) of the broken chains' hop nodes that keeps every
+    budget and every constraint ``fits(assignment) -> bool`` checks; None when there is none
+    within :data:`REPAIR_LIMIT` placements."""
+    assert callable(fits)
+    broken = broken_chains(system, problem, assignment)
+    movers: list[str] = []
+    for c in broken:
+        hops = chain_hops(system, c)
+        assert not isinstance(hops, str)
+        for h in hops:
+            for n in (system.publishers[h.src][0], h.node):
+                if n not in movers:
+                    movers.append(n)
+    options = [system.allowed(n) for n in movers]
+    if math.prod(len(o) for o in options) > REPAIR_LIMIT:
+        return None
+    best: tuple[float, Assignment] | None = None
+    for combo in itertools.product(*options):
+        placement = {**assignment.placement, **dict(zip(movers, combo, strict=True))}
+        caps = (server_sizes(system, placement, assignment.choice) if problem == Problem.SERVER_CAPACITY else {})
+        cand = Assignment(placement, dict(assignment.choice), caps)
+        if not fits(cand) or violation(system, problem, cand) is not None:
+            continue
+        cost = sum(caps.values()) if problem == Problem.SERVER_CAPACITY else 0.0
+        if best is None or cost < best[0] - 1e-9:
+            best = (cost, cand)
+    return None if best is None else best[1]
+
+
+def fits_model(system: System, problem: Problem, capacities: Mapping[str, float]) -> object:
+    """``fits(assignment)``: CPU (eq 3), residence, coresidence and network (eq 4) hold."""
+    def fits(a: Assignment) -> bool:
+        load = computer_loads(system, a.placement, a.choice)
+        for c in system.computers:
+            cap = capacities.get(c.name, math.inf)
+            if load[c.name] > cap + 1e-9 * max(1.0, cap):
+                return False
+        for n in system.nodes:
+            if a.placement[n.name] not in system.allowed(n.name):
+                return False
+            if any(a.placement[m] != a.placement[n.name] for m in n.coresidence):
+                return False
+        return system.network_violation(a.placement, a.choice) is None
+    return fits
