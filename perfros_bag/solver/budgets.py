@@ -24,12 +24,18 @@ from __future__ import annotations
 
 import itertools
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
-from perfros_bag.system.latency import budget_violation, chain_hops, fastest_bound, predict_chain
-from perfros_bag.system.plan import Assignment
-from perfros_bag.system.rules import computer_loads, server_sizes
+from perfros_bag.system.latency import (
+    budget_violation,
+    chain_hops,
+    fastest_bound,
+    plan_predictions,
+    predict_chain,
+)
+from perfros_bag.system.plan import Assignment, Method, Plan, Status
+from perfros_bag.system.rules import build_plan, computer_loads, server_sizes
 from perfros_bag.system.types import Chain, Choice, Problem, System
 
 #: greedy / greedy+'s repair tries at most this many placements of a chain's hop nodes
@@ -197,3 +203,81 @@ def fits_model(system: System, problem: Problem, capacities: Mapping[str, float]
                 return False
         return system.network_violation(a.placement, a.choice) is None
     return fits
+
+
+def assignment_of(plan: Plan, choices: Mapping[str, Sequence[Choice]]) -> Assignment | None:
+    """A solver's plan of these ``choices`` as the :class:`Assignment` it came from (each
+    node's choice matched on CPU, performance, value and input rate); None when one is not."""
+    placement: dict[str, str] = {}
+    chosen: dict[str, Choice] = {}
+    for name, pn in plan.nodes.items():
+        ch = next((c for c in choices.get(name, ())
+                   if _same(c.cpu, pn.cpu) and _same(c.performance, pn.performance) and _same(c.value, pn.value)
+                   and (pn.input is None or _same(c.input_hz, pn.input_hz))), None)
+        if ch is None:
+            return None
+        placement[name], chosen[name] = pn.computer, ch
+    capacities = {n: c.capacity for n, c in plan.computers.items()
+                  if plan.problem == Problem.SERVER_CAPACITY and c.kind == "server" and c.capacity is not None}
+    return Assignment(placement, chosen, capacities)
+
+
+def _same(a: float | None, b: float | None) -> bool:
+    if a is None or b is None:
+        return a is None and b is None
+    return math.isclose(a, b, rel_tol=1e-9, abs_tol=1e-9)
+
+
+def within_budgets(system: System, problem: Problem, choices: Mapping[str, Sequence[Choice]],
+                   plan: Plan, method: str) -> Plan:
+    """A heuristic's plan when it keeps every budget; else its best re-placement
+    (:func:`repair`) rebuilt as a plan; else an infeasible plan naming the chains."""
+    if plan.status == Status.INFEASIBLE or not budgeted(system):
+        return plan
+    assignment = assignment_of(plan, choices)
+    if assignment is None:  # pragma: no cover - every solver plans one of the choices it was given
+        raise AssertionError("the plan's choices are not the solver's")
+    if violation(system, problem, assignment) is None:
+        return plan
+    fixed = repair(system, problem, assignment, fits_model(system, problem, system.capacities(problem)))
+    if fixed is None:
+        why = violation(system, problem, assignment)
+        return Plan.infeasible(problem, method, f"{method}'s plan breaks a latency budget ({why}) and no "
+                               "re-placement of the chain's nodes at its settings keeps it: --method exact searches "
+                               "the settings too", system=system.source)
+    status = Status.FEASIBLE
+    return build_plan(system, fixed, problem=problem, method=method, status=status)
+
+
+def solve_with_cuts(system: System, problem: Problem, choices: Mapping[str, Sequence[Choice]],
+                    solve_once: Callable[[list[list[CutTerm]]], Plan], out_of_time: Callable[[], bool]) -> Plan:
+    """The exact solver under budgets: solve, cut away an optimum that breaks a budget
+    (:func:`cut_of`), solve again, until an optimum keeps them all (it is optimal among the
+    plans that do) or none is left (infeasible, naming the chains and their bounds)."""
+    cuts: list[list[CutTerm]] = []
+    while True:
+        plan = solve_once(cuts)
+        if plan.status == Status.INFEASIBLE:
+            if cuts:
+                plan.reason = no_plan_within(system, choices, "no plan that fits the other constraints")
+            return plan
+        assignment = assignment_of(plan, choices)
+        if assignment is None:  # pragma: no cover - the MILP plans one of its choices
+            raise AssertionError("the exact plan's choices are not the solver's")
+        broken = broken_chains(system, problem, assignment)
+        if not broken:
+            return plan
+        if out_of_time() or len(cuts) >= MAX_CUTS:
+            limit = "the time limit" if out_of_time() else f"{MAX_CUTS} cuts"
+            return Plan.infeasible(problem, Method.EXACT, no_plan_within(
+                system, choices, f"no plan found within {limit} (not proven: a longer time limit may find one)"),
+                system=system.source)
+        cuts.append(cut_of(system, problem, assignment, broken[0]))
+
+
+def restate_chains(system: System, plan: Plan) -> None:
+    """A plan restated after the solve (headroom given back: its real CPU, its computers'
+    whole capacity) predicted again as it will run. Each term of the rule only falls when a
+    node needs less or a computer holds more, so a plan that kept its budgets keeps them."""
+    if system.chains and plan.status != Status.INFEASIBLE:
+        plan.chains = [p.to_dict() for p in plan_predictions(system, plan, warn=False)]
