@@ -230,8 +230,9 @@ def _same(a: float | None, b: float | None) -> bool:
 
 def within_budgets(system: System, problem: Problem, choices: Mapping[str, Sequence[Choice]],
                    plan: Plan, method: str) -> Plan:
-    """A heuristic's plan when it keeps every budget; else its best re-placement
-    (:func:`repair`) rebuilt as a plan; else an infeasible plan naming the chains."""
+    """A heuristic's plan when it keeps every budget; else the best re-placement of the
+    broken chains' nodes (:func:`repair`), else a descent over their settings and computers
+    (:func:`descend`), rebuilt as a plan; else an infeasible plan naming the chain."""
     if plan.status == Status.INFEASIBLE or not budgeted(system):
         return plan
     assignment = assignment_of(plan, choices)
@@ -239,14 +240,96 @@ def within_budgets(system: System, problem: Problem, choices: Mapping[str, Seque
         raise AssertionError("the plan's choices are not the solver's")
     if violation(system, problem, assignment) is None:
         return plan
-    fixed = repair(system, problem, assignment, fits_model(system, problem, system.capacities(problem)))
+    fits = fits_model(system, problem, system.capacities(problem))
+    fixed = repair(system, problem, assignment, fits) or descend(system, problem, assignment, choices, fits)
     if fixed is None:
         why = violation(system, problem, assignment)
-        return Plan.infeasible(problem, method, f"{method}'s plan breaks a latency budget ({why}) and no "
-                               "re-placement of the chain's nodes at its settings keeps it: --method exact searches "
-                               "the settings too", system=system.source)
-    status = Status.FEASIBLE
-    return build_plan(system, fixed, problem=problem, method=method, status=status)
+        return Plan.infeasible(problem, method, f"{method}'s plan breaks a latency budget ({why}) and no change of "
+                               "the chain's nodes it tried keeps it: --method exact searches every plan",
+                               system=system.source)
+    return build_plan(system, fixed, problem=problem, method=method, status=Status.FEASIBLE)
+
+
+def excess(system: System, problem: Problem, assignment: Assignment) -> float:
+    """How far (ms, summed over the budgeted chains and their bounds) the predictions exceed
+    their budgets; ``inf`` for a chain that cannot be predicted."""
+    caps = capacities_of(system, problem, assignment)
+    loads = system.link_loads(assignment.placement, assignment.choice)
+    total = 0.0
+    for c in budgeted(system):
+        for _, got, limit in predict_chain(system, c, assignment.placement, assignment.choice, caps, loads).over_budget():
+            total += got - limit
+    return total
+
+
+def with_flow(system: System, choice: Mapping[str, Choice], choices: Mapping[str, Sequence[Choice]]
+              ) -> dict[str, Choice] | None:
+    """``choice`` with every driven node at its own setting and the input rate its
+    publisher now gives (None when that choice does not exist)."""
+    out = dict(choice)
+    for name in system.flow_order:
+        want = system.input_hz(name, out[system.flow_parent[name]])
+        have = out[name]
+        if have.input_hz is not None and math.isclose(have.input_hz, want, rel_tol=1e-9, abs_tol=1e-9):
+            continue
+        match = next((c for c in choices[name] if c.setting == have.setting and c.input_hz is not None
+                      and math.isclose(c.input_hz, want, rel_tol=1e-9, abs_tol=1e-9)), None)
+        if match is None:
+            return None
+        out[name] = match
+    return out
+
+
+def _objective(system: System, problem: Problem, a: Assignment) -> float:
+    if problem == Problem.PERFORMANCE:
+        return sum(system.node[n].weight * ch.performance for n, ch in a.choice.items())
+    return -sum(a.capacities.values())
+
+
+#: the descent changes one node at a time, at most this many times
+DESCENT_STEPS = 50
+
+
+def descend(system: System, problem: Problem, assignment: Assignment, choices: Mapping[str, Sequence[Choice]],
+            fits: object) -> Assignment | None:
+    """Greedy descent on the budgets' excess: each step moves one node of the broken chains
+    (a hop node or its input's publisher) to the (choice, computer) that fits and leaves the
+    least excess (ties: the best objective), driven nodes following their input's new rate;
+    None when a step cannot lower the excess."""
+    assert callable(fits)
+    current = assignment
+    now = excess(system, problem, current)
+    for _ in range(DESCENT_STEPS):
+        if now <= 0:
+            return current
+        movers: list[str] = []
+        for c in broken_chains(system, problem, current):
+            hops = chain_hops(system, c)
+            assert not isinstance(hops, str)
+            for h in hops:
+                movers += [n for n in (system.publishers[h.src][0], h.node) if n not in movers]
+        best: tuple[float, float, Assignment] | None = None
+        for n in movers:
+            for ch in choices[n]:
+                if system.node[n].driven and ch.input_hz != current.choice[n].input_hz:
+                    continue  # its rate follows its input
+                chosen = with_flow(system, {**current.choice, n: ch}, choices)
+                if chosen is None:
+                    continue
+                for comp in system.allowed(n):
+                    placement = {**current.placement, n: comp}
+                    caps = server_sizes(system, placement, chosen) if problem == Problem.SERVER_CAPACITY else {}
+                    cand = Assignment(placement, chosen, caps)
+                    if not fits(cand):
+                        continue
+                    left = excess(system, problem, cand)
+                    key = (left, -_objective(system, problem, cand))
+                    if left < now - 1e-9 and (best is None or key < best[:2]):
+                        best = (key[0], key[1], cand)
+        if best is None:
+            return None
+        now, current = best[0], best[2]
+    return current if now <= 0 else None
 
 
 def solve_with_cuts(system: System, problem: Problem, choices: Mapping[str, Sequence[Choice]],
