@@ -142,3 +142,38 @@ def test_an_impossible_budget_is_one_line_naming_the_chain_and_its_bound(tmp_pat
     assert f"chain 'vision': no plan keeps its predicted p95 within its budget of 0.5 ms: the least any plan " \
            f"can reach is {sum(hops):.4g} ms" in line
     assert json.loads(out.read_text())["status"] == "infeasible"
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_problem_2_with_a_budget_equals_brute_force(seed: int) -> None:
+    data = _instance(seed)
+    for c in data["computers"]:  # type: ignore[union-attr]
+        if c["kind"] == "server":
+            c.pop("capacity")
+            c["max_capacity"] = 400
+        else:
+            c["capacity"] = 90  # every node fits at its highest setting
+    free = parse_system(data)
+    plan = solve(free, 2, "exact")
+    assert plan.status == "optimal"
+    p95 = plan.chains[0]["predicted_ms"]["p95"]
+    data["chains"][0]["budget_ms"] = {"p95": round(p95 * random.Random(seed).uniform(0.5, 1.0), 3)}  # type: ignore[index]
+    system = parse_system(data)
+    exact, brute = solve(system, 2, "exact"), solve(system, 2, "bruteforce")
+    assert exact.status == brute.status
+    if brute.status != "infeasible":
+        assert exact.objective == pytest.approx(brute.objective, abs=1e-6)
+        assert check_plan(system, exact) == []
+
+
+@pytest.mark.parametrize("headroom", [0.2, "auto"])
+def test_a_plan_with_headroom_keeps_its_budget_as_restated(headroom: float | str) -> None:
+    free = parse_system(_instance(4))
+    loose = solve(free, 1, "exact").chains[0]["predicted_ms"]["p95"]
+    system = parse_system(_instance(4, {"p95": round(0.6 * loose, 3)}))
+    for method in ("exact", "greedy+"):
+        plan = solve(system, 1, method, headroom=headroom)
+        if plan.status == "infeasible":
+            continue
+        assert plan.chains[0]["predicted_ms"]["p95"] <= 0.6 * loose + 1e-6
+        assert check_plan(system, plan) == []  # the restated plan's latency, as the checker predicts it
