@@ -141,7 +141,7 @@ def impossible_budget(system: System, choices: Mapping[str, Sequence[Choice]], c
         for q, b in c.budget_ms.items():
             if got[q] > b:
                 return (f"chain {c.name!r}: no plan keeps its predicted {q} within its budget of {b:g} ms: "
-                        f"the least any plan can reach is {got[q]:.4g} ms")
+                        f"in every plan it is at least {got[q]:.4g} ms")
     return None
 
 
