@@ -240,6 +240,14 @@ def test_validate_sets_each_chain_and_hop_prediction_beside_its_measurement(reco
     assert [(h["from"], h["to"]) for h in chain["hops"]] == [(h["from"], h["to"]) for h in planned["hops"]]
     assert f"{planned['predicted_ms']['p95'] / 1000:.3g}" in res.stderr  # the table's pred p95 (s)
 
+    # a plan that states no chains (written before they were predicted) is predicted by validate, alike
+    bare = tmp_path / "bare.json"
+    bare.write_text(json.dumps({k: v for k, v in plan.items() if k != "chains"}))
+    again = CliRunner().invoke(app, ["validate", str(recordings["ros1"]), str(bare), "--json", "--tolerance", "100"])
+    assert again.exit_code == 0, again.output
+    [rechain] = json.loads(again.stdout)["chains"]
+    assert rechain["predicted_ms"] == pytest.approx(planned["predicted_ms"], rel=1e-6)
+
     from perfros_bag.report.html import build_report, fmt
 
     page = build_report(tmp_path / "report", validation=saved, plan=tmp_path / "plan.json").read_text()

@@ -41,11 +41,14 @@ import math
 import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from perfros_bag.errors import PerfrosWarning
 from perfros_bag.system.cpushare import Demand, fair_shares
-from perfros_bag.system.types import Budget, Chain, Choice, LatencyParams, System
+from perfros_bag.system.types import Budget, Chain, Choice, LatencyParams, System, TopicRate
+
+if TYPE_CHECKING:
+    from perfros_bag.system.plan import Plan
 
 #: a link or medium's utilisation is taken as at most this (a forced plan may overload one)
 MAX_UTILISATION = 0.99
@@ -260,13 +263,24 @@ def predict_chain(system: System, chain: Chain, placement: Mapping[str, str], ch
                            sum(h.p95_ms for h in out), tuple(out))
 
 
-def predict_chains(system: System, placement: Mapping[str, str], choice: Mapping[str, Choice],
-                   capacities: Mapping[str, float], *, warn: bool = True) -> list[ChainPrediction]:
-    """Every chain of the system predicted; one warning per chain that cannot be (``warn``)."""
-    if not system.chains:
+def plan_predictions(system: System, plan: Plan, *, warn: bool = True) -> list[ChainPrediction]:
+    """Every chain predicted for a plan as it states itself (each node's computer, CPU, input
+    rate and topics; each computer's capacity, a sized server's too; the links' loads): the
+    rule :func:`predict_chains` applies to a solver's answer, on the plan's own numbers, so a
+    plan restated after the solve (headroom given back) is predicted as it will run."""
+    if not system.chains or not plan.nodes:
         return []
-    loads = system.link_loads(placement, choice)
-    out = [predict_chain(system, c, placement, choice, capacities, loads) for c in system.chains]
+    placement = {n: pn.computer for n, pn in plan.nodes.items()}
+    choice = {n: Choice(0, pn.cpu, pn.performance, pn.value, None,
+                        sum(r.bandwidth_kBps or 0.0 for r in pn.topics.values()),
+                        {t: TopicRate(r.frequency_hz, r.bandwidth_kBps) for t, r in pn.topics.items()},
+                        input_hz=pn.input_hz)
+              for n, pn in plan.nodes.items()}
+    caps = {name: c.capacity if c.capacity is not None else c.cpu for name, c in plan.computers.items()}
+    same = len(plan.links) == len(system.links) and all(
+        tuple(pl.between) == tuple(link.between) for pl, link in zip(plan.links, system.links, strict=True))
+    loads = [pl.load_kBps for pl in plan.links] if same else system.link_loads(placement, choice)
+    out = [predict_chain(system, c, placement, choice, caps, loads) for c in system.chains]
     if warn:
         for p in out:
             if p.why is not None:

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
-from perfros_bag.system.latency import predict_chains
+from perfros_bag.system.latency import plan_predictions
 from perfros_bag.system.plan import (
     Assignment,
     Method,
@@ -90,7 +90,6 @@ def build_plan(system: System, assignment: Assignment, *, problem: Problem, meth
             bandwidth_kBps=ch.bandwidth_kBps if node.input is not None else None,
         )
     obj = objective_value if objective_value is not None else objective(system, assignment, problem)
-    caps = {name: c.capacity if c.capacity is not None else c.cpu for name, c in computers.items()}
-    chains = [p.to_dict() for p in predict_chains(system, assignment.placement, assignment.choice, caps)]
-    return Plan(problem, method, status, obj, bound, solve_s, computers, links, nodes, system=system.source,
-                chains=chains)
+    plan = Plan(problem, method, status, obj, bound, solve_s, computers, links, nodes, system=system.source)
+    plan.chains = [p.to_dict() for p in plan_predictions(system, plan)]
+    return plan

@@ -460,8 +460,18 @@ def check_run(stats: RecordingStats, plan: Plan, *, cap: bool = False,
         deviation_pct=_deviation(overall_m, overall_e), nodes=nodes, computers=computers,
         links=links, media=media, unplanned_topics=unplanned, cpu_traces=list(cpu_traces),
         system=system.source if system is not None else None, notes=notes + (kept.notes if kept else []),
-        network=network, chains=list(chains), kept=kept, predicted_chains=list(plan.chains),
+        network=network, chains=list(chains), kept=kept, predicted_chains=_predicted_chains(plan, system, chains),
     )
+
+
+def _predicted_chains(plan: Plan, system: System | None, chains: Sequence[ChainLatency]) -> list[dict[str, Any]]:
+    """The plan's predicted chains; a plan that states none (written before chains were
+    predicted, or built by hand) predicted here from its own numbers when the system is known."""
+    if plan.chains or system is None or not chains:
+        return list(plan.chains)
+    from perfros_bag.system.latency import plan_predictions
+
+    return [p.to_dict() for p in plan_predictions(system, plan, warn=False)]
 
 
 def _check_input(n: NodeCheck, stats: RecordingStats, topic: str, expected: float | None, notes: list[str]) -> None:
