@@ -36,7 +36,7 @@ ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench_cgroup_fairness import INPUT, NODES, RATE_HZ, _cpu_s, bench_run  # noqa: E402  (the same nodes)
+from bench_cgroup_fairness import INPUT, NODES, RATE_HZ, _cpu_s, bench_run, finish  # noqa: E402  (the same nodes)
 
 ROBOT = "robot"
 MEASURED = ("people", "smooth")  # the nodes on the robot by default: their latency and kept rate are measured
@@ -198,16 +198,11 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("interrupted: everything the bench started is stopped", file=sys.stderr)
         return 130
-    print(table(doc))
     la = doc["load_average"]
-    print(f"robot: {', '.join(doc['robot'])}; need {100 * doc['need_cores']:.1f} % of a core, cap {doc['cap']:g}x; wall {doc['wall_s']} s; "
-          f"load average before {la['before'][0]:.2f} after {la['after'][0]:.2f} (2 cores); "
-          f"left: {len(doc['leftover_processes'])} processes, {len(doc['leftover_cgroups'])} cgroups")
-    if args.out:
-        from perfros_bag.fileio import atomic_write_json
-
-        atomic_write_json(args.out, doc)
-    return 0 if not doc["leftover_processes"] and not doc["leftover_cgroups"] else 1
+    return finish(doc, table(doc),
+                  f"robot: {', '.join(doc['robot'])}; need {100 * doc['need_cores']:.1f} % of a core, "
+                  f"cap {doc['cap']:g}x; wall {doc['wall_s']} s; load average before {la['before'][0]:.2f} "
+                  f"after {la['after'][0]:.2f} (2 cores)", args.out)
 
 
 if __name__ == "__main__":

@@ -290,15 +290,21 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("interrupted: everything the bench started is stopped", file=sys.stderr)
         return 130
-    print(table(doc))
-    print(f"kept share at 1.0x of need: {', '.join(f'{k} {100 * v:.1f} %' for k, v in doc['kept_at_1x'].items() if v is not None)}"
-          f"; smallest {100 * (doc['kept_at_1x_min'] or 0):.1f} %; wall {doc['wall_s']} s; "
-          f"speed factor {doc['speed_factor']['before']} -> {doc['speed_factor']['after']}; "
-          f"left: {len(doc['leftover_processes'])} processes, {len(doc['leftover_cgroups'])} cgroups")
-    if args.out:
+    return finish(doc, table(doc),
+                  f"kept share at 1.0x of need: {', '.join(f'{k} {100 * v:.1f} %' for k, v in doc['kept_at_1x'].items() if v is not None)}"
+                  f"; smallest {100 * (doc['kept_at_1x_min'] or 0):.1f} %; wall {doc['wall_s']} s; "
+                  f"speed factor {doc['speed_factor']['before']} -> {doc['speed_factor']['after']}", args.out)
+
+
+def finish(doc: dict[str, Any], table_text: str, summary: str, out: Path | None) -> int:
+    """Print a bench's table and summary with what it left, write its JSON to ``out``; the
+    exit code: 1 when a process or cgroup was left."""
+    print(table_text)
+    print(f"{summary}; left: {len(doc['leftover_processes'])} processes, {len(doc['leftover_cgroups'])} cgroups")
+    if out:
         from perfros_bag.fileio import atomic_write_json
 
-        atomic_write_json(args.out, doc)
+        atomic_write_json(out, doc)
     return 0 if not doc["leftover_processes"] and not doc["leftover_cgroups"] else 1
 
 
