@@ -21,14 +21,8 @@ import yaml
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from perfros_bag.cpu import trace as cputrace
 from perfros_bag.cpu.record import busy_threads
-from perfros_bag.cpu.trace import (
-    has_threads,
-    node_cpu,
-    parse_cpu_trace,
-    read_cpu_trace,
-    write_cpu_trace,
-)
 from perfros_bag.errors import InputError
 from perfros_bag.system.systemfile import parse_system
 
@@ -63,15 +57,15 @@ def test_busy_threads_by_hand() -> None:
 
 
 def test_old_traces_read_without_threads_and_new_ones_with(tmp_path: Path) -> None:
-    old = parse_cpu_trace(OLD + "1.0,7,a,a,50,10\n2.0,7,a,a,30,10\n", "old.cpu.csv")
-    assert not has_threads(old) and np.isnan(old.threads).all() and len(old.threads) == 2
-    assert node_cpu(old, 100.0)["a"].threads is None
+    old = cputrace.parse_cpu_trace(OLD + "1.0,7,a,a,50,10\n2.0,7,a,a,30,10\n", "old.cpu.csv")
+    assert not cputrace.has_threads(old) and np.isnan(old.threads).all() and len(old.threads) == 2
+    assert cputrace.node_cpu(old, 100.0)["a"].threads is None
     text = NEW + "1.0,7,a,a,50,10,1.5\n1.0,8,a,h,10,10,0.5\n2.0,7,a,a,30,10,0\n3.0,9,b,b,20,10,\n"
     for fast in (True, False):
-        tr = parse_cpu_trace(text, "new.cpu.csv", fast=fast)
-        assert has_threads(tr)
+        tr = cputrace.parse_cpu_trace(text, "new.cpu.csv", fast=fast)
+        assert cputrace.has_threads(tr)
         assert tr.threads[:3].tolist() == [1.5, 0.5, 0.0] and math.isnan(tr.threads[3])
-        got = node_cpu(tr, 100.0)
+        got = cputrace.node_cpu(tr, 100.0)
         # a's processes summed per sample: 2.0 at t=1, 0 at t=2 (idle: not counted) -> 2.0
         assert got["a"].threads == pytest.approx(2.0) and got["b"].threads is None
     # a reader of the six columns only (the contract before the column): the first six fields
@@ -82,19 +76,19 @@ def test_old_traces_read_without_threads_and_new_ones_with(tmp_path: Path) -> No
     assert [r[:6] for r in rows][0] == ["1.0", "7", "a", "a", "50", "10"]
     # written back with the column, and without it when asked for the six
     path = tmp_path / "w.cpu.csv"
-    write_cpu_trace(path, [(1.0, 7, "a", "a", 50.0, 10, 1.25), (1.0, 8, "b", "b", 5.0, 10, None)],
+    cputrace.write_cpu_trace(path, [(1.0, 7, "a", "a", 50.0, 10, 1.25), (1.0, 8, "b", "b", 5.0, 10, None)],
                     host="h", logical_cpus=2, interval_s=0.5, threads=True)
-    back = read_cpu_trace(path)
+    back = cputrace.read_cpu_trace(path)
     assert back.threads[0] == 1.25 and math.isnan(back.threads[1])
-    write_cpu_trace(path, [(1.0, 7, "a", "a", 50.0, 10, 1.25)], host="h", logical_cpus=2, interval_s=0.5)
-    assert "threads" not in path.read_text() and not has_threads(read_cpu_trace(path))
+    cputrace.write_cpu_trace(path, [(1.0, 7, "a", "a", 50.0, 10, 1.25)], host="h", logical_cpus=2, interval_s=0.5)
+    assert "threads" not in path.read_text() and not cputrace.has_threads(cputrace.read_cpu_trace(path))
 
 
 @pytest.mark.parametrize("cell, needle", [("-1", "threads must be >= 0"), ("x", "threads 'x' is not a number"),
                                           ("inf", "not a finite number")])
 def test_bad_threads_cell_names_the_line(cell: str, needle: str) -> None:
     with pytest.raises(InputError, match=needle) as exc:
-        parse_cpu_trace(NEW + "1.0,7,a,a,50,10,1\n" + f"2.0,7,a,a,50,10,{cell}\n", "bad.cpu.csv")
+        cputrace.parse_cpu_trace(NEW + "1.0,7,a,a,50,10,1\n" + f"2.0,7,a,a,50,10,{cell}\n", "bad.cpu.csv")
     assert "line 6" in str(exc.value) and str(exc.value).startswith("bad.cpu.csv: ")
 
 
@@ -104,7 +98,7 @@ def test_bad_threads_cell_names_the_line(cell: str, needle: str) -> None:
                                st.floats(0, 64, allow_nan=False)), max_size=30))
 def test_fast_and_careful_parsers_agree_on_threads(rows: list[tuple[float, int, str, float, float]]) -> None:
     text = NEW + "".join(f"{t!r},{p},{n},x,{c!r},1,{k!r}\n" for t, p, n, c, k in rows)
-    fast, slow = parse_cpu_trace(text, fast=True), parse_cpu_trace(text, fast=False)
+    fast, slow = cputrace.parse_cpu_trace(text, fast=True), cputrace.parse_cpu_trace(text, fast=False)
     assert fast.threads.tolist() == slow.threads.tolist() == [r[4] for r in rows]
 
 
@@ -158,7 +152,7 @@ def test_record_cpu_counts_busy_threads_of_a_real_process(tmp_path: Path, busy: 
     assert rec.returncode == 0, stderr
     used = [last[k] - first.get(k, 0.0) for k in last]
     reference = sum(used) ** 2 / sum(u * u for u in used)
-    tr = read_cpu_trace(out)
+    tr = cputrace.read_cpu_trace(out)
     mine = (tr.pid == child.pid) & (tr.cpu_percent > 0)
     assert mine.sum() >= 3
     measured = float(np.median(tr.threads[mine]))
