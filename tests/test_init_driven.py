@@ -118,6 +118,10 @@ def test_a_grid_drafts_one_least_squares_line_per_own_setting(tmp_path: Path) ->
     assert system.node["camera"].input is None  # the source keeps its rate settings
     assert [s.value for s in system.node["camera"].settings] == [4, 8, 12]
     assert system.node["tracker"].input is None  # subscribes to the camera, keeps its own clock
+    # one chain along the data flow, from the source's topic through every driven node, no budget
+    assert [(c.name, c.topics, c.budget_ms) for c in system.chains] == [
+        ("relay", ("/camera/image_raw", "/detector/out", "/relay/out"), None)]
+    assert "# budget_ms: {p95: 250}  # REPLACE" in system_path.read_text()
     detector = _settings(system_path, "detector")
     assert [s["value"] for s in detector] == [1, 2]
     for s in detector:

@@ -10,10 +10,12 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 
 from perfros_bag.cli._app import command, err, out
 from perfros_bag.errors import InputError, PerfrosWarning
+from perfros_bag.system.latency import budget_text
 
 if TYPE_CHECKING:
     from perfros_bag.system.plan import Plan
@@ -99,6 +101,19 @@ def print_plan(console: Console, plan: Plan) -> None:
             links.add_row(f"{lk.between[0]} - {lk.between[1]}", lk.medium or "-", _num(lk.load_kBps, 3),
                           _num(lk.bandwidth_kBps), use)
         console.print(links)
+    if plan.chains:
+        chains = Table(title="chains: predicted latency (ms)", title_justify="left")
+        for col in ("chain", "hop", "p50", "p95", "budget"):
+            chains.add_column(col, justify="left" if col in ("chain", "hop", "budget") else "right")
+        for ch in plan.chains:
+            pred = ch.get("predicted_ms") or {}
+            chains.add_row(escape(str(ch["name"])), escape(" -> ".join(map(str, ch.get("topics", [])))),
+                           _num(pred.get("p50"), 1), _num(pred.get("p95"), 1), escape(budget_text(ch.get("budget_ms"))))
+            for h in ch.get("hops", []):
+                hp = h.get("predicted_ms") or {}
+                chains.add_row("", escape(f"  {h.get('node')} on {h.get('computer')}"), _num(hp.get("p50"), 1),
+                               _num(hp.get("p95"), 1), "")
+        console.print(chains)
     what = "Σ w·P" if plan.problem == 1 else "Σ server capacity"
     console.print(f"objective ({what}): [bold]{_num(plan.objective, 4)}[/]"
                   + (f"  bound {_num(plan.bound, 4)}" if plan.bound is not None else "")

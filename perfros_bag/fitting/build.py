@@ -109,6 +109,17 @@ def measured_settings(table: CharacterisationFile, system: System, cpu: str = "m
     return out
 
 
+def node_threads(table: CharacterisationFile, system: System) -> dict[str, float]:
+    """Per node of ``system`` with a ``threads`` column in ``table``: its busy threads, the
+    mean over its recordings (each recording's value once), rounded to 0.01 and at least 1
+    (the CFS weight of :mod:`perfros_bag.system.cpushare`)."""
+    per: dict[str, dict[str, float]] = {}
+    for r in node_rows(table, system):
+        if r.threads is not None and r.threads > 0:
+            per.setdefault(r.node, {}).setdefault(r.recording, r.threads)
+    return {n: max(1.0, round(sum(v.values()) / len(v), 2)) for n, v in per.items()}
+
+
 def error_runs(table: CharacterisationFile, system: System, cpu: str = "mean") -> dict[str, list[Runs]]:
     """Per node of ``system`` and measured value: each run's CPU statistic (``cpu``), its p95
     and, for a driven node, its input rate (a driven node's run without one is left out):
@@ -216,13 +227,33 @@ def build_model(system_path: str | Path, characterisation_path: str | Path, *, c
             node_errors(raw_nodes[node.name], runs.get(node.name, []), fits_n.get("parameter->cpu") if fits_n else None)
         if fits_n:
             fits[node.name] = fits_n
+    for name, threads in node_threads(table, system).items():
+        raw_nodes[name]["threads"] = threads
+    latency_fit = _fit_latency(table, system, doc_system, warn)
     document = ModelDocument(sys_path, csv_path, doc_system,
                              {n: dict(fs) for n, fs in fits.items()},
-                             measured, warn.messages, cpu_statistic=cpu, driven=driven)
+                             measured, warn.messages, cpu_statistic=cpu, driven=driven, latency_fit=latency_fit)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", PerfrosWarning)
         final = parse_system(doc_system, sys_path)  # what solve will read: must load
     return ModelResult(document, fits, final, warn.messages)
+
+
+def _fit_latency(table: CharacterisationFile, system: System, doc_system: dict[str, Any],
+                 warn: _Warn) -> dict[str, Any] | None:
+    """The latency model's parameters fitted to the sweep's hop latencies into the model's
+    ``system.latency`` (perfros_bag.fitting.latency); its summary, or None when nothing was fitted."""
+    if not system.has_flow:
+        return None
+    from perfros_bag.fitting.latency import fit_latency, params_json
+
+    fitted = fit_latency(node_rows(table, system), system)
+    for w in fitted.warnings:
+        warn(f"{table.path}: {w}")
+    if not fitted.samples:
+        return None
+    doc_system["latency"] = params_json(fitted.params)
+    return fitted.to_json()
 
 
 class _Valued(Protocol):

@@ -185,6 +185,9 @@ class ModelDocument:
     cpu_statistic: str = "mean"  # a setting's CPU: the mean of its samples, or their p95
     #: per driven node (system.yaml ``input:``), its settings in ``system`` and where each came from
     driven: dict[str, list[DrivenSetting]] = field(default_factory=dict)
+    #: the latency model's fit (perfros_bag.fitting.latency): points per node and its
+    #: in-sample error; None when nothing was fitted (the parameters are in ``system.latency``)
+    latency_fit: dict[str, Any] | None = None
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -196,6 +199,7 @@ class ModelDocument:
             "fits": {n: {rel: f.to_json() for rel, f in fs.items()} for n, fs in self.fits.items()},
             "measured": {n: [m.to_json() for m in ms] for n, ms in self.measured.items()},
             **({"driven": {n: [d.to_json() for d in ds] for n, ds in self.driven.items()}} if self.driven else {}),
+            **({"latency_fit": self.latency_fit} if self.latency_fit is not None else {}),
             "warnings": list(self.warnings),
         }
 
@@ -357,9 +361,13 @@ def parse_model(data: Any, path: str | Path) -> ModelDocument:
     statistic = doc.string(data.get("cpu_statistic", "mean"), "cpu_statistic")
     if statistic not in ("mean", "p95"):
         raise InputError(p, f"cpu_statistic: must be 'mean' or 'p95', got {statistic!r}")
+    latency_fit = data.get("latency_fit")
+    if latency_fit is not None:
+        doc.mapping(latency_fit, "latency_fit")
     return ModelDocument(doc.string(data.get("system_file", ""), "system_file"),
                          doc.string(data.get("characterisation", ""), "characterisation"),
-                         data["system"], fits, measured, warnings, fmt, statistic, driven)
+                         data["system"], fits, measured, warnings, fmt, statistic, driven,
+                         None if latency_fit is None else dict(latency_fit))
 
 
 def read_model(path: str | Path) -> ModelDocument:

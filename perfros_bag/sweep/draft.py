@@ -332,6 +332,7 @@ def _render(d: Path, graph: Graph, skeleton: Any, rows: Sequence[Row], values: M
         lines += [f"  - {flow(e)}" for e in edges]
     elif not from_graph:
         lines.append("# edges: unknown without graph.yaml: add {from: NODE, to: NODE, topic: TOPIC} per subscription")
+    lines += _render_chains(nodes, follows, flow)
     return "\n".join(lines) + "\n"
 
 
@@ -342,6 +343,32 @@ def _container_lines(node: Any, ros: GraphNode | None) -> list[str]:
     kind = f"nodelet {ros.nodelet}" if ros is not None and ros.nodelet else "hosted"
     return [f"    container: {node.container}  # {kind}: runs in {node.container}'s process; its CPU is its share "
             "of that process's, fitted over the runs (docs/formats.md, Nodelets)"]
+
+
+def _render_chains(nodes: Sequence[Any], follows: Mapping[str, Follow], flow: Callable[[Any], str]) -> list[str]:
+    """One chain per driven node fed by a node on its own clock: its input, then its first
+    topic, on through the driven nodes each one feeds (their first topics); its budget is
+    left for the user to state (docs/formats.md, ``budget_ms``)."""
+    topics_of = {n.name: list(n.topics) for n in nodes}
+    fed_by = {f.topic: name for name, f in follows.items()}
+    chains: list[tuple[str, list[str]]] = []
+    for name, f in follows.items():
+        if f.publisher in follows or not topics_of.get(name):
+            continue
+        path, at = [f.topic, topics_of[name][0]], name
+        while (nxt := fed_by.get(path[-1])) is not None and nxt not in path and topics_of.get(nxt):
+            path.append(topics_of[nxt][0])
+            at = nxt
+        chains.append((at, path))
+    if not chains:
+        return []
+    lines = ["# the data flow's chains: their latency is measured (validate) and predicted (solve);",
+             "# a budget_ms makes every plan keep its predicted latency within it",
+             "chains:"]
+    for at, path in chains:
+        lines += [f"  - name: {flow(at)}", f"    topics: {flow(path)}",
+                  "    # budget_ms: {p95: 250}  # REPLACE: the most its latency may be, in ms (p50 and/or p95)"]
+    return lines
 
 
 def _render_driven(node: Any, exe: str, keys: Sequence[int | float | None], weight: float, follow: Follow,

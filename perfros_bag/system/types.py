@@ -180,6 +180,7 @@ class Setting:
     # a driven node's as a share of its CPU at any input rate
     cpu_error: float | None = None
     cpu_error_share: float | None = None  # driven only
+    threads: float | None = None  # busy threads at this setting (None: the node's)
 
 
 def driven_rates(setting: Setting, input_hz: float) -> tuple[float, float, float]:
@@ -308,6 +309,44 @@ class Chain:
 
     name: str
     topics: tuple[str, ...]
+    #: system.yaml ``budget_ms``: the most its predicted latency may be, in milliseconds
+    #: (p50 and/or p95; None: not bounded). See :mod:`perfros_bag.system.latency`.
+    budget_ms: Budget | None = None
+
+
+@dataclass(frozen=True)
+class Budget:
+    """A chain's latency budget in milliseconds: its p50, its p95 or both (None: unbounded)."""
+
+    p50: float | None = None
+    p95: float | None = None
+
+    def items(self) -> list[tuple[str, float]]:
+        """(``"p50"``/``"p95"``, ms) for each bound it sets."""
+        return [(k, v) for k, v in (("p50", self.p50), ("p95", self.p95)) if v is not None]
+
+    def to_dict(self) -> dict[str, float]:
+        return dict(self.items())
+
+
+@dataclass(frozen=True)
+class LatencyParams:
+    """The latency model's parameters (system.yaml ``latency:``; ``fit`` writes them into
+    model.json from the sweep's hop latencies, ``tune`` refits them from each deployment).
+    The model and each parameter: :mod:`perfros_bag.system.latency`, docs/solvers.md."""
+
+    units_per_core: float = 100.0  # CPU units of one core busy for one second per second
+    overhead_ms: float = 1.0  # what every hop adds beyond its service, wait and transfer
+    queue_factor: float = 1.0  # the M/D/1 wait's multiplier (0: periodic arrivals never wait)
+    p95_ratio: float = 1.3  # a service time's p95 over its p50 (nodes without their own)
+    queue_size: int = 1  # messages a subscriber's drop-oldest queue holds: bounds the wait
+    link_efficiency: float = 0.96  # the share of a link's bandwidth a message's payload gets
+    #: per node: measured hop time over its CPU time per message (wall / CPU: 1 for a node
+    #: that only computes), and its own p95 ratio
+    service_scale: dict[str, float] = field(default_factory=dict)
+    node_p95_ratio: dict[str, float] = field(default_factory=dict)
+    #: where they came from: "default", "fit" (the sweep) or "tune" (deployments)
+    source: str = "default"
 
 
 @dataclass(frozen=True)
@@ -334,6 +373,15 @@ class Node:
     #: the node that hosts it in its process (system.yaml ``container``: a nodelet's manager, a
     #: ROS 2 component's container); None: a process of its own
     container: str | None = None
+    #: its busy threads (system.yaml ``threads``; ``fit`` measures them): its weight in the CFS
+    #: share of an overloaded computer (perfros_bag.system.cpushare); None: one
+    threads: float | None = None
+
+    def threads_at(self, value: float | None) -> float:
+        """Busy threads at the setting of ``value`` (that setting's, else the node's, else 1)."""
+        j = self.setting_index(value)
+        at = self.settings[j].threads if j is not None else None
+        return at if at is not None else (self.threads if self.threads is not None else 1.0)
 
     @property
     def driven(self) -> bool:
@@ -435,6 +483,7 @@ class System:
     machines: dict[str, dict[str, str]] = field(default_factory=dict)
     source: str | None = None  # the file it was loaded from, for messages
     chains: tuple[Chain, ...] = ()  # topics whose end-to-end latency is measured
+    latency: LatencyParams = field(default_factory=LatencyParams)  # the latency model's parameters
 
     @cached_property
     def computer(self) -> dict[str, Computer]:
