@@ -11,7 +11,7 @@ STAMP := $(VENV)/.installed-stamp
 # a headless browser for the report check; iproute2 (ip, tc) for links as network namespaces.
 DEBS ?= ros-core python3-rospy python3-rosbag ros-image-publisher ros-opencv-apps python3-opencv-apps \
 	libnodeletlib-dev libnodelet-dev libnodeletlib-tools libopencv-apps2d libopencv-apps-dev \
-	libimage-publisher-dev chromium iproute2
+	libimage-publisher-dev topic-tools libtopic-tools-dev chromium iproute2
 PYTEST_ARGS ?=
 OUT ?= out
 
