@@ -334,7 +334,12 @@ def _render(d: Path, graph: Graph, skeleton: Any, rows: Sequence[Row], values: M
 def _render_driven(node: Any, exe: str, keys: Sequence[int | float | None], weight: float, follow: Follow,
                    runs: Mapping[str, RunMeasure], flow: Callable[[Any], str]) -> list[str]:
     """A driven node's lines (perfros_bag/sweep/driven.py: the rule and the numbers)."""
-    from perfros_bag.sweep.driven import INPUT_VARIED, RATIO_TOLERANCE, draft_settings, draft_throttle
+    from perfros_bag.sweep.driven import (
+        INPUT_VARIED,
+        RATIO_TOLERANCE,
+        draft_settings,
+        draft_throttle,
+    )
 
     drafted = (draft_settings if follow.throttle is None else draft_throttle)(node.topics, runs, follow)
     missing = [k for k in keys if repr(k) not in drafted]
