@@ -31,8 +31,10 @@ from perfros_bag.fitting.modelfile import (
     MeasuredSetting,
     ModelDocument,
     Stat,
+    Unmeasured,
     round9,
     same_value,
+    unmeasured_entry,
 )
 from perfros_bag.fitting.regression import FitError, clip_domain, fit_curve
 from perfros_bag.system.systemfile import parse_system, read_system_data
@@ -203,6 +205,7 @@ def build_model(system_path: str | Path, characterisation_path: str | Path, *, c
     samples = driven_samples(table, system, cpu) if system.has_flow else {}
     runs = error_runs(table, system, cpu)
     driven: dict[str, list[DrivenSetting]] = {}
+    unmeasured_at: dict[str, Unmeasured] = {}
     for node in system.nodes:
         if node.name not in measured:
             continue
@@ -216,9 +219,12 @@ def build_model(system_path: str | Path, characterisation_path: str | Path, *, c
             node_errors(raw_nodes[node.name], runs.get(node.name, []), fits_n.get("parameter->cpu") if fits_n else None)
         if fits_n:
             fits[node.name] = fits_n
+            unmeasured_at[node.name] = unmeasured_entry(
+                fits_n, [m.value for m in measured[node.name]], driven=node.driven,
+                rule="period" if node.driven and is_throttle(node) else None)
     document = ModelDocument(sys_path, csv_path, doc_system,
                              {n: dict(fs) for n, fs in fits.items()},
-                             measured, warn.messages, cpu_statistic=cpu, driven=driven)
+                             measured, warn.messages, cpu_statistic=cpu, driven=driven, unmeasured=unmeasured_at)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", PerfrosWarning)
         final = parse_system(doc_system, sys_path)  # what solve will read: must load
