@@ -98,24 +98,29 @@ def test_the_throttle_is_drafted_driven_with_the_step_and_the_plan_deploys(pipel
 
 def test_a_value_never_measured_is_planned_at_its_step_and_said_so(pipeline: Path) -> None:
     d = pipeline
-    values = yaml.safe_load(SPACE.read_text())["vary"][0]["values"]
-    assert 4.5 not in values and 4.5 in [s["value"] for n in json.loads((d / "model.json").read_text())
-                                          ["system"]["nodes"] if n["name"] == "throttle" for s in n["settings"]]
-    step = _cli("solve", "model.json", "--problem", "2", "--method", "exact", "--settings", "throttle=4.5",
-                "--out", "plan-4.5.json", cwd=d)
+    measured = yaml.safe_load(SPACE.read_text())["vary"][0]["values"]
+    model = json.loads((d / "model.json").read_text())
+    (throttle,) = (n for n in model["system"]["nodes"] if n["name"] == "throttle")
+    f_in = json.loads((d / "plan.json").read_text())["nodes"]["throttle"]["input_hz"]
+    # a grid value the sweep never ran, where the step is not at a whole ratio of the camera
+    value = next(s["value"] for s in throttle["settings"] if s["value"] not in measured
+                 and 0.1 < (f_in / s["value"]) % 1 < 0.9)
+    assert model["unmeasured"]["throttle"]["measured_values"] == measured
+    step = _cli("solve", "model.json", "--problem", "2", "--method", "exact", "--settings", f"throttle={value}",
+                "--out", "plan-unmeasured.json", cwd=d)
     assert step.returncode == 0, step.stderr
     row = next(line for line in step.stdout.splitlines() if "throttle" in line)
     assert "no: CPU" in row and "Hz ±0" in row  # not measured; the step, not a fit, gives its rate
     assert "yes" in _cli("solve", "model.json", "--problem", "1", "--method", "exact", cwd=d).stdout
-    plan = json.loads((d / "plan-4.5.json").read_text())["nodes"]
+    plan = json.loads((d / "plan-unmeasured.json").read_text())["nodes"]
     f_in = plan["throttle"]["input_hz"]
     out = plan["throttle"]["topics"][THROTTLED]["frequency_hz"]
-    assert plan["throttle"]["value"] == 4.5
-    assert out == pytest.approx(_step(f_in, 4.5), rel=1e-9) and out == pytest.approx(f_in / 4, rel=1e-9)
+    assert plan["throttle"]["value"] == pytest.approx(value)
+    assert out == pytest.approx(_step(f_in, value), rel=1e-9)
     assert plan["flow"]["input_hz"] == pytest.approx(out)
 
-    validation, rates, step = _deploy(d, "plan-4.5.json", "deployed-4.5/")
+    validation, rates, step = _deploy(d, "plan-unmeasured.json", "deployed-unmeasured/")
     deviation = validation["overall"]["deviation_pct"]
-    print(f"throttle fixture at 4.5 (never measured): deploy deviation {deviation:.2f} %")
+    print(f"throttle fixture at {value} (never measured): deploy deviation {deviation:.2f} %")
     assert deviation <= 2.5, step.stdout
-    assert rates[THROTTLED] == pytest.approx(_step(rates[RAW], 4.5), rel=0.025)
+    assert rates[THROTTLED] == pytest.approx(_step(rates[RAW], value), rel=0.025)
