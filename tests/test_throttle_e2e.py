@@ -62,6 +62,7 @@ def pipeline(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def _deploy(d: Path, plan: str, out: str) -> tuple[dict[str, Any], dict[str, float], subprocess.CompletedProcess[str]]:
+    """``deploy`` (4 s), its validation.json and the run's rates by Debian's rosbag API; nothing left running."""
     step = _cli("deploy", plan, str(APP), "--space", str(SPACE), "--out", out, "--duration", "4", cwd=d)
     run = d / out
     validation = json.loads((run / "validation.json").read_text())
@@ -70,7 +71,7 @@ def _deploy(d: Path, plan: str, out: str) -> tuple[dict[str, Any], dict[str, flo
     return validation, _bag_rates(run / "run.bag"), step
 
 
-def test_the_throttle_is_drafted_driven_with_the_step_and_the_plan_deploys(pipeline: Path) -> None:
+def test_the_throttle_is_drafted_driven_with_the_step_and_planned_at_it(pipeline: Path) -> None:
     d = pipeline
     nodes = {n["name"]: n for n in yaml.safe_load((d / "system.yaml").read_text())["nodes"]}
     throttle, flow = nodes["throttle"], nodes["flow"]
@@ -87,13 +88,7 @@ def test_the_throttle_is_drafted_driven_with_the_step_and_the_plan_deploys(pipel
     out = plan["throttle"]["topics"][THROTTLED]["frequency_hz"]
     assert out == pytest.approx(_step(f_in, plan["throttle"]["value"]), rel=1e-9)
     assert plan["flow"]["input_hz"] == pytest.approx(out)
-
-    validation, rates, step = _deploy(d, "plan.json", "deployed/")
-    deviation = validation["overall"]["deviation_pct"]
-    print(f"throttle fixture: deploy deviation {deviation:.2f} %")  # the figure, for the record (pytest -s)
-    assert deviation <= 2.5, step.stdout
-    assert step.returncode == 0, step.stderr
-    assert rates[THROTTLED] == pytest.approx(_step(rates[RAW], plan["throttle"]["value"]), rel=0.025)
+    # (deployed by the next test at a value never measured: one deployment keeps the suite short)
 
 
 def test_a_value_never_measured_is_planned_at_its_step_and_said_so(pipeline: Path) -> None:
@@ -121,6 +116,7 @@ def test_a_value_never_measured_is_planned_at_its_step_and_said_so(pipeline: Pat
 
     validation, rates, step = _deploy(d, "plan-unmeasured.json", "deployed-unmeasured/")
     deviation = validation["overall"]["deviation_pct"]
-    print(f"throttle fixture at {value} (never measured): deploy deviation {deviation:.2f} %")
+    print(f"throttle fixture at {value} (never measured): deploy deviation {deviation:.2f} %")  # pytest -s
     assert deviation <= 2.5, step.stdout
+    assert step.returncode == 0, step.stderr
     assert rates[THROTTLED] == pytest.approx(_step(rates[RAW], value), rel=0.025)
