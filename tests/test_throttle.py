@@ -20,6 +20,7 @@ from perfros_bag.solver import solve
 from perfros_bag.solver.check import check_plan
 from perfros_bag.system.systemfile import parse_system
 from perfros_bag.system.types import STEP_AMBIGUOUS, Setting, driven_rates, step_ambiguous
+from tests.test_init_driven import T0
 
 pytestmark = pytest.mark.filterwarnings("ignore:.*weights sum to")
 
@@ -131,43 +132,34 @@ def test_the_checker_refuses_a_throttle_claimed_at_its_cap() -> None:
     assert check_plan(s, plan) != []
 
 
-def _bad(path: list[Any], value: Any) -> dict[str, Any]:
-    doc = copy.deepcopy(SYSTEM)
-    target: Any = doc
-    for key in path[:-1]:
-        target = target[key]
-    if value is None:
-        del target[path[-1]]
-    else:
-        target[path[-1]] = value
-    return doc
+def _throttle_setting(doc: dict[str, Any]) -> dict[str, Any]:
+    setting: dict[str, Any] = doc["nodes"][1]["settings"][0]
+    return setting
 
 
-@pytest.mark.parametrize(("path", "value", "expect"), [
-    (["nodes", 1, "settings", 0, "step"], "bytes", "step: must be one of period"),
-    (["nodes", 1, "settings", 0, "max_frequency_hz"], None, "give max_frequency_hz"),
-    (["nodes", 0, "settings", 0, "step"], "period", "only a driven node"),
+@pytest.mark.parametrize(("change", "expect"), [
+    (lambda d: _throttle_setting(d).update(step="bytes"), "step: must be one of period"),
+    (lambda d: _throttle_setting(d).pop("max_frequency_hz"), "give max_frequency_hz"),
+    (lambda d: d["nodes"][0]["settings"][0].update(step="period"), "only a driven node"),
 ])
-def test_a_bad_step_is_one_clear_error(path: list[Any], value: Any, expect: str) -> None:
+def test_a_bad_step_is_one_clear_error(change: Any, expect: str) -> None:
+    doc = copy.deepcopy(SYSTEM)
+    change(doc)
     with pytest.raises(InputError) as err:
-        parse_system(_bad(path, value), "throttle.yaml")
+        parse_system(doc, "throttle.yaml")
     assert expect in str(err.value) and "throttle.yaml" in str(err.value)
 
 
 # --- init: a throttle from a sweep ------------------------------------------------------
 
 SPAN_S = 20
-T0 = 1_700_000_000_000_000_000
 
 
 def _write_run(d: Path, name: str, camera_hz: float, rate: float, flow_cpu: float) -> dict[str, Any]:
     """A run: the camera at ``camera_hz``, the throttle passing what the simulated
     topic_tools throttle passes at ``rate``, the flow node once per throttled frame."""
-    from rosbags.rosbag1 import Writer
-    from rosbags.typesys import Stores, get_typestore
+    from tests.test_init_driven import write_run_files
 
-    ts = get_typestore(Stores.ROS1_NOETIC)
-    string = ts.types["std_msgs/msg/String"]
     camera = [T0 + int(round(k * 1e9 / camera_hz)) for k in range(int(SPAN_S * camera_hz) + 1)]
     passed, last = [], -1e18
     for t in camera:
@@ -177,17 +169,7 @@ def _write_run(d: Path, name: str, camera_hz: float, rate: float, flow_cpu: floa
     topics = {"/camera/image_raw": ("/camera", camera, 1000),
               "/camera/image_throttled": ("/throttle", [t + 500_000 for t in passed], 1000),
               "/flow/flows": ("/flow", [t + 3_000_000 for t in passed], 100)}
-    msgs = sorted((t, topic) for topic, (_c, times, _b) in topics.items() for t in times)
-    with Writer(d / f"{name}.bag") as w:
-        conns = {topic: w.add_connection(topic, "std_msgs/msg/String", typestore=ts, callerid=caller)
-                 for topic, (caller, _t, _b) in topics.items()}
-        for t, topic in msgs:
-            w.write(conns[topic], t, ts.serialize_ros1(string(data="x" * (topics[topic][2] - 4)), "std_msgs/msg/String"))
-    cpu = {"/camera": 1.0, "/throttle": 0.05 * camera_hz, "/flow": flow_cpu}
-    lines = ["# host=robot1", "# logical_cpus=2", "# interval_s=0.5", "time,pid,node,process,cpu_percent,rss_bytes"]
-    for s in range(1, 2 * SPAN_S):
-        lines += [f"{T0 / 1e9 + s * 0.5:.3f},{100 + i},{node},x,{c},1000" for i, (node, c) in enumerate(cpu.items())]
-    (d / f"{name}.cpu.csv").write_text("\n".join(lines) + "\n")
+    write_run_files(d, name, topics, {"/camera": 1.0, "/throttle": 0.05 * camera_hz, "/flow": flow_cpu}, SPAN_S)
     return {"path": f"{name}.bag", "cpu": f"{name}.cpu.csv", "computer": "robot1", "units_per_core": 100,
             "settings": {"camera": camera_hz, "throttle": rate}}
 
