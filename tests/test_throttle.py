@@ -224,3 +224,15 @@ def test_init_keeps_a_node_on_its_own_clock_that_is_no_throttle(tmp_path: Path) 
     assert throttle_rule(["/o"], own, dict.fromkeys(own, 15.0)) is None  # neither rule gives its output
     above = {f"r{k}": RunMeasure(v, 1.0, {"/o": (f, None)}) for k, (v, f) in enumerate(((4.2, 3.75), (30.0, 16.0)))}
     assert throttle_rule(["/o"], above, dict.fromkeys(above, 15.0)) is None  # ran above its input
+
+
+def test_init_takes_a_run_at_a_whole_ratio_anywhere_between_its_two_steps() -> None:
+    """The issue's sweep: 15 Hz at rates 3, 6, 12 gave 2.74, 5.00, 7.50 (rate 3 divides 15: the
+    node lands between 15 / 5 and 15 / 6); and rate 15 from 15 Hz, between 15 and 7.5 (9.555
+    measured on Debian's throttle)."""
+    from perfros_bag.sweep.driven import RunMeasure, throttle_rule
+
+    for runs in ({"a": RunMeasure(3.0, 1.0, {"/o": (2.74, None)}), "b": RunMeasure(6.0, 1.0, {"/o": (5.0, None)}),
+                  "c": RunMeasure(12.0, 1.0, {"/o": (7.5, None)})},
+                 {"a": RunMeasure(4.2, 1.0, {"/o": (3.75, None)}), "b": RunMeasure(15.0, 1.0, {"/o": (9.555, None)})}):
+        assert throttle_rule(["/o"], runs, dict.fromkeys(runs, 15.0)) == ("period", pytest.approx(0.0))

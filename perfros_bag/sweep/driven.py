@@ -229,17 +229,18 @@ THROTTLE_TOLERANCE = 0.10
 
 def _rule_error(step: str | None, value: float, f_in: float, f_out: float) -> float | None:
     """How far ``f_out`` lies from the throttle rule's output (a share of it) at cap
-    ``value`` and input ``f_in``; where a period throttle is ambiguous (a whole ratio), from
-    the nearer of its two steps. None when the rule gives no output."""
+    ``value`` and input ``f_in``; where a period throttle is ambiguous (a whole ratio n), 0
+    anywhere between its two steps F_in / (n + 1) and F_in / n, else from the nearer. None
+    when the rule gives no output."""
     from perfros_bag.system.types import Setting, driven_rates, step_ambiguous
 
     s = Setting(0.0, 0.0, max_frequency_hz=value, step="period" if step == "period" else None)
-    want = [driven_rates(s, f_in)[1]]
+    want = driven_rates(s, f_in)[1]
     if step_ambiguous(s, f_in):
-        n = round(f_in / value)
-        want = [f_in / max(n, 1), f_in / (n + 1)]
-    errors = [abs(f_out - w) / w for w in want if w > 0]
-    return min(errors) if errors else None
+        n = max(round(f_in / value), 1)
+        lo, hi = f_in / (n + 1), f_in / n
+        return 0.0 if lo <= f_out <= hi else min(abs(f_out - lo) / lo, abs(f_out - hi) / hi)
+    return abs(f_out - want) / want if want > 0 else None
 
 
 def throttle_rule(topics: Sequence[str], runs: Mapping[str, RunMeasure],
