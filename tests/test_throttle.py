@@ -236,3 +236,36 @@ def test_init_takes_a_run_at_a_whole_ratio_anywhere_between_its_two_steps() -> N
                   "c": RunMeasure(12.0, 1.0, {"/o": (7.5, None)})},
                  {"a": RunMeasure(4.2, 1.0, {"/o": (3.75, None)}), "b": RunMeasure(15.0, 1.0, {"/o": (9.555, None)})}):
         assert throttle_rule(["/o"], runs, dict.fromkeys(runs, 15.0)) == ("period", pytest.approx(0.0))
+
+
+def test_a_throttle_swept_at_whole_rates_fits_a_whole_grid_and_plans_a_step(tmp_path: Path) -> None:
+    """The issue's sweep (15 Hz, rates 3, 6, 12): fit's grid between them is whole (deploy runs
+    a parameter swept at whole values at whole values), each capped at its value with the step,
+    and the plan is a step, never a whole ratio of 15."""
+    import json
+
+    from typer.testing import CliRunner
+
+    from perfros_bag.cli import app
+    from perfros_bag.sweep.draft import draft_system
+
+    _sweep(tmp_path / "sweep", [(15.0, r) for r in (3.0, 6.0, 12.0)])
+    draft_system(tmp_path / "sweep", tmp_path / "system.yaml")
+    runner = CliRunner()
+    for args in (["characterise", str(tmp_path / "sweep"), "--system", str(tmp_path / "system.yaml"),
+                  "--out", str(tmp_path / "c.csv")],
+                 ["fit", str(tmp_path / "system.yaml"), str(tmp_path / "c.csv"), "--out", str(tmp_path / "model.json")],
+                 ["solve", str(tmp_path / "model.json"), "--problem", "1", "--method", "exact",
+                  "--out", str(tmp_path / "plan.json")]):
+        res = runner.invoke(app, args)
+        assert res.exit_code == 0, res.output
+    model = json.loads((tmp_path / "model.json").read_text())
+    (thr,) = (n for n in model["system"]["nodes"] if n["name"] == "throttle")
+    values = [s["value"] for s in thr["settings"]]
+    assert len(values) > 3 and all(float(v).is_integer() for v in values)
+    assert all(s["step"] == "period" and s["max_frequency_hz"] == s["value"] for s in thr["settings"])
+    plan = json.loads((tmp_path / "plan.json").read_text())["nodes"]
+    f_in, value = plan["throttle"]["input_hz"], plan["throttle"]["value"]
+    assert not step_ambiguous(_throttle(value), f_in)
+    assert plan["throttle"]["topics"]["/camera/image_throttled"]["frequency_hz"] == pytest.approx(
+        simulated(f_in, value, jitter=0.0), rel=0.01)

@@ -665,8 +665,11 @@ def _fit_driven_node(node: Node, samples: dict[float | None, list[DrivenSample]]
         return fits, written
     means = {"parameter->out_per_in": _mean([k[3] for k in known if k[3] is not None]),
              "parameter->bytes_per_msg": _mean([k[4] for k in known if k[4] is not None])}
-    grid = _grid_settings(node, fits, means, [d.value for d in written if d.value is not None],
-                          max(r[1] for r in rated))
+    taken = [d.value for d in written if d.value is not None]
+    # a throttle swept at whole rates only is deployed at whole rates (sweep/deploy.plan_run
+    # rounds): its grid is too, so the step planned is the step run
+    whole = throttle and all(float(v).is_integer() for v in taken)
+    grid = _grid_settings(node, fits, means, taken, max(r[1] for r in rated), whole)
     if throttle:  # its value is its cap: a grid value's output is the step's, told by the rule
         raw["settings"] = new_settings + [_setting_json(g, g.value, "period") for g in grid]
     else:
@@ -683,14 +686,14 @@ def is_throttle(node: Node) -> bool:
 
 
 def _grid_settings(node: Node, fits: dict[str, FittedRelation], means: dict[str, float | None], taken: list[float],
-                   max_perf: float) -> list[DrivenSetting]:
+                   max_perf: float, whole: bool = False) -> list[DrivenSetting]:
     """Settings at :data:`GRID_POINTS` values over the range every needed curve covers
-    (rounded for an ``int`` parameter; values already ``taken`` left out), each number from
+    (rounded for an ``int`` parameter or when ``whole``; values already ``taken`` left out), each number from
     its curve (clipped at 0, performance at ``max_perf``); ``out_per_in`` and
     ``bytes_per_msg`` without a curve: ``means`` (the measured ones' mean)."""
     needed = [fits[r] for r in ("parameter->cpu_base", "parameter->cpu_per_hz", "parameter->performance")]
     lo, hi = max(f.domain[0] for f in needed), min(f.domain[1] for f in needed)
-    integer = node.parameter is not None and node.parameter.type == "int"
+    integer = whole or (node.parameter is not None and node.parameter.type == "int")
     values: list[float] = []
     for i in range(GRID_POINTS):
         v = lo + (hi - lo) * i / (GRID_POINTS - 1)
