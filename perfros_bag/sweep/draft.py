@@ -350,10 +350,10 @@ def _render_driven(node: Any, exe: str, keys: Sequence[int | float | None], weig
     if follow.throttle is not None:  # its performance follows what it lets through, as a paper node's
         f_out = _throttle_output(node.topics, runs)
         perf = {repr(k): 100.0 * f_out[repr(k)] / max(f_out.values()) for k in keys}
-        how = ("a message passes once 1/value s have elapsed since the last passed: F_in / ceil(F_in / value)"
+        how = ("the step F_in / ceil(F_in / value) (a message passes once 1/value s have elapsed since the last)"
                if follow.throttle == "period" else "min(F_in, value)")
         said = [f"    # driven, a throttle: its output moved with its value, never above {follow.topic}'s rate, and",
-                f"    # every run is {how} (max_frequency_hz = its value; within {100 * follow.spread:.1f} %)"]
+                f"    # every run gave {how}, the worst {100 * follow.spread:.1f} % off (max_frequency_hz = its value)"]
     else:
         said = [f"    # driven: its output kept one rate per message of {follow.topic} (within "
                 f"{100 * (RATIO_TOLERANCE - 1):.0f} %) while that rate varied by more than {100 * (INPUT_VARIED - 1):.0f} %"]
