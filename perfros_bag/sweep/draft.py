@@ -12,7 +12,9 @@
   runs at that value; the characterisation of every run with a skeleton of this system);
 - a node whose output followed the rate of a topic it subscribes to as driven (``input:``,
   per setting ``cpu`` + ``cpu_per_hz`` x the input's rate, ``out_per_in``, ``bytes_per_msg``:
-  :mod:`perfros_bag.sweep.driven`); the node publishing that topic keeps its settings;
+  :mod:`perfros_bag.sweep.driven`), a throttle of that topic likewise with its value as
+  ``max_frequency_hz`` (and ``step: period`` for topic_tools' rule); the node publishing that
+  topic keeps its settings;
 - what only the user knows, as a stated default and a comment: weights equal; performance
   ``100 x`` the node's measured output frequency ``/`` its highest (eq 10 measures
   performance through the output frequency);

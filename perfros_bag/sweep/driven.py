@@ -14,7 +14,9 @@ other drafted node publishes when, over the runs,
 A subscriber whose output keeps its own clock fails the second test (its ratio changes as
 much as the input's rate did: more than 20 % > 10 %), and a node with no output at a rate is
 never driven (nothing shows it follows). Several qualifying topics: the steadiest ratio wins;
-a choice that would close a cycle of inputs is not made.
+a choice that would close a cycle of inputs is not made. A subscriber that fails the ratio
+test may still be a **throttle** of the topic, its value capping its output
+(:func:`throttle_rule`; drafted with ``max_frequency_hz`` and ``step``, :func:`draft_throttle`).
 
 Per own setting, from the runs at it:
 
