@@ -65,8 +65,11 @@ METRIC_KEYS = {"topic", "field", "aggregate", "better", "range"}
 #: CFS share of an overloaded computer (perfros_bag.system.cpushare; ``fit`` writes the node's)
 SETTING_KEYS = {"value", "cpu", "performance", "frequency_hz", "bandwidth_kBps", "topics", "cpu_error", "threads"}
 #: a driven node's setting (``input:``) also says how it follows its input rate, and its
-#: error as a share of its CPU (``cpu_error_share``, >= 0) instead of ``cpu_error``
-DRIVEN_KEYS = {"cpu_per_hz", "out_per_in", "max_frequency_hz", "bytes_per_msg", "cpu_error_share"}
+#: error as a share of its CPU (``cpu_error_share``, >= 0) instead of ``cpu_error``; ``step``
+#: (with ``max_frequency_hz``): how the cap acts, :data:`STEPS`
+DRIVEN_KEYS = {"cpu_per_hz", "out_per_in", "max_frequency_hz", "bytes_per_msg", "cpu_error_share", "step"}
+#: ``step: period``: a period throttle (topic_tools/throttle), its output ``x / ceil(x / cap)``
+STEPS = ("period",)
 TOPIC_RATE_KEYS = {"frequency_hz", "bandwidth_kBps"}
 PARAMETER_KEYS = {"name", "unit", "type"}
 CURVE_KEYS = {"form", "coef", "cpu", "domain", "scale"}
@@ -540,6 +543,12 @@ def _setting(ctx: _Ctx, raw: Any, where: str, *, driven: bool = False) -> Settin
     elif "cpu_error" in m:
         raise ctx.fail(f"{where}.cpu_error", "a driven node (input:) states its error relative to its CPU: "
                                              "cpu_error_share")
+    step = m.get("step")
+    if step is not None:
+        if step not in STEPS:
+            raise ctx.fail(f"{where}.step", f"must be one of {', '.join(STEPS)}, got {step!r}"[:200])
+        if m.get("max_frequency_hz") is None:
+            raise ctx.fail(f"{where}.step", "a step says how max_frequency_hz caps the output: give max_frequency_hz")
     topics: dict[str, TopicRate] = {}
     if m.get("topics") is not None:
         tm = ctx.mapping(m["topics"], f"{where}.topics", set(m["topics"]) if isinstance(m["topics"], Mapping) else set())
@@ -562,6 +571,7 @@ def _setting(ctx: _Ctx, raw: Any, where: str, *, driven: bool = False) -> Settin
         out_per_in=ctx.opt_number(m.get("out_per_in"), f"{where}.out_per_in", nonneg=True),
         max_frequency_hz=ctx.opt_number(m.get("max_frequency_hz"), f"{where}.max_frequency_hz", nonneg=True),
         bytes_per_msg=ctx.opt_number(m.get("bytes_per_msg"), f"{where}.bytes_per_msg", nonneg=True),
+        step="period" if step == "period" else None,
         cpu_error=ctx.opt_number(m.get("cpu_error"), f"{where}.cpu_error", nonneg=True),
         cpu_error_share=ctx.opt_number(m.get("cpu_error_share"), f"{where}.cpu_error_share", nonneg=True),
         threads=_threads(ctx, m.get("threads"), f"{where}.threads"),
