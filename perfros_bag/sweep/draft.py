@@ -306,12 +306,7 @@ def _render(d: Path, graph: Graph, skeleton: Any, rows: Sequence[Row], values: M
         lines.append(f"  # /{node.name} ({exe})")
         lines.append(f"  - name: {flow(node.name)}")
         lines.append(f"    weight: {weight!r}  # REPLACE: every node weighs the same (a stated default)")
-        if node.parameter is not None:
-            lines.append(f"    parameter: {flow(_parameter(node.parameter))}")
-        if node.topics:
-            lines.append(f"    topics: {flow(list(node.topics))}")
-        lines += _container_lines(node, ros)
-        lines.append(f"    process: {flow(node.process)}  # its ROS name in the sweep's CPU traces")
+        lines += _process_lines(node, ros, flow)
         if top:
             lines.append(f"    # performance: REPLACE. A stated default: 100 x the measured output frequency / "
                          f"its highest ({_r(top)} Hz)")
@@ -327,6 +322,18 @@ def _render(d: Path, graph: Graph, skeleton: Any, rows: Sequence[Row], values: M
         lines.append("# edges: unknown without graph.yaml: add {from: NODE, to: NODE, topic: TOPIC} per subscription")
     lines += _render_chains(nodes, follows, flow)
     return "\n".join(lines) + "\n"
+
+
+def _process_lines(node: Any, ros: GraphNode | None, flow: Callable[[Any], str]) -> list[str]:
+    """A node's parameter, topics, container and process lines (every drafted node has them)."""
+    lines = []
+    if node.parameter is not None:
+        lines.append(f"    parameter: {flow(_parameter(node.parameter))}")
+    if node.topics:
+        lines.append(f"    topics: {flow(list(node.topics))}")
+    lines += _container_lines(node, ros)
+    lines.append(f"    process: {flow(node.process)}  # its ROS name in the sweep's CPU traces")
+    return lines
 
 
 def _container_lines(node: Any, ros: GraphNode | None) -> list[str]:
@@ -396,12 +403,7 @@ def _render_driven(node: Any, exe: str, keys: Sequence[int | float | None], weig
              f"    weight: {weight!r}  # REPLACE: every node weighs the same (a stated default)",
              *said,
              f"    input: {flow(follow.topic)}"]
-    if node.parameter is not None:
-        lines.append(f"    parameter: {flow(_parameter(node.parameter))}")
-    if node.topics:
-        lines.append(f"    topics: {flow(list(node.topics))}")
-    lines += _container_lines(node, ros)
-    lines.append(f"    process: {flow(node.process)}  # its ROS name in the sweep's CPU traces")
+    lines += _process_lines(node, ros, flow)
     lines.append("    # cpu + cpu_per_hz x input rate: least squares over the runs at each setting; "
                  "performance: REPLACE.")
     if follow.throttle is not None:
