@@ -248,9 +248,8 @@ def _exact_start(system: System, problem: Problem, choices: dict[str, list[Choic
     when greedy+ finds nothing."""
     if problem != Problem.PERFORMANCE or columns <= START_COLUMNS:
         return None
-    from perfros_bag.solver.starts import (
-        start_of,  # deferred: greedy+'s numpy, on big instances only
-    )
+    # deferred: starts imports greedy+ (numpy), needed on big instances only
+    from perfros_bag.solver.starts import start_of
 
     budget = None if time_limit is None else START_SHARE * time_limit
     plan = solve_heuristic(system, problem, choices, Method.GREEDY_PLUS, time_budget=budget)

@@ -388,7 +388,7 @@ def _extract(inst: Instance, built: _Built, values: Sequence[float]) -> Assignme
 def _diagnose(inst: Instance, time_limit: float | None) -> str:
     """Why the MILP is infeasible: solve an elastic copy where capacities and bandwidths may
     overflow at a cost, and name what overflows in its best placement."""
-    import highspy
+    import highspy  # lazy, as in milp.py: a missing HiGHS fails the exact method only
 
     built = _build(inst, elastic=True)
     h = built.milp.solve(False, time_limit=time_limit, mip_gap=0.0)
@@ -462,7 +462,7 @@ def solve_exact(system: System, problem: Problem, choices: dict[str, list[Choice
     the caller has it. ``cuts``: rows that remove assignments (latency budgets,
     :func:`perfros_bag.solver.budgets.cut_of`).
     """
-    import highspy
+    import highspy  # lazy, as in milp.py: a missing HiGHS fails the exact method only
 
     t0 = time.perf_counter()
     if problem not in (1, 2):

@@ -42,6 +42,7 @@ from typing import Any
 import numpy as np
 
 from perfros_bag.errors import InputError
+from perfros_bag.fileio import atomic_write_text, read_json
 from perfros_bag.solver.candidates import fixed_choices, lowest_settings
 from perfros_bag.solver.decompose import cpu_grid_scale, home_options
 from perfros_bag.solver.dispatch import solve
@@ -317,16 +318,12 @@ def frontier_document(system: System, points: list[FrontierPoint], method: str) 
 
 def write_frontier(path: str | Path, doc: dict[str, Any]) -> None:
     """frontier.json, written atomically (the one writer)."""
-    from perfros_bag.fileio import atomic_write_text
-
     atomic_write_text(path, json.dumps(doc, indent=2) + "\n")
 
 
 def read_frontier(path: str | Path) -> dict[str, Any]:
     """frontier.json, checked field by field (the one reader): an :class:`InputError` naming
     the broken place otherwise."""
-    from perfros_bag.fileio import read_json
-
     doc = read_json(path)
     if not isinstance(doc, dict) or doc.get("format") != FORMAT:
         raise InputError(path, f"not a frontier (expected a JSON object with format {FORMAT!r})")
