@@ -75,12 +75,15 @@ class HopPrediction:
     wait_ms: float  # p50 of the queue's wait
     transfer_ms: float
     utilisation: float
+    wait_p95_ms: float = 0.0
+    transfer_p95_ms: float = 0.0
 
     def to_dict(self) -> dict[str, Any]:
         return {"from": self.src, "node": self.node, "to": self.dst, "computer": self.computer,
                 "predicted_ms": {"p50": _ms(self.p50_ms), "p95": _ms(self.p95_ms)},
                 "service_ms": _ms(self.service_ms), "wait_ms": _ms(self.wait_ms),
-                "transfer_ms": _ms(self.transfer_ms), "utilisation": round(self.utilisation, 6)}
+                "transfer_ms": _ms(self.transfer_ms), "utilisation": round(self.utilisation, 6),
+                "wait_p95_ms": _ms(self.wait_p95_ms), "transfer_p95_ms": _ms(self.transfer_p95_ms)}
 
 
 @dataclass(frozen=True)
@@ -240,7 +243,7 @@ def predict_hop(system: System, hop: Hop, placement: Mapping[str, str], choice: 
     p50 = over + transfer50 + wait50 + service
     p95 = over + transfer95 + wait95 + ratio * service
     return HopPrediction(hop.src, hop.node, hop.dst, comp, 1000 * p50, 1000 * p95, 1000 * service,
-                         1000 * wait50, 1000 * transfer50, rho)
+                         1000 * wait50, 1000 * transfer50, rho, 1000 * wait95, 1000 * transfer95)
 
 
 def predict_chain(system: System, chain: Chain, placement: Mapping[str, str], choice: Mapping[str, Choice],
