@@ -308,37 +308,41 @@ def budget_violation(system: System, placement: Mapping[str, str], choice: Mappi
     return None
 
 
+def hop_floor(system: System, node: str, choice: Choice, capacity: float) -> tuple[float, float] | None:
+    """A lower bound on the (p50, p95) ms of ``node``'s hop at ``choice`` on a computer of
+    ``capacity``, whatever else the plan puts there: the node at the most it can run (one
+    core, at most the capacity), its wait at that speed, no transfer. None without an input
+    rate."""
+    params = system.latency
+    lam = choice.input_hz
+    v = min(params.units_per_core, capacity)
+    if not lam or lam <= 0 or v <= 0:
+        return None
+    w = choice.cpu / lam
+    rho = lam * w / v
+    s = params.service_scale.get(node, 1.0) * w / v
+    ratio = params.node_p95_ratio.get(node, params.p95_ratio)
+    over = params.overhead_ms / 1000.0
+    return (1000 * (over + s + queue_wait(s, rho, params, 0.5)),
+            1000 * (over + ratio * s + queue_wait(s, rho, params, 0.95)))
+
+
 def fastest_bound(system: System, chain: Chain, choices: Mapping[str, Sequence[Choice]]) -> tuple[float, float] | None:
     """A lower bound on ``chain``'s predicted (p50, p95) over every plan: each hop at its
-    fastest choice, alone on the largest computer it may use, beside its input's publisher.
-    None when the chain cannot be followed."""
+    fastest choice, alone on the largest computer it may use, beside its input's publisher
+    (:func:`hop_floor`). None when the chain cannot be followed."""
     hops = chain_hops(system, chain)
     if isinstance(hops, str):
         return None
-    params = system.latency
     p50 = p95 = 0.0
     for hop in hops:
-        best50 = best95 = math.inf
         caps = [c.capacity if c.capacity is not None else (c.max_capacity or math.inf)
                 for c in system.computers if c.name in system.allowed(hop.node)]
         cap = max(caps) if caps else 0.0
-        for ch in choices.get(hop.node, ()):
-            lam = ch.input_hz
-            if not lam or lam <= 0:
-                continue
-            w = ch.cpu / lam
-            v = min(params.units_per_core, cap)
-            if v <= 0:
-                continue
-            rho = lam * w / v
-            s = params.service_scale.get(hop.node, 1.0) * w / v
-            ratio = params.node_p95_ratio.get(hop.node, params.p95_ratio)
-            over = params.overhead_ms / 1000.0
-            best50 = min(best50, over + s + queue_wait(s, rho, params, 0.5))
-            best95 = min(best95, over + ratio * s + queue_wait(s, rho, params, 0.95))
-        p50 += best50
-        p95 += best95
-    return 1000 * p50, 1000 * p95
+        floors = [f for ch in choices.get(hop.node, ()) if (f := hop_floor(system, hop.node, ch, cap)) is not None]
+        p50 += min((f[0] for f in floors), default=math.inf)
+        p95 += min((f[1] for f in floors), default=math.inf)
+    return p50, p95
 
 
 def budget_text(budget: object) -> str:
