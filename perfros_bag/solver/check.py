@@ -42,7 +42,8 @@ def _node_choice(node: Node, cpu: float, performance: float, tol: float, value: 
 
 def _driven_choice(node: Node, input_hz: float, cpu: float, performance: float, tol: float) -> Choice | None:
     """A driven node's setting the plan claims at input rate ``input_hz``: its CPU is
-    ``cpu + cpu_per_hz·F_in``, its output ``min(out_per_in·F_in, max_frequency_hz)``, its
+    ``cpu + cpu_per_hz·F_in``, its output ``min(out_per_in·F_in, max_frequency_hz)`` (``step:
+    period``: one per k messages of ``out_per_in·F_in``, k the fewest with k x cap >= it), its
     bandwidth ``bytes_per_msg`` per output message (docs/formats.md; this checker's own
     copy of the rule)."""
     for j, s in enumerate(node.settings):
@@ -50,8 +51,20 @@ def _driven_choice(node: Node, input_hz: float, cpu: float, performance: float, 
         if not (_close(need, cpu, tol) and _close(s.performance, performance, tol)):
             continue
         out = (1.0 if s.out_per_in is None else s.out_per_in) * input_hz
-        if s.max_frequency_hz is not None and s.max_frequency_hz < out:
-            out = s.max_frequency_hz
+        cap = s.max_frequency_hz
+        if cap is not None and s.step == "period":
+            # one message passes per k arriving, k the fewest whose span reaches the period
+            if cap <= 0:
+                out = 0.0
+            else:
+                k = max(1, int(out // cap))
+                while k * cap < out * (1.0 - 1e-9):
+                    k += 1
+                while k > 1 and (k - 1) * cap >= out * (1.0 - 1e-9):
+                    k -= 1
+                out = out / k
+        elif cap is not None and cap < out:
+            out = cap
         size = s.bytes_per_msg
         if size is None:
             size = s.bandwidth_kBps * 1000.0 / s.frequency_hz if s.frequency_hz and s.bandwidth_kBps is not None else 0.0
@@ -163,6 +176,11 @@ def check_plan(system: System, plan: Plan, *, tol: float = 1e-6) -> list[str]:
         for other in node.coresidence:
             if node.name in where and other in where and where[node.name] != where[other]:
                 bad.append(f"coresidence: {node.name} on {where[node.name]} but {other} on {where[other]}")
+    # membership kept: a node hosted by a container (nodelet manager) sits on its computer
+    for node in system.nodes:
+        host = node.container
+        if host is not None and node.name in where and host in where and where[node.name] != where[host]:
+            bad.append(f"container: {node.name} on {where[node.name]} but its container {host} on {where[host]}")
 
     # eq 3: CPU per computer
     load: dict[str, float] = defaultdict(float)

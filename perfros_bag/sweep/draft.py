@@ -12,7 +12,9 @@
   runs at that value; the characterisation of every run with a skeleton of this system);
 - a node whose output followed the rate of a topic it subscribes to as driven (``input:``,
   per setting ``cpu`` + ``cpu_per_hz`` x the input's rate, ``out_per_in``, ``bytes_per_msg``:
-  :mod:`perfros_bag.sweep.driven`); the node publishing that topic keeps its settings;
+  :mod:`perfros_bag.sweep.driven`), a throttle of that topic likewise with its value as
+  ``max_frequency_hz`` (and ``step: period`` for topic_tools' rule); the node publishing that
+  topic keeps its settings;
 - what only the user knows, as a stated default and a comment: weights equal; performance
   ``100 x`` the node's measured output frequency ``/`` its highest (eq 10 measures
   performance through the output frequency);
@@ -46,7 +48,7 @@ if TYPE_CHECKING:
 #: recorders (ROS 1 ``record_<pid>``, ROS 2 ``rosbag2_recorder``) and the ros2 command line's.
 NOT_APP = re.compile(r"^/(rosout|perfros_[a-z_]+|rosbag2_recorder|record_\d+|_ros2cli_\d+)$")
 #: Message types that are not a node's output (logs, reconfiguration).
-NOT_OUTPUT = re.compile(r"^(rosgraph_msgs|dynamic_reconfigure)/")
+NOT_OUTPUT = re.compile(r"^(rosgraph_msgs|dynamic_reconfigure|bond)/")  # bond: a nodelet's tie to its manager
 MIN_CPU = 0.1  # a setting's CPU must be > 0: what a node measured at 0 gets
 
 
@@ -101,6 +103,7 @@ def draft_system(directory: str | Path, out: str | Path) -> Draft:
         result = characterise(manifest.recordings, skeleton)
     if result.failures:
         raise InputError(result.failures[0].recording, result.failures[0].message)
+    _warn_members(skeleton, result.splits)
     from perfros_bag.sweep.driven import find_inputs, per_run
 
     by_run = per_run(result.rows)
@@ -232,6 +235,8 @@ def _skeleton(app: Sequence[GraphNode], graph: Graph, values: Mapping[str, list[
         topics = _output_topics(n, graph)
         if topics:
             entry["topics"] = list(topics)
+        if n.container is not None:
+            entry["container"] = node_name(n.container)
         if name in values:
             pname, unit = parameters.get(name, ("value", None))
             entry["parameter"] = {"name": pname} if unit is None else {"name": pname, "unit": unit}
@@ -302,7 +307,7 @@ def _render(d: Path, graph: Graph, skeleton: Any, rows: Sequence[Row], values: M
         exe = ros.executable if ros is not None and ros.executable else "executable unknown"
         keys = [_norm(v) for v in values.get(node.name, [])] if node.parameter else [None]
         if node.name in follows:
-            lines += _render_driven(node, exe, keys, weight, follows[node.name], by_run[node.name], flow)
+            lines += _render_driven(node, exe, keys, weight, follows[node.name], by_run[node.name], flow, ros)
             continue
         measured = [_measured(node, key, per_value, topic_means) for key in keys]
         freqs = [m.frequency_hz for m in measured if m.frequency_hz]
@@ -314,6 +319,7 @@ def _render(d: Path, graph: Graph, skeleton: Any, rows: Sequence[Row], values: M
             lines.append(f"    parameter: {flow(_parameter(node.parameter))}")
         if node.topics:
             lines.append(f"    topics: {flow(list(node.topics))}")
+        lines += _container_lines(node, ros)
         lines.append(f"    process: {flow(node.process)}  # its ROS name in the sweep's CPU traces")
         if top:
             lines.append(f"    # performance: REPLACE. A stated default: 100 x the measured output frequency / "
@@ -330,6 +336,15 @@ def _render(d: Path, graph: Graph, skeleton: Any, rows: Sequence[Row], values: M
         lines.append("# edges: unknown without graph.yaml: add {from: NODE, to: NODE, topic: TOPIC} per subscription")
     lines += _render_chains(nodes, follows, flow)
     return "\n".join(lines) + "\n"
+
+
+def _container_lines(node: Any, ros: GraphNode | None) -> list[str]:
+    """A hosted node's ``container:`` (its CPU: its share of the container's, fitted)."""
+    if node.container is None:
+        return []
+    kind = f"nodelet {ros.nodelet}" if ros is not None and ros.nodelet else "hosted"
+    return [f"    container: {node.container}  # {kind}: runs in {node.container}'s process; its CPU is its share "
+            "of that process's, fitted over the runs (docs/formats.md, Nodelets)"]
 
 
 def _render_chains(nodes: Sequence[Any], follows: Mapping[str, Follow], flow: Callable[[Any], str]) -> list[str]:
@@ -359,36 +374,60 @@ def _render_chains(nodes: Sequence[Any], follows: Mapping[str, Follow], flow: Ca
 
 
 def _render_driven(node: Any, exe: str, keys: Sequence[int | float | None], weight: float, follow: Follow,
-                   runs: Mapping[str, RunMeasure], flow: Callable[[Any], str]) -> list[str]:
+                   runs: Mapping[str, RunMeasure], flow: Callable[[Any], str],
+                   ros: GraphNode | None = None) -> list[str]:
     """A driven node's lines (perfros_bag/sweep/driven.py: the rule and the numbers)."""
-    from perfros_bag.sweep.driven import INPUT_VARIED, RATIO_TOLERANCE, draft_settings
+    from perfros_bag.sweep.driven import (
+        INPUT_VARIED,
+        RATIO_TOLERANCE,
+        draft_settings,
+        draft_throttle,
+    )
 
-    drafted = draft_settings(node.topics, runs, follow)
+    drafted = (draft_settings if follow.throttle is None else draft_throttle)(node.topics, runs, follow)
     missing = [k for k in keys if repr(k) not in drafted]
     if missing:
         raise InputError(None, f"node {node.name}: no run measured it at value {missing[0]}")
     settings = [drafted[repr(k)] for k in keys]
     top = max(s.out_per_in for s in settings)
+    if follow.throttle is not None:  # its performance follows what it lets through, as a paper node's
+        f_out = _throttle_output(node.topics, runs)
+        perf = {repr(k): 100.0 * f_out[repr(k)] / max(f_out.values()) for k in keys}
+        how = ("the step F_in / ceil(F_in / value) (a message passes once 1/value s have elapsed since the last)"
+               if follow.throttle == "period" else "min(F_in, value)")
+        said = [f"    # driven, a throttle: its output moved with its value, never above {follow.topic}'s rate, and",
+                f"    # every run gave {how}, the worst {100 * follow.spread:.1f} % off (max_frequency_hz = its value)"]
+    else:
+        said = [f"    # driven: its output kept one rate per message of {follow.topic} (within "
+                f"{100 * (RATIO_TOLERANCE - 1):.0f} %) while that rate varied by more than {100 * (INPUT_VARIED - 1):.0f} %"]
     lines = [f"  # /{node.name} ({exe})",
              f"  - name: {flow(node.name)}",
              f"    weight: {weight!r}  # REPLACE: every node weighs the same (a stated default)",
-             f"    # driven: its output kept one rate per message of {follow.topic} (within "
-             f"{100 * (RATIO_TOLERANCE - 1):.0f} %) while that rate varied by more than {100 * (INPUT_VARIED - 1):.0f} %",
+             *said,
              f"    input: {flow(follow.topic)}"]
     if node.parameter is not None:
         lines.append(f"    parameter: {flow(_parameter(node.parameter))}")
     if node.topics:
         lines.append(f"    topics: {flow(list(node.topics))}")
+    lines += _container_lines(node, ros)
     lines.append(f"    process: {flow(node.process)}  # its ROS name in the sweep's CPU traces")
     lines.append("    # cpu + cpu_per_hz x input rate: least squares over the runs at each setting; "
                  "performance: REPLACE.")
-    lines.append(f"    # A stated default: 100 x its out_per_in / the highest ({_r(top)})")
+    if follow.throttle is not None:
+        lines.append("    # A stated default: 100 x its measured output rate / the highest")
+    else:
+        lines.append(f"    # A stated default: 100 x its out_per_in / the highest ({_r(top)})")
     lines.append("    settings:")
     for s in settings:
         entry: dict[str, Any] = {} if s.value is None else {"value": _norm(s.value)}
         entry.update(cpu=_r(s.cpu), cpu_per_hz=_r(s.cpu_per_hz),
                      performance=_r(100.0 * s.out_per_in / top) if top > 0 else 100.0,
                      out_per_in=_r(s.out_per_in), bytes_per_msg=_r(s.bytes_per_msg))
+        if follow.throttle is not None:
+            entry["performance"] = _r(perf[repr(s.value)])
+            entry["max_frequency_hz"] = _norm(s.value)
+            if follow.throttle == "period":
+                entry["step"] = "period"
         note = ""
         if s.clipped is not None:
             note = f"  # {s.clipped}"
@@ -397,6 +436,17 @@ def _render_driven(node: Any, exe: str, keys: Sequence[int | float | None], weig
                     "this setting's CPU")
         lines.append(f"      - {flow(entry)}{note}")
     return lines
+
+
+def _throttle_output(topics: Sequence[str], runs: Mapping[str, RunMeasure]) -> dict[str, float]:
+    """own value (``repr``) -> a throttle's mean output rate over its rated topics and runs."""
+    from perfros_bag.sweep.driven import rated_topics
+
+    rated = rated_topics(topics, runs)
+    acc: dict[str, list[float]] = {}
+    for m in runs.values():
+        acc.setdefault(repr(m.value), []).extend(m.rate(t) for t in rated)
+    return {k: sum(v) / len(v) for k, v in acc.items()}
 
 
 def _norm(v: float) -> float | int:
@@ -462,6 +512,23 @@ def _edges(graph: Graph, nodes: Sequence[Any]) -> list[dict[str, str]]:
                 if dst in names and dst != n.name:
                     out.append({"from": n.name, "to": dst, "topic": t})
     return out
+
+
+def _warn_members(skeleton: Any, splits: Sequence[Any]) -> None:
+    """Never silent about what a process hosts: a nodelet with no topic of its own (only its
+    bond) and each container fit's problem are warnings naming the node and what was done."""
+    for n in skeleton.nodes:
+        if n.container is not None and not n.topics:
+            warnings.warn(PerfrosWarning(f"node {n.name}: a nodelet of {n.container} whose only published topic is "
+                                         "its bond: drafted with no topics (performance 100, no rate)"), stacklevel=3)
+    for s in splits:
+        for note in s.notes:
+            warnings.warn(PerfrosWarning(note), stacklevel=3)
+        for k in s.cpu:
+            lo = min(s.cpu[k].values())
+            if lo <= 0:
+                warnings.warn(PerfrosWarning(f"node {k}: its share of {s.container}'s CPU fitted to 0 at some value: "
+                                             f"drafted at {MIN_CPU} there"), stacklevel=3)
 
 
 def _check_loads(text: str, out: Path) -> None:

@@ -16,8 +16,8 @@ from typing import Any
 
 from perfros_bag.errors import InputError, PerfrosWarning
 from perfros_bag.fileio import SYSTEM_KIND, expect_kind, file_kind, kind_of, read_yaml, unknown_keys
-from perfros_bag.fitting.modelfile import read_model_system
 from perfros_bag.limits import MAX_COEFFICIENT, MAX_MAGNITUDE, number_problem
+from perfros_bag.system.modelpart import read_model_system
 from perfros_bag.system.names import (
     NameKind,
     address_problem,
@@ -56,15 +56,20 @@ LINK_KEYS = {"between", "bandwidth_kBps", "medium"}
 MEDIUM_KEYS = {"name", "bandwidth_kBps"}
 NODE_KEYS = {
     "name", "weight", "residence", "coresidence", "parameter", "topics", "process",
-    "settings", "curve", "launch", "relations", "metric", "input", "cpu_error_between",
+    "settings", "curve", "launch", "relations", "metric", "input", "cpu_error_between", "container", "threads",
 }
 METRIC_KEYS = {"topic", "field", "aggregate", "better", "range"}
 #: ``cpu_error`` (optional, CPU units >= 0): what the setting may need beyond its ``cpu``
 #: (measured headroom, perfros_bag.system.cpuerror; ``fit`` writes it)
-SETTING_KEYS = {"value", "cpu", "performance", "frequency_hz", "bandwidth_kBps", "topics", "cpu_error"}
+#: ``threads`` (optional, >= 1, on a node or a setting): its busy threads, its weight in the
+#: CFS share of an overloaded computer (perfros_bag.system.cpushare; ``fit`` writes the node's)
+SETTING_KEYS = {"value", "cpu", "performance", "frequency_hz", "bandwidth_kBps", "topics", "cpu_error", "threads"}
 #: a driven node's setting (``input:``) also says how it follows its input rate, and its
-#: error as a share of its CPU (``cpu_error_share``, >= 0) instead of ``cpu_error``
-DRIVEN_KEYS = {"cpu_per_hz", "out_per_in", "max_frequency_hz", "bytes_per_msg", "cpu_error_share"}
+#: error as a share of its CPU (``cpu_error_share``, >= 0) instead of ``cpu_error``; ``step``
+#: (with ``max_frequency_hz``): how the cap acts, :data:`STEPS`
+DRIVEN_KEYS = {"cpu_per_hz", "out_per_in", "max_frequency_hz", "bytes_per_msg", "cpu_error_share", "step"}
+#: ``step: period``: a period throttle (topic_tools/throttle), its output ``x / ceil(x / cap)``
+STEPS = ("period",)
 TOPIC_RATE_KEYS = {"frequency_hz", "bandwidth_kBps"}
 PARAMETER_KEYS = {"name", "unit", "type"}
 CURVE_KEYS = {"form", "coef", "cpu", "domain", "scale"}
@@ -214,6 +219,7 @@ def parse_system(data: Any, source: str = "system.yaml") -> System:
                 raise ctx.fail(f"node {n.name!r}: coresidence", f"unknown node {m!r}")
             if m == n.name:
                 raise ctx.fail(f"node {n.name!r}: coresidence", "a node cannot list itself")
+    _check_containers(ctx, nodes)
 
     total = sum(n.weight for n in nodes)
     if abs(total - 1.0) > 1e-6:
@@ -400,6 +406,23 @@ def _check_outputs(ctx: _Ctx, curve: Curve, where: str) -> None:
         raise ctx.fail(where, problem)
 
 
+def _check_containers(ctx: _Ctx, nodes: list[Node]) -> None:
+    """``container`` names another node of the system, one that is not hosted itself."""
+    by_name = {n.name: n for n in nodes}
+    for n in nodes:
+        if n.container is None:
+            continue
+        host = by_name.get(n.container)
+        if host is None:
+            raise ctx.fail(f"node {n.name!r}: container", f"unknown node {n.container!r} (the container is a node "
+                                                          "of the system: the process that hosts it)")
+        if host.name == n.name:
+            raise ctx.fail(f"node {n.name!r}: container", "a node cannot host itself")
+        if host.container is not None:
+            raise ctx.fail(f"node {n.name!r}: container", f"{host.name!r} is itself hosted by {host.container!r}: "
+                                                          "a container runs in a process of its own")
+
+
 def _nodes(ctx: _Ctx, raw: Any, computers: set[str]) -> list[Node]:
     out: list[Node] = []
     for name, where, m in ctx.named(raw, "nodes", "node", NODE_KEYS, {"name", "weight"}, kind=NameKind.NODE):
@@ -471,9 +494,20 @@ def _nodes(ctx: _Ctx, raw: Any, computers: set[str]) -> list[Node]:
         between = ctx.opt_number(m.get("cpu_error_between"), f"{where}: cpu_error_between", nonneg=True)
         if between is not None and curve is None:
             raise ctx.fail(f"{where}: cpu_error_between", "only a node with a curve has CPU levels between its settings")
+        container = None if m.get("container") is None else ctx.name(m["container"], f"{where}: container",
+                                                                       NameKind.NODE)
+        threads = _threads(ctx, m.get("threads"), f"{where}: threads")
         out.append(Node(name, weight, settings, curve, residence, coresidence, parameter,
-                        topics, process, launch, relations, metric, driven_by, between))
+                        topics, process, launch, relations, metric, driven_by, between, container, threads))
     return out
+
+
+def _threads(ctx: _Ctx, raw: Any, where: str) -> float | None:
+    """An optional busy-thread count: a number >= 1."""
+    value = ctx.opt_number(raw, where, positive=True)
+    if value is not None and value < 1:
+        raise ctx.fail(where, f"must be >= 1 (busy threads), got {raw!r}")
+    return value
 
 
 def _metric(ctx: _Ctx, raw: Any, where: str) -> Metric:
@@ -509,6 +543,12 @@ def _setting(ctx: _Ctx, raw: Any, where: str, *, driven: bool = False) -> Settin
     elif "cpu_error" in m:
         raise ctx.fail(f"{where}.cpu_error", "a driven node (input:) states its error relative to its CPU: "
                                              "cpu_error_share")
+    step = m.get("step")
+    if step is not None:
+        if step not in STEPS:
+            raise ctx.fail(f"{where}.step", f"must be one of {', '.join(STEPS)}, got {step!r}"[:200])
+        if m.get("max_frequency_hz") is None:
+            raise ctx.fail(f"{where}.step", "a step says how max_frequency_hz caps the output: give max_frequency_hz")
     topics: dict[str, TopicRate] = {}
     if m.get("topics") is not None:
         tm = ctx.mapping(m["topics"], f"{where}.topics", set(m["topics"]) if isinstance(m["topics"], Mapping) else set())
@@ -531,8 +571,10 @@ def _setting(ctx: _Ctx, raw: Any, where: str, *, driven: bool = False) -> Settin
         out_per_in=ctx.opt_number(m.get("out_per_in"), f"{where}.out_per_in", nonneg=True),
         max_frequency_hz=ctx.opt_number(m.get("max_frequency_hz"), f"{where}.max_frequency_hz", nonneg=True),
         bytes_per_msg=ctx.opt_number(m.get("bytes_per_msg"), f"{where}.bytes_per_msg", nonneg=True),
+        step="period" if step == "period" else None,
         cpu_error=ctx.opt_number(m.get("cpu_error"), f"{where}.cpu_error", nonneg=True),
         cpu_error_share=ctx.opt_number(m.get("cpu_error_share"), f"{where}.cpu_error_share", nonneg=True),
+        threads=_threads(ctx, m.get("threads"), f"{where}.threads"),
     )
 
 
