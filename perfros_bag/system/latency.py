@@ -8,7 +8,8 @@ per second from its input's publisher ``m`` on computer ``c_m`` (docs/solvers.md
 * **service** ``S = scale_n * w / v`` seconds: ``w = cpu_n / lam`` CPU units x seconds per
   message (a driven node's CPU is ``cpu + cpu_per_hz x lam``, so ``w`` carries it), ``v`` the
   CPU units ``n`` runs at while it is busy: its share of its computer when it asks for all its
-  threads can run (``threads x units_per_core``) and the others ask for their planned CPU
+  threads can run (``threads x units_per_core``; system.yaml ``threads``, 1 by default) and
+  the others ask for their planned CPU, each weighted by its threads
   (:func:`perfros_bag.system.cpushare.fair_shares`, the one model of how a capped computer
   shares its CPU). ``scale_n`` (fitted; 1 by default) turns CPU time into wall time.
 * **wait** in its queue at utilisation ``rho = lam x w / v``: M/D/1, whose mean wait is
@@ -170,13 +171,22 @@ def queue_wait(service_s: float, rho: float, params: LatencyParams, q: float) ->
     return min(wait_quantile(mean, rho, q), bound)
 
 
+def threads_of(system: System, node: str, choice: Choice) -> float:
+    """Busy threads of ``node`` at its choice (system.yaml ``threads``, per setting or node; 1)."""
+    n = system.node.get(node)
+    return 1.0 if n is None else max(1.0, n.threads_at(choice.value))
+
+
 def service_speed(system: System, node: str, computer: str, placement: Mapping[str, str],
-                  choice: Mapping[str, Choice], capacity: float, threads: float = 1.0) -> float:
-    """CPU units ``node`` runs at while busy on ``computer`` (its fair share when it asks for
-    all its threads can run and the others for their planned CPU)."""
+                  choice: Mapping[str, Choice], capacity: float) -> float:
+    """CPU units ``node`` runs at while busy on ``computer``: its fair share when it asks for
+    all its threads can run (threads x ``units_per_core``) and the others for their planned
+    CPU, each weighted by its threads (:func:`perfros_bag.system.cpushare.fair_shares`)."""
     upc = system.latency.units_per_core
-    demands = [Demand(node, math.inf, threads, threads * upc)]
-    demands += [Demand(n, choice[n].cpu) for n, c in placement.items() if c == computer and n != node and n in choice]
+    k = threads_of(system, node, choice[node])
+    demands = [Demand(node, math.inf, k, k * upc)]
+    demands += [Demand(n, choice[n].cpu, threads_of(system, n, choice[n]))
+                for n, c in placement.items() if c == computer and n != node and n in choice]
     return fair_shares(capacity, demands)[node]
 
 
@@ -310,12 +320,12 @@ def budget_violation(system: System, placement: Mapping[str, str], choice: Mappi
 
 def hop_floor(system: System, node: str, choice: Choice, capacity: float) -> tuple[float, float] | None:
     """A lower bound on the (p50, p95) ms of ``node``'s hop at ``choice`` on a computer of
-    ``capacity``, whatever else the plan puts there: the node at the most it can run (one
-    core, at most the capacity), its wait at that speed, no transfer. None without an input
-    rate."""
+    ``capacity``, whatever else the plan puts there: the node at the most it can run (its
+    threads' cores, at most the capacity), its wait at that speed, no transfer. None without
+    an input rate."""
     params = system.latency
     lam = choice.input_hz
-    v = min(params.units_per_core, capacity)
+    v = min(threads_of(system, node, choice) * params.units_per_core, capacity)
     if not lam or lam <= 0 or v <= 0:
         return None
     w = choice.cpu / lam
