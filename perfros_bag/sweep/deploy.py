@@ -8,10 +8,13 @@ made). The launch file runs once with the plan's parameter values (through the `
 moved into its computer's group and the caps are set. The run is recorded (``run.bag``, a
 CPU trace rescaled to the emulated computers, ``manifest.yaml``) and validated against
 the plan (eq 10, ``validation.json``); ``deploy.json`` says what ran, where, capped or not.
+While the nodes run, ``live.json`` (:mod:`perfros_bag.sweep.livestate`) says how to reach
+them, for ``watch --deployment``; it is removed when the run ends.
 """
 
 from __future__ import annotations
 
+import os
 import shutil
 import time
 import uuid
@@ -25,6 +28,7 @@ from perfros_bag.errors import InputError, PerfrosWarning
 from perfros_bag.fileio import atomic_write_json
 from perfros_bag.sweep.graph import Graph, write_graph
 from perfros_bag.sweep.launchfile import check_space, read_launch
+from perfros_bag.sweep.livestate import LIVE_FILE, LiveState, write_live
 from perfros_bag.sweep.space import Run, Space, Value, arg_text, default_value, load_space
 
 if TYPE_CHECKING:
@@ -94,7 +98,7 @@ def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Pat
     outdir.mkdir(parents=True, exist_ok=True)
     require_free_space(outdir)
     for stale in ("run.bag", "run.cpu.csv", "run.host.cpu.csv", "manifest.yaml", "graph.yaml", "deploy.json",
-                  "validation.json"):
+                  "validation.json", LIVE_FILE):
         (outdir / stale).unlink(missing_ok=True)
     system = plan_system(plan, plan_path, system_path)
     run_id = uuid.uuid4().hex[:10]
@@ -106,6 +110,7 @@ def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Pat
     throttle: dict[str, dict[str, dict[str, float]]] = {}  # "start"/"end" -> computer -> CFS counters
     media_before: list[dict[str, Any]] = []
     media_after: list[dict[str, Any]] = []
+    master: list[str] = []  # the run's master URI, once roscore answers
 
     def place(graph: Graph) -> None:
         """Move every planned node into its computer's group, then cap the groups."""
@@ -121,6 +126,13 @@ def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Pat
             placed[node.name] = computer
         if cap:
             groups.apply()
+        write_live(outdir / LIVE_FILE, LiveState(
+            run_id, os.getpid(), master[0] if master else "", network.master_computer() if network.emulated else None,
+            str(Path(plan_path).absolute()), None if system is None or system.source is None else str(Path(system.source).absolute()),
+            units_per_core, dict(network.namespaces), {c: str(d) for c, d in groups.dirs.items()}, dict(cores),
+            cap and groups.capped,
+            {n.name: {"pid": n.pid, "computer": where.get(system_node_name(n.name))} for n in graph.nodes
+             if n.launched}))
 
     def window(edge: str) -> None:
         """The links', the shared media's and the groups' counters as the recording starts and ends."""
@@ -141,8 +153,9 @@ def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Pat
             network.reason = "the plan's system was not found: its links are unknown"
         described = network.describe()
         graph = record_run(launch, space, run, outdir, interval=interval, progress=progress, run_id=run_id,
-                           on_graph=place, network=network, where=where, on_window=window)
+                           on_graph=place, network=network, where=where, on_window=window, on_master=master.append)
     finally:
+        (outdir / LIVE_FILE).unlink(missing_ok=True)
         left = groups.remove()
         net_left = network.remove()
     host_trace = outdir / "run.host.cpu.csv"

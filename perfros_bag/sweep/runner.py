@@ -295,11 +295,12 @@ def record_run(launch: LaunchFile, space: Space, run: Run, out: Path, *, interva
                progress: Callable[[str, float], None] | None = None, run_id: str | None = None,
                on_graph: Callable[[Graph], None] | None = None, network: Network | None = None,
                where: Mapping[str, str] | None = None, on_window: Callable[[str], None] | None = None,
-               replay: Prepared | None = None) -> Graph:
+               replay: Prepared | None = None, on_master: Callable[[str], None] | None = None) -> Graph:
     """Record one run into ``out/<run>.bag`` and ``out/<run>.cpu.csv``; returns its graph.
     ``on_graph`` is called with the graph (every node up, with its PID) before recording
     starts; ``on_window`` with ``"start"`` and ``"end"`` as the recording's ``duration_s``
-    begins and ends; ``run_id`` tags the run's processes (default: a new one).
+    begins and ends; ``on_master`` with the master's URI once roscore answers; ``run_id`` tags
+    the run's processes (default: a new one).
 
     With an emulated ``network`` (:class:`~perfros_bag.rosrun.network.Network`, made by the
     caller) the run happens across its namespaces: roscore in the namespace of
@@ -327,10 +328,11 @@ def record_run(launch: LaunchFile, space: Space, run: Run, out: Path, *, interva
                     spread = _Spread(network, dict(where or {}))
                     with network.inside(spread.master):
                         graph = _record(launch, space, run, work, procs, timeout, interval, note, on_graph,
-                                        spread, on_window)
+                                        spread, on_window, on_master=on_master)
                 else:
                     graph = _record(launch, space, run, work, procs, timeout, interval, note, on_graph,
-                                    on_window=on_window, replay=replay if run.factor is not None else None)
+                                    on_window=on_window, replay=replay if run.factor is not None else None,
+                                    on_master=on_master)
             except PerfrosError as exc:
                 raise PerfrosError(f"run {run.name}: {exc}") from None
     except KeyboardInterrupt:
@@ -411,7 +413,8 @@ def _start_players(replay: Prepared, factor: float, work: Path, procs: Processes
 def _record(launch: LaunchFile, space: Space, run: Run, work: Path, procs: Processes, timeout: float,
             interval: float, note: Callable[[str, float], None],
             on_graph: Callable[[Graph], None] | None = None, spread: _Spread | None = None,
-            on_window: Callable[[str], None] | None = None, replay: Prepared | None = None) -> Graph:
+            on_window: Callable[[str], None] | None = None, replay: Prepared | None = None,
+            on_master: Callable[[str], None] | None = None) -> Graph:
     note("roscore", 0.0)
     if spread is not None:
         procs.env["ROS_IP"] = spread.network.address(spread.master)
@@ -419,6 +422,8 @@ def _record(launch: LaunchFile, space: Space, run: Run, work: Path, procs: Proce
         listing = pool.submit(launch_nodes, launch, run.args, dict(procs.env), timeout)
         uri = start_roscore(procs, work, timeout, host=procs.env["ROS_IP"])
         nodes = listing.result()
+    if on_master is not None:
+        on_master(uri)
     for name, value in run.params.items():
         if master_call(uri, "setParam", name, value) is None:
             raise PerfrosError(f"the master did not take the parameter {name}={value!r}")
