@@ -296,3 +296,73 @@ def test_the_cli_prints_json_lines_and_exits_by_its_alarms(fake: FakeRos, tmp_pa
     assert "alarm: node camera: rate_hz planned 80" in done.stderr
     done = subprocess.run([*cmd[:7], "--window", "nan"], capture_output=True, text=True, timeout=60)
     assert done.returncode == 2 and len(done.stderr.strip().splitlines()) == 1 and "--window" in done.stderr
+
+
+# --------------------------------------------------------------------------- --adapt
+
+ADAPT_SYSTEM = {
+    "computers": [{"name": "host", "kind": "server", "capacity": 100}],
+    "nodes": [
+        {"name": "camera", "weight": 1, "parameter": {"name": "rate", "unit": "Hz"}, "topics": ["/camera/image"],
+         "settings": [{"value": 20, "cpu": 10, "performance": 50, "frequency_hz": 20, "bandwidth_kBps": 20},
+                      {"value": 40, "cpu": 20, "performance": 100, "frequency_hz": 40, "bandwidth_kBps": 40}]},
+        {"name": "detector", "weight": 1, "topics": ["/detector/found"],
+         "settings": [{"cpu": 5, "performance": 50, "frequency_hz": 5, "bandwidth_kBps": 0.01}]},
+    ],
+}
+
+
+def _fit_solve(system: Path, csv: Path, model: Path, plan: Path) -> None:
+    """fit, then solve Problem 1 exactly, as the CLI's verbs do."""
+    from perfros_bag.fitting.build import build_model
+    from perfros_bag.fitting.modelfile import write_model
+    from perfros_bag.solver import solve
+    from perfros_bag.system.systemfile import load_system
+
+    write_model(model, build_model(system, csv).document)
+    save_plan(solve(load_system(model), 1, "exact"), plan)
+
+
+def test_adapt_refits_with_the_live_windows_resolves_and_writes_without_restarting(fake: FakeRos,
+                                                                                   tmp_path: Path) -> None:
+    import yaml
+
+    from perfros_bag.characterisation.csvfile import Row, read_characterisation, write_characterisation
+    from perfros_bag.system.planfile import load_plan
+    from perfros_bag.watch.adapt import Adapter, changes
+
+    system = tmp_path / "system.yaml"
+    system.write_text(yaml.safe_dump(ADAPT_SYSTEM, sort_keys=False))
+    base = [Row(f"sweep-{v}", "camera", "rate", v, "/camera/image", None, 100, 5.0, float(v), float(v), v / 2.0,
+                None, 10) for v in (20, 40)]
+    base += [Row(f"sweep-{v}", "detector", None, None, "/detector/found", None, 25, 5.0, 5.0, 0.01, 5.0, None, 10)
+             for v in (20, 40)]
+    write_characterisation(tmp_path / "char.csv", base)
+    with pytest.warns(PerfrosWarning):  # the fit's notes on two points
+        _fit_solve(system, tmp_path / "char.csv", tmp_path / "model.json", tmp_path / "plan.json")
+    plan = load_plan(tmp_path / "plan.json")
+    assert plan.nodes["camera"].value == 40  # the plan expects 40 Hz; the fake camera sends 20
+    out = tmp_path / "watched"
+    result = watch(tmp_path / "plan.json", master_uri=fake.master_uri, window_s=0.5, windows=3, out=out,
+                   adapt=Adapter(out, tmp_path / "plan.json"))
+    [replan] = result.replans  # the alarm is raised once (window 2), so one re-plan
+    assert replan["window"] == 2 and any("camera" in why for why in replan["why"])
+    folder = out / "replan-00002"
+    rows = read_characterisation(folder / "characterisation.csv").rows
+    live = [r for r in rows if r.recording.startswith("watch-")]
+    assert {r.recording for r in live} == {"watch-00001", "watch-00002"}
+    assert len(rows) == len(base) + len(live)
+    # fit and solve on the rows it wrote give the same plan
+    with pytest.warns(PerfrosWarning):
+        _fit_solve(tmp_path / "model.json", folder / "characterisation.csv", tmp_path / "model2.json",
+                   tmp_path / "plan2.json")
+    mine, theirs = load_plan(folder / "plan.json"), load_plan(tmp_path / "plan2.json")
+    assert {n: (p.value, p.computer) for n, p in mine.nodes.items()} == \
+        {n: (p.value, p.computer) for n, p in theirs.nodes.items()}
+    assert mine.objective == pytest.approx(theirs.objective)
+    listed = (folder / "changes.txt").read_text().splitlines()
+    assert listed == (changes(plan, mine) or ["no change"])
+    [logged] = [json.loads(line) for line in (out / "adapt.jsonl").read_text().splitlines()]
+    assert logged["plan"] == str(folder / "plan.json") and logged["applied"].startswith("written")
+    # nothing was restarted: the fake nodes still answer
+    assert set(fake.servers) == {"/camera", "/detector", "master"}
