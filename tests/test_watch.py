@@ -24,10 +24,13 @@ from typing import Any
 from xmlrpc.server import SimpleXMLRPCServer
 
 import pytest
+import yaml
 
+from perfros_bag.characterisation.csvfile import Row, read_characterisation, write_characterisation
 from perfros_bag.errors import InputError, PerfrosWarning
 from perfros_bag.system.plan import Plan, PlannedComputer, PlannedNode, PlannedTopic
-from perfros_bag.system.planfile import save_plan
+from perfros_bag.system.planfile import load_plan, save_plan
+from perfros_bag.watch.adapt import Adapter, changes
 from perfros_bag.watch.alarms import Drift, Persistence, rate_drifts
 from perfros_bag.watch.counters import WRAP, TopicCounters, parse_bus_stats, window_counts
 from perfros_bag.watch.loop import check_window, watch
@@ -325,12 +328,6 @@ def _fit_solve(system: Path, csv: Path, model: Path, plan: Path) -> None:
 
 def test_adapt_refits_with_the_live_windows_resolves_and_writes_without_restarting(fake: FakeRos,
                                                                                    tmp_path: Path) -> None:
-    import yaml
-
-    from perfros_bag.characterisation.csvfile import Row, read_characterisation, write_characterisation
-    from perfros_bag.system.planfile import load_plan
-    from perfros_bag.watch.adapt import Adapter, changes
-
     system = tmp_path / "system.yaml"
     system.write_text(yaml.safe_dump(ADAPT_SYSTEM, sort_keys=False))
     base = [Row(f"sweep-{v}", "camera", "rate", v, "/camera/image", None, 100, 5.0, float(v), float(v), v / 2.0,
