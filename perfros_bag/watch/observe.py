@@ -43,7 +43,10 @@ class Reading:
     t: float
     #: (topic, publisher ROS name) -> its counters
     topics: dict[tuple[str, str], TopicCounters] = field(default_factory=dict)
+    #: (topic, publisher) -> when its publisher answered (the middle of the call)
+    stamps: dict[tuple[str, str], float] = field(default_factory=dict)
     cpu_s: dict[str, float] = field(default_factory=dict)  # plan node -> CPU seconds so far (local)
+    cpu_t: dict[str, float] = field(default_factory=dict)  # plan node -> when its CPU time was read
     alive: dict[str, bool] = field(default_factory=dict)  # plan node -> alive
     master_up: bool = True
 
@@ -142,13 +145,19 @@ class Observer:
             self._publishers(state)
         wanted = {t for n in self.nodes for t in self.planned_topics[n]}
         stats: dict[str, dict[str, TopicCounters]] = {}
+        answered: dict[str, float] = {}  # ROS node -> when it answered getBusStats
         for topic in sorted(wanted):
             for pub in self.publishers.get(topic, []):
                 if pub not in stats:
                     uri = self.uris.get(pub) or (self._uri(pub) if state is not None else None)
-                    stats[pub] = parse_bus_stats(bus_stats(uri)) if uri else {}
+                    t0 = time.time()
+                    reply = bus_stats(uri) if uri else None
+                    stats[pub] = parse_bus_stats(reply)
+                    if reply is not None:
+                        answered[pub] = (t0 + time.time()) / 2
                 if topic in stats[pub]:
                     reading.topics[(topic, pub)] = stats[pub][topic]
+                    reading.stamps[(topic, pub)] = answered[pub]
         for name, node in self.nodes.items():
             if node.local and node.pid is not None:
                 try:
@@ -158,10 +167,13 @@ class Observer:
                     if alive:
                         ct = p.cpu_times()
                         reading.cpu_s[name] = float(ct.user + ct.system)
+                        reading.cpu_t[name] = time.time()
                 except psutil.Error:
                     alive = False
             else:
                 alive = True
-            reading.alive[name] = alive and isinstance(node_call(node.uri, "getPid"), int)
+            # its XML-RPC answers: getBusStats did this time, else ask getPid
+            reading.alive[name] = alive and (node.ros_name in answered
+                                             or isinstance(node_call(node.uri, "getPid"), int))
         reading.t = time.time()
         return reading

@@ -53,16 +53,21 @@ class WindowTopic(TopicStats):
 
 
 def window_stats(before: Reading, after: Reading, types: dict[str, str], name: str = "window") -> RecordingStats:
-    """The topics counted between two readings (topics whose publishers counted nothing are absent)."""
-    seconds = after.t - before.t
-    sums: dict[str, list[int]] = {}
-    for (topic, pub), counters in after.topics.items():
-        m, b = window_counts(before.topics.get((topic, pub)), counters)
-        s = sums.setdefault(topic, [0, 0])
+    """The topics counted between two readings (topics whose publishers counted nothing are
+    absent). A topic's seconds are those between its publisher's two answers (the mean over
+    its publishers): a reading asks the nodes one after the other."""
+    sums: dict[str, list[float]] = {}
+    for key, counters in after.topics.items():
+        m, b = window_counts(before.topics.get(key), counters)
+        seconds = after.stamps.get(key, after.t) - before.stamps.get(key, before.t)
+        s = sums.setdefault(key[0], [0, 0, 0.0, 0])
         s[0] += m
         s[1] += b
+        s[2] += seconds
+        s[3] += 1
     topics: dict[str, TopicStats] = {
-        t: WindowTopic(t, types.get(t, ""), m, b, window_s=seconds) for t, (m, b) in sums.items() if m > 0}
+        t: WindowTopic(t, types.get(t, ""), int(m), int(b), window_s=secs / n)
+        for t, (m, b, secs, n) in sums.items() if m > 0}
     return RecordingStats(Path(name), "ros1-live", topics, "getBusStats")
 
 
@@ -73,13 +78,13 @@ def window_cpu(before: Reading, after: Reading, plan: Plan, units_per_core: floa
     so that eq 10 reads ``percent / 100 * units_per_core`` units."""
     from perfros_bag.validation.eq10 import TracedCpu
 
-    seconds = after.t - before.t
     n = os.cpu_count() or 1
     out: dict[str, TracedCpu] = {}
-    if seconds <= 0:
-        return out
     for node, used in after.cpu_s.items():
         if node not in before.cpu_s or node not in plan.nodes:
+            continue
+        seconds = after.cpu_t.get(node, after.t) - before.cpu_t.get(node, before.t)
+        if seconds <= 0:
             continue
         percent = max(0.0, used - before.cpu_s[node]) / seconds * 100.0
         cap = plan.computers[plan.nodes[node].computer].capacity if plan.nodes[node].computer in plan.computers \
