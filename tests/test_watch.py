@@ -363,3 +363,13 @@ def test_adapt_refits_with_the_live_windows_resolves_and_writes_without_restarti
     assert logged["plan"] == str(folder / "plan.json") and logged["applied"].startswith("written")
     # nothing was restarted: the fake nodes still answer
     assert set(fake.servers) == {"/camera", "/detector", "master"}
+    # the report's timeline: every new alarm and the re-plan, one row each, and the picture
+    from perfros_bag.report.html import build_report
+
+    index = build_report(tmp_path / "report", watch=out)
+    page = index.read_text()
+    windows = [json.loads(line) for line in (out / "windows.jsonl").read_text().splitlines()]
+    raised = [a["line"] for w in windows for a in w["alarms"] if a["new"]]
+    assert raised and all(line in page for line in raised)
+    assert page.count('<td class="t">alarm</td>') == len(raised) and page.count('<td class="t">re-plan</td>') == 1
+    assert (tmp_path / "report" / "watch.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
