@@ -184,7 +184,46 @@ class FakeRos:
             n = self.count(name)
             return [1, "", [[[topic, [[1, n * 1010, n * 1000, n, 0]]]], [], []]]
 
-        return {"getBusStats": stats, "getPid": lambda caller: [1, "", os.getpid()]}
+        funcs = {"getBusStats": stats, "getPid": lambda caller: [1, "", os.getpid()]}
+        if name == "/detector":
+            funcs["requestTopic"] = self._request_topic
+        return funcs
+
+    #: the delays (s) the detector's stamped messages are sent with, in turn, every 20 ms
+    DELAYS = (0.010, 0.020, 0.030, 0.040, 0.100)
+
+    def _request_topic(self, caller: str, topic: str, protocols: list[Any]) -> Any:
+        """TCPROS: a port that sends messages starting with a Header whose stamp is the
+        sending time less the next of :attr:`DELAYS`."""
+        import struct
+
+        listener = socket.socket()
+        listener.bind(("127.0.0.1", 0))
+        listener.listen(1)
+        self.sent: list[float] = []
+
+        def send() -> None:
+            conn, _ = listener.accept()
+            with conn:
+                size = struct.unpack("<I", conn.recv(4))[0]
+                while size > 0:
+                    size -= len(conn.recv(size))
+                conn.sendall(struct.pack("<I", 4 + 10) + struct.pack("<I", 10) + b"md5sum=abc")
+                for i in itertools.count():
+                    if "/detector" not in self.servers:
+                        return
+                    delay = self.DELAYS[i % len(self.DELAYS)]
+                    now = time.time() - delay
+                    body = struct.pack("<III", i, int(now), int((now % 1) * 1e9)) + struct.pack("<I", 0)
+                    try:
+                        conn.sendall(struct.pack("<I", len(body)) + body)
+                    except OSError:
+                        return
+                    self.sent.append(delay)
+                    time.sleep(0.02)
+
+        threading.Thread(target=send, daemon=True).start()
+        return [1, "", ["TCPROS", "127.0.0.1", listener.getsockname()[1]]]
 
     def _master(self) -> dict[str, Any]:
         def state(caller: str) -> Any:
@@ -373,3 +412,38 @@ def test_adapt_refits_with_the_live_windows_resolves_and_writes_without_restarti
     assert raised and all(line in page for line in raised)
     assert page.count('<td class="t">alarm</td>') == len(raised) and page.count('<td class="t">re-plan</td>') == 1
     assert (tmp_path / "report" / "watch.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+# --------------------------------------------------------------------------- chain latency
+
+
+def test_a_chain_s_latency_is_its_last_topic_s_receipt_less_its_stamp(fake: FakeRos, tmp_path: Path) -> None:
+    import numpy as np
+
+    from perfros_bag.system.planfile import load_plan
+
+    path = _fake_plan(tmp_path)
+    doc = json.loads(path.read_text())
+    doc["chains"] = [{"name": "vision", "topics": ["/camera/image", "/detector/found"],
+                      "predicted_ms": {"p50": 30.0, "p95": 100.0}},
+                     {"name": "tight", "topics": ["/camera/image", "/detector/found"],
+                      "predicted_ms": {"p50": 1.0, "p95": 2.0}}]
+    path.write_text(json.dumps(doc))
+    load_plan(path)
+    docs: list[dict[str, Any]] = []
+    result = watch(path, master_uri=fake.master_uri, window_s=1.0, windows=3, tolerance=5.0,
+                   on_window=lambda d, new: docs.append(d))
+    sent = np.array(fake.sent) * 1000.0
+    for d in docs:
+        vision = next(c for c in d["chains"] if c["chain"] == "vision")
+        assert vision["topic"] == "/detector/found" and vision["predicted_ms"] == {"p50": 30.0, "p95": 100.0}
+        m = vision["measured_ms"]
+        # receipt less stamp = the delay it was sent with + loopback transfer (ms, a loaded machine)
+        assert m is not None and m["messages"] >= 10
+        assert np.percentile(sent, 50) - 1 <= m["p50"] <= np.percentile(sent, 50) + 25, m
+        assert np.percentile(sent, 95) - 1 <= m["p95"] <= np.percentile(sent, 95) + 25, m
+    # the tight chain drifts from the first window: an alarm from the second (persist 2)
+    tight = [(d["window"], a) for d in docs for a in d["alarms"] if a.get("chain") == "tight"]
+    assert [w for w, _ in tight] == [2, 3] and tight[0][1]["quantity"] == "latency_p95_ms"
+    assert not any(a.get("chain") == "vision" for d in docs for a in d["alarms"])
+    assert {a.get("chain") for a in result.alarms} == {"tight"}

@@ -4,7 +4,8 @@ by a shaped link in network namespaces): the JSON windows while it runs, the cam
 and named by an alarm within 2 windows, and nothing left afterwards.
 
 Independent checks: the camera's rate in the windows against its launch argument (10 Hz);
-the link's load against the frames counted and the image's size (320 x 240 RGB); the killed
+the link's load against the frames counted and the image's size (320 x 240 RGB); the
+chain's latency from its last topic's stamps, as many as that topic's publisher counted; the killed
 node's PID from the deploy's own live.json, killed here; afterwards no process
 with the run's tag, no cgroup, no namespace of the run, and the watch itself exited.
 """
@@ -51,6 +52,10 @@ def test_watch_attaches_to_a_deploy_and_names_a_killed_node(tmp_path: Path) -> N
     system.write_text(yaml.safe_dump(SYSTEM, sort_keys=False))
     step = _cli("solve", str(system), "--problem", "1", "--method", "exact", "--out", str(tmp_path / "plan.json"))
     assert step.returncode == 0, step.stderr
+    doc = json.loads((tmp_path / "plan.json").read_text())  # a predicted chain (as solve writes it for budgets)
+    doc["chains"] = [{"name": "vision", "topics": ["/camera/image_raw", "/detector/circles"],
+                      "predicted_ms": {"p50": 1000.0, "p95": 1000.0}}]
+    (tmp_path / "plan.json").write_text(json.dumps(doc))
     space = _space(tmp_path / "space.yaml", duration_s=4, settle_s=1, design="grid",
                    vary=[{"node": "camera", "parameter": {"name": "publish_rate"}, "arg": "camera_rate", "values": [10]},
                          {"node": "detector", "parameter": {"name": "canny_threshold"}, "arg": "canny_threshold",
@@ -84,12 +89,17 @@ def test_watch_attaches_to_a_deploy_and_names_a_killed_node(tmp_path: Path) -> N
             cam = doc["nodes"]["camera"]
             assert cam["expected_hz"] == 10 and abs(cam["measured_hz"] - 10) <= 1.0 / doc["seconds"] + 0.5, doc
             assert doc["alarms"] == [], doc["alarms"]
+            # the chain's latency, from the stamps of the detector's own messages (hough_circles copies the
+            # image's header): as many as its publisher counted in the window, each after its image was stamped
+            [chain] = doc["chains"]
+            m = chain["measured_ms"]
+            det = doc["nodes"]["detector"]["topics"]["/detector/circles"]["messages"]
+            assert m is not None and abs(m["messages"] - det) <= 2 and 0 < m["p50"] <= m["p95"] < 1000, (m, det)
             # the link carries the images: circles.png is 320 x 240 RGB, 230,400 bytes of pixels a frame
             [link] = doc["links"]
             assert link["between"] == ["robot1", "server"]
-            frames = cam["topics"]["/camera/image_raw"]["messages"]
-            assert 230_400 * frames / doc["seconds"] / 1000 <= link["measured_kBps"] \
-                <= 230_600 * frames / doc["seconds"] / 1000
+            per_frame_kB = link["measured_kBps"] / cam["topics"]["/camera/image_raw"]["measured_hz"]
+            assert 230.4 <= per_frame_kB <= 230.6, per_frame_kB
         camera = next(v["pid"] for k, v in live["nodes"].items() if k == "/camera")
         killed = time.time()
         os.kill(camera, signal.SIGKILL)
@@ -102,7 +112,7 @@ def test_watch_attaches_to_a_deploy_and_names_a_killed_node(tmp_path: Path) -> N
             if doc["t"] > killed:
                 after.append(doc)
         named = [a for d in after for a in d["alarms"] if a.get("node") == "camera"]
-        assert named, after
+        assert named, (after, watcher.stderr.read() if watcher.poll() is not None and watcher.stderr else "")
         assert {"quantity", "planned", "measured"} <= set(named[0])
         watcher.wait(timeout=60)
         assert watcher.returncode == 1, watcher.stderr.read() if watcher.stderr else ""

@@ -26,6 +26,7 @@ if TYPE_CHECKING:
     from perfros_bag.system.plan import Plan
     from perfros_bag.system.types import System
     from perfros_bag.watch.observe import Observer, Reading
+    from perfros_bag.watch.stamps import StampListener
 
 #: Windows a watch waits for a master that does not answer: none (bad input at once).
 MASTER_TIMEOUT_S = 3.0
@@ -160,18 +161,47 @@ def _watch(plan: Plan, plan_path: str | Path, system: System | None, master_uri:
         outdir.mkdir(parents=True, exist_ok=True)
     persistence = Persistence(persist)
     result = WatchResult()
+    listeners = _listen_to_chains(observer, plan)
     try:
         _windows(observer, plan, system, live, units, window_s, tolerance, persistence, windows, outdir, adapt,
-                 on_window, result, master_uri)
+                 on_window, result, master_uri, listeners)
     except KeyboardInterrupt:
         result.ended = "interrupted (Ctrl-C)"
+    finally:
+        for listener in listeners.values():
+            listener.close()
     return result
+
+
+def _listen_to_chains(observer: Observer, plan: Plan) -> dict[str, StampListener]:
+    """Per chain with a prediction, a subscriber to its last topic (its header stamps)."""
+    from perfros_bag.watch.stamps import StampListener
+    from perfros_bag.watch.window import planned_chains
+
+    out = {}
+    for c in planned_chains(plan):
+        topic = str(c["topics"][-1])
+        uris = [u for p in observer.publishers.get(topic, []) if (u := observer._uri(p)) is not None]
+        out[str(c["name"])] = StampListener(topic, observer.types.get(topic, "*"), uris)
+    return out
+
+
+def chain_latency(listeners: dict[str, StampListener]) -> dict[str, dict[str, Any] | None]:
+    """Per chain, its window's latency in ms ``{p50, p95, messages}``; None without a message."""
+    from perfros_bag.watch.stamps import percentile
+
+    out: dict[str, dict[str, Any] | None] = {}
+    for name, listener in listeners.items():
+        xs = listener.take()
+        out[name] = None if not xs else {"p50": 1000.0 * percentile(xs, 50), "p95": 1000.0 * percentile(xs, 95),
+                                         "messages": len(xs)}
+    return out
 
 
 def _windows(observer: Observer, plan: Plan, system: System | None, live: Any, units: float | None, window_s: float,
              tolerance: float, persistence: Any, windows: int | None, outdir: Path | None, adapt: Any,
              on_window: Callable[[dict[str, Any], list[dict[str, Any]]], None] | None, result: WatchResult,
-             master_uri: str) -> None:
+             master_uri: str, listeners: dict[str, StampListener]) -> None:
     from perfros_bag.characterisation.csvfile import write_characterisation
     from perfros_bag.fileio import atomic_write_text, json_text
     from perfros_bag.watch.alarms import rate_drifts
@@ -180,15 +210,18 @@ def _windows(observer: Observer, plan: Plan, system: System | None, live: Any, u
     rows: list[Row] = []
     lines: list[str] = []
     before = observer.read()
+    for listener in listeners.values():
+        listener.take()  # what came before the first window's start is not in it
     k = 0
     while windows is None or k < windows:
         end = before.t + window_s
         after = _read_until(observer, end, live)
+        latency = chain_latency(listeners)  # right after the counters, so both cover the same seconds
         k += 1
         stats = window_stats(before, after, observer.types, f"window-{k}")
         cpu = window_cpu(before, after, plan, units)
         v = evaluate(stats, plan, system, cpu, tolerance)
-        doc = window_document(k, after.t, after.t - before.t, v, plan, after.alive, set(cpu), [])
+        doc = window_document(k, after.t, after.t - before.t, v, plan, after.alive, set(cpu), [], latency)
         alarms = persistence.update(rate_drifts(doc, tolerance))
         doc["alarms"] = [a.to_dict() for a in alarms]
         new = [a.to_dict() for a in alarms if a.new]

@@ -107,8 +107,16 @@ def _mean(xs: list[float]) -> float | None:
     return sum(xs) / len(xs) if xs else None
 
 
+def planned_chains(plan: Plan) -> list[dict[str, Any]]:
+    """plan.json's ``chains`` that have a prediction (``predicted_ms``) and topics."""
+    chains = getattr(plan, "chains", None) or plan.extra.get("chains") or []
+    return [c for c in chains if isinstance(c, dict) and isinstance(c.get("predicted_ms"), dict)
+            and isinstance(c.get("topics"), list) and c["topics"]]
+
+
 def window_document(k: int, t: float, seconds: float, v: Validation, plan: Plan, alive: dict[str, bool],
-                    measured_cpu: set[str], alarms: list[dict[str, Any]]) -> dict[str, Any]:
+                    measured_cpu: set[str], alarms: list[dict[str, Any]],
+                    latency: dict[str, dict[str, Any] | None] | None = None) -> dict[str, Any]:
     """The window's JSON object (docs/formats.md "watch --json")."""
     nodes: dict[str, Any] = {}
     for n in v.nodes:
@@ -123,8 +131,8 @@ def window_document(k: int, t: float, seconds: float, v: Validation, plan: Plan,
             "topics": {tc.topic: {"expected_hz": tc.f_expected, "measured_hz": tc.f_measured,
                                   "kBps": tc.bandwidth_kBps, "messages": tc.messages} for tc in n.topics},
         }
-    chains = [{"chain": c.get("name"), "predicted_ms": c.get("predicted_ms"), "measured_ms": None}
-              for c in plan.extra.get("chains", []) if isinstance(c, dict) and c.get("predicted_ms") is not None]
+    chains = [{"chain": c.get("name"), "topic": c["topics"][-1], "predicted_ms": c.get("predicted_ms"),
+               "measured_ms": (latency or {}).get(str(c.get("name")))} for c in planned_chains(plan)]
     return {
         "format": WINDOW_FORMAT, "window": k, "t": t, "seconds": seconds,
         "overall": {"expected": v.overall_expected, "measured": v.overall_measured, "deviation_pct": v.deviation_pct},
