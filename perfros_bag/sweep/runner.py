@@ -48,7 +48,14 @@ from perfros_bag.characterisation.manifest import (
 )
 from perfros_bag.errors import InputError, PerfrosError
 from perfros_bag.fileio import atomic_write_text, read_yaml
-from perfros_bag.rosrun.master import bus_stats, master_call, master_state, port_of, start_roscore
+from perfros_bag.rosrun.master import (
+    bus_stats,
+    master_call,
+    master_state,
+    parse_bus_stats,
+    port_of,
+    start_roscore,
+)
 from perfros_bag.rosrun.processes import (
     Processes,
     Started,
@@ -650,21 +657,10 @@ def _silent_topics(uri: str, graph: Graph, nodes: list[str]) -> list[str]:
 
 def _published_bytes(stats: Any) -> dict[str, int]:
     """Message bytes sent per published topic, from a node's ``getBusStats`` (handshake
-    headers not counted). roscpp: ``[topic, [[id, bytes, message_bytes, messages, _], ...]]``
-    (``bytes`` already without headers); rospy: ``[topic, message_bytes, [[id, bytes with
-    headers, messages, connected], ...]]``."""
-    out: dict[str, int] = {}
-    if not isinstance(stats, list) or not stats or not isinstance(stats[0], list):
-        return out
-    for entry in stats[0]:
-        if not isinstance(entry, list) or len(entry) < 2 or not isinstance(entry[0], str):
-            continue
-        if isinstance(entry[1], int) and not isinstance(entry[1], bool):  # rospy
-            out[entry[0]] = entry[1]
-        elif isinstance(entry[1], list):  # roscpp
-            out[entry[0]] = sum(c[2] for c in entry[1] if isinstance(c, list) and len(c) > 2
-                                and isinstance(c[2], int))
-    return out
+    headers not counted): roscpp's per connection summed, rospy's own total
+    (:func:`~perfros_bag.rosrun.master.parse_bus_stats`)."""
+    return {topic: c.total_bytes if c.total_bytes is not None else sum(b for _, b in c.connections.values())
+            for topic, c in parse_bus_stats(stats).items()}
 
 
 def _node_trace(raw: Path, graph: Graph) -> Path:
