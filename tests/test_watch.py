@@ -447,3 +447,18 @@ def test_a_chain_s_latency_is_its_last_topic_s_receipt_less_its_stamp(fake: Fake
     assert [w for w, _ in tight] == [2, 3] and tight[0][1]["quantity"] == "latency_p95_ms"
     assert not any(a.get("chain") == "vision" for d in docs for a in d["alarms"])
     assert {a.get("chain") for a in result.alarms} == {"tight"}
+
+
+def test_ctrl_c_ends_the_watch_with_its_alarm_status_and_stops_nothing(fake: FakeRos, tmp_path: Path) -> None:
+    import signal
+
+    proc = subprocess.Popen([sys.executable, "-m", "perfros_bag", "watch", str(_fake_plan(tmp_path)), "--master",
+                             fake.master_uri, "--window", "0.5", "--json"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    assert proc.stdout is not None
+    json.loads(proc.stdout.readline())  # one window, then Ctrl-C
+    proc.send_signal(signal.SIGINT)
+    _, stderr = proc.communicate(timeout=30)
+    assert proc.returncode == 0, stderr
+    assert "watch ended: interrupted" in stderr and "Traceback" not in stderr
+    assert set(fake.servers) == {"/camera", "/detector", "master"}  # every node still answers

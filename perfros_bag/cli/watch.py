@@ -88,11 +88,13 @@ def watch_cmd(
             live_ctx.update(window_table(doc), refresh=True)
         else:
             out.print(window_table(doc))
+        # above the live table when there is one (rich keeps it below), else on stderr
+        say = live_ctx.console if live_ctx is not None else err
         for a in new:
-            err.print(f"[red]{escape(a['line'])}[/]", highlight=False)
+            say.print(f"[red]{escape(a['line'])}[/]", highlight=False)
         if "replan" in doc:
             r = doc["replan"]
-            err.print(f"re-planned: {escape(r['plan'])} ({len(r['changes'])} change(s))", highlight=False)
+            say.print(f"re-planned: {escape(r['plan'])} ({len(r['changes'])} change(s))", highlight=False)
 
     try:
         result = watch(plan, master_uri=master, deployment=deployment, system_path=system, window_s=window,
