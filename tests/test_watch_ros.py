@@ -1,7 +1,8 @@
 """``watch --deployment`` on a real ``deploy`` of the README example (fixtures/app: Debian's
 image_publisher camera on a robot, opencv_apps' hough_circles detector on a server, joined
-by a shaped link in network namespaces): the JSON windows while it runs, the camera killed
-and named by an alarm within 2 windows, and nothing left afterwards.
+by a shaped link in network namespaces): the JSON windows while it runs, a new plan applied
+through control.json (the camera alone restarted, at its new rate), the camera killed and
+named by an alarm within 2 windows, and nothing left afterwards.
 
 Independent checks: the camera's rate in the windows against its launch argument (10 Hz);
 the link's load against the frames counted and the image's size (320 x 240 RGB); the
@@ -29,6 +30,12 @@ from perfros_bag.rosrun.processes import leftover_processes
 from tests.test_sweep_e2e import APP, BIN, _cli, _require_ros, _space
 
 pytestmark = [pytest.mark.ros, pytest.mark.net]
+
+
+def psutil_alive(pid: int) -> bool:
+    import psutil
+
+    return psutil.pid_exists(pid) and psutil.Process(pid).status() != psutil.STATUS_ZOMBIE
 
 SYSTEM = {
     "computers": [{"name": "robot1", "kind": "robot", "capacity": 100},
@@ -100,7 +107,27 @@ def test_watch_attaches_to_a_deploy_and_names_a_killed_node(tmp_path: Path) -> N
             assert link["between"] == ["robot1", "server"]
             per_frame_kB = link["measured_kBps"] / cam["topics"]["/camera/image_raw"]["measured_hz"]
             assert 230.4 <= per_frame_kB <= 230.6, per_frame_kB
-        camera = next(v["pid"] for k, v in live["nodes"].items() if k == "/camera")
+        # a new plan through control.json (as watch --adapt --deployment sends one): the camera at 5 Hz.
+        # The deploy restarts the camera alone: a new PID for it, the same for the detector, and the
+        # camera's own publisher counts 5 Hz
+        slower = json.loads((tmp_path / "plan.json").read_text())
+        slower["nodes"]["camera"]["value"] = 5
+        (tmp_path / "plan5.json").write_text(json.dumps(slower))
+        (run / "control.tmp").write_text(json.dumps({"format": "perfros-bag/deploy-control@1", "seq": 1,
+                                                     "plan": str(tmp_path / "plan5.json"), "why": ["test"]}))
+        os.replace(run / "control.tmp", run / "control.json")
+        rates = []
+        for _ in range(8):
+            doc = json.loads(watcher.stdout.readline())
+            rates.append(doc["nodes"]["camera"]["measured_hz"])
+            if abs(rates[-1] - 5) <= 1.0 / doc["seconds"] + 0.5 and len(rates) > 1:
+                break
+        assert abs(rates[-1] - 5) <= 1.0 / doc["seconds"] + 0.5, rates
+        now = json.loads((run / "live.json").read_text())["nodes"]
+        assert now["/camera"]["pid"] != live["nodes"]["/camera"]["pid"]
+        assert now["/detector"]["pid"] == live["nodes"]["/detector"]["pid"]
+        assert psutil_alive(now["/camera"]["pid"]) and psutil_alive(now["/detector"]["pid"])
+        camera = now["/camera"]["pid"]
         killed = time.time()
         os.kill(camera, signal.SIGKILL)
         after: list[dict[str, Any]] = []
@@ -111,8 +138,8 @@ def test_watch_attaches_to_a_deploy_and_names_a_killed_node(tmp_path: Path) -> N
             doc = json.loads(line)
             if doc["t"] > killed:
                 after.append(doc)
-        named = [a for d in after for a in d["alarms"] if a.get("node") == "camera"]
-        assert named, (after, watcher.stderr.read() if watcher.poll() is not None and watcher.stderr else "")
+        named = [a for d in after for a in d["alarms"] if a.get("node") == "camera" and a["quantity"] == "alive"]
+        assert named, (after, watcher.wait(timeout=30), watcher.stderr.read() if watcher.stderr else "")
         assert {"quantity", "planned", "measured"} <= set(named[0])
         watcher.wait(timeout=60)
         assert watcher.returncode == 1, watcher.stderr.read() if watcher.stderr else ""

@@ -52,7 +52,7 @@ def watch_cmd(
     windows: int | None = typer.Option(None, "--windows", help="Stop after N windows (default: until Ctrl-C or the master/deploy ends)."),
     json_out: bool = typer.Option(False, "--json", help="One JSON object per window on stdout."),
     out_dir: Path | None = typer.Option(None, "--out", "-o", help="Folder for windows.jsonl, characterisation.csv (a row per window, node, topic) and the re-plans."),  # noqa: B008
-    adapt: bool = typer.Option(False, "--adapt", help="On a new alarm, refit with the live windows, re-solve and write the new plan (needs --out; restarts nothing)."),
+    adapt: bool = typer.Option(False, "--adapt", help="On a new alarm, refit with the live windows, re-solve and write the new plan (needs --out); with --deployment the deploy applies it, else nothing is restarted."),
     launch: Path | None = typer.Option(None, "--launch", help="With --adapt: your launch file, to write each new plan's planned.launch."),  # noqa: B008
     space: Path | None = typer.Option(None, "--space", help="With --adapt and --launch: the space.yaml of the sweep."),  # noqa: B008
 ) -> None:
@@ -72,7 +72,7 @@ def watch_cmd(
             raise InputError(None, "--adapt needs --out DIR (where the new plans and their log go)")
         from perfros_bag.watch.adapt import Adapter
 
-        adapter = Adapter(out_dir, plan, launch, space, deployment is not None)
+        adapter = Adapter(out_dir, plan, launch, space, deployment)
     live_ctx: Any = None
     if not json_out and out.is_terminal:
         from rich.live import Live

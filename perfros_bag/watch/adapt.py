@@ -62,7 +62,8 @@ class Adapter:
     plan_path: Path
     launch: Path | None = None
     space: Path | None = None
-    deployment: bool = False
+    deployment: Path | None = None  # a deploy in progress: the new plan goes to its control.json
+    sent: int = 0  # control.json's last sequence number
 
     def _model(self, plan: Plan) -> Path:
         if not plan.system:
@@ -118,10 +119,17 @@ class Adapter:
                 warnings.simplefilter("ignore", PerfrosWarning)
                 export_planned(new_plan_path, self.launch, self.space, folder / "planned.launch")
             launch = str(folder / "planned.launch")
+        applied = "written (nothing restarted)"
+        if self.deployment is not None and changed:
+            from perfros_bag.sweep.control import write_control
+
+            self.sent += 1
+            write_control(self.deployment, self.sent, new_plan_path, [a["line"] for a in alarms])
+            applied = (f"sent to the deploy ({self.deployment / 'control.json'} seq {self.sent}): it restarts the "
+                       "nodes whose value or computer changed")
         entry = {"window": k, "t": time.time(), "why": [a["line"] for a in alarms], "plan": str(new_plan_path),
                  "launch": launch, "objective_before": plan.objective, "objective_after": new.objective,
-                 "headroom": headroom, "changes": changed,
-                 "applied": "written (nothing restarted)"}
+                 "headroom": headroom, "changes": changed, "applied": applied}
         log = self.out / ADAPT_LOG
         previous = log.read_text(encoding="utf-8") if log.exists() else ""
         atomic_write_text(log, previous + json_text(entry, indent=None) + "\n")

@@ -2,15 +2,16 @@
 
 Attached to ``ROS_MASTER_URI`` (or ``master_uri``), or to a deploy in progress
 (``deployment``: its ``live.json``, see :mod:`perfros_bag.sweep.livestate`): then the
-calling thread enters the network namespace the deploy's master runs in (``setns(2)`` on
-this thread only, as the deploy's own runner does), every node is local and a node's CPU
-is in the units of its emulated computer. The watch starts no process and stops none.
+watch runs on a thread of its own that enters the network namespace the deploy's master
+runs in (``setns(2)`` on that thread only, as the deploy's own runner does; the process
+stays in the host's), every node is local and a node's CPU is in the units of its emulated
+computer. The watch starts no process and stops none.
 """
 
 from __future__ import annotations
 
-import contextlib
 import math
+import threading
 import time
 import warnings
 from collections.abc import Callable
@@ -125,23 +126,55 @@ def watch(plan_path: str | Path, *, master_uri: str | None = None, deployment: s
         warnings.simplefilter("ignore", PerfrosWarning)
         system = plan_system(plan, plan_path, system_path)
     ns = live.namespaces.get(live.master_computer) if live is not None and live.master_computer else None
-    inside: contextlib.AbstractContextManager[None] = contextlib.nullcontext()
-    if ns is not None:
-        from perfros_bag.rosrun.network import enter_namespace
+    stop = threading.Event()
 
-        inside = enter_namespace(Path("/run/netns") / ns)
+    def run() -> WatchResult:
+        return _watch(plan, plan_path, system, master_uri, live is not None, live, window_s, tolerance, persist,
+                      partial, windows, out, adapt, on_window, stop)
+
+    if ns is None:
+        return run()
+    return _in_namespace(ns, run, stop, window_s)
+
+
+def _in_namespace(ns: str, run: Callable[[], WatchResult], stop: threading.Event, window_s: float) -> WatchResult:
+    """``run()`` on a thread of its own inside network namespace ``ns``. Only that thread
+    enters it: the process stays in the host's namespace, so the deploy, removing its
+    namespaces at its end (it ends the processes still inside), does not take the watch with
+    them. Ctrl-C in the main thread asks the watch to end after its current reading."""
+    from perfros_bag.rosrun.network import enter_namespace
+
+    box: dict[str, Any] = {}
+
+    def work() -> None:
+        try:
+            with enter_namespace(Path("/run/netns") / ns):
+                box["result"] = run()
+        except BaseException as exc:  # noqa: BLE001 - handed to the main thread
+            box["error"] = exc
+
+    worker = threading.Thread(target=work, name="perfros-watch", daemon=True)
+    worker.start()
     try:
-        with inside:
-            return _watch(plan, plan_path, system, master_uri, live is not None, live, window_s, tolerance, persist,
-                          partial, windows, out, adapt, on_window)
-    except OSError as exc:
-        raise PerfrosError(f"cannot reach the deploy's network namespace {ns}: {exc}") from None
+        while worker.is_alive():
+            worker.join(0.2)
+    except KeyboardInterrupt:
+        stop.set()
+        worker.join(window_s + 30.0)
+    error = box.get("error")
+    if isinstance(error, OSError):
+        raise PerfrosError(f"cannot reach the deploy's network namespace {ns}: {error}") from None
+    if error is not None:
+        raise error
+    result: WatchResult = box["result"]
+    return result
 
 
 def _watch(plan: Plan, plan_path: str | Path, system: System | None, master_uri: str, attached: bool, live: Any,
            window_s: float, tolerance: float, persist: int, partial: bool, windows: int | None,
            out: str | Path | None, adapt: Any,
-           on_window: Callable[[dict[str, Any], list[dict[str, Any]]], None] | None) -> WatchResult:
+           on_window: Callable[[dict[str, Any], list[dict[str, Any]]], None] | None,
+           stop: threading.Event) -> WatchResult:
     from perfros_bag.watch.alarms import Persistence
     from perfros_bag.watch.observe import Observer
 
@@ -164,7 +197,7 @@ def _watch(plan: Plan, plan_path: str | Path, system: System | None, master_uri:
     listeners = _listen_to_chains(observer, plan)
     try:
         _windows(observer, plan, system, live, units, window_s, tolerance, persistence, windows, outdir, adapt,
-                 on_window, result, master_uri, listeners)
+                 on_window, result, master_uri, listeners, stop)
     except KeyboardInterrupt:
         result.ended = "interrupted (Ctrl-C)"
     finally:
@@ -201,7 +234,7 @@ def chain_latency(listeners: dict[str, StampListener]) -> dict[str, dict[str, An
 def _windows(observer: Observer, plan: Plan, system: System | None, live: Any, units: float | None, window_s: float,
              tolerance: float, persistence: Any, windows: int | None, outdir: Path | None, adapt: Any,
              on_window: Callable[[dict[str, Any], list[dict[str, Any]]], None] | None, result: WatchResult,
-             master_uri: str, listeners: dict[str, StampListener]) -> None:
+             master_uri: str, listeners: dict[str, StampListener], stop: threading.Event) -> None:
     from perfros_bag.characterisation.csvfile import write_characterisation
     from perfros_bag.fileio import atomic_write_text, json_text
     from perfros_bag.watch.alarms import rate_drifts
@@ -215,7 +248,10 @@ def _windows(observer: Observer, plan: Plan, system: System | None, live: Any, u
     k = 0
     while windows is None or k < windows:
         end = before.t + window_s
-        after = _read_until(observer, end, live)
+        after = _read_until(observer, end, live, stop)
+        if stop.is_set():
+            result.ended = "interrupted (Ctrl-C)"
+            break
         latency = chain_latency(listeners)  # right after the counters, so both cover the same seconds
         k += 1
         stats = window_stats(before, after, observer.types, f"window-{k}")
@@ -232,6 +268,10 @@ def _windows(observer: Observer, plan: Plan, system: System | None, live: Any, u
             if replan is not None:
                 result.replans.append(replan)
                 doc["replan"] = replan
+                if replan["applied"].startswith("sent"):  # the deploy runs it now: watch it against that
+                    from perfros_bag.system.planfile import load_plan
+
+                    plan = load_plan(replan["plan"])
         if on_window is not None:
             on_window(doc, new)
         if outdir is not None:
@@ -251,14 +291,13 @@ def _deploy_running(live: Any) -> bool:
     return bool(_alive(live.pid))
 
 
-def _read_until(observer: Observer, end: float, live: Any) -> Reading:
+def _read_until(observer: Observer, end: float, live: Any, stop: threading.Event) -> Reading:
     """Sleep until ``end`` (seconds since the epoch), in short steps so a deploy that ends is
     noticed, then read."""
     while True:
         left = end - time.time()
         if left <= 0:
             break
-        time.sleep(min(left, 0.25))
-        if live is not None and not _deploy_running(live):
+        if stop.wait(min(left, 0.25)) or (live is not None and not _deploy_running(live)):
             break
     return observer.read()

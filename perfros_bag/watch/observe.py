@@ -47,6 +47,7 @@ class Reading:
     stamps: dict[tuple[str, str], float] = field(default_factory=dict)
     cpu_s: dict[str, float] = field(default_factory=dict)  # plan node -> CPU seconds so far (local)
     cpu_t: dict[str, float] = field(default_factory=dict)  # plan node -> when its CPU time was read
+    cpu_pid: dict[str, int] = field(default_factory=dict)  # plan node -> the PID it was read of
     alive: dict[str, bool] = field(default_factory=dict)  # plan node -> alive
     master_up: bool = True
 
@@ -73,6 +74,17 @@ def _create_time(pid: int) -> float | None:
         return float(psutil.Process(pid).create_time())
     except psutil.Error:
         return None
+
+
+def _running(node: WatchedNode) -> bool:
+    import psutil
+
+    try:
+        p = psutil.Process(node.pid or 0)
+        return (node.created is None or abs(p.create_time() - node.created) < 0.01) \
+            and p.status() != psutil.STATUS_ZOMBIE
+    except psutil.Error:
+        return False
 
 
 class Observer:
@@ -131,6 +143,14 @@ class Observer:
                                                 _create_time(pid) if local else None)
         return missing
 
+    def _again(self, node: WatchedNode) -> None:
+        """Follow a node that was restarted under the same name: its new URI and PID."""
+        self.uris.pop(node.ros_name, None)
+        uri = self._uri(node.ros_name)
+        pid = None if uri is None else node_call(uri, "getPid")
+        if uri is not None and isinstance(pid, int) and pid != node.pid:
+            node.uri, node.pid, node.created = uri, pid, _create_time(pid)
+
     def _publishers(self, state: tuple[list[Any], list[Any], list[Any]]) -> None:
         self.publishers = {str(e[0]): [str(x) for x in e[1]] for e in state[0]
                            if isinstance(e, list) and len(e) == 2 and isinstance(e[1], list)}
@@ -152,6 +172,11 @@ class Observer:
                     uri = self.uris.get(pub) or (self._uri(pub) if state is not None else None)
                     t0 = time.time()
                     reply = bus_stats(uri) if uri else None
+                    if reply is None and state is not None and pub in self.uris:  # restarted: a new address
+                        del self.uris[pub]
+                        uri = self._uri(pub)
+                        t0 = time.time()
+                        reply = bus_stats(uri) if uri else None
                     stats[pub] = parse_bus_stats(reply)
                     if reply is not None:
                         answered[pub] = (t0 + time.time()) / 2
@@ -159,17 +184,18 @@ class Observer:
                     reading.topics[(topic, pub)] = stats[pub][topic]
                     reading.stamps[(topic, pub)] = answered[pub]
         for name, node in self.nodes.items():
+            if node.local and node.pid is not None and state is not None and not _running(node):
+                self._again(node)  # a node restarted under its name (a deploy applying a new plan) goes on
             if node.local and node.pid is not None:
-                try:
-                    p = psutil.Process(node.pid)
-                    alive = (node.created is None or abs(p.create_time() - node.created) < 0.01) \
-                        and p.status() != psutil.STATUS_ZOMBIE
-                    if alive:
-                        ct = p.cpu_times()
+                alive = _running(node)
+                if alive:
+                    try:
+                        ct = psutil.Process(node.pid).cpu_times()
                         reading.cpu_s[name] = float(ct.user + ct.system)
                         reading.cpu_t[name] = time.time()
-                except psutil.Error:
-                    alive = False
+                        reading.cpu_pid[name] = node.pid
+                    except psutil.Error:
+                        alive = False
             else:
                 alive = True
             # its XML-RPC answers: getBusStats did this time, else ask getPid

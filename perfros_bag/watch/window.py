@@ -81,7 +81,8 @@ def window_cpu(before: Reading, after: Reading, plan: Plan, units_per_core: floa
     n = os.cpu_count() or 1
     out: dict[str, TracedCpu] = {}
     for node, used in after.cpu_s.items():
-        if node not in before.cpu_s or node not in plan.nodes:
+        if node not in before.cpu_s or node not in plan.nodes \
+                or before.cpu_pid.get(node) != after.cpu_pid.get(node):  # restarted meanwhile: no difference
             continue
         seconds = after.cpu_t.get(node, after.t) - before.cpu_t.get(node, before.t)
         if seconds <= 0:
