@@ -462,3 +462,54 @@ def test_ctrl_c_ends_the_watch_with_its_alarm_status_and_stops_nothing(fake: Fak
     assert proc.returncode == 0, stderr
     assert "watch ended: interrupted" in stderr and "Traceback" not in stderr
     assert set(fake.servers) == {"/camera", "/detector", "master"}  # every node still answers
+
+
+# --------------------------------------------------------------------------- a deploy's control file
+
+
+def test_a_deploy_restarts_only_the_nodes_a_new_plan_changes(tmp_path: Path) -> None:
+    from types import SimpleNamespace
+
+    from perfros_bag.rosrun.cgroups import CpuGroups
+    from perfros_bag.sweep.control import CONTROL_FORMAT, Control, write_control
+    from perfros_bag.sweep.deploy import plan_run
+    from perfros_bag.sweep.space import load_space
+
+    root = Path(__file__).resolve().parents[1]
+    space = load_space(root / "fixtures" / "app" / "space.yaml")
+    defaults: dict[str, str | None] = {"camera_rate": "10", "canny_threshold": "200"}
+
+    def plan(rate: float, threshold: float, detector_on: str) -> Plan:
+        return Plan(1, "exact", "optimal", computers={"robot1": PlannedComputer("robot", 100.0, 10.0),
+                                                      "server": PlannedComputer("server", 100.0, 10.0)},
+                    nodes={"camera": PlannedNode("robot1", 5.0, 50.0, 1.0, "publish_rate", rate),
+                           "detector": PlannedNode(detector_on, 5.0, 50.0, 1.0, "canny_threshold", threshold)})
+
+    calls: list[tuple[str, dict[str, str], str]] = []
+    restarter = SimpleNamespace(watch=SimpleNamespace(pids={"/camera": (11, 0.0), "/detector": (12, 0.0)}),
+                                restart=lambda node, args, params, computer: calls.append((node, dict(args), computer))
+                                or 100 + len(calls))
+    groups = CpuGroups("t", {"robot1": 1.0, "server": 1.0}, root=tmp_path)
+    for c in ("robot1", "server"):
+        (tmp_path / c).mkdir()
+        groups.dirs[c] = tmp_path / c
+    first = plan(10, 200, "server")
+    applied: list[dict[str, int]] = []
+    control = Control(tmp_path, space, defaults, plan_run(first, space, defaults), {"camera": "robot1",
+                      "detector": "server"}, groups, 100.0, False, applied.append)
+    for k, (new, moved) in enumerate([(plan(5, 200, "server"), {"camera"}),
+                                      (plan(5, 100, "robot1"), {"detector"}),
+                                      (plan(5, 100, "robot1"), set())], 1):
+        save_plan(new, tmp_path / f"plan{k}.json")
+        write_control(tmp_path, k, tmp_path / f"plan{k}.json", ["why"])
+        os.utime(tmp_path / "control.json", (k, k))  # a new file each time, whatever the clock's resolution
+        before = len(calls)
+        control.tick(restarter)  # type: ignore[arg-type]
+        restarted = {node.strip("/") for node, _, _ in calls[before:]}
+        assert restarted == moved and control.seq == k
+        for node, args, computer in calls[before:]:
+            assert args == {"camera_rate": "5", "canny_threshold": "100" if k > 1 else "200"}
+            assert computer == new.nodes[node.strip("/")].computer
+            assert (tmp_path / computer / "cgroup.procs").read_text() == str(applied[-1][node])
+    control.tick(restarter)  # type: ignore[arg-type]  # the same file again: nothing
+    assert len(control.applied) == 3 and json.loads((tmp_path / "control.json").read_text())["format"] == CONTROL_FORMAT
