@@ -37,6 +37,10 @@ class LiveState:
     capped: bool = False
     nodes: dict[str, dict[str, Any]] = field(default_factory=dict)  # ROS node -> {pid, computer}
 
+    def running(self) -> bool:
+        """Whether the deploy that wrote it still runs."""
+        return _alive(self.pid)
+
     def to_dict(self) -> dict[str, Any]:
         return {"format": LIVE_FORMAT, "run_id": self.run_id, "pid": self.pid, "master_uri": self.master_uri,
                 "master_computer": self.master_computer, "plan": self.plan, "system": self.system,
@@ -71,7 +75,7 @@ def read_live(folder: str | Path) -> LiveState:
             nodes={str(k): dict(v) for k, v in (data.get("nodes") or {}).items()})
     except (KeyError, TypeError, ValueError) as exc:
         raise InputError(path, f"damaged live state: {exc}") from None
-    if not _alive(state.pid):
+    if not state.running():
         raise InputError(path, f"stale: the deploy that wrote it (pid {state.pid}) is not running")
     return state
 

@@ -211,10 +211,11 @@ def _parse_node(n: Any, where: str, path: str) -> PlannedNode:
     )
 
 
-def check_against_system(plan: Plan, system: System) -> None:
+def check_against_system(plan: Plan, system: System, plan_path: str | Path | None = None) -> None:
     """Every node of the plan must be a node of ``system`` and every computer of the plan
     one of its computers (an :class:`InputError` naming the system otherwise): a plan
-    for another system cannot be validated or deployed with this one."""
+    for another system cannot be validated or deployed with this one. The nodes of one
+    container must share a computer (:meth:`System.container_problem`: an error naming the plan)."""
     unknown = [n for n in plan.nodes if n not in system.node]
     if unknown:
         raise InputError(system.source, f"plan node(s) {', '.join(map(repr, unknown))} are not in the system")
@@ -222,6 +223,9 @@ def check_against_system(plan: Plan, system: System) -> None:
     if strange:
         raise InputError(system.source, f"plan computer(s) {', '.join(map(repr, strange))} are not in the system "
                                         f"(its computers: {', '.join(map(repr, system.computer))})")
+    split = system.container_problem({n: p.computer for n, p in plan.nodes.items()})
+    if split is not None:
+        raise InputError(plan_path, split)
 
 
 def plan_system(plan: Plan, plan_path: str | Path, system_path: str | Path | None = None) -> System | None:
@@ -233,7 +237,7 @@ def plan_system(plan: Plan, plan_path: str | Path, system_path: str | Path | Non
 
     if system_path is not None:
         system = load_system(system_path)
-        check_against_system(plan, system)
+        check_against_system(plan, system, plan_path)
         return system
     if not plan.system:
         return None
@@ -246,7 +250,7 @@ def plan_system(plan: Plan, plan_path: str | Path, system_path: str | Path | Non
                 warnings.warn(f"the plan's system could not be read ({exc}); going on without it",
                               PerfrosWarning, stacklevel=2)
                 return None
-            check_against_system(plan, system)
+            check_against_system(plan, system, plan_path)
             return system
     warnings.warn(f"the plan's system {plan.system!r} was not found (beside the plan or here): "
                   "links are not checked and CPU traces match nodes by name only",

@@ -286,9 +286,7 @@ def _windows(observer: Observer, plan: Plan, system: System | None, live: Any, u
 
 
 def _deploy_running(live: Any) -> bool:
-    from perfros_bag.sweep.livestate import _alive
-
-    return bool(_alive(live.pid))
+    return bool(live.running())
 
 
 def _read_until(observer: Observer, end: float, live: Any, stop: threading.Event) -> Reading:

@@ -17,7 +17,7 @@ import threading
 import time
 from urllib.parse import urlsplit
 
-from perfros_bag.rosrun.master import CALLER_ID, _call, _value
+from perfros_bag.rosrun.master import CALLER_ID, node_call
 
 
 def connection_header(fields: dict[str, str]) -> bytes:
@@ -67,7 +67,7 @@ class StampListener:
             t.start()
 
     def _connect(self, uri: str) -> socket.socket | None:
-        reply = _value(_call(uri, "requestTopic", self.topic, [["TCPROS"]]))
+        reply = node_call(uri, "requestTopic", self.topic, [["TCPROS"]])
         if not isinstance(reply, list) or len(reply) < 3 or reply[0] != "TCPROS":
             return None
         host = str(reply[1]) or (urlsplit(uri).hostname or "localhost")
