@@ -220,22 +220,54 @@ def test_a_hop_never_measured_is_a_warning_naming_the_chain() -> None:
     assert "chain 'vision': no measured latency for its hop node(s) detector" in fit.warnings[0]
 
 
-def test_tune_refits_the_service_scale_from_a_deployment_beside_its_prediction(tmp_path: Path) -> None:
+@pytest.mark.parametrize("p95_s", [0.12, 0.1])
+def test_tune_refits_scale_p95_ratio_and_queue_from_a_deployment(p95_s: float, tmp_path: Path) -> None:
     from perfros_bag.tune.loop import _recalibrate_latency
 
     data = yaml.safe_load(SYSTEM)
-    data["latency"] = {"overhead_ms": 2.0, "service_scale": {"detector": 3.0}}
+    data["latency"] = {"overhead_ms": 2.0, "service_scale": {"detector": 3.0}, "queue_factor": 0.8}
     (tmp_path / "model-0.json").write_text(json.dumps({"format": "perfros-bag/model@1", "system": data}))
     (tmp_path / "round-1").mkdir()
     hop = {"from": "/camera/image_raw", "node": "detector", "to": "/detector/found", "computer": "server",
-           "predicted_ms": {"p50": 140.0, "p95": 200.0}, "service_ms": 50.0, "wait_ms": 8.0, "transfer_ms": 80.0}
+           "predicted_ms": {"p50": 140.0, "p95": 200.0}, "service_ms": 50.0, "wait_ms": 8.0, "transfer_ms": 80.0,
+           "wait_p95_ms": 30.0, "transfer_p95_ms": 80.0}
     (tmp_path / "round-1" / "plan.json").write_text(json.dumps({"chains": [{"name": "vision", "hops": [hop]}]}))
     measured = {"name": "vision", "p50_s": 0.1, "hops": [{"from": "/camera/image_raw", "to": "/detector/found",
-                                                          "p50_s": 0.1}]}
+                                                          "p50_s": 0.1, "p95_s": p95_s}]}
     (tmp_path / "round-1" / "validation.json").write_text(json.dumps({"chains": [measured]}))
     doc_system = json.loads(json.dumps(data))
-    doc_system["latency"]["service_scale"] = {"detector": 2.5}  # this round's fit from the sweep
+    doc_system["latency"] = {"overhead_ms": 2.0, "service_scale": {"detector": 2.5}}  # this round's fit
     _recalibrate_latency(tmp_path, doc_system, [{"dir": "round-1", "model": "model-0.json"}])
-    # the node's part: 100 ms measured - 2 ms overhead - 80 ms transfer = 18 ms, over 58 ms predicted
-    assert doc_system["latency"]["service_scale"]["detector"] == pytest.approx(3.0 * 18 / 58, rel=1e-6)
-    assert doc_system["latency"]["source"] == "tune"
+    got = doc_system["latency"]
+    # p50: 100 ms measured - 2 ms overhead - 80 ms transfer = 18 ms for the node, predicted 58 ms at scale 3
+    scale = 3.0 * 18 / 58
+    assert got["service_scale"]["detector"] == pytest.approx(scale, rel=1e-6)
+    # p95: service and p95 wait rescaled by scale / 3; what the measured p95 leaves after overhead and transfer
+    service, wait = 50 * scale / 3, 30 * scale / 3
+    left = 1000 * p95_s - 2 - 80
+    if left >= service + wait:  # 38 ms: the ratio takes what the wait leaves, the queue factor stays
+        assert got["node_p95_ratio"]["detector"] == pytest.approx((left - wait) / service, rel=1e-6)
+        assert got["queue_factor"] == pytest.approx(0.8)
+    else:  # 18 ms: less than service + wait: ratio 1, the wait shrinks to fit
+        assert got["node_p95_ratio"]["detector"] == pytest.approx(1.0)
+        assert got["queue_factor"] == pytest.approx(0.8 * (left - service) / wait, rel=1e-6)
+    assert got["source"] == "tune"
+
+
+def test_a_node_with_two_busy_threads_runs_on_two_cores_and_takes_two_slices() -> None:
+    system = _system(SYSTEM.replace("    input: /camera/image_raw\n", "    input: /camera/image_raw\n    threads: 2\n"))
+    choice = _choices(system, 10, 0)
+    placement = {"camera": "robot", "detector": "server", "logger": "robot"}
+    roomy = predict_chain(system, system.chains[0], placement, choice, {"robot": 100, "server": 300})
+    assert (roomy.p50_ms, roomy.p95_ms) == pytest.approx(_hop(5.2, 10, 200, size_kB=230, bw=3000), rel=1e-9)
+    # on a robot of 70 beside the camera (10) and the logger (40): per thread, the camera's 10 is met,
+    # then 60 over 3 slices = 20 each: the logger 20, the detector 2 x 20 = 40
+    shared = {"camera": "robot", "detector": "robot", "logger": "robot"}
+    got = predict_chain(system, system.chains[0], shared, choice, {"robot": 70, "server": 300})
+    assert (got.p50_ms, got.p95_ms) == pytest.approx(_hop(5.2, 10, 40), rel=1e-9)
+    # the checker's own copy weighs threads alike: a solved plan's stated latency agrees with it
+    from perfros_bag.solver import solve
+    from perfros_bag.solver.check import check_plan
+
+    plan = solve(system, 1, "exact")
+    assert plan.chains[0]["predicted_ms"] is not None and check_plan(system, plan) == []

@@ -102,7 +102,7 @@ def imports(known: Mapping[str, Path], *, typing: bool = False) -> Iterator[Impo
 
 #: the layers, bottom to top (docs/architecture.md states the same line)
 LAYERS = ("shared", "system", "cpu", "ingest", "characterisation", "fitting", "solver", "validation", "rosrun",
-          "sweep", "export", "casestudy", "tune", "report", "cli")
+          "sweep", "export", "casestudy", "tune", "watch", "report", "cli")
 #: the package root's own modules: the shared helpers, and the entry points with the public API
 ROOT_LAYERS = {"errors": "shared", "limits": "shared", "fileio": "shared", "doccheck": "shared",
                "entry": "cli", "__main__": "cli", "": "cli"}

@@ -5,8 +5,8 @@ characterisation.csv (``characterise --latency``) gives every stamped topic of e
 publishing ``b`` from its input ``a`` adds, in that run, ``lat(b) - lat(a)`` (``lat(b)`` alone
 when ``a``'s publisher is a source: the chain starts at its stamp). The sweep runs every node
 on this machine, uncapped, without links, so the model's hop there is
-``overhead + scale_n x g`` with ``g = S + W50`` at ``S = w / units_per_core`` (one core: the
-node is not capped) and its M/D/1 wait at ``rho = lam x w / units_per_core``
+``overhead + scale_n x g`` with ``g = S + W50`` at ``S = w / (threads x units_per_core)``
+(its threads' cores: the node is not capped) and its M/D/1 wait at ``rho = lam x w / units_per_core``
 (:mod:`perfros_bag.system.latency`). A run where the node fell behind its input (published
 less than 90 % of what its input asked) is left out: its delay is the sweep machine's
 contention, bounded by the queue. Least squares over every (node, run) gives the one
@@ -92,7 +92,8 @@ def hop_samples(rows: Sequence[Row], system: System, units_per_core: float) -> l
             if _fell_behind(system, name, rb, lam):
                 continue
             w = rb.cpu_units_mean / lam
-            s = w / units_per_core
+            value = rb.value if isinstance(rb.value, int | float) else None
+            s = w / (max(1.0, node.threads_at(value)) * units_per_core)  # its threads' cores
             p50 = (rb.latency_p50_s or 0.0) - base50
             p95 = None if rb.latency_p95_s is None else rb.latency_p95_s - base95
             if p50 <= 0 or s <= 0:

@@ -400,6 +400,27 @@ def section_tune(doc: dict[str, Any], images: list[Image]) -> str:
             f"{per_round}{per_node}")
 
 
+def section_watch(doc: dict[str, Any], images: list[Image]) -> str:
+    """A watch (``watch --out DIR``): the timeline of its windows, alarms and re-plans."""
+    from perfros_bag.report.watch_plots import plot_watch
+
+    windows, replans = doc["windows"], doc["replans"]
+    t0 = float(windows[0]["t"])
+    img = Image("watch.png", plot_watch(windows, replans), "per window: expected vs measured Σ w·P; alarms; re-plans")
+    images.append(img)
+    raised = [a for w in windows for a in w["alarms"] if a.get("new")]
+    summary = (f'<p class="summary">{len(windows)} window(s) over {float(windows[-1]["t"]) - t0:.0f} s; '
+               f"{len(raised)} alarm(s); {len(replans)} re-plan(s).</p>")
+    events = [(float(w["t"]) - t0, w["window"], "alarm", a.get("line", "")) for w in windows for a in w["alarms"]
+              if a.get("new")]
+    events += [(float(r["t"]) - t0, r["window"], "re-plan",
+                f"{r['plan']}: {'; '.join(r.get('changes') or ['no change'])} (why: {'; '.join(r.get('why', []))})")
+               for r in replans]
+    tab = table(("s", "window", "event", "what"), sorted(events, key=lambda e: e[0]), text_cols=(2, 3),
+                table_id="watch-events")
+    return f'<h2 id="watch">Watched live: windows, alarms, re-plans</h2>{summary}{_img(img)}{tab}'
+
+
 # ---------------------------------------------------------------------------------------
 # the page
 
@@ -407,7 +428,8 @@ def section_tune(doc: dict[str, Any], images: list[Image]) -> str:
 def build_report(out_dir: str | Path, *, characterisation: str | Path | None = None,
                  model: str | Path | None = None, plan: str | Path | None = None,
                  validation: str | Path | None = None, frontier: str | Path | None = None,
-                 tune: str | Path | None = None, title: str = "perfros-bag report") -> Path:
+                 tune: str | Path | None = None, watch: str | Path | None = None,
+                 title: str = "perfros-bag report") -> Path:
     """Write ``out_dir/index.html`` and its PNGs; returns the page's path. Inputs are read
     (and checked) before anything is written."""
     from perfros_bag.solver.frontier import read_frontier
@@ -420,6 +442,11 @@ def build_report(out_dir: str | Path, *, characterisation: str | Path | None = N
     val = read_validation(validation) if validation is not None else None
     front = read_frontier(frontier) if frontier is not None else None
     tuned = read_tune(tune) if tune is not None else None
+    watched = None
+    if watch is not None:
+        from perfros_bag.watch.watchfile import read_watch
+
+        watched = read_watch(watch)
 
     images: list[Image] = []
     sections: list[str] = []
@@ -431,12 +458,15 @@ def build_report(out_dir: str | Path, *, characterisation: str | Path | None = N
         sections.append(section_frontier(front, images))
     if tuned is not None and tuned["rounds"]:
         sections.append(section_tune(tuned, images))
+    if watched is not None and watched["windows"]:
+        sections.append(section_watch(watched, images))
     if fits and any(fits.values()):
         sections.append(section_fits(fits, images))
     if char is not None:
         sections.append(section_characterisation(char))
     sources = [(k, p) for k, p in (("characterisation", characterisation), ("model", model), ("plan", plan),
-                                   ("validation", validation), ("frontier", frontier), ("tune", tune))
+                                   ("validation", validation), ("frontier", frontier), ("tune", tune),
+                                   ("watch", watch))
                if p is not None]
     src = "".join(f"<li>{esc(k)}: <code>{esc(p)}</code></li>" for k, p in sources)
     body = "".join(sections) or '<p class="muted">Nothing to report: no input was given.</p>'

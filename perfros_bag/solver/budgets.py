@@ -31,6 +31,7 @@ from perfros_bag.system.latency import (
     budget_violation,
     chain_hops,
     fastest_bound,
+    hop_floor,
     plan_predictions,
     predict_chain,
 )
@@ -79,12 +80,49 @@ def broken_chains(system: System, problem: Problem, assignment: Assignment) -> l
 @dataclass(frozen=True)
 class CutTerm:
     """``node`` at choice ``choice`` (None: any choice) on ``computer``; ``negate``: the term
-    counts ``1 -`` that (the node is *not* there)."""
+    counts ``1 -`` that (the node is *not* there); ``coef``: its coefficient in a bound row."""
 
     node: str
     choice: Choice | None
     computer: str
     negate: bool = False
+    coef: float = 1.0
+
+
+#: a linear row over the exact solver's placement columns: sum(coef x term) <= bound
+Row = tuple[list[CutTerm], float]
+
+
+def cut_row(terms: list[CutTerm]) -> Row:
+    """A no-good cut as a row: ``sum(terms) <= len(terms) - 1``, each negated term
+    ``1 - [n on c]`` with its constant moved to the bound."""
+    negated = sum(1 for t in terms if t.negate)
+    return [CutTerm(t.node, t.choice, t.computer, coef=-1.0 if t.negate else 1.0) for t in terms], \
+        len(terms) - 1 - negated
+
+
+def floor_rows(system: System, problem: Problem, choices: Mapping[str, Sequence[Choice]]) -> list[Row]:
+    """Per budgeted chain and bound, a valid row the MILP holds from the start: the sum over
+    its hops of each (choice, computer)'s :func:`hop_floor` is within the budget. The floor
+    never exceeds the prediction, so no plan within the budget is lost; choices that are too
+    slow on a small computer are gone before the first solve instead of one cut at a time."""
+    caps = system.capacities(problem)
+    rows: list[Row] = []
+    for chain in budgeted(system):
+        hops = chain_hops(system, chain)
+        assert not isinstance(hops, str) and chain.budget_ms is not None
+        for quantile, limit in chain.budget_ms.items():
+            q = 0 if quantile == "p50" else 1
+            terms: list[CutTerm] = []
+            for hop in hops:
+                for ch in choices.get(hop.node, ()):
+                    for comp in system.allowed(hop.node):
+                        cap = caps[comp] if math.isfinite(caps[comp]) else system.latency.units_per_core
+                        floor = hop_floor(system, hop.node, ch, cap)
+                        if floor is not None and floor[q] > 0:
+                            terms.append(CutTerm(hop.node, ch, comp, coef=floor[q]))
+            rows.append((terms, limit))
+    return rows
 
 
 def cut_of(system: System, problem: Problem, assignment: Assignment, chain: Chain) -> list[CutTerm]:
@@ -333,15 +371,16 @@ def descend(system: System, problem: Problem, assignment: Assignment, choices: M
 
 
 def solve_with_cuts(system: System, problem: Problem, choices: Mapping[str, Sequence[Choice]],
-                    solve_once: Callable[[list[list[CutTerm]]], Plan], out_of_time: Callable[[], bool]) -> Plan:
+                    solve_once: Callable[[list[Row]], Plan], out_of_time: Callable[[], bool]) -> Plan:
     """The exact solver under budgets: solve, cut away an optimum that breaks a budget
     (:func:`cut_of`), solve again, until an optimum keeps them all (it is optimal among the
     plans that do) or none is left (infeasible, naming the chains and their bounds)."""
-    cuts: list[list[CutTerm]] = []
+    floors = floor_rows(system, problem, choices)
+    cuts: list[Row] = []
     while True:
-        plan = solve_once(cuts)
+        plan = solve_once(floors + cuts)
         if plan.status == Status.INFEASIBLE:
-            if cuts:
+            if cuts or floors:
                 plan.reason = no_plan_within(system, choices, "no plan that fits the other constraints")
             return plan
         assignment = assignment_of(plan, choices)
@@ -355,7 +394,7 @@ def solve_with_cuts(system: System, problem: Problem, choices: Mapping[str, Sequ
             return Plan.infeasible(problem, Method.EXACT, no_plan_within(
                 system, choices, f"no plan found within {limit} (not proven: a longer time limit may find one)"),
                 system=system.source)
-        cuts.append(cut_of(system, problem, assignment, broken[0]))
+        cuts.append(cut_row(cut_of(system, problem, assignment, broken[0])))
 
 
 def restate_chains(system: System, plan: Plan) -> None:

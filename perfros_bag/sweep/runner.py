@@ -48,7 +48,14 @@ from perfros_bag.characterisation.manifest import (
 )
 from perfros_bag.errors import InputError, PerfrosError
 from perfros_bag.fileio import atomic_write_text, read_yaml
-from perfros_bag.rosrun.master import bus_stats, master_call, master_state, port_of, start_roscore
+from perfros_bag.rosrun.master import (
+    bus_stats,
+    master_call,
+    master_state,
+    parse_bus_stats,
+    port_of,
+    start_roscore,
+)
 from perfros_bag.rosrun.processes import (
     Processes,
     Started,
@@ -67,6 +74,7 @@ from perfros_bag.sweep.graph import Graph, capture_graph, write_graph
 from perfros_bag.sweep.launchfile import (
     ROSLAUNCH,
     LaunchFile,
+    NodeCommand,
     check_space,
     launch_argv,
     launch_nodes,
@@ -331,11 +339,14 @@ def record_run(launch: LaunchFile, space: Space, run: Run, out: Path, *, interva
                progress: Callable[[str, float], None] | None = None, run_id: str | None = None,
                on_graph: Callable[[Graph], None] | None = None, network: Network | None = None,
                where: Mapping[str, str] | None = None, on_window: Callable[[str], None] | None = None,
-               replay: Prepared | None = None) -> Graph:
+               replay: Prepared | None = None, on_master: Callable[[str], None] | None = None,
+               on_tick: Callable[[Restarter], None] | None = None) -> Graph:
     """Record one run into ``out/<run>.bag`` and ``out/<run>.cpu.csv``; returns its graph.
     ``on_graph`` is called with the graph (every node up, with its PID) before recording
     starts; ``on_window`` with ``"start"`` and ``"end"`` as the recording's ``duration_s``
-    begins and ends; ``run_id`` tags the run's processes (default: a new one).
+    begins and ends; ``on_master`` with the master's URI once roscore answers; ``on_tick``
+    about four times a second while recording, with a :class:`Restarter` (runs across
+    emulated computers only); ``run_id`` tags the run's processes (default: a new one).
 
     With an emulated ``network`` (:class:`~perfros_bag.rosrun.network.Network`, made by the
     caller) the run happens across its namespaces: roscore in the namespace of
@@ -363,10 +374,11 @@ def record_run(launch: LaunchFile, space: Space, run: Run, out: Path, *, interva
                     spread = _Spread(network, dict(where or {}))
                     with network.inside(spread.master):
                         graph = _record(launch, space, run, work, procs, timeout, interval, note, on_graph,
-                                        spread, on_window)
+                                        spread, on_window, on_master=on_master, on_tick=on_tick)
                 else:
                     graph = _record(launch, space, run, work, procs, timeout, interval, note, on_graph,
-                                    on_window=on_window, replay=replay if run.factor is not None else None)
+                                    on_window=on_window, replay=replay if run.factor is not None else None,
+                                    on_master=on_master)
             except PerfrosError as exc:
                 raise PerfrosError(f"run {run.name}: {exc}") from None
     except KeyboardInterrupt:
@@ -428,25 +440,77 @@ def _start_nodes(launch: LaunchFile, run: Run, nodes: list[str], spread: _Spread
     """Each node (in its computer's namespace with a ``spread``), as ``roslaunch --args``
     would start it, after the launch file's parameters (``roslaunch --dump-params``) are set
     on the master; a nodelet named in ``standalone`` as ``nodelet standalone``."""
-    from perfros_bag.sweep.nodelets import standalone_argv
-
     with ThreadPoolExecutor(max_workers=4) as pool:
         params = pool.submit(launch_params, launch, run.args, dict(procs.env), timeout)
         commands = list(pool.map(lambda n: node_command(launch, n, run.args, dict(procs.env), timeout), nodes))
         for name, value in params.result().items():
             if master_call(uri, "setParam", name, value) is None:
                 raise PerfrosError(f"the master did not take the launch file's parameter {name}")
-    started = []
-    for i, cmd in enumerate(commands):
-        argv = ["env", *(f"{k}={v}" for k, v in cmd.env.items())]
-        words = standalone_argv(cmd.argv) if cmd.node in standalone else list(cmd.argv)
-        if spread is not None:
-            comp = spread.computer(cmd.node)
-            argv = spread.network.wrap(comp, [*argv, *spread.env(comp, uri), *words])
-        else:
-            argv += words
-        started.append(procs.start(cmd.node, argv, work / f"node{i}.log", cwd=Path(procs.env["ROS_HOME"])))
-    return started
+    return [procs.start(cmd.node, _node_argv(cmd, spread, uri, standalone), work / f"node{i}.log",
+                        cwd=Path(procs.env["ROS_HOME"])) for i, cmd in enumerate(commands)]
+
+
+def _node_argv(cmd: NodeCommand, spread: _Spread | None, uri: str, standalone: frozenset[str] = frozenset()) -> list[str]:
+    """A node's command line as ``roslaunch --args`` gave it (a nodelet named in
+    ``standalone`` as ``nodelet standalone``), in its computer's namespace."""
+    from perfros_bag.sweep.nodelets import standalone_argv
+
+    argv = ["env", *(f"{k}={v}" for k, v in cmd.env.items())]
+    words = standalone_argv(cmd.argv) if cmd.node in standalone else list(cmd.argv)
+    if spread is None:
+        return argv + words
+    comp = spread.computer(cmd.node)
+    return spread.network.wrap(comp, [*argv, *spread.env(comp, uri), *words])
+
+
+@dataclass
+class Restarter:
+    """Restarts launched nodes of a run across emulated computers while it records
+    (``deploy``'s control file): one node at a time, the others and the master untouched."""
+
+    launch: LaunchFile
+    spread: _Spread
+    uri: str
+    work: Path
+    procs: Processes
+    watch: _Watch
+    timeout: float
+    restarts: int = 0
+
+    def restart(self, node: str, args: Mapping[str, str], params: Mapping[str, Any], computer: str) -> int:
+        """Stop ROS node ``node``, set the launch file's parameters for ``args`` (and
+        ``params``) on the master, start it again with ``args`` on ``computer``; its new PID
+        once it answers. The run's failure check follows the new process."""
+        from perfros_bag.rosrun.master import node_call
+        from perfros_bag.system.names import system_node_name
+
+        old = self.watch.pids.pop(node, (None, 0.0))[0]
+        self.watch.others = [st for st in self.watch.others if st.name != node]
+        self.procs.stop([node])
+        env = dict(self.procs.env)
+        values = {**launch_params(self.launch, args, env, self.timeout), **params}
+        for name, value in values.items():
+            if master_call(self.uri, "setParam", name, value) is None:
+                raise PerfrosError(f"the master did not take the parameter {name} for node {node}'s restart")
+        cmd = node_command(self.launch, node, args, env, self.timeout)
+        self.spread.where[system_node_name(node)] = computer
+        self.restarts += 1
+        st = self.procs.start(node, _node_argv(cmd, self.spread, self.uri), self.work / f"restart{self.restarts}.log",
+                              cwd=Path(self.procs.env["ROS_HOME"]))
+        self.watch.others.append(st)
+        pid: list[int] = []
+
+        def up() -> bool:
+            node_uri = master_call(self.uri, "lookupNode", node)
+            answer = node_call(node_uri, "getPid") if isinstance(node_uri, str) else None
+            if isinstance(answer, int) and answer != old:
+                pid[:] = [answer]
+            return bool(pid)
+
+        wait_for(f"node {node} to start again", up, self.timeout, self.watch.failure)
+        self.watch.pids[node] = (pid[0], _create_time(pid[0]))
+        self.procs.remember()
+        return pid[0]
 
 
 def _start_players(replay: Prepared, factor: float, work: Path, procs: Processes) -> list[Started]:
@@ -460,7 +524,9 @@ def _start_players(replay: Prepared, factor: float, work: Path, procs: Processes
 def _record(launch: LaunchFile, space: Space, run: Run, work: Path, procs: Processes, timeout: float,
             interval: float, note: Callable[[str, float], None],
             on_graph: Callable[[Graph], None] | None = None, spread: _Spread | None = None,
-            on_window: Callable[[str], None] | None = None, replay: Prepared | None = None) -> Graph:
+            on_window: Callable[[str], None] | None = None, replay: Prepared | None = None,
+            on_master: Callable[[str], None] | None = None,
+            on_tick: Callable[[Restarter], None] | None = None) -> Graph:
     note("roscore", 0.0)
     if spread is not None:
         procs.env["ROS_IP"] = spread.network.address(spread.master)
@@ -470,6 +536,8 @@ def _record(launch: LaunchFile, space: Space, run: Run, work: Path, procs: Proce
         uri = start_roscore(procs, work, timeout, host=procs.env["ROS_IP"])
         nodes = listing.result()
         nodelets, managers = members.result()
+    if on_master is not None:
+        on_master(uri)
     for name, value in run.params.items():
         if master_call(uri, "setParam", name, value) is None:
             raise PerfrosError(f"the master did not take the parameter {name}={value!r}")
@@ -572,8 +640,11 @@ def _record(launch: LaunchFile, space: Space, run: Run, work: Path, procs: Proce
     window("start")
     started_ns = time.time_ns()
     t0 = time.monotonic()
+    restarter = None if spread is None else Restarter(launch, spread, uri, work, procs, watch, timeout)
     while (elapsed := time.monotonic() - t0) < space.duration_s:
         _check(watch, "the recording")
+        if on_tick is not None and restarter is not None:
+            on_tick(restarter)
         note("recording", elapsed / space.duration_s)
         time.sleep(min(0.25, space.duration_s - elapsed))
     _check(watch, "the recording")
@@ -700,21 +771,10 @@ def _silent_topics(uri: str, graph: Graph, nodes: list[str]) -> list[str]:
 
 def _published_bytes(stats: Any) -> dict[str, int]:
     """Message bytes sent per published topic, from a node's ``getBusStats`` (handshake
-    headers not counted). roscpp: ``[topic, [[id, bytes, message_bytes, messages, _], ...]]``
-    (``bytes`` already without headers); rospy: ``[topic, message_bytes, [[id, bytes with
-    headers, messages, connected], ...]]``."""
-    out: dict[str, int] = {}
-    if not isinstance(stats, list) or not stats or not isinstance(stats[0], list):
-        return out
-    for entry in stats[0]:
-        if not isinstance(entry, list) or len(entry) < 2 or not isinstance(entry[0], str):
-            continue
-        if isinstance(entry[1], int) and not isinstance(entry[1], bool):  # rospy
-            out[entry[0]] = entry[1]
-        elif isinstance(entry[1], list):  # roscpp
-            out[entry[0]] = sum(c[2] for c in entry[1] if isinstance(c, list) and len(c) > 2
-                                and isinstance(c[2], int))
-    return out
+    headers not counted): roscpp's per connection summed, rospy's own total
+    (:func:`~perfros_bag.rosrun.master.parse_bus_stats`)."""
+    return {topic: c.total_bytes if c.total_bytes is not None else sum(b for _, b in c.connections.values())
+            for topic, c in parse_bus_stats(stats).items()}
 
 
 def _node_trace(raw: Path, graph: Graph) -> Path:

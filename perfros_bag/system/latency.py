@@ -8,7 +8,8 @@ per second from its input's publisher ``m`` on computer ``c_m`` (docs/solvers.md
 * **service** ``S = scale_n * w / v`` seconds: ``w = cpu_n / lam`` CPU units x seconds per
   message (a driven node's CPU is ``cpu + cpu_per_hz x lam``, so ``w`` carries it), ``v`` the
   CPU units ``n`` runs at while it is busy: its share of its computer when it asks for all its
-  threads can run (``threads x units_per_core``) and the others ask for their planned CPU
+  threads can run (``threads x units_per_core``; system.yaml ``threads``, 1 by default) and
+  the others ask for their planned CPU, each weighted by its threads
   (:func:`perfros_bag.system.cpushare.fair_shares`, the one model of how a capped computer
   shares its CPU). ``scale_n`` (fitted; 1 by default) turns CPU time into wall time.
 * **wait** in its queue at utilisation ``rho = lam x w / v``: M/D/1, whose mean wait is
@@ -75,12 +76,15 @@ class HopPrediction:
     wait_ms: float  # p50 of the queue's wait
     transfer_ms: float
     utilisation: float
+    wait_p95_ms: float = 0.0
+    transfer_p95_ms: float = 0.0
 
     def to_dict(self) -> dict[str, Any]:
         return {"from": self.src, "node": self.node, "to": self.dst, "computer": self.computer,
                 "predicted_ms": {"p50": _ms(self.p50_ms), "p95": _ms(self.p95_ms)},
                 "service_ms": _ms(self.service_ms), "wait_ms": _ms(self.wait_ms),
-                "transfer_ms": _ms(self.transfer_ms), "utilisation": round(self.utilisation, 6)}
+                "transfer_ms": _ms(self.transfer_ms), "utilisation": round(self.utilisation, 6),
+                "wait_p95_ms": _ms(self.wait_p95_ms), "transfer_p95_ms": _ms(self.transfer_p95_ms)}
 
 
 @dataclass(frozen=True)
@@ -167,13 +171,22 @@ def queue_wait(service_s: float, rho: float, params: LatencyParams, q: float) ->
     return min(wait_quantile(mean, rho, q), bound)
 
 
+def threads_of(system: System, node: str, choice: Choice) -> float:
+    """Busy threads of ``node`` at its choice (system.yaml ``threads``, per setting or node; 1)."""
+    n = system.node.get(node)
+    return 1.0 if n is None else max(1.0, n.threads_at(choice.value))
+
+
 def service_speed(system: System, node: str, computer: str, placement: Mapping[str, str],
-                  choice: Mapping[str, Choice], capacity: float, threads: float = 1.0) -> float:
-    """CPU units ``node`` runs at while busy on ``computer`` (its fair share when it asks for
-    all its threads can run and the others for their planned CPU)."""
+                  choice: Mapping[str, Choice], capacity: float) -> float:
+    """CPU units ``node`` runs at while busy on ``computer``: its fair share when it asks for
+    all its threads can run (threads x ``units_per_core``) and the others for their planned
+    CPU, each weighted by its threads (:func:`perfros_bag.system.cpushare.fair_shares`)."""
     upc = system.latency.units_per_core
-    demands = [Demand(node, math.inf, threads, threads * upc)]
-    demands += [Demand(n, choice[n].cpu) for n, c in placement.items() if c == computer and n != node and n in choice]
+    k = threads_of(system, node, choice[node])
+    demands = [Demand(node, math.inf, k, k * upc)]
+    demands += [Demand(n, choice[n].cpu, threads_of(system, n, choice[n]))
+                for n, c in placement.items() if c == computer and n != node and n in choice]
     return fair_shares(capacity, demands)[node]
 
 
@@ -240,7 +253,7 @@ def predict_hop(system: System, hop: Hop, placement: Mapping[str, str], choice: 
     p50 = over + transfer50 + wait50 + service
     p95 = over + transfer95 + wait95 + ratio * service
     return HopPrediction(hop.src, hop.node, hop.dst, comp, 1000 * p50, 1000 * p95, 1000 * service,
-                         1000 * wait50, 1000 * transfer50, rho)
+                         1000 * wait50, 1000 * transfer50, rho, 1000 * wait95, 1000 * transfer95)
 
 
 def predict_chain(system: System, chain: Chain, placement: Mapping[str, str], choice: Mapping[str, Choice],
@@ -305,37 +318,41 @@ def budget_violation(system: System, placement: Mapping[str, str], choice: Mappi
     return None
 
 
+def hop_floor(system: System, node: str, choice: Choice, capacity: float) -> tuple[float, float] | None:
+    """A lower bound on the (p50, p95) ms of ``node``'s hop at ``choice`` on a computer of
+    ``capacity``, whatever else the plan puts there: the node at the most it can run (its
+    threads' cores, at most the capacity), its wait at that speed, no transfer. None without
+    an input rate."""
+    params = system.latency
+    lam = choice.input_hz
+    v = min(threads_of(system, node, choice) * params.units_per_core, capacity)
+    if not lam or lam <= 0 or v <= 0:
+        return None
+    w = choice.cpu / lam
+    rho = lam * w / v
+    s = params.service_scale.get(node, 1.0) * w / v
+    ratio = params.node_p95_ratio.get(node, params.p95_ratio)
+    over = params.overhead_ms / 1000.0
+    return (1000 * (over + s + queue_wait(s, rho, params, 0.5)),
+            1000 * (over + ratio * s + queue_wait(s, rho, params, 0.95)))
+
+
 def fastest_bound(system: System, chain: Chain, choices: Mapping[str, Sequence[Choice]]) -> tuple[float, float] | None:
     """A lower bound on ``chain``'s predicted (p50, p95) over every plan: each hop at its
-    fastest choice, alone on the largest computer it may use, beside its input's publisher.
-    None when the chain cannot be followed."""
+    fastest choice, alone on the largest computer it may use, beside its input's publisher
+    (:func:`hop_floor`). None when the chain cannot be followed."""
     hops = chain_hops(system, chain)
     if isinstance(hops, str):
         return None
-    params = system.latency
     p50 = p95 = 0.0
     for hop in hops:
-        best50 = best95 = math.inf
         caps = [c.capacity if c.capacity is not None else (c.max_capacity or math.inf)
                 for c in system.computers if c.name in system.allowed(hop.node)]
         cap = max(caps) if caps else 0.0
-        for ch in choices.get(hop.node, ()):
-            lam = ch.input_hz
-            if not lam or lam <= 0:
-                continue
-            w = ch.cpu / lam
-            v = min(params.units_per_core, cap)
-            if v <= 0:
-                continue
-            rho = lam * w / v
-            s = params.service_scale.get(hop.node, 1.0) * w / v
-            ratio = params.node_p95_ratio.get(hop.node, params.p95_ratio)
-            over = params.overhead_ms / 1000.0
-            best50 = min(best50, over + s + queue_wait(s, rho, params, 0.5))
-            best95 = min(best95, over + ratio * s + queue_wait(s, rho, params, 0.95))
-        p50 += best50
-        p95 += best95
-    return 1000 * p50, 1000 * p95
+        floors = [f for ch in choices.get(hop.node, ()) if (f := hop_floor(system, hop.node, ch, cap)) is not None]
+        p50 += min((f[0] for f in floors), default=math.inf)
+        p95 += min((f[1] for f in floors), default=math.inf)
+    return p50, p95
 
 
 def budget_text(budget: object) -> str:

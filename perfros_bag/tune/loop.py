@@ -426,10 +426,16 @@ def fit_rounds(outdir: Path, system_path: str | Path, system: System, done: list
 
 
 def _recalibrate_latency(outdir: Path, doc_system: dict[str, Any], done: list[dict[str, Any]]) -> None:
-    """The latency model refitted from the deployments: each hop node's service scale is the
-    mean, over the rounds that measured its hop, of the scale that round's model used times
-    what its measured p50 left after the hop's predicted overhead and transfer over its
-    predicted service and wait (validation.json's chains beside the round's plan.json)."""
+    """The latency model refitted from the deployments (validation.json's chains beside the
+    round's plan.json and model), with the new fit's overhead:
+
+    - each hop node's service scale: the mean over the rounds of the scale that round's model
+      used times what its measured p50 left after overhead and transfer over its predicted
+      service and wait (both grow with the scale);
+    - its p95 ratio and the queue factor, from what its measured p95 left after overhead and
+      transfer: when it holds the rescaled service and p95 wait, the ratio takes the rest (at
+      least 1); when it does not, the ratio is 1 and the wait shrinks to fit: the queue factor
+      is the mean over every hop of the one its round used, times that share where it shrank."""
     from perfros_bag.fileio import read_json
     from perfros_bag.fitting.latency import params_json
     from perfros_bag.system.systemfile import parse_system
@@ -438,29 +444,49 @@ def _recalibrate_latency(outdir: Path, doc_system: dict[str, Any], done: list[di
         warnings.simplefilter("ignore", PerfrosWarning)
         system = parse_system(doc_system, "model")
     over = system.latency.overhead_ms
-    scales: dict[str, list[float]] = {}
+    # node, the scale and queue factor its round used, the measured hop, the planned hop
+    seen: list[tuple[str, float, float, dict[str, Any], dict[str, Any]]] = []
     for r in done:
         path = outdir / r["dir"] / "validation.json"
         if not path.is_file() or not (outdir / r["model"]).is_file():
             continue
-        used = ((read_json(outdir / r["model"]).get("system") or {}).get("latency") or {}).get("service_scale") or {}
+        used = ((read_json(outdir / r["model"]).get("system") or {}).get("latency") or {})
         plan_chains = {c.get("name"): c for c in (read_json(outdir / r["dir"] / "plan.json").get("chains") or [])}
         for chain in read_json(path).get("chains") or []:
             hops = {(h.get("from"), h.get("to")): h for h in plan_chains.get(chain.get("name"), {}).get("hops") or []}
             for h in chain.get("hops") or []:
                 ph = hops.get((h.get("from"), h.get("to")))
-                if ph is None or h.get("p50_s") is None:
-                    continue
-                own = (ph.get("service_ms") or 0.0) + (ph.get("wait_ms") or 0.0)
-                left = 1000.0 * h["p50_s"] - over - (ph.get("transfer_ms") or 0.0)
-                if own > 0 and left > 0:
-                    scales.setdefault(ph["node"], []).append(float(used.get(ph["node"], 1.0)) * left / own)
-    if scales:
-        fitted = {n: sum(v) / len(v) for n, v in scales.items()}
-        params = dataclasses.replace(system.latency, service_scale={**system.latency.service_scale, **fitted},
-                                     source="tune")
-        doc_system["latency"] = params_json(params)
-
+                if ph is not None and h.get("p50_s") is not None:
+                    seen.append((ph["node"], float((used.get("service_scale") or {}).get(ph["node"], 1.0)),
+                                 float(used.get("queue_factor", 1.0)), h, ph))
+    scales: dict[str, list[float]] = {}
+    for node, used_scale, _, h, ph in seen:
+        own = (ph.get("service_ms") or 0.0) + (ph.get("wait_ms") or 0.0)
+        left = 1000.0 * h["p50_s"] - over - (ph.get("transfer_ms") or 0.0)
+        if own > 0 and left > 0:
+            scales.setdefault(node, []).append(used_scale * left / own)
+    if not scales:
+        return
+    fitted = {n: sum(v) / len(v) for n, v in scales.items()}
+    ratios: dict[str, list[float]] = {}
+    queue: list[float] = []
+    for node, used_scale, used_queue, h, ph in seen:
+        if node not in fitted or h.get("p95_s") is None or not ph.get("service_ms"):
+            continue
+        k = fitted[node] / used_scale
+        service, wait95 = ph["service_ms"] * k, (ph.get("wait_p95_ms") or 0.0) * k
+        left95 = 1000.0 * h["p95_s"] - over - (ph.get("transfer_p95_ms") or 0.0)
+        if left95 >= service + wait95:
+            ratios.setdefault(node, []).append((left95 - wait95) / service)
+            queue.append(used_queue)
+        else:
+            ratios.setdefault(node, []).append(1.0)
+            queue.append(used_queue * max(0.0, left95 - service) / wait95 if wait95 > 0 else used_queue)
+    params = dataclasses.replace(
+        system.latency, service_scale={**system.latency.service_scale, **fitted},
+        node_p95_ratio={**system.latency.node_p95_ratio, **{n: sum(v) / len(v) for n, v in ratios.items()}},
+        queue_factor=sum(queue) / len(queue) if queue else system.latency.queue_factor, source="tune")
+    doc_system["latency"] = params_json(params)
 
 def load_model(model_path: Path) -> System:
     """model.json's system (its fits' notes are in the file, not repeated as warnings)."""
