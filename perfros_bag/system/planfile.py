@@ -217,18 +217,17 @@ def _check_placed(plan: Plan, name: str, path: str, *, forced: bool = False) -> 
 
 
 def _parse_node(n: Any, where: str, path: str) -> PlannedNode:
-    fail = Doc(path).fail
     if not isinstance(n, dict):
-        raise fail(where, "must be an object")
+        raise InputError(path, f"{where}: must be an object")
     if not isinstance(n.get("computer"), str):
-        raise fail(where, "missing 'computer'")
+        raise InputError(path, f"{where}: missing 'computer'")
     topics: dict[str, PlannedTopic] = {}
     raw_topics = n.get("topics") or {}
     if not isinstance(raw_topics, dict):
-        raise fail(where, "topics must be an object")
+        raise InputError(path, f"{where}: topics must be an object")
     for t, r in raw_topics.items():
         if not isinstance(r, dict):
-            raise fail(where, f"topic {t!r} must be an object")
+            raise InputError(path, f"{where}: topic {t!r} must be an object")
         topics[t] = PlannedTopic(_num(r, "frequency_hz", f"{where} topic {t!r}", path, nonneg=True),
                                  _num(r, "bandwidth_kBps", f"{where} topic {t!r}", path, nonneg=True))
     return PlannedNode(
