@@ -87,16 +87,19 @@ def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Pat
     if unknown:
         warnings.warn(f"{space.path}: node(s) {', '.join(unknown)} not in the plan: run at their default",
                       PerfrosWarning, stacklevel=2)
+    system = plan_system(plan, plan_path, system_path)
     require_ros_tools()
     run = plan_run(plan, space, dict(launch.args))
     cores = computer_cores(plan, units_per_core)
     outdir = Path(out).absolute()
+    if outdir.exists() and not outdir.is_dir():
+        raise InputError(outdir, "is not a directory, expected the folder to deploy into")
+    # every input is read and checked above: only now may an earlier deployment's files go
     outdir.mkdir(parents=True, exist_ok=True)
     require_free_space(outdir)
     for stale in ("run.bag", "run.cpu.csv", "run.host.cpu.csv", "manifest.yaml", "graph.yaml", "deploy.json",
                   "validation.json"):
         (outdir / stale).unlink(missing_ok=True)
-    system = plan_system(plan, plan_path, system_path)
     run_id = uuid.uuid4().hex[:10]
     groups = CpuGroups(run_id, cores)
     where = {name: pn.computer for name, pn in plan.nodes.items()}  # system.yaml's node names
