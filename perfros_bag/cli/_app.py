@@ -10,8 +10,10 @@ from typing import Any, TypeVar
 import typer
 from rich.console import Console
 from rich.markup import escape
+from typer._click.globals import get_current_context
 
 from perfros_bag.cli._lazy import LazyVerbGroup
+from perfros_bag.cli._numbers import check_numbers
 from perfros_bag.errors import PerfrosError
 
 
@@ -45,15 +47,19 @@ def _show_warning(message: Warning | str, category: type[Warning], filename: str
 
 def command(*args: Any, group: typer.Typer | None = None, interrupted: str = "interrupted",
             **kwargs: Any) -> Callable[[F], F]:
-    """``@app.command`` (or ``group.command`` for a sub-command group) plus: a PerfrosError
-    becomes one line on stderr and its exit code (2); Ctrl-C prints ``interrupted`` and
-    exits 130."""
+    """``@app.command`` (or ``group.command`` for a sub-command group) plus: every number flag
+    is checked first (:func:`~perfros_bag.cli._numbers.check_numbers`: finite, in its range);
+    a PerfrosError becomes one line on stderr and its exit code (2); Ctrl-C prints
+    ``interrupted`` and exits 130."""
 
     def decorate(func: F) -> F:
         @functools.wraps(func)
         def wrapper(*a: Any, **kw: Any) -> Any:
             warnings.showwarning = _show_warning
             try:
+                ctx = get_current_context(silent=True)
+                if ctx is not None:  # every number flag finite and in range, before anything starts
+                    check_numbers(ctx, kw)
                 return func(*a, **kw)
             except PerfrosError as exc:
                 err.print(f"[red]error:[/] {escape(str(exc))}", highlight=False, soft_wrap=True, markup=True)

@@ -12,6 +12,7 @@ the plan (eq 10, ``validation.json``); ``deploy.json`` says what ran, where, cap
 
 from __future__ import annotations
 
+import math
 import shutil
 import time
 import uuid
@@ -78,8 +79,10 @@ def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Pat
 
     plan = load_plan(plan_path)
     plan.require_feasible(plan_path, "deploy")
-    if units_per_core <= 0:
-        raise InputError(None, f"CPU units per core must be > 0, got {units_per_core:g}")
+    if not math.isfinite(units_per_core) or units_per_core <= 0:
+        raise InputError(None, f"CPU units per core must be a finite number > 0, got {units_per_core:g}")
+    if tolerance is not None and not (math.isfinite(tolerance) and tolerance >= 0):
+        raise InputError(None, f"the tolerance must be a finite number >= 0 (%), got {tolerance:g}")
     space = load_space(space_path).with_duration(duration)
     launch = read_launch(launch_path)
     check_space(launch, space)
