@@ -119,6 +119,8 @@ _DELETE = object()
 @pytest.mark.parametrize(("path", "value", "expect"), [
     ("1.input", "/nobody/publishes", "no node of the system publishes /nobody/publishes"),
     ("1.settings.0.cpu_per_hz", _DELETE, "missing required field(s) 'cpu_per_hz'"),
+    ("1.settings.0.cpu_per_hz", None, "cpu_per_hz: must be a finite number, got None"),  # not taken as 0
+    ("2.settings.0.cpu_per_hz", None, "cpu_per_hz: must be a finite number, got None"),
     ("1.settings.0.cpu_per_hz", -1.0, "cpu_per_hz: must be >= 0"),
     ("1.settings.0.cpu_per_hz", float("nan"), "cpu_per_hz: must be a finite number"),
     ("1.settings.0.out_per_in", -0.5, "out_per_in: must be >= 0"),
