@@ -399,3 +399,66 @@ def test_driven_wifi_fleet_every_camera_rate_a_knob() -> None:
     stream = sum(exact.nodes[f"camera{r}"].topics[f"/camera{r}/out"].bandwidth_kBps or 0 for r in offloaded)
     medium = next(m for m in s.media)
     assert stream <= medium.bandwidth_kBps + 1e-6
+
+
+class _Counting(dict):  # type: ignore[type-arg]
+    """flow_parent that counts its look-ups."""
+
+    looks = 0
+
+    def __getitem__(self, key: Any) -> Any:
+        _Counting.looks += 1
+        return super().__getitem__(key)
+
+    def __contains__(self, key: Any) -> bool:
+        _Counting.looks += 1
+        return super().__contains__(key)
+
+
+def _flow(parent: dict[str, str], names: list[str]) -> Any:
+    """Just what System.flow_cycle reads: the nodes in order and each driven node's publisher."""
+    from types import SimpleNamespace
+
+    return SimpleNamespace(nodes=[SimpleNamespace(name=n) for n in names], flow_parent=_Counting(parent))
+
+
+@pytest.mark.parametrize("seed", range(40))
+def test_flow_cycle_agrees_with_brute_force_on_random_input_graphs(seed: int) -> None:
+    from perfros_bag.system.types import System
+
+    rng = random.Random(seed)
+    names = [f"n{i}" for i in range(rng.randint(1, 12))]
+    parent = {n: rng.choice(names) for n in names if rng.random() < 0.7}
+
+    def on_cycle(n: str) -> bool:  # brute force: follow the inputs len(names) steps, back at n?
+        at: str | None = n
+        for _ in range(len(names)):
+            at = parent.get(at) if at is not None else None
+            if at == n:
+                return True
+        return False
+
+    cycle = System.flow_cycle(_flow(parent, names))
+    if not any(on_cycle(n) for n in names):
+        assert cycle is None
+    else:
+        assert cycle and len(set(cycle)) == len(cycle) and all(on_cycle(n) for n in cycle)
+        assert all(parent[a] == b for a, b in zip(cycle, cycle[1:] + cycle[:1], strict=True))
+
+
+@pytest.mark.parametrize("cyclic", [False, True])
+def test_flow_cycle_is_linear_in_the_chain(cyclic: bool) -> None:
+    """A 2,000-node chain listed from its end (the worst order for a walk per node): the
+    check looks each node's input up a bounded number of times (it was quadratic in
+    look-ups, and cubic in time with a list as the walk)."""
+    from perfros_bag.system.types import System
+
+    n = 2000
+    names = [f"n{i}" for i in range(n)]
+    parent = {f"n{i}": f"n{i - 1}" for i in range(1, n)}
+    if cyclic:
+        parent["n0"] = names[-1]
+    _Counting.looks = 0
+    cycle = System.flow_cycle(_flow(parent, names[::-1]))
+    assert (cycle is not None) == cyclic and (not cyclic or len(cycle) == n)  # type: ignore[arg-type]
+    assert _Counting.looks <= 4 * n

@@ -541,10 +541,10 @@ class System:
         order: list[str] = []
         done: set[str] = set()
         for n in self.nodes:
-            path: list[str] = []
+            path: dict[str, None] = {}  # this walk, in order (a dict: membership in O(1))
             at: str | None = n.name
             while at is not None and at in self.flow_parent and at not in done and at not in path:
-                path.append(at)
+                path[at] = None
                 at = self.flow_parent[at]
             for m in reversed(path):
                 if m not in done:
@@ -553,15 +553,22 @@ class System:
         return tuple(order)
 
     def flow_cycle(self) -> list[str] | None:
-        """The nodes of a cycle of ``input`` (each driven by the next's output), or None."""
+        """The nodes of a cycle of ``input`` (each driven by the next's output), or None.
+
+        Linear in the nodes: each node is walked once (every node has at most one input
+        publisher, so a walk either reaches a node already cleared, leaves the flow, or comes
+        back onto its own path: the cycle)."""
+        parent = self.flow_parent
+        cleared: set[str] = set()  # no cycle is reachable from these
         for n in self.nodes:
-            seen: list[str] = []
+            path: dict[str, int] = {}  # node -> its place on this walk (dicts keep order)
             at: str | None = n.name
-            while at is not None and at in self.flow_parent:
-                if at in seen:
-                    return seen[seen.index(at):]
-                seen.append(at)
-                at = self.flow_parent[at]
+            while at is not None and at in parent and at not in cleared:
+                if at in path:
+                    return list(path)[path[at]:]
+                path[at] = len(path)
+                at = parent[at]
+            cleared.update(path)
         return None
 
     @cached_property
