@@ -3,13 +3,15 @@
 from __future__ import annotations
 
 import functools
+import re
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any, TypeVar
 
 import typer
-from rich.console import Console
+from rich.console import Console, ConsoleOptions, ConsoleRenderable, RenderHook
 from rich.markup import escape
+from rich.segment import Segment
 from typer._click.globals import get_current_context
 
 from perfros_bag.cli._lazy import LazyVerbGroup
@@ -32,10 +34,42 @@ app = typer.Typer(
     add_completion=False,
 )
 
+#: C0 and C1 control characters but newline and tab: shown escaped, never sent raw
+_CONTROL = re.compile(r"[\x00-\x08\x0b-\x1f\x7f-\x9f]")
+
+
+def printable(text: str) -> str:
+    """``text`` with every control character shown as its escape (ESC -> ``\\x1b``): a name
+    or message from a hostile file cannot move the cursor, recolour or retitle the terminal."""
+    return _CONTROL.sub(lambda m: m.group().encode("unicode_escape").decode("ascii"), text)
+
+
+class _Escaped:
+    """A renderable whose text segments carry no raw control character (rich passes ESC
+    through); rich's own control segments (cursor moves of live displays) stay as they are."""
+
+    def __init__(self, inner: Any) -> None:
+        self.inner = inner
+
+    def __rich_console__(self, console: Console, options: ConsoleOptions) -> Iterator[Segment]:
+        for seg in console.render(self.inner, options):
+            if seg.control is None and _CONTROL.search(seg.text):
+                yield Segment(printable(seg.text), seg.style)
+            else:
+                yield seg
+
+
+class _EscapeHook(RenderHook):
+    def process_renderables(self, renderables: list[ConsoleRenderable]) -> list[ConsoleRenderable]:
+        return [_Escaped(r) for r in renderables]  # type: ignore[misc]
+
+
 #: stdout carries only the JSON document with --json; tables go to stdout otherwise.
 out = Console()
 #: progress bars, warnings and errors go to stderr.
 err = Console(stderr=True)
+for _console in (out, err):
+    _console.push_render_hook(_EscapeHook())
 
 F = TypeVar("F", bound=Callable[..., Any])
 
