@@ -27,6 +27,7 @@ class Range:
     low: float = 0.0
     low_open: bool = True
     high: float | None = None
+    text: str | None = None  # how the message says it, when not "a finite number ..."
 
     def admits(self, x: float) -> bool:
         if not math.isfinite(x):
@@ -36,8 +37,10 @@ class Range:
         return self.high is None or x <= self.high
 
     def __str__(self) -> str:
+        if self.text is not None:
+            return self.text
         low = f"{'>' if self.low_open else '>='} {self.low:g}"
-        return low if self.high is None else f"{low} and <= {self.high:g}"
+        return f"a finite number {low}" + ("" if self.high is None else f" and <= {self.high:g}")
 
 
 #: The default range of a number flag.
@@ -47,7 +50,7 @@ POSITIVE = Range()
 #: for a sub-command) or ``"--flag"`` for every verb that has it.
 RANGES: Mapping[str, Range] = {
     "--tolerance": Range(0.0, low_open=False),  # a deviation in %: 0 passes only a perfect run
-    "solve --problem": Range(1, low_open=False, high=2),
+    "solve --problem": Range(1, low_open=False, high=2, text="1 or 2"),
     "record-cpu --duration": Range(0.0, low_open=False),
     "record-cpu --interval": Range(0.01, low_open=False),
     "sweep --interval": Range(0.05, low_open=False),
@@ -79,4 +82,4 @@ def check_numbers(ctx: click.Context, values: Mapping[str, Any]) -> None:
             flag = max(param.opts, key=len)
             allowed = flag_range(verb, flag)
             if not allowed.admits(value):
-                raise InputError(None, f"{flag} must be a finite number {allowed}, got {value!r}")
+                raise InputError(None, f"{flag} must be {allowed}, got {value!r}")
