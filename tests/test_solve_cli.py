@@ -105,7 +105,7 @@ def test_problem2_settings_values_and_plan(tmp_path: Path) -> None:
         (["missing.yaml"], "missing.yaml"),
         ([str(INSTANCE1), "--problem", "3"], "--problem must be 1 or 2"),
         ([str(INSTANCE1), "--method", "magic"], "--method must be one of"),
-        ([str(INSTANCE1), "--resolution", "0"], "--resolution must be > 0"),
+        ([str(INSTANCE1), "--resolution", "0"], "--resolution must be a finite number > 0"),
         ([str(INSTANCE1), "--problem", "2", "--settings", "tracker1=30"], "value 30 is outside its parameter's range [10, 25]"),
         ([str(INSTANCE1), "--problem", "2", "--settings", "youbot_core1=3"], "no setting with value 3"),
         ([str(INSTANCE1), "--problem", "2", "--settings", "ghost=1"], "unknown node 'ghost'"),
@@ -166,3 +166,33 @@ def test_a_fleet_past_its_time_limit_still_gets_a_checked_plan_and_a_proven_boun
     ceiling = trivial_bound(system, fixed_choices(system, 1))
     assert plan.objective - 1e-9 <= plan.bound <= ceiling + 1e-9
     assert (plan.status == "optimal") == (plan.bound - plan.objective <= 1e-6 * plan.objective)
+
+
+def test_piped_tables_keep_every_name_whole(tmp_path: Path) -> None:
+    """Issue 33, item 13: not on a terminal (a pipe, a file, CI's log) rich drew tables at 80
+    columns and cut names to 'navigat…'; now every node and computer name is there in full,
+    on one line of the table, and nothing is cut with an ellipsis."""
+    data = table2_instance(2)
+    renamed = {n["name"]: f"navigation_stack_{n['name']}_with_a_long_descriptive_name" for n in data["nodes"]}
+    for n in data["nodes"]:
+        n["name"] = renamed[n["name"]]
+    for e in data.get("edges", []):
+        e["from"], e["to"] = renamed[e["from"]], renamed[e["to"]]
+    computers = {c["name"]: f"{c['name']}-onboard-computer-in-the-rear-bay" for c in data["computers"]}
+    for c in data["computers"]:
+        c["name"] = computers[c["name"]]
+    for link in data.get("links", []):
+        link["between"] = [computers[x] for x in link["between"]]
+    for n in data["nodes"]:
+        if n.get("residence"):
+            n["residence"] = [computers[x] for x in n["residence"]]
+        if n.get("coresidence"):
+            n["coresidence"] = [renamed[x] for x in n["coresidence"]]
+    path = tmp_path / "long.yaml"
+    path.write_text(yaml.safe_dump(data))
+    code, stdout, stderr = cli(str(path), "--method", "greedy")
+    assert code == 0, stderr
+    assert "…" not in stdout
+    rows = stdout.splitlines()
+    for name in [*renamed.values(), *computers.values()]:
+        assert any(name in row for row in rows), name

@@ -11,7 +11,9 @@ from typing import Any, TypeVar
 import typer
 from rich.console import Console, ConsoleOptions, ConsoleRenderable, RenderHook
 from rich.markup import escape
+from rich.measure import Measurement
 from rich.segment import Segment
+from rich.table import Table
 from typer._click.globals import get_current_context
 
 from perfros_bag.cli._lazy import LazyVerbGroup
@@ -44,15 +46,34 @@ def printable(text: str) -> str:
     return _CONTROL.sub(lambda m: m.group().encode("unicode_escape").decode("ascii"), text)
 
 
+#: the widest a table is drawn when the output is not a terminal (a file, a pipe, CI's log)
+MAX_PIPED_WIDTH = 1000
+
+
+def _unsqueezed(table: Table, console: Console, options: ConsoleOptions) -> tuple[Table, ConsoleOptions]:
+    """Into a file or pipe, rich draws at 80 columns and cuts names to ``navigat…``: there,
+    a table is drawn as wide as its content needs (up to :data:`MAX_PIPED_WIDTH`), and a
+    cell that still does not fit folds onto more lines instead of losing its end."""
+    natural = Measurement.get(console, options.update(width=MAX_PIPED_WIDTH), table).maximum
+    for column in table.columns:
+        if column.overflow == "ellipsis":
+            column.overflow = "fold"
+    return table, options.update(width=max(options.max_width, min(natural, MAX_PIPED_WIDTH)))
+
+
 class _Escaped:
     """A renderable whose text segments carry no raw control character (rich passes ESC
-    through); rich's own control segments (cursor moves of live displays) stay as they are."""
+    through); rich's own control segments (cursor moves of live displays) stay as they are.
+    Not on a terminal, a table is widened to its content (:func:`_unsqueezed`)."""
 
     def __init__(self, inner: Any) -> None:
         self.inner = inner
 
     def __rich_console__(self, console: Console, options: ConsoleOptions) -> Iterator[Segment]:
-        for seg in console.render(self.inner, options):
+        inner = self.inner
+        if isinstance(inner, Table) and not console.is_terminal:
+            inner, options = _unsqueezed(inner, console, options)
+        for seg in console.render(inner, options):
             if seg.control is None and _CONTROL.search(seg.text):
                 yield Segment(printable(seg.text), seg.style)
             else:
@@ -64,10 +85,20 @@ class _EscapeHook(RenderHook):
         return [_Escaped(r) for r in renderables]  # type: ignore[misc]
 
 
+class _Console(Console):
+    """rich's Console, but into a file or pipe the lines of a widened table are not cut
+    back to the console's width (:func:`_unsqueezed`)."""
+
+    def print(self, *objects: Any, **kwargs: Any) -> None:
+        if not self.is_terminal:
+            kwargs.setdefault("crop", False)
+        super().print(*objects, **kwargs)
+
+
 #: stdout carries only the JSON document with --json; tables go to stdout otherwise.
-out = Console()
+out = _Console()
 #: progress bars, warnings and errors go to stderr.
-err = Console(stderr=True)
+err = _Console(stderr=True)
 for _console in (out, err):
     _console.push_render_hook(_EscapeHook())
 
