@@ -462,3 +462,46 @@ def test_flow_cycle_is_linear_in_the_chain(cyclic: bool) -> None:
     cycle = System.flow_cycle(_flow(parent, names[::-1]))
     assert (cycle is not None) == cyclic and (not cyclic or len(cycle) == n)  # type: ignore[arg-type]
     assert _Counting.looks <= 4 * n
+
+
+def _chain(stages: int, settings: int, seed: int = 0) -> dict[str, Any]:
+    """A camera and ``stages`` driven nodes in a chain, each with ``settings`` settings whose
+    output ratios differ (so the input rates multiply along the chain)."""
+    rng = random.Random(seed)
+    nodes: list[dict[str, Any]] = [
+        {"name": "camera", "weight": 1, "residence": ["robot"], "parameter": {"name": "rate"}, "topics": ["/s0"],
+         "settings": [{"value": f, "cpu": f / 5, "performance": 10 * f, "frequency_hz": f} for f in (5, 10)]}]
+    for k in range(1, stages + 1):
+        nodes.append({"name": f"stage{k}", "weight": 1, "input": f"/s{k - 1}", "parameter": {"name": "p"},
+                      "topics": [f"/s{k}"],
+                      "settings": [{"value": j, "cpu": 0.1, "cpu_per_hz": round(rng.uniform(0.01, 0.2), 3),
+                                    "performance": 100 - j, "out_per_in": round(0.5 + 0.1 * j + rng.uniform(0, 0.05), 4),
+                                    "bytes_per_msg": 10} for j in range(settings)]})
+    return {"computers": [{"name": "robot", "kind": "robot", "capacity": 1000},
+                          {"name": "server", "kind": "server", "capacity": 1000}],
+            "links": [{"between": ["robot", "server"], "bandwidth_kBps": 1000}], "nodes": nodes}
+
+
+@pytest.mark.parametrize(("stages", "settings", "seed"), [(1, 3, 0), (3, 2, 1), (4, 3, 2), (2, 1, 3), (5, 2, 4)])
+def test_flow_choice_count_is_the_number_flow_choices_builds(stages: int, settings: int, seed: int) -> None:
+    system = parse_system(_chain(stages, settings, seed), "chain.yaml")
+    base = {n.name: n.choices(1.0) for n in system.nodes}
+    built = system.flow_choices(base)
+    assert system.flow_choice_count(base) == sum(len(v) for v in built.values())
+
+
+def test_chained_driven_nodes_past_the_limit_are_refused_before_any_choice_is_built(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """9 stages of 5 settings: 2 x 5^9 ~ 3.9 million choices on the last stage alone. The
+    count is made on rates only: no driven choice is built before the refusal."""
+    from perfros_bag.solver import MAX_CHOICES
+    from perfros_bag.system.types import System
+
+    system = parse_system(_chain(9, 5), "chain.yaml")
+    base = {n.name: n.choices(1.0) for n in system.nodes}
+    assert system.flow_choice_count(base, stop=MAX_CHOICES) > MAX_CHOICES
+    built: list[str] = []
+    monkeypatch.setattr(System, "driven_choice", lambda self, node, *a, **k: built.append(node.name))
+    with pytest.raises(InputError, match=f"more than {MAX_CHOICES:,} choices"):
+        system.flow_choices(base, limit=MAX_CHOICES)
+    assert built == []

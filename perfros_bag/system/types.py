@@ -611,13 +611,45 @@ class System:
                                           f"{parent!r}'s setting ({at}): a driven node needs its input's rate")
         return f
 
+    def flow_choice_count(self, base: Mapping[str, list[Choice]], stop: int | None = None) -> int:
+        """How many choices :meth:`flow_choices` (without ``pick``) makes, every node's
+        together, counted without making them: a driven node has one choice per own
+        setting and distinct input rate, and its output rates (floats only) give its
+        children's input rates. Counting stops once past ``stop`` (the count returned is
+        then above ``stop``, not exact): a chain whose choices multiply is refused after
+        about ``stop`` steps, not after building them all."""
+        total = sum(len(options) for name, options in base.items() if name not in self.flow_parent)
+        out_rates: dict[str, set[float]] = {}
+        for name in self.flow_order:
+            if stop is not None and total > stop:
+                break
+            parent = self.flow_parent[name]
+            rates = out_rates[parent] if parent in out_rates else {self.input_hz(name, ch) for ch in base[parent]}
+            own = sorted({ch.setting for ch in base[name] if ch.setting is not None})
+            total += len(own) * len(rates)
+            if stop is not None and total > stop:
+                break
+            if name in self.flow_children:  # its output rates feed another driven node
+                node = self.node[name]
+                out_rates[name] = {driven_rates(node.settings[j], f)[1] for j in own for f in rates}
+        return total
+
     def flow_choices(self, base: Mapping[str, list[Choice]],
-                     pick: Callable[[str, list[Choice]], list[Choice]] | None = None) -> dict[str, list[Choice]]:
+                     pick: Callable[[str, list[Choice]], list[Choice]] | None = None, *,
+                     limit: int | None = None) -> dict[str, list[Choice]]:
         """``base`` with every driven node's choices made concrete: each of its own settings
         (``base``'s choices name them by ``setting``) at every input rate its input's
         publisher can give (the propagated rule, :func:`driven_rates`), sorted by CPU.
         Driven nodes are expanded in :attr:`flow_order`; ``pick`` (node, expanded) may keep
-        a subset of each before its children are expanded (Problem 2's fixed settings)."""
+        a subset of each before its children are expanded (Problem 2's fixed settings).
+        ``limit`` (without ``pick``): an :class:`InputError` before anything is built when
+        the choices would number more (:meth:`flow_choice_count`)."""
+        if limit is not None and pick is None:
+            count = self.flow_choice_count(base, stop=limit)
+            if count > limit:
+                raise InputError(self.source, f"the driven nodes' settings at every input rate their inputs can take "
+                                              f"give more than {limit:,} choices (the most the solvers take): use a "
+                                              "coarser resolution or fewer settings upstream")
         out = {name: list(options) for name, options in base.items()}
         for name in self.flow_order:
             node = self.node[name]
