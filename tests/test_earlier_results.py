@@ -58,7 +58,8 @@ def make_inputs(tmp_path: Path) -> None:
     bad_json.write_text('{"format": "perfros-bag/plan@1", ')
     bad_csv = tmp_path / "bad.csv"
     bad_csv.write_text("not,a,characterisation\n1,2\n")
-    from perfros_bag.solver import solve  # a feasible plan of the case study's instance, by the tool
+    # a feasible plan of the case study's instance, by the tool
+    from perfros_bag.solver import solve
     from perfros_bag.system.planfile import save_plan
     from perfros_bag.system.systemfile import load_system
 

@@ -82,7 +82,7 @@ class _Escaped:
 
 class _EscapeHook(RenderHook):
     def process_renderables(self, renderables: list[ConsoleRenderable]) -> list[ConsoleRenderable]:
-        return [_Escaped(r) for r in renderables]  # type: ignore[misc]
+        return [_Escaped(r) for r in renderables]
 
 
 class _Console(Console):

@@ -65,10 +65,6 @@ def flag_range(verb: str, flag: str) -> Range:
     return RANGES.get(f"{verb} {flag}") or RANGES.get(flag) or POSITIVE
 
 
-def is_number(value: Any) -> bool:
-    return isinstance(value, int | float) and not isinstance(value, bool)
-
-
 def check_numbers(ctx: click.Context, values: Mapping[str, Any]) -> None:
     """Raise an :class:`InputError` naming the first number flag of ``ctx``'s command whose
     value in ``values`` (the parsed keyword arguments) is not finite or out of its range."""
@@ -77,7 +73,7 @@ def check_numbers(ctx: click.Context, values: Mapping[str, Any]) -> None:
         given = values.get(param.name or "")
         items = given if isinstance(given, list | tuple) else [given]
         for value in items:
-            if not is_number(value):
+            if not isinstance(value, int | float) or isinstance(value, bool):
                 continue
             flag = max(param.opts, key=len)
             allowed = flag_range(verb, flag)
