@@ -196,3 +196,34 @@ def test_piped_tables_keep_every_name_whole(tmp_path: Path) -> None:
     rows = stdout.splitlines()
     for name in [*renamed.values(), *computers.values()]:
         assert any(name in row for row in rows), name
+
+
+def test_process_seconds_counts_from_the_process_start() -> None:
+    """The interpreter's own start (here a 1 s sleep before the import) counts."""
+    code = "import time; time.sleep(1.0); from perfros_bag.cli.solve import process_seconds; print(process_seconds())"
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, cwd=ROOT)
+    assert 1.0 <= float(done.stdout) < 30, done.stderr
+
+
+def test_time_limit_is_the_whole_process_the_solver_gets_the_rest(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Issue 33, item 11: with --time-limit 60 and 7 s already spent by the process
+    (start-up, reading), the solver is handed 60 - 7 - (1 + 0.6) s of wind-down = 51.4 s."""
+    import perfros_bag.cli.solve as solve_cli
+    import perfros_bag.solver as solver
+
+    handed: list[float | None] = []
+    real = solver.solve
+
+    def spy(*args: object, **kwargs: object) -> object:
+        handed.append(kwargs["time_limit"])  # type: ignore[arg-type]
+        return real(*args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(solver, "solve", spy)
+    monkeypatch.setattr(solve_cli, "process_seconds", lambda: 7.0)
+    code, _, stderr = cli(str(INSTANCE1), "--method", "exact", "--time-limit", "60")
+    assert code == 0, stderr
+    assert handed == [pytest.approx(60 - 7 - (1 + 0.01 * 60))]
+    monkeypatch.setattr(solve_cli, "process_seconds", lambda: 59.5)  # nothing left: the floor, not a negative
+    handed.clear()
+    cli(str(INSTANCE1), "--method", "exact", "--time-limit", "60")
+    assert handed == [0.01]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 import warnings
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -65,6 +66,29 @@ def parse_headroom(text: str, *, check_range: bool = True) -> float | str:
     return value
 
 
+#: of ``--time-limit``, what is kept for after the solve (writing plan.json, the tables):
+#: this many seconds plus :data:`WIND_DOWN_SHARE` of the limit
+WIND_DOWN_S = 1.0
+WIND_DOWN_SHARE = 0.01
+
+
+def process_seconds() -> float:
+    """Seconds since this process started: the interpreter's start-up and imports count."""
+    import psutil
+
+    try:
+        return max(time.time() - psutil.Process().create_time(), 0.0)
+    except psutil.Error:
+        return 0.0
+
+
+def solve_budget(time_limit: float, spent: float) -> float:
+    """What the solver gets of a whole-process ``time_limit`` when the process has spent
+    ``spent`` seconds (start-up, reading the input): the rest, less the wind-down after
+    the solve (:data:`WIND_DOWN_S`, :data:`WIND_DOWN_SHARE`); at least 0.01 s."""
+    return max(time_limit - spent - (WIND_DOWN_S + WIND_DOWN_SHARE * time_limit), 0.01)
+
+
 def _num(x: float | None, digits: int = 2) -> str:
     return "-" if x is None else f"{x:.{digits}f}".rstrip("0").rstrip(".") if digits else f"{x:.0f}"
 
@@ -116,8 +140,9 @@ def solve(
     settings: Annotated[str | None, typer.Option(
         "--settings", help="Problem 2: plan.json, or node=value,... (parameter values) / node=cpu:U")] = None,
     time_limit: Annotated[float | None, typer.Option(
-        "--time-limit", help="exact: S seconds of wall clock for the solve, counted after reading the input "
-                             "(best plan so far and its proven bound, status feasible)")] = None,
+        "--time-limit", help="exact: S seconds of wall clock for the whole process: start-up, reading the "
+                             "input, building the model, the solve and writing the plan share them (best plan "
+                             "so far and its proven bound, status feasible); with --pareto: per point")] = None,
     headroom: Annotated[str, typer.Option(
         "--headroom", metavar="H|auto",
         help="share of every computer's capacity the plan keeps free, in [0, 1), or auto: each node's "
@@ -157,7 +182,8 @@ def solve(
         return
     try:
         with _live_progress(method == "exact") as progress:
-            plan = run(system, problem, method, resolution=resolution, settings=fixed, time_limit=time_limit,
+            budget = None if time_limit is None else solve_budget(time_limit, process_seconds())
+            plan = run(system, problem, method, resolution=resolution, settings=fixed, time_limit=budget,
                        progress=progress, headroom=kept)
     except ValueError as exc:  # a model that cannot be evaluated (e.g. a curve off its domain)
         raise InputError(system_path, str(exc)) from None
