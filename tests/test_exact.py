@@ -12,12 +12,13 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from perfros_bag.casestudy.instances import random_tiny, table2_instance
-from perfros_bag.solver import fixed_choices, start_of
+from perfros_bag.solver import fixed_choices
 from perfros_bag.solver.bruteforce import solve_bruteforce
 from perfros_bag.solver.check import check_plan
 from perfros_bag.solver.exact import solve_exact
 from perfros_bag.solver.greedy import solve_greedy
 from perfros_bag.solver.local import solve_greedy_plus
+from perfros_bag.solver.starts import start_of
 from perfros_bag.system.plan import Assignment, Plan
 from perfros_bag.system.systemfile import parse_system
 from perfros_bag.system.types import System
@@ -367,9 +368,10 @@ def test_start_is_checked_and_the_lp_bound_can_prove_it() -> None:
 
 
 def test_big_model_path_lp_rounding_start(monkeypatch: pytest.MonkeyPatch) -> None:
-    """Models above _BIG_MODEL columns solve the LP first and round its placement into a
+    """Models above milp.BIG_MODEL columns solve the LP first and round its placement into a
     start (and run without MIP presolve): same optimum, checked plan."""
     import perfros_bag.solver.exact as exact_mod
+    import perfros_bag.solver.milp as milp_mod
 
     system = system_of(table2_instance(4))
     best = exact(system, 1)
@@ -380,7 +382,7 @@ def test_big_model_path_lp_rounding_start(monkeypatch: pytest.MonkeyPatch) -> No
         calls.append(1)
         return real(*args, **kw)
 
-    monkeypatch.setattr(exact_mod, "_BIG_MODEL", 0)
+    monkeypatch.setattr(milp_mod, "BIG_MODEL", 0)
     monkeypatch.setattr(exact_mod, "_lp_rounding", spy)
     plan = exact(system, 1)
     assert calls, "the LP rounding start was not tried"

@@ -19,9 +19,11 @@ from perfros_bag.solver import (
     solve,
 )
 from perfros_bag.solver import exact as exact_mod
+from perfros_bag.solver import instance as instance_mod
 from perfros_bag.solver.check import check_plan
 from perfros_bag.solver.decompose import decomposable, solve_decomposed
-from perfros_bag.solver.exact import solve_exact, trivial_bound, within_trivial_bound
+from perfros_bag.solver.exact import solve_exact
+from perfros_bag.solver.instance import trivial_bound, within_trivial_bound
 from perfros_bag.system.plan import Method, Plan, Status
 from perfros_bag.system.systemfile import parse_system
 from perfros_bag.system.types import Problem, System
@@ -124,9 +126,7 @@ def test_solve_exact_uses_the_decomposition_on_a_fleet() -> None:
     assert plan.bound is not None and plan.objective is not None
     assert plan.objective - 1e-9 <= plan.bound <= trivial_bound(system, choices) + 1e-9
     # the LP relaxation of the whole model is a bound too; the Lagrangian one is at least as tight
-    from perfros_bag.solver import exact as exact_mod
-
-    inst = exact_mod.prepare_instance(system, Problem.PERFORMANCE, choices)
+    inst = instance_mod.prepare_instance(system, Problem.PERFORMANCE, choices)
     assert not isinstance(inst, str)
     lp = exact_mod._build(inst).milp.solve(True, time_limit=None, mip_gap=0.0, relax=True)
     assert plan.bound <= lp.getInfo().objective_function_value + 1e-6
@@ -148,12 +148,12 @@ def binding_network(data: dict[str, Any]) -> dict[str, Any]:
     """The fleet with its wifi cut to half of what its links could ever carry: the network
     can bind (the decomposition carries it as coupling rows, issue 22)."""
     system = system_of(data)
-    inst = exact_mod.prepare_instance(system, Problem.PERFORMANCE, fixed_choices(system, Problem.PERFORMANCE))
+    inst = instance_mod.prepare_instance(system, Problem.PERFORMANCE, fixed_choices(system, Problem.PERFORMANCE))
     assert not isinstance(inst, str)
-    potential, _ = exact_mod._load_bounds(inst, forced=False)
+    potential, _ = instance_mod.load_bounds(inst, forced=False)
     out = copy.deepcopy(data)
     out["media"][0]["bandwidth_kBps"] = system.medium_load(potential, out["media"][0]["name"]) / 2
-    assert exact_mod.active_links(exact_mod.prepare_instance(system_of(out), Problem.PERFORMANCE,  # type: ignore[arg-type]
+    assert instance_mod.active_links(instance_mod.prepare_instance(system_of(out), Problem.PERFORMANCE,  # type: ignore[arg-type]
                                                              fixed_choices(system, Problem.PERFORMANCE)))
     return out
 
@@ -226,8 +226,8 @@ def test_binding_networks_decompose_with_a_proven_bound(name: str, data: dict[st
     least its plan's objective, and the plan passes the checker."""
     system = system_of(data, name)
     choices = fixed_choices(system, Problem.PERFORMANCE)
-    inst = exact_mod.prepare_instance(system, Problem.PERFORMANCE, choices)
-    assert not isinstance(inst, str) and exact_mod.active_links(inst)  # the network can bind
+    inst = instance_mod.prepare_instance(system, Problem.PERFORMANCE, choices)
+    assert not isinstance(inst, str) and instance_mod.active_links(inst)  # the network can bind
     plan = decomposition_against_the_milp(system)
     assert plan.objective is not None
     # the network binds at the optimum: more offloading would pay without it

@@ -163,7 +163,7 @@ def test_enumerated_frontier_matches_the_milp_point_by_point(seed: int) -> None:
     import random
 
     from perfros_bag.casestudy.instances import random_instance
-    from perfros_bag.solver.frontier_dp import frontier_values
+    from perfros_bag.solver.frontier import frontier_values
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")

@@ -150,7 +150,7 @@ def test_a_fleet_past_its_time_limit_still_gets_a_checked_plan_and_a_proven_boun
     feasible unless proven), its bound in plan.json between the objective and Σ w·max P."""
     from perfros_bag.casestudy.instances import fleet_instance
     from perfros_bag.solver import fixed_choices
-    from perfros_bag.solver.exact import trivial_bound
+    from perfros_bag.solver.instance import trivial_bound
 
     path = tmp_path / "fleet.yaml"
     path.write_text(yaml.safe_dump(fleet_instance(200, 20, seed=0)))

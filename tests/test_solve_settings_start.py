@@ -13,7 +13,7 @@ from typing import Any
 import pytest
 from typer.testing import CliRunner
 
-import perfros_bag.solver as solve_mod
+import perfros_bag.solver.dispatch as solve_mod
 from perfros_bag.casestudy.instances import table2_instance
 from perfros_bag.cli import app
 from perfros_bag.errors import InputError, PerfrosWarning

@@ -24,7 +24,7 @@ share (the servers) and the network. This solver splits the instance that way:
 - The columns found, made integer (a count per column), are a small MILP that HiGHS
   solves with the paper's greedy's plan as its start: its answer is the plan.
 
-Links and media that could overflow (``exact.active_links``) are coupling rows too, each
+Links and media that could overflow (``instance.active_links``) are coupling rows too, each
 with its price: a block's own edges load them (exactly, per column) and are priced in its
 subproblem by a tree over its home/away patterns (:func:`_price_network`, never above a
 column's true reduced value, so the bound stays a bound); the traffic between blocks is
@@ -44,10 +44,18 @@ from typing import Any
 
 import numpy as np
 
-from perfros_bag.solver import Progress
-from perfros_bag.solver import exact as exact_mod
-from perfros_bag.solver.exact import Group, Instance, quiet_highs, trivial_bound
-from perfros_bag.solver.local import PLUS_START_MAX_S, combine_tables, on_grid, plus_start
+from perfros_bag.solver.instance import (
+    Group,
+    Instance,
+    Progress,
+    active_links,
+    crossings,
+    prepare_instance,
+    trivial_bound,
+)
+from perfros_bag.solver.local import combine_tables, on_grid
+from perfros_bag.solver.milp import quiet_highs
+from perfros_bag.solver.starts import PLUS_START_MAX_S, greedy_start, plus_start
 from perfros_bag.system.plan import Assignment, Method, Plan, Status
 from perfros_bag.system.rules import build_plan, computer_loads, weighted_performance
 from perfros_bag.system.types import Choice, Edge, Problem, System
@@ -66,7 +74,7 @@ REL_TOL = 1e-6  # "optimal": bound - objective within this (relative), as exact.
 FIRST_MIP_SHARE = 0.5  # of the time left, for the MILP over the generated columns
 NEAR_LIMIT = 20_000  # columns the reduced-cost enumeration may add (else it is not tried)
 CG_TOL = 1e-7  # column generation stops when the LP is this close to the bound (relative)
-GREEDY_PLUS_SHARE = 0.1  # of the budget, for greedy+'s first plan when the greedy finds none (at most local.PLUS_START_MAX_S)
+GREEDY_PLUS_SHARE = 0.1  # of the budget, for greedy+'s first plan when the greedy finds none (at most starts.PLUS_START_MAX_S)
 MAX_PATTERNS = 1024  # with network rows: home/away patterns of one block's pricing
 
 
@@ -177,7 +185,7 @@ def home_options(inst: Instance, members: tuple[str, ...], scale: int) -> tuple[
 
 def _model(system: System, inst: Instance, active: set[int] | None = None) -> _Model | str:
     """The blocks and classes of a prepared instance, or why it does not decompose.
-    ``active``: the links that can overflow (``exact.active_links``): each, and each medium
+    ``active``: the links that can overflow (``instance.active_links``): each, and each medium
     of one, becomes a network row beside the relaxed computers' CPU rows."""
     active = active or set()
     kind = {c.name: c.kind for c in system.computers}
@@ -323,7 +331,7 @@ def _network_rows(model: _Model, active: set[int]) -> str | None:
         bw = np.array([system.edge_bandwidth(e, ch) for ch in inst.choices[e.src]])
         if len(bw) == 0 or bw.max() <= 0:
             continue
-        _, maybe = exact_mod._crossings(inst, e)
+        _, maybe = crossings(inst, e)
         rows = [row for li in maybe for row in model.link_rows.get(li, ())]
         if not rows:
             continue
@@ -356,13 +364,13 @@ def _network_rows(model: _Model, active: set[int]) -> str | None:
 def _qualified(system: System, problem: Problem, choices: dict[str, list[Choice]],
                prepared: Instance | str | None) -> _Model | None:
     """The decomposition's model when the instance qualifies (:func:`decomposable`), else
-    None. ``prepared``: ``exact.prepare_instance``'s answer when the caller has it."""
+    None. ``prepared``: ``instance.prepare_instance``'s answer when the caller has it."""
     if problem != Problem.PERFORMANCE:
         return None
-    inst = exact_mod.prepare_instance(system, problem, choices) if prepared is None else prepared
+    inst = prepare_instance(system, problem, choices) if prepared is None else prepared
     if isinstance(inst, str):
         return None
-    model = _model(system, inst, exact_mod.active_links(inst))
+    model = _model(system, inst, active_links(inst))
     return None if isinstance(model, str) else model
 
 
@@ -833,7 +841,7 @@ def solve_decomposed(system: System, problem: Problem, choices: dict[str, list[C
     generation gets at most half of what the set-up left, the MILP over the columns what
     is left but 5 % (at least 0.15 s); when the set-up alone uses the budget, the paper's
     greedy's plan is returned with the bound at hand (at worst Σ w·max P). ``prepared``:
-    the instance as ``exact.prepare_instance`` gave it, when the caller has it (else it is
+    the instance as ``instance.prepare_instance`` gave it, when the caller has it (else it is
     prepared here). Returns None when the instance does not qualify (:func:`decomposable`: the
     caller then uses the MILP on the whole model) or when no plan was found."""
     t0 = time.perf_counter()
@@ -855,7 +863,7 @@ def solve_decomposed(system: System, problem: Problem, choices: dict[str, list[C
     master = _Master(model, penalty=ceiling + 1.0)
 
     # the paper's greedy: the first columns, and the MILP's start
-    mapped = exact_mod.greedy_start(inst, choices)
+    mapped = greedy_start(inst, choices)
     if mapped is None and len(model.cap) > len(model.relaxed):  # a binding network: the greedy gets stuck
         mapped = plus_start(inst, choices, min(GREEDY_PLUS_SHARE * budget, PLUS_START_MAX_S))
     incumbent: Assignment | None = None

@@ -31,396 +31,39 @@ always cross a link), then, when the MILP itself is infeasible, an elastic copy 
 
 from __future__ import annotations
 
-import contextlib
-import ctypes
 import math
-import os
-import sys
 import time
-from collections.abc import Iterable, Iterator, Mapping, Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
-from typing import Any
-
-import numpy as np
 
 from perfros_bag.errors import InputError
+from perfros_bag.solver import milp as mip
+from perfros_bag.solver.instance import (
+    EPS,
+    Group,
+    Instance,
+    active_links,
+    crossing_always,
+    link_name,
+    prepare_instance,
+    start_assignment,
+    within_trivial_bound,
+)
+from perfros_bag.solver.starts import greedy_start, plus_start
 from perfros_bag.system.plan import Assignment, Method, Plan, Status
-from perfros_bag.system.rules import build_plan, computer_loads, server_sizes
+from perfros_bag.system.rules import build_plan, server_sizes
 from perfros_bag.system.rules import objective as plan_objective
-from perfros_bag.system.types import Choice, Edge, Problem, System
+from perfros_bag.system.types import Choice, Problem, System
 
-__all__ = ["solve_exact", "trivial_bound", "within_trivial_bound"]
+__all__ = ["solve_exact"]
 
-EPS = 1e-9
 _INF = math.inf
-_LOG = False  # HiGHS log on stdout (debugging)
-# Measured (docs/solvers.md): on the case study these root heuristics cost more than they
-# find, since the x-form's LP is tight; switching them off sped Table II instance 6 up 2.7x.
-# Above this many columns HiGHS's MIP presolve (probing) costs more than it saves: 23 s of
-# a 40 s run on 200 nodes x 20 computers (80,000 columns), against 0.2 s with it off.
-_BIG_MODEL = 20_000
 #: the share of a time limit (at least RESERVE_S) not handed to HiGHS nor to building the
 #: model: measured, a MILP run at 200 x 20 (80,000 columns) stops up to ~0.1 s after its
 #: limit, and freeing a half-built 1,000 x 100 model takes ~0.12 s; the plan is built after
 #: them (--time-limit is honoured within 5 %)
 RESERVE_SHARE = 0.05
 RESERVE_S = 0.2
-_HIGHS_OPTIONS: dict[str, Any] = {
-    "mip_heuristic_run_rins": False,
-    "mip_heuristic_run_rens": False,
-    "mip_heuristic_run_root_reduced_cost": False,
-}
-
-
-@contextlib.contextmanager
-def _stdout_silenced(silence: bool = True) -> Iterator[None]:
-    """File descriptor 1 points to /dev/null inside (C and C++ code writing to stdout, such as
-    HiGHS's banner, write nothing there); stdout is restored, C stdio flushed, on exit.
-    ``--json`` output must be the document only."""
-    if not silence:
-        yield
-        return
-    sys.stdout.flush()
-    libc = ctypes.CDLL(None)
-    try:
-        saved = os.dup(1)
-    except OSError:  # no stdout at all: nothing to protect
-        yield
-        return
-    devnull = os.open(os.devnull, os.O_WRONLY)
-    try:
-        os.dup2(devnull, 1)
-        yield
-    finally:
-        libc.fflush(None)  # what the C library buffered goes to /dev/null, not the restored stdout
-        os.dup2(saved, 1)
-        os.close(saved)
-        os.close(devnull)
-
-
-def quiet_highs() -> Any:
-    """A new ``highspy.Highs()`` with nothing written to stdout: HiGHS >= 1.12 prints its
-    banner when one is made, before any option can be set (every HiGHS model of the solvers
-    is made here)."""
-    import highspy  # lazy: keeps the CLI's start-up fast
-
-    with _stdout_silenced(not _LOG):
-        return highspy.Highs()
-
-
-# ---------------------------------------------------------------------------------------------
-# A tiny sparse model builder (rows kept row-wise, passed to HiGHS in one call)
-
-
-@dataclass
-class _Milp:
-    cost: list[float] = field(default_factory=list)
-    lower: list[float] = field(default_factory=list)
-    upper: list[float] = field(default_factory=list)
-    integer: list[int] = field(default_factory=list)
-    row_lo: list[float] = field(default_factory=list)
-    row_hi: list[float] = field(default_factory=list)
-    start: list[int] = field(default_factory=lambda: [0])
-    index: list[int] = field(default_factory=list)
-    value: list[float] = field(default_factory=list)
-
-    def var(self, lo: float, hi: float, cost: float = 0.0, integer: bool = False) -> int:
-        self.cost.append(cost)
-        self.lower.append(lo)
-        self.upper.append(hi)
-        self.integer.append(1 if integer else 0)
-        return len(self.cost) - 1
-
-    def row(self, terms: Iterable[tuple[int, float]], lo: float, hi: float) -> int:
-        merged: dict[int, float] = {}
-        for j, a in terms:
-            merged[j] = merged.get(j, 0.0) + a
-        for j, a in merged.items():
-            if a != 0.0:
-                self.index.append(j)
-                self.value.append(a)
-        self.row_lo.append(lo)
-        self.row_hi.append(hi)
-        self.start.append(len(self.index))
-        return len(self.row_lo) - 1
-
-    def solve(self, maximise: bool, *, time_limit: float | None, mip_gap: float,
-              start: dict[int, float] | None = None, relax: bool = False) -> Any:
-        """Run HiGHS (``relax``: the LP relaxation); returns the Highs object. ``time_limit``
-        counts from this call: passing a big model to HiGHS takes a while (~0.3 s at 1,000 x
-        100), which HiGHS's own clock does not count."""
-        import highspy  # lazy: keeps the CLI's start-up fast
-
-        entered = time.perf_counter()
-        h = quiet_highs()
-        h.setOptionValue("output_flag", _LOG)
-        h.setOptionValue("mip_rel_gap", float(mip_gap))
-        h.setOptionValue("mip_abs_gap", 1e-7)
-        h.setOptionValue("random_seed", 0)
-        for name, value in _HIGHS_OPTIONS.items():
-            h.setOptionValue(name, value)
-        if len(self.cost) > _BIG_MODEL:
-            h.setOptionValue("presolve", "off")
-        if time_limit is not None:
-            h.setOptionValue("time_limit", float(max(time_limit, 0.01)))
-        inf = highspy.kHighsInf
-        fix = np.vectorize(lambda v: inf if v == _INF else (-inf if v == -_INF else v), otypes=[float])
-        n_col, n_row = len(self.cost), len(self.row_lo)
-        h.passModel(
-            n_col, n_row, len(self.index), int(highspy.MatrixFormat.kRowwise),
-            int(highspy.ObjSense.kMaximize if maximise else highspy.ObjSense.kMinimize), 0.0,
-            np.asarray(self.cost, dtype=np.float64),
-            fix(np.asarray(self.lower, dtype=np.float64)) if n_col else np.zeros(0),
-            fix(np.asarray(self.upper, dtype=np.float64)) if n_col else np.zeros(0),
-            fix(np.asarray(self.row_lo, dtype=np.float64)) if n_row else np.zeros(0),
-            fix(np.asarray(self.row_hi, dtype=np.float64)) if n_row else np.zeros(0),
-            np.asarray(self.start[:-1] if n_row else [], dtype=np.int32),
-            np.asarray(self.index, dtype=np.int32), np.asarray(self.value, dtype=np.float64),
-            np.zeros(n_col, dtype=np.int32) if relax else np.asarray(self.integer, dtype=np.int32),
-        )
-        if start:
-            idx = np.fromiter(start.keys(), dtype=np.int32, count=len(start))
-            val = np.fromiter(start.values(), dtype=np.float64, count=len(start))
-            h.setSolution(len(start), idx, val)
-        if time_limit is not None:
-            h.setOptionValue("time_limit", float(max(time_limit - (time.perf_counter() - entered), 0.01)))
-        h.run()
-        return h
-
-
-# ---------------------------------------------------------------------------------------------
-# The instance after pruning
-
-
-@dataclass
-class Group:
-    members: tuple[str, ...]
-    allowed: tuple[str, ...]  # computers every member may use (eq 8) and that can hold it
-    z: dict[str, int] = field(default_factory=dict)  # computer -> column (groups of >= 2)
-
-
-@dataclass
-class Instance:
-    system: System
-    problem: Problem
-    original: dict[str, list[Choice]]  # the candidates as given
-    choices: dict[str, list[Choice]]  # kept choices (usable, non-dominated)
-    replace: dict[str, dict[int, int]]  # node -> original position -> kept position
-    groups: list[Group]
-    group_of: dict[str, Group]
-    cap: dict[str, float]  # the most CPU a computer can ever hold (inf: unbounded server)
-    min_cpu: dict[str, float]
-    cut: dict[int, frozenset[str]]  # link -> one side, for links in the cut form
-    pairs: dict[int, list[tuple[str, str]]]  # link -> ordered computer pairs routed over it
-    active: set[int] | None = None  # active_links, once computed
-    # edge (src, dst) -> links it always crosses, links it may cross (see _crossings)
-    crossings: dict[tuple[str, str], tuple[frozenset[int], frozenset[int]]] = field(default_factory=dict)
-
-
-def _prune_choices(system: System, problem: Problem, node: str, options: Sequence[Choice],
-                   cpu_room: float) -> tuple[list[Choice], dict[int, int]]:
-    """Drop choices that can never fit (``cpu > cpu_room``) and, for Problem 1, choices
-    dominated by another (no more CPU, no less performance, no more traffic on any edge).
-    Returns the kept choices and, for every original position, the kept position that can
-    replace it (for MIP starts); unusable positions are absent."""
-    usable = [i for i, ch in enumerate(options) if ch.cpu <= cpu_room + EPS]
-    # a node of the data flow is no plain multiple-choice item: a driven node's choices are
-    # tied to its input's rate, a publisher's rate loads everything it drives
-    if problem != Problem.PERFORMANCE or len(usable) <= 1 or system.in_flow(node):
-        return [options[i] for i in usable], {i: p for p, i in enumerate(usable)}
-    out_edges = [e for e in system.edges if e.src == node]
-    bws = {i: tuple(system.edge_bandwidth(e, options[i]) for e in out_edges) for i in usable}
-    order = sorted(usable, key=lambda i: (options[i].cpu, -options[i].performance, bws[i]))
-    kept: list[int] = []
-    best_of: dict[int, int] = {}
-    uniform = len({bws[i] for i in usable}) == 1
-    best_perf = -_INF
-    for i in order:
-        ch = options[i]
-        if uniform:
-            if ch.performance > best_perf + EPS:
-                kept.append(i)
-                best_perf = ch.performance
-            best_of[i] = kept[-1] if kept and options[kept[-1]].performance >= ch.performance - EPS else i
-            continue
-        dom = next((j for j in kept
-                    if options[j].cpu <= ch.cpu + EPS and options[j].performance >= ch.performance - EPS
-                    and all(a <= b + EPS for a, b in zip(bws[j], bws[i], strict=True))), None)
-        if dom is None:
-            kept.append(i)
-            best_of[i] = i
-        else:
-            best_of[i] = dom
-    kept.sort(key=lambda i: (options[i].cpu, -options[i].performance))
-    pos = {i: p for p, i in enumerate(kept)}
-    return [options[i] for i in kept], {i: pos[best_of[i]] for i in usable}
-
-
-def _classify_links(system: System) -> tuple[dict[int, frozenset[str]], dict[int, list[tuple[str, str]]]]:
-    """Per link, the cut form's side when the pairs routed over it are exactly those the
-    link's removal splits, else those pairs (for the pair form)."""
-    n_computers = len(system.computers)
-    cut: dict[int, frozenset[str]] = {}
-    pairs: dict[int, list[tuple[str, str]]] = {}
-    adjacent: dict[str, list[tuple[str, int]]] = {c.name: [] for c in system.computers}
-    for li, link in enumerate(system.links):
-        a, b = link.between
-        adjacent[a].append((b, li))
-        adjacent[b].append((a, li))
-    for li, link in enumerate(system.links):
-        # the side of link.between[0] when the link is removed
-        side = {link.between[0]}
-        frontier = [link.between[0]]
-        while frontier:
-            cur = frontier.pop()
-            for nxt, lj in adjacent[cur]:
-                if lj != li and nxt not in side:
-                    side.add(nxt)
-                    frontier.append(nxt)
-        crossing = system.link_pairs[li]
-        # the pairs it splits are exactly the crossing ones: as many, and each crossing one split
-        split_count = 2 * len(side) * (n_computers - len(side))
-        if link.between[1] not in side and len(crossing) == split_count \
-                and all((a in side) != (b in side) for a, b in crossing):
-            cut[li] = frozenset(side)
-        else:
-            pairs[li] = list(crossing)
-    return cut, pairs
-
-
-def prepare_instance(system: System, problem: Problem, choices: dict[str, list[Choice]]) -> Instance | str:
-    """Prune the instance; returns a reason string when it is infeasible on its face."""
-    cap = system.capacities(problem)
-    missing = [n.name for n in system.nodes if not choices.get(n.name)]
-    if missing:
-        raise InputError(system.source, f"node(s) {', '.join(map(repr, missing))} have no choice to solve with")
-    min_cpu = {n: min(ch.cpu for ch in opts) for n, opts in choices.items()}
-    groups: list[Group] = []
-    for members in system.coresidence_groups:
-        allowed = system.allowed_to_all(members)
-        who = ", ".join(members)
-        if not allowed:
-            return f"coresidence: nodes {who} have no computer allowed for all of them"
-        need = sum(min_cpu[n] for n in members)
-        fits = [c for c in allowed if need <= cap[c] + EPS]
-        if not fits:
-            biggest = max(allowed, key=lambda c: cap[c])
-            if len(members) > 1:
-                return (f"coresidence: nodes {who} need {need:g} CPU together at their minimum settings "
-                        f"but the largest computer allowed for them, {biggest}, has {cap[biggest]:g}")
-            if len(allowed) == 1:
-                why = "residence" if len(system.computers) > 1 else "the only computer"
-                return f"{who} needs {need:g} CPU on {biggest} ({why}) but {biggest} has {cap[biggest]:g}"
-            return (f"{who} needs {need:g} CPU at its minimum setting but the largest computer allowed "
-                    f"for it, {biggest}, has {cap[biggest]:g}")
-        groups.append(Group(tuple(members), tuple(fits)))
-    group_of = {n: g for g in groups for n in g.members}
-
-    # residence: nodes (groups) that can only go to one computer must fit on it together
-    forced: dict[str, list[Group]] = {}
-    for g in groups:
-        if len(g.allowed) == 1:
-            forced.setdefault(g.allowed[0], []).append(g)
-    for comp, gs in forced.items():
-        need = sum(min_cpu[n] for g in gs for n in g.members)
-        if need > cap[comp] + EPS:
-            names = [n for g in gs for n in g.members]
-            verb = "needs" if len(names) == 1 else "need"
-            why = "residence" if len(system.computers) > 1 else "the only computer"
-            return f"{', '.join(names)} {verb} {need:g} CPU on {comp} ({why}) but {comp} has {cap[comp]:g}"
-    total_cap = sum(cap.values())
-    total_need = sum(min_cpu.values())
-    if total_need > total_cap + EPS:
-        return (f"CPU: the nodes need {total_need:g} CPU in total at their minimum settings but the "
-                f"computers have {total_cap:g}")
-
-    kept: dict[str, list[Choice]] = {}
-    replace: dict[str, dict[int, int]] = {}
-    for g in groups:
-        room = max(cap[c] for c in g.allowed)
-        for n in g.members:
-            others = sum(min_cpu[m] for m in g.members if m != n)
-            kept[n], replace[n] = _prune_choices(system, problem, n, choices[n], room - others)
-    cut, pairs = _classify_links(system)
-    inst = Instance(system, problem, choices, kept, replace, groups, group_of, cap, min_cpu, cut, pairs)
-    return _network_precheck(inst) or inst
-
-
-def _crossings(inst: Instance, edge: Edge) -> tuple[frozenset[int], frozenset[int]]:
-    """The links the edge crosses wherever its ends go, and those it may cross (over every
-    pair of computers its ends' groups may use: the intersection and the union of their
-    routes). Cached on the instance."""
-    key = (edge.src, edge.dst)
-    hit = inst.crossings.get(key)
-    if hit is None:
-        gs, gd = inst.group_of[edge.src], inst.group_of[edge.dst]
-        always: set[int] | None = None
-        maybe: set[int] = set()
-        if gs is not gd:
-            for a in gs.allowed:
-                for b in gd.allowed:
-                    route = set(inst.system.route(a, b) or ())
-                    maybe |= route
-                    always = route if always is None else always & route
-        hit = (frozenset(always or ()), frozenset(maybe))
-        inst.crossings[key] = hit
-    return hit
-
-
-def _crossing_always(inst: Instance, edge: Edge, li: int) -> bool | None:
-    """True when the edge crosses link ``li`` wherever its ends go, False when it never
-    can, None otherwise."""
-    always, maybe = _crossings(inst, edge)
-    return True if li in always else (None if li in maybe else False)
-
-
-def _link_name(system: System, li: int) -> str:
-    a, b = system.links[li].between
-    return f"link {a}-{b}"
-
-
-def _network_precheck(inst: Instance) -> str | None:
-    system = inst.system
-    for e in system.edges:
-        gs, gd = inst.group_of[e.src], inst.group_of[e.dst]
-        if gs is gd or not system.links:
-            continue
-        if all(system.route(a, b) is None for a in gs.allowed for b in gd.allowed):
-            return (f"network: edge {e.src} -> {e.dst} joins computers with no network path between them "
-                    f"({e.src} on {'/'.join(gs.allowed)}, {e.dst} on {'/'.join(gd.allowed)})")
-    forced_load, forced_edges = _load_bounds(inst, forced=True)
-    for li, link in enumerate(system.links):
-        if forced_load[li] > link.bandwidth_kBps + EPS:
-            return (f"bandwidth: {_link_name(system, li)} carries at least {forced_load[li]:g} kB/s "
-                    f"(edges {', '.join(forced_edges[li])} must cross it) but has {link.bandwidth_kBps:g}")
-    for m in system.media:
-        load = system.medium_load(forced_load, m.name)
-        if load > m.bandwidth_kBps + EPS:
-            return (f"bandwidth: medium {m.name} carries at least {load:g} kB/s on its links "
-                    f"(edges that must cross them) but has {m.bandwidth_kBps:g}")
-    return None
-
-
-def _load_bounds(inst: Instance, *, forced: bool) -> tuple[list[float], list[list[str]]]:
-    """Per link, a bound on its load and the edges (``src->dst``) in it: with ``forced``,
-    the least load (the edges that cross it wherever their ends go, at their publishers'
-    least traffic); otherwise the most (every edge that may cross it, at the most traffic)."""
-    system = inst.system
-    bound = [0.0] * len(system.links)
-    edges: list[list[str]] = [[] for _ in system.links]
-    for e in system.edges:
-        always, maybe = _crossings(inst, e)
-        links = always if forced else maybe
-        if not links:
-            continue
-        traffic = [system.edge_bandwidth(e, ch) for ch in inst.choices[e.src]]
-        bw = min(traffic) if forced else max(traffic)
-        if bw <= 0:
-            continue
-        for li in sorted(links):
-            bound[li] += bw
-            edges[li].append(f"{e.src}->{e.dst}")
-    return bound, edges
 
 
 # ---------------------------------------------------------------------------------------------
@@ -429,7 +72,7 @@ def _load_bounds(inst: Instance, *, forced: bool) -> tuple[list[float], list[lis
 
 @dataclass
 class _Built:
-    milp: _Milp
+    milp: mip.Milp
     x: dict[tuple[str, int, str], int]  # (node, kept position, computer) -> column
     server_cap: dict[str, int]  # Problem 2: server -> capacity column
     slack: dict[str, int]  # elastic copy: constraint label -> overflow column
@@ -437,20 +80,6 @@ class _Built:
     # kept position (CPU = lo + r·m)
     compact: dict[tuple[str, str], tuple[int, int]] = field(default_factory=dict)
 
-
-def active_links(inst: Instance) -> set[int]:
-    """Links (by index) whose bandwidth, or whose medium's, could ever be exceeded: the
-    others need no rows at all. Computed once per instance."""
-    if inst.active is not None:
-        return inst.active
-    system = inst.system
-    potential, _ = _load_bounds(inst, forced=False)
-    active = {li for li, link in enumerate(system.links) if potential[li] > link.bandwidth_kBps + EPS}
-    for m in system.media:
-        if system.medium_load(potential, m.name) > m.bandwidth_kBps + EPS:
-            active.update(system.medium_links[m.name])
-    inst.active = active
-    return active
 
 
 def _modelled_edges(inst: Instance, active: set[int]) -> list[int]:
@@ -461,7 +90,7 @@ def _modelled_edges(inst: Instance, active: set[int]) -> list[int]:
             continue
         if max(system.edge_bandwidth(e, ch) for ch in inst.choices[e.src]) <= 0:
             continue
-        if any(_crossing_always(inst, e, li) is not False for li in active):
+        if any(crossing_always(inst, e, li) is not False for li in active):
             out.append(ei)
     return out
 
@@ -507,7 +136,7 @@ def _build(inst: Instance, *, elastic: bool = False, compact_form: bool = False,
     def on_time() -> None:
         if deadline is not None and time.perf_counter() > deadline:
             raise _OutOfTime
-    milp = _Milp()
+    milp = mip.Milp()
     x: dict[tuple[str, int, str], int] = {}
     slack: dict[str, int] = {}
     compact: dict[tuple[str, str], tuple[int, int]] = {}
@@ -625,7 +254,7 @@ def _build(inst: Instance, *, elastic: bool = False, compact_form: bool = False,
                 return out
 
             for li in sorted(active):
-                always = _crossing_always(inst, e, li)
+                always = crossing_always(inst, e, li)
                 if always is False:
                     continue
                 if always:
@@ -665,7 +294,7 @@ def _build(inst: Instance, *, elastic: bool = False, compact_form: bool = False,
             terms = [(load, 1.0)]
             if elastic:
                 s = milp.var(0.0, _INF, 1.0 / max(link.bandwidth_kBps, 1e-6))
-                slack[_link_name(system, li)] = s
+                slack[link_name(system, li)] = s
                 terms.append((s, -1.0))
             milp.row(terms, -_INF, link.bandwidth_kBps)
         for medium in system.media:
@@ -681,7 +310,7 @@ def _build(inst: Instance, *, elastic: bool = False, compact_form: bool = False,
     return _Built(milp, x, server_cap, slack, compact)
 
 
-def _flow_rows(inst: Instance, milp: _Milp, x: dict[tuple[str, int, str], int]) -> None:
+def _flow_rows(inst: Instance, milp: mip.Milp, x: dict[tuple[str, int, str], int]) -> None:
     """The data flow, linear: a driven node's choices are its settings at each input rate
     (:meth:`System.flow_choices`), so "its input runs at rate f" is the sum of its x columns
     at f, and "its publisher publishes at f" the sum of the publisher's x columns whose
@@ -702,36 +331,6 @@ def _flow_rows(inst: Instance, milp: _Milp, x: dict[tuple[str, int, str], int]) 
         for terms in sides.values():
             milp.row(terms, 0.0, 0.0)
 
-
-def start_assignment(inst: Instance, start: Assignment) -> tuple[Assignment, dict[str, int]] | None:
-    """A MIP start mapped onto the pruned model (a dominated choice becomes the kept choice
-    that dominates it), with each node's kept position; None when it is not feasible
-    (placement, CPU, bandwidth), so that HiGHS is not handed a broken start."""
-    system = inst.system
-    placement: dict[str, str] = {}
-    choice: dict[str, Choice] = {}
-    position: dict[str, int] = {}
-    for g in inst.groups:
-        comps = {start.placement.get(n) for n in g.members}
-        comp = comps.pop() if len(comps) == 1 else None
-        if comp is None or comp not in g.allowed:
-            return None
-        for n in g.members:
-            ch = start.choice.get(n)
-            original = next((i for i, o in enumerate(inst.original[n]) if o == ch), None)
-            pos = None if original is None else inst.replace[n].get(original)
-            if pos is None:
-                return None
-            placement[n], choice[n], position[n] = comp, inst.choices[n][pos], pos
-    load = computer_loads(system, placement, choice)
-    if any(load[c] > inst.cap[c] + 1e-9 * max(1.0, inst.cap[c]) for c in load):
-        return None
-    if system.network_violation(placement, choice) is not None:
-        return None
-    if system.has_flow and system.flow_violation(choice) is not None:
-        return None
-    capacities = server_sizes(system, placement, choice) if inst.problem == Problem.SERVER_CAPACITY else {}
-    return Assignment(placement, choice, capacities), position
 
 
 def _start_values(inst: Instance, built: _Built, start: Assignment, position: dict[str, int]) -> dict[int, float]:
@@ -796,7 +395,7 @@ def _diagnose(inst: Instance, time_limit: float | None) -> str:
             m = system.medium[label.split(" ", 1)[1]]
             parts.append(f"{label} would carry {m.bandwidth_kBps + amount:g} kB/s but has {m.bandwidth_kBps:g}")
         else:
-            li = next(i for i in range(len(system.links)) if _link_name(system, i) == label)
+            li = next(i for i in range(len(system.links)) if link_name(system, i) == label)
             bw = system.links[li].bandwidth_kBps
             parts.append(f"{label} would carry {bw + amount:g} kB/s but has {bw:g}")
     kinds = sorted({"CPU" if label.startswith("computer ") else "bandwidth" for label, _ in over})
@@ -823,27 +422,6 @@ def _lp_rounding(inst: Instance, built: _Built, values: Sequence[float], maximis
     return _extract(fixed, sub, h.getSolution().col_value)
 
 
-def trivial_bound(system: System, choices: Mapping[str, list[Choice]]) -> float:
-    """Σ w·(best performance): no plan can do better (Problem 1)."""
-    return sum(system.node[n].weight * max(c.performance for c in opts) for n, opts in choices.items())
-
-
-def within_trivial_bound(system: System, problem: Problem, choices: Mapping[str, list[Choice]], plan: Plan) -> Plan:
-    """The plan with its bound as the rule wants it (every exact path applies this): never
-    looser than the trivial one (Problem 1: Σ w·max P; Problem 2: no server capacity at
-    all), never on the wrong side of the objective, and stated whenever there is an
-    objective (a solve stopped before proving anything states the trivial one). HiGHS
-    reports its dual bound as it stands, which before its root LP is solved can be anything
-    (29250.5 beside an objective of 75.6 was seen)."""
-    if plan.objective is None:
-        return plan
-    if problem == Problem.PERFORMANCE:
-        ceiling = trivial_bound(system, choices)
-        plan.bound = max(min(ceiling if plan.bound is None else plan.bound, ceiling), plan.objective)
-    else:
-        plan.bound = min(max(0.0 if plan.bound is None else plan.bound, 0.0), plan.objective)
-    return plan
-
 
 def _reserve(time_limit: float) -> float:
     """The seconds of a time limit kept from HiGHS and from building the model: HiGHS stops a
@@ -851,15 +429,6 @@ def _reserve(time_limit: float) -> float:
     free (~0.12 s at 1,000 x 100)."""
     return max(RESERVE_SHARE * time_limit, RESERVE_S)
 
-
-def greedy_start(inst: Instance, choices: dict[str, list[Choice]]) -> tuple[Assignment, dict[str, int]] | None:
-    """The paper's greedy's plan mapped onto the pruned model, None when it finds none."""
-    from perfros_bag.solver import start_of
-    from perfros_bag.solver.flow import solve_heuristic
-
-    plan = solve_heuristic(inst.system, inst.problem, choices, Method.GREEDY)
-    raw = start_of(plan, choices) if plan.status != Status.INFEASIBLE else None
-    return start_assignment(inst, raw) if raw is not None else None
 
 
 def solve_exact(system: System, problem: Problem, choices: dict[str, list[Choice]], *,
@@ -925,7 +494,7 @@ def solve_exact(system: System, problem: Problem, choices: dict[str, list[Choice
     except _OutOfTime:  # so did building the model: the start is the answer
         assert mapped is not None
         return done(mapped[0], _INF if maximise else -_INF, False)
-    big = len(built.milp.cost) > _BIG_MODEL
+    big = len(built.milp.cost) > mip.BIG_MODEL
     if mapped is not None and out_of_time():
         return done(mapped[0], _INF if maximise else -_INF, False)
     known = _INF if maximise else -_INF  # the best bound proven so far (the LP relaxation's)
@@ -964,8 +533,6 @@ def solve_exact(system: System, problem: Problem, choices: dict[str, list[Choice
     if not has_solution and mapped is None and time_limit is not None:
         mapped = greedy_start(inst, choices)  # the limit came first: the best plan at hand
         if mapped is None:  # the greedy got stuck (a binding network): greedy+'s, briefly
-            from perfros_bag.solver.local import plus_start
-
             mapped = plus_start(inst, choices)
     if not has_solution and mapped is not None:  # HiGHS stopped before it found a plan
         return done(mapped[0], known, False)

@@ -19,7 +19,7 @@ So:
   then runs on the best assignment it found.
 
 The exact solver needs none of this: its rows tie the choices together
-(:func:`perfros_bag.solver.exact._flow_rows`).
+(:mod:`perfros_bag.solver.exact`, its flow rows).
 """
 
 from __future__ import annotations
@@ -28,6 +28,7 @@ import itertools
 import time
 from collections.abc import Iterable, Mapping
 
+from perfros_bag.solver.greedy import solve_greedy
 from perfros_bag.system.plan import Method, Plan, Status
 from perfros_bag.system.types import Choice, Problem, System
 
@@ -136,11 +137,9 @@ def _trees(system: System, publishers: list[str]) -> list[list[str]]:
 def _inner(system: System, problem: Problem, choices: dict[str, list[Choice]], method: Method,
            time_budget: float | None) -> Plan:
     if method == Method.GREEDY_PLUS:
-        from perfros_bag.solver.local import solve_greedy_plus
+        from perfros_bag.solver.local import solve_greedy_plus  # deferred: numpy, for greedy+ only
 
         return solve_greedy_plus(system, problem, choices, time_budget=time_budget)
-    from perfros_bag.solver.greedy import solve_greedy
-
     return solve_greedy(system, problem, choices)
 
 

@@ -25,17 +25,13 @@ import math
 import random
 import time
 from collections.abc import Iterable, Iterator
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from perfros_bag.solver.greedy import run_greedy, upgrade
 from perfros_bag.solver.state import EPS, State
-from perfros_bag.system.plan import Assignment, Method, Plan, Status
+from perfros_bag.system.plan import Method, Plan
 from perfros_bag.system.types import Choice, Problem, System
-
-if TYPE_CHECKING:
-    from perfros_bag.solver.exact import Instance
 
 MAX_ROUNDS = 500
 DP_CELLS = 200_000
@@ -48,7 +44,6 @@ KICKS_IDLE = 12  # stop after this many perturbations without improvement
 KICK_LIMIT = 600  # groups x computers above which no perturbations
 TIME_BUDGET_S = 60.0  # safety net: stop improving after this long (the plan stays feasible)
 SEARCH_BUDGET = 20_000
-PLUS_START_MAX_S = 2.0  # greedy+ as the exact solvers' last resort for a plan: its local search at most this long
 
 
 def solve_greedy_plus(system: System, problem: Problem, choices: dict[str, list[Choice]], *,
@@ -99,20 +94,6 @@ def consolidate(improver: Improver) -> None:
     improver.run()
     if improver.current(s.nodes) <= before + 1e-9:
         s.restore(snap)
-
-
-def plus_start(inst: Instance, choices: dict[str, list[Choice]],
-               budget: float = PLUS_START_MAX_S) -> tuple[Assignment, dict[str, int]] | None:
-    """greedy+'s plan (its local search within ``budget`` seconds) mapped onto the exact
-    solvers' pruned model (``exact.start_assignment``), None when it finds none: a plan where
-    the paper's greedy gets stuck (a binding network), for the decomposition's first
-    incumbent and the MILP's answer when its time limit comes first."""
-    from perfros_bag.solver import start_of
-    from perfros_bag.solver.exact import start_assignment
-
-    plan = solve_greedy_plus(inst.system, inst.problem, choices, time_budget=max(budget, 0.0))
-    raw = start_of(plan, choices) if plan.status != Status.INFEASIBLE else None
-    return start_assignment(inst, raw) if raw is not None else None
 
 
 def kick(improver: Improver, *, seed: int = 0) -> None:

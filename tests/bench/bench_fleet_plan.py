@@ -43,7 +43,7 @@ from typing import Any
 
 from perfros_bag.casestudy.instances import fleet_instance, random_instance, wifi_fleet_instance
 from perfros_bag.solver import DECOMPOSE_COLUMNS, exact_columns, fixed_choices, solve
-from perfros_bag.solver import exact as exact_mod
+from perfros_bag.solver import instance as instance_mod
 from perfros_bag.solver.check import check_plan
 from perfros_bag.solver.decompose import solve_decomposed
 from perfros_bag.solver.exact import solve_exact
@@ -66,9 +66,9 @@ def system_of(data: dict[str, Any], name: str) -> System:
 def cpsat(system: System, limit: float, python: str) -> tuple[Plan | None, float, str]:
     """CP-SAT in a subprocess on the pruned choices; the plan (checked by the caller)."""
     choices = fixed_choices(system, Problem.PERFORMANCE)
-    inst = exact_mod.prepare_instance(system, Problem.PERFORMANCE, choices)
+    inst = instance_mod.prepare_instance(system, Problem.PERFORMANCE, choices)
     assert not isinstance(inst, str)
-    assert not exact_mod.active_links(inst), "the CP-SAT worker has no network rows"
+    assert not instance_mod.active_links(inst), "the CP-SAT worker has no network rows"
     doc = {"time_limit": limit, "workers": 2,
            "capacity": {c.name: inst.cap[c.name] for c in system.computers},
            "groups": [{"members": list(g.members), "allowed": list(g.allowed)} for g in inst.groups],

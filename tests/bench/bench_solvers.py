@@ -36,8 +36,10 @@ from typing import Any
 from perfros_bag.casestudy.instances import fleet_instance, random_instance, table2_instance
 from perfros_bag.solver import START_SHARE, fixed_choices, solve
 from perfros_bag.solver import exact as exact_mod
+from perfros_bag.solver import milp as milp_mod
 from perfros_bag.solver.exact import solve_exact
 from perfros_bag.solver.greedy import solve_greedy
+from perfros_bag.solver.instance import prepare_instance
 from perfros_bag.solver.local import solve_greedy_plus
 from perfros_bag.system.plan import Assignment, Plan
 from perfros_bag.system.systemfile import parse_system
@@ -216,7 +218,7 @@ def scale(results: dict[str, Any], exact_limit: float) -> None:
 
 def formulations() -> None:
     print("\n## Formulation and HiGHS options (Table II 4-6, Problem 1, CPU s; x-form + heuristics off is the default)")
-    heur_off = dict(exact_mod._HIGHS_OPTIONS)
+    heur_off = dict(milp_mod.HIGHS_OPTIONS)
     variants = [("x-form, root heuristics off", False, heur_off), ("x-form, HiGHS defaults", False, {}),
                 ("compact concave form, off", True, heur_off)]
     print(f"{'variant':<30} {'inst 4':>7} {'inst 5':>7} {'inst 6':>7}")
@@ -224,14 +226,14 @@ def formulations() -> None:
         times = []
         for i in (4, 5, 6):
             system = system_of(table2_instance(i), f"table2-{i}")
-            inst = exact_mod.prepare_instance(system, 1, fixed_choices(system, 1))
+            inst = prepare_instance(system, 1, fixed_choices(system, 1))
             assert not isinstance(inst, str)
             built = exact_mod._build(inst, compact_form=compact)
-            exact_mod._HIGHS_OPTIONS = opts
+            milp_mod.HIGHS_OPTIONS = opts
             c = time.process_time()
             built.milp.solve(True, time_limit=60, mip_gap=0.0)
             times.append(time.process_time() - c)
-        exact_mod._HIGHS_OPTIONS = heur_off
+        milp_mod.HIGHS_OPTIONS = heur_off
         print(f"{label:<30} " + " ".join(f"{t:>7.2f}" for t in times), flush=True)
 
 

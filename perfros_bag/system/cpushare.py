@@ -1,0 +1,67 @@
+"""How a capped computer shares its CPU among its nodes: the one model that the kept-rate
+prediction (validation), the latency model and ``watch`` use.
+
+A computer of capacity C is, on this machine, a cgroup whose CFS bandwidth quota is C. Inside
+it the Linux scheduler (CFS) is fair per *thread*, not per process: every runnable thread gets
+an equal slice, and a thread that asks for less than its slice keeps what it asks for while the
+rest is shared among the others (max-min fairness, "water-filling"). A node with k busy threads
+therefore gets up to k slices. Its share is
+
+    share_i = min(need_i, k_i * L)
+
+where the level L is the largest value with Σ_i min(need_i, k_i * L) <= C. When the needs fit
+(Σ need <= C) every node gets its need. A node can never use more than its threads can run:
+``max_units`` (k_i cores' worth of units) bounds its need first.
+
+This replaces the proportional rule (share = C * need / Σ need), which under-predicts light nodes:
+CFS gives a node asking for little all it asks for.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class Demand:
+    """One node's claim on its computer's CPU, in the system's CPU units."""
+
+    name: str
+    need: float  # what it would use unhindered
+    threads: float = 1.0  # busy threads: its weight in the fair share (>= 1)
+    max_units: float = math.inf  # the most its threads can run (threads x units per core)
+
+
+def fair_shares(capacity: float, demands: Sequence[Demand]) -> dict[str, float]:
+    """Each demand's CPU share on a computer of ``capacity`` (the module's rule)."""
+    want = {d.name: max(0.0, min(d.need, d.max_units)) for d in demands}
+    if len(want) != len(demands):
+        raise ValueError("fair_shares: demand names must be unique")
+    if sum(want.values()) <= capacity:
+        return want
+    weight = {d.name: max(1.0, d.threads) for d in demands}
+    # satisfy the demands in the order of their need per slice; the rest share the level
+    order = sorted(want, key=lambda n: want[n] / weight[n])
+    left, w_left = max(0.0, capacity), sum(weight.values())
+    shares: dict[str, float] = {}
+    for i, name in enumerate(order):
+        level = left / w_left if w_left > 0 else 0.0
+        if want[name] <= weight[name] * level:
+            shares[name] = want[name]
+            left -= want[name]
+            w_left -= weight[name]
+            continue
+        for rest in order[i:]:
+            shares[rest] = weight[rest] * level
+        break
+    return shares
+
+
+def share_level(capacity: float, demands: Sequence[Demand]) -> float:
+    """The per-slice level L of the rule (``inf`` when every need fits)."""
+    shares = fair_shares(capacity, demands)
+    capped = [shares[d.name] / max(1.0, d.threads) for d in demands
+              if shares[d.name] < max(0.0, min(d.need, d.max_units))]
+    return max(capped) if capped else math.inf

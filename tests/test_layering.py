@@ -1,0 +1,207 @@
+"""The package's imports, read from the source with ``ast`` (nothing is imported):
+
+- ``solver/``: no import cycle among its modules (deferred, function-level imports
+  included), no module imports the ``perfros_bag.solver`` package itself (its
+  ``__init__`` only re-exports them), and no module uses another module's private
+  (``_name``) function, class or constant.
+
+Each check is tried on a small made-up graph first, so that it is known to fail when it
+should.
+"""
+
+from __future__ import annotations
+
+import ast
+import functools
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+PACKAGE = ROOT / "perfros_bag"
+
+
+@dataclass(frozen=True)
+class Import:
+    src: str  # the importing module
+    dst: str  # the imported module (own modules only, resolved to a file of the package)
+    line: int
+    deferred: bool  # inside a function
+    names: tuple[str, ...]  # ``from dst import names`` (empty for ``import dst``)
+
+
+def module_name(path: Path) -> str:
+    parts = list(path.relative_to(ROOT).with_suffix("").parts)
+    if parts[-1] == "__init__":
+        parts.pop()
+    return ".".join(parts)
+
+
+def modules() -> dict[str, Path]:
+    return {module_name(p): p for p in sorted(PACKAGE.rglob("*.py"))}
+
+
+def _import_nodes(tree: ast.AST) -> Iterator[tuple[ast.Import | ast.ImportFrom, bool]]:
+    """Each import statement with whether it sits inside a function; those under ``if
+    TYPE_CHECKING:`` are left out (they never run)."""
+    def walk(node: ast.AST, in_function: bool) -> Iterator[tuple[ast.Import | ast.ImportFrom, bool]]:
+        for child in ast.iter_child_nodes(node):
+            if isinstance(child, ast.Import | ast.ImportFrom):
+                yield child, in_function
+            elif isinstance(child, ast.If) and "TYPE_CHECKING" in ast.unparse(child.test):
+                for stmt in child.orelse:
+                    yield from walk(stmt, in_function)
+            elif isinstance(child, ast.stmt):  # expressions hold no import statement
+                yield from walk(child, in_function or isinstance(child, ast.FunctionDef | ast.AsyncFunctionDef))
+    return walk(tree, False)
+
+
+@functools.cache
+def _parse(path: Path) -> ast.Module:
+    return ast.parse(path.read_text(encoding="utf-8"), str(path))
+
+
+def module_imports(name: str, path: Path, known: Mapping[str, Path]) -> Iterator[Import]:
+    """Every run-time import of an own module by ``name`` (``if TYPE_CHECKING:`` blocks left out)."""
+    package = name.split(".") if path.name == "__init__.py" else name.split(".")[:-1]
+    for node, deferred in _import_nodes(_parse(path)):
+        if isinstance(node, ast.Import):
+            for alias in node.names:
+                if alias.name in known:
+                    yield Import(name, alias.name, node.lineno, deferred, ())
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                base = ".".join(package[:len(package) - node.level + 1] + ([base] if base else []))
+            if base not in known:
+                continue
+            plain = tuple(a.name for a in node.names if f"{base}.{a.name}" not in known)
+            for alias in node.names:  # ``from pkg import submodule``
+                if f"{base}.{alias.name}" in known:
+                    yield Import(name, f"{base}.{alias.name}", node.lineno, deferred, ())
+            if plain:
+                yield Import(name, base, node.lineno, deferred, plain)
+
+
+def imports(known: Mapping[str, Path]) -> Iterator[Import]:
+    """Every run-time import of an own module by every module of ``known``."""
+    for name, path in known.items():
+        yield from module_imports(name, path, known)
+
+
+def cycles(graph: Mapping[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components of more than one module (Tarjan), sorted."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    found: list[list[str]] = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on_stack.add(v)
+        for w in sorted(graph.get(v, ())):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                found.append(sorted(comp))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return sorted(found)
+
+
+def _is_submodule(path: Path, name: str) -> bool:
+    """Is ``name`` a module of the package at ``path`` (a compiled extension such as
+    ``ingest/_sqlitecells``)?"""
+    return path.name == "__init__.py" and any(path.parent.glob(f"{name}.*"))
+
+
+def private_uses(known: Mapping[str, Path]) -> list[str]:
+    """``module:line name`` for every use of another own module's private name: ``from m
+    import _x`` or ``m._x`` where ``m`` names an own module. A leading underscore on a
+    module (``_lazy``, ``_app``) is the package's business: importing from it is allowed."""
+    out = []
+    for imp in imports(known):
+        for n in imp.names:
+            if n.startswith("_") and not n.startswith("__") and imp.dst != imp.src \
+                    and not _is_submodule(known[imp.dst], n):
+                out.append(f"{imp.src}:{imp.line} {imp.dst}.{n}")
+    for name, path in known.items():
+        aliases: dict[str, str] = {}  # a local name -> the own module it stands for
+        whole = [imp for imp in module_imports(name, path, known) if not imp.names]
+        for node in ast.walk(_parse(path)):
+            if isinstance(node, ast.Import):
+                for alias in node.names:
+                    if alias.name in known:
+                        aliases[alias.asname or alias.name] = alias.name
+            elif isinstance(node, ast.ImportFrom):
+                for imp in whole:
+                    if imp.line == node.lineno:
+                        local = next((a.asname or a.name for a in node.names
+                                      if imp.dst.endswith(f".{a.name}")), imp.dst.rsplit(".", 1)[-1])
+                        aliases[local] = imp.dst
+        for node in ast.walk(_parse(path)):
+            if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) \
+                    and aliases.get(node.value.id, name) != name \
+                    and node.attr.startswith("_") and not node.attr.startswith("__"):
+                out.append(f"{name}:{node.lineno} {aliases[node.value.id]}.{node.attr}")
+    return sorted(out)
+
+
+# ---- the checks, tried on made-up cases first ---------------------------------------------
+
+def test_cycles_finds_a_cycle_through_a_deferred_import_and_none_in_a_chain() -> None:
+    assert cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+    assert cycles({"a": {"b"}, "b": {"c"}, "c": set()}) == []
+
+
+def test_private_uses_and_imports_on_a_made_up_package(tmp_path: Path) -> None:
+    pkg = tmp_path / "pkg"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text("")
+    (pkg / "low.py").write_text("def _hidden():\n    return 1\n\ndef shown():\n    return _hidden()\n")
+    (pkg / "high.py").write_text("from pkg import low as lo\n\n\ndef f():\n    from pkg.low import _hidden\n"
+                                 "    return lo._hidden() + _hidden() + lo.shown()\n")
+    known = {"pkg": pkg / "__init__.py", "pkg.low": pkg / "low.py", "pkg.high": pkg / "high.py"}
+    got = sorted(imports(known), key=lambda i: (i.line, i.names))
+    assert [(i.src, i.dst, i.deferred) for i in got] == [("pkg.high", "pkg.low", False), ("pkg.high", "pkg.low", True)]
+    assert private_uses(known) == ["pkg.high:5 pkg.low._hidden", "pkg.high:6 pkg.low._hidden"]
+
+
+# ---- the package ---------------------------------------------------------------------------
+
+def test_solver_has_no_import_cycle() -> None:
+    known = modules()
+    graph: dict[str, set[str]] = {}
+    for imp in imports(known):
+        if imp.src.startswith("perfros_bag.solver") and imp.dst.startswith("perfros_bag.solver") \
+                and imp.src != imp.dst:
+            graph.setdefault(imp.src, set()).add(imp.dst)
+    assert cycles(graph) == []
+
+
+def test_no_solver_module_imports_the_solver_package() -> None:
+    """``perfros_bag.solver`` (its ``__init__``) re-exports the modules: one of them importing
+    it back would be a cycle waiting for a name to move."""
+    back = [f"{i.src}:{i.line}" for i in imports(modules())
+            if i.dst == "perfros_bag.solver" and i.src.startswith("perfros_bag.solver.")]
+    assert back == []
+
+
+def test_no_module_uses_another_modules_private_names() -> None:
+    found = private_uses(modules())
+    assert [u for u in found if u.startswith("perfros_bag.solver")] == []
