@@ -57,6 +57,10 @@ FORMAT = "perfros-bag frontier 1"
 
 DEFAULT_POINTS = 21
 
+#: the most points a frontier may ask for: each one is a solve (1,000,000 ran past 60 s
+#: and 2 GB); refused as the range is read
+MAX_POINTS = 1000
+
 
 def parse_range(text: str) -> tuple[float | None, float | None, int]:
     """``auto``, ``LO:HI`` or ``LO:HI:POINTS`` (an empty end: its default from
@@ -79,6 +83,9 @@ def parse_range(text: str) -> tuple[float | None, float | None, int]:
         raise InputError(None, f"frontier range {text!r} is empty or inverted")
     if points < 2:
         raise InputError(None, f"frontier range {text!r}: at least 2 points")
+    if points > MAX_POINTS:
+        raise InputError(None, f"frontier range {text!r}: at most {MAX_POINTS:,} points (each one a solve), "
+                               f"got {points:,}")
     return low, high, points
 
 
@@ -151,6 +158,8 @@ def frontier(system: System, *, low: float | None = None, high: float | None = N
     ``high`` (default :func:`capacity_range`); ``time_limit`` is per point."""
     if points < 2:
         raise InputError(None, f"a frontier needs at least 2 points, got {points}")
+    if points > MAX_POINTS:
+        raise InputError(None, f"a frontier takes at most {MAX_POINTS:,} points (each one a solve), got {points:,}")
     if low is None or high is None:
         lo, hi = capacity_range(system, resolution=resolution, time_limit=time_limit)
         low = lo if low is None else low
