@@ -128,6 +128,29 @@ def test_too_many_points_are_refused_before_any_solve(tmp_path: Path, monkeypatc
         frontier(table2(2), low=300, high=600, points=1001)
 
 
+def test_pareto_keeps_the_headroom_at_every_point(tmp_path: Path) -> None:
+    """Issue 33, item 3: --pareto with --headroom 0.5 was the frontier without it. Each point
+    must equal Problem 1 on the system with every computer's capacity halved (the robots'
+    and the servers' at that point), solved exactly here without any headroom."""
+    data = table2_instance(2)
+    path = tmp_path / "inst2.yaml"
+    path.write_text(yaml.safe_dump(data))
+    runs = {}
+    for headroom in ("0", "0.5"):
+        result = runner.invoke(app, ["solve", str(path), "--method", "exact", "--pareto", "500:800:4",
+                                     "--headroom", headroom, "--json"])
+        assert result.exit_code == 0, result.output
+        runs[headroom] = json.loads(result.stdout)
+    assert runs["0.5"]["headroom"] == 0.5 and runs["0"]["headroom"] == 0
+    for point in runs["0.5"]["points"]:
+        halved = json.loads(json.dumps(data))
+        for c in halved["computers"]:
+            c["capacity"] = (point["server_capacity"] if c["kind"] == "server" else c["capacity"]) * 0.5
+        plan = solve(parse_system(halved, "halved.yaml"), 1, "exact")
+        assert point["objective"] == pytest.approx(plan.objective, rel=1e-6), point
+    assert [p["objective"] for p in runs["0.5"]["points"]] != [p["objective"] for p in runs["0"]["points"]]
+
+
 def test_report_frontier_section_and_reader(tmp_path: Path) -> None:
     from perfros_bag.report.html import build_report
     from perfros_bag.solver.frontier import read_frontier

@@ -178,7 +178,7 @@ def solve(
     if pareto is not None:
         if problem != 1 or fixed is not None:
             raise InputError(None, "--pareto solves Problem 1 at each server capacity (no --problem 2, no --settings)")
-        _frontier(system, pareto, method, resolution, time_limit, out_path, as_json)
+        _frontier(system, pareto, method, resolution, time_limit, out_path, as_json, kept)
         return
     try:
         with _live_progress(method == "exact") as progress:
@@ -222,7 +222,7 @@ def _live_progress(enabled: bool) -> Iterator[Callable[[float | None, float, flo
 
 
 def _frontier(system: System, spec: str, method: str, resolution: float, time_limit: float | None,
-              out_path: Path | None, as_json: bool) -> None:
+              out_path: Path | None, as_json: bool, headroom: float | str = 0.0) -> None:
     """``--pareto``: Problem 1 at each total server capacity of the range; a table, the
     frontier JSON (``--json`` / ``-o``) and, with ``-o``, a PNG beside it."""
     from perfros_bag.fileio import atomic_open
@@ -231,8 +231,8 @@ def _frontier(system: System, spec: str, method: str, resolution: float, time_li
 
     low, high, points = parse_range(spec)
     found = frontier(system, low=low, high=high, points=points, resolution=resolution, method=method,
-                     time_limit=time_limit)
-    doc = frontier_document(system, found, method)
+                     time_limit=time_limit, headroom=headroom)
+    doc = frontier_document(system, found, method, headroom)
     if out_path is not None:
         png = plot_frontier(doc["points"])
         write_frontier(out_path, doc)

@@ -132,16 +132,18 @@ def with_server_capacity(system: System, total: float) -> System:
     return dataclasses.replace(system, computers=computers)
 
 
-def capacity_range(system: System, *, resolution: float = 1.0, time_limit: float | None = None) -> tuple[float, float]:
+def capacity_range(system: System, *, resolution: float = 1.0, time_limit: float | None = None,
+                   headroom: float | str = 0.0) -> tuple[float, float]:
     """The total server capacities at which Problem 2's plan fits the servers' shares, with
-    every node at its lowest setting and with every node at its highest (exact solver).
-    With one server: Problem 2's minimum in both cases."""
+    every node at its lowest setting and with every node at its highest (exact solver),
+    keeping ``headroom`` free (:func:`~perfros_bag.solver.dispatch.solve`'s). With one
+    server: Problem 2's minimum in both cases."""
     share = _shares(system)
     lowest = lowest_settings(system, resolution)
     ends = []
     for settings in (lowest, None):
         plan = solve(system, Problem.SERVER_CAPACITY, "exact", resolution=resolution, settings=settings,
-                     time_limit=time_limit)
+                     time_limit=time_limit, headroom=headroom)
         if plan.status == Status.INFEASIBLE or plan.objective is None:
             which = "lowest" if settings is not None else "highest"
             raise InputError(system.source, f"frontier: Problem 2 at every node's {which} setting has no plan: "
@@ -153,21 +155,22 @@ def capacity_range(system: System, *, resolution: float = 1.0, time_limit: float
 
 def frontier(system: System, *, low: float | None = None, high: float | None = None, points: int = 21,
              resolution: float = 1.0, method: str = "exact",
-             time_limit: float | None = None) -> list[FrontierPoint]:
+             time_limit: float | None = None, headroom: float | str = 0.0) -> list[FrontierPoint]:
     """Problem 1 at ``points`` total server capacities evenly spaced from ``low`` to
-    ``high`` (default :func:`capacity_range`); ``time_limit`` is per point."""
+    ``high`` (default :func:`capacity_range`); ``time_limit`` is per point; every point
+    keeps ``headroom`` free (``solve --headroom``: a share in [0, 1) or ``"auto"``)."""
     if points < 2:
         raise InputError(None, f"a frontier needs at least 2 points, got {points}")
     if points > MAX_POINTS:
         raise InputError(None, f"a frontier takes at most {MAX_POINTS:,} points (each one a solve), got {points:,}")
     if low is None or high is None:
-        lo, hi = capacity_range(system, resolution=resolution, time_limit=time_limit)
+        lo, hi = capacity_range(system, resolution=resolution, time_limit=time_limit, headroom=headroom)
         low = lo if low is None else low
         high = hi if high is None else high
     if not (math.isfinite(low) and math.isfinite(high)) or low < 0 or high <= low:
         raise InputError(system.source, f"frontier: the capacity range {low:g} to {high:g} is empty or inverted")
     out: list[FrontierPoint] = []
-    if method == "exact":
+    if method == "exact" and headroom == 0:  # the table knows no headroom: else a solve per point
         t0 = time.perf_counter()
         table = frontier_values(system, high, resolution)
         if table is not None:
@@ -184,7 +187,7 @@ def frontier(system: System, *, low: float | None = None, high: float | None = N
         capacity = low + (high - low) * i / (points - 1)
         t0 = time.perf_counter()
         plan = solve(with_server_capacity(system, capacity), Problem.PERFORMANCE, method, resolution=resolution,
-                     time_limit=time_limit)
+                     time_limit=time_limit, headroom=headroom)
         # a heuristic's plan carries no bound: its own objective is not one
         out.append(FrontierPoint(capacity, plan.status, plan.objective, plan.bound, time.perf_counter() - t0))
     return monotone(out)
@@ -307,12 +310,14 @@ def frontier_values(system: System, high: float, resolution: float = 1.0) -> tup
     return values, scale
 
 
-def frontier_document(system: System, points: list[FrontierPoint], method: str) -> dict[str, Any]:
+def frontier_document(system: System, points: list[FrontierPoint], method: str,
+                      headroom: float | str = 0.0) -> dict[str, Any]:
     """The frontier as JSON-ready data (docs/formats.md, frontier.json)."""
     return {
         "format": FORMAT,
         "system": system.source,
         "method": method,
+        "headroom": headroom,
         "servers": _servers(system),
         "points": [{"server_capacity": round(p.capacity, 9), "status": str(p.status), "objective": p.objective,
                     "bound": p.bound, "gap": p.gap, "solve_s": round(p.solve_s, 6),
