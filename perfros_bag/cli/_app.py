@@ -11,7 +11,6 @@ from typing import Any, TypeVar
 import typer
 from rich.console import Console, ConsoleOptions, ConsoleRenderable, RenderHook
 from rich.markup import escape
-from rich.measure import Measurement
 from rich.segment import Segment
 from rich.table import Table
 from typer._click.globals import get_current_context
@@ -54,11 +53,12 @@ def _unsqueezed(table: Table, console: Console, options: ConsoleOptions) -> tupl
     """Into a file or pipe, rich draws at 80 columns and cuts names to ``navigat…``: there,
     a table is drawn as wide as its content needs (up to :data:`MAX_PIPED_WIDTH`), and a
     cell that still does not fit folds onto more lines instead of losing its end."""
-    natural = Measurement.get(console, options.update(width=MAX_PIPED_WIDTH), table).maximum
     for column in table.columns:
         if column.overflow == "ellipsis":
             column.overflow = "fold"
-    return table, options.update(width=max(options.max_width, min(natural, MAX_PIPED_WIDTH)))
+    if table.expand:  # a table that fills its width keeps the console's
+        return table, options
+    return table, options.update(width=max(options.max_width, MAX_PIPED_WIDTH))  # it takes what it needs
 
 
 class _Escaped:
