@@ -67,9 +67,11 @@ def parse_headroom(text: str, *, check_range: bool = True) -> float | str:
 
 
 #: of ``--time-limit``, what is kept for after the solve (writing plan.json, the tables):
-#: this many seconds plus :data:`WIND_DOWN_SHARE` of the limit
+#: this many seconds plus :data:`WIND_DOWN_SHARE` of the limit plus :data:`ROW_S` per row
+#: of the plan's tables (rich draws ~1,300 rows in 5-7 s on the shared 2-core machine)
 WIND_DOWN_S = 1.0
 WIND_DOWN_SHARE = 0.01
+ROW_S = 0.005
 
 
 def process_seconds() -> float:
@@ -82,11 +84,12 @@ def process_seconds() -> float:
         return 0.0
 
 
-def solve_budget(time_limit: float, spent: float) -> float:
+def solve_budget(time_limit: float, spent: float, rows: int = 0) -> float:
     """What the solver gets of a whole-process ``time_limit`` when the process has spent
     ``spent`` seconds (start-up, reading the input): the rest, less the wind-down after
-    the solve (:data:`WIND_DOWN_S`, :data:`WIND_DOWN_SHARE`); at least 0.01 s."""
-    return max(time_limit - spent - (WIND_DOWN_S + WIND_DOWN_SHARE * time_limit), 0.01)
+    the solve (:data:`WIND_DOWN_S`, :data:`WIND_DOWN_SHARE`, :data:`ROW_S` for each of the
+    ``rows`` the plan's tables will have); at least 0.01 s."""
+    return max(time_limit - spent - (WIND_DOWN_S + WIND_DOWN_SHARE * time_limit + ROW_S * rows), 0.01)
 
 
 def _num(x: float | None, digits: int = 2) -> str:
@@ -182,7 +185,8 @@ def solve(
         return
     try:
         with _live_progress(method == "exact") as progress:
-            budget = None if time_limit is None else solve_budget(time_limit, process_seconds())
+            rows = len(system.nodes) + len(system.computers) + len(system.links)  # the tables printed after
+            budget = None if time_limit is None else solve_budget(time_limit, process_seconds(), rows)
             plan = run(system, problem, method, resolution=resolution, settings=fixed, time_limit=budget,
                        progress=progress, headroom=kept)
     except ValueError as exc:  # a model that cannot be evaluated (e.g. a curve off its domain)
