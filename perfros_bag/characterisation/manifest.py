@@ -36,7 +36,7 @@ from perfros_bag.limits import number_problem
 from perfros_bag.system.names import NameKind, name_problem
 
 TOP_KEYS = {"system", "recordings"}
-ENTRY_KEYS = {"path", "cpu", "computer", "units_per_core", "settings", "speed_factor"}
+ENTRY_KEYS = {"path", "cpu", "computer", "units_per_core", "settings", "speed_factor", "standalone"}
 #: The scale ``sweep`` records its runs in (and ``init`` drafts this machine with): 100 CPU
 #: units = one busy core of the machine the sweep ran on.
 SWEEP_UNITS_PER_CORE = 100
@@ -55,6 +55,8 @@ class RecordingEntry:
     settings: Mapping[str, SettingValue] = field(default_factory=dict)
     units_per_core: float | None = None  # the measurement's own scale; None: the computer's capacity
     speed_factor: float | None = None  # the machine's speed in this run (perfros_bag.cpu.speed); None: unknown
+    #: nodelets that ran standalone in this run instead of in their manager (system.yaml names)
+    standalone: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -165,7 +167,10 @@ def parse_manifest(data: Any, path: Path) -> Manifest:
             if problem is not None:
                 raise fail(f"{where}.speed_factor", problem)
             speed = float(speed)
-        entries.append(RecordingEntry(rec, rel, cpu, computer, settings, units, speed))
+        alone = item.get("standalone") or []
+        if not isinstance(alone, list) or not all(isinstance(x, str) and x for x in alone):
+            raise fail(f"{where}.standalone", f"must be a list of node names, got {alone!r}")
+        entries.append(RecordingEntry(rec, rel, cpu, computer, settings, units, speed, tuple(alone)))
     return Manifest(path, system, tuple(entries))
 
 

@@ -1,8 +1,9 @@
 """``model.json``: the typed document, its writer and its reader (format: ``docs/formats.md``).
 
-:func:`read_model` reads and checks the whole document; :func:`read_model_system` gives
-what ``solve`` needs, the ``system`` part (a system.yaml with fitted curves), without
-checking the rest. Light module: no numpy, no fitting.
+:func:`read_model` reads and checks the whole document; what ``solve`` needs, the
+``system`` part (a system.yaml with fitted curves), is read by the system's own reader
+(:func:`perfros_bag.system.modelpart.read_model_system`) without the rest. Light module:
+no numpy, no fitting.
 """
 
 from __future__ import annotations
@@ -16,16 +17,14 @@ from typing import Any
 from perfros_bag.errors import InputError
 from perfros_bag.fileio import (
     DOCUMENT_KINDS,
-    SYSTEM_KIND,
     atomic_write_json,
     expect_kind,
     kind_of,
     read_json,
 )
 from perfros_bag.limits import MAX_COEFFICIENT, MAX_MAGNITUDE, number_problem, short_repr
+from perfros_bag.system.modelpart import MODEL_FORMAT
 from perfros_bag.system.types import Curve, CurveForm, curve_form
-
-MODEL_FORMAT = "perfros-bag/model@1"
 
 
 def round9(v: float) -> float:
@@ -368,19 +367,3 @@ def read_model(path: str | Path) -> ModelDocument:
     :func:`perfros_bag.system.systemfile.parse_system` when it is loaded)."""
     return parse_model(read_json(path), path)
 
-
-def system_part(data: Any) -> Any:
-    """The ``system`` part of a parsed model.json; any other data unchanged (a system
-    written as JSON)."""
-    if isinstance(data, Mapping) and "system" in data:
-        return data["system"]
-    return data
-
-
-def read_model_system(path: str | Path) -> Any:
-    """What ``solve`` reads from a model.json: its ``system`` part, unchecked (the rest of
-    the document is not needed to solve). Another of the tool's documents (a plan, ...) is
-    an :class:`InputError` saying what it is."""
-    data = read_json(path)
-    expect_kind(path, data, "a system.yaml or model.json", {SYSTEM_KIND, DOCUMENT_KINDS[MODEL_FORMAT]})
-    return system_part(data)

@@ -163,6 +163,11 @@ def check_plan(system: System, plan: Plan, *, tol: float = 1e-6) -> list[str]:
         for other in node.coresidence:
             if node.name in where and other in where and where[node.name] != where[other]:
                 bad.append(f"coresidence: {node.name} on {where[node.name]} but {other} on {where[other]}")
+    # membership kept: a node hosted by a container (nodelet manager) sits on its computer
+    for node in system.nodes:
+        host = node.container
+        if host is not None and node.name in where and host in where and where[node.name] != where[host]:
+            bad.append(f"container: {node.name} on {where[node.name]} but its container {host} on {where[host]}")
 
     # eq 3: CPU per computer
     load: dict[str, float] = defaultdict(float)

@@ -46,7 +46,7 @@ if TYPE_CHECKING:
 #: recorders (ROS 1 ``record_<pid>``, ROS 2 ``rosbag2_recorder``) and the ros2 command line's.
 NOT_APP = re.compile(r"^/(rosout|perfros_[a-z_]+|rosbag2_recorder|record_\d+|_ros2cli_\d+)$")
 #: Message types that are not a node's output (logs, reconfiguration).
-NOT_OUTPUT = re.compile(r"^(rosgraph_msgs|dynamic_reconfigure)/")
+NOT_OUTPUT = re.compile(r"^(rosgraph_msgs|dynamic_reconfigure|bond)/")  # bond: a nodelet's tie to its manager
 MIN_CPU = 0.1  # a setting's CPU must be > 0: what a node measured at 0 gets
 
 
@@ -101,6 +101,7 @@ def draft_system(directory: str | Path, out: str | Path) -> Draft:
         result = characterise(manifest.recordings, skeleton)
     if result.failures:
         raise InputError(result.failures[0].recording, result.failures[0].message)
+    _warn_members(skeleton, result.splits)
     from perfros_bag.sweep.driven import find_inputs, per_run
 
     by_run = per_run(result.rows)
@@ -232,6 +233,8 @@ def _skeleton(app: Sequence[GraphNode], graph: Graph, values: Mapping[str, list[
         topics = _output_topics(n, graph)
         if topics:
             entry["topics"] = list(topics)
+        if n.container is not None:
+            entry["container"] = node_name(n.container)
         if name in values:
             pname, unit = parameters.get(name, ("value", None))
             entry["parameter"] = {"name": pname} if unit is None else {"name": pname, "unit": unit}
@@ -302,7 +305,7 @@ def _render(d: Path, graph: Graph, skeleton: Any, rows: Sequence[Row], values: M
         exe = ros.executable if ros is not None and ros.executable else "executable unknown"
         keys = [_norm(v) for v in values.get(node.name, [])] if node.parameter else [None]
         if node.name in follows:
-            lines += _render_driven(node, exe, keys, weight, follows[node.name], by_run[node.name], flow)
+            lines += _render_driven(node, exe, keys, weight, follows[node.name], by_run[node.name], flow, ros)
             continue
         measured = [_measured(node, key, per_value, topic_means) for key in keys]
         freqs = [m.frequency_hz for m in measured if m.frequency_hz]
@@ -314,6 +317,7 @@ def _render(d: Path, graph: Graph, skeleton: Any, rows: Sequence[Row], values: M
             lines.append(f"    parameter: {flow(_parameter(node.parameter))}")
         if node.topics:
             lines.append(f"    topics: {flow(list(node.topics))}")
+        lines += _container_lines(node, ros)
         lines.append(f"    process: {flow(node.process)}  # its ROS name in the sweep's CPU traces")
         if top:
             lines.append(f"    # performance: REPLACE. A stated default: 100 x the measured output frequency / "
@@ -331,8 +335,18 @@ def _render(d: Path, graph: Graph, skeleton: Any, rows: Sequence[Row], values: M
     return "\n".join(lines) + "\n"
 
 
+def _container_lines(node: Any, ros: GraphNode | None) -> list[str]:
+    """A hosted node's ``container:`` (its CPU: its share of the container's, fitted)."""
+    if node.container is None:
+        return []
+    kind = f"nodelet {ros.nodelet}" if ros is not None and ros.nodelet else "hosted"
+    return [f"    container: {node.container}  # {kind}: runs in {node.container}'s process; its CPU is its share "
+            "of that process's, fitted over the runs (docs/formats.md, Nodelets)"]
+
+
 def _render_driven(node: Any, exe: str, keys: Sequence[int | float | None], weight: float, follow: Follow,
-                   runs: Mapping[str, RunMeasure], flow: Callable[[Any], str]) -> list[str]:
+                   runs: Mapping[str, RunMeasure], flow: Callable[[Any], str],
+                   ros: GraphNode | None = None) -> list[str]:
     """A driven node's lines (perfros_bag/sweep/driven.py: the rule and the numbers)."""
     from perfros_bag.sweep.driven import INPUT_VARIED, RATIO_TOLERANCE, draft_settings
 
@@ -352,6 +366,7 @@ def _render_driven(node: Any, exe: str, keys: Sequence[int | float | None], weig
         lines.append(f"    parameter: {flow(_parameter(node.parameter))}")
     if node.topics:
         lines.append(f"    topics: {flow(list(node.topics))}")
+    lines += _container_lines(node, ros)
     lines.append(f"    process: {flow(node.process)}  # its ROS name in the sweep's CPU traces")
     lines.append("    # cpu + cpu_per_hz x input rate: least squares over the runs at each setting; "
                  "performance: REPLACE.")
@@ -435,6 +450,23 @@ def _edges(graph: Graph, nodes: Sequence[Any]) -> list[dict[str, str]]:
                 if dst in names and dst != n.name:
                     out.append({"from": n.name, "to": dst, "topic": t})
     return out
+
+
+def _warn_members(skeleton: Any, splits: Sequence[Any]) -> None:
+    """Never silent about what a process hosts: a nodelet with no topic of its own (only its
+    bond) and each container fit's problem are warnings naming the node and what was done."""
+    for n in skeleton.nodes:
+        if n.container is not None and not n.topics:
+            warnings.warn(PerfrosWarning(f"node {n.name}: a nodelet of {n.container} whose only published topic is "
+                                         "its bond: drafted with no topics (performance 100, no rate)"), stacklevel=3)
+    for s in splits:
+        for note in s.notes:
+            warnings.warn(PerfrosWarning(note), stacklevel=3)
+        for k in s.cpu:
+            lo = min(s.cpu[k].values())
+            if lo <= 0:
+                warnings.warn(PerfrosWarning(f"node {k}: its share of {s.container}'s CPU fitted to 0 at some value: "
+                                             f"drafted at {MIN_CPU} there"), stacklevel=3)
 
 
 def _check_loads(text: str, out: Path) -> None:

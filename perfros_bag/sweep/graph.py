@@ -13,7 +13,10 @@
 Under space.yaml ``replay:`` a replaced node is not started: the ``rosbag play`` standing in
 for it runs under its name (so it is ``launched``, with the player's PID and executable) and
 carries ``replay: {recording: robot_day1.bag, factor: 2.0}`` (the recording as space.yaml
-names it, the run's play-rate factor).
+names it, the run's play-rate factor). A nodelet (``nodelet load PKG/TYPE MANAGER``) carries
+``container: /MANAGER`` and ``nodelet: PKG/TYPE``: its PID is its loader's, and the topics the
+manager carries for it list the nodelet as their publisher or subscriber
+(:mod:`perfros_bag.sweep.nodelets`).
 :func:`capture_graph` asks the master (getSystemState, getTopicTypes, lookupNode) and each
 node (getPid); the tool's own nodes are left out.
 """
@@ -48,6 +51,8 @@ class GraphNode:
     executable: str | None
     launched: bool = True
     replay: Replayed | None = None  # a rosbag play standing in for this launch-file node
+    container: str | None = None  # a nodelet: the manager that hosts it
+    nodelet: str | None = None  # a nodelet: its PKG/TYPE
 
 
 @dataclass(frozen=True)
@@ -81,6 +86,10 @@ def _node_dict(n: GraphNode) -> dict[str, Any]:
     out: dict[str, Any] = {"name": n.name, "pid": n.pid, "executable": n.executable, "launched": n.launched}
     if n.replay is not None:
         out["replay"] = {"recording": n.replay.recording, "factor": n.replay.factor}
+    if n.container is not None:
+        out["container"] = n.container
+    if n.nodelet is not None:
+        out["nodelet"] = n.nodelet
     return out
 
 
@@ -160,8 +169,14 @@ def read_graph(path: str | Path) -> Graph:
                     or isinstance(factor, bool) or not isinstance(factor, int | float) or not factor > 0:
                 raise fail(f"nodes[{i}].replay: expected {{recording, factor > 0}}, got {replay!r}")
             replayed = Replayed(replay["recording"], float(factor))
+        member = {}
+        for key in ("container", "nodelet"):
+            if raw.get(key) is not None:
+                if not isinstance(raw[key], str) or not raw[key]:
+                    raise fail(f"nodes[{i}].{key}: must be a name, got {raw[key]!r}")
+                member[key] = raw[key]
         nodes.append(GraphNode(raw["name"], pid, None if exe is None else str(exe), bool(raw.get("launched", True)),
-                               replayed))
+                               replayed, **member))
     topics = []
     for i, raw in enumerate(data.get("topics") or []):
         if not isinstance(raw, dict) or not isinstance(raw.get("name"), str) or not raw["name"]:

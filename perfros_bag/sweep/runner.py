@@ -74,6 +74,7 @@ from perfros_bag.sweep.launchfile import (
     node_command,
     read_launch,
 )
+from perfros_bag.sweep.nodelets import Nodelet, with_membership
 from perfros_bag.sweep.space import PLAYER_TOPICS, Run, Space, load_space, plan_runs
 
 if TYPE_CHECKING:
@@ -130,6 +131,7 @@ def sweep(launch_path: str | Path, space_path: str | Path, out: str | Path, *, d
     if outdir.exists() and not outdir.is_dir():
         raise InputError(outdir, "is not a directory, expected the folder to record into")
     inspected = _inspect_replay(launch, space, runs[0])
+    runs += _standalone_runs(launch, space, runs)
     outdir.mkdir(parents=True, exist_ok=True)
     require_free_space(outdir)
     manifest_path = outdir / "manifest.yaml"
@@ -167,11 +169,16 @@ def sweep(launch_path: str | Path, space_path: str | Path, out: str | Path, *, d
         entries[f"{run.name}.bag"] = {"path": f"{run.name}.bag", "cpu": f"{run.name}.cpu.csv",
                                       "computer": computer_name(), "units_per_core": SWEEP_UNITS_PER_CORE,
                                       "settings": settings}
+        if run.standalone:
+            from perfros_bag.system.names import system_node_name
+
+            entries[f"{run.name}.bag"]["standalone"] = [system_node_name(n) for n in run.standalone]
         speed = trace_speed(outdir / f"{run.name}.cpu.csv")  # measured by record-cpu as the run began
         if speed is not None:
             entries[f"{run.name}.bag"]["speed_factor"] = round(speed, 4)
         write_manifest(manifest_path, list(entries.values()), system_ref)
-        write_graph(outdir / "graph.yaml", graph)
+        if not run.standalone or not (outdir / "graph.yaml").exists():  # the graph with the managers
+            write_graph(outdir / "graph.yaml", graph)
         result.recorded.append(run.name)
         note(i, len(runs), run.name, "done", 1.0)
     with contextlib.suppress(OSError):
@@ -198,6 +205,35 @@ def _inspect_replay(launch: LaunchFile, space: Space, run: Run) -> Inspected | N
         raise InputError(space.path, f"replay.replaces: node(s) {', '.join(missing)} not in {launch.path} "
                          f"(its nodes: {', '.join(nodes)})")
     return inspected
+
+
+def _standalone_runs(launch: LaunchFile, space: Space, runs: list[Run]) -> list[Run]:
+    """The launch file's nodelets checked before anything starts (each loaded into a manager
+    it starts, of a type its package exports: :func:`~perfros_bag.sweep.nodelets.check_nodelets`)
+    and, when it loads any, one more run with every nodelet standalone at the defaults: what
+    splits the managers' CPU among their nodelets (:mod:`perfros_bag.characterisation.containers`)."""
+    import tempfile
+    from dataclasses import replace
+
+    from perfros_bag.rosrun.processes import ros_env
+    from perfros_bag.sweep.launchfile import resolve_launch
+    from perfros_bag.sweep.nodelets import check_nodelets
+    from perfros_bag.sweep.space import arg_text, default_value
+
+    values = {v.system_name: default_value(v, launch.args) for v in space.vary}
+    args = {v.arg: arg_text(values[v.system_name]) for v in space.vary if v.arg is not None}
+    with tempfile.TemporaryDirectory(prefix="perfros-nodelets-") as home:
+        env = ros_env("nodelets-" + uuid.uuid4().hex[:10], Path(home))
+        resolved = resolve_launch(launch, [{**runs[0].args, **args}], env, space.startup_timeout_s)[0]
+    if resolved.error is not None:
+        raise InputError(launch.path, f"roslaunch cannot load it: {resolved.error}")
+    nodelets = check_nodelets(resolved, launch.path)
+    if not nodelets or space.replay is not None:
+        return []
+    base = next((r for r in runs if dict(r.values) == values), None)
+    return [replace(runs[0], name=f"{base.name if base is not None else 'defaults'}__standalone", values=values,
+                    args=args, params={v.param: values[v.system_name] for v in space.vary if v.param is not None},
+                    repeat=1, standalone=tuple(sorted(nodelets)))]
 
 
 def _warn_unsubscribed(graph: Graph, inspected: Inspected) -> None:
@@ -421,11 +457,23 @@ class _Spread:
         return [f"{k}={v}" for k, v in addresses.items()]
 
 
+def _nodelets(launch: LaunchFile, args: Mapping[str, str], env: Mapping[str, str],
+              timeout: float) -> tuple[dict[str, Nodelet], set[str]]:
+    """The launch file's nodelets and nodelet managers with ``args`` (roslaunch's resolution)."""
+    from perfros_bag.sweep.launchfile import resolve_launch
+    from perfros_bag.sweep.nodelets import managers_of, nodelets_of
+
+    resolved = resolve_launch(launch, [args], env, timeout)[0]
+    return nodelets_of(resolved), managers_of(resolved)
+
+
 def _start_nodes(launch: LaunchFile, run: Run, nodes: list[str], spread: _Spread | None, uri: str, work: Path,
-                 procs: Processes, timeout: float) -> list[Started]:
+                 procs: Processes, timeout: float, standalone: frozenset[str] = frozenset()) -> list[Started]:
     """Each node (in its computer's namespace with a ``spread``), as ``roslaunch --args``
     would start it, after the launch file's parameters (``roslaunch --dump-params``) are set
-    on the master."""
+    on the master; a nodelet named in ``standalone`` as ``nodelet standalone``."""
+    from perfros_bag.sweep.nodelets import standalone_argv
+
     with ThreadPoolExecutor(max_workers=4) as pool:
         params = pool.submit(launch_params, launch, run.args, dict(procs.env), timeout)
         commands = list(pool.map(lambda n: node_command(launch, n, run.args, dict(procs.env), timeout), nodes))
@@ -435,11 +483,12 @@ def _start_nodes(launch: LaunchFile, run: Run, nodes: list[str], spread: _Spread
     started = []
     for i, cmd in enumerate(commands):
         argv = ["env", *(f"{k}={v}" for k, v in cmd.env.items())]
+        words = standalone_argv(cmd.argv) if cmd.node in standalone else list(cmd.argv)
         if spread is not None:
             comp = spread.computer(cmd.node)
-            argv = spread.network.wrap(comp, [*argv, *spread.env(comp, uri), *cmd.argv])
+            argv = spread.network.wrap(comp, [*argv, *spread.env(comp, uri), *words])
         else:
-            argv += cmd.argv
+            argv += words
         started.append(procs.start(cmd.node, argv, work / f"node{i}.log", cwd=Path(procs.env["ROS_HOME"])))
     return started
 
@@ -459,15 +508,21 @@ def _record(launch: LaunchFile, space: Space, run: Run, work: Path, procs: Proce
     note("roscore", 0.0)
     if spread is not None:
         procs.env["ROS_IP"] = spread.network.address(spread.master)
-    with ThreadPoolExecutor(max_workers=1) as pool:  # roslaunch --nodes while roscore starts
+    with ThreadPoolExecutor(max_workers=2) as pool:  # roslaunch --nodes while roscore starts
         listing = pool.submit(launch_nodes, launch, run.args, dict(procs.env), timeout)
+        members = pool.submit(_nodelets, launch, run.args, dict(procs.env), timeout)
         uri = start_roscore(procs, work, timeout, host=procs.env["ROS_IP"])
         nodes = listing.result()
+        nodelets, managers = members.result()
     for name, value in run.params.items():
         if master_call(uri, "setParam", name, value) is None:
             raise PerfrosError(f"the master did not take the parameter {name}={value!r}")
     log = work / "roslaunch.log"
-    if replay is not None and run.factor is not None:  # the replaced nodes: a player each, under their names
+    if run.standalone:  # every nodelet in a process of its own; no manager
+        nodes = [n for n in nodes if n not in managers]
+        watch = _Watch(None, log, _start_nodes(launch, run, nodes, spread, uri, work, procs, timeout,
+                                               frozenset(run.standalone)))
+    elif replay is not None and run.factor is not None:  # the replaced nodes: a player each, under their names
         replaced = {s.node for s in replay.inspected.stands}
         started = _start_nodes(launch, run, [n for n in nodes if n not in replaced], spread, uri, work, procs,
                                timeout)
@@ -517,7 +572,7 @@ def _record(launch: LaunchFile, space: Space, run: Run, work: Path, procs: Proce
         _check(watch, "settling")
         note("settling", 0.0)
         time.sleep(min(0.2, max(0.0, deadline - time.monotonic())))
-    graph = capture_graph(uri, nodes, OWN_NODES, run.name)
+    graph = with_membership(capture_graph(uri, nodes, OWN_NODES, run.name), nodelets)
     if replay is not None and run.factor is not None:
         graph = _replayed_graph(graph, space, replay, run.factor)
     for n in graph.nodes:
@@ -568,7 +623,7 @@ def _record(launch: LaunchFile, space: Space, run: Run, work: Path, procs: Proce
     _check(watch, "the recording")
     window("end")
     ended_ns = time.time_ns()
-    graph = _with_later_edges(graph, capture_graph(uri, nodes, OWN_NODES, run.name))
+    graph = _with_later_edges(graph, with_membership(capture_graph(uri, nodes, OWN_NODES, run.name), nodelets))
     if replay is not None and run.factor is not None:
         graph = _replayed_graph(graph, space, replay, run.factor)
     note("recording", 1.0)

@@ -164,6 +164,9 @@ class Run:
     params: Mapping[str, Value]  # ROS parameter -> value
     repeat: int
     factor: float | None = None  # replay: the recording's play-rate factor in this run
+    #: nodelets run standalone (``nodelet standalone``) instead of in their manager (full ROS
+    #: names); their managers are not started (perfros_bag.sweep.nodelets)
+    standalone: tuple[str, ...] = ()
 
 
 def load_space(path: str | Path) -> Space:

@@ -223,11 +223,12 @@ def _parse_node(n: Any, where: str, path: str) -> PlannedNode:
     )
 
 
-def check_against_system(plan: Plan, system: System) -> None:
+def check_against_system(plan: Plan, system: System, plan_path: str | Path | None = None) -> None:
     """Every node of the plan must be a node of ``system``, every computer of the plan one
     of its computers, and a driven node's ``input`` the system's (an :class:`InputError`
     naming the system otherwise): a plan for another system cannot be validated or
-    deployed with this one."""
+    deployed with this one. The nodes of one container must share a computer
+    (:meth:`System.container_problem`: an error naming the plan)."""
     unknown = [n for n in plan.nodes if n not in system.node]
     if unknown:
         raise InputError(system.source, f"plan node(s) {', '.join(map(repr, unknown))} are not in the system")
@@ -240,6 +241,9 @@ def check_against_system(plan: Plan, system: System) -> None:
         if pn.input != wanted:
             raise InputError(system.source, f"plan node {name!r} follows input {pn.input or 'none'}, the system's "
                                             f"follows {wanted or 'none'}: the plan was made from another system")
+    split = system.container_problem({n: p.computer for n, p in plan.nodes.items()})
+    if split is not None:
+        raise InputError(plan_path, split)
 
 
 def plan_system(plan: Plan, plan_path: str | Path, system_path: str | Path | None = None) -> System | None:
@@ -251,7 +255,7 @@ def plan_system(plan: Plan, plan_path: str | Path, system_path: str | Path | Non
 
     if system_path is not None:
         system = load_system(system_path)
-        check_against_system(plan, system)
+        check_against_system(plan, system, plan_path)
         return system
     if not plan.system:
         return None
@@ -264,7 +268,7 @@ def plan_system(plan: Plan, plan_path: str | Path, system_path: str | Path | Non
                 warnings.warn(f"the plan's system could not be read ({exc}); going on without it",
                               PerfrosWarning, stacklevel=2)
                 return None
-            check_against_system(plan, system)
+            check_against_system(plan, system, plan_path)
             return system
     warnings.warn(f"the plan's system {plan.system!r} was not found (beside the plan or here): "
                   "links are not checked and CPU traces match nodes by name only",

@@ -16,8 +16,8 @@ from typing import Any
 
 from perfros_bag.errors import InputError, PerfrosWarning
 from perfros_bag.fileio import SYSTEM_KIND, expect_kind, file_kind, kind_of, read_yaml, unknown_keys
-from perfros_bag.fitting.modelfile import read_model_system
 from perfros_bag.limits import MAX_COEFFICIENT, MAX_MAGNITUDE, number_problem
+from perfros_bag.system.modelpart import read_model_system
 from perfros_bag.system.names import (
     NameKind,
     address_problem,
@@ -50,7 +50,7 @@ LINK_KEYS = {"between", "bandwidth_kBps", "medium"}
 MEDIUM_KEYS = {"name", "bandwidth_kBps"}
 NODE_KEYS = {
     "name", "weight", "residence", "coresidence", "parameter", "topics", "process",
-    "settings", "curve", "launch", "relations", "metric", "input", "cpu_error_between",
+    "settings", "curve", "launch", "relations", "metric", "input", "cpu_error_between", "container",
 }
 METRIC_KEYS = {"topic", "field", "aggregate", "better", "range"}
 #: ``cpu_error`` (optional, CPU units >= 0): what the setting may need beyond its ``cpu``
@@ -208,6 +208,7 @@ def parse_system(data: Any, source: str = "system.yaml") -> System:
                 raise ctx.fail(f"node {n.name!r}: coresidence", f"unknown node {m!r}")
             if m == n.name:
                 raise ctx.fail(f"node {n.name!r}: coresidence", "a node cannot list itself")
+    _check_containers(ctx, nodes)
 
     total = sum(n.weight for n in nodes)
     if abs(total - 1.0) > 1e-6:
@@ -345,6 +346,23 @@ def _check_outputs(ctx: _Ctx, curve: Curve, where: str) -> None:
         raise ctx.fail(where, problem)
 
 
+def _check_containers(ctx: _Ctx, nodes: list[Node]) -> None:
+    """``container`` names another node of the system, one that is not hosted itself."""
+    by_name = {n.name: n for n in nodes}
+    for n in nodes:
+        if n.container is None:
+            continue
+        host = by_name.get(n.container)
+        if host is None:
+            raise ctx.fail(f"node {n.name!r}: container", f"unknown node {n.container!r} (the container is a node "
+                                                          "of the system: the process that hosts it)")
+        if host.name == n.name:
+            raise ctx.fail(f"node {n.name!r}: container", "a node cannot host itself")
+        if host.container is not None:
+            raise ctx.fail(f"node {n.name!r}: container", f"{host.name!r} is itself hosted by {host.container!r}: "
+                                                          "a container runs in a process of its own")
+
+
 def _nodes(ctx: _Ctx, raw: Any, computers: set[str]) -> list[Node]:
     out: list[Node] = []
     for name, where, m in ctx.named(raw, "nodes", "node", NODE_KEYS, {"name", "weight"}, kind=NameKind.NODE):
@@ -416,8 +434,10 @@ def _nodes(ctx: _Ctx, raw: Any, computers: set[str]) -> list[Node]:
         between = ctx.opt_number(m.get("cpu_error_between"), f"{where}: cpu_error_between", nonneg=True)
         if between is not None and curve is None:
             raise ctx.fail(f"{where}: cpu_error_between", "only a node with a curve has CPU levels between its settings")
+        container = None if m.get("container") is None else ctx.name(m["container"], f"{where}: container",
+                                                                       NameKind.NODE)
         out.append(Node(name, weight, settings, curve, residence, coresidence, parameter,
-                        topics, process, launch, relations, metric, driven_by, between))
+                        topics, process, launch, relations, metric, driven_by, between, container))
     return out
 
 

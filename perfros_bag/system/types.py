@@ -331,6 +331,9 @@ class Node:
     #: a curve node: CPU units a level between its settings carries beyond their interpolated
     #: errors (perfros_bag.system.cpuerror; ``fit``: the parameter->cpu fit's leave-one-out RMSE)
     cpu_error_between: float | None = None
+    #: the node that hosts it in its process (system.yaml ``container``: a nodelet's manager, a
+    #: ROS 2 component's container); None: a process of its own
+    container: str | None = None
 
     @property
     def driven(self) -> bool:
@@ -456,6 +459,27 @@ class System:
         return tuple(c.name for c in self.computers if all(c.name in a for a in allowed))
 
     @cached_property
+    def containers(self) -> dict[str, tuple[str, ...]]:
+        """Each container (a node that hosts others: system.yaml ``container``) -> the nodes
+        it hosts, in node order."""
+        out: dict[str, list[str]] = {}
+        for n in self.nodes:
+            if n.container is not None:
+                out.setdefault(n.container, []).append(n.name)
+        return {k: tuple(v) for k, v in out.items()}
+
+    def container_problem(self, where: Mapping[str, str]) -> str | None:
+        """The first container whose nodes ``where`` (node -> computer) puts on different
+        computers: the membership is kept, so a container's nodes share its computer."""
+        for host, members in self.containers.items():
+            split = {m: where[m] for m in (host, *members) if m in where}
+            if len(set(split.values())) > 1:
+                return (f"container {host}: its nodes are on different computers "
+                        f"({', '.join(f'{m} on {c}' for m, c in split.items())}); a container's nodes share its "
+                        "process, so its computer")
+        return None
+
+    @cached_property
     def coresidence_groups(self) -> list[tuple[str, ...]]:
         """Nodes that must share a computer (the transitive closure of coresidence), in node
         order; singletons included."""
@@ -467,8 +491,8 @@ class System:
                 x = parent[x]
             return x
 
-        for n in self.nodes:
-            for m in n.coresidence:
+        for n in self.nodes:  # a container's nodes share its process, so its computer
+            for m in (*n.coresidence, *((n.container,) if n.container is not None else ())):
                 ra, rb = find(n.name), find(m)
                 if ra != rb:
                     parent[rb] = ra

@@ -57,6 +57,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from perfros_bag.errors import InputError, PerfrosError, PerfrosWarning
+from perfros_bag.fileio import atomic_open
 from perfros_bag.tune.tunefile import TUNE_FORMAT, read_tune, write_tune
 
 if TYPE_CHECKING:
@@ -88,6 +89,8 @@ _ROUND_RECORDING = re.compile(r"round-\d+/run\.bag")
 RESCALED_COLUMNS = ("cpu_units_mean", "cpu_units_p95", "frequency_hz", "bandwidth_kBps", "median_rate_hz")
 
 Progress = Callable[[str], None]
+#: the rounds of tune.json -> a PNG (tune.png)
+Plot = Callable[[list[dict[str, Any]]], bytes]
 
 
 @dataclass
@@ -115,10 +118,13 @@ def tune(launch_path: str | Path, space_path: str | Path, system_path: str | Pat
          rounds: int = 3, tolerance: float | None = None, method: str = "exact", headroom: float | str = 0.0,
          duration: float | None = None, units_per_core: float = 100.0, net: bool = True, interval: float = 0.5,
          progress: Progress | None = None, on_round: Callable[[dict[str, Any]], None] | None = None,
-         base: str | Path | None = None) -> TuneResult:
+         base: str | Path | None = None, plot: Plot | None = None) -> TuneResult:
     """Run the loop into ``out`` (docs/formats.md, "tune"); resumes after the rounds an
     earlier start finished (``out/tune.json``). ``base``: a characterisation.csv to start
-    from instead of sweeping (the launch file and space still say how to deploy)."""
+    from instead of sweeping (the launch file and space still say how to deploy).
+    ``plot``: the rounds -> a PNG, written to ``out/tune.png`` after every round (the CLI
+    passes :func:`perfros_bag.report.tune_plots.plot_tune`: the report sits above the
+    loop, whose tune.json it reads)."""
     from perfros_bag.sweep.deploy import deploy
     from perfros_bag.sweep.launchfile import check_space, read_launch
     from perfros_bag.sweep.runner import sweep
@@ -196,12 +202,12 @@ def tune(launch_path: str | Path, space_path: str | Path, system_path: str | Pat
         done.append(entry)
         ran += 1
         write_tune(outdir / "tune.json", doc)
-        _plot(outdir, doc)
+        _plot(outdir, doc, plot)
         if on_round is not None:
             on_round(entry)
     write_tune(outdir / "tune.json", doc)
     if doc["rounds"]:
-        _plot(outdir, doc)
+        _plot(outdir, doc, plot)
     return TuneResult(doc, resumed, ran)
 
 
@@ -550,9 +556,8 @@ def _fill_after(entry: dict[str, Any], model_path: Path) -> None:
         n["model_cpu_after"] = model_cpu(model, name, n["value"], n.get("input_hz"))
 
 
-def _plot(outdir: Path, doc: dict[str, Any]) -> None:
-    from perfros_bag.fileio import atomic_open
-    from perfros_bag.report.tune_plots import plot_tune
-
+def _plot(outdir: Path, doc: dict[str, Any], plot: Plot | None) -> None:
+    if plot is None:
+        return
     with atomic_open(outdir / "tune.png", "wb", encoding=None) as fh:
-        fh.write(plot_tune(doc["rounds"]))
+        fh.write(plot(doc["rounds"]))
