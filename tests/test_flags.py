@@ -75,7 +75,8 @@ def test_number_flag_refused_before_anything_starts(verb: str, flag: str, kind: 
     if kind == "int" and value in ("nan", "inf", "-inf"):
         return  # not an integer at all: click's own usage error for the flag
     lines = [ln for ln in result.output.splitlines() if ln.strip()]
-    expected = "1 or 2" if f"{verb} {flag}" == "solve --problem" else "a finite number"
+    expected = "1 or 2" if f"{verb} {flag}" == "solve --problem" else \
+        "a whole number" if kind == "int" else "a finite number"
     assert len(lines) == 1 and lines[0].startswith(f"error: {flag} must be {expected}"), result.output
     assert list(tmp_path.iterdir()) == []  # nothing written
 

@@ -36,11 +36,13 @@ class Range:
             return False
         return self.high is None or x <= self.high
 
-    def __str__(self) -> str:
+    def describe(self, whole: bool = False) -> str:
+        """``a finite number > 0`` (``a whole number ...`` for an integer flag), or its text."""
         if self.text is not None:
             return self.text
         low = f"{'>' if self.low_open else '>='} {self.low:g}"
-        return f"a finite number {low}" + ("" if self.high is None else f" and <= {self.high:g}")
+        kind = "a whole number" if whole else "a finite number"
+        return f"{kind} {low}" + ("" if self.high is None else f" and <= {self.high:g}")
 
 
 #: The default range of a number flag.
@@ -78,4 +80,4 @@ def check_numbers(ctx: click.Context, values: Mapping[str, Any]) -> None:
             flag = max(param.opts, key=len)
             allowed = flag_range(verb, flag)
             if not allowed.admits(value):
-                raise InputError(None, f"{flag} must be {allowed}, got {value!r}")
+                raise InputError(None, f"{flag} must be {allowed.describe(isinstance(value, int))}, got {value!r}")
