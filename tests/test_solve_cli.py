@@ -220,6 +220,7 @@ def test_time_limit_is_the_whole_process_the_solver_gets_the_rest(monkeypatch: p
         return real(*args, **kwargs)  # type: ignore[arg-type]
 
     monkeypatch.setattr(solver, "solve", spy)
+    monkeypatch.setattr("perfros_bag.cli._app.WHOLE_PROCESS", True)  # as the console script sets it
     monkeypatch.setattr(solve_cli, "process_seconds", lambda: 7.0)
     code, _, stderr = cli(str(INSTANCE1), "--method", "exact", "--time-limit", "60")
     assert code == 0, stderr
@@ -230,3 +231,9 @@ def test_time_limit_is_the_whole_process_the_solver_gets_the_rest(monkeypatch: p
     handed.clear()
     cli(str(INSTANCE1), "--method", "exact", "--time-limit", "60")
     assert handed == [0.01]
+    # called from another program (this test's process started long ago): from the verb's start
+    monkeypatch.setattr("perfros_bag.cli._app.WHOLE_PROCESS", False)
+    handed.clear()
+    cli(str(INSTANCE1), "--method", "exact", "--time-limit", "60")
+    (given,) = handed
+    assert given is not None and 60 - (1 + 0.6 + 0.005 * rows) - 5 < given <= 60 - (1 + 0.6 + 0.005 * rows)

@@ -139,6 +139,14 @@ def command(*args: Any, group: typer.Typer | None = None, interrupted: str = "in
     return decorate
 
 
+#: True when the verb is this process (the console script, ``python -m perfros_bag``), not
+#: a call into the app from another program (a test's CliRunner): then a whole-process
+#: budget (``solve --time-limit``) counts from the process's start
+WHOLE_PROCESS = False
+
+
 def main() -> None:
     """Console-script entry point."""
+    global WHOLE_PROCESS
+    WHOLE_PROCESS = True
     app(prog_name="perfros-bag")

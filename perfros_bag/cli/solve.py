@@ -84,6 +84,15 @@ def process_seconds() -> float:
         return 0.0
 
 
+def spent_seconds(began: float) -> float:
+    """What the budget has spent: since the process started when the verb is the process
+    (:data:`perfros_bag.cli._app.WHOLE_PROCESS`), else since the verb began (``began``,
+    ``time.monotonic()``: the app called from another program)."""
+    from perfros_bag.cli import _app
+
+    return process_seconds() if _app.WHOLE_PROCESS else time.monotonic() - began
+
+
 def solve_budget(time_limit: float, spent: float, rows: int = 0) -> float:
     """What the solver gets of a whole-process ``time_limit`` when the process has spent
     ``spent`` seconds (start-up, reading the input): the rest, less the wind-down after
@@ -156,6 +165,7 @@ def solve(
                                           "(-o writes frontier.json and a PNG beside it)")] = None,
 ) -> None:
     """Choose a setting and a computer for every node (the paper's Problems 1 and 2)."""
+    began = time.monotonic()
     from perfros_bag.solver import METHODS
     from perfros_bag.solver import solve as run
     from perfros_bag.system.planfile import plan_document, save_plan
@@ -186,7 +196,7 @@ def solve(
     try:
         with _live_progress(method == "exact") as progress:
             rows = len(system.nodes) + len(system.computers) + len(system.links)  # the tables printed after
-            budget = None if time_limit is None else solve_budget(time_limit, process_seconds(), rows)
+            budget = None if time_limit is None else solve_budget(time_limit, spent_seconds(began), rows)
             plan = run(system, problem, method, resolution=resolution, settings=fixed, time_limit=budget,
                        progress=progress, headroom=kept)
     except ValueError as exc:  # a model that cannot be evaluated (e.g. a curve off its domain)
