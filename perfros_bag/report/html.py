@@ -32,6 +32,7 @@ from perfros_bag.report.fit_plots import plot_relations
 from perfros_bag.report.frontier_plots import plot_frontier
 from perfros_bag.report.plan_plots import plot_plan_loads
 from perfros_bag.report.validation_plots import number, plot_validation
+from perfros_bag.system.latency import budget_text
 from perfros_bag.system.plan import Plan
 
 MAX_TABLE_ROWS = 2000
@@ -193,9 +194,29 @@ def section_plan(plan: Plan, images: list[Image]) -> str:
             ("link", "medium", "bandwidth kB/s", "planned load kB/s"),
             [(" – ".join(link.between), link.medium, link.bandwidth_kBps, link.load_kBps) for link in plan.links],
             text_cols=(0, 1), table_id="plan-links")
+    chains = ""
+    if plan.chains:
+        chains = "<h3>Chains: predicted latency</h3>" + table(
+            ("chain", "topics", "predicted p50 ms", "predicted p95 ms", "budget"),
+            [row for c in plan.chains for row in _plan_chain_rows(c)], text_cols=(0, 1, 4), table_id="plan-chains")
     img = Image("plan_cpu.png", plot_plan_loads(plan), "planned CPU per computer")
     images.append(img)
-    return f'<h2 id="plan">Plan</h2>{head}<h3>Placement per computer</h3>{comp}{_img(img)}<h3>Nodes</h3>{nodes}{links}'
+    return (f'<h2 id="plan">Plan</h2>{head}<h3>Placement per computer</h3>{comp}{_img(img)}<h3>Nodes</h3>{nodes}'
+            f'{links}{chains}')
+
+
+def _plan_chain_rows(c: dict[str, Any]) -> list[tuple[Any, ...]]:
+    """A plan.json chain and its hops as rows: predicted p50/p95 (ms) and the budget."""
+    def pred(d: dict[str, Any]) -> tuple[Any, Any]:
+        p = d.get("predicted_ms")
+        return (number(p.get("p50")), number(p.get("p95"))) if isinstance(p, dict) else ("-", "-")
+
+    rows: list[tuple[Any, ...]] = [(c.get("name"), " -> ".join(map(str, c.get("topics", []))), *pred(c),
+                                    budget_text(c.get("budget_ms")) if "unpredicted" not in c
+                                    else f"{budget_text(c.get('budget_ms'))} (not predicted: {c['unpredicted']})")]
+    rows += [("", f"hop {h.get('from')} -> {h.get('to')} ({h.get('node')} on {h.get('computer')})", *pred(h), "")
+             for h in c.get("hops", []) if isinstance(h, dict)]
+    return rows
 
 
 def _link_name(lc: dict[str, Any]) -> str:
@@ -203,6 +224,18 @@ def _link_name(lc: dict[str, Any]) -> str:
     if len(between) == 2 and between[0] == between[1]:
         return f"medium {between[0]}"
     return " – ".join(between)
+
+
+def _predicted_s(pred: Any) -> tuple[str, str]:
+    """A ``predicted_ms`` {p50, p95} as seconds, beside the measured columns."""
+    if not isinstance(pred, dict):
+        return "-", "-"
+    return tuple(number(p / 1000.0) if isinstance(p := pred.get(q), int | float) else "-"  # type: ignore[return-value]
+                 for q in ("p50", "p95"))
+
+
+def _held(held: Any) -> str:
+    return "-" if held is None else "yes" if held is True else "no"
 
 
 def _section_latency(v: dict[str, Any]) -> str:
@@ -221,12 +254,15 @@ def _section_latency(v: dict[str, Any]) -> str:
     for c in (c for c in v.get("chains", []) if isinstance(c, dict)):
         topics = [str(t) for t in c.get("topics", [])]
         rows.append((c.get("name"), " -> ".join(topics), c.get("matched"), c.get("messages"), number(c.get("p50_s")),
-                     number(c.get("p95_s")), number(c.get("max_s"))))
+                     number(c.get("p95_s")), number(c.get("max_s")), *_predicted_s(c.get("predicted_ms")),
+                     budget_text(c.get("budget_ms")), _held(c.get("budget_held"))))
         rows += [("", f"hop {h.get('from')} -> {h.get('to')}", h.get("matched"), "", number(h.get("p50_s")),
-                  number(h.get("p95_s")), number(h.get("max_s"))) for h in c.get("hops", []) if isinstance(h, dict)]
+                  number(h.get("p95_s")), number(h.get("max_s")), *_predicted_s(h.get("predicted_ms")), "", "")
+                 for h in c.get("hops", []) if isinstance(h, dict)]
     if rows:
-        parts.append("<h3>Chains: end-to-end latency</h3>" + table(
-            ("chain", "topics", "matched", "messages", "p50 s", "p95 s", "max s"), rows, text_cols=(0, 1),
+        parts.append("<h3>Chains: end-to-end latency, measured beside predicted</h3>" + table(
+            ("chain", "topics", "matched", "messages", "p50 s", "p95 s", "max s", "predicted p50 s",
+             "predicted p95 s", "budget", "budget held"), rows, text_cols=(0, 1, 9, 10),
             table_id="validation-chains"))
     return "".join(parts)
 

@@ -16,6 +16,13 @@ from collections.abc import Mapping
 
 from perfros_bag.errors import InputError
 from perfros_bag.solver.bruteforce import solve_bruteforce
+from perfros_bag.solver.budgets import (
+    budgeted,
+    impossible_budget,
+    restate_chains,
+    solve_with_cuts,
+    within_budgets,
+)
 from perfros_bag.solver.candidates import fixed_choices
 from perfros_bag.solver.flow import solve_heuristic
 from perfros_bag.solver.instance import Progress, prepare_instance, within_trivial_bound
@@ -136,6 +143,7 @@ def _give_back_errors(system: System, plan: Plan, inflated: Mapping[str, list[Ch
         pc.margin = round(margin[name], 9)
         if sized and system.computer[name].kind == "server":
             pc.capacity = pc.cpu + pc.margin
+    restate_chains(system, plan)
 
 
 def _same_number(a: float | None, b: float | None) -> bool:
@@ -171,13 +179,17 @@ def _give_back(system: System, plan: Plan, headroom: float) -> Plan:
     if sized:
         plan.objective = None if plan.objective is None else plan.objective / keep
         plan.bound = None if plan.bound is None else plan.bound / keep
+    restate_chains(system, plan)
     return plan
 
 
 def _dispatch(system: System, problem: Problem, method: Method, choices: dict[str, list[Choice]],
               deadline: float | None, progress: Progress | None) -> Plan:
+    budgets = bool(budgeted(system))
+    if budgets and (impossible := impossible_budget(system, choices)) is not None:
+        return Plan.infeasible(problem, method, impossible, system=system.source)
     if method in (Method.GREEDY, Method.GREEDY_PLUS):
-        return solve_heuristic(system, problem, choices, method)
+        return within_budgets(system, problem, choices, solve_heuristic(system, problem, choices, method), method)
     if method == Method.BRUTEFORCE:
         return solve_bruteforce(system, problem, choices)
     try:  # deferred: numpy and HiGHS, for the exact method only
@@ -193,13 +205,18 @@ def _dispatch(system: System, problem: Problem, method: Method, choices: dict[st
     columns = exact_columns(system, choices)
     # the decomposition prices robots one by one: a data flow across them is the MILP's (its rows)
     if problem == Problem.PERFORMANCE and columns > DECOMPOSE_COLUMNS and not isinstance(prepared, str) \
-            and not system.has_flow:
+            and not system.has_flow and not budgets:
         from perfros_bag.solver.decompose import solve_decomposed  # deferred: numpy, HiGHS
 
         decomposed = solve_decomposed(system, problem, choices, time_limit=left(), progress=progress,
                                       prepared=prepared)
         if decomposed is not None:
             return within_trivial_bound(system, problem, choices, decomposed)
+    if budgets and not isinstance(prepared, str):  # lazy cuts; a start would be cut and offered again
+        return solve_with_cuts(system, problem, choices,
+                               lambda cuts: exact.solve_exact(system, problem, choices, time_limit=left(),
+                                                              prepared=prepared, cuts=cuts),
+                               lambda: deadline is not None and time.perf_counter() >= deadline)
     start = None if isinstance(prepared, str) else _exact_start(system, problem, choices, left(), columns)
     return exact.solve_exact(system, problem, choices, time_limit=left(), start=start, prepared=prepared)
 

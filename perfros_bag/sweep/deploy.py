@@ -172,7 +172,7 @@ def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Pat
         "duration_s": space.duration_s, "values": dict(run.values), "args": dict(run.args),
         "params": dict(run.params),
         "cpu_cap": {"mode": mode, "reason": reason, "cgroups": groups.mode, "cores": cores,
-                    "units_per_core": units_per_core},
+                    "units_per_core": units_per_core, **groups.cap_record()},
         "throttling": {c: {k: v - throttle.get("start", {}).get(c, {}).get(k, 0.0) for k, v in end.items()}
                        for c, end in throttle.get("end", {}).items()},
         "network": {**described, "links_measured": _link_use(links_before, links_after, network),

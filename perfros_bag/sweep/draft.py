@@ -12,7 +12,9 @@
   runs at that value; the characterisation of every run with a skeleton of this system);
 - a node whose output followed the rate of a topic it subscribes to as driven (``input:``,
   per setting ``cpu`` + ``cpu_per_hz`` x the input's rate, ``out_per_in``, ``bytes_per_msg``:
-  :mod:`perfros_bag.sweep.driven`); the node publishing that topic keeps its settings;
+  :mod:`perfros_bag.sweep.driven`), a throttle of that topic likewise with its value as
+  ``max_frequency_hz`` (and ``step: period`` for topic_tools' rule); the node publishing that
+  topic keeps its settings;
 - what only the user knows, as a stated default and a comment: weights equal; performance
   ``100 x`` the node's measured output frequency ``/`` its highest (eq 10 measures
   performance through the output frequency);
@@ -332,6 +334,7 @@ def _render(d: Path, graph: Graph, skeleton: Any, rows: Sequence[Row], values: M
         lines += [f"  - {flow(e)}" for e in edges]
     elif not from_graph:
         lines.append("# edges: unknown without graph.yaml: add {from: NODE, to: NODE, topic: TOPIC} per subscription")
+    lines += _render_chains(nodes, follows, flow)
     return "\n".join(lines) + "\n"
 
 
@@ -344,23 +347,63 @@ def _container_lines(node: Any, ros: GraphNode | None) -> list[str]:
             "of that process's, fitted over the runs (docs/formats.md, Nodelets)"]
 
 
+def _render_chains(nodes: Sequence[Any], follows: Mapping[str, Follow], flow: Callable[[Any], str]) -> list[str]:
+    """One chain per driven node fed by a node on its own clock: its input, then its first
+    topic, on through the driven nodes each one feeds (their first topics); its budget is
+    left for the user to state (docs/formats.md, ``budget_ms``)."""
+    topics_of = {n.name: list(n.topics) for n in nodes}
+    fed_by = {f.topic: name for name, f in follows.items()}
+    chains: list[tuple[str, list[str]]] = []
+    for name, f in follows.items():
+        if f.publisher in follows or not topics_of.get(name):
+            continue
+        path, at = [f.topic, topics_of[name][0]], name
+        while (nxt := fed_by.get(path[-1])) is not None and nxt not in path and topics_of.get(nxt):
+            path.append(topics_of[nxt][0])
+            at = nxt
+        chains.append((at, path))
+    if not chains:
+        return []
+    lines = ["# the data flow's chains: their latency is measured (validate) and predicted (solve);",
+             "# a budget_ms makes every plan keep its predicted latency within it",
+             "chains:"]
+    for at, path in chains:
+        lines += [f"  - name: {flow(at)}", f"    topics: {flow(path)}",
+                  "    # budget_ms: {p95: 250}  # REPLACE: the most its latency may be, in ms (p50 and/or p95)"]
+    return lines
+
+
 def _render_driven(node: Any, exe: str, keys: Sequence[int | float | None], weight: float, follow: Follow,
                    runs: Mapping[str, RunMeasure], flow: Callable[[Any], str],
                    ros: GraphNode | None = None) -> list[str]:
     """A driven node's lines (perfros_bag/sweep/driven.py: the rule and the numbers)."""
-    from perfros_bag.sweep.driven import INPUT_VARIED, RATIO_TOLERANCE, draft_settings
+    from perfros_bag.sweep.driven import (
+        INPUT_VARIED,
+        RATIO_TOLERANCE,
+        draft_settings,
+        draft_throttle,
+    )
 
-    drafted = draft_settings(node.topics, runs, follow)
+    drafted = (draft_settings if follow.throttle is None else draft_throttle)(node.topics, runs, follow)
     missing = [k for k in keys if repr(k) not in drafted]
     if missing:
         raise InputError(None, f"node {node.name}: no run measured it at value {missing[0]}")
     settings = [drafted[repr(k)] for k in keys]
     top = max(s.out_per_in for s in settings)
+    if follow.throttle is not None:  # its performance follows what it lets through, as a paper node's
+        f_out = _throttle_output(node.topics, runs)
+        perf = {repr(k): 100.0 * f_out[repr(k)] / max(f_out.values()) for k in keys}
+        how = ("the step F_in / ceil(F_in / value) (a message passes once 1/value s have elapsed since the last)"
+               if follow.throttle == "period" else "min(F_in, value)")
+        said = [f"    # driven, a throttle: its output moved with its value, never above {follow.topic}'s rate, and",
+                f"    # every run gave {how}, the worst {100 * follow.spread:.1f} % off (max_frequency_hz = its value)"]
+    else:
+        said = [f"    # driven: its output kept one rate per message of {follow.topic} (within "
+                f"{100 * (RATIO_TOLERANCE - 1):.0f} %) while that rate varied by more than {100 * (INPUT_VARIED - 1):.0f} %"]
     lines = [f"  # /{node.name} ({exe})",
              f"  - name: {flow(node.name)}",
              f"    weight: {weight!r}  # REPLACE: every node weighs the same (a stated default)",
-             f"    # driven: its output kept one rate per message of {follow.topic} (within "
-             f"{100 * (RATIO_TOLERANCE - 1):.0f} %) while that rate varied by more than {100 * (INPUT_VARIED - 1):.0f} %",
+             *said,
              f"    input: {flow(follow.topic)}"]
     if node.parameter is not None:
         lines.append(f"    parameter: {flow(_parameter(node.parameter))}")
@@ -370,13 +413,21 @@ def _render_driven(node: Any, exe: str, keys: Sequence[int | float | None], weig
     lines.append(f"    process: {flow(node.process)}  # its ROS name in the sweep's CPU traces")
     lines.append("    # cpu + cpu_per_hz x input rate: least squares over the runs at each setting; "
                  "performance: REPLACE.")
-    lines.append(f"    # A stated default: 100 x its out_per_in / the highest ({_r(top)})")
+    if follow.throttle is not None:
+        lines.append("    # A stated default: 100 x its measured output rate / the highest")
+    else:
+        lines.append(f"    # A stated default: 100 x its out_per_in / the highest ({_r(top)})")
     lines.append("    settings:")
     for s in settings:
         entry: dict[str, Any] = {} if s.value is None else {"value": _norm(s.value)}
         entry.update(cpu=_r(s.cpu), cpu_per_hz=_r(s.cpu_per_hz),
                      performance=_r(100.0 * s.out_per_in / top) if top > 0 else 100.0,
                      out_per_in=_r(s.out_per_in), bytes_per_msg=_r(s.bytes_per_msg))
+        if follow.throttle is not None:
+            entry["performance"] = _r(perf[repr(s.value)])
+            entry["max_frequency_hz"] = _norm(s.value)
+            if follow.throttle == "period":
+                entry["step"] = "period"
         note = ""
         if s.clipped is not None:
             note = f"  # {s.clipped}"
@@ -385,6 +436,17 @@ def _render_driven(node: Any, exe: str, keys: Sequence[int | float | None], weig
                     "this setting's CPU")
         lines.append(f"      - {flow(entry)}{note}")
     return lines
+
+
+def _throttle_output(topics: Sequence[str], runs: Mapping[str, RunMeasure]) -> dict[str, float]:
+    """own value (``repr``) -> a throttle's mean output rate over its rated topics and runs."""
+    from perfros_bag.sweep.driven import rated_topics
+
+    rated = rated_topics(topics, runs)
+    acc: dict[str, list[float]] = {}
+    for m in runs.values():
+        acc.setdefault(repr(m.value), []).extend(m.rate(t) for t in rated)
+    return {k: sum(v) / len(v) for k, v in acc.items()}
 
 
 def _norm(v: float) -> float | int:

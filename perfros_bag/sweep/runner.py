@@ -764,18 +764,18 @@ def _published_bytes(stats: Any) -> dict[str, int]:
 def _node_trace(raw: Path, graph: Graph) -> Path:
     """The CPU trace with each row labelled with its ROS node (matched by PID); rows of
     other processes are dropped. Written beside ``raw`` as ``node.cpu.csv``."""
-    from perfros_bag.cpu.trace import read_cpu_trace, write_cpu_trace
+    from perfros_bag.cpu.trace import has_threads, read_cpu_trace, trace_rows, write_cpu_trace
 
     by_pid: Mapping[int, str] = {n.pid: n.name for n in graph.nodes if n.launched and n.pid is not None}
     tr = read_cpu_trace(raw)
-    rows: list[tuple[float, int, str, str, float, int]] = []
-    for t, pid, proc, cpu, rss in zip(tr.time.tolist(), tr.pid.tolist(), tr.process, tr.cpu_percent.tolist(),
-                                      tr.rss_bytes.tolist(), strict=True):
-        node = by_pid.get(int(pid))
+    rows: list[tuple[Any, ...]] = []
+    for row in trace_rows(tr):
+        node = by_pid.get(int(row[1]))
         if node is not None:
-            rows.append((t, int(pid), node, proc, cpu, int(rss)))
+            rows.append((row[0], int(row[1]), node, *row[3:]))
     dest = raw.with_name("node.cpu.csv")
     write_cpu_trace(dest, rows, host=tr.host or socket.gethostname(), logical_cpus=tr.logical_cpus,
-                    interval_s=tr.interval_s or 0.5, speed_factor=tr.speed_factor, reference_s=tr.reference_s)
+                    interval_s=tr.interval_s or 0.5, speed_factor=tr.speed_factor, reference_s=tr.reference_s,
+                    threads=has_threads(tr))
     return dest
 

@@ -27,7 +27,7 @@ from perfros_bag.system.types import Problem, System
 
 PLAN_FORMAT = "perfros-bag/plan@1"
 _KNOWN = {"format", "problem", "method", "status", "objective", "bound", "solve_s", "reason", "system",
-          "computers", "links", "nodes"}
+          "computers", "links", "nodes", "chains"}
 
 
 def plan_document(plan: Plan) -> dict[str, Any]:
@@ -61,6 +61,8 @@ def plan_document(plan: Plan) -> dict[str, Any]:
         }
         for name, n in plan.nodes.items()
     }
+    if plan.chains:
+        out["chains"] = plan.chains
     out.update(plan.extra)
     return out
 
@@ -175,7 +177,34 @@ def parse_plan(data: Any, path: str = "plan.json") -> Plan:
     for name, n in nodes.items():
         plan.nodes[name] = _parse_node(n, f"node {name!r}", path)
         _check_placed(plan, name, path, forced=forced)
+    plan.chains = _parse_chains(data.get("chains"), path)
     return plan
+
+
+def _parse_chains(raw: Any, path: str) -> list[dict[str, Any]]:
+    """plan.json ``chains``: each a name, its topics, ``predicted_ms`` {p50, p95} (numbers
+    >= 0, or null when it cannot be predicted), ``budget_ms`` and ``hops`` (each with its own
+    ``predicted_ms``); kept as read."""
+    if raw is None:
+        return []
+    if not isinstance(raw, list):
+        raise InputError(path, "chains must be a list")
+    for i, c in enumerate(raw):
+        where = f"chains[{i}]"
+        if not isinstance(c, dict) or not isinstance(c.get("name"), str):
+            raise InputError(path, f"{where}: needs a name")
+        for label, d in [(where, c), *((f"{where}.hops[{j}]", h) for j, h in enumerate(c.get("hops") or []))]:
+            if not isinstance(d, dict):
+                raise InputError(path, f"{label}: must be an object")
+            for key in ("predicted_ms", "budget_ms"):
+                pred = d.get(key)
+                if pred is None:
+                    continue
+                if not isinstance(pred, dict):
+                    raise InputError(path, f"{label}: {key!r} must be an object")
+                for q in ("p50", "p95"):
+                    _num(pred, q, f"{label}.{key}", path, nonneg=True)
+    return raw
 
 
 def is_forced(plan: Plan) -> bool:

@@ -29,10 +29,12 @@ from perfros_bag.system.types import (
     CURVE_FORMS,
     Aggregate,
     Better,
+    Budget,
     Chain,
     Computer,
     Curve,
     Edge,
+    LatencyParams,
     Link,
     Medium,
     Metric,
@@ -43,22 +45,31 @@ from perfros_bag.system.types import (
     TopicRate,
 )
 
-TOP_KEYS = {"cpu_unit", "computers", "links", "media", "nodes", "edges", "machines", "chains"}
-CHAIN_KEYS = {"name", "topics"}
+TOP_KEYS = {"cpu_unit", "computers", "links", "media", "nodes", "edges", "machines", "chains", "latency"}
+CHAIN_KEYS = {"name", "topics", "budget_ms"}
+BUDGET_KEYS = {"p50", "p95"}
+#: system.yaml ``latency:`` (the latency model's parameters, perfros_bag.system.latency)
+LATENCY_KEYS = {"units_per_core", "overhead_ms", "queue_factor", "p95_ratio", "queue_size", "link_efficiency",
+                "service_scale", "node_p95_ratio", "source"}
 COMPUTER_KEYS = {"name", "kind", "capacity", "max_capacity"}
 LINK_KEYS = {"between", "bandwidth_kBps", "medium"}
 MEDIUM_KEYS = {"name", "bandwidth_kBps"}
 NODE_KEYS = {
     "name", "weight", "residence", "coresidence", "parameter", "topics", "process",
-    "settings", "curve", "launch", "relations", "metric", "input", "cpu_error_between", "container",
+    "settings", "curve", "launch", "relations", "metric", "input", "cpu_error_between", "container", "threads",
 }
 METRIC_KEYS = {"topic", "field", "aggregate", "better", "range"}
 #: ``cpu_error`` (optional, CPU units >= 0): what the setting may need beyond its ``cpu``
 #: (measured headroom, perfros_bag.system.cpuerror; ``fit`` writes it)
-SETTING_KEYS = {"value", "cpu", "performance", "frequency_hz", "bandwidth_kBps", "topics", "cpu_error"}
+#: ``threads`` (optional, >= 1, on a node or a setting): its busy threads, its weight in the
+#: CFS share of an overloaded computer (perfros_bag.system.cpushare; ``fit`` writes the node's)
+SETTING_KEYS = {"value", "cpu", "performance", "frequency_hz", "bandwidth_kBps", "topics", "cpu_error", "threads"}
 #: a driven node's setting (``input:``) also says how it follows its input rate, and its
-#: error as a share of its CPU (``cpu_error_share``, >= 0) instead of ``cpu_error``
-DRIVEN_KEYS = {"cpu_per_hz", "out_per_in", "max_frequency_hz", "bytes_per_msg", "cpu_error_share"}
+#: error as a share of its CPU (``cpu_error_share``, >= 0) instead of ``cpu_error``; ``step``
+#: (with ``max_frequency_hz``): how the cap acts, :data:`STEPS`
+DRIVEN_KEYS = {"cpu_per_hz", "out_per_in", "max_frequency_hz", "bytes_per_msg", "cpu_error_share", "step"}
+#: ``step: period``: a period throttle (topic_tools/throttle), its output ``x / ceil(x / cap)``
+STEPS = ("period",)
 TOPIC_RATE_KEYS = {"frequency_hz", "bandwidth_kBps"}
 PARAMETER_KEYS = {"name", "unit", "type"}
 CURVE_KEYS = {"form", "coef", "cpu", "domain", "scale"}
@@ -216,11 +227,60 @@ def parse_system(data: Any, source: str = "system.yaml") -> System:
         nodes = [_reweight(n, n.weight / total) for n in nodes]
 
     chains = _chains(ctx, top.get("chains"), nodes, edges)
+    latency = _latency(ctx, top.get("latency"), node_names)
     system = System(tuple(computers), tuple(nodes), tuple(links), tuple(media), tuple(edges),
-                    cpu_unit, machines, source, chains)
+                    cpu_unit, machines, source, chains, latency)
     _check_groups(ctx, system)
     _check_flow(ctx, system)
+    _check_budgets(ctx, system)
     return system
+
+
+def _check_budgets(ctx: _Ctx, system: System) -> None:
+    """A chain with a budget must be one the latency model can follow, hop by hop."""
+    from perfros_bag.system.latency import chain_hops
+
+    for chain in system.chains:
+        if chain.budget_ms is None:
+            continue
+        hops = chain_hops(system, chain)
+        if isinstance(hops, str):
+            raise ctx.fail(f"chain {chain.name!r}: budget_ms", f"its latency cannot be predicted: {hops}")
+
+
+def _latency(ctx: _Ctx, raw: Any, nodes: set[str]) -> LatencyParams:
+    """``latency: {units_per_core, overhead_ms, queue_factor, p95_ratio, queue_size,
+    link_efficiency, service_scale: {node: x}, node_p95_ratio: {node: x}, source}``, every
+    field optional (the defaults of :class:`LatencyParams`)."""
+    if raw is None:
+        return LatencyParams()
+    m = ctx.mapping(raw, "latency", LATENCY_KEYS)
+    base = LatencyParams()
+    kw: dict[str, Any] = {}
+    for key in ("units_per_core", "p95_ratio", "link_efficiency"):
+        if m.get(key) is not None:
+            kw[key] = ctx.number(m[key], f"latency.{key}", positive=True)
+    for key in ("overhead_ms", "queue_factor"):
+        if m.get(key) is not None:
+            kw[key] = ctx.number(m[key], f"latency.{key}", nonneg=True)
+    if kw.get("p95_ratio", base.p95_ratio) < 1:
+        raise ctx.fail("latency.p95_ratio", f"must be at least 1, got {kw['p95_ratio']:g}")
+    if kw.get("link_efficiency", base.link_efficiency) > 1:
+        raise ctx.fail("latency.link_efficiency", f"must be at most 1, got {kw['link_efficiency']:g}")
+    if m.get("queue_size") is not None:
+        q = ctx.number(m["queue_size"], "latency.queue_size", positive=True)
+        if q != int(q):
+            raise ctx.fail("latency.queue_size", f"must be a whole number of messages, got {q:g}")
+        kw["queue_size"] = int(q)
+    for key in ("service_scale", "node_p95_ratio"):
+        per = ctx.mapping(m.get(key) or {}, f"latency.{key}", nodes)
+        kw[key] = {str(n): ctx.number(v, f"latency.{key}.{n}", positive=True) for n, v in per.items()}
+        low = [n for n, v in kw[key].items() if key == "node_p95_ratio" and v < 1]
+        if low:
+            raise ctx.fail(f"latency.{key}.{low[0]}", "must be at least 1")
+    if m.get("source") is not None:
+        kw["source"] = ctx.string(m["source"], "latency.source")
+    return LatencyParams(**kw)
 
 
 def _check_flow(ctx: _Ctx, system: System) -> None:
@@ -436,9 +496,18 @@ def _nodes(ctx: _Ctx, raw: Any, computers: set[str]) -> list[Node]:
             raise ctx.fail(f"{where}: cpu_error_between", "only a node with a curve has CPU levels between its settings")
         container = None if m.get("container") is None else ctx.name(m["container"], f"{where}: container",
                                                                        NameKind.NODE)
+        threads = _threads(ctx, m.get("threads"), f"{where}: threads")
         out.append(Node(name, weight, settings, curve, residence, coresidence, parameter,
-                        topics, process, launch, relations, metric, driven_by, between, container))
+                        topics, process, launch, relations, metric, driven_by, between, container, threads))
     return out
+
+
+def _threads(ctx: _Ctx, raw: Any, where: str) -> float | None:
+    """An optional busy-thread count: a number >= 1."""
+    value = ctx.opt_number(raw, where, positive=True)
+    if value is not None and value < 1:
+        raise ctx.fail(where, f"must be >= 1 (busy threads), got {raw!r}")
+    return value
 
 
 def _metric(ctx: _Ctx, raw: Any, where: str) -> Metric:
@@ -474,6 +543,12 @@ def _setting(ctx: _Ctx, raw: Any, where: str, *, driven: bool = False) -> Settin
     elif "cpu_error" in m:
         raise ctx.fail(f"{where}.cpu_error", "a driven node (input:) states its error relative to its CPU: "
                                              "cpu_error_share")
+    step = m.get("step")
+    if step is not None:
+        if step not in STEPS:
+            raise ctx.fail(f"{where}.step", f"must be one of {', '.join(STEPS)}, got {step!r}"[:200])
+        if m.get("max_frequency_hz") is None:
+            raise ctx.fail(f"{where}.step", "a step says how max_frequency_hz caps the output: give max_frequency_hz")
     topics: dict[str, TopicRate] = {}
     if m.get("topics") is not None:
         tm = ctx.mapping(m["topics"], f"{where}.topics", set(m["topics"]) if isinstance(m["topics"], Mapping) else set())
@@ -498,8 +573,10 @@ def _setting(ctx: _Ctx, raw: Any, where: str, *, driven: bool = False) -> Settin
         out_per_in=ctx.opt_number(m.get("out_per_in"), f"{where}.out_per_in", nonneg=True),
         max_frequency_hz=ctx.opt_number(m.get("max_frequency_hz"), f"{where}.max_frequency_hz", nonneg=True),
         bytes_per_msg=ctx.opt_number(m.get("bytes_per_msg"), f"{where}.bytes_per_msg", nonneg=True),
+        step="period" if step == "period" else None,
         cpu_error=ctx.opt_number(m.get("cpu_error"), f"{where}.cpu_error", nonneg=True),
         cpu_error_share=ctx.opt_number(m.get("cpu_error_share"), f"{where}.cpu_error_share", nonneg=True),
+        threads=_threads(ctx, m.get("threads"), f"{where}.threads"),
     )
 
 
@@ -533,8 +610,21 @@ def _chains(ctx: _Ctx, raw: Any, nodes: list[Node], edges: list[Edge]) -> tuple[
         for i, t in enumerate(topics):
             if t not in known:
                 raise ctx.fail(f"{where}: topics[{i}]", f"{t!r} is not a topic of any node or edge of the system")
-        out.append(Chain(name, topics))
+        out.append(Chain(name, topics, _budget(ctx, m.get("budget_ms"), f"{where}: budget_ms")))
     return tuple(out)
+
+
+def _budget(ctx: _Ctx, raw: Any, where: str) -> Budget | None:
+    """``budget_ms: {p50: X, p95: Y}`` (either or both): positive, finite milliseconds."""
+    if raw is None:
+        return None
+    m = ctx.mapping(raw, where, BUDGET_KEYS)
+    bounds = {k: ctx.number(m[k], f"{where}.{k}", positive=True) for k in ("p50", "p95") if m.get(k) is not None}
+    if not bounds:
+        raise ctx.fail(where, "give p50, p95 or both (milliseconds)")
+    if "p50" in bounds and "p95" in bounds and bounds["p95"] < bounds["p50"]:
+        raise ctx.fail(where, f"p95 {bounds['p95']:g} ms is below p50 {bounds['p50']:g} ms")
+    return Budget(bounds.get("p50"), bounds.get("p95"))
 
 
 def _machines(ctx: _Ctx, raw: Any, computers: set[str]) -> dict[str, dict[str, str]]:

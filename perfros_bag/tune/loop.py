@@ -408,11 +408,16 @@ def fit_rounds(outdir: Path, system_path: str | Path, system: System, done: list
 
     rows = [] if base is None else base_rows(base)
     if base is None or done:
-        result = characterise(_entries(outdir, done, units_per_core, swept=base is None), system)
+        # the latency model is fitted on the sweep's runs (uncapped, without links, as its rule
+        # assumes there); each deployment recalibrates it below, beside its prediction
+        result = characterise(_entries(outdir, done, units_per_core, swept=base is None), system,
+                              latency=bool(system.chains) and system.has_flow)
         if result.failures:
             f = result.failures[0]
             raise InputError(outdir / "manifest.yaml", f"recording {f.recording}: {f.message}")
-        rows += result.rows
+        rounds = {round_recording(r) for r in done}
+        rows += [dataclasses.replace(r, latency_p50_s=None, latency_p95_s=None, latency_max_s=None)
+                 if r.recording in rounds else r for r in result.rows]
     k = len(done)
     csv_path, model_path = outdir / f"characterisation-{k}.csv", outdir / f"model-{k}.json"
     weighed = weigh(rows, done, {n.name for n in system.nodes if n.driven})
@@ -422,8 +427,47 @@ def fit_rounds(outdir: Path, system_path: str | Path, system: System, done: list
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", PerfrosWarning)  # the fit's notes are in model.json
         model = build_model(system_path, csv_path)
+    if done and system.chains:
+        _recalibrate_latency(outdir, model.document.system, done)
     write_model(model_path, model.document)
     return model_path
+
+
+def _recalibrate_latency(outdir: Path, doc_system: dict[str, Any], done: list[dict[str, Any]]) -> None:
+    """The latency model refitted from the deployments: each hop node's service scale is the
+    mean, over the rounds that measured its hop, of the scale that round's model used times
+    what its measured p50 left after the hop's predicted overhead and transfer over its
+    predicted service and wait (validation.json's chains beside the round's plan.json)."""
+    from perfros_bag.fileio import read_json
+    from perfros_bag.fitting.latency import params_json
+    from perfros_bag.system.systemfile import parse_system
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", PerfrosWarning)
+        system = parse_system(doc_system, "model")
+    over = system.latency.overhead_ms
+    scales: dict[str, list[float]] = {}
+    for r in done:
+        path = outdir / r["dir"] / "validation.json"
+        if not path.is_file() or not (outdir / r["model"]).is_file():
+            continue
+        used = ((read_json(outdir / r["model"]).get("system") or {}).get("latency") or {}).get("service_scale") or {}
+        plan_chains = {c.get("name"): c for c in (read_json(outdir / r["dir"] / "plan.json").get("chains") or [])}
+        for chain in read_json(path).get("chains") or []:
+            hops = {(h.get("from"), h.get("to")): h for h in plan_chains.get(chain.get("name"), {}).get("hops") or []}
+            for h in chain.get("hops") or []:
+                ph = hops.get((h.get("from"), h.get("to")))
+                if ph is None or h.get("p50_s") is None:
+                    continue
+                own = (ph.get("service_ms") or 0.0) + (ph.get("wait_ms") or 0.0)
+                left = 1000.0 * h["p50_s"] - over - (ph.get("transfer_ms") or 0.0)
+                if own > 0 and left > 0:
+                    scales.setdefault(ph["node"], []).append(float(used.get(ph["node"], 1.0)) * left / own)
+    if scales:
+        fitted = {n: sum(v) / len(v) for n, v in scales.items()}
+        params = dataclasses.replace(system.latency, service_scale={**system.latency.service_scale, **fitted},
+                                     source="tune")
+        doc_system["latency"] = params_json(params)
 
 
 def load_model(model_path: Path) -> System:
