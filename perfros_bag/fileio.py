@@ -140,10 +140,20 @@ def atomic_write_json(path: str | Path, data: Any) -> None:
     atomic_write_text(path, json_text(data) + "\n")
 
 
+def require_regular(path: Path, what: str) -> None:
+    """An :class:`InputError` for a path that exists but is neither a regular file nor a
+    directory (a named pipe, device or socket): opening a pipe blocks until someone writes,
+    and a device like /dev/zero never ends; said at once instead."""
+    if path.exists() and not path.is_file() and not path.is_dir():
+        raise InputError(path, f"is not a regular file (a named pipe, device or socket), expected a {what}")
+
+
 def read_text(path: str | Path, what: str = "file", *, newline: str | None = None) -> str:
-    """A text file's content; a missing, unreadable or non-UTF-8 file, or a directory,
-    becomes an :class:`InputError` naming it (``what`` says what was expected there)."""
+    """A text file's content; a missing, unreadable or non-UTF-8 file, a directory, a named
+    pipe or a device becomes an :class:`InputError` naming it (``what`` says what was
+    expected there)."""
     p = Path(path)
+    require_regular(p, what)
     try:
         with p.open(encoding="utf-8", newline=newline) as handle:
             return handle.read()

@@ -294,6 +294,16 @@ def test_bad_input_is_one_line_and_writes_nothing(tmp_path: Path) -> None:
     typed.write_text(APP.read_text().replace('<node name="camera"', '<node name="camera" respawn="perhaps"'))
     _one_line(_export(plan, typed, SPACE, out), out,
               str(typed), "roslaunch cannot read it", "perhaps")
+    # two ROS nodes that are one plan node (/cam/era and /cam_era are both cam_era): both named
+    clash = tmp_path / "clash.launch"
+    clash.write_text(APP.read_text().replace(
+        "</launch>", '<group ns="detector"><node name="x" pkg="opencv_apps" type="hough_circles" /></group>'
+                     '<node name="detector_x" pkg="opencv_apps" type="hough_circles" /></launch>'))
+    clashing = _plan(tmp_path / "clash.json", {"camera": ("robot1", "publish_rate", 7.0, {}),
+                                               "detector": ("robot1", "canny_threshold", 100.0, {}),
+                                               "detector_x": ("robot1", None, None, {})})
+    _one_line(_export(clashing, clash, SPACE, out), out,
+              str(clash), "ROS nodes /detector/x and /detector_x both are the plan's node detector_x")
     # --launch without --space, or with the ROS 2 format
     _one_line(_cli("export", str(plan), "--format", "roslaunch", "--out", str(out), "--launch", str(APP)), out,
               "--space")

@@ -119,6 +119,8 @@ _DELETE = object()
 @pytest.mark.parametrize(("path", "value", "expect"), [
     ("1.input", "/nobody/publishes", "no node of the system publishes /nobody/publishes"),
     ("1.settings.0.cpu_per_hz", _DELETE, "missing required field(s) 'cpu_per_hz'"),
+    ("1.settings.0.cpu_per_hz", None, "cpu_per_hz: must be a finite number, got None"),  # not taken as 0
+    ("2.settings.0.cpu_per_hz", None, "cpu_per_hz: must be a finite number, got None"),
     ("1.settings.0.cpu_per_hz", -1.0, "cpu_per_hz: must be >= 0"),
     ("1.settings.0.cpu_per_hz", float("nan"), "cpu_per_hz: must be a finite number"),
     ("1.settings.0.out_per_in", -0.5, "out_per_in: must be >= 0"),
@@ -397,3 +399,123 @@ def test_driven_wifi_fleet_every_camera_rate_a_knob() -> None:
     stream = sum(exact.nodes[f"camera{r}"].topics[f"/camera{r}/out"].bandwidth_kBps or 0 for r in offloaded)
     medium = next(m for m in s.media)
     assert stream <= medium.bandwidth_kBps + 1e-6
+
+
+class _Counting(dict):  # type: ignore[type-arg]
+    """flow_parent that counts its look-ups."""
+
+    looks = 0
+
+    def __getitem__(self, key: Any) -> Any:
+        _Counting.looks += 1
+        return super().__getitem__(key)
+
+    def __contains__(self, key: Any) -> bool:
+        _Counting.looks += 1
+        return super().__contains__(key)
+
+
+def _flow(parent: dict[str, str], names: list[str]) -> Any:
+    """Just what System.flow_cycle reads: the nodes in order and each driven node's publisher."""
+    from types import SimpleNamespace
+
+    return SimpleNamespace(nodes=[SimpleNamespace(name=n) for n in names], flow_parent=_Counting(parent))
+
+
+@pytest.mark.parametrize("seed", range(40))
+def test_flow_cycle_agrees_with_brute_force_on_random_input_graphs(seed: int) -> None:
+    from perfros_bag.system.types import System
+
+    rng = random.Random(seed)
+    names = [f"n{i}" for i in range(rng.randint(1, 12))]
+    parent = {n: rng.choice(names) for n in names if rng.random() < 0.7}
+
+    def on_cycle(n: str) -> bool:  # brute force: follow the inputs len(names) steps, back at n?
+        at: str | None = n
+        for _ in range(len(names)):
+            at = parent.get(at) if at is not None else None
+            if at == n:
+                return True
+        return False
+
+    cycle = System.flow_cycle(_flow(parent, names))
+    if not any(on_cycle(n) for n in names):
+        assert cycle is None
+    else:
+        assert cycle and len(set(cycle)) == len(cycle) and all(on_cycle(n) for n in cycle)
+        assert all(parent[a] == b for a, b in zip(cycle, cycle[1:] + cycle[:1], strict=True))
+
+
+@pytest.mark.parametrize("cyclic", [False, True])
+def test_flow_cycle_is_linear_in_the_chain(cyclic: bool) -> None:
+    """A 2,000-node chain listed from its end (the worst order for a walk per node): the
+    check looks each node's input up a bounded number of times (it was quadratic in
+    look-ups, and cubic in time with a list as the walk)."""
+    from perfros_bag.system.types import System
+
+    n = 2000
+    names = [f"n{i}" for i in range(n)]
+    parent = {f"n{i}": f"n{i - 1}" for i in range(1, n)}
+    if cyclic:
+        parent["n0"] = names[-1]
+    _Counting.looks = 0
+    cycle = System.flow_cycle(_flow(parent, names[::-1]))
+    assert (cycle is not None) == cyclic and (not cyclic or len(cycle) == n)  # type: ignore[arg-type]
+    assert _Counting.looks <= 4 * n
+
+
+def _chain(stages: int, settings: int, seed: int = 0) -> dict[str, Any]:
+    """A camera and ``stages`` driven nodes in a chain, each with ``settings`` settings whose
+    output ratios differ (so the input rates multiply along the chain)."""
+    rng = random.Random(seed)
+    nodes: list[dict[str, Any]] = [
+        {"name": "camera", "weight": 1, "residence": ["robot"], "parameter": {"name": "rate"}, "topics": ["/s0"],
+         "settings": [{"value": f, "cpu": f / 5, "performance": 10 * f, "frequency_hz": f} for f in (5, 10)]}]
+    for k in range(1, stages + 1):
+        nodes.append({"name": f"stage{k}", "weight": 1, "input": f"/s{k - 1}", "parameter": {"name": "p"},
+                      "topics": [f"/s{k}"],
+                      "settings": [{"value": j, "cpu": 0.1, "cpu_per_hz": round(rng.uniform(0.01, 0.2), 3),
+                                    "performance": 100 - j, "out_per_in": round(0.5 + 0.1 * j + rng.uniform(0, 0.05), 4),
+                                    "bytes_per_msg": 10} for j in range(settings)]})
+    return {"computers": [{"name": "robot", "kind": "robot", "capacity": 1000},
+                          {"name": "server", "kind": "server", "capacity": 1000}],
+            "links": [{"between": ["robot", "server"], "bandwidth_kBps": 1000}], "nodes": nodes}
+
+
+@pytest.mark.parametrize(("stages", "settings", "seed"), [(1, 3, 0), (3, 2, 1), (4, 3, 2), (2, 1, 3), (5, 2, 4)])
+def test_flow_choice_count_is_the_number_flow_choices_builds(stages: int, settings: int, seed: int) -> None:
+    system = parse_system(_chain(stages, settings, seed), "chain.yaml")
+    base = {n.name: n.choices(1.0) for n in system.nodes}
+    built = system.flow_choices(base)
+    assert system.flow_choice_count(base) == sum(len(v) for v in built.values())
+
+
+def test_chained_driven_nodes_past_the_limit_are_refused_before_any_choice_is_built(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """9 stages of 5 settings: 2 x 5^9 ~ 3.9 million choices on the last stage alone. The
+    count is made on rates only: no driven choice is built before the refusal."""
+    from perfros_bag.solver import MAX_CHOICES
+    from perfros_bag.system.types import System
+
+    system = parse_system(_chain(9, 5), "chain.yaml")
+    base = {n.name: n.choices(1.0) for n in system.nodes}
+    assert system.flow_choice_count(base, stop=MAX_CHOICES) > MAX_CHOICES
+    built: list[str] = []
+    monkeypatch.setattr(System, "driven_choice", lambda self, node, *a, **k: built.append(node.name))
+    with pytest.raises(InputError, match=f"more than {MAX_CHOICES:,} choices"):
+        system.flow_choices(base, limit=MAX_CHOICES)
+    assert built == []
+
+
+def test_solve_refuses_a_chain_past_the_choice_limit_before_building_it(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Through solve: 8 chained stages of 5 settings (the issue's case: 19.5 s and 498 MB to
+    be refused) end in the limit's one-line error with no driven choice built."""
+    from perfros_bag.system.types import System
+
+    system = parse_system(_chain(8, 5), "chain.yaml")
+    built: list[str] = []
+    monkeypatch.setattr(System, "driven_choice", lambda self, node, *a, **k: built.append(node.name))
+    for method in ("greedy", "exact"):
+        with pytest.raises(InputError, match=r"chain\.yaml: the driven nodes' settings .* more than 100,000 choices"):
+            solve(system, 1, method)
+    assert built == []

@@ -95,7 +95,7 @@ def test_cli_pareto_writes_json_and_png(tmp_path: Path) -> None:
     assert doc["points"][-1]["server_capacity"] == pytest.approx(high)
 
 
-@pytest.mark.parametrize("spec", ["500:400", "400:400", "x:5"])
+@pytest.mark.parametrize("spec", ["500:400", "400:400", "x:5", "300:600:1001", "300:600:1000000"])
 def test_cli_pareto_bad_range_is_one_line(tmp_path: Path, spec: str) -> None:
     path = tmp_path / "inst1.yaml"
     path.write_text(yaml.safe_dump(table2_instance(1)))
@@ -107,6 +107,48 @@ def test_cli_pareto_bad_range_is_one_line(tmp_path: Path, spec: str) -> None:
     assert not out.exists()
     result = runner.invoke(app, ["solve", str(path), "--problem", "2", "--pareto", "auto"])
     assert result.exit_code == 2 and result.stderr.startswith("error:")
+
+
+def test_too_many_points_are_refused_before_any_solve(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Issue 33, item 7: 1,000,000 points ran past 60 s and 2 GB; the cap (1,000) is checked
+    as the range is read: not one point is solved, nor the range's ends."""
+    import perfros_bag.solver.frontier as frontier_mod
+
+    def no_solve(*args: object, **kwargs: object) -> None:
+        raise AssertionError("a point was solved")
+
+    monkeypatch.setattr(frontier_mod, "solve", no_solve)
+    path = tmp_path / "inst2.yaml"
+    path.write_text(yaml.safe_dump(table2_instance(2)))
+    for spec in ("300:600:1000000", "::200000"):
+        result = runner.invoke(app, ["solve", str(path), "--method", "greedy", "--pareto", spec, "--json"])
+        assert result.exit_code == 2 and "at most 1,000 points" in result.stderr, result.output
+        assert result.stdout == ""
+    with pytest.raises(InputError, match="at most 1,000 points"):
+        frontier(table2(2), low=300, high=600, points=1001)
+
+
+def test_pareto_keeps_the_headroom_at_every_point(tmp_path: Path) -> None:
+    """Issue 33, item 3: --pareto with --headroom 0.5 was the frontier without it. Each point
+    must equal Problem 1 on the system with every computer's capacity halved (the robots'
+    and the servers' at that point), solved exactly here without any headroom."""
+    data = table2_instance(2)
+    path = tmp_path / "inst2.yaml"
+    path.write_text(yaml.safe_dump(data))
+    runs = {}
+    for headroom in ("0", "0.5"):
+        result = runner.invoke(app, ["solve", str(path), "--method", "exact", "--pareto", "500:800:4",
+                                     "--headroom", headroom, "--json"])
+        assert result.exit_code == 0, result.output
+        runs[headroom] = json.loads(result.stdout)
+    assert runs["0.5"]["headroom"] == 0.5 and runs["0"]["headroom"] == 0
+    for point in runs["0.5"]["points"]:
+        halved = json.loads(json.dumps(data))
+        for c in halved["computers"]:
+            c["capacity"] = (point["server_capacity"] if c["kind"] == "server" else c["capacity"]) * 0.5
+        plan = solve(parse_system(halved, "halved.yaml"), 1, "exact")
+        assert point["objective"] == pytest.approx(plan.objective, rel=1e-6), point
+    assert [p["objective"] for p in runs["0.5"]["points"]] != [p["objective"] for p in runs["0"]["points"]]
 
 
 def test_report_frontier_section_and_reader(tmp_path: Path) -> None:

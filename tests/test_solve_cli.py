@@ -105,7 +105,7 @@ def test_problem2_settings_values_and_plan(tmp_path: Path) -> None:
         (["missing.yaml"], "missing.yaml"),
         ([str(INSTANCE1), "--problem", "3"], "--problem must be 1 or 2"),
         ([str(INSTANCE1), "--method", "magic"], "--method must be one of"),
-        ([str(INSTANCE1), "--resolution", "0"], "--resolution must be > 0"),
+        ([str(INSTANCE1), "--resolution", "0"], "--resolution must be a finite number > 0"),
         ([str(INSTANCE1), "--problem", "2", "--settings", "tracker1=30"], "value 30 is outside its parameter's range [10, 25]"),
         ([str(INSTANCE1), "--problem", "2", "--settings", "youbot_core1=3"], "no setting with value 3"),
         ([str(INSTANCE1), "--problem", "2", "--settings", "ghost=1"], "unknown node 'ghost'"),
@@ -166,3 +166,74 @@ def test_a_fleet_past_its_time_limit_still_gets_a_checked_plan_and_a_proven_boun
     ceiling = trivial_bound(system, fixed_choices(system, 1))
     assert plan.objective - 1e-9 <= plan.bound <= ceiling + 1e-9
     assert (plan.status == "optimal") == (plan.bound - plan.objective <= 1e-6 * plan.objective)
+
+
+def test_piped_tables_keep_every_name_whole(tmp_path: Path) -> None:
+    """Issue 33, item 13: not on a terminal (a pipe, a file, CI's log) rich drew tables at 80
+    columns and cut names to 'navigat…'; now every node and computer name is there in full,
+    on one line of the table, and nothing is cut with an ellipsis."""
+    data = table2_instance(2)
+    renamed = {n["name"]: f"navigation_stack_{n['name']}_with_a_long_descriptive_name" for n in data["nodes"]}
+    for n in data["nodes"]:
+        n["name"] = renamed[n["name"]]
+    for e in data.get("edges", []):
+        e["from"], e["to"] = renamed[e["from"]], renamed[e["to"]]
+    computers = {c["name"]: f"{c['name']}-onboard-computer-in-the-rear-bay" for c in data["computers"]}
+    for c in data["computers"]:
+        c["name"] = computers[c["name"]]
+    for link in data.get("links", []):
+        link["between"] = [computers[x] for x in link["between"]]
+    for n in data["nodes"]:
+        if n.get("residence"):
+            n["residence"] = [computers[x] for x in n["residence"]]
+        if n.get("coresidence"):
+            n["coresidence"] = [renamed[x] for x in n["coresidence"]]
+    path = tmp_path / "long.yaml"
+    path.write_text(yaml.safe_dump(data))
+    code, stdout, stderr = cli(str(path), "--method", "greedy")
+    assert code == 0, stderr
+    assert "…" not in stdout
+    rows = stdout.splitlines()
+    for name in [*renamed.values(), *computers.values()]:
+        assert any(name in row for row in rows), name
+
+
+def test_process_seconds_counts_from_the_process_start() -> None:
+    """The interpreter's own start (here a 1 s sleep before the import) counts."""
+    code = "import time; time.sleep(1.0); from perfros_bag.cli.solve import process_seconds; print(process_seconds())"
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, cwd=ROOT)
+    assert 1.0 <= float(done.stdout) < 30, done.stderr
+
+
+def test_time_limit_is_the_whole_process_the_solver_gets_the_rest(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Issue 33, item 11: with --time-limit 60 and 7 s already spent by the process
+    (start-up, reading), the solver is handed 60 - 7 - the wind-down: 1 s + 1 % of 60 s +
+    5 ms per row of the plan's tables (instance 1: its nodes, computers and links)."""
+    import perfros_bag.cli.solve as solve_cli
+    import perfros_bag.solver as solver
+
+    handed: list[float | None] = []
+    real = solver.solve
+
+    def spy(*args: object, **kwargs: object) -> object:
+        handed.append(kwargs["time_limit"])  # type: ignore[arg-type]
+        return real(*args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(solver, "solve", spy)
+    monkeypatch.setattr("perfros_bag.cli._app.WHOLE_PROCESS", True)  # as the console script sets it
+    monkeypatch.setattr(solve_cli, "process_seconds", lambda: 7.0)
+    code, _, stderr = cli(str(INSTANCE1), "--method", "exact", "--time-limit", "60")
+    assert code == 0, stderr
+    data = yaml.safe_load(INSTANCE1.read_text())
+    rows = len(data["nodes"]) + len(data["computers"]) + len(data["links"])
+    assert handed == [pytest.approx(60 - 7 - (1 + 0.01 * 60 + 0.005 * rows))]
+    monkeypatch.setattr(solve_cli, "process_seconds", lambda: 59.5)  # nothing left: the floor, not a negative
+    handed.clear()
+    cli(str(INSTANCE1), "--method", "exact", "--time-limit", "60")
+    assert handed == [0.01]
+    # called from another program (this test's process started long ago): from the verb's start
+    monkeypatch.setattr("perfros_bag.cli._app.WHOLE_PROCESS", False)
+    handed.clear()
+    cli(str(INSTANCE1), "--method", "exact", "--time-limit", "60")
+    (given,) = handed
+    assert given is not None and 60 - (1 + 0.6 + 0.005 * rows) - 5 < given <= 60 - (1 + 0.6 + 0.005 * rows)

@@ -167,6 +167,34 @@ def test_bad_recordings_are_one_line(tmp_path: Path) -> None:
         tmp_path, _short_bag(tmp_path / "ok.bag", 2), replaces=["lidar"])
 
 
+def test_a_replay_recording_that_is_a_named_pipe_is_refused_at_once(tmp_path: Path) -> None:
+    """A FIFO called x.bag blocked forever (opening it waits for a writer): it is no regular
+    file, said before it is opened. Run in a child process: its timeout detects a hang."""
+    import os
+    import subprocess
+    import sys
+
+    fifo = tmp_path / "x.bag"
+    os.mkfifo(fifo)
+    space = _space(tmp_path, _replay(recording=fifo))
+    code = ("import sys\nfrom perfros_bag.errors import InputError\nfrom perfros_bag.sweep.replay import "
+            "inspect_recording\nfrom perfros_bag.sweep.space import load_space\ntry:\n"
+            f"    inspect_recording(load_space({str(space)!r}).replay)\n"
+            "except InputError as exc:\n    print(exc)\n    sys.exit(2)\n")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=30,
+                          cwd=Path(__file__).resolve().parent.parent)
+    assert done.returncode == 2, done.stderr
+    assert done.stdout.strip() == f"{fifo}: is not a regular file (a named pipe, device or socket), expected a recording"
+    info = subprocess.run([sys.executable, "-m", "perfros_bag", "info", str(fifo)], capture_output=True, text=True,
+                          timeout=30, cwd=Path(__file__).resolve().parent.parent)
+    assert info.returncode == 2 and "is not a regular file" in info.stderr and "Traceback" not in info.stderr
+    system = tmp_path / "system.yaml"  # a YAML input that is a pipe: the same, not a hang
+    os.mkfifo(system)
+    solve = subprocess.run([sys.executable, "-m", "perfros_bag", "solve", str(system)], capture_output=True,
+                           text=True, timeout=30, cwd=Path(__file__).resolve().parent.parent)
+    assert solve.returncode == 2 and f"{system}: is not a regular file" in solve.stderr
+
+
 def _converted(tmp_path: Path, source: Path) -> tuple[Path, Path]:
     space = load_space(_space(tmp_path, _replay(recording=source)))
     assert space.replay is not None

@@ -147,9 +147,10 @@ def test_bad_input_is_one_line_exit_2_and_writes_nothing(tmp_path: Path) -> None
             str(FIXTURES / "recordings" / "system.yaml"), "--out", str(out)]
     for extra, message in ((["--headroom", "1"], "headroom must be in [0, 1), got 1.0"),
                            (["--headroom", "-0.1"], "headroom must be in [0, 1), got -0.1"),
-                           (["--rounds", "0"], "rounds must be a whole number >= 1, got 0"),
+                           (["--rounds", "0"], "--rounds must be a whole number > 0, got 0"),
                            (["--method", "magic"], "unknown method 'magic'"),
-                           (["--tolerance", "nan"], "the tolerance must be a number >= 0")):
+                           (["--tolerance", "nan"], "--tolerance must be a finite number >= 0, got nan"),
+                           (["--duration", "inf"], "--duration must be a finite number > 0, got inf")):
         done = _cli(*base, *extra)
         assert done.returncode == 2, (extra, done.stderr)
         lines = done.stderr.strip().splitlines()

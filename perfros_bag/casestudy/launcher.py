@@ -113,13 +113,16 @@ def run_plan(system: System, plan: Plan, out: Path, cfg: RunConfig, *,
             raise PerfrosError(f"{tool} not found: install Debian's ROS 1 (apt-get install ros-core python3-rospy python3-rosbag)")
     if not Path("/usr/bin/python3").exists():
         raise PerfrosError("/usr/bin/python3 not found (rospy runs under Debian's python3)")
-    out.mkdir(parents=True, exist_ok=True)
-    for stale in ("run.bag", "run.bag.active", "run.cpu.csv", "run.host.cpu.csv", "run.json", "manifest.yaml"):
-        (out / stale).unlink(missing_ok=True)
     note = progress or (lambda stage, done, total: None)
     calib = cfg.calibration or Calibration(units_per_core=cfg.units_per_core, headroom=cfg.headroom)
     launches = node_launches(system, plan, calib, overrides)
     cores = computer_cores(system, plan, cfg.units_per_core)
+    if out.exists() and not out.is_dir():
+        raise InputError(out, "is not a directory, expected the run folder")
+    # every input is read and checked above: only now may an earlier run's files go
+    out.mkdir(parents=True, exist_ok=True)
+    for stale in ("run.bag", "run.bag.active", "run.cpu.csv", "run.host.cpu.csv", "run.json", "manifest.yaml"):
+        (out / stale).unlink(missing_ok=True)
 
     run_id = uuid.uuid4().hex[:10]
     ros_home = out / "ros"

@@ -38,13 +38,13 @@ def run_cmd(
     system: Path = typer.Option(..., "--system", "-s", help="system.yaml whose settings (Table I) the nodes emulate."),  # noqa: B008
     plan: Path = typer.Option(..., "--plan", "-p", help="plan.json: each node's setting and computer."),  # noqa: B008
     out_dir: Path = typer.Option(..., "--out", "-o", help="Run folder: run.bag, run.cpu.csv, manifest.yaml, run.json."),  # noqa: B008
-    duration: float = typer.Option(30.0, "--duration", "-d", min=1.0, help="Seconds of recording."),
+    duration: float = typer.Option(30.0, "--duration", "-d", help="Seconds of recording (>= 1)."),
     override: list[str] | None = typer.Option(  # noqa: B008
         None, "--set", help="NODE=VALUE: force a parameter above/below the plan (RQ3); repeatable."),
-    units_per_core: float = typer.Option(400.0, "--units-per-core", min=1.0,
-                                         help="CPU units per core (400: a robot of 100 = 0.25 core)."),
-    headroom: float = typer.Option(0.85, "--headroom", min=0.05, max=2.0,
-                                   help="Nodes do this fraction of their Table I CPU."),
+    units_per_core: float = typer.Option(400.0, "--units-per-core",
+                                         help="CPU units per core (400: a robot of 100 = 0.25 core; >= 1)."),
+    headroom: float = typer.Option(0.85, "--headroom",
+                                   help="Nodes do this fraction of their Table I CPU (0.05 to 2)."),
     cap: bool = typer.Option(True, "--cap/--no-cap", help="Cap each computer's CPU with a cgroup."),
     as_json: bool = typer.Option(False, "--json", help="Print run.json on stdout (only)."),
 ) -> None:

@@ -15,9 +15,9 @@ def record_cpu_cmd(
         None, metavar="[-- COMMAND ...]", help="Run COMMAND, trace it and its children, stop when it exits."),
     match: list[str] | None = typer.Option(  # noqa: B008
         None, "--match", "-m", help="Regex on a process's ROS node name, process name or command line (repeatable)."),
-    interval: float = typer.Option(0.5, "--interval", "-i", min=0.01, help="Seconds between samples."),
+    interval: float = typer.Option(0.5, "--interval", "-i", help="Seconds between samples (>= 0.01)."),
     out_path: Path = typer.Option(..., "--out", "-o", help="The CPU trace to write (<stem>.cpu.csv)."),  # noqa: B008
-    duration: float | None = typer.Option(None, "--duration", "-d", min=0.0, help="Stop after S seconds."),
+    duration: float | None = typer.Option(None, "--duration", "-d", help="Stop after S seconds."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No live status on stderr."),
     speed: bool = typer.Option(True, "--speed/--no-speed",
                                help="Measure the machine's speed first (~0.2 s of CPU): '# speed_factor=' in the trace."),

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import time
 import warnings
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
@@ -66,6 +67,41 @@ def parse_headroom(text: str, *, check_range: bool = True) -> float | str:
     if check_range and not 0.0 <= value < 1.0:
         raise InputError(None, f"--headroom must be in [0, 1), got {value}")
     return value
+
+
+#: of ``--time-limit``, what is kept for after the solve (writing plan.json, the tables):
+#: this many seconds plus :data:`WIND_DOWN_SHARE` of the limit plus :data:`ROW_S` per row
+#: of the plan's tables (rich draws ~1,300 rows in 5-7 s on the shared 2-core machine)
+WIND_DOWN_S = 1.0
+WIND_DOWN_SHARE = 0.01
+ROW_S = 0.005
+
+
+def process_seconds() -> float:
+    """Seconds since this process started: the interpreter's start-up and imports count."""
+    import psutil
+
+    try:
+        return max(time.time() - psutil.Process().create_time(), 0.0)
+    except psutil.Error:
+        return 0.0
+
+
+def spent_seconds(began: float) -> float:
+    """What the budget has spent: since the process started when the verb is the process
+    (:data:`perfros_bag.cli._app.WHOLE_PROCESS`), else since the verb began (``began``,
+    ``time.monotonic()``: the app called from another program)."""
+    from perfros_bag.cli import _app
+
+    return process_seconds() if _app.WHOLE_PROCESS else time.monotonic() - began
+
+
+def solve_budget(time_limit: float, spent: float, rows: int = 0) -> float:
+    """What the solver gets of a whole-process ``time_limit`` when the process has spent
+    ``spent`` seconds (start-up, reading the input): the rest, less the wind-down after
+    the solve (:data:`WIND_DOWN_S`, :data:`WIND_DOWN_SHARE`, :data:`ROW_S` for each of the
+    ``rows`` the plan's tables will have); at least 0.01 s."""
+    return max(time_limit - spent - (WIND_DOWN_S + WIND_DOWN_SHARE * time_limit + ROW_S * rows), 0.01)
 
 
 def _num(x: float | None, digits: int = 2) -> str:
@@ -159,8 +195,9 @@ def solve(
     settings: Annotated[str | None, typer.Option(
         "--settings", help="Problem 2: plan.json, or node=value,... (parameter values) / node=cpu:U")] = None,
     time_limit: Annotated[float | None, typer.Option(
-        "--time-limit", help="exact: S seconds of wall clock for the solve, counted after reading the input "
-                             "(best plan so far and its proven bound, status feasible)")] = None,
+        "--time-limit", help="exact: S seconds of wall clock for the whole process: start-up, reading the "
+                             "input, building the model, the solve and writing the plan share them (best plan "
+                             "so far and its proven bound, status feasible); with --pareto: per point")] = None,
     headroom: Annotated[str, typer.Option(
         "--headroom", metavar="H|auto",
         help="share of every computer's capacity the plan keeps free, in [0, 1), or auto: each node's "
@@ -171,6 +208,7 @@ def solve(
                                           "(-o writes frontier.json and a PNG beside it)")] = None,
 ) -> None:
     """Choose a setting and a computer for every node (the paper's Problems 1 and 2)."""
+    began = time.monotonic()
     from perfros_bag.solver import METHODS
     from perfros_bag.solver import solve as run
     from perfros_bag.system.planfile import plan_document, save_plan
@@ -196,11 +234,13 @@ def solve(
     if pareto is not None:
         if problem != 1 or fixed is not None:
             raise InputError(None, "--pareto solves Problem 1 at each server capacity (no --problem 2, no --settings)")
-        _frontier(system, pareto, method, resolution, time_limit, out_path, as_json)
+        _frontier(system, pareto, method, resolution, time_limit, out_path, as_json, kept)
         return
     try:
         with _live_progress(method == "exact") as progress:
-            plan = run(system, problem, method, resolution=resolution, settings=fixed, time_limit=time_limit,
+            rows = len(system.nodes) + len(system.computers) + len(system.links)  # the tables printed after
+            budget = None if time_limit is None else solve_budget(time_limit, spent_seconds(began), rows)
+            plan = run(system, problem, method, resolution=resolution, settings=fixed, time_limit=budget,
                        progress=progress, headroom=kept)
     except ValueError as exc:  # a model that cannot be evaluated (e.g. a curve off its domain)
         raise InputError(system_path, str(exc)) from None
@@ -248,7 +288,7 @@ def _live_progress(enabled: bool) -> Iterator[Callable[[float | None, float, flo
 
 
 def _frontier(system: System, spec: str, method: str, resolution: float, time_limit: float | None,
-              out_path: Path | None, as_json: bool) -> None:
+              out_path: Path | None, as_json: bool, headroom: float | str = 0.0) -> None:
     """``--pareto``: Problem 1 at each total server capacity of the range; a table, the
     frontier JSON (``--json`` / ``-o``) and, with ``-o``, a PNG beside it."""
     from perfros_bag.fileio import atomic_open
@@ -257,8 +297,8 @@ def _frontier(system: System, spec: str, method: str, resolution: float, time_li
 
     low, high, points = parse_range(spec)
     found = frontier(system, low=low, high=high, points=points, resolution=resolution, method=method,
-                     time_limit=time_limit)
-    doc = frontier_document(system, found, method)
+                     time_limit=time_limit, headroom=headroom)
+    doc = frontier_document(system, found, method, headroom)
     if out_path is not None:
         png = plot_frontier(doc["points"])
         write_frontier(out_path, doc)

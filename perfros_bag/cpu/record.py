@@ -5,6 +5,7 @@ threads of matching processes (and of COMMAND's process tree) into a ``<stem>.cp
 from __future__ import annotations
 
 import csv
+import math
 import os
 import re
 import signal
@@ -80,8 +81,8 @@ class CpuRecorder:
 
     def __init__(self, patterns: Sequence[str], interval: float, *, root_pid: int | None = None,
                  exclude_pids: Iterable[int] = ()) -> None:
-        if interval <= 0:
-            raise ValueError("interval must be > 0")
+        if not math.isfinite(interval) or interval <= 0:
+            raise ValueError("interval must be a finite number > 0")
         self.patterns = [re.compile(p) for p in patterns]
         self.interval = interval
         self.root_pid = root_pid

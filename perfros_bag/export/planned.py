@@ -208,7 +208,13 @@ def planned_launch_xml(plan: Plan, system: System | None, launch: LaunchFile, sp
     real, marked = resolve_launch(launch, [run.args, markers], os.environ if env is None else env, RESOLVE_TIMEOUT_S)
     if real.error is not None:
         raise InputError(launch.path, f"roslaunch cannot read it: {real.error}")
-    by_name = {system_node_name(n.full_name): n for n in real.nodes}
+    by_name: dict[str, ResolvedNode] = {}
+    for n in real.nodes:
+        name = system_node_name(n.full_name)
+        other = by_name.setdefault(name, n)
+        if other is not n and name in plan.nodes:  # both would get the plan's machine and value
+            raise InputError(launch.path, f"ROS nodes {other.full_name} and {n.full_name} both are the plan's node "
+                             f"{name} (system.yaml joins namespaces with '_'): rename one of them")
     missing = [n for n in plan.nodes if n not in by_name]
     if missing:
         started = ", ".join(n.full_name for n in real.nodes) or "none"

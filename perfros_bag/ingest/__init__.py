@@ -15,6 +15,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from perfros_bag.errors import InputError
+from perfros_bag.fileio import require_regular
 from perfros_bag.ingest.stats import RecordingStats, TopicStats
 
 __all__ = ["RecordingStats", "TopicStats", "detect_format", "read_recording"]
@@ -29,7 +30,8 @@ _FORMAT_OF_MAGIC = {ROS1_MAGIC: "ros1", MCAP_MAGIC: "mcap", SQLITE_MAGIC: "rosba
 
 def read_head(path: Path) -> bytes:
     """The first 16 bytes of the file ``path`` (enough for :func:`sniff`); an empty file is an
-    InputError."""
+    InputError, and so is a named pipe or device (it would block or never end)."""
+    require_regular(path, "recording")
     with path.open("rb") as f:
         head = f.read(16)
     if not head:

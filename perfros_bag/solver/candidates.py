@@ -129,7 +129,8 @@ def fixed_choices(system: System, problem: Problem, settings: Mapping[str, float
             return match[:1]
         return [max(options, key=lambda c: (c.cpu, c.performance))]
 
-    out = system.flow_choices(out, fixed if problem == Problem.SERVER_CAPACITY else None)
+    # Problem 1: counted on rates first, refused before a chain's choices multiply in memory
+    out = system.flow_choices(out, fixed if problem == Problem.SERVER_CAPACITY else None, limit=MAX_CHOICES)
     total = sum(len(v) for v in out.values())
     if total > MAX_CHOICES:
         raise InputError(_where(system), f"the driven nodes' settings at every input rate their inputs can take give "

@@ -58,6 +58,10 @@ FORMAT = "perfros-bag frontier 1"
 
 DEFAULT_POINTS = 21
 
+#: the most points a frontier may ask for: each one is a solve (1,000,000 ran past 60 s
+#: and 2 GB); refused as the range is read
+MAX_POINTS = 1000
+
 
 def parse_range(text: str) -> tuple[float | None, float | None, int]:
     """``auto``, ``LO:HI`` or ``LO:HI:POINTS`` (an empty end: its default from
@@ -80,6 +84,9 @@ def parse_range(text: str) -> tuple[float | None, float | None, int]:
         raise InputError(None, f"frontier range {text!r} is empty or inverted")
     if points < 2:
         raise InputError(None, f"frontier range {text!r}: at least 2 points")
+    if points > MAX_POINTS:
+        raise InputError(None, f"frontier range {text!r}: at most {MAX_POINTS:,} points (each one a solve), "
+                               f"got {points:,}")
     return low, high, points
 
 
@@ -132,16 +139,18 @@ def with_server_capacity(system: System, total: float) -> System:
     return dataclasses.replace(system, computers=computers)
 
 
-def capacity_range(system: System, *, resolution: float = 1.0, time_limit: float | None = None) -> tuple[float, float]:
+def capacity_range(system: System, *, resolution: float = 1.0, time_limit: float | None = None,
+                   headroom: float | str = 0.0) -> tuple[float, float]:
     """The total server capacities at which Problem 2's plan fits the servers' shares, with
-    every node at its lowest setting and with every node at its highest (exact solver).
-    With one server: Problem 2's minimum in both cases."""
+    every node at its lowest setting and with every node at its highest (exact solver),
+    keeping ``headroom`` free (:func:`~perfros_bag.solver.dispatch.solve`'s). With one
+    server: Problem 2's minimum in both cases."""
     share = _shares(system)
     lowest = lowest_settings(system, resolution)
     ends = []
     for settings in (lowest, None):
         plan = solve(system, Problem.SERVER_CAPACITY, "exact", resolution=resolution, settings=settings,
-                     time_limit=time_limit)
+                     time_limit=time_limit, headroom=headroom)
         if plan.status == Status.INFEASIBLE or plan.objective is None:
             which = "lowest" if settings is not None else "highest"
             raise InputError(system.source, f"frontier: Problem 2 at every node's {which} setting has no plan: "
@@ -153,19 +162,22 @@ def capacity_range(system: System, *, resolution: float = 1.0, time_limit: float
 
 def frontier(system: System, *, low: float | None = None, high: float | None = None, points: int = 21,
              resolution: float = 1.0, method: str = "exact",
-             time_limit: float | None = None) -> list[FrontierPoint]:
+             time_limit: float | None = None, headroom: float | str = 0.0) -> list[FrontierPoint]:
     """Problem 1 at ``points`` total server capacities evenly spaced from ``low`` to
-    ``high`` (default :func:`capacity_range`); ``time_limit`` is per point."""
+    ``high`` (default :func:`capacity_range`); ``time_limit`` is per point; every point
+    keeps ``headroom`` free (``solve --headroom``: a share in [0, 1) or ``"auto"``)."""
     if points < 2:
         raise InputError(None, f"a frontier needs at least 2 points, got {points}")
+    if points > MAX_POINTS:
+        raise InputError(None, f"a frontier takes at most {MAX_POINTS:,} points (each one a solve), got {points:,}")
     if low is None or high is None:
-        lo, hi = capacity_range(system, resolution=resolution, time_limit=time_limit)
+        lo, hi = capacity_range(system, resolution=resolution, time_limit=time_limit, headroom=headroom)
         low = lo if low is None else low
         high = hi if high is None else high
     if not (math.isfinite(low) and math.isfinite(high)) or low < 0 or high <= low:
         raise InputError(system.source, f"frontier: the capacity range {low:g} to {high:g} is empty or inverted")
     out: list[FrontierPoint] = []
-    if method == "exact":
+    if method == "exact" and headroom == 0:  # the table knows no headroom: else a solve per point
         t0 = time.perf_counter()
         table = frontier_values(system, high, resolution)
         if table is not None:
@@ -182,7 +194,7 @@ def frontier(system: System, *, low: float | None = None, high: float | None = N
         capacity = low + (high - low) * i / (points - 1)
         t0 = time.perf_counter()
         plan = solve(with_server_capacity(system, capacity), Problem.PERFORMANCE, method, resolution=resolution,
-                     time_limit=time_limit)
+                     time_limit=time_limit, headroom=headroom)
         # a heuristic's plan carries no bound: its own objective is not one
         out.append(FrontierPoint(capacity, plan.status, plan.objective, plan.bound, time.perf_counter() - t0))
     return monotone(out)
@@ -305,12 +317,14 @@ def frontier_values(system: System, high: float, resolution: float = 1.0) -> tup
     return values, scale
 
 
-def frontier_document(system: System, points: list[FrontierPoint], method: str) -> dict[str, Any]:
+def frontier_document(system: System, points: list[FrontierPoint], method: str,
+                      headroom: float | str = 0.0) -> dict[str, Any]:
     """The frontier as JSON-ready data (docs/formats.md, frontier.json)."""
     return {
         "format": FORMAT,
         "system": system.source,
         "method": method,
+        "headroom": headroom,
         "servers": _servers(system),
         "points": [p.to_json() for p in points],
     }

@@ -14,6 +14,7 @@ them, for ``watch --deployment``; it is removed when the run ends.
 
 from __future__ import annotations
 
+import math
 import os
 import shutil
 import time
@@ -83,8 +84,10 @@ def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Pat
 
     plan = load_plan(plan_path)
     plan.require_feasible(plan_path, "deploy")
-    if units_per_core <= 0:
-        raise InputError(None, f"CPU units per core must be > 0, got {units_per_core:g}")
+    if not math.isfinite(units_per_core) or units_per_core <= 0:
+        raise InputError(None, f"CPU units per core must be a finite number > 0, got {units_per_core:g}")
+    if tolerance is not None and not (math.isfinite(tolerance) and tolerance >= 0):
+        raise InputError(None, f"the tolerance must be a finite number >= 0 (%), got {tolerance:g}")
     space = load_space(space_path).with_duration(duration)
     launch = read_launch(launch_path)
     check_space(launch, space)
@@ -92,16 +95,19 @@ def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Pat
     if unknown:
         warnings.warn(f"{space.path}: node(s) {', '.join(unknown)} not in the plan: run at their default",
                       PerfrosWarning, stacklevel=2)
+    system = plan_system(plan, plan_path, system_path)
     require_ros_tools()
     run = plan_run(plan, space, dict(launch.args))
     cores = computer_cores(plan, units_per_core)
     outdir = Path(out).absolute()
+    if outdir.exists() and not outdir.is_dir():
+        raise InputError(outdir, "is not a directory, expected the folder to deploy into")
+    # every input is read and checked above: only now may an earlier deployment's files go
     outdir.mkdir(parents=True, exist_ok=True)
     require_free_space(outdir)
     for stale in ("run.bag", "run.cpu.csv", "run.host.cpu.csv", "manifest.yaml", "graph.yaml", "deploy.json",
                   "validation.json", LIVE_FILE, CONTROL_FILE):
         (outdir / stale).unlink(missing_ok=True)
-    system = plan_system(plan, plan_path, system_path)
     run_id = uuid.uuid4().hex[:10]
     groups = CpuGroups(run_id, cores)
     where = {name: pn.computer for name, pn in plan.nodes.items()}  # system.yaml's node names

@@ -329,10 +329,54 @@ def _died_line(log: Path) -> str | None:
     if m is not None:
         return f"node {m.group(1)} (pid {m.group(2)}, exit code {m.group(3)}; see {log})"
     m = _NOT_LAUNCHED.search(text)
-    if m is not None:  # roslaunch goes on without it
+    if m is not None:  # roslaunch goes on without it: it never ran, so it did not "exit"
         cause = m.group(2).strip().rstrip(".")
-        return f"node of type {m.group(1)} ({cause or 'roslaunch cannot start it'}; see {log})"
+        hint = missing_package(m.group(1))
+        raise PerfrosError(f"roslaunch cannot launch node of type [{m.group(1)}]"
+                           f"{': ' + cause if cause else ''}{'; ' + hint if hint else ''} (see {log})")
     return None
+
+
+#: where Debian's ROS 1 packages put a package's package.xml and its node executables
+DEBIAN_SHARE, DEBIAN_LIB = Path("/usr/share"), Path("/usr/lib")
+
+
+def missing_package(node_type: str, share: Path | None = None, lib: Path | None = None) -> str | None:
+    """Why roslaunch may not find ``pkg/type``, as far as Debian's layout tells: the node's
+    executable installed (``/usr/lib/<pkg>/<type>``) but not the package's ``package.xml``
+    (``/usr/share/<pkg>``, which Debian ships in ``lib<pkg>-dev`` for C++ packages, e.g.
+    topic_tools' in libtopic-tools-dev), or no trace of the package at all; None when both are there."""
+    pkg, _, exe = node_type.partition("/")
+    if not pkg or not exe or "/" in exe or pkg in (".", ".."):
+        return None
+    share, lib = share or DEBIAN_SHARE, lib or DEBIAN_LIB
+    has_xml = (share / pkg / "package.xml").is_file()
+    has_exe = (lib / pkg / exe).is_file()
+    if has_xml and has_exe:
+        return None
+    dev = f"lib{pkg.replace('_', '-')}-dev"
+    known = debian_package_known(dev)
+    if has_exe:
+        where = f"Debian ships it in {dev} (apt-get install {dev})" if known else "not installed"
+        return (f"{lib / pkg / exe} is installed but not {share / pkg / 'package.xml'}, which roslaunch needs to "
+                f"find the package: {where}")
+    if has_xml:
+        return f"the package {pkg} has no executable {exe} in {lib / pkg}"
+    return f"the ROS package {pkg} is not installed" + (f" (Debian: apt-get install {dev})" if known else "")
+
+
+def debian_package_known(name: str) -> bool:
+    """Does apt know a package ``name`` (installed or installable)? False without apt."""
+    import subprocess
+
+    apt = shutil.which("apt-cache")
+    if apt is None:
+        return False
+    try:
+        done = subprocess.run([apt, "show", "--no-all-versions", name], capture_output=True, timeout=10)
+    except (OSError, subprocess.SubprocessError):
+        return False
+    return done.returncode == 0 and bool(done.stdout.strip())
 
 
 def record_run(launch: LaunchFile, space: Space, run: Run, out: Path, *, interval: float = 0.5,

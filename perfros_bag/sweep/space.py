@@ -150,8 +150,8 @@ class Space:
         """This space with its recording length overridden (``None``: as it is)."""
         if duration is None:
             return self
-        if duration <= 0:
-            raise InputError(None, f"the recording duration must be > 0 s, got {duration:g}")
+        if not math.isfinite(duration) or duration <= 0:
+            raise InputError(None, f"the recording duration must be a finite number > 0 s, got {duration:g}")
         return replace(self, duration_s=duration)
 
 

@@ -106,6 +106,18 @@ def _text(d: dict[str, Any], key: str, where: str, path: str) -> str | None:
     return v
 
 
+def _topic(d: dict[str, Any], key: str, where: str, path: str) -> str | None:
+    """A topic name field (a driven node's ``input``), checked by ROS's rule like
+    system.yaml's."""
+    from perfros_bag.system.names import NameKind, name_problem
+
+    v = _text(d, key, where, path)
+    problem = None if v is None else name_problem(NameKind.TOPIC, v)
+    if problem is not None:
+        raise InputError(path, f"{where}: {key!r} {problem}")
+    return v
+
+
 def parse_plan(data: Any, path: str = "plan.json") -> Plan:
     """A plan from its JSON object (``path`` names it in errors)."""
     expect_kind(path, data, DOCUMENT_KINDS[PLAN_FORMAT], {DOCUMENT_KINDS[PLAN_FORMAT]})
@@ -236,16 +248,17 @@ def _parse_node(n: Any, where: str, path: str) -> PlannedNode:
         performance=_num(n, "performance", where, path, optional=False, nonneg=True) or 0.0,
         weight=_num(n, "weight", where, path, optional=False, positive=True) or 0.0,
         parameter=_text(n, "parameter", where, path), value=_num(n, "value", where, path), topics=topics,
-        input=_text(n, "input", where, path), input_hz=_num(n, "input_hz", where, path, nonneg=True),
+        input=_topic(n, "input", where, path), input_hz=_num(n, "input_hz", where, path, nonneg=True),
         bandwidth_kBps=_num(n, "bandwidth_kBps", where, path, nonneg=True),
     )
 
 
 def check_against_system(plan: Plan, system: System, plan_path: str | Path | None = None) -> None:
-    """Every node of the plan must be a node of ``system`` and every computer of the plan
-    one of its computers (an :class:`InputError` naming the system otherwise): a plan
-    for another system cannot be validated or deployed with this one. The nodes of one
-    container must share a computer (:meth:`System.container_problem`: an error naming the plan)."""
+    """Every node of the plan must be a node of ``system``, every computer of the plan one
+    of its computers, and a driven node's ``input`` the system's (an :class:`InputError`
+    naming the system otherwise): a plan for another system cannot be validated or
+    deployed with this one. The nodes of one container must share a computer
+    (:meth:`System.container_problem`: an error naming the plan)."""
     unknown = [n for n in plan.nodes if n not in system.node]
     if unknown:
         raise InputError(system.source, f"plan node(s) {', '.join(map(repr, unknown))} are not in the system")
@@ -253,6 +266,11 @@ def check_against_system(plan: Plan, system: System, plan_path: str | Path | Non
     if strange:
         raise InputError(system.source, f"plan computer(s) {', '.join(map(repr, strange))} are not in the system "
                                         f"(its computers: {', '.join(map(repr, system.computer))})")
+    for name, pn in plan.nodes.items():  # a driven node follows the same input in both
+        wanted = system.node[name].input
+        if pn.input != wanted:
+            raise InputError(system.source, f"plan node {name!r} follows input {pn.input or 'none'}, the system's "
+                                            f"follows {wanted or 'none'}: the plan was made from another system")
     split = system.container_problem({n: p.computer for n, p in plan.nodes.items()})
     if split is not None:
         raise InputError(plan_path, split)

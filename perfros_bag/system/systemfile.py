@@ -535,7 +535,9 @@ def _setting(ctx: _Ctx, raw: Any, where: str, *, driven: bool = False) -> Settin
         frequency_hz=ctx.opt_number(m.get("frequency_hz"), f"{where}.frequency_hz", nonneg=True),
         bandwidth_kBps=ctx.opt_number(m.get("bandwidth_kBps"), f"{where}.bandwidth_kBps", nonneg=True),
         topics=topics,
-        cpu_per_hz=ctx.opt_number(m.get("cpu_per_hz"), f"{where}.cpu_per_hz", nonneg=True),
+        # a driven setting's CPU per input Hz is required: null is no number (not 0)
+        cpu_per_hz=(ctx.number if driven else ctx.opt_number)(m.get("cpu_per_hz"), f"{where}.cpu_per_hz",
+                                                               nonneg=True),
         out_per_in=ctx.opt_number(m.get("out_per_in"), f"{where}.out_per_in", nonneg=True),
         max_frequency_hz=ctx.opt_number(m.get("max_frequency_hz"), f"{where}.max_frequency_hz", nonneg=True),
         bytes_per_msg=ctx.opt_number(m.get("bytes_per_msg"), f"{where}.bytes_per_msg", nonneg=True),

@@ -647,10 +647,10 @@ class System:
         order: list[str] = []
         done: set[str] = set()
         for n in self.nodes:
-            path: list[str] = []
+            path: dict[str, None] = {}  # this walk, in order (a dict: membership in O(1))
             at: str | None = n.name
             while at is not None and at in self.flow_parent and at not in done and at not in path:
-                path.append(at)
+                path[at] = None
                 at = self.flow_parent[at]
             for m in reversed(path):
                 if m not in done:
@@ -659,15 +659,22 @@ class System:
         return tuple(order)
 
     def flow_cycle(self) -> list[str] | None:
-        """The nodes of a cycle of ``input`` (each driven by the next's output), or None."""
+        """The nodes of a cycle of ``input`` (each driven by the next's output), or None.
+
+        Linear in the nodes: each node is walked once (every node has at most one input
+        publisher, so a walk either reaches a node already cleared, leaves the flow, or comes
+        back onto its own path: the cycle)."""
+        parent = self.flow_parent
+        cleared: set[str] = set()  # no cycle is reachable from these
         for n in self.nodes:
-            seen: list[str] = []
+            path: dict[str, int] = {}  # node -> its place on this walk (dicts keep order)
             at: str | None = n.name
-            while at is not None and at in self.flow_parent:
-                if at in seen:
-                    return seen[seen.index(at):]
-                seen.append(at)
-                at = self.flow_parent[at]
+            while at is not None and at in parent and at not in cleared:
+                if at in path:
+                    return list(path)[path[at]:]
+                path[at] = len(path)
+                at = parent[at]
+            cleared.update(path)
         return None
 
     @cached_property
@@ -710,14 +717,46 @@ class System:
                                           f"{parent!r}'s setting ({at}): a driven node needs its input's rate")
         return f
 
+    def flow_choice_count(self, base: Mapping[str, list[Choice]], stop: int | None = None) -> int:
+        """How many choices :meth:`flow_choices` (without ``pick``) makes, every node's
+        together, counted without making them: a driven node has one choice per own
+        setting and distinct input rate, and its output rates (floats only) give its
+        children's input rates. Counting stops once past ``stop`` (the count returned is
+        then above ``stop``, not exact): a chain whose choices multiply is refused after
+        about ``stop`` steps, not after building them all."""
+        total = sum(len(options) for name, options in base.items() if name not in self.flow_parent)
+        out_rates: dict[str, set[float]] = {}
+        for name in self.flow_order:
+            if stop is not None and total > stop:
+                break
+            parent = self.flow_parent[name]
+            rates = out_rates[parent] if parent in out_rates else {self.input_hz(name, ch) for ch in base[parent]}
+            own = sorted({ch.setting for ch in base[name] if ch.setting is not None})
+            total += len(own) * len(rates)
+            if stop is not None and total > stop:
+                break
+            if name in self.flow_children:  # its output rates feed another driven node
+                node = self.node[name]
+                out_rates[name] = {driven_rates(node.settings[j], f)[1] for j in own for f in rates}
+        return total
+
     def flow_choices(self, base: Mapping[str, list[Choice]],
-                     pick: Callable[[str, list[Choice]], list[Choice]] | None = None) -> dict[str, list[Choice]]:
+                     pick: Callable[[str, list[Choice]], list[Choice]] | None = None, *,
+                     limit: int | None = None) -> dict[str, list[Choice]]:
         """``base`` with every driven node's choices made concrete: each of its own settings
         (``base``'s choices name them by ``setting``) at every input rate its input's
         publisher can give (the propagated rule, :func:`driven_rates`; a period throttle not at
         a rate where its output is ambiguous, :meth:`_told`), sorted by CPU.
         Driven nodes are expanded in :attr:`flow_order`; ``pick`` (node, expanded) may keep
-        a subset of each before its children are expanded (Problem 2's fixed settings)."""
+        a subset of each before its children are expanded (Problem 2's fixed settings).
+        ``limit`` (without ``pick``): an :class:`InputError` before anything is built when
+        the choices would number more (:meth:`flow_choice_count`)."""
+        if limit is not None and pick is None:
+            count = self.flow_choice_count(base, stop=limit)
+            if count > limit:
+                raise InputError(self.source, f"the driven nodes' settings at every input rate their inputs can take "
+                                              f"give more than {limit:,} choices (the most the solvers take): use a "
+                                              "coarser resolution or fewer settings upstream")
         out = {name: list(options) for name, options in base.items()}
         for name in self.flow_order:
             node = self.node[name]
