@@ -264,3 +264,37 @@ def test_rq3_kept_errors_in_points_per_node() -> None:
     got = cs.kept_errors(rows)
     assert got["people"]["n"] == 2 and got["people"]["mean_abs_points"] == pytest.approx((11 + 5) / 2)
     assert got["smooth"]["mean_abs_points"] == pytest.approx(0.0)
+
+
+def test_the_budget_is_chosen_on_the_fitted_model_to_bind_and_be_kept(tmp_path: Path,
+                                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    """binding_budget: the unbudgeted plan predicts 300 ms p95; a plan exists for a budget of
+    250 ms or more (a fake solve): the given 200 and 0.8 x 300 = 240 cannot be kept, 0.9 x 300 can."""
+    draft = {"nodes": [{"name": "robot1_people", "input": "/robot1/camera/image_raw",
+                        "topics": ["/robot1/people/found"], "settings": []}]}
+    tried: list[float | None] = []
+
+    class Done:
+        def __init__(self, code: int) -> None:
+            self.returncode, self.stderr = code, "error: infeasible\n"
+
+    def fake_sh(args: Any, *, ok: tuple[int, ...] = (0,)) -> Done:
+        words = [str(a) for a in args]
+        if "fit" in words:
+            return Done(0)
+        system = (tmp_path / "i" / "budget-search" / "system.yaml").read_text()
+        import yaml
+        chains = yaml.safe_load(system.split("\n", 1)[1])["chains"]
+        budget = next((c["budget_ms"]["p95"] for c in chains if "budget_ms" in c), None)
+        tried.append(budget)
+        if budget is not None and budget < 250:
+            return Done(2)
+        out = Path(words[words.index("--out") + 1])
+        out.write_text(json.dumps({"chains": [{"name": "robot1_people", "predicted_ms": {"p50": 100, "p95": 300}}]}))
+        return Done(0)
+
+    monkeypatch.setattr(cs, "sh", fake_sh)
+    (tmp_path / "i").mkdir()
+    chosen = cs.binding_budget(tmp_path / "i", cs.INSTANCES[1], draft, {"p95": 200.0})
+    assert chosen == {"p95": 270.0}
+    assert tried == [None, 200.0, 240.0, 270.0]
