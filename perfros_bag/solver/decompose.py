@@ -76,6 +76,7 @@ NEAR_LIMIT = 20_000  # columns the reduced-cost enumeration may add (else it is 
 CG_TOL = 1e-7  # column generation stops when the LP is this close to the bound (relative)
 GREEDY_PLUS_SHARE = 0.1  # of the budget, for greedy+'s first plan when the greedy finds none (at most starts.PLUS_START_MAX_S)
 MAX_PATTERNS = 1024  # with network rows: home/away patterns of one block's pricing
+MAX_VIEWS = 64  # consistent rate assignments of one block's data-flow trees (each priced)
 
 
 @dataclass
@@ -128,6 +129,11 @@ class _Class:
     edges: list[_Edge] = field(default_factory=list)  # with network rows: the block's own edges
     outer: list[_Outer] = field(default_factory=list)  # ... and its edges to the rest, at their least
     links: frozenset[int] = frozenset()  # the network rows' links those edges may cross
+    # a block carrying data-flow trees (a camera and the detector it drives): per consistent
+    # assignment of its publishers' rates, the block with each member's choices cut to those
+    # that agree with it (masked items; their edges' and outer edges' home traffic to match).
+    # Pricing takes the best of them; empty: the block itself, every choice free
+    views: list[_Class] = field(default_factory=list)
 
 
 @dataclass
@@ -158,16 +164,20 @@ def cpu_grid_scale(cpus: Sequence[float]) -> int | None:
     return None
 
 
-def home_options(inst: Instance, members: tuple[str, ...], scale: int) -> tuple[np.ndarray, np.ndarray,
-                                                                            list[tuple[int, ...]]] | None:
-    """A group's settings on its robot: every combination of its members' choices, keeping
-    for each CPU the best value (and nothing dominated)."""
+def home_options(inst: Instance, members: tuple[str, ...], scale: int,
+                 allowed: dict[str, frozenset[int]] | None = None) -> tuple[np.ndarray, np.ndarray,
+                                                                          list[tuple[int, ...]]] | None:
+    """A group's settings on its robot: every combination of its members' choices (only the
+    positions ``allowed`` names, for the members it names), keeping for each CPU the best
+    value (and nothing dominated)."""
     lists = [inst.choices[n] for n in members]
-    if math.prod(len(x) for x in lists) > MAX_GROUP_OPTIONS:
+    positions = [sorted(allowed[n]) if allowed and n in allowed else list(range(len(x)))
+                 for n, x in zip(members, lists, strict=True)]
+    if math.prod(len(x) for x in positions) > MAX_GROUP_OPTIONS:
         return None
     weight = {n: inst.system.node[n].weight for n in members}
     best: dict[int, tuple[float, tuple[int, ...]]] = {}
-    for levels in itertools.product(*(range(len(x)) for x in lists)):
+    for levels in itertools.product(*positions):
         cpu = sum(lists[i][k].cpu for i, k in enumerate(levels))
         value = sum(weight[n] * lists[i][k].performance for i, (n, k) in enumerate(zip(members, levels, strict=True)))
         units = int(round(cpu * scale))
@@ -181,6 +191,40 @@ def home_options(inst: Instance, members: tuple[str, ...], scale: int) -> tuple[
             keep.append(u)
             top = best[u][0]
     return (np.array(keep, dtype=np.int64), np.array([best[u][0] for u in keep]), [best[u][1] for u in keep])
+
+
+def flow_views(inst: Instance, nodes: Sequence[str]) -> list[dict[str, frozenset[int]]]:
+    """The consistent rate assignments of one data-flow tree (``nodes``: its source, then the
+    nodes it drives in flow order): per assignment, each node's kept choices that agree with
+    it (a source's choices at one output rate; a driven node's at the input rate its
+    publisher then gives and, when it drives others, at one output rate of its own). Every
+    consistent choice of the tree's nodes lies in exactly one assignment."""
+    system = inst.system
+
+    def output(n: str, k: int) -> tuple[float, ...]:
+        return tuple(round(system.input_hz(child, inst.choices[n][k]), 9) for child in system.flow_children.get(n, ()))
+
+    out: list[dict[str, frozenset[int]]] = []
+    # depth-first over the nodes in flow order: (next node, positions so far, rate each node is given)
+    stack: list[tuple[int, dict[str, frozenset[int]], dict[str, float]]] = [(0, {}, {})]
+    while stack:
+        i, chosen, given = stack.pop()
+        if i == len(nodes):
+            out.append(chosen)
+            continue
+        n = nodes[i]
+        ks = [k for k, ch in enumerate(inst.choices[n])
+              if n not in given or (ch.input_hz is not None and math.isclose(ch.input_hz, given[n], rel_tol=1e-9,
+                                                                                abs_tol=1e-9))]
+        by_output: dict[tuple[float, ...], list[int]] = {}
+        for k in ks:
+            by_output.setdefault(output(n, k), []).append(k)
+        for rates, group in by_output.items():
+            more = dict(given)
+            for child, f in zip(system.flow_children.get(n, ()), rates, strict=True):
+                more[child] = f
+            stack.append((i + 1, {**chosen, n: frozenset(group)}, more))
+    return out
 
 
 def _model(system: System, inst: Instance, active: set[int] | None = None) -> _Model | str:
@@ -208,13 +252,32 @@ def _model(system: System, inst: Instance, active: set[int] | None = None) -> _M
     if any(inst.cap[c] * scale > MAX_CELLS for c in private):
         return f"a robot's capacity exceeds {MAX_CELLS} grid cells"
 
-    def item(g: Group, home: str | None) -> _Item | None:
+    # the data flow: each tree (a source and the nodes it drives) must lie in one robot's block
+    block_of = {n: home for home, gs in blocks.items() for g in gs for n in g.members}
+    trees: dict[str, list[str]] = {}
+    for n in system.flow_order:
+        root = n
+        while root in system.flow_parent:
+            root = system.flow_parent[root]
+        trees.setdefault(root, [root]).append(n)
+    block_trees: dict[str, list[list[str]]] = {}
+    for root, nodes in trees.items():
+        homes = {block_of.get(n) for n in nodes}
+        if len(homes) != 1 or None in homes:
+            return (f"the data flow from {root} spans more than one robot's block (or reaches a node shared "
+                    f"between robots): its rates cannot be priced robot by robot")
+        block_trees.setdefault(block_of[root], []).append(nodes)
+
+    def item(g: Group, home: str | None, allowed: dict[str, frozenset[int]] | None = None) -> _Item | None:
         relaxed_ok = np.array([rindex[c] for c in g.allowed if c in rindex], dtype=np.int64)
         mc = [np.array([ch.cpu for ch in inst.choices[n]]) for n in g.members]
         mv = [np.array([system.node[n].weight * ch.performance for ch in inst.choices[n]]) for n in g.members]
+        if allowed:  # a view: a choice that disagrees with the view's rates is worth -inf
+            mv = [v if n not in allowed else np.where(np.isin(np.arange(len(v)), sorted(allowed[n])), v, -np.inf)
+                  for n, v in zip(g.members, mv, strict=True)]
         if home is None:
             return _Item(g.members, relaxed_ok, np.zeros(0, dtype=np.int64), np.zeros(0), [], mc, mv)
-        opts = home_options(inst, g.members, scale)
+        opts = home_options(inst, g.members, scale, allowed)
         if opts is None:
             return None
         return _Item(g.members, relaxed_ok, opts[0], opts[1], opts[2], mc, mv)
@@ -230,8 +293,9 @@ def _model(system: System, inst: Instance, active: set[int] | None = None) -> _M
         if not gs:
             continue
         cap_units = int(math.floor(inst.cap[home] * scale + 1e-6))
+        flow = block_trees.get(home, [])
         sig: tuple[Any, ...] = (cap_units, tuple(sorted((signature(g) for g in gs), key=repr)),
-                                home if active else None)  # with network rows, every block its own class
+                                home if active or flow else None)  # network rows, a data flow: its own class
         gs = sorted(gs, key=lambda g: repr(signature(g)))
         if sig in by_sig:
             cl = classes[by_sig[sig]]
@@ -244,6 +308,20 @@ def _model(system: System, inst: Instance, active: set[int] | None = None) -> _M
         by_sig[sig] = len(classes)
         classes.append(_Class(home, cap_units, [it for it in items if it is not None], [[g.members for g in gs]],
                               [home]))
+        if flow:
+            masks = [dict(itertools.chain.from_iterable(m.items() for m in combo))
+                     for combo in itertools.product(*(flow_views(inst, nodes) for nodes in flow))]
+            if not masks:
+                return f"robot {home}'s data flow has no choices that agree with their inputs' rates"
+            if len(masks) > MAX_VIEWS:
+                return (f"robot {home} carries {len(masks)} consistent rate assignments of its data flow: "
+                        f"more than {MAX_VIEWS} to price")
+            for mask in masks:
+                view_items = [item(g, home, mask) for g in gs]
+                if any(it is None for it in view_items):
+                    return "a coresidence group has too many setting combinations"
+                classes[-1].views.append(_Class(home, cap_units, [it for it in view_items if it is not None],
+                                                classes[-1].instances, [home]))
     for g in lone:
         sig = ("lone", signature(g))
         if sig in by_sig:
@@ -261,6 +339,11 @@ def _model(system: System, inst: Instance, active: set[int] | None = None) -> _M
         if why is not None:
             return why
     return model
+
+
+def _home_bw(it: _Item, member: int, bw: np.ndarray) -> np.ndarray:
+    """kB/s at each home option of ``it`` of its ``member``'s edge (``bw`` per kept choice)."""
+    return np.array([bw[levels[member]] for levels in it.home_levels]) if it.home_levels else np.zeros(0)
 
 
 def _add_outer(model: _Model, e: Edge, end: tuple[int, int, int], bw: np.ndarray, publishes: bool) -> None:
@@ -290,8 +373,7 @@ def _add_outer(model: _Model, e: Edge, end: tuple[int, int, int], bw: np.ndarray
     if not at_home and not any(away.values()):
         return
     if publishes:
-        home_bw = np.array([bw[levels[end[2]]] for levels in it.home_levels]) if it.home_levels else np.zeros(0)
-        cl.outer.append(_Outer(end[1], end[2], bw, home_bw, at_home, away))
+        cl.outer.append(_Outer(end[1], end[2], bw, _home_bw(it, end[2], bw), at_home, away))
     else:
         least = float(bw.min())
         cl.outer.append(_Outer(end[1], -1, np.array([least]), np.full(len(it.home_levels), least), at_home, away))
@@ -339,9 +421,7 @@ def _network_rows(model: _Model, active: set[int]) -> str | None:
         if a is not None and b is not None and a[0] == b[0]:
             if a[1] != b[1]:
                 cl = model.classes[a[0]]
-                it = cl.items[a[1]]
-                home_bw = np.array([bw[levels[a[2]]] for levels in it.home_levels]) if it.home_levels else np.zeros(0)
-                cl.edges.append(_Edge(a[1], a[2], b[1], bw, home_bw))
+                cl.edges.append(_Edge(a[1], a[2], b[1], bw, _home_bw(cl.items[a[1]], a[2], bw)))
                 cl.links = cl.links | frozenset(li for li in maybe if li in model.link_rows)
             continue
         for row in rows:
@@ -353,6 +433,15 @@ def _network_rows(model: _Model, active: set[int]) -> str | None:
         free = sum(1 for it in cl.items if len(it.relaxed) and len(it.home_units))
         if (cl.edges or cl.outer) and 2 ** free > MAX_PATTERNS:
             return f"a block has {free} node groups that may go either way: more than {MAX_PATTERNS} patterns to price"
+    for cl in model.classes:  # each view: the same edges, their home traffic at its own home options
+        for view in cl.views:
+            view.links = cl.links
+            view.edges = [_Edge(e.pub, e.member, e.sub, e.bw, _home_bw(view.items[e.pub], e.member, e.bw))
+                          for e in cl.edges]
+            view.outer = [_Outer(o.item, o.member, o.bw,
+                                 _home_bw(view.items[o.item], o.member, o.bw) if o.member >= 0
+                                 else np.full(len(view.items[o.item].home_levels), float(o.bw[0])),
+                                 o.at_home, o.away) for o in cl.outer]
     model.cap = np.concatenate([model.cap, np.array(caps)])
     model.reserve = reserve
     # rows the traffic between blocks could fill on its own: the MILP over the columns cannot
@@ -403,10 +492,18 @@ def _offload(it: _Item, lam: np.ndarray) -> tuple[float, int, tuple[int, ...]]:
 
 def _price(model: _Model, ci: int, lam: np.ndarray) -> tuple[float, _Column]:
     """The class's best column at prices ``lam`` and its reduced value (before the
-    convexity dual)."""
+    convexity dual): a block with a data flow, the best over its views (each consistent
+    assignment of its rates; every consistent column lies in one, so the best is exact)."""
     cl = model.classes[ci]
+    if cl.views:
+        return max((_price_view(model, ci, view, lam) for view in cl.views), key=lambda t: t[0])
+    return _price_view(model, ci, cl, lam)
+
+
+def _price_view(model: _Model, ci: int, cl: _Class, lam: np.ndarray) -> tuple[float, _Column]:
+    """:func:`_price` on one view ``cl`` of class ``ci`` (the class itself when it has none)."""
     if (cl.edges or cl.outer) and any(lam[row] > 0 for li in cl.links for row in model.link_rows[li]):
-        return _price_network(model, ci, lam)
+        return _price_network(model, ci, cl, lam)
     offs = [_offload(it, lam) for it in cl.items]
     if cl.home is None:
         red, r, levels = offs[0]
@@ -434,7 +531,7 @@ def _price(model: _Model, ci: int, lam: np.ndarray) -> tuple[float, _Column]:
     return float(table[-1]), _column(model, ci, tuple(parts))
 
 
-def _price_network(model: _Model, ci: int, lam: np.ndarray) -> tuple[float, _Column]:
+def _price_network(model: _Model, ci: int, cl: _Class, lam: np.ndarray) -> tuple[float, _Column]:
     """A block's best column when its own edges' traffic is priced (``lam`` on the network
     rows): every home/away pattern of its items, in a tree (each item decided in turn, the
     items that must stay home first; a home item adds its settings to the robot's knapsack
@@ -444,8 +541,7 @@ def _price_network(model: _Model, ci: int, lam: np.ndarray) -> tuple[float, _Col
     otherwise at its least (the publisher's least traffic, the cheapest route). An edge with
     both ends home or both away is free. So the returned value is at least the best column's
     true reduced value (the Lagrangian bound stays a bound), and the column is a real one
-    (its load is computed exactly by :func:`_column`)."""
-    cl = model.classes[ci]
+    (its load is computed exactly by :func:`_column`). ``cl``: the class ``ci`` or one of its views."""
     home = cl.home_of[0]
     assert home is not None
     system = model.inst.system
@@ -626,30 +722,31 @@ def _near_columns(model: _Model, lam: np.ndarray, priced: Sequence[tuple[float, 
             if len(out) > limit:
                 return out[:limit], False
             continue
-        tables = [np.zeros(cl.cap_units + 1)]
-        options: list[list[tuple[int, float, tuple[int, tuple[int, ...]]]]] = []
-        for it in cl.items:
-            best_off = _offload(it, lam)[0]
-            offs = _offload_options(it, lam, best_off - slack - 1e-9) if len(it.relaxed) else []
-            opts = [(0, red, (r, levels)) for red, r, levels in offs]
-            opts += [(int(u), float(v), (-1, lv)) for u, v, lv in zip(it.home_units, it.home_values, it.home_levels,
-                                                                      strict=True)]
-            options.append(opts)
-            units = np.concatenate([[0], it.home_units]).astype(np.int64)
-            values = np.concatenate([[best_off], it.home_values])
-            tables.append(combine_tables(tables[-1], units, values)[0])
-        stack: list[tuple[int, int, float, tuple[tuple[int, tuple[int, ...]], ...]]] = [
-            (len(cl.items) - 1, cl.cap_units, 0.0, ())]
-        while stack:
-            q, x, acc, parts = stack.pop()
-            if q < 0:
-                out.append(_column(model, ci, parts))
-                if len(out) > limit:
-                    return out[:limit], False
-                continue
-            for u, v, part in options[q]:
-                if u <= x and acc + v + tables[q][x - u] >= floor:
-                    stack.append((q - 1, x - u, acc + v, (part, *parts)))
+        for view in cl.views or [cl]:  # a data flow: each view's columns (every consistent one is in one)
+            tables = [np.zeros(view.cap_units + 1)]
+            options: list[list[tuple[int, float, tuple[int, tuple[int, ...]]]]] = []
+            for it in view.items:
+                best_off = _offload(it, lam)[0]
+                offs = _offload_options(it, lam, best_off - slack - 1e-9) if len(it.relaxed) else []
+                opts = [(0, red, (r, levels)) for red, r, levels in offs]
+                opts += [(int(u), float(v), (-1, lv)) for u, v, lv in zip(it.home_units, it.home_values, it.home_levels,
+                                                                          strict=True)]
+                options.append(opts)
+                units = np.concatenate([[0], it.home_units]).astype(np.int64)
+                values = np.concatenate([[best_off], it.home_values])
+                tables.append(combine_tables(tables[-1], units, values)[0])
+            stack: list[tuple[int, int, float, tuple[tuple[int, tuple[int, ...]], ...]]] = [
+                (len(view.items) - 1, view.cap_units, 0.0, ())]
+            while stack:
+                q, x, acc, parts = stack.pop()
+                if q < 0:
+                    out.append(_column(model, ci, parts))
+                    if len(out) > limit:
+                        return out[:limit], False
+                    continue
+                for u, v, part in options[q]:
+                    if u <= x and acc + v + tables[q][x - u] >= floor:
+                        stack.append((q - 1, x - u, acc + v, (part, *parts)))
     return out, True
 
 
@@ -827,6 +924,8 @@ def _fits(model: _Model, assignment: Assignment) -> bool:
     load = computer_loads(system, assignment.placement, assignment.choice)
     if any(load[c] > model.inst.cap[c] + 1e-9 * max(1.0, model.inst.cap[c]) for c in load):
         return False
+    if system.has_flow and system.flow_violation(assignment.choice) is not None:
+        return False
     return system.network_violation(assignment.placement, assignment.choice) is None
 
 
@@ -863,7 +962,8 @@ def solve_decomposed(system: System, problem: Problem, choices: dict[str, list[C
     master = _Master(model, penalty=ceiling + 1.0)
 
     # the paper's greedy: the first columns, and the MILP's start
-    mapped = greedy_start(inst, choices)
+    # (along a data flow the greedy searches the rates, each try a whole greedy run: bounded)
+    mapped = greedy_start(inst, choices, min(GREEDY_PLUS_SHARE * budget, PLUS_START_MAX_S) if system.has_flow else None)
     if mapped is None and len(model.cap) > len(model.relaxed):  # a binding network: the greedy gets stuck
         mapped = plus_start(inst, choices, min(GREEDY_PLUS_SHARE * budget, PLUS_START_MAX_S))
     incumbent: Assignment | None = None

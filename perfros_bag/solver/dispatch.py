@@ -191,9 +191,9 @@ def _dispatch(system: System, problem: Problem, method: Method, choices: dict[st
 
     prepared = prepare_instance(system, problem, choices)  # once, for whichever solver runs
     columns = exact_columns(system, choices)
-    # the decomposition prices robots one by one: a data flow across them is the MILP's (its rows)
-    if problem == Problem.PERFORMANCE and columns > DECOMPOSE_COLUMNS and not isinstance(prepared, str) \
-            and not system.has_flow:
+    # the decomposition prices robots one by one, each with the data flow it carries; a flow
+    # across robots is the MILP's (its rows): solve_decomposed then declines (None)
+    if problem == Problem.PERFORMANCE and columns > DECOMPOSE_COLUMNS and not isinstance(prepared, str):
         from perfros_bag.solver.decompose import solve_decomposed  # deferred: numpy, HiGHS
 
         decomposed = solve_decomposed(system, problem, choices, time_limit=left(), progress=progress,
