@@ -1,0 +1,133 @@
+"""The fleet decomposition on driven fleets (issue 32): a robot's block carries its data
+flow (a camera's rate and the detector it drives), checked against the tool's brute force
+and the whole MILP on fleets small enough for them."""
+
+from __future__ import annotations
+
+import random
+import warnings
+from typing import Any
+
+import pytest
+
+from perfros_bag.casestudy.instances import wifi_fleet_instance
+from perfros_bag.solver import dispatch, solve
+from perfros_bag.solver import decompose as decompose_mod
+from perfros_bag.solver.candidates import fixed_choices
+from perfros_bag.solver.check import check_plan
+from perfros_bag.solver.decompose import decomposable, flow_views, solve_decomposed
+from perfros_bag.solver.exact import solve_exact
+from perfros_bag.solver.instance import prepare_instance, trivial_bound
+from perfros_bag.system.plan import Status
+from perfros_bag.system.systemfile import parse_system
+from perfros_bag.system.types import Problem, System
+
+
+def driven_fleet(seed: int, robots: int = 2, *, detectors_on_servers_only: bool = False) -> dict[str, Any]:
+    """A small driven wifi fleet: per robot its core, a camera whose rate is a knob, the
+    detector it drives (on the robot or the server) and the environment node; capacities
+    drawn so that rates, settings and offloading trade off, an access point that holds
+    one 20 Hz stream."""
+    keep = ("camera", "detector", "environment", "youbot_core")
+    data = wifi_fleet_instance(robots, 1, trackers=1, driven=True, seed=seed, robots_per_ap=2, ap_kBps=1600.0)
+    names = {n["name"] for n in data["nodes"] if n["name"].rstrip("0123456789") in keep}
+    data["nodes"] = [n for n in data["nodes"] if n["name"] in names]
+    data["edges"] = [e for e in data["edges"] if e["from"] in names and e["to"] in names]
+    rng = random.Random(seed)
+    for c in data["computers"]:
+        c["capacity"] = rng.choice([30, 40, 50, 60, 80]) if c["kind"] == "robot" else rng.choice([40, 60, 90])
+    if detectors_on_servers_only:  # the flow then spans a robot and the server: not one block
+        servers = [c["name"] for c in data["computers"] if c["kind"] == "server"]
+        for n in data["nodes"]:
+            if n["name"].startswith("detector"):
+                n["residence"] = servers
+    return data
+
+
+def system_of(data: dict[str, Any]) -> System:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return parse_system(data, "driven.yaml")
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_decomposed_driven_fleet_against_brute_force(seed: int) -> None:
+    """The decomposition's plan is feasible (checker), its objective at most the brute
+    force's optimum, its bound at least it (a proof), and equal to it when it says optimal."""
+    system = system_of(driven_fleet(seed))
+    choices = fixed_choices(system, Problem.PERFORMANCE)
+    assert decomposable(system, Problem.PERFORMANCE, choices)
+    best = solve(system, 1, "bruteforce")
+    assert best.status == Status.OPTIMAL and best.objective is not None
+    plan = solve_decomposed(system, Problem.PERFORMANCE, choices)
+    assert plan is not None and check_plan(system, plan) == []
+    assert plan.objective is not None and plan.bound is not None
+    assert plan.objective <= best.objective + 1e-7
+    assert plan.bound >= best.objective - 1e-7
+    assert plan.bound <= trivial_bound(system, choices) + 1e-9
+    if plan.status == Status.OPTIMAL:
+        assert plan.objective == pytest.approx(best.objective, rel=1e-7)
+    for node in system.nodes:  # each detector planned at the rate its camera publishes
+        if node.input is not None:
+            parent = system.flow_parent[node.name]
+            assert plan.nodes[node.name].input_hz == pytest.approx(plan.nodes[parent].value)
+
+
+@pytest.mark.parametrize("seed", (0, 1))
+def test_decomposed_bigger_driven_fleet_against_the_whole_milp(seed: int) -> None:
+    """Six robots, their whole stacks and trackers: the whole MILP proves its optimum; the
+    decomposition's bound is at least it and its plan at most it."""
+    data = wifi_fleet_instance(6, 1, robots_per_ap=3, trackers=2, ap_kBps=2350.0, seed=seed, driven=True)
+    system = system_of(data)
+    choices = fixed_choices(system, Problem.PERFORMANCE)
+    assert decomposable(system, Problem.PERFORMANCE, choices)
+    exact = solve_exact(system, Problem.PERFORMANCE, choices, time_limit=120)
+    assert exact.status == Status.OPTIMAL and exact.objective is not None
+    plan = solve_decomposed(system, Problem.PERFORMANCE, choices)
+    assert plan is not None and check_plan(system, plan) == []
+    assert plan.objective is not None and plan.bound is not None
+    assert plan.objective <= exact.objective + 1e-7 <= plan.bound + 2e-7
+
+
+def test_flow_views_partition_the_consistent_choices() -> None:
+    """Every consistent (camera, detector) pair lies in exactly one view, and no
+    inconsistent pair in any (against the system's own flow rule)."""
+    system = system_of(driven_fleet(0))
+    choices = fixed_choices(system, Problem.PERFORMANCE)
+    inst = prepare_instance(system, Problem.PERFORMANCE, choices)
+    assert not isinstance(inst, str)
+    views = flow_views(inst, ["camera1", "detector1"])
+    cams, dets = inst.choices["camera1"], inst.choices["detector1"]
+    for i, cam in enumerate(cams):
+        for j, det in enumerate(dets):
+            consistent = system.flow_violation({"camera1": cam, "detector1": det}) is None
+            holding = [v for v in views if i in v["camera1"] and j in v["detector1"]]
+            assert len(holding) == (1 if consistent else 0)
+
+
+def test_a_flow_across_robots_is_left_to_the_whole_milp(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Detectors that may only run on the server: each flow spans a robot's block and a
+    node shared between robots, so the decomposition declines and ``exact`` (sent towards
+    it by a zero threshold) answers with the whole MILP: the brute force's optimum."""
+    system = system_of(driven_fleet(2, detectors_on_servers_only=True))
+    choices = fixed_choices(system, Problem.PERFORMANCE)
+    assert not decomposable(system, Problem.PERFORMANCE, choices)
+    assert solve_decomposed(system, Problem.PERFORMANCE, choices) is None
+    monkeypatch.setattr(dispatch, "DECOMPOSE_COLUMNS", 0)
+    plan = solve(system, 1, "exact", time_limit=30)
+    best = solve(system, 1, "bruteforce")
+    assert plan.status == Status.OPTIMAL and check_plan(system, plan) == []
+    assert plan.objective == pytest.approx(best.objective, rel=1e-7)
+
+
+def test_a_block_with_too_many_rate_assignments_is_refused(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Above the views limit the decomposition declines (it does not try); ``exact`` still
+    answers, with the whole MILP's optimum."""
+    system = system_of(driven_fleet(3))
+    choices = fixed_choices(system, Problem.PERFORMANCE)
+    monkeypatch.setattr(decompose_mod, "MAX_VIEWS", 2)  # each robot's camera has 3 rates
+    assert not decomposable(system, Problem.PERFORMANCE, choices)
+    monkeypatch.setattr(dispatch, "DECOMPOSE_COLUMNS", 0)
+    plan = solve(system, 1, "exact", time_limit=30)
+    best = solve(system, 1, "bruteforce")
+    assert check_plan(system, plan) == [] and plan.objective == pytest.approx(best.objective, rel=1e-7)
