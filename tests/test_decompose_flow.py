@@ -11,8 +11,8 @@ from typing import Any
 import pytest
 
 from perfros_bag.casestudy.instances import wifi_fleet_instance
-from perfros_bag.solver import dispatch, solve
 from perfros_bag.solver import decompose as decompose_mod
+from perfros_bag.solver import dispatch, solve
 from perfros_bag.solver.candidates import fixed_choices
 from perfros_bag.solver.check import check_plan
 from perfros_bag.solver.decompose import decomposable, flow_views, solve_decomposed
