@@ -29,6 +29,18 @@ with its price: a block's own edges load them (exactly, per column) and are pric
 subproblem by a tree over its home/away patterns (:func:`_price_network`, never above a
 column's true reduced value, so the bound stays a bound); the traffic between blocks is
 reserved on them when the plan is made. The plan is checked against the whole network.
+Driven nodes (system.yaml ``input:``): a block carries the data flow on its robot (a
+camera whose rate is a knob and the detector it drives, wherever the detector runs). Its
+*views* are the consistent assignments of its publishers' rates (:func:`flow_views`): in
+each, every member keeps only the choices that agree with it (the detector's at the
+camera's rate, so its CPU and the image traffic on the access point follow the rate), and
+the choices are independent again. The block's pricing is the best over its views; every
+consistent column lies in exactly one, so the pricing is exact and the Lagrangian bound
+stays a proof. A flow that leaves its robot's block (a driven node that may only run on a
+server, a node driven from two robots) is not decomposed: :func:`decomposable` is False
+and ``exact`` solves the whole MILP, whose flow rows tie the choices; so is a block with
+more than :data:`MAX_VIEWS` views.
+
 :func:`decomposable` says whether an instance qualifies; otherwise ``solve --method exact``
 uses the MILP.
 """

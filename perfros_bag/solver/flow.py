@@ -47,9 +47,13 @@ SEARCH_BUDGET_S = 60.0
 #: take minutes on a few hundred nodes)
 FINAL_BUDGET_S = 10.0
 
-#: greedy+ along a data flow with many rate assignments: its search and rate moves end
-#: after this long (seconds) past the greedy's start runs, or at the caller's deadline
-PLUS_RATES_S = 6.0
+#: greedy+ along a data flow with many rate assignments (Problem 1), on a fleet: the
+#: greedy's tree-by-tree passes stop after this long (seconds), or at the caller's deadline
+PLUS_PASSES_S = 2.0
+#: ... when one pass (a greedy run per tree option) would take longer than this (seconds)
+PLUS_PASS_MAX_S = 20.0
+#: ... and greedy+ on their best assignment with its rate moves after this long
+PLUS_RATES_S = 5.0
 #: of that time, greedy+'s own search on the start's rates (the rest: the rate moves)
 PLUS_SHARE = 0.5
 #: a rate move may send a following group to this many servers (those with the most free CPU)
@@ -96,7 +100,9 @@ def solve_heuristic(system: System, problem: Problem, choices: dict[str, list[Ch
     # a move sets every publisher of one source's tree at once (a camera's rate together
     # with its detector's setting), one publisher at a time where a tree has too many
     current: Classes = {p: options[p][0] for p in publishers}
+    t_run = time.monotonic()
     best = run(current, Method.GREEDY)
+    t_run = time.monotonic() - t_run  # one greedy run: what a try of the passes costs
     moves: list[list[Classes]] = []
     for members in _trees(system, publishers):
         joint = [dict(zip(members, pick, strict=True)) for pick in itertools.product(*(options[p] for p in members))]
@@ -116,17 +122,17 @@ def solve_heuristic(system: System, problem: Problem, choices: dict[str, list[Ch
             plan = run(trial, Method.GREEDY)
             if _better(plan, best, problem):
                 best, current = plan, trial
-    if method == Method.GREEDY_PLUS and problem == Problem.PERFORMANCE:
-        # greedy+ on the best start found, then its rate moves (each valued on the computers
-        # it touches, not by a whole greedy run): no tree-by-tree greedy passes
-        plus = _greedy_plus_rates(system, choices, current, moves, min(deadline, time.monotonic() + PLUS_RATES_S))
-        if plus is not None:
-            return _best([plus, *tried.values()], problem, method, system)
+    # greedy+ (Problem 1) where a pass of whole greedy runs would cost more than
+    # PLUS_PASS_MAX_S (a fleet): the passes get PLUS_PASSES_S, then greedy+ on their best
+    # and its rate moves (valued on the computers they touch)
+    rates = (method == Method.GREEDY_PLUS and problem == Problem.PERFORMANCE
+             and t_run * sum(len(m) for m in moves) > PLUS_PASS_MAX_S)
+    passes_until = min(deadline, time.monotonic() + PLUS_PASSES_S) if rates else deadline
     for _ in range(PASSES):
         changed = False
         for move in moves:
             for change in move:
-                if late():
+                if time.monotonic() > passes_until:
                     break
                 trial = {**current, **change}
                 plan = run(trial, Method.GREEDY)
@@ -136,6 +142,10 @@ def solve_heuristic(system: System, problem: Problem, choices: dict[str, list[Ch
             break
     if method == Method.GREEDY:
         return _best(tried.values(), problem, method, system)
+    if rates:
+        plus = _greedy_plus_rates(system, choices, current, moves, min(deadline, time.monotonic() + PLUS_RATES_S))
+        if plus is not None:  # greedy+ from the greedy's plan on ``current``: never below it
+            return _best([plus], problem, method, system)
     run(current, method)  # greedy+ on the best assignment the search found
     return _best([plan for (how, _), plan in tried.items() if how == method] or list(tried.values()),
                  problem, method, system)
