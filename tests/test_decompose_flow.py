@@ -131,3 +131,34 @@ def test_a_block_with_too_many_rate_assignments_is_refused(monkeypatch: pytest.M
     plan = solve(system, 1, "exact", time_limit=30)
     best = solve(system, 1, "bruteforce")
     assert check_plan(system, plan) == [] and plan.objective == pytest.approx(best.objective, rel=1e-7)
+
+
+@pytest.mark.parametrize("seed", (0, 1))
+def test_greedy_plus_rate_moves_keep_a_consistent_feasible_plan(seed: int, monkeypatch: pytest.MonkeyPatch) -> None:
+    """greedy+'s fleet path (forced: passes of greedy runs "too dear"): after its rate moves
+    (a camera's rate with its detector's choices and place, in place on greedy+'s state)
+    the plan passes the checker, every detector runs at its camera's rate, it is no better
+    than the whole MILP's optimum and no worse than the greedy's plan at the rates it
+    starts from (every camera at its lowest)."""
+    from perfros_bag.solver import flow
+    from perfros_bag.solver.greedy import solve_greedy
+
+    system = system_of(driven_fleet(seed, robots=4))
+    choices = fixed_choices(system, Problem.PERFORMANCE)
+    calls: list[bool] = []
+    apply = flow._apply_rates
+    monkeypatch.setattr(flow, "PLUS_PASS_MAX_S", -1.0)
+    monkeypatch.setattr(flow, "_apply_rates", lambda *a: calls.append(apply(*a)) or calls[-1])
+    plan = solve(system, 1, "greedy+")
+    assert any(calls)  # a rate move was made
+    assert plan.status != Status.INFEASIBLE and check_plan(system, plan) == []
+    for node in system.nodes:
+        if node.input is not None:
+            assert plan.nodes[node.name].input_hz == pytest.approx(plan.nodes[system.flow_parent[node.name]].value)
+    optimum = solve_exact(system, Problem.PERFORMANCE, choices, time_limit=60)
+    assert optimum.status == Status.OPTIMAL and optimum.objective is not None
+    lowest = flow._restricted(system, choices, {p: opts[0] for p, opts in flow._class_options(system, choices).items()})
+    assert lowest is not None
+    start = solve_greedy(system, Problem.PERFORMANCE, lowest)
+    assert plan.objective is not None and start.objective is not None
+    assert start.objective - 1e-9 <= plan.objective <= optimum.objective + 1e-9

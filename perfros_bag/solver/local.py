@@ -263,9 +263,13 @@ class Improver:
         self.sig = [self._sig(gi) for gi in range(len(state.groups))]
         if self.scale is not None:
             for n in state.nodes:
-                lad = state.ladder[n]
-                self.items[n] = (np.array([int(round(ch.cpu * self.scale)) for ch in lad]),
-                                 np.array([state.weight[n] * ch.performance for ch in lad]))
+                self.items[n] = self._item(n, state.ladder[n])
+
+    def _item(self, n: str, lad: list[Choice]) -> tuple[np.ndarray, np.ndarray]:
+        """Node ``n`` at ladder ``lad`` as a knapsack item: CPU in grid units, w·P per level."""
+        assert self.scale is not None
+        return (np.array([int(round(ch.cpu * self.scale)) for ch in lad]),
+                np.array([self.s.weight[n] * ch.performance for ch in lad]))
 
     def _sig(self, gi: int) -> tuple[object, ...]:
         """What makes two groups interchangeable (no swap between them is tried)."""
@@ -279,9 +283,7 @@ class Improver:
         s, changed = self.s, set(nodes)
         if self.scale is not None:
             for n in changed:
-                lad = s.ladder[n]
-                self.items[n] = (np.array([int(round(ch.cpu * self.scale)) for ch in lad]),
-                                 np.array([s.weight[n] * ch.performance for ch in lad]))
+                self.items[n] = self._item(n, s.ladder[n])
         for gi in {s.group_of[n] for n in changed}:
             self.sig[gi] = self._sig(gi)
         self.tables = {k: v for k, v in self.tables.items() if not k[1] & changed}
@@ -352,8 +354,7 @@ class Improver:
         if self.scale is not None and on_grid([ch.cpu for lad in extra.values() for ch in lad], self.scale):
             t = self.table(comp, frozenset(base))
             for n, lad in extra.items():
-                t = combine_tables(t, np.array([int(round(ch.cpu * self.scale)) for ch in lad]),
-                                   np.array([s.weight[n] * ch.performance for ch in lad]))[0]
+                t = combine_tables(t, *self._item(n, lad))[0]
             return float(t[-1])
         saved = {n: s.ladder[n] for n in extra}
         try:  # Algorithm 2's rule reads the state's ladders: lent the trial ones for the call
