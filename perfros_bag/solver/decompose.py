@@ -69,7 +69,7 @@ from perfros_bag.solver.local import combine_tables, on_grid
 from perfros_bag.solver.milp import quiet_highs
 from perfros_bag.solver.starts import PLUS_START_MAX_S, greedy_start, plus_start
 from perfros_bag.system.plan import Assignment, Method, Plan, Status
-from perfros_bag.system.rules import build_plan, computer_loads, weighted_performance
+from perfros_bag.system.rules import build_plan, computer_loads, server_sizes, weighted_performance
 from perfros_bag.system.types import Choice, Edge, Problem, System
 
 __all__ = ["decomposable", "solve_decomposed"]
@@ -167,6 +167,9 @@ class _Model:
     reserve: np.ndarray = field(default_factory=lambda: np.zeros(0))  # per row: traffic between blocks, at most
     row_names: list[str] = field(default_factory=list)  # per row: "computer C", "link A-B", "medium M"
     cramped: list[int] = field(default_factory=list)  # rows the traffic between blocks could fill alone
+    # Problem 2 (servers sized to their load): a column's value is minus the CPU it puts on
+    # the relaxed computers (the servers), nothing at home; maximising it minimises Σ sizes
+    sized: bool = False
 
 
 def cpu_grid_scale(cpus: Sequence[float]) -> int | None:
@@ -244,6 +247,7 @@ def _model(system: System, inst: Instance, active: set[int] | None = None) -> _M
     ``active``: the links that can overflow (``instance.active_links``): each, and each medium
     of one, becomes a network row beside the relaxed computers' CPU rows."""
     active = active or set()
+    sized = inst.problem == Problem.SERVER_CAPACITY
     kind = {c.name: c.kind for c in system.computers}
     robots_of = {g.members: [c for c in g.allowed if kind[c] == "robot"] for g in inst.groups}
     private = {c.name for c in system.computers if c.kind == "robot"}
@@ -283,7 +287,8 @@ def _model(system: System, inst: Instance, active: set[int] | None = None) -> _M
     def item(g: Group, home: str | None, allowed: dict[str, frozenset[int]] | None = None) -> _Item | None:
         relaxed_ok = np.array([rindex[c] for c in g.allowed if c in rindex], dtype=np.int64)
         mc = [np.array([ch.cpu for ch in inst.choices[n]]) for n in g.members]
-        mv = [np.array([system.node[n].weight * ch.performance for ch in inst.choices[n]]) for n in g.members]
+        mv = [-c if sized else np.array([system.node[n].weight * ch.performance for ch in inst.choices[n]])
+              for n, c in zip(g.members, mc, strict=True)]
         if allowed:  # a view: a choice that disagrees with the view's rates is worth -inf
             mv = [v if n not in allowed else np.where(np.isin(np.arange(len(v)), sorted(allowed[n])), v, -np.inf)
                   for n, v in zip(g.members, mv, strict=True)]
@@ -292,6 +297,8 @@ def _model(system: System, inst: Instance, active: set[int] | None = None) -> _M
         opts = home_options(inst, g.members, scale, allowed)
         if opts is None:
             return None
+        if sized:  # at home a group costs nothing: its cheapest option alone
+            opts = (opts[0][:1], np.zeros(1), opts[2][:1])
         return _Item(g.members, relaxed_ok, opts[0], opts[1], opts[2], mc, mv)
 
     def signature(g: Group) -> tuple[Any, ...]:
@@ -344,8 +351,10 @@ def _model(system: System, inst: Instance, active: set[int] | None = None) -> _M
         assert it is not None
         by_sig[sig] = len(classes)
         classes.append(_Class(None, 0, [it], [[g.members]], [None]))
-    cap = np.array([inst.cap[c] for c in relaxed], dtype=float)
-    model = _Model(inst, relaxed, cap, classes, row_names=[f"computer {c}" for c in relaxed])
+    # a Problem 2 server without max_capacity: no plan puts more than every node's CPU on it
+    room = sum(max(ch.cpu for ch in opts) for opts in inst.choices.values()) + 1.0
+    cap = np.array([min(inst.cap[c], room) for c in relaxed], dtype=float)
+    model = _Model(inst, relaxed, cap, classes, row_names=[f"computer {c}" for c in relaxed], sized=sized)
     if active:
         why = _network_rows(model, active)
         if why is not None:
@@ -466,7 +475,7 @@ def _qualified(system: System, problem: Problem, choices: dict[str, list[Choice]
                prepared: Instance | str | None) -> _Model | None:
     """The decomposition's model when the instance qualifies (:func:`decomposable`), else
     None. ``prepared``: ``instance.prepare_instance``'s answer when the caller has it."""
-    if problem != Problem.PERFORMANCE:
+    if problem not in (Problem.PERFORMANCE, Problem.SERVER_CAPACITY):
         return None
     inst = prepare_instance(system, problem, choices) if prepared is None else prepared
     if isinstance(inst, str):
@@ -660,7 +669,8 @@ def _column(model: _Model, ci: int, parts: tuple[tuple[int, tuple[int, ...]], ..
     use: dict[int, float] = {}
     for it, (r, levels) in zip(cl.items, parts, strict=True):
         for cpu, val, k in zip(it.member_cpu, it.member_val, levels, strict=True):
-            value += float(val[k])
+            if r >= 0 or not model.sized:
+                value += float(val[k])
             if r >= 0:
                 use[r] = use.get(r, 0.0) + float(cpu[k])
     if cl.edges:  # the block's own traffic on the network rows, exactly
@@ -914,12 +924,11 @@ def _proven_infeasible(model: _Model, rows: Sequence[int], ceiling: float, *, de
     any prices the bound is at least every plan's value, so no plan exists, and that row's
     computer, link or medium is what cannot hold (the least its blocks must put on it,
     wherever they run, exceeds it). None when no row proves it (or past ``deadline``)."""
-    system = model.inst.system
-    floor = sum(system.node[n].weight * min(ch.performance for ch in opts) for n, opts in model.inst.choices.items())
+    floor = _floor(model)
     for j in rows:
         if time.perf_counter() > deadline:
             return None
-        steep = 1e6 * (ceiling + 1.0) / max(float(model.cap[j]), 1.0)
+        steep = 1e6 * (ceiling - floor + 1.0) / max(float(model.cap[j]), 1.0)
         lam = np.zeros(len(model.cap))
         lam[j] = steep
         value, _ = _lagrangian(model, lam)
@@ -929,6 +938,28 @@ def _proven_infeasible(model: _Model, rows: Sequence[int], ceiling: float, *, de
                     f"and traffic they need more than its {float(model.cap[j]):.6g} {unit} (proven: the "
                     f"decomposition's Lagrangian bound, priced on it alone, is below every plan's value)")
     return None
+
+
+def _ceiling(model: _Model) -> float:
+    """No plan's value is above this: Σ w·max P (Problem 1); 0, nothing on a server (Problem 2)."""
+    return 0.0 if model.sized else trivial_bound(model.inst.system, model.inst.choices)
+
+
+def _floor(model: _Model) -> float:
+    """Every plan's value is at least this: every node at its worst setting (Problem 1);
+    every node on a server at its most CPU (Problem 2)."""
+    if model.sized:
+        return -sum(max(ch.cpu for ch in opts) for opts in model.inst.choices.values())
+    system = model.inst.system
+    return sum(system.node[n].weight * min(ch.performance for ch in opts) for n, opts in model.inst.choices.items())
+
+
+def _value(model: _Model, assignment: Assignment) -> float:
+    """A plan's value in the master's sense (bigger is better): Σ w·P, or minus Σ server sizes."""
+    system = model.inst.system
+    if model.sized:
+        return -sum(server_sizes(system, assignment.placement, assignment.choice).values())
+    return weighted_performance(system, assignment.choice)
 
 
 def _fits(model: _Model, assignment: Assignment) -> bool:
@@ -963,15 +994,21 @@ def solve_decomposed(system: System, problem: Problem, choices: dict[str, list[C
     model = _qualified(system, problem, choices, prepared)
     if model is None:
         return None
+    if model.sized and progress is not None:  # the master maximises minus Σ sizes: reported as Σ sizes
+        told = progress
+
+        def progress(incumbent: float | None, bound: float, seconds: float) -> None:
+            told(None if incumbent is None else -incumbent, -bound, seconds)
     inst = model.inst
-    ceiling = trivial_bound(system, inst.choices)
+    ceiling = _ceiling(model)
+    spread = ceiling - _floor(model)  # the most two plans' values differ by
     if model.cramped:  # not for this solver (decomposable() is False), unless such a row proves there is no plan
         deadline = math.inf if time_limit is None else t0 + time_limit / 2
         why = _proven_infeasible(model, model.cramped, ceiling, deadline=deadline)
         return None if why is None else Plan.infeasible(problem, Method.EXACT, why, solve_s=elapsed(),
                                                          system=system.source)
     budget = NO_LIMIT_S if time_limit is None else time_limit - max(PLAN_SHARE * time_limit, PLAN_MIN_S)
-    master = _Master(model, penalty=ceiling + 1.0)
+    master = _Master(model, penalty=spread + 1.0)
 
     # the paper's greedy: the first columns, and the MILP's start
     # (along a data flow the greedy searches the rates, each try a whole greedy run: bounded)
@@ -982,7 +1019,7 @@ def solve_decomposed(system: System, problem: Problem, choices: dict[str, list[C
     if mapped is not None:
         incumbent = mapped[0]
         master.add(_column_of(model, *mapped))
-    best_value = weighted_performance(system, incumbent.choice) if incumbent is not None else None
+    best_value = _value(model, incumbent) if incumbent is not None else None
     bound = ceiling
     lam = np.zeros(len(model.cap))
     lp_value: float | None = None
@@ -1033,7 +1070,7 @@ def solve_decomposed(system: System, problem: Problem, choices: dict[str, list[C
         if result is not None:
             counts, optimal_here = result
             found = _assignment(model, counts, master.columns)
-            value = weighted_performance(system, found.choice)
+            value = _value(model, found)
             fits = _fits(model, found)
             if fits and (best_value is None or value > best_value + 1e-12):
                 incumbent, best_value = found, value
@@ -1050,6 +1087,10 @@ def solve_decomposed(system: System, problem: Problem, choices: dict[str, list[C
     proven = bound - best_value <= REL_TOL * max(1.0, abs(best_value))
     if progress is not None:
         progress(best_value, bound, elapsed())
+    if model.sized:  # Problem 2: the servers sized to their load; objective and bound Σ sizes
+        incumbent = Assignment(incumbent.placement, incumbent.choice,
+                               server_sizes(system, incumbent.placement, incumbent.choice))
+        best_value, bound = -best_value, -bound
     return build_plan(system, incumbent, problem=problem, method=Method.EXACT,
                       status=Status.OPTIMAL if proven else Status.FEASIBLE,
                       bound=best_value if proven else bound, solve_s=elapsed())

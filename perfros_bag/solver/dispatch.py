@@ -193,7 +193,7 @@ def _dispatch(system: System, problem: Problem, method: Method, choices: dict[st
     columns = exact_columns(system, choices)
     # the decomposition prices robots one by one, each with the data flow it carries; a flow
     # across robots is the MILP's (its rows): solve_decomposed then declines (None)
-    if problem == Problem.PERFORMANCE and columns > DECOMPOSE_COLUMNS and not isinstance(prepared, str):
+    if columns > DECOMPOSE_COLUMNS and not isinstance(prepared, str):  # Problem 1 or 2
         from perfros_bag.solver.decompose import solve_decomposed  # deferred: numpy, HiGHS
 
         decomposed = solve_decomposed(system, problem, choices, time_limit=left(), progress=progress,
