@@ -162,3 +162,33 @@ def test_greedy_plus_rate_moves_keep_a_consistent_feasible_plan(seed: int, monke
     start = solve_greedy(system, Problem.PERFORMANCE, lowest)
     assert plan.objective is not None and start.objective is not None
     assert start.objective - 1e-9 <= plan.objective <= optimum.objective + 1e-9
+
+
+P2_CASES = [(f"driven-{seed}", driven_fleet(seed)) for seed in (1, 2)] + [
+    (f"wifi6-{seed}-{'driven' if driven else 'plain'}",
+     wifi_fleet_instance(6, 1, robots_per_ap=3, trackers=2, ap_kBps=2350.0, seed=seed, driven=driven))
+    for seed in (0, 1) for driven in (False, True)]
+
+
+@pytest.mark.parametrize(("name", "data"), P2_CASES, ids=[c[0] for c in P2_CASES])
+def test_problem2_decomposed_against_the_whole_milp(name: str, data: dict[str, Any]) -> None:
+    """Problem 2 (servers sized to their load) at Problem 1's settings: the decomposition's
+    plan passes the checker, its objective (Σ server sizes, recomputed from its placement)
+    is at least the whole MILP's optimum and its bound at most it."""
+    from perfros_bag.solver.candidates import settings_from_plan
+    from perfros_bag.system.rules import computer_loads
+
+    system = system_of(data)
+    settings = settings_from_plan(solve(system, 1, "exact"), system)
+    choices = fixed_choices(system, Problem.SERVER_CAPACITY, settings)
+    exact = solve_exact(system, Problem.SERVER_CAPACITY, choices, time_limit=60)
+    assert exact.status == Status.OPTIMAL and exact.objective is not None
+    plan = solve_decomposed(system, Problem.SERVER_CAPACITY, choices)
+    assert plan is not None and check_plan(system, plan) == []
+    assert plan.objective is not None and plan.bound is not None
+    load = computer_loads(system, {n: pn.computer for n, pn in plan.nodes.items()},
+                          {n: next(ch for ch in choices[n] if ch.cpu == pn.cpu) for n, pn in plan.nodes.items()})
+    assert plan.objective == pytest.approx(sum(load[c.name] for c in system.computers if c.kind == "server"))
+    assert plan.bound - 1e-6 <= exact.objective <= plan.objective + 1e-6
+    if plan.status == Status.OPTIMAL:
+        assert plan.objective == pytest.approx(exact.objective, abs=1e-6)
