@@ -29,6 +29,11 @@ with its price: a block's own edges load them (exactly, per column) and are pric
 subproblem by a tree over its home/away patterns (:func:`_price_network`, never above a
 column's true reduced value, so the bound stays a bound); the traffic between blocks is
 reserved on them when the plan is made. The plan is checked against the whole network.
+Problem 2 (servers sized to their load, settings fixed) is the same search with a column
+worth minus the CPU it puts on the relaxed computers (nothing at home): the plan's servers
+are sized to their load, its objective and bound are Σ sizes (the bound: minus the
+Lagrangian one, a lower bound on every plan's).
+
 Driven nodes (system.yaml ``input:``): a block carries the data flow on its robot (a
 camera whose rate is a knob and the detector it drives, wherever the detector runs). Its
 *views* are the consistent assignments of its publishers' rates (:func:`flow_views`): in
@@ -485,7 +490,8 @@ def _qualified(system: System, problem: Problem, choices: dict[str, list[Choice]
 
 
 def decomposable(system: System, problem: Problem, choices: dict[str, list[Choice]]) -> bool:
-    """Whether :func:`solve_decomposed` applies: Problem 1, CPU levels on a grid, and links
+    """Whether :func:`solve_decomposed` applies: Problem 1 or 2, CPU levels on a grid, each
+    data-flow tree inside one robot's block (at most :data:`MAX_VIEWS` views), and links
     or media that can overflow carried as coupling rows (at most :data:`MAX_PATTERNS`
     home/away patterns per block, traffic between blocks that cannot fill a row on its
     own); an instance infeasible on its face is left to the exact solver (which names the
@@ -975,7 +981,7 @@ def _fits(model: _Model, assignment: Assignment) -> bool:
 def solve_decomposed(system: System, problem: Problem, choices: dict[str, list[Choice]], *,
                      time_limit: float | None = None, progress: Progress | None = None,
                      prepared: Instance | str | None = None) -> Plan | None:
-    """Problem 1 by column generation and a MILP over the columns (module docstring).
+    """Problem 1 or 2 by column generation and a MILP over the columns (module docstring).
 
     Returns the best plan found with ``bound`` the best Lagrangian bound (never above
     Σ w·max P); ``status`` is ``optimal`` only when they agree within 1e-6 (relative),
