@@ -8,10 +8,11 @@ STAMP := $(VENV)/.installed-stamp
 # Debian packages the tests and pipelines use: ROS 1 (roscore, rospy, rosbag), real C++
 # nodes for `sweep` (image_publisher, opencv_apps: nodelet loaders, which find their plugins
 # only with the packages holding nodelet's and their package.xml / nodelet_plugins.xml) and
-# a headless browser for the report check; iproute2 (ip, tc) for links as network namespaces.
+# a headless browser for the report check; iproute2 (ip, tc) for links as network namespaces;
+# topic_tools (throttle, for fixtures/throttle; libtopic-tools-dev holds its package.xml).
 DEBS ?= ros-core python3-rospy python3-rosbag ros-image-publisher ros-opencv-apps python3-opencv-apps \
 	libnodeletlib-dev libnodelet-dev libnodeletlib-tools libopencv-apps2d libopencv-apps-dev \
-	libimage-publisher-dev chromium iproute2
+	libimage-publisher-dev topic-tools libtopic-tools-dev chromium iproute2
 PYTEST_ARGS ?=
 OUT ?= out
 

@@ -174,3 +174,93 @@ def test_fairness_lines_state_each_cap_and_the_leftovers() -> None:
     lines = cs.fairness_lines(doc)
     assert "| people (people_detect) | 41.6 / 38.0 | 91.2 % | 100.0 % |" in lines
     assert any(line.startswith("Leftover processes: 0, leftover cgroups: 0") for line in lines)
+
+
+DRAFT = {"nodes": [
+    {"name": "robot1_camera", "topics": ["/robot1/camera/image_raw"],
+     "settings": [{"value": 10.0, "cpu": 0.8, "performance": 100}]},
+    {"name": "robot1_people", "input": "/robot1/camera/image_raw", "topics": ["/robot1/people/found"],
+     "settings": [{"value": 1.1, "cpu": 0.5, "cpu_per_hz": 2.0, "performance": 85}]},
+    {"name": "robot1_smooth", "input": "/robot1/camera/image_raw", "topics": ["/robot1/smooth/image"],
+     "settings": [{"value": 7, "cpu": 0.0, "cpu_per_hz": 0.3, "performance": 55}]}],
+    "edges": []}
+
+
+def test_each_robot_declares_its_two_chains_and_the_budget_only_where_asked() -> None:
+    budgeted = cs.instance_system(cs.INSTANCES[3], DRAFT, {"p95": 90.0}, budgeted=(3,))
+    assert budgeted["chains"] == [
+        {"name": "robot1_people", "topics": ["/robot1/camera/image_raw", "/robot1/people/found"],
+         "budget_ms": {"p95": 90.0}},
+        {"name": "robot1_smooth", "topics": ["/robot1/camera/image_raw", "/robot1/smooth/image"]},
+        {"name": "robot2_people", "topics": ["/robot2/camera/image_raw", "/robot2/people/found"],
+         "budget_ms": {"p95": 90.0}},
+        {"name": "robot2_smooth", "topics": ["/robot2/camera/image_raw", "/robot2/smooth/image"]}]
+    free = cs.instance_system(cs.INSTANCES[3], DRAFT, {"p95": 90.0}, budgeted=(1,))
+    assert all("budget_ms" not in c for c in free["chains"]) and len(free["chains"]) == 4
+    # every chain's topics are the instance's nodes' own topics
+    topics = {t for n in budgeted["nodes"] for t in n["topics"]}
+    assert all(c["topics"][1] in topics for c in budgeted["chains"])
+    assert len(cs.BUDGET_INSTANCES) >= 2  # the issue: a budget that binds on at least two instances
+
+
+def _chain(name: str, p50: float | None, p95: float | None, pred: tuple[float, float] | None,
+           budget: float | None = None) -> dict[str, Any]:
+    c: dict[str, Any] = {"name": name, "matched": 100, "p50_s": None if p50 is None else p50 / 1e3,
+                         "p95_s": None if p95 is None else p95 / 1e3}
+    if pred is not None:
+        c["predicted_ms"] = {"p50": pred[0], "p95": pred[1]}
+    if budget is not None:
+        c["budget_ms"] = {"p95": budget}
+    return c
+
+
+def test_rq2l_rows_summary_and_line_against_a_hand_count() -> None:
+    """Two deployments (a third plan shares the first), one no-headroom contrast left out:
+    the errors and the budgets counted by hand."""
+    val_a = {"chains": [_chain("robot1_people", 50.0, 80.0, (55.0, 60.0), budget=100.0),
+                        _chain("robot1_smooth", 10.0, 16.0, (13.0, 14.0))]}
+    val_b = {"chains": [_chain("robot1_people", 100.0, 200.0, (80.0, 250.0), budget=190.0),
+                        _chain("robot1_smooth", 40.0, None, (30.0, 35.0))]}
+    val_c = {"chains": [_chain("robot1_people", 1.0, 1.0, (900.0, 900.0), budget=1.0)]}
+    rows = [{**_row("i1/run-a", "p1-exact", 1.0), "chains": cs.chain_rows(val_a)},
+            {**_row("i1/run-a", "p2-exact", 1.0), "chains": cs.chain_rows(val_a)},
+            {**_row("i1/run-b", "p1-greedy", 1.0), "chains": cs.chain_rows(val_b)},
+            {**_row("i1/run-n", "p1-exact-nomargin", 1.0), "chains": cs.chain_rows(val_c)}]
+    lat = cs.latency_rows(rows)
+    assert [(r["run"], r["chain"]) for r in lat] == [("i1/run-a", "robot1_people"), ("i1/run-a", "robot1_smooth"),
+                                                    ("i1/run-b", "robot1_people"), ("i1/run-b", "robot1_smooth")]
+    assert lat[0]["p95_ms"] == pytest.approx(80.0) and lat[0]["pred_p95_ms"] == 60.0 and lat[0]["budget_p95_ms"] == 100.0
+    got = cs.latency_summary(lat)
+    # p50: measured >= 20 ms: a 5/50, b 20/100, b-smooth 10/40 -> (10 + 20 + 25) / 3 %; a-smooth 10 ms: 3 ms off
+    assert got["p50"]["error_pct"] == pytest.approx((10 + 20 + 25) / 3)
+    assert got["p50"]["n_small"] == 1 and got["p50"]["error_ms_small"] == pytest.approx(3.0)
+    # p95: a 20/80 = 25 %, b 50/200 = 25 %; a-smooth 16 ms: 2 ms off; b-smooth not measured
+    assert got["p95"]["error_pct"] == pytest.approx(25.0) and got["p95"]["n_pct"] == 2
+    assert got["p95"]["error_ms_small"] == pytest.approx(2.0)
+    # budgets: a 80 <= 1.05 x 100 held; b 200 > 1.05 x 190 = 199.5 broken
+    assert (got["budgets_held"], got["budgets"], got["chain_deployments"]) == (1, 2, 4)
+    line = cs.latency_line("2026-11-27 18:00 UTC", got)
+    assert line.startswith("full run 2026-11-27 18:00 UTC: latency p50 |error| 18.3 % p95 |error| 25.0 % "
+                           "over 4 chain-deployments; budgets held 1 of 2")
+    section = "\n".join(cs.rq2l_lines(rows, "2026-11-27 18:00"))
+    assert "### RQ2-L" in section and "| 1 | p1-greedy | robot1_people | 80.0 | 100.0 | 250.0 | 200.0 | 190 | **no** |" in section
+    assert "This run 2026-11-27 18:00 UTC: latency p50 |error| 18.3 %" in section
+    assert "nomargin" not in section
+
+
+def test_chain_rows_take_prediction_and_budget_from_the_plan_when_validation_lacks_them() -> None:
+    plan = {"chains": [{"name": "robot1_people", "predicted_ms": {"p50": 40.0, "p95": 70.0},
+                        "budget_ms": {"p50": 60.0, "p95": 120.0}}]}
+    (row,) = cs.chain_rows({"chains": [_chain("robot1_people", 45.0, 75.0, None)]}, plan)
+    assert (row["pred_p50_ms"], row["pred_p95_ms"], row["budget_p50_ms"], row["budget_p95_ms"]) == (40.0, 70.0, 60.0, 120.0)
+    (bare,) = cs.chain_rows({"chains": [_chain("robot1_people", 45.0, 75.0, None)]})
+    assert bare["pred_p95_ms"] is None and cs.latency_summary([bare])["chain_deployments"] == 0
+
+
+def test_rq3_kept_errors_in_points_per_node() -> None:
+    rows = [{"kept": [{"node": "robot1_people", "predicted": 0.35, "measured": 0.24},
+                      {"node": "robot1_smooth", "predicted": 0.65, "measured": 0.65}]},
+            {"kept": [{"node": "robot1_people", "predicted": 0.5, "measured": 0.55}]}]
+    got = cs.kept_errors(rows)
+    assert got["people"]["n"] == 2 and got["people"]["mean_abs_points"] == pytest.approx((11 + 5) / 2)
+    assert got["smooth"]["mean_abs_points"] == pytest.approx(0.0)

@@ -215,3 +215,42 @@ def test_info_latency_with_a_system_gives_its_chains(recordings: dict[str, Path]
     assert "chains" not in json.loads(runner.invoke(app, ["info", str(recordings["mcap"]), "--json"]).stdout)
     res = runner.invoke(app, ["info", str(recordings["mcap"]), "--system", str(system)])
     assert res.exit_code == 2 and "add --latency" in res.output
+
+
+def test_validate_sets_each_chain_and_hop_prediction_beside_its_measurement(recordings: dict[str, Path],
+                                                                           tmp_path: Path) -> None:
+    text = _system_text().replace(
+        "settings: [{cpu: 50, performance: 100, frequency_hz: 20.2}]}",
+        "input: /camera/image_raw, settings: [{cpu: 10, cpu_per_hz: 1.3, performance: 100, out_per_in: 0.667, "
+        "bytes_per_msg: 40}]}").replace(
+        "settings: [{cpu: 10, performance: 100, frequency_hz: 20.2}]}",
+        "input: /detector/circles, settings: [{cpu: 2, cpu_per_hz: 0.4, performance: 100, bytes_per_msg: 20}]}")
+    text = text.replace("topics: [/camera/image_raw, /detector/circles, /tracker/tracks]}",
+                        "topics: [/camera/image_raw, /detector/circles, /tracker/tracks], budget_ms: {p95: 900}}")
+    system = tmp_path / "system.yaml"
+    system.write_text(text)
+    res, saved = solve_and_validate(system, recordings["ros1"], tmp_path)
+    plan = json.loads((tmp_path / "plan.json").read_text())
+    [planned] = plan["chains"]
+    [chain] = json.loads(saved.read_text())["chains"]
+    assert planned["predicted_ms"]["p95"] <= 900
+    assert chain["predicted_ms"] == planned["predicted_ms"] and chain["budget_ms"] == {"p95": 900}
+    assert chain["budget_held"] is (1000 * chain["p95_s"] <= 900)
+    assert [h["predicted_ms"] for h in chain["hops"]] == [h["predicted_ms"] for h in planned["hops"]]
+    assert [(h["from"], h["to"]) for h in chain["hops"]] == [(h["from"], h["to"]) for h in planned["hops"]]
+    assert f"{planned['predicted_ms']['p95'] / 1000:.3g}" in res.stderr  # the table's pred p95 (s)
+
+    # a plan that states no chains (written before they were predicted) is predicted by validate, alike
+    bare = tmp_path / "bare.json"
+    bare.write_text(json.dumps({k: v for k, v in plan.items() if k != "chains"}))
+    again = CliRunner().invoke(app, ["validate", str(recordings["ros1"]), str(bare), "--json", "--tolerance", "100"])
+    assert again.exit_code == 0, again.output
+    [rechain] = json.loads(again.stdout)["chains"]
+    assert rechain["predicted_ms"] == pytest.approx(planned["predicted_ms"], rel=1e-6)
+
+    from perfros_bag.report.html import build_report, fmt
+
+    page = build_report(tmp_path / "report", validation=saved, plan=tmp_path / "plan.json").read_text()
+    rows = page.split('id="validation-chains"', 1)[1].split("</table>", 1)[0]
+    assert f">{fmt(planned['predicted_ms']['p95'] / 1000)}<" in rows and "p95 900 ms" in rows
+    assert f">{fmt(planned['predicted_ms']['p50'])}<" in page.split('id="plan-chains"', 1)[1].split("</table>", 1)[0]

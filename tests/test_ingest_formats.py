@@ -343,7 +343,7 @@ def test_a_loose_rosbag2_mcap_file_reports_what_its_directory_reports(tmp_path: 
     ``rosbag2`` Metadata record whether each payload is a zstd frame: the sizes are then the
     decompressed ones, as when the directory is read, and as rosbags' AnyReader decodes them.
     The chunk-range (split) read agrees."""
-    from perfros_bag.ingest.split import read_split
+    from perfros_bag.characterisation.cluster import read_split
 
     rng = np.random.default_rng(7)
     msgs = random_msgs(rng, 300, topics=3, max_size=400)

@@ -36,29 +36,36 @@ def _messages(rate: float, offset_ns: int = 0) -> list[int]:
     return [T0 + offset_ns + int(round(i * 1e9 / rate)) for i in range(n)]
 
 
-def _write_run(d: Path, name: str, rate: float, value: int, k: int, detector_cpu: float) -> dict[str, object]:
-    """A run: the camera at ``rate`` Hz, the detector once per frame, the relay once per two
-    detections, the tracker on its own 5 Hz clock (it subscribes to the camera too)."""
+def write_run_files(d: Path, name: str, topics: dict[str, tuple[str, list[int], int]],
+                    cpu: dict[str, float], span_s: int = SPAN_S) -> None:
+    """``d/name.bag``: per topic (callerid, receive times in ns, bytes per std_msgs/String
+    message), and ``d/name.cpu.csv``: each node's CPU over ``span_s`` s (a trace of robot1, 2 CPUs)."""
     from rosbags.rosbag1 import Writer
     from rosbags.typesys import Stores, get_typestore
 
     ts = get_typestore(Stores.ROS1_NOETIC)
     string = ts.types["std_msgs/msg/String"]
-    topics = {"/camera/image_raw": ("/camera", _messages(rate), CAMERA_BYTES),
-              "/detector/out": ("/detector", _messages(rate, 1_000_000), DETECTOR_BYTES),
-              "/relay/out": ("/relay", _messages(rate / 2, 2_000_000), RELAY_BYTES),
-              "/tracker/tracks": ("/tracker", _messages(5, 3_000_000), TRACKER_BYTES)}
     msgs = sorted((t, topic) for topic, (_c, times, _b) in topics.items() for t in times)
     with Writer(d / f"{name}.bag") as w:
         conns = {topic: w.add_connection(topic, "std_msgs/msg/String", typestore=ts, callerid=caller)
                  for topic, (caller, _t, _b) in topics.items()}
         for t, topic in msgs:
             w.write(conns[topic], t, ts.serialize_ros1(string(data="x" * (topics[topic][2] - 4)), "std_msgs/msg/String"))
-    cpu = {"/camera": 1.0 + 0.1 * rate, "/detector": detector_cpu, "/relay": 0.5 + 0.2 * rate, "/tracker": 10.0}
     lines = ["# host=robot1", "# logical_cpus=2", "# interval_s=0.5", "time,pid,node,process,cpu_percent,rss_bytes"]
-    for s in range(1, 2 * SPAN_S):
+    for s in range(1, 2 * span_s):
         lines += [f"{T0 / 1e9 + s * 0.5:.3f},{100 + i},{node},x,{c},1000" for i, (node, c) in enumerate(cpu.items())]
     (d / f"{name}.cpu.csv").write_text("\n".join(lines) + "\n")
+
+
+def _write_run(d: Path, name: str, rate: float, value: int, k: int, detector_cpu: float) -> dict[str, object]:
+    """A run: the camera at ``rate`` Hz, the detector once per frame, the relay once per two
+    detections, the tracker on its own 5 Hz clock (it subscribes to the camera too)."""
+    topics = {"/camera/image_raw": ("/camera", _messages(rate), CAMERA_BYTES),
+              "/detector/out": ("/detector", _messages(rate, 1_000_000), DETECTOR_BYTES),
+              "/relay/out": ("/relay", _messages(rate / 2, 2_000_000), RELAY_BYTES),
+              "/tracker/tracks": ("/tracker", _messages(5, 3_000_000), TRACKER_BYTES)}
+    cpu = {"/camera": 1.0 + 0.1 * rate, "/detector": detector_cpu, "/relay": 0.5 + 0.2 * rate, "/tracker": 10.0}
+    write_run_files(d, name, topics, cpu)
     return {"path": f"{name}.bag", "cpu": f"{name}.cpu.csv", "computer": "robot1", "units_per_core": 100,
             "settings": {"camera": rate, "detector": value}}
 
@@ -118,6 +125,10 @@ def test_a_grid_drafts_one_least_squares_line_per_own_setting(tmp_path: Path) ->
     assert system.node["camera"].input is None  # the source keeps its rate settings
     assert [s.value for s in system.node["camera"].settings] == [4, 8, 12]
     assert system.node["tracker"].input is None  # subscribes to the camera, keeps its own clock
+    # one chain along the data flow, from the source's topic through every driven node, no budget
+    assert [(c.name, c.topics, c.budget_ms) for c in system.chains] == [
+        ("relay", ("/camera/image_raw", "/detector/out", "/relay/out"), None)]
+    assert "# budget_ms: {p95: 250}  # REPLACE" in system_path.read_text()
     detector = _settings(system_path, "detector")
     assert [s["value"] for s in detector] == [1, 2]
     for s in detector:

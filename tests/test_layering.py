@@ -1,9 +1,12 @@
 """The package's imports, read from the source with ``ast`` (nothing is imported):
 
+- every import, deferred (in a function) or only for type checking included, points down
+  the stage packages' layer order that docs/architecture.md states ("Layers, bottom to
+  top"), or stays within its own layer;
+- no module uses another module's private (``_name``) function, class or constant;
 - ``solver/``: no import cycle among its modules (deferred, function-level imports
   included), no module imports the ``perfros_bag.solver`` package itself (its
-  ``__init__`` only re-exports them), and no module uses another module's private
-  (``_name``) function, class or constant.
+  ``__init__`` only re-exports them).
 
 Each check is tried on a small made-up graph first, so that it is known to fail when it
 should.
@@ -27,6 +30,7 @@ class Import:
     dst: str  # the imported module (own modules only, resolved to a file of the package)
     line: int
     deferred: bool  # inside a function
+    typing: bool  # under ``if TYPE_CHECKING:`` (never runs)
     names: tuple[str, ...]  # ``from dst import names`` (empty for ``import dst``)
 
 
@@ -41,19 +45,25 @@ def modules() -> dict[str, Path]:
     return {module_name(p): p for p in sorted(PACKAGE.rglob("*.py"))}
 
 
-def _import_nodes(tree: ast.AST) -> Iterator[tuple[ast.Import | ast.ImportFrom, bool]]:
-    """Each import statement with whether it sits inside a function; those under ``if
-    TYPE_CHECKING:`` are left out (they never run)."""
-    def walk(node: ast.AST, in_function: bool) -> Iterator[tuple[ast.Import | ast.ImportFrom, bool]]:
+Where = tuple[ast.Import | ast.ImportFrom, bool, bool]
+
+
+def _import_nodes(tree: ast.AST) -> Iterator[Where]:
+    """Each import statement, with whether it sits inside a function and whether under
+    ``if TYPE_CHECKING:``."""
+    def walk(node: ast.AST, in_function: bool, typing: bool) -> Iterator[Where]:
         for child in ast.iter_child_nodes(node):
             if isinstance(child, ast.Import | ast.ImportFrom):
-                yield child, in_function
+                yield child, in_function, typing
             elif isinstance(child, ast.If) and "TYPE_CHECKING" in ast.unparse(child.test):
+                for stmt in child.body:
+                    yield from walk(stmt, in_function, True)
                 for stmt in child.orelse:
-                    yield from walk(stmt, in_function)
+                    yield from walk(stmt, in_function, typing)
             elif isinstance(child, ast.stmt):  # expressions hold no import statement
-                yield from walk(child, in_function or isinstance(child, ast.FunctionDef | ast.AsyncFunctionDef))
-    return walk(tree, False)
+                inner = in_function or isinstance(child, ast.FunctionDef | ast.AsyncFunctionDef)
+                yield from walk(child, inner, typing)
+    return walk(tree, False, False)
 
 
 @functools.cache
@@ -62,13 +72,13 @@ def _parse(path: Path) -> ast.Module:
 
 
 def module_imports(name: str, path: Path, known: Mapping[str, Path]) -> Iterator[Import]:
-    """Every run-time import of an own module by ``name`` (``if TYPE_CHECKING:`` blocks left out)."""
+    """Every import of an own module by ``name``."""
     package = name.split(".") if path.name == "__init__.py" else name.split(".")[:-1]
-    for node, deferred in _import_nodes(_parse(path)):
+    for node, deferred, typing in _import_nodes(_parse(path)):
         if isinstance(node, ast.Import):
             for alias in node.names:
                 if alias.name in known:
-                    yield Import(name, alias.name, node.lineno, deferred, ())
+                    yield Import(name, alias.name, node.lineno, deferred, typing, ())
         elif isinstance(node, ast.ImportFrom):
             base = node.module or ""
             if node.level:
@@ -78,15 +88,41 @@ def module_imports(name: str, path: Path, known: Mapping[str, Path]) -> Iterator
             plain = tuple(a.name for a in node.names if f"{base}.{a.name}" not in known)
             for alias in node.names:  # ``from pkg import submodule``
                 if f"{base}.{alias.name}" in known:
-                    yield Import(name, f"{base}.{alias.name}", node.lineno, deferred, ())
+                    yield Import(name, f"{base}.{alias.name}", node.lineno, deferred, typing, ())
             if plain:
-                yield Import(name, base, node.lineno, deferred, plain)
+                yield Import(name, base, node.lineno, deferred, typing, plain)
 
 
-def imports(known: Mapping[str, Path]) -> Iterator[Import]:
-    """Every run-time import of an own module by every module of ``known``."""
+def imports(known: Mapping[str, Path], *, typing: bool = False) -> Iterator[Import]:
+    """Every run-time import of an own module by every module of ``known`` (with
+    ``typing``, those under ``if TYPE_CHECKING:`` too)."""
     for name, path in known.items():
-        yield from module_imports(name, path, known)
+        yield from (i for i in module_imports(name, path, known) if typing or not i.typing)
+
+
+#: the layers, bottom to top (docs/architecture.md states the same line)
+LAYERS = ("shared", "system", "cpu", "ingest", "characterisation", "fitting", "solver", "validation", "rosrun",
+          "sweep", "export", "casestudy", "tune", "watch", "report", "cli")
+#: the package root's own modules: the shared helpers, and the entry points with the public API
+ROOT_LAYERS = {"errors": "shared", "limits": "shared", "fileio": "shared", "doccheck": "shared",
+               "entry": "cli", "__main__": "cli", "": "cli"}
+
+
+def layer_of(module: str) -> str:
+    """``perfros_bag.solver.exact`` -> ``solver``; a root module by :data:`ROOT_LAYERS`."""
+    parts = module.split(".")
+    return parts[1] if len(parts) > 1 and parts[1] in LAYERS else ROOT_LAYERS[parts[1] if len(parts) > 1 else ""]
+
+
+def upward(found: Iterator[Import] | list[Import], order: tuple[str, ...] = LAYERS) -> list[str]:
+    """``src:line -> dst (layer -> higher layer)`` for each import that points up ``order``."""
+    rank = {name: i for i, name in enumerate(order)}
+    out = []
+    for imp in found:
+        a, b = layer_of(imp.src), layer_of(imp.dst)
+        if rank[b] > rank[a]:
+            out.append(f"{imp.src}:{imp.line} -> {imp.dst} ({a} -> {b})")
+    return sorted(out)
 
 
 def cycles(graph: Mapping[str, set[str]]) -> list[list[str]]:
@@ -182,6 +218,14 @@ def test_private_uses_and_imports_on_a_made_up_package(tmp_path: Path) -> None:
     assert private_uses(known) == ["pkg.high:5 pkg.low._hidden", "pkg.high:6 pkg.low._hidden"]
 
 
+def test_upward_finds_an_import_of_a_higher_layer_and_passes_a_lower_one() -> None:
+    down = Import("perfros_bag.tune.loop", "perfros_bag.sweep.deploy", 3, True, False, ("deploy",))
+    up = Import("perfros_bag.tune.loop", "perfros_bag.report.tune_plots", 9, True, False, ("plot_tune",))
+    root = Import("perfros_bag.system.types", "perfros_bag.fileio", 1, False, False, ("read_json",))
+    assert upward([down, root]) == []
+    assert upward([down, up]) == ["perfros_bag.tune.loop:9 -> perfros_bag.report.tune_plots (tune -> report)"]
+
+
 # ---- the package ---------------------------------------------------------------------------
 
 def test_solver_has_no_import_cycle() -> None:
@@ -203,5 +247,18 @@ def test_no_solver_module_imports_the_solver_package() -> None:
 
 
 def test_no_module_uses_another_modules_private_names() -> None:
-    found = private_uses(modules())
-    assert [u for u in found if u.startswith("perfros_bag.solver")] == []
+    assert private_uses(modules()) == []
+
+
+def test_every_package_has_a_layer_and_docs_state_the_same_order() -> None:
+    packages = {p.name for p in PACKAGE.iterdir() if (p / "__init__.py").is_file()}
+    assert packages <= set(LAYERS), f"a new stage package needs its place in LAYERS: {packages - set(LAYERS)}"
+    text = (ROOT / "docs" / "architecture.md").read_text(encoding="utf-8")
+    stated = [line for line in text.splitlines() if line.startswith("Layers, bottom to top:")]
+    assert len(stated) == 1, "docs/architecture.md states the layers on one line 'Layers, bottom to top: ...'"
+    names = [w.strip(" `.") for w in stated[0].split(":", 1)[1].split("<")]
+    assert tuple(names) == LAYERS
+
+
+def test_no_import_points_up_the_layers() -> None:
+    assert upward(imports(modules(), typing=True)) == []

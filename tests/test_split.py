@@ -20,9 +20,10 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from perfros_bag.characterisation.cluster import read_split
 from perfros_bag.errors import InputError
 from perfros_bag.ingest import read_recording, rosbag1
-from perfros_bag.ingest.split import Part, merge_parts, plan_split, read_part, read_split
+from perfros_bag.ingest.split import Part, merge_parts, plan_split, read_part
 from perfros_bag.ingest.stats import RecordingStats
 from tests.bench.gen_corpus import TopicSpec, Truth, default_topics, write_recording
 from tests.conftest import REALBAGS, assert_same_stats

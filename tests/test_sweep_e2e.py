@@ -236,7 +236,7 @@ def test_the_readme_example_holds_within_2_5_percent(swept: tuple[Path, Path, An
     d, out, done = swept
     assert done.returncode == 0, done.stderr
     steps = [("init", "runs/", "--out", "system.yaml"),
-             ("characterise", "runs/", "--system", "system.yaml", "--out", "characterisation.csv"),
+             ("characterise", "runs/", "--system", "system.yaml", "--out", "characterisation.csv", "--latency"),
              ("fit", "system.yaml", "characterisation.csv", "--out", "model.json"),
              ("solve", "model.json", "--problem", "1", "--method", "exact", "--out", "plan.json")]
     for args in steps:
@@ -274,8 +274,11 @@ def test_the_readme_example_holds_within_2_5_percent(swept: tuple[Path, Path, An
         assert abs(s["out_per_in"] - 1) < 0.05, s
     assert "REPLACE" in system.read_text()
 
+    # the data flow's chain, drafted without a budget, predicted by the plan (the README's example)
+    assert doc["chains"] == [{"name": "detector", "topics": [image, nodes["detector"]["topics"][0]]}]
     solved = json.loads((d / "plan.json").read_text())
     assert solved["status"] in ("optimal", "feasible") and set(solved["nodes"]) == {"camera", "detector"}
+    assert solved["chains"][0]["predicted_ms"]["p50"] > 0
     camera_plan, detector_plan = solved["nodes"]["camera"], solved["nodes"]["detector"]
     camera_hz = camera_plan["topics"][image]["frequency_hz"]
     assert detector_plan["input"] == image and detector_plan["input_hz"] == pytest.approx(camera_hz)

@@ -129,31 +129,62 @@ def test_planned_topic_with_too_few_messages_counts_over_the_recording() -> None
     assert v.nodes[0].ratio == pytest.approx(0.02)
 
 
-def kept_closed_form(robot: float, cam_hz: float) -> dict[str, float]:
-    """The fixed point, by hand: on the robot, camera (c) and detector (b + k·F) share the
-    capacity C; F = f0·C / (c + b + k·F), i.e. k·F² + (c + b)·F − f0·C = 0."""
-    c, b, k = CAM[int(cam_hz)], DET["cpu"], DET["cpu_per_hz"]
-    roots = np.roots([k, c + b, -cam_hz * robot])
-    f_in = float(max(r.real for r in roots if abs(r.imag) < 1e-12))
-    share = robot / (c + b + k * f_in)
-    det_out = DET["out_per_in"] * f_in * share
-    return {"f_in": f_in, "share": share, "det_out": det_out, "trk_cpu": TRK["cpu"] + TRK["cpu_per_hz"] * det_out,
+def water_shares(capacity: float, needs: dict[str, float], threads: dict[str, float]) -> dict[str, float]:
+    """CFS's max-min fair shares by brute force: bisect the per-thread level L with
+    Σ min(need, k·L) = capacity (every need when they fit)."""
+    if sum(needs.values()) <= capacity:
+        return dict(needs)
+    lo, hi = 0.0, max(needs.values())
+    for _ in range(200):
+        mid = (lo + hi) / 2
+        if sum(min(n, threads[k] * mid) for k, n in needs.items()) > capacity:
+            hi = mid
+        else:
+            lo = mid
+    return {k: min(n, threads[k] * lo) for k, n in needs.items()}
+
+
+def kept_brute(robot: float, cam_hz: float, cal: float = 1.0, det_threads: float = 1.0) -> dict[str, float]:
+    """The fixed point by brute force: on the robot, camera (c) and detector (b + k·F) share
+    the capacity C as CFS does (:func:`water_shares`); the detector's input F is the camera's
+    kept rate cam_hz x share/need, found by bisection on F (the camera keeps less as F grows)."""
+    c, b, k = CAM[int(cam_hz)] * cal, DET["cpu"] * cal, DET["cpu_per_hz"] * cal
+    threads = {"camera": 1.0, "detector": det_threads}
+
+    def shares(f: float) -> dict[str, float]:
+        return water_shares(robot, {"camera": c, "detector": b + k * f}, threads)
+
+    lo, hi = 0.0, float(cam_hz)
+    for _ in range(200):
+        mid = (lo + hi) / 2
+        if cam_hz * shares(mid)["camera"] / c > mid:
+            lo = mid
+        else:
+            hi = mid
+    f_in = lo
+    got = shares(f_in)
+    cam, det = got["camera"] / c, got["detector"] / (b + k * f_in)
+    det_out = DET["out_per_in"] * f_in * det
+    return {"f_in": f_in, "camera": cam, "detector": det, "det_out": det_out,
+            "need": c + b + k * f_in, "trk_cpu": TRK["cpu"] + TRK["cpu_per_hz"] * det_out,
             "trk_out": TRK["out_per_in"] * det_out}
 
 
 def test_kept_rates_on_a_smaller_robot(tmp_path: Path, solved: tuple[Path, Path, Any]) -> None:
     """The plan made for a robot of 100 run on one of 40: camera and detector share the 40
-    units in proportion to need; the detector's lower output lowers the tracker's input and
-    CPU on the server (which has room)."""
+    units as CFS does (the camera, asking for less than half, keeps all it asks for); the
+    detector's lower output lowers the tracker's input and CPU on the server (which has room)."""
     _, plan_path, plan = solved
     small = tmp_path / "small.yaml"
     small.write_text(yaml.safe_dump(system(robot=40)))
-    want = kept_closed_form(40, 20)
+    want = kept_brute(40, 20)
+    assert want["camera"] == pytest.approx(1.0) and want["detector"] < 0.6  # the light node is not cut
     kept = predict_kept(plan, parse_system(system(robot=40), "small.yaml"), {"robot": 40, "server": 400})
     assert kept.converged
     k = {n.node: n for n in kept.nodes}
-    assert k["camera"].factor == pytest.approx(want["share"], rel=1e-9)
-    assert k["camera"].f_predicted == pytest.approx(20 * want["share"], rel=1e-9)
+    assert k["camera"].factor == pytest.approx(want["camera"], rel=1e-9)
+    assert k["detector"].factor == pytest.approx(want["detector"], rel=1e-9)
+    assert k["camera"].f_predicted == pytest.approx(20 * want["camera"], rel=1e-9)
     assert k["detector"].input_hz_predicted == pytest.approx(want["f_in"], rel=1e-9)
     assert k["detector"].f_predicted == pytest.approx(want["det_out"], rel=1e-9)
     assert k["tracker"].factor == 1.0 and k["tracker"].input_hz_predicted == pytest.approx(want["det_out"], rel=1e-9)
@@ -171,7 +202,7 @@ def test_kept_rates_on_a_smaller_robot(tmp_path: Path, solved: tuple[Path, Path,
     assert got["detector"]["f_measured"] == pytest.approx(5)
     assert got["camera"]["f_measured"] == pytest.approx(10)
     assert doc["kept"]["computers"][0] == {"computer": "robot", "capacity": 40.0,
-                                           "need": pytest.approx(40 / want["share"]), "capped": True}
+                                           "need": pytest.approx(want["need"]), "capped": True}
     table = run_cli("validate", str(run), str(plan_path), "--system", str(small)).stdout
     assert "kept rates" in table and "robot (needs" in table
     # the report shows both: the driven nodes' input rates and the kept rates beside those measured
@@ -193,19 +224,40 @@ def test_measured_overload_calibrates_the_need(solved: tuple[Path, Path, Any]) -
     cal = {"camera": 1.5, "detector": 1.5}
     kept = predict_kept(plan, sysm, {"robot": 100, "server": 400}, cal)
     k = {n.node: n for n in kept.nodes}
-    c, b, kk, f0 = CAM[20] * 1.5, DET["cpu"] * 1.5, DET["cpu_per_hz"] * 1.5, 20.0
-    roots = np.roots([kk, c + b, -f0 * 100])
-    f_in = float(max(r.real for r in roots if abs(r.imag) < 1e-12))
-    assert k["detector"].input_hz_predicted == pytest.approx(f_in, rel=1e-9)
-    assert k["camera"].factor == pytest.approx(f_in / f0, rel=1e-9)
+    want = kept_brute(100, 20, cal=1.5)
+    assert k["detector"].input_hz_predicted == pytest.approx(want["f_in"], rel=1e-9)
+    assert k["camera"].factor == pytest.approx(want["camera"], rel=1e-9)
+    assert k["detector"].factor == pytest.approx(want["detector"], rel=1e-9)
+
+
+@pytest.mark.parametrize("threads", [1.0, 2.0, 3.5])
+def test_busy_threads_count_as_slices(solved: tuple[Path, Path, Any], threads: float) -> None:
+    """A robot of 12 (camera 6 + detector 62 at the planned rates): neither fits its slice,
+    and a detector of k busy threads (system.yaml ``threads``) takes k slices; the camera's
+    lower rate lowers the detector's input: against the brute-force water level and fixed point."""
+    _, _, plan = solved
+    doc = system(robot=12)
+    doc["nodes"][1]["threads"] = threads
+    kept = predict_kept(plan, parse_system(doc, "threads.yaml"), {"robot": 12, "server": 400})
+    assert kept.converged
+    k = {n.node: n for n in kept.nodes}
+    want = kept_brute(12, 20, det_threads=threads)
+    assert want["camera"] < 1.0  # the camera is cut too: the threads decide how far
+    assert k["camera"].factor == pytest.approx(want["camera"], rel=1e-9)
+    assert k["detector"].factor == pytest.approx(want["detector"], rel=1e-9)
+    assert k["detector"].input_hz_predicted == pytest.approx(want["f_in"], rel=1e-9)
+    assert k["detector"].f_predicted == pytest.approx(want["det_out"], rel=1e-9)
+    assert k["camera"].cpu_share + k["detector"].cpu_share == pytest.approx(12, rel=1e-9)
 
 
 def test_without_the_system_driven_nodes_keep_their_share_only(solved: tuple[Path, Path, Any]) -> None:
     _, _, plan = solved
     kept = predict_kept(plan, None, {"robot": 40, "server": 400})
     k = {n.node: n for n in kept.nodes}
-    need = plan.nodes["camera"].cpu + plan.nodes["detector"].cpu
-    assert k["detector"].factor == pytest.approx(40 / need) and k["tracker"].factor == 1.0
+    needs = {n: plan.nodes[n].cpu for n in ("camera", "detector")}
+    shares = water_shares(40, needs, {"camera": 1.0, "detector": 1.0})
+    assert k["detector"].factor == pytest.approx(shares["detector"] / needs["detector"])
+    assert k["camera"].factor == pytest.approx(shares["camera"] / needs["camera"]) and k["tracker"].factor == 1.0
     assert k["tracker"].f_predicted == k["tracker"].f_planned  # nothing propagates without the rule's settings
     assert any("no system" in note for note in kept.notes)
 
@@ -223,11 +275,10 @@ def test_cpu_trace_overload_gives_kept_rates_through_the_cli(tmp_path: Path, sol
     doc = json.loads(run_cli("validate", str(run), str(plan_path), "--json").stdout)
     assert doc["overloaded"] == ["robot"]
     k = {n["node"]: n for n in doc["kept"]["nodes"]}
-    c, b, kk = CAM[20] * 1.5, DET["cpu"] * 1.5, DET["cpu_per_hz"] * 1.5
-    roots = np.roots([kk, c + b, -20 * 100])
-    f_in = float(max(r.real for r in roots if abs(r.imag) < 1e-12))
-    assert k["detector"]["input_hz_predicted"] == pytest.approx(f_in, rel=1e-6)
-    assert k["camera"]["f_predicted"] == pytest.approx(f_in, rel=1e-6)  # the camera keeps what the detector gets
+    want = kept_brute(100, 20, cal=1.5)
+    assert k["detector"]["input_hz_predicted"] == pytest.approx(want["f_in"], rel=1e-6)
+    assert k["camera"]["f_predicted"] == pytest.approx(want["f_in"], rel=1e-6)  # the camera keeps what the detector gets
+    assert k["detector"]["factor"] == pytest.approx(want["detector"], rel=1e-6)
     assert k["camera"]["f_measured"] == pytest.approx(20)
 
 
@@ -276,7 +327,7 @@ def test_a_capped_computers_nodes_measured_below_plan_are_not_taken_as_needing_l
     forced_path.write_text(json.dumps(forced))
     doc = json.loads(run_cli("validate", str(run), str(forced_path), "--system", str(small), "--json").stdout)
     assert doc["overloaded"] == ["robot"]
-    want = kept_closed_form(40, 20)
+    want = kept_brute(40, 20)
     k = {n["node"]: n for n in doc["kept"]["nodes"]}
     assert k["detector"]["f_predicted"] == pytest.approx(want["det_out"], rel=1e-6)
-    assert k["camera"]["factor"] == pytest.approx(want["share"], rel=1e-6)
+    assert k["camera"]["factor"] == pytest.approx(want["camera"], rel=1e-6)

@@ -148,7 +148,7 @@ def run_plan(system: System, plan: Plan, out: Path, cfg: RunConfig, *,
             groups.create(capped=False, quiet=not cfg.cap)
             mode, reason = (groups.mode, groups.reason) if cfg.cap else ("uncapped", "disabled (--no-cap)")
             record["cpu_cap"] = {"mode": mode, "reason": reason, "cgroups": groups.mode,
-                                 "cores": cores, "units_per_core": cfg.units_per_core}
+                                 "cores": cores, "units_per_core": cfg.units_per_core, **groups.cap_record()}
             note("roscore", 0, 1)
             uri = start_roscore(procs, out, cfg.startup_timeout)
             record["ros_master_uri"] = uri

@@ -20,12 +20,14 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import partial
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from perfros_bag.characterisation.distributed import Outcome, ProgressCallback, run_distributed
 from perfros_bag.characterisation.recording import characterise_recording, reporting
 from perfros_bag.errors import PerfrosError
 from perfros_bag.ingest.split import (
+    TARGET_BYTES,
     Part,
     SplitPlan,
     merge_parts,
@@ -38,6 +40,7 @@ from perfros_bag.ingest.split import (
 if TYPE_CHECKING:  # pragma: no cover
     from perfros_bag.characterisation.csvfile import Row
     from perfros_bag.characterisation.manifest import RecordingEntry
+    from perfros_bag.ingest.stats import RecordingStats
     from perfros_bag.system.types import System
 
 #: Recordings at least this large are split; each task reads about ``PART_BYTES`` of file.
@@ -151,3 +154,16 @@ def characterise_on_dask(entries: Sequence[RecordingEntry], system: System | Non
                     scheduler=scheduler, workers=workers, progress=on_unit,
                     label=lambda u: u.label)
     return [done[i] for i in range(len(entries))]
+
+
+def read_split(path: str | Path, *, scheduler: str | None = None, workers: int | None = None,
+               target_bytes: int = TARGET_BYTES, progress: bool = False) -> RecordingStats:
+    """``read_recording(path)``, its chunk ranges read as parallel tasks
+    (:mod:`perfros_bag.ingest.split`)."""
+    plan = plan_split(path)
+    outcomes = run_distributed(plan.parts(target_bytes), read_part, scheduler=scheduler,
+                               workers=workers, progress=progress, description="chunks")
+    for outcome in outcomes:
+        if outcome.error is not None:
+            raise outcome.error
+    return merge_parts(plan, [o.value for o in outcomes])

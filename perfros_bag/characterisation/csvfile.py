@@ -51,10 +51,13 @@ class Row:
     # the machine's speed in the row's recording (perfros_bag.cpu.speed: manifest entry's
     # ``speed_factor``, else the CPU trace's ``# speed_factor=``); recorded, never applied
     speed_factor: float | None = None
+    # the node's busy threads in the row's recording (the CPU trace's optional ``threads``
+    # column, its mean over the samples where the node ran); empty without it
+    threads: float | None = None
 
 
 #: Columns written only when some row has a value (appended after the others, in this order).
-OPTIONAL_COLUMNS: tuple[str, ...] = ("speed_factor",)
+OPTIONAL_COLUMNS: tuple[str, ...] = ("speed_factor", "threads")
 #: The columns always written, in order.
 COLUMNS: tuple[str, ...] = tuple(f.name for f in fields(Row) if f.name not in OPTIONAL_COLUMNS)
 ALL_COLUMNS: tuple[str, ...] = COLUMNS + OPTIONAL_COLUMNS

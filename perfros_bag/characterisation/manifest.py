@@ -30,13 +30,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from perfros_bag.errors import InputError
-from perfros_bag.fileio import MANIFEST_KIND, expect_kind, read_yaml, unknown_keys
+from perfros_bag.doccheck import Doc
+from perfros_bag.fileio import MANIFEST_KIND, expect_kind, read_yaml
 from perfros_bag.limits import number_problem
 from perfros_bag.system.names import NameKind, name_problem
 
 TOP_KEYS = {"system", "recordings"}
-ENTRY_KEYS = {"path", "cpu", "computer", "units_per_core", "settings", "speed_factor"}
+ENTRY_KEYS = {"path", "cpu", "computer", "units_per_core", "settings", "speed_factor", "standalone"}
 #: The scale ``sweep`` records its runs in (and ``init`` drafts this machine with): 100 CPU
 #: units = one busy core of the machine the sweep ran on.
 SWEEP_UNITS_PER_CORE = 100
@@ -55,6 +55,8 @@ class RecordingEntry:
     settings: Mapping[str, SettingValue] = field(default_factory=dict)
     units_per_core: float | None = None  # the measurement's own scale; None: the computer's capacity
     speed_factor: float | None = None  # the machine's speed in this run (perfros_bag.cpu.speed); None: unknown
+    #: nodelets that ran standalone in this run instead of in their manager (system.yaml names)
+    standalone: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -98,17 +100,12 @@ def load_manifest(path: str | Path) -> Manifest:
 
 
 def parse_manifest(data: Any, path: Path) -> Manifest:
-    def fail(where: str, problem: str) -> InputError:
-        return InputError(path, f"{where}: {problem}" if where else problem)
-
+    doc = Doc(path)
+    fail = doc.fail
     if data is None:
         raise fail("", "the manifest is empty (expected 'recordings:')")
     expect_kind(path, data, MANIFEST_KIND, {MANIFEST_KIND})
-    if not isinstance(data, Mapping):
-        raise fail("", f"expected a mapping with 'recordings:', got {type(data).__name__}")
-    unknown = unknown_keys(data, TOP_KEYS)
-    if unknown:
-        raise fail("", unknown)
+    doc.mapping(data, "", TOP_KEYS, expected="a mapping with 'recordings:'", got=type(data).__name__)
     base = path.parent
     system: Path | None = None
     if data.get("system") is not None:
@@ -126,11 +123,7 @@ def parse_manifest(data: Any, path: Path) -> Manifest:
         where = f"recordings[{i}]"
         if isinstance(item, str):
             item = {"path": item}
-        if not isinstance(item, Mapping):
-            raise fail(where, f"expected a mapping with 'path:', got {type(item).__name__}")
-        bad = unknown_keys(item, ENTRY_KEYS)
-        if bad:
-            raise fail(where, bad)
+        doc.mapping(item, where, ENTRY_KEYS, expected="a mapping with 'path:'", got=type(item).__name__)
         rel = item.get("path")
         if not isinstance(rel, str) or not rel.strip():
             raise fail(f"{where}.path", f"must be a file or directory name, got {rel!r}")
@@ -165,7 +158,10 @@ def parse_manifest(data: Any, path: Path) -> Manifest:
             if problem is not None:
                 raise fail(f"{where}.speed_factor", problem)
             speed = float(speed)
-        entries.append(RecordingEntry(rec, rel, cpu, computer, settings, units, speed))
+        alone = item.get("standalone") or []
+        if not isinstance(alone, list) or not all(isinstance(x, str) and x for x in alone):
+            raise fail(f"{where}.standalone", f"must be a list of node names, got {alone!r}")
+        entries.append(RecordingEntry(rec, rel, cpu, computer, settings, units, speed, tuple(alone)))
     return Manifest(path, system, tuple(entries))
 
 

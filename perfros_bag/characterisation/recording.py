@@ -138,10 +138,12 @@ def characterise_recording(entry: RecordingEntry, system: System | None = None, 
         input_hz = stats.topics[driven_by].frequency_hz if driven_by in stats.topics else None
         c = cpu.get(node) or (_cpu_for_publisher(node, cpu) if system is None else None)
         mean, p95, samples = (c.mean, c.p95, c.samples) if c is not None else (None, None, None)
+        threads = c.threads if c is not None else None
         topics = by_node.get(node, [])
         if not topics:
             rows.append(Row(entry.name, node, parameter, value, None, None, None, span, None, None,
-                            mean, p95, samples, metric_value=metric, input_hz=input_hz, speed_factor=speed))
+                            mean, p95, samples, metric_value=metric, input_hz=input_hz, speed_factor=speed,
+                            threads=threads))
             continue
         for topic in topics:
             ts = stats.topics[topic]
@@ -152,7 +154,7 @@ def characterise_recording(entry: RecordingEntry, system: System | None = None, 
                             latency_p50_s=delay.p50_s if delay else None,
                             latency_p95_s=delay.p95_s if delay else None,
                             latency_max_s=delay.max_s if delay else None, input_hz=input_hz,
-                            speed_factor=speed))
+                            speed_factor=speed, threads=threads))
     return rows
 
 

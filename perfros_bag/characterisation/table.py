@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -39,6 +39,8 @@ class Result:
     rows: list[Row]
     failures: list[Failure]
     recordings: int  # how many were attempted
+    #: each container's CPU split among its nodes (perfros_bag.characterisation.containers)
+    splits: list[Any] = field(default_factory=list)
 
     @property
     def exit_code(self) -> int:
@@ -120,7 +122,24 @@ def characterise(entries: Sequence[RecordingEntry], system: System | None = None
             failures.append(failure)
         if on_done is not None:
             on_done(entry, failure)
-    return Result(rows, failures, len(entries))
+    return _split(Result(rows, failures, len(entries)), entries, system)
+
+
+def _split(result: Result, entries: Sequence[RecordingEntry], system: System | None) -> Result:
+    """Containers' CPU split among the nodes they host (system.yaml ``container``), each
+    fit's problem a warning; the standalone runs' rows left out."""
+    if system is None or not (system.containers or any(e.standalone for e in entries)):
+        return result
+    import warnings
+
+    from perfros_bag.characterisation.containers import split_containers
+    from perfros_bag.errors import PerfrosWarning
+
+    rows, splits = split_containers(result.rows, system, entries)
+    for s in splits:
+        for note in s.notes:
+            warnings.warn(PerfrosWarning(note), stacklevel=3)
+    return Result(rows, result.failures, result.recordings, splits)
 
 
 def _characterise_dask(entries: Sequence[RecordingEntry], system: System | None, fast: bool,
@@ -147,7 +166,7 @@ def _characterise_dask(entries: Sequence[RecordingEntry], system: System | None,
             rows.extend(o.value)
         elif not o.ok:
             failures.append(Failure(o.label, str(o.error)))
-    return Result(rows, failures, len(entries))
+    return _split(Result(rows, failures, len(entries)), entries, system)
 
 
 # --------------------------------------------------------------------------- output

@@ -52,6 +52,8 @@ VERBS: Mapping[str, Verb] = {
                    "record it and validate it (eq 10)."),
     "tune": Verb("perfros_bag.cli.tune", "Sweep, fit, solve and deploy APP.launch, then refit on each deployment "
                  "until its plan holds."),
+    "watch": Verb("perfros_bag.cli.watch", "Watch a running plan live: rates, CPU, links and eq 10 per window; "
+                  "alarms on persisting drift."),
     "casestudy": Verb("perfros_bag.cli.casestudy", "The paper's case study on real ROS 1 nodes (roscore, rospy, "
                       "rosbag)."),
 }

@@ -22,10 +22,12 @@ def report(
         "--validation", help="The JSON of validate --json.")] = None,
     frontier: Annotated[Path | None, typer.Option("--frontier", help="frontier.json from solve --pareto.")] = None,
     tune: Annotated[Path | None, typer.Option("--tune", help="tune.json from tune (the loop's rounds).")] = None,
+    watch: Annotated[Path | None, typer.Option(
+        "--watch", help="The --out folder of watch (windows, alarms, re-plans).")] = None,
 ) -> None:
     """Write an HTML report; anything not given is left out."""
     from perfros_bag.report.html import build_report
 
     index = build_report(out_dir, characterisation=characterisation, model=model, plan=plan,
-                         validation=validation, frontier=frontier, tune=tune)
+                         validation=validation, frontier=frontier, tune=tune, watch=watch)
     err.print(f"wrote {escape(str(index))}", highlight=False)

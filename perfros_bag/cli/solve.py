@@ -3,19 +3,22 @@
 from __future__ import annotations
 
 import warnings
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 
 from perfros_bag.cli._app import command, err, out
 from perfros_bag.errors import InputError, PerfrosWarning
+from perfros_bag.system.latency import budget_text
 
 if TYPE_CHECKING:
+    from perfros_bag.fitting.modelfile import Unmeasured
     from perfros_bag.system.plan import Plan
     from perfros_bag.system.types import System
 
@@ -69,18 +72,45 @@ def _num(x: float | None, digits: int = 2) -> str:
     return "-" if x is None else f"{x:.{digits}f}".rstrip("0").rstrip(".") if digits else f"{x:.0f}"
 
 
-def print_plan(console: Console, plan: Plan) -> None:
-    """Nodes (computer, parameter value, CPU, performance), computers and links."""
+def measured_note(plan: Plan, unmeasured: Mapping[str, Unmeasured]) -> dict[str, str]:
+    """Per node of ``plan`` that ``unmeasured`` (model.json) knows: ``yes`` when its planned
+    value was measured, else ``no`` and the fit's leave-one-out error at it of CPU, rate and
+    bandwidth (``?``: the fit has none, two points)."""
+    from perfros_bag.fitting.modelfile import value_errors
+
+    out: dict[str, str] = {}
+    for name, n in plan.nodes.items():
+        entry = unmeasured.get(name)
+        if entry is None:
+            continue
+        f_out = next((t.frequency_hz for t in n.topics.values() if t.frequency_hz is not None), None)
+        bw = n.bandwidth_kBps if n.bandwidth_kBps is not None else \
+            sum(t.bandwidth_kBps for t in n.topics.values() if t.bandwidth_kBps is not None)
+        errors = value_errors(entry, n.value, input_hz=n.input_hz, frequency_hz=f_out, bandwidth_kBps=bw)
+        if errors is None:
+            out[name] = "yes"
+            continue
+        unit = {"cpu": "CPU", "frequency_hz": "Hz", "bandwidth_kBps": "kB/s"}
+        said = [f"{unit[q]} ±{'?' if e is None else _num(e)}" for q, e in errors.items()]
+        out[name] = "no: " + ", ".join(said) if said else "no"
+    return out
+
+
+def print_plan(console: Console, plan: Plan, unmeasured: Mapping[str, Unmeasured] | None = None) -> None:
+    """Nodes (computer, parameter value, CPU, performance; with model.json's ``unmeasured``,
+    whether the value was measured), computers and links."""
     title = f"Problem {plan.problem} · {plan.method} · {plan.status}"
     nodes = Table(title=title, title_justify="left")
     flow = any(n.input is not None for n in plan.nodes.values())  # driven nodes: their input's rate too
-    cols = ("node", "computer", "parameter", "value", "CPU", "performance", "weight") + (("input Hz",) if flow else ())
+    notes = measured_note(plan, unmeasured) if unmeasured else {}
+    cols = ("node", "computer", "parameter", "value", "CPU", "performance", "weight") + (("input Hz",) if flow else ()) \
+        + (("measured?",) if notes else ())
     for col in cols:
         nodes.add_column(col, justify="left" if col in ("node", "computer", "parameter") else "right")
     for name, n in plan.nodes.items():
         row = [name, n.computer, n.parameter or "-", _num(n.value, 3), _num(n.cpu), _num(n.performance),
                _num(n.weight, 4)]
-        nodes.add_row(*row, *((_num(n.input_hz),) if flow else ()))
+        nodes.add_row(*row, *((_num(n.input_hz),) if flow else ()), *((notes.get(name, "-"),) if notes else ()))
     console.print(nodes)
     comps = Table(title="computers", title_justify="left")
     kept = any(c.margin for c in plan.computers.values())  # --headroom: the CPU each keeps free
@@ -99,6 +129,19 @@ def print_plan(console: Console, plan: Plan) -> None:
             links.add_row(f"{lk.between[0]} - {lk.between[1]}", lk.medium or "-", _num(lk.load_kBps, 3),
                           _num(lk.bandwidth_kBps), use)
         console.print(links)
+    if plan.chains:
+        chains = Table(title="chains: predicted latency (ms)", title_justify="left")
+        for col in ("chain", "hop", "p50", "p95", "budget"):
+            chains.add_column(col, justify="left" if col in ("chain", "hop", "budget") else "right")
+        for ch in plan.chains:
+            pred = ch.get("predicted_ms") or {}
+            chains.add_row(escape(str(ch["name"])), escape(" -> ".join(map(str, ch.get("topics", [])))),
+                           _num(pred.get("p50"), 1), _num(pred.get("p95"), 1), escape(budget_text(ch.get("budget_ms"))))
+            for h in ch.get("hops", []):
+                hp = h.get("predicted_ms") or {}
+                chains.add_row("", escape(f"  {h.get('node')} on {h.get('computer')}"), _num(hp.get("p50"), 1),
+                               _num(hp.get("p95"), 1), "")
+        console.print(chains)
     what = "Σ w·P" if plan.problem == 1 else "Σ server capacity"
     console.print(f"objective ({what}): [bold]{_num(plan.objective, 4)}[/]"
                   + (f"  bound {_num(plan.bound, 4)}" if plan.bound is not None else "")
@@ -168,11 +211,20 @@ def solve(
 
         print(json_text(plan_document(plan), indent=2))
     plan.require_feasible(system_path)
-    print_plan(err if as_json else out, plan)
+    print_plan(err if as_json else out, plan, _unmeasured(system_path))
     if plan.reason:  # a feasible plan's note (--headroom auto on a model without errors)
         err.print(f"note: {plan.reason}", highlight=False, soft_wrap=True)
     if out_path is not None and not as_json:
         out.print(f"plan written to {out_path}", highlight=False)
+
+
+def _unmeasured(path: Path) -> dict[str, Unmeasured]:
+    """A model.json's ``unmeasured`` part (empty for a system.yaml)."""
+    from perfros_bag.fitting.modelfile import read_unmeasured
+
+    if path.suffix.lower() != ".json":
+        return {}
+    return read_unmeasured(path)
 
 
 @contextmanager

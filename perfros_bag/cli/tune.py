@@ -58,6 +58,7 @@ def tune_cmd(
     from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 
     from perfros_bag.cli.solve import parse_headroom
+    from perfros_bag.report.tune_plots import plot_tune
     from perfros_bag.tune.loop import tune
 
     kept = parse_headroom(headroom, check_range=False)  # tune() says what is wrong with a number
@@ -74,7 +75,7 @@ def tune_cmd(
 
         result = tune(launch, space, system, out_dir, rounds=rounds, tolerance=tolerance, method=method,
                       headroom=kept, duration=duration, units_per_core=units_per_core, net=net,
-                      progress=show, on_round=finished, base=base)
+                      progress=show, on_round=finished, base=base, plot=plot_tune)
     doc = result.document
     if doc["rounds"]:
         render_rounds(doc["rounds"])

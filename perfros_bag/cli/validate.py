@@ -12,6 +12,7 @@ from rich.markup import escape
 from rich.table import Table
 
 from perfros_bag.cli._app import command, err, out
+from perfros_bag.system.latency import budget_text
 from perfros_bag.validation import DEFAULT_TOLERANCE
 
 if TYPE_CHECKING:
@@ -25,6 +26,13 @@ def _f(x: float | None, fmt: str = ".3g") -> str:
 
 def _delays(d: TopicLatency | None) -> tuple[str, str, str]:
     return ("-", "-", "-") if d is None else (_f(d.p50_s), _f(d.p95_s), _f(d.max_s))
+
+
+def _predicted(pred: object) -> tuple[str, str]:
+    """A ``predicted_ms`` {p50, p95} in seconds, as the measured columns."""
+    if not isinstance(pred, dict):
+        return "-", "-"
+    return tuple(_f(None if pred.get(q) is None else pred[q] / 1000.0) for q in ("p50", "p95"))  # type: ignore[return-value]
 
 
 def render(v: Validation, console: Console) -> None:
@@ -112,18 +120,22 @@ def render(v: Validation, console: Console) -> None:
                        _f(nc.latency_p95_s, ".3g"))
         console.print(nt)
     if v.chains:
-        ch = Table(title="chains: end-to-end latency (last topic's log time - first topic's stamp, s)")
-        for col in ("chain", "from -> to", "matched", "p50", "p95", "max"):
-            ch.add_column(col, justify="left" if col in ("chain", "from -> to") else "right")
+        ch = Table(title="chains: end-to-end latency (last topic's log time - first topic's stamp, s), "
+                         "beside the plan's prediction and budget")
+        for col in ("chain", "from -> to", "matched", "p50", "p95", "max", "pred p50", "pred p95", "budget"):
+            ch.add_column(col, justify="left" if col in ("chain", "from -> to", "budget") else "right")
+        predicted = {c.get("name"): c for c in v.predicted_chains}
         for cl in v.chains:
             e = cl.end_to_end
+            pc = predicted.get(cl.name, {})
             ch.add_row(escape(cl.name), escape(f"{cl.topics[0]} -> {cl.topics[-1]}"),
                        f"{0 if e is None else e.messages}/{cl.messages}",
-                       *_delays(e))
+                       *_delays(e), *_predicted(pc.get("predicted_ms")), escape(budget_text(pc.get("budget_ms"))))
+            hops = {(h.get("from"), h.get("to")): h for h in pc.get("hops") or []}
             for h in cl.hops:
                 d = h.delays
                 ch.add_row("", escape(f"  hop {h.src} -> {h.dst}"), str(0 if d is None else d.messages),
-                           *_delays(d))
+                           *_delays(d), *_predicted(hops.get((h.src, h.dst), {}).get("predicted_ms")), "")
         console.print(ch)
     if v.kept is not None:
         kt = Table(title="kept rates: a capped computer shares its CPU in proportion to need; "

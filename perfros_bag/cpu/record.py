@@ -1,5 +1,5 @@
-"""The psutil recorder behind ``perfros-bag record-cpu``: samples the CPU % and RSS of
-matching processes (and of COMMAND's process tree) into a ``<stem>.cpu.csv`` trace
+"""The psutil recorder behind ``perfros-bag record-cpu``: samples the CPU %, RSS and busy
+threads of matching processes (and of COMMAND's process tree) into a ``<stem>.cpu.csv`` trace
 (format: :mod:`perfros_bag.cpu.trace`)."""
 
 from __future__ import annotations
@@ -12,8 +12,8 @@ import socket
 import subprocess
 import threading
 import time as _time
-from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from types import FrameType
 from typing import IO, Any
@@ -50,6 +50,22 @@ class _Tracked:
     label: str
     name: str
     primed: bool = False
+    thread_s: dict[int, float] = field(default_factory=dict)  # thread id -> CPU seconds at the last round
+
+
+def busy_threads(before: Mapping[int, float], after: Mapping[int, float]) -> float:
+    """The busy threads of a process over one interval: ``(Σ t_k)² / Σ t_k²`` of the CPU
+    seconds ``t_k`` each thread used in it (``after`` - ``before``; a thread not in ``before``
+    started inside the interval: all its seconds count). n threads equally busy: n; one busy
+    thread beside idle ones: 1; no CPU used: 0."""
+    used = [max(0.0, t - before.get(k, 0.0)) for k, t in after.items()]
+    total, squares = sum(used), sum(u * u for u in used)
+    return total * total / squares if squares > 0 else 0.0
+
+
+def _thread_seconds(proc: Any) -> dict[int, float]:
+    """CPU seconds per thread of a psutil process (``Process.threads``)."""
+    return {int(t.id): float(t.user_time + t.system_time) for t in proc.threads()}
 
 
 class CpuRecorder:
@@ -101,24 +117,26 @@ class CpuRecorder:
             if pid in family or self._wanted(label, name, cmdline):
                 self.tracked[key] = _Tracked(proc, label, name)
 
-    def sample(self, now: float | None = None) -> list[tuple[float, int, str, str, float, int]]:
-        """One round: scan for new processes, read every tracked one. Returns the rows."""
+    def sample(self, now: float | None = None) -> list[tuple[float, int, str, str, float, int, float]]:
+        """One round: scan for new processes, read every tracked one. Returns the rows
+        (:data:`~perfros_bag.cpu.trace.TRACE_COLUMNS`, then the busy threads)."""
         import psutil
 
         self._scan()
         stamp = _time.time() if now is None else now
-        rows: list[tuple[float, int, str, str, float, int]] = []
+        rows: list[tuple[float, int, str, str, float, int, float]] = []
         for key, tr in list(self.tracked.items()):
             try:
                 with tr.proc.oneshot():
                     cpu = tr.proc.cpu_percent(None)
                     rss = tr.proc.memory_info().rss
+                    threads = _thread_seconds(tr.proc)
             except psutil.Error:
                 del self.tracked[key]
                 continue
             if tr.primed:
-                rows.append((stamp, key[0], tr.label, tr.name, cpu, rss))
-            tr.primed = True
+                rows.append((stamp, key[0], tr.label, tr.name, cpu, rss, busy_threads(tr.thread_s, threads)))
+            tr.primed, tr.thread_s = True, threads
         return rows
 
 
@@ -182,7 +200,8 @@ def record_cpu(out: str | Path, patterns: Sequence[str], interval: float = 0.5, 
             with atomic_open(out, "w") as handle:
                 handle.write(trace_header(socket.gethostname(), psutil.cpu_count(logical=True) or 1, interval,
                                           speed_factor=None if measured is None else measured.factor,
-                                          reference_s=None if measured is None else measured.reference_s))
+                                          reference_s=None if measured is None else measured.reference_s,
+                                          threads=True))
                 rc = _loop(recorder, handle, interval, duration, child, stop, on_round)
         except OSError as exc:
             raise InputError(out, f"cannot write the CPU trace: {exc.strerror or exc}") from None

@@ -9,13 +9,18 @@ File format (design.md contract)::
     # interval_s=X
     # speed_factor=F           (optional: the machine's speed, perfros_bag.cpu.speed)
     # reference_s=S            (optional: the reference workload's CPU seconds behind F)
-    time,pid,node,process,cpu_percent,rss_bytes
-    1700000000.500,4242,tracker1,python3,81.2,52428800
+    time,pid,node,process,cpu_percent,rss_bytes[,threads]
+    1700000000.500,4242,tracker1,python3,81.2,52428800,1.97
 
 ``time`` is Unix seconds, ``cpu_percent`` is psutil's per-process figure (100 = one core
 busy over the previous interval). One sampling round writes one ``time`` for all the
 processes it saw, so a node's CPU at a sample time is the sum over its processes.
 CPU units on a computer of capacity R with N logical cores: ``cpu_percent / (100 N) * R``.
+``threads`` (optional trailing column, :data:`OPTIONAL_TRACE_COLUMNS`; ``record-cpu`` writes it)
+is the process's busy threads over the interval: ``(Σ t_k)² / Σ t_k²`` of the CPU seconds
+``t_k`` each of its threads used (two threads equally busy: 2; one busy thread beside idle
+ones: ~1; no CPU used: 0). It is what the CFS share of a capped computer counts
+(:mod:`perfros_bag.system.cpushare`). Traces without it stay valid (``threads`` all NaN).
 ``record-cpu`` measures the machine's speed as it starts (:func:`perfros_bag.cpu.speed.measure_speed`)
 and writes it as ``# speed_factor=`` (and ``# reference_s=``); traces without it stay valid
 (``speed_factor`` None). It is recorded, not applied: CPU figures are never rescaled by it.
@@ -40,6 +45,8 @@ from perfros_bag.fileio import read_text
 from perfros_bag.limits import MAX_MAGNITUDE, number_problem
 
 TRACE_COLUMNS: tuple[str, ...] = ("time", "pid", "node", "process", "cpu_percent", "rss_bytes")
+#: Optional columns after :data:`TRACE_COLUMNS` (in this order; readers accept traces without them).
+OPTIONAL_TRACE_COLUMNS: tuple[str, ...] = ("threads",)
 
 
 # --------------------------------------------------------------------------- reading
@@ -61,6 +68,8 @@ class CpuTrace:
     process: list[str] = field(default_factory=list)
     cpu_percent: npt.NDArray[np.float64] = field(default_factory=lambda: np.empty(0))
     rss_bytes: npt.NDArray[np.int64] = field(default_factory=lambda: np.empty(0, dtype=np.int64))
+    #: busy threads per row (``threads`` column); NaN where the trace does not give it
+    threads: npt.NDArray[np.float64] = field(default_factory=lambda: np.empty(0))
 
     def __len__(self) -> int:
         return int(self.time.size)
@@ -79,6 +88,9 @@ class NodeCpu:
     mean: float
     p95: float
     samples: int
+    #: mean busy threads over the samples where it used CPU (its processes' summed); None
+    #: when the trace has no ``threads`` column or the node never used CPU
+    threads: float | None = None
 
 
 def read_cpu_trace(path: str | Path) -> CpuTrace:
@@ -114,12 +126,15 @@ def parse_cpu_trace(text: str, path: str | Path = "<cpu trace>", *, fast: bool =
         raise InputError(p, f"line {lineno}: bad header {header_line!r} (expected '{','.join(TRACE_COLUMNS)}')")
     ncpu, interval = _meta(p, meta)
     speed, reference = (_positive(p, meta, key) for key in ("speed_factor", "reference_s"))
+    with_threads = len(header) > len(TRACE_COLUMNS) and header[len(TRACE_COLUMNS)] == "threads"
     rest = text[pos:]
-    parsed = _rows_fast(rest) if fast and len(header) == len(TRACE_COLUMNS) else None
+    parsed = (_rows_fast(rest, with_threads)
+              if fast and len(header) == len(TRACE_COLUMNS) + int(with_threads) else None)
     if parsed is None:
-        parsed = _rows_slow(p, rest.splitlines(), len(header), lineno + 1)
-    times, pids, nodes, procs, cpus, rsss = parsed
-    return CpuTrace(p, ncpu, meta.get("host"), interval, speed, reference, times, pids, nodes, procs, cpus, rsss)
+        parsed = _rows_slow(p, rest.splitlines(), len(header), lineno + 1, with_threads)
+    times, pids, nodes, procs, cpus, rsss, threads = parsed
+    return CpuTrace(p, ncpu, meta.get("host"), interval, speed, reference, times, pids, nodes, procs, cpus, rsss,
+                    threads)
 
 
 def _meta(p: Path, meta: Mapping[str, str]) -> tuple[int, float | None]:
@@ -160,10 +175,10 @@ def _positive(p: Path, meta: Mapping[str, str], key: str) -> float | None:
 
 
 _Rows = tuple[npt.NDArray[np.float64], npt.NDArray[np.int64], list[str], list[str],
-              npt.NDArray[np.float64], npt.NDArray[np.int64]]
+              npt.NDArray[np.float64], npt.NDArray[np.int64], npt.NDArray[np.float64]]
 
 
-def _rows_fast(body: str) -> _Rows | None:
+def _rows_fast(body: str, with_threads: bool = False) -> _Rows | None:
     """pandas' C parser on the rows; None when they need the careful parser (a comment or
     an empty field inside, a bad value, a short or long line: pandas cannot fill a missing
     int64 ``rss_bytes`` and rejects extra fields)."""
@@ -171,9 +186,10 @@ def _rows_fast(body: str) -> _Rows | None:
 
     if not body.strip() or body.startswith("#") or "\n#" in body or "\r#" in body:
         return None
-    names = [f"c{k}" for k in range(len(TRACE_COLUMNS))]
+    names = [f"c{k}" for k in range(len(TRACE_COLUMNS) + int(with_threads))]
     dtypes: dict[str, Any] = {"c0": "float64", "c1": "int64", "c2": object, "c3": object,
-                              "c4": "float64", "c5": "int64"}
+                              "c4": "float64", "c5": "int64", "c6": "float64"}
+    dtypes = {k: v for k, v in dtypes.items() if k in names}
     try:
         df = pd.read_csv(io.StringIO(body), header=None, names=names, engine="c", na_filter=False,
                          dtype=dtypes, skip_blank_lines=True)
@@ -184,17 +200,21 @@ def _rows_fast(body: str) -> _Rows | None:
     if not (np.isfinite(times).all() and np.isfinite(cpus).all() and (cpus >= 0).all()
             and (np.abs(times) <= MAX_MAGNITUDE).all() and (cpus <= MAX_MAGNITUDE).all()):
         return None  # the careful parser names the line and the problem
+    threads = df["c6"].to_numpy(dtype=np.float64) if with_threads else np.full(times.size, np.nan)
+    if with_threads and not (np.isfinite(threads).all() and (threads >= 0).all() and (threads <= MAX_MAGNITUDE).all()):
+        return None
     return (times, df["c1"].to_numpy(dtype=np.int64), [str(x) for x in df["c2"].tolist()],
-            [str(x) for x in df["c3"].tolist()], cpus, df["c5"].to_numpy(dtype=np.int64))
+            [str(x) for x in df["c3"].tolist()], cpus, df["c5"].to_numpy(dtype=np.int64), threads)
 
 
-def _rows_slow(p: Path, rows: list[str], ncol: int, first_lineno: int) -> _Rows:
+def _rows_slow(p: Path, rows: list[str], ncol: int, first_lineno: int, with_threads: bool = False) -> _Rows:
     times: list[float] = []
     pids: list[int] = []
     nodes: list[str] = []
     procs: list[str] = []
     cpus: list[float] = []
     rsss: list[int] = []
+    threads: list[float] = []
     reader = csv.reader(io.StringIO("\n".join(rows)))
     while True:
         try:
@@ -214,6 +234,10 @@ def _rows_slow(p: Path, rows: list[str], ncol: int, first_lineno: int) -> _Rows:
         rss = _num(p, lineno, "rss_bytes", row[5], int) if row[5].strip() else 0
         if cpu < 0:
             raise InputError(p, f"line {lineno}: cpu_percent must be >= 0, got {row[4]!r}")
+        busy = _num(p, lineno, "threads", row[6], float) if with_threads and row[6].strip() else math.nan
+        if busy < 0:
+            raise InputError(p, f"line {lineno}: threads must be >= 0, got {row[6]!r}")
+        threads.append(busy)
         times.append(t)
         pids.append(pid)
         nodes.append(row[2])
@@ -221,7 +245,8 @@ def _rows_slow(p: Path, rows: list[str], ncol: int, first_lineno: int) -> _Rows:
         cpus.append(cpu)
         rsss.append(rss)
     return (np.asarray(times, dtype=np.float64), np.asarray(pids, dtype=np.int64), nodes, procs,
-            np.asarray(cpus, dtype=np.float64), np.asarray(rsss, dtype=np.int64))
+            np.asarray(cpus, dtype=np.float64), np.asarray(rsss, dtype=np.int64),
+            np.asarray(threads, dtype=np.float64))
 
 
 def _num(p: Path, lineno: int, name: str, raw: str, kind: Callable[[str], Any]) -> Any:
@@ -312,12 +337,19 @@ def node_cpu(trace: CpuTrace, capacity: float, *, start_ns: int | None = None,
     result: dict[str, NodeCpu] = {}
     if not keep.any():
         return result
-    df = pd.DataFrame({"node": owner[keep], "time": trace.time[keep], "units": trace.cpu_percent[keep] * scale})
-    sums = df.groupby(["node", "time"], sort=False).units.sum()  # a node's processes, per sample
+    has_threads = trace.threads.size == trace.time.size and bool(np.isfinite(trace.threads[keep]).any())
+    df = pd.DataFrame({"node": owner[keep], "time": trace.time[keep], "units": trace.cpu_percent[keep] * scale,
+                       "threads": trace.threads[keep] if has_threads else np.full(int(keep.sum()), np.nan)})
+    grouped = df.groupby(["node", "time"], sort=False)  # a node's processes, per sample
+    sums = grouped.units.sum()
+    busy = grouped.threads.sum(min_count=1)
     order = list(dict.fromkeys(df["node"].tolist()))
     for name, per_time in sums.groupby(level=0, sort=False):
         values = per_time.to_numpy(dtype=np.float64)
-        result[str(name)] = NodeCpu(str(name), float(values.mean()), float(np.percentile(values, 95)), int(values.size))
+        counts = busy.loc[name].to_numpy(dtype=np.float64)
+        counts = counts[np.isfinite(counts) & (counts > 0)]  # samples where it ran
+        result[str(name)] = NodeCpu(str(name), float(values.mean()), float(np.percentile(values, 95)), int(values.size),
+                                    float(counts.mean()) if counts.size else None)
     return {n: result[n] for n in order}
 
 
@@ -347,29 +379,52 @@ def trace_speed(path: str | Path) -> float | None:
 
 
 def trace_header(host: str, logical_cpus: int, interval_s: float, *, speed_factor: float | None = None,
-                 reference_s: float | None = None) -> str:
-    """The comment lines and the header; ``speed_factor`` / ``reference_s`` only when given."""
+                 reference_s: float | None = None, threads: bool = False) -> str:
+    """The comment lines and the header; ``speed_factor`` / ``reference_s`` only when given,
+    the ``threads`` column with ``threads``."""
     extra = "" if speed_factor is None else f"# speed_factor={speed_factor:.4g}\n"
     extra += "" if reference_s is None else f"# reference_s={reference_s:.6g}\n"
+    columns = TRACE_COLUMNS + (OPTIONAL_TRACE_COLUMNS if threads else ())
     return (f"# host={host}\n# logical_cpus={logical_cpus}\n# interval_s={interval_s:g}\n{extra}"
-            + ",".join(TRACE_COLUMNS) + "\n")
+            + ",".join(columns) + "\n")
 
 
 def write_cpu_trace(path: str | Path, rows: Iterable[Sequence[Any]], *, host: str,
                     logical_cpus: int, interval_s: float, speed_factor: float | None = None,
-                    reference_s: float | None = None) -> None:
-    """Write a whole trace atomically (rows in :data:`TRACE_COLUMNS` order)."""
+                    reference_s: float | None = None, threads: bool = False) -> None:
+    """Write a whole trace atomically (rows in :data:`TRACE_COLUMNS` order; with ``threads``
+    each row has a seventh value, its busy threads, NaN or None for an empty cell)."""
     from perfros_bag.fileio import atomic_open
 
     with atomic_open(path, "w") as handle:
         handle.write(trace_header(host, logical_cpus, interval_s, speed_factor=speed_factor,
-                                  reference_s=reference_s))
+                                  reference_s=reference_s, threads=threads))
         writer = csv.writer(handle, lineterminator="\n")
         for row in rows:
-            writer.writerow(format_row(row))
+            writer.writerow(format_row(row if threads else row[:len(TRACE_COLUMNS)]))
 
 
 def format_row(row: Sequence[Any]) -> list[str]:
-    """One trace row (TRACE_COLUMNS order) as CSV fields: time to the millisecond."""
-    t, pid, node, proc, cpu, rss = row
-    return [f"{float(t):.3f}", str(int(pid)), str(node), str(proc), f"{float(cpu):g}", str(int(rss))]
+    """One trace row (TRACE_COLUMNS order, then optionally ``threads``) as CSV fields: time
+    to the millisecond, threads to 0.01."""
+    t, pid, node, proc, cpu, rss = row[:len(TRACE_COLUMNS)]
+    out = [f"{float(t):.3f}", str(int(pid)), str(node), str(proc), f"{float(cpu):g}", str(int(rss))]
+    if len(row) > len(TRACE_COLUMNS):
+        busy = row[len(TRACE_COLUMNS)]
+        out.append("" if busy is None or not math.isfinite(float(busy)) else f"{float(busy):.2f}")
+    return out
+
+
+def trace_rows(trace: CpuTrace) -> list[tuple[Any, ...]]:
+    """The trace's rows as :func:`write_cpu_trace` takes them (with ``threads`` when
+    :func:`has_threads`)."""
+    base = zip(trace.time.tolist(), trace.pid.tolist(), trace.node, trace.process, trace.cpu_percent.tolist(),
+               trace.rss_bytes.tolist(), strict=True)
+    if not has_threads(trace):
+        return [tuple(r) for r in base]
+    return [(*r, b) for r, b in zip(base, trace.threads.tolist(), strict=True)]
+
+
+def has_threads(trace: CpuTrace) -> bool:
+    """Does the trace carry the ``threads`` column (some row with a value)?"""
+    return trace.threads.size == trace.time.size and bool(np.isfinite(trace.threads).any())

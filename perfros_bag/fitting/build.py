@@ -31,8 +31,10 @@ from perfros_bag.fitting.modelfile import (
     MeasuredSetting,
     ModelDocument,
     Stat,
+    Unmeasured,
     round9,
     same_value,
+    unmeasured_entry,
 )
 from perfros_bag.fitting.regression import FitError, clip_domain, fit_curve
 from perfros_bag.system.systemfile import parse_system, read_system_data
@@ -107,6 +109,17 @@ def measured_settings(table: CharacterisationFile, system: System, cpu: str = "m
             Stat.of(s.cpus() if cpu == "mean" else s.cpus_p95()), Stat.of(s.frequencies()), Stat.of(s.bandwidths()),
             {t: (Stat.of(fl), Stat.of(bl)) for t, (fl, bl) in sorted(per_topic.items())}, Stat.of(fin)))
     return out
+
+
+def node_threads(table: CharacterisationFile, system: System) -> dict[str, float]:
+    """Per node of ``system`` with a ``threads`` column in ``table``: its busy threads, the
+    mean over its recordings (each recording's value once), rounded to 0.01 and at least 1
+    (the CFS weight of :mod:`perfros_bag.system.cpushare`)."""
+    per: dict[str, dict[str, float]] = {}
+    for r in node_rows(table, system):
+        if r.threads is not None and r.threads > 0:
+            per.setdefault(r.node, {}).setdefault(r.recording, r.threads)
+    return {n: max(1.0, round(sum(v.values()) / len(v), 2)) for n, v in per.items()}
 
 
 def error_runs(table: CharacterisationFile, system: System, cpu: str = "mean") -> dict[str, list[Runs]]:
@@ -203,6 +216,7 @@ def build_model(system_path: str | Path, characterisation_path: str | Path, *, c
     samples = driven_samples(table, system, cpu) if system.has_flow else {}
     runs = error_runs(table, system, cpu)
     driven: dict[str, list[DrivenSetting]] = {}
+    unmeasured_at: dict[str, Unmeasured] = {}
     for node in system.nodes:
         if node.name not in measured:
             continue
@@ -216,13 +230,37 @@ def build_model(system_path: str | Path, characterisation_path: str | Path, *, c
             node_errors(raw_nodes[node.name], runs.get(node.name, []), fits_n.get("parameter->cpu") if fits_n else None)
         if fits_n:
             fits[node.name] = fits_n
+            unmeasured_at[node.name] = unmeasured_entry(
+                fits_n, [m.value for m in measured[node.name]], driven=node.driven,
+                rule="period" if node.driven and is_throttle(node) else None)
+    for name, threads in node_threads(table, system).items():
+        raw_nodes[name]["threads"] = threads
+    latency_fit = _fit_latency(table, system, doc_system, warn)
     document = ModelDocument(sys_path, csv_path, doc_system,
                              {n: dict(fs) for n, fs in fits.items()},
-                             measured, warn.messages, cpu_statistic=cpu, driven=driven)
+                             measured, warn.messages, cpu_statistic=cpu, driven=driven, latency_fit=latency_fit,
+                             unmeasured=unmeasured_at)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", PerfrosWarning)
         final = parse_system(doc_system, sys_path)  # what solve will read: must load
     return ModelResult(document, fits, final, warn.messages)
+
+
+def _fit_latency(table: CharacterisationFile, system: System, doc_system: dict[str, Any],
+                 warn: _Warn) -> dict[str, Any] | None:
+    """The latency model's parameters fitted to the sweep's hop latencies into the model's
+    ``system.latency`` (perfros_bag.fitting.latency); its summary, or None when nothing was fitted."""
+    if not system.has_flow:
+        return None
+    from perfros_bag.fitting.latency import fit_latency, params_json
+
+    fitted = fit_latency(node_rows(table, system), system)
+    for w in fitted.warnings:
+        warn(f"{table.path}: {w}")
+    if not fitted.samples:
+        return None
+    doc_system["latency"] = params_json(fitted.params)
+    return fitted.to_json()
 
 
 class _Valued(Protocol):
@@ -546,16 +584,19 @@ def _one_at_a_time(measures: list[_DrivenMeasure]) -> list[_DrivenMeasure]:
     return out
 
 
-def _driven_measure(value: float | None, samples: list[DrivenSample], cap: float | None) -> _DrivenMeasure:
+def _driven_measure(value: float | None, samples: list[DrivenSample], cap: float | None,
+                    step: str | None = None) -> _DrivenMeasure:
     """The setting's line (:func:`cpu_line`), ``out_per_in`` = mean F_out / F_in over its
-    recordings (those throttled by ``cap`` left out) and ``bytes_per_msg`` = mean
-    bandwidth x 1000 / F_out."""
+    recordings (those throttled by ``cap`` left out: with ``step: period`` every recording
+    whose input reached the cap, since the step's output lies below it) and
+    ``bytes_per_msg`` = mean bandwidth x 1000 / F_out."""
     points = [(s.input_hz, s.cpu) for s in samples if s.cpu is not None]
     if not points:
         raise FitError("no CPU measured")
     base, k, r2, notes = cpu_line(points)
     ratios = [s.frequency_hz / s.input_hz for s in samples if s.frequency_hz is not None and s.input_hz > 0
-              and (cap is None or s.frequency_hz < THROTTLED * cap)]
+              and (cap is None or s.frequency_hz < THROTTLED * cap)
+              and (cap is None or step != "period" or s.input_hz < THROTTLED * cap)]
     sizes = [s.bandwidth_kBps * 1000.0 / s.frequency_hz for s in samples
              if s.bandwidth_kBps is not None and s.frequency_hz is not None and s.frequency_hz > 0]
     return _DrivenMeasure(value, base, k, r2, _mean(ratios), _mean(sizes), tuple(points), tuple(notes))
@@ -572,11 +613,14 @@ def _fit_driven_node(node: Node, samples: dict[float | None, list[DrivenSample]]
     who = f"node {node.name!r}"
     caps = {s.max_frequency_hz for s in node.settings}
     common_cap = next(iter(caps)) if len(caps) == 1 else None
+    throttle = is_throttle(node)
     measures: list[_DrivenMeasure] = []
     for value, ss in samples.items():
         own = next((s for s in node.settings if same_value(s.value, value)), None)
+        cap = own.max_frequency_hz if own is not None else value if throttle else common_cap
+        step = own.step if own is not None else "period" if throttle else None
         try:
-            measures.append(_driven_measure(value, ss, own.max_frequency_hz if own is not None else common_cap))
+            measures.append(_driven_measure(value, ss, cap, step))
         except FitError as exc:
             warn(f"{who}: value {value if value is None else f'{value:g}'}: {exc}: nothing fitted there")
     measures = _one_at_a_time(measures)
@@ -648,26 +692,40 @@ def _fit_driven_node(node: Node, samples: dict[float | None, list[DrivenSample]]
         warn(f"{who}: {len({k[0] for k in known})} value(s) of {node.parameter.name} measured, "
              f"{len({r[0] for r in rated})} rated: no curves over the parameter, the node keeps its settings")
         return fits, written
-    if len(caps) > 1:
+    if len(caps) > 1 and not throttle:
         warn(f"{who}: its settings have different max_frequency_hz: no settings between them")
         return fits, written
     means = {"parameter->out_per_in": _mean([k[3] for k in known if k[3] is not None]),
              "parameter->bytes_per_msg": _mean([k[4] for k in known if k[4] is not None])}
-    grid = _grid_settings(node, fits, means, [d.value for d in written if d.value is not None],
-                          max(r[1] for r in rated))
-    raw["settings"] = new_settings + [_setting_json(g, common_cap) for g in grid]
+    taken = [d.value for d in written if d.value is not None]
+    # a throttle swept at whole rates only is deployed at whole rates (sweep/deploy.plan_run
+    # rounds): its grid is too, so the step planned is the step run
+    whole = throttle and all(float(v).is_integer() for v in taken)
+    grid = _grid_settings(node, fits, means, taken, max(r[1] for r in rated), whole)
+    if throttle:  # its value is its cap: a grid value's output is the step's, told by the rule
+        raw["settings"] = new_settings + [_setting_json(g, g.value, "period") for g in grid]
+    else:
+        raw["settings"] = new_settings + [_setting_json(g, common_cap) for g in grid]
     return fits, written + grid
 
 
+def is_throttle(node: Node) -> bool:
+    """A period throttle whose parameter is its rate: every setting ``step: period`` with
+    ``max_frequency_hz`` equal to its value (``init`` drafts a throttle so)."""
+    return bool(node.settings) and all(
+        s.step == "period" and s.value is not None and s.max_frequency_hz is not None
+        and same_value(s.max_frequency_hz, s.value) for s in node.settings)
+
+
 def _grid_settings(node: Node, fits: dict[str, FittedRelation], means: dict[str, float | None], taken: list[float],
-                   max_perf: float) -> list[DrivenSetting]:
+                   max_perf: float, whole: bool = False) -> list[DrivenSetting]:
     """Settings at :data:`GRID_POINTS` values over the range every needed curve covers
-    (rounded for an ``int`` parameter; values already ``taken`` left out), each number from
+    (rounded for an ``int`` parameter or when ``whole``; values already ``taken`` left out), each number from
     its curve (clipped at 0, performance at ``max_perf``); ``out_per_in`` and
     ``bytes_per_msg`` without a curve: ``means`` (the measured ones' mean)."""
     needed = [fits[r] for r in ("parameter->cpu_base", "parameter->cpu_per_hz", "parameter->performance")]
     lo, hi = max(f.domain[0] for f in needed), min(f.domain[1] for f in needed)
-    integer = node.parameter is not None and node.parameter.type == "int"
+    integer = whole or (node.parameter is not None and node.parameter.type == "int")
     values: list[float] = []
     for i in range(GRID_POINTS):
         v = lo + (hi - lo) * i / (GRID_POINTS - 1)
@@ -687,12 +745,14 @@ def _grid_settings(node: Node, fits: dict[str, FittedRelation], means: dict[str,
             for v in values]
 
 
-def _setting_json(d: DrivenSetting, cap: float | None) -> dict[str, Any]:
+def _setting_json(d: DrivenSetting, cap: float | None, step: str | None = None) -> dict[str, Any]:
     """A grid setting as the ``system`` part writes it (``cap``: every setting's
-    ``max_frequency_hz``, when they share one)."""
+    ``max_frequency_hz``, when they share one, or a throttle's value with its ``step``)."""
     out: dict[str, Any] = {"value": d.value, "cpu": round9(d.cpu), "cpu_per_hz": round9(d.cpu_per_hz),
                            "performance": round9(d.performance)}
     for key, v in (("out_per_in", d.out_per_in), ("bytes_per_msg", d.bytes_per_msg), ("max_frequency_hz", cap)):
         if v is not None:
             out[key] = round9(v)
+    if step is not None:
+        out["step"] = step
     return out

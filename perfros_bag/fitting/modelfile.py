@@ -1,8 +1,9 @@
 """``model.json``: the typed document, its writer and its reader (format: ``docs/formats.md``).
 
-:func:`read_model` reads and checks the whole document; :func:`read_model_system` gives
-what ``solve`` needs, the ``system`` part (a system.yaml with fitted curves), without
-checking the rest. Light module: no numpy, no fitting.
+:func:`read_model` reads and checks the whole document; what ``solve`` needs, the
+``system`` part (a system.yaml with fitted curves), is read by the system's own reader
+(:func:`perfros_bag.system.modelpart.read_model_system`) without the rest. Light module:
+no numpy, no fitting.
 """
 
 from __future__ import annotations
@@ -13,19 +14,18 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from perfros_bag.doccheck import Doc
 from perfros_bag.errors import InputError
 from perfros_bag.fileio import (
     DOCUMENT_KINDS,
-    SYSTEM_KIND,
     atomic_write_json,
     expect_kind,
     kind_of,
     read_json,
 )
-from perfros_bag.limits import MAX_COEFFICIENT, MAX_MAGNITUDE, number_problem, short_repr
+from perfros_bag.limits import MAX_COEFFICIENT, MAX_MAGNITUDE, short_repr
+from perfros_bag.system.modelpart import MODEL_FORMAT
 from perfros_bag.system.types import Curve, CurveForm, curve_form
-
-MODEL_FORMAT = "perfros-bag/model@1"
 
 
 def round9(v: float) -> float:
@@ -171,6 +171,100 @@ class FittedRelation:
         }
 
 
+#: a node's fitted quantities -> the relation whose leave-one-out RMSE a value never measured
+#: carries: a paper node's CPU, frequency and bandwidth; a driven node's CPU line (base and per
+#: input Hz), output per input message and bytes per message
+PAPER_QUANTITIES = {"cpu": "parameter->cpu", "frequency_hz": "parameter->frequency",
+                    "bandwidth_kBps": "parameter->bandwidth"}
+DRIVEN_QUANTITIES = {"cpu_base": "parameter->cpu_base", "cpu_per_hz": "parameter->cpu_per_hz",
+                     "out_per_in": "parameter->out_per_in", "bytes_per_msg": "parameter->bytes_per_msg"}
+
+
+@dataclass(frozen=True)
+class Unmeasured:
+    """model.json ``unmeasured.<node>``: the parameter values its recordings measured, and per
+    fitted quantity (:data:`PAPER_QUANTITIES`, :data:`DRIVEN_QUANTITIES`) the leave-one-out
+    RMSE of the fit that gives it at any other value (None: the fit has none, two points);
+    ``rule``: a throttle's output follows its rule (``period``) at any value, not a fit."""
+
+    measured_values: tuple[float, ...]
+    loo_rmse: dict[str, float | None]
+    driven: bool = False
+    rule: str | None = None
+
+    def measured(self, value: float | None) -> bool:
+        """Did a recording run the node at ``value`` (to 1e-6, relative)? A node without a
+        parameter value always did."""
+        return value is None or any(abs(value - v) <= 1e-6 * max(1.0, abs(v)) for v in self.measured_values)
+
+    def to_json(self) -> dict[str, Any]:
+        return {"measured_values": [float(v) for v in self.measured_values], "driven": self.driven,
+                "loo_rmse": {k: _finite_or_none(v) for k, v in self.loo_rmse.items()},
+                **({} if self.rule is None else {"rule": self.rule})}
+
+
+def unmeasured_entry(fits: Mapping[str, FittedRelation], values: list[float | None], *, driven: bool,
+                     rule: str | None = None) -> Unmeasured:
+    """A node's :class:`Unmeasured` from its fits (relation -> fit) and measured ``values``."""
+    quantities = DRIVEN_QUANTITIES if driven else PAPER_QUANTITIES
+    return Unmeasured(tuple(sorted({float(v) for v in values if v is not None})),
+                      {q: fits[rel].loo_rmse for q, rel in quantities.items() if rel in fits}, driven, rule)
+
+
+def value_errors(entry: Unmeasured, value: float | None, *, input_hz: float | None = None,
+                 frequency_hz: float | None = None, bandwidth_kBps: float | None = None
+                 ) -> dict[str, float | None] | None:
+    """None when ``value`` was measured; else per quantity (``cpu``, ``frequency_hz``,
+    ``bandwidth_kBps``) the fit's leave-one-out error at it, in its units (None: the fit has
+    none). A driven node's at its planned ``input_hz`` and output (``frequency_hz``,
+    ``bandwidth_kBps``): CPU ``rmse(cpu_base) + rmse(cpu_per_hz) x F_in``, rate
+    ``rmse(out_per_in) x F_in`` (0 under a ``rule``), bandwidth the bytes per message's error
+    times the rate plus the bytes per message times the rate's error."""
+    if entry.measured(value):
+        return None
+    e = entry.loo_rmse
+    if not entry.driven:
+        return {q: e[q] for q in PAPER_QUANTITIES if q in e}
+    out: dict[str, float | None] = {}
+    f_in = input_hz or 0.0
+    if "cpu_base" in e or "cpu_per_hz" in e:
+        base, per = e.get("cpu_base"), e.get("cpu_per_hz")
+        out["cpu"] = None if base is None or per is None else base + per * f_in
+    rate: float | None = 0.0 if entry.rule is not None else None
+    if entry.rule is None and "out_per_in" in e:
+        rate = None if e["out_per_in"] is None else e["out_per_in"] * f_in
+    out["frequency_hz"] = rate
+    f_out, bw = frequency_hz or 0.0, bandwidth_kBps or 0.0
+    size = bw * 1000.0 / f_out if f_out > 0 else 0.0
+    size_err = e.get("bytes_per_msg", 0.0)
+    out["bandwidth_kBps"] = None if rate is None or size_err is None else (size_err * f_out + size * rate) / 1000.0
+    return out
+
+
+def read_unmeasured(path: str | Path) -> dict[str, Unmeasured]:
+    """model.json's ``unmeasured`` part, for ``solve``'s table (a system.yaml, or a model
+    written before it: empty). Light: no fits read."""
+    data = read_json(path)
+    if not isinstance(data, Mapping):
+        return {}
+    return _unmeasured(_Doc(Path(path)), data.get("unmeasured", {}))
+
+
+def _unmeasured(doc: _Doc, raw: Any) -> dict[str, Unmeasured]:
+    out: dict[str, Unmeasured] = {}
+    for n, u in doc.mapping(raw, "unmeasured").items():
+        where = f"unmeasured.{n}"
+        m = doc.mapping(u, where)
+        rule = m.get("rule")
+        out[str(n)] = Unmeasured(
+            doc.numbers(m.get("measured_values", []), f"{where}.measured_values"),
+            {str(q): doc.opt_number(v, f"{where}.loo_rmse.{q}", nonneg=True)
+             for q, v in doc.mapping(m.get("loo_rmse", {}), f"{where}.loo_rmse").items()},
+            bool(m.get("driven", False)),
+            None if rule is None else doc.string(rule, f"{where}.rule"))
+    return out
+
+
 @dataclass(frozen=True)
 class ModelDocument:
     """A model.json: the system with fitted curves (as a system.yaml mapping), and per
@@ -186,6 +280,12 @@ class ModelDocument:
     cpu_statistic: str = "mean"  # a setting's CPU: the mean of its samples, or their p95
     #: per driven node (system.yaml ``input:``), its settings in ``system`` and where each came from
     driven: dict[str, list[DrivenSetting]] = field(default_factory=dict)
+    #: the latency model's fit (perfros_bag.fitting.latency): points per node and its
+    #: in-sample error; None when nothing was fitted (the parameters are in ``system.latency``)
+    latency_fit: dict[str, Any] | None = None
+    #: per fitted node, the values its recordings measured and the leave-one-out errors a value
+    #: never measured carries (:func:`unmeasured_entry`, :func:`value_errors`)
+    unmeasured: dict[str, Unmeasured] = field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -197,6 +297,8 @@ class ModelDocument:
             "fits": {n: {rel: f.to_json() for rel, f in fs.items()} for n, fs in self.fits.items()},
             "measured": {n: [m.to_json() for m in ms] for n, ms in self.measured.items()},
             **({"driven": {n: [d.to_json() for d in ds] for n, ds in self.driven.items()}} if self.driven else {}),
+            **({"latency_fit": self.latency_fit} if self.latency_fit is not None else {}),
+            **({"unmeasured": {n: u.to_json() for n, u in self.unmeasured.items()}} if self.unmeasured else {}),
             "warnings": list(self.warnings),
         }
 
@@ -209,37 +311,18 @@ def write_model(path: str | Path, document: ModelDocument) -> None:
 # --------------------------------------------------------------------------- reading
 
 
-class _Doc:
-    """Checks with the place in the document named in the error."""
+class _Doc(Doc):
+    """Checks with the place in the document named in the error (JSON's words: an object)."""
 
-    def __init__(self, path: Path) -> None:
-        self.path = path
+    container = "an object"
+    list_wording = "expected a list"
 
-    def fail(self, where: str, problem: str) -> InputError:
-        return InputError(self.path, f"{where}: {problem}")
-
-    def mapping(self, obj: Any, where: str) -> Mapping[str, Any]:
-        if not isinstance(obj, Mapping):
-            raise self.fail(where, f"expected an object, got {kind_of(obj)}")
-        return obj
-
-    def items(self, obj: Any, where: str) -> list[Any]:
-        if not isinstance(obj, list):
-            raise self.fail(where, f"expected a list, got {kind_of(obj)}")
-        return obj
-
-    def number(self, obj: Any, where: str, *, nonneg: bool = False, positive: bool = False,
+    def number(self, obj: Any, where: str, *, positive: bool = False, nonneg: bool = False,
                limit: float = MAX_MAGNITUDE) -> float:
         """A finite number within ``limit`` (:mod:`perfros_bag.limits`)."""
         if isinstance(obj, bool) or not isinstance(obj, int | float):
             raise self.fail(where, f"expected a number, got {obj!r}")
-        problem = number_problem(obj, nonneg=nonneg, positive=positive, limit=limit)
-        if problem is not None:
-            raise self.fail(where, problem)
-        return float(obj)
-
-    def opt_number(self, obj: Any, where: str, *, nonneg: bool = False) -> float | None:
-        return None if obj is None else self.number(obj, where, nonneg=nonneg)
+        return super().number(obj, where, positive=positive, nonneg=nonneg, limit=limit)
 
     def string(self, obj: Any, where: str) -> str:
         if not isinstance(obj, str):
@@ -358,9 +441,14 @@ def parse_model(data: Any, path: str | Path) -> ModelDocument:
     statistic = doc.string(data.get("cpu_statistic", "mean"), "cpu_statistic")
     if statistic not in ("mean", "p95"):
         raise InputError(p, f"cpu_statistic: must be 'mean' or 'p95', got {statistic!r}")
+    latency_fit = data.get("latency_fit")
+    if latency_fit is not None:
+        doc.mapping(latency_fit, "latency_fit")
     return ModelDocument(doc.string(data.get("system_file", ""), "system_file"),
                          doc.string(data.get("characterisation", ""), "characterisation"),
-                         data["system"], fits, measured, warnings, fmt, statistic, driven)
+                         data["system"], fits, measured, warnings, fmt, statistic, driven,
+                         None if latency_fit is None else dict(latency_fit),
+                         _unmeasured(doc, data.get("unmeasured", {})))
 
 
 def read_model(path: str | Path) -> ModelDocument:
@@ -368,19 +456,3 @@ def read_model(path: str | Path) -> ModelDocument:
     :func:`perfros_bag.system.systemfile.parse_system` when it is loaded)."""
     return parse_model(read_json(path), path)
 
-
-def system_part(data: Any) -> Any:
-    """The ``system`` part of a parsed model.json; any other data unchanged (a system
-    written as JSON)."""
-    if isinstance(data, Mapping) and "system" in data:
-        return data["system"]
-    return data
-
-
-def read_model_system(path: str | Path) -> Any:
-    """What ``solve`` reads from a model.json: its ``system`` part, unchecked (the rest of
-    the document is not needed to solve). Another of the tool's documents (a plan, ...) is
-    an :class:`InputError` saying what it is."""
-    data = read_json(path)
-    expect_kind(path, data, "a system.yaml or model.json", {SYSTEM_KIND, DOCUMENT_KINDS[MODEL_FORMAT]})
-    return system_part(data)

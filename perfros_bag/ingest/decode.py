@@ -111,7 +111,7 @@ def standard_typestore() -> Typestore:
 # --------------------------------------------------------------------------- rosbags AnyReader
 
 
-def _anyreader_usable(path: Path) -> bool:
+def anyreader_usable(path: Path) -> bool:
     """ROS 1 bags, and rosbag2 directories with metadata whose storage is sqlite3 or that
     are compressed; MCAP storage goes to the mcap reader (rosbags' own MCAP storage reader
     yields no message at all for some valid files, e.g. shared/realbags/rosbag2_mcap_talker)."""
@@ -219,7 +219,7 @@ def _library_channel_types(summary: Any) -> dict[int, TopicType]:
                                    for cid, ch in summary.channels.items()))
 
 
-def _mcap_reader(f: Any) -> tuple[Any, Any]:
+def mcap_reader(f: Any) -> tuple[Any, Any]:
     """The ``mcap`` reader of the open file ``f`` and its summary (which it keeps)."""
     from mcap.reader import make_reader
 
@@ -236,7 +236,7 @@ def _mcap_reader(f: Any) -> tuple[Any, Any]:
 def mcap_types(path: Path) -> dict[str, TopicType]:
     """Every topic's :class:`TopicType` of an MCAP file, from the ``mcap`` reader's summary."""
     with path.open("rb") as f:
-        by_channel = _library_channel_types(_mcap_reader(f)[1])
+        by_channel = _library_channel_types(mcap_reader(f)[1])
     out: dict[str, TopicType] = {}
     for tt in by_channel.values():
         out.setdefault(tt.topic, tt)
@@ -249,7 +249,7 @@ def _mcap_messages(path: Path, topics: Collection[str]) -> Iterator[tuple[str, i
     from rosbags.typesys.msg import normalize_msgtype
 
     with path.open("rb") as f:
-        reader, summary = _mcap_reader(f)
+        reader, summary = mcap_reader(f)
         typestore = typestore_from_definitions(
             (s.name, s.encoding, bytes(s.data).decode("utf-8", "replace")) for s in summary.schemas.values())
         for schema, channel, message in reader.iter_messages(topics=list(topics)):
@@ -272,7 +272,7 @@ def _mcap_messages(path: Path, topics: Collection[str]) -> Iterator[tuple[str, i
             yield channel.topic, int(message.log_time), msg
 
 
-def _mcap_files(path: Path) -> list[Path]:
+def mcap_files(path: Path) -> list[Path]:
     """The MCAP files read with the mcap reader: the file itself, or a rosbag2 directory's
     MCAP storage files."""
     if path.is_file():
@@ -292,7 +292,7 @@ def _mcap_files(path: Path) -> list[Path]:
 
 def topic_types(path: Path) -> dict[str, TopicType]:
     """Every topic's :class:`TopicType`, from the definitions stored in the recording."""
-    if _anyreader_usable(path):
+    if anyreader_usable(path):
         try:
             with _any_reader(path) as reader:
                 return _anyreader_types(reader)
@@ -300,7 +300,7 @@ def topic_types(path: Path) -> dict[str, TopicType]:
             if path.is_file():
                 raise
     out: dict[str, TopicType] = {}
-    for f in _mcap_files(path):
+    for f in mcap_files(path):
         for topic, tt in mcap_types(f).items():
             out.setdefault(topic, tt)
     return out
@@ -319,7 +319,7 @@ def decoded_messages(path: Path, topics: Collection[str]) -> Iterator[tuple[str,
 
 
 def _decoded_messages(path: Path, topics: Collection[str]) -> Iterator[tuple[str, int, Any]]:
-    if _anyreader_usable(path):
+    if anyreader_usable(path):
         try:
             reader_cm = _any_reader(path)
             reader = reader_cm.__enter__()
@@ -332,5 +332,5 @@ def _decoded_messages(path: Path, topics: Collection[str]) -> Iterator[tuple[str
             finally:
                 reader_cm.__exit__(None, None, None)
             return
-    for f in _mcap_files(path):
+    for f in mcap_files(path):
         yield from _mcap_messages(f, topics)

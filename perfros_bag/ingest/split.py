@@ -22,8 +22,9 @@ concatenates them in chunk order, so the latencies
 (:func:`perfros_bag.ingest.contents.latencies`: p50/p95 need the whole sample) come from
 every stamped message of the file, exactly as from the whole file.
 
-:func:`read_split` runs the parts through :func:`perfros_bag.characterisation.distributed.run_distributed`
-(in-process, on a Dask scheduler, or on a LocalCluster of N workers).
+The parts run as tasks wherever the caller runs them: :mod:`perfros_bag.characterisation.cluster`
+(``read_split``, ``characterise --workers``) hands them to its task runner (in-process, a
+Dask scheduler or a LocalCluster of N workers); this module imports no runner.
 """
 
 from __future__ import annotations
@@ -56,9 +57,9 @@ Chunk = rosbag1.ChunkInfo | mcapfile.ChunkIndex
 
 
 @dataclass(frozen=True)
-class Part:
-    """One task: the chunks of one file (``format`` "ros1"/"mcap"; ``index`` is the file's
-    index restricted to them), or the ``whole`` file."""
+class _Indexed:
+    """A file (``format`` "ros1"/"mcap", or "whole": read as one) and, when it is split, an
+    index (of the whole file, or restricted to one part's chunks)."""
 
     path: Path
     format: str
@@ -67,6 +68,12 @@ class Part:
     @property
     def chunks(self) -> tuple[Chunk, ...]:
         return chunks_of(self.index) if self.index is not None else ()
+
+
+@dataclass(frozen=True)
+class Part(_Indexed):
+    """One task: the chunks of one file (``index`` is the file's index restricted to
+    them), or the ``whole`` file."""
 
     def __str__(self) -> str:
         if self.format == "whole":
@@ -75,17 +82,9 @@ class Part:
 
 
 @dataclass(frozen=True)
-class SplitPlan:
+class SplitPlan(_Indexed):
     """How one file is split: its format ("ros1", "mcap", or "whole": not splittable) and,
     when splittable, its index."""
-
-    path: Path
-    format: str
-    index: Index | None = None
-
-    @property
-    def chunks(self) -> tuple[Chunk, ...]:
-        return chunks_of(self.index) if self.index is not None else ()
 
     @property
     def sizes(self) -> tuple[int, ...]:
@@ -207,17 +206,3 @@ def merge_parts(plan: SplitPlan, parts: Sequence[RecordingStats | None]) -> Reco
             return read_recording(plan.path)  # the statistics disagree with the indexes
     merged.topics = {name: merged.topics[name] for name in sorted(merged.topics)}
     return merged
-
-
-def read_split(path: str | Path, *, scheduler: str | None = None, workers: int | None = None,
-               target_bytes: int = TARGET_BYTES, progress: bool = False) -> RecordingStats:
-    """``read_recording(path)``, its chunk ranges read as parallel tasks."""
-    from perfros_bag.characterisation.distributed import run_distributed
-
-    plan = plan_split(path)
-    outcomes = run_distributed(plan.parts(target_bytes), read_part, scheduler=scheduler,
-                               workers=workers, progress=progress, description="chunks")
-    for outcome in outcomes:
-        if outcome.error is not None:
-            raise outcome.error
-    return merge_parts(plan, [o.value for o in outcomes])

@@ -32,6 +32,7 @@ from perfros_bag.report.fit_plots import plot_relations
 from perfros_bag.report.frontier_plots import plot_frontier
 from perfros_bag.report.plan_plots import plot_plan_loads
 from perfros_bag.report.validation_plots import number, plot_validation
+from perfros_bag.system.latency import budget_text
 from perfros_bag.system.plan import Plan
 
 MAX_TABLE_ROWS = 2000
@@ -193,9 +194,29 @@ def section_plan(plan: Plan, images: list[Image]) -> str:
             ("link", "medium", "bandwidth kB/s", "planned load kB/s"),
             [(" – ".join(link.between), link.medium, link.bandwidth_kBps, link.load_kBps) for link in plan.links],
             text_cols=(0, 1), table_id="plan-links")
+    chains = ""
+    if plan.chains:
+        chains = "<h3>Chains: predicted latency</h3>" + table(
+            ("chain", "topics", "predicted p50 ms", "predicted p95 ms", "budget"),
+            [row for c in plan.chains for row in _plan_chain_rows(c)], text_cols=(0, 1, 4), table_id="plan-chains")
     img = Image("plan_cpu.png", plot_plan_loads(plan), "planned CPU per computer")
     images.append(img)
-    return f'<h2 id="plan">Plan</h2>{head}<h3>Placement per computer</h3>{comp}{_img(img)}<h3>Nodes</h3>{nodes}{links}'
+    return (f'<h2 id="plan">Plan</h2>{head}<h3>Placement per computer</h3>{comp}{_img(img)}<h3>Nodes</h3>{nodes}'
+            f'{links}{chains}')
+
+
+def _plan_chain_rows(c: dict[str, Any]) -> list[tuple[Any, ...]]:
+    """A plan.json chain and its hops as rows: predicted p50/p95 (ms) and the budget."""
+    def pred(d: dict[str, Any]) -> tuple[Any, Any]:
+        p = d.get("predicted_ms")
+        return (number(p.get("p50")), number(p.get("p95"))) if isinstance(p, dict) else ("-", "-")
+
+    rows: list[tuple[Any, ...]] = [(c.get("name"), " -> ".join(map(str, c.get("topics", []))), *pred(c),
+                                    budget_text(c.get("budget_ms")) if "unpredicted" not in c
+                                    else f"{budget_text(c.get('budget_ms'))} (not predicted: {c['unpredicted']})")]
+    rows += [("", f"hop {h.get('from')} -> {h.get('to')} ({h.get('node')} on {h.get('computer')})", *pred(h), "")
+             for h in c.get("hops", []) if isinstance(h, dict)]
+    return rows
 
 
 def _link_name(lc: dict[str, Any]) -> str:
@@ -203,6 +224,18 @@ def _link_name(lc: dict[str, Any]) -> str:
     if len(between) == 2 and between[0] == between[1]:
         return f"medium {between[0]}"
     return " – ".join(between)
+
+
+def _predicted_s(pred: Any) -> tuple[str, str]:
+    """A ``predicted_ms`` {p50, p95} as seconds, beside the measured columns."""
+    if not isinstance(pred, dict):
+        return "-", "-"
+    return tuple(number(p / 1000.0) if isinstance(p := pred.get(q), int | float) else "-"  # type: ignore[return-value]
+                 for q in ("p50", "p95"))
+
+
+def _held(held: Any) -> str:
+    return "-" if held is None else "yes" if held is True else "no"
 
 
 def _section_latency(v: dict[str, Any]) -> str:
@@ -221,12 +254,15 @@ def _section_latency(v: dict[str, Any]) -> str:
     for c in (c for c in v.get("chains", []) if isinstance(c, dict)):
         topics = [str(t) for t in c.get("topics", [])]
         rows.append((c.get("name"), " -> ".join(topics), c.get("matched"), c.get("messages"), number(c.get("p50_s")),
-                     number(c.get("p95_s")), number(c.get("max_s"))))
+                     number(c.get("p95_s")), number(c.get("max_s")), *_predicted_s(c.get("predicted_ms")),
+                     budget_text(c.get("budget_ms")), _held(c.get("budget_held"))))
         rows += [("", f"hop {h.get('from')} -> {h.get('to')}", h.get("matched"), "", number(h.get("p50_s")),
-                  number(h.get("p95_s")), number(h.get("max_s"))) for h in c.get("hops", []) if isinstance(h, dict)]
+                  number(h.get("p95_s")), number(h.get("max_s")), *_predicted_s(h.get("predicted_ms")), "", "")
+                 for h in c.get("hops", []) if isinstance(h, dict)]
     if rows:
-        parts.append("<h3>Chains: end-to-end latency</h3>" + table(
-            ("chain", "topics", "matched", "messages", "p50 s", "p95 s", "max s"), rows, text_cols=(0, 1),
+        parts.append("<h3>Chains: end-to-end latency, measured beside predicted</h3>" + table(
+            ("chain", "topics", "matched", "messages", "p50 s", "p95 s", "max s", "predicted p50 s",
+             "predicted p95 s", "budget", "budget held"), rows, text_cols=(0, 1, 9, 10),
             table_id="validation-chains"))
     return "".join(parts)
 
@@ -364,6 +400,27 @@ def section_tune(doc: dict[str, Any], images: list[Image]) -> str:
             f"{per_round}{per_node}")
 
 
+def section_watch(doc: dict[str, Any], images: list[Image]) -> str:
+    """A watch (``watch --out DIR``): the timeline of its windows, alarms and re-plans."""
+    from perfros_bag.report.watch_plots import plot_watch
+
+    windows, replans = doc["windows"], doc["replans"]
+    t0 = float(windows[0]["t"])
+    img = Image("watch.png", plot_watch(windows, replans), "per window: expected vs measured Σ w·P; alarms; re-plans")
+    images.append(img)
+    raised = [a for w in windows for a in w["alarms"] if a.get("new")]
+    summary = (f'<p class="summary">{len(windows)} window(s) over {float(windows[-1]["t"]) - t0:.0f} s; '
+               f"{len(raised)} alarm(s); {len(replans)} re-plan(s).</p>")
+    events = [(float(w["t"]) - t0, w["window"], "alarm", a.get("line", "")) for w in windows for a in w["alarms"]
+              if a.get("new")]
+    events += [(float(r["t"]) - t0, r["window"], "re-plan",
+                f"{r['plan']}: {'; '.join(r.get('changes') or ['no change'])} (why: {'; '.join(r.get('why', []))})")
+               for r in replans]
+    tab = table(("s", "window", "event", "what"), sorted(events, key=lambda e: e[0]), text_cols=(2, 3),
+                table_id="watch-events")
+    return f'<h2 id="watch">Watched live: windows, alarms, re-plans</h2>{summary}{_img(img)}{tab}'
+
+
 # ---------------------------------------------------------------------------------------
 # the page
 
@@ -371,7 +428,8 @@ def section_tune(doc: dict[str, Any], images: list[Image]) -> str:
 def build_report(out_dir: str | Path, *, characterisation: str | Path | None = None,
                  model: str | Path | None = None, plan: str | Path | None = None,
                  validation: str | Path | None = None, frontier: str | Path | None = None,
-                 tune: str | Path | None = None, title: str = "perfros-bag report") -> Path:
+                 tune: str | Path | None = None, watch: str | Path | None = None,
+                 title: str = "perfros-bag report") -> Path:
     """Write ``out_dir/index.html`` and its PNGs; returns the page's path. Inputs are read
     (and checked) before anything is written."""
     from perfros_bag.solver.frontier import read_frontier
@@ -384,6 +442,11 @@ def build_report(out_dir: str | Path, *, characterisation: str | Path | None = N
     val = read_validation(validation) if validation is not None else None
     front = read_frontier(frontier) if frontier is not None else None
     tuned = read_tune(tune) if tune is not None else None
+    watched = None
+    if watch is not None:
+        from perfros_bag.watch.watchfile import read_watch
+
+        watched = read_watch(watch)
 
     images: list[Image] = []
     sections: list[str] = []
@@ -395,12 +458,15 @@ def build_report(out_dir: str | Path, *, characterisation: str | Path | None = N
         sections.append(section_frontier(front, images))
     if tuned is not None and tuned["rounds"]:
         sections.append(section_tune(tuned, images))
+    if watched is not None and watched["windows"]:
+        sections.append(section_watch(watched, images))
     if fits and any(fits.values()):
         sections.append(section_fits(fits, images))
     if char is not None:
         sections.append(section_characterisation(char))
     sources = [(k, p) for k, p in (("characterisation", characterisation), ("model", model), ("plan", plan),
-                                   ("validation", validation), ("frontier", frontier), ("tune", tune))
+                                   ("validation", validation), ("frontier", frontier), ("tune", tune),
+                                   ("watch", watch))
                if p is not None]
     src = "".join(f"<li>{esc(k)}: <code>{esc(p)}</code></li>" for k, p in sources)
     body = "".join(sections) or '<p class="muted">Nothing to report: no input was given.</p>'

@@ -3,6 +3,17 @@
 A computer of capacity R CPU units gets ``R / units_per_core`` cores of CPU time
 (CFS bandwidth: ``cpu.cfs_quota_us`` on cgroup v1, ``cpu.max`` on cgroup v2) and a large
 CPU weight, so the emulated computers are not starved by unrelated load on the host.
+
+The bandwidth period is :data:`PERIOD_US`, 10 ms (v1 and v2 alike). A group that spends its
+quota waits for the next period: with the kernel's default 100 ms a light node on a busy
+computer was stalled up to 100 ms at a time (p95 of 94-140 ms where its p50 was 20 ms), fast
+between stalls, which no real computer of that size does. At 10 ms a message is served at
+about the computer's speed (its CPU per message / its cores), as a smaller computer would
+serve it; 5 ms is no better on this kernel (its bandwidth slice is 5 ms) and throttles twice
+as often. Measured: docs/benchmarks.md, "CFS period" (tests/bench/bench_cfs_period.py), which
+also states the risk: on a machine loaded by other work, a group with little headroom lost
+more frames at 10 ms than at 100 ms. ``PERFROS_CFS_PERIOD_US`` (:data:`PERIOD_ENV`) sets
+another period for a run.
 A process joins its computer's group before it execs (see :meth:`CpuGroups.wrap`), so
 its whole life is capped.
 
@@ -14,6 +25,7 @@ run is marked uncapped. :meth:`CpuGroups.remove` deletes every group it created.
 
 from __future__ import annotations
 
+import math
 import os
 import time
 import warnings
@@ -29,7 +41,12 @@ if TYPE_CHECKING:
 
 CGROUP_ROOT = Path(os.environ.get("PERFROS_CGROUP_ROOT", "/sys/fs/cgroup"))
 PREFIX = "perfros-"
-PERIOD_US = 100_000
+PERIOD_US = 10_000  # the CFS bandwidth period (was 100_000 before issue 29: see the module's docstring)
+#: environment variable overriding :data:`PERIOD_US` for a run (µs, 1000-1000000), e.g. 100000
+#: to emulate as before issue 29
+PERIOD_ENV = "PERFROS_CFS_PERIOD_US"
+MIN_QUOTA_US = 1000  # the kernel's smallest CFS quota (v1 and v2)
+MAX_PERIOD_US = 1_000_000  # the kernel's longest CFS period
 WEIGHT_V1 = 10240  # cpu.shares (default 1024)
 WEIGHT_V2 = 1000  # cpu.weight (default 100)
 
@@ -50,6 +67,8 @@ class CpuGroups:
     run_id: str
     cores: dict[str, float]  # computer -> cores of CPU time
     root: Path = CGROUP_ROOT
+    period_us: int = field(default_factory=lambda: default_period_us())  # the CFS period (quota = cores x period)
+    burst: float = 0.0  # CFS burst as a share of the quota (0-1; kernels >= 5.14), 0: none
     mode: str = "uncapped"  # "cgroup-v1" | "cgroup-v2" | "uncapped"
     reason: str = ""
     dirs: dict[str, Path] = field(default_factory=dict)
@@ -65,23 +84,23 @@ class CpuGroups:
         try:
             if version == "v1":
                 base = self.root / "cpu"
-                for comp, cores in self.cores.items():
+                for comp in self.cores:
                     d = base / f"{PREFIX}{self.run_id}-{comp}"
                     d.mkdir()
                     self.dirs[comp] = d
-                    (d / "cpu.cfs_period_us").write_text(str(PERIOD_US))
-                    (d / "cpu.cfs_quota_us").write_text(str(_quota_us(cores)) if capped else "-1")
+                    (d / "cpu.cfs_period_us").write_text(str(self.group_period_us(comp)))
+                    (d / "cpu.cfs_quota_us").write_text(str(self._quota(comp)) if capped else "-1")
                     (d / "cpu.shares").write_text(str(WEIGHT_V1))
                 self.mode = "cgroup-v1"
             elif version == "v2":
                 ctl = self.root / "cgroup.subtree_control"
                 if "cpu" not in ctl.read_text().split():
                     ctl.write_text("+cpu")
-                for comp, cores in self.cores.items():
+                for comp in self.cores:
                     d = self.root / f"{PREFIX}{self.run_id}-{comp}"
                     d.mkdir()
                     self.dirs[comp] = d
-                    (d / "cpu.max").write_text(f"{_quota_us(cores) if capped else 'max'} {PERIOD_US}")
+                    (d / "cpu.max").write_text(f"{self._quota(comp) if capped else 'max'} {self.group_period_us(comp)}")
                     (d / "cpu.weight").write_text(str(WEIGHT_V2))
                 self.mode = "cgroup-v2"
             else:
@@ -108,12 +127,41 @@ class CpuGroups:
                 raise OSError(f"cannot move a process into {self.dirs[comp]}: {done.stderr.strip() or done.returncode}")
 
     def apply(self) -> None:
-        """Set every group's CPU quota (the nodes start uncapped: rospy's imports are slow)."""
+        """Set every group's CPU quota and period (the nodes start uncapped: rospy's imports
+        are slow); the period may have changed since :meth:`create` (the benchmarks')."""
         for comp, d in self.dirs.items():
-            if self.mode == "cgroup-v1":
-                (d / "cpu.cfs_quota_us").write_text(str(_quota_us(self.cores[comp])))
+            quota, period = self._quota(comp), self.group_period_us(comp)
+            if self.mode == "cgroup-v1":  # no quota while the period changes: quota/period is checked
+                (d / "cpu.cfs_quota_us").write_text("-1")
+                (d / "cpu.cfs_period_us").write_text(str(period))
+                (d / "cpu.cfs_quota_us").write_text(str(quota))
             elif self.mode == "cgroup-v2":
-                (d / "cpu.max").write_text(f"{_quota_us(self.cores[comp])} {PERIOD_US}")
+                (d / "cpu.max").write_text(f"{quota} {period}")
+            burst = self._burst_file(d)
+            if burst is not None:  # at most the quota (the kernel's rule): written after it
+                burst.write_text(str(int(min(1.0, max(0.0, self.burst)) * quota)))
+
+    def _burst_file(self, d: Path) -> Path | None:
+        """The group's CFS burst file (``cpu.cfs_burst_us`` v1, ``cpu.max.burst`` v2), None
+        where the kernel has none."""
+        f = d / ("cpu.cfs_burst_us" if self.mode == "cgroup-v1" else "cpu.max.burst")
+        return f if self.mode != "uncapped" and f.exists() else None
+
+    def group_period_us(self, computer: str) -> int:
+        """The CFS period of ``computer``'s group: :attr:`period_us`, made longer where the
+        quota would fall under the kernel's 1 ms minimum (a computer of less than
+        1 ms / period cores: e.g. under 0.2 cores at 5 ms), so the cap stays its size."""
+        return group_period_us(self.cores[computer], self.period_us)
+
+    def cap_record(self) -> dict[str, object]:
+        """What deploy.json's ``cpu_cap`` states of the CFS bandwidth: ``period_us`` (the
+        default period) and ``periods_us`` (each computer's group: longer where its quota
+        would fall under 1 ms)."""
+        return {"period_us": self.period_us, "periods_us": {c: self.group_period_us(c) for c in self.cores},
+                "burst": self.burst}
+
+    def _quota(self, computer: str) -> int:
+        return _quota_us(self.cores[computer], self.group_period_us(computer))
 
     def procs_file(self, computer: str) -> Path | None:
         d = self.dirs.get(computer)
@@ -166,8 +214,30 @@ class CpuGroups:
         return left
 
 
-def _quota_us(cores: float) -> int:
-    return max(1000, int(round(cores * PERIOD_US)))
+def default_period_us() -> int:
+    """:data:`PERIOD_US`, or :data:`PERIOD_ENV`'s value when set (a bad one is an InputError)."""
+    raw = os.environ.get(PERIOD_ENV, "").strip()
+    if not raw:
+        return PERIOD_US
+    try:
+        value = int(raw)
+    except ValueError:
+        raise InputError(None, f"{PERIOD_ENV}={raw!r} is not a whole number of microseconds") from None
+    if not MIN_QUOTA_US <= value <= MAX_PERIOD_US:
+        raise InputError(None, f"{PERIOD_ENV}={value} must be {MIN_QUOTA_US}-{MAX_PERIOD_US} µs (the kernel's range)")
+    return value
+
+
+def _quota_us(cores: float, period_us: int = PERIOD_US) -> int:
+    return max(MIN_QUOTA_US, int(round(cores * period_us)))
+
+
+def group_period_us(cores: float, period_us: int = PERIOD_US) -> int:
+    """The period for a group of ``cores``: ``period_us``, or the shortest that keeps its
+    quota at the kernel's minimum (:data:`MIN_QUOTA_US`), at most :data:`MAX_PERIOD_US`."""
+    if cores <= 0 or cores * period_us >= MIN_QUOTA_US:
+        return period_us
+    return min(MAX_PERIOD_US, math.ceil(MIN_QUOTA_US / cores))
 
 
 def leftover_groups(root: Path = CGROUP_ROOT, run_id: str | None = None) -> list[Path]:
@@ -191,20 +261,19 @@ def emulated_trace(raw: Path, dest: Path, where: dict[str, str], capacity: dict[
     ``cpu_percent / 100 * units_per_core`` CPU units, as it should. Rows of processes that
     are not plan nodes are dropped. The raw trace stays beside it (``run.host.cpu.csv``).
     """
-    from perfros_bag.cpu.trace import read_cpu_trace, write_cpu_trace
+    from perfros_bag.cpu.trace import has_threads, read_cpu_trace, trace_rows, write_cpu_trace
 
     tr = read_cpu_trace(raw)
     rows = []
-    for t, pid, label, proc, cpu, rss in zip(tr.time.tolist(), tr.pid.tolist(), tr.node, tr.process,
-                                             tr.cpu_percent.tolist(), tr.rss_bytes.tolist(), strict=True):
-        comp = where.get(label)
+    for row in trace_rows(tr):
+        comp = where.get(row[2])
         if comp is None:
             continue
-        rows.append((t, pid, label, proc, cpu * tr.logical_cpus * units_per_core / capacity[comp], rss))
+        rows.append((*row[:4], row[4] * tr.logical_cpus * units_per_core / capacity[comp], *row[5:]))
     write_cpu_trace(dest, rows, host=f"{tr.host or 'host'} (emulated computers: cpu_percent scaled by "
                     f"N*{units_per_core:g}/capacity; raw psutil trace: {raw.name})",
                     logical_cpus=tr.logical_cpus, interval_s=tr.interval_s or 0.5,
-                    speed_factor=tr.speed_factor, reference_s=tr.reference_s)
+                    speed_factor=tr.speed_factor, reference_s=tr.reference_s, threads=has_threads(tr))
 
 
 def computer_cores(plan: Plan, units_per_core: float,

@@ -10,6 +10,7 @@ from __future__ import annotations
 import functools
 import socket
 import xmlrpc.client
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -71,6 +72,45 @@ def bus_stats(uri: str) -> Any:
     if isinstance(reply, list) and len(reply) == 3 and isinstance(reply[0], int):
         return _value(reply)
     return reply
+
+
+@dataclass(frozen=True)
+class TopicCounters:
+    """One publisher's counters of one topic at one reading."""
+
+    #: connection id -> (messages, payload bytes) sent on it so far
+    connections: dict[int, tuple[int, int]] = field(default_factory=dict)
+    #: the topic's payload bytes as one total (rospy), else None
+    total_bytes: int | None = None
+
+
+def _int(x: Any) -> int | None:
+    return x if isinstance(x, int) and not isinstance(x, bool) else None
+
+
+def parse_bus_stats(stats: Any) -> dict[str, TopicCounters]:
+    """Per published topic, its counters in one node's :func:`bus_stats` answer: roscpp
+    ``[topic, [[id, bytes, message_bytes, messages, _], ...]]``; rospy ``[topic,
+    message_bytes, [[id, bytes with headers, messages, connected], ...]]`` (anything
+    malformed is left out: a peer that answers oddly is read as counting nothing)."""
+    out: dict[str, TopicCounters] = {}
+    if not isinstance(stats, list) or not stats or not isinstance(stats[0], list):
+        return out
+    for entry in stats[0]:
+        if not isinstance(entry, list) or len(entry) < 2 or not isinstance(entry[0], str):
+            continue
+        conns: dict[int, tuple[int, int]] = {}
+        if _int(entry[1]) is not None and len(entry) > 2 and isinstance(entry[2], list):  # rospy
+            for c in entry[2]:
+                if isinstance(c, list) and len(c) > 2 and _int(c[0]) is not None and _int(c[2]) is not None:
+                    conns[c[0]] = (c[2], 0)
+            out[entry[0]] = TopicCounters(conns, entry[1])
+        elif isinstance(entry[1], list):  # roscpp
+            for c in entry[1]:
+                if isinstance(c, list) and len(c) > 3 and all(_int(c[i]) is not None for i in (0, 2, 3)):
+                    conns[c[0]] = (c[3], c[2])
+            out[entry[0]] = TopicCounters(conns)
+    return out
 
 
 def master_state(uri: str) -> tuple[list[Any], list[Any]] | None:

@@ -11,6 +11,7 @@ import math
 from collections.abc import Iterator
 
 from perfros_bag.errors import InputError
+from perfros_bag.solver.budgets import budgeted, no_plan_within, violation
 from perfros_bag.system.plan import Assignment, Method, Plan, Status
 from perfros_bag.system.rules import build_plan, server_sizes, weighted_performance
 from perfros_bag.system.types import Choice, Problem, System
@@ -44,6 +45,7 @@ def solve_bruteforce(system: System, problem: Problem, choices: dict[str, list[C
         for n in g:
             group_of[n] = g[0]
 
+    budgets = bool(budgeted(system))
     load = {c: 0.0 for c in comps}
     place: dict[str, str] = {}
     pick: dict[str, Choice] = {}
@@ -99,14 +101,16 @@ def solve_bruteforce(system: System, problem: Problem, choices: dict[str, list[C
         if i + 1 < len(nodes):
             stack.append(options(i + 1))
             continue
-        if system.network_violation(place, pick, EPS) is None:
+        if system.network_violation(place, pick, EPS) is None and (
+                not budgets or violation(system, problem, Assignment(place, pick, {})) is None):
             v = value()
             if not best or v > best[0][0] + EPS:
                 best[:] = [(v, dict(place), dict(pick))]
     if not best:
-        return Plan.infeasible(problem, Method.BRUTEFORCE,
-                               f"no assignment satisfies the CPU, bandwidth, residence and coresidence "
-                               f"constraints ({total} combinations searched)", system=system.source)
+        constraints = f"the CPU, bandwidth, residence and coresidence constraints ({total} combinations searched)"
+        reason = (no_plan_within(system, choices, f"no assignment that satisfies {constraints}") if budgets
+                  else f"no assignment satisfies {constraints}")
+        return Plan.infeasible(problem, Method.BRUTEFORCE, reason, system=system.source)
     v, placement, choice = best[0]
     capacities = server_sizes(system, placement, choice) if problem == Problem.SERVER_CAPACITY else {}
     plan = build_plan(system, Assignment(placement, choice, capacities), problem=problem, method=Method.BRUTEFORCE,

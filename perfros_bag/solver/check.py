@@ -42,7 +42,8 @@ def _node_choice(node: Node, cpu: float, performance: float, tol: float, value: 
 
 def _driven_choice(node: Node, input_hz: float, cpu: float, performance: float, tol: float) -> Choice | None:
     """A driven node's setting the plan claims at input rate ``input_hz``: its CPU is
-    ``cpu + cpu_per_hz·F_in``, its output ``min(out_per_in·F_in, max_frequency_hz)``, its
+    ``cpu + cpu_per_hz·F_in``, its output ``min(out_per_in·F_in, max_frequency_hz)`` (``step:
+    period``: one per k messages of ``out_per_in·F_in``, k the fewest with k x cap >= it), its
     bandwidth ``bytes_per_msg`` per output message (docs/formats.md; this checker's own
     copy of the rule)."""
     for j, s in enumerate(node.settings):
@@ -50,8 +51,20 @@ def _driven_choice(node: Node, input_hz: float, cpu: float, performance: float, 
         if not (_close(need, cpu, tol) and _close(s.performance, performance, tol)):
             continue
         out = (1.0 if s.out_per_in is None else s.out_per_in) * input_hz
-        if s.max_frequency_hz is not None and s.max_frequency_hz < out:
-            out = s.max_frequency_hz
+        cap = s.max_frequency_hz
+        if cap is not None and s.step == "period":
+            # one message passes per k arriving, k the fewest whose span reaches the period
+            if cap <= 0:
+                out = 0.0
+            else:
+                k = max(1, int(out // cap))
+                while k * cap < out * (1.0 - 1e-9):
+                    k += 1
+                while k > 1 and (k - 1) * cap >= out * (1.0 - 1e-9):
+                    k -= 1
+                out = out / k
+        elif cap is not None and cap < out:
+            out = cap
         size = s.bytes_per_msg
         if size is None:
             size = s.bandwidth_kBps * 1000.0 / s.frequency_hz if s.frequency_hz and s.bandwidth_kBps is not None else 0.0
@@ -163,6 +176,11 @@ def check_plan(system: System, plan: Plan, *, tol: float = 1e-6) -> list[str]:
         for other in node.coresidence:
             if node.name in where and other in where and where[node.name] != where[other]:
                 bad.append(f"coresidence: {node.name} on {where[node.name]} but {other} on {where[other]}")
+    # membership kept: a node hosted by a container (nodelet manager) sits on its computer
+    for node in system.nodes:
+        host = node.container
+        if host is not None and node.name in where and host in where and where[node.name] != where[host]:
+            bad.append(f"container: {node.name} on {where[node.name]} but its container {host} on {where[host]}")
 
     # eq 3: CPU per computer
     load: dict[str, float] = defaultdict(float)
@@ -215,9 +233,141 @@ def check_plan(system: System, plan: Plan, *, tol: float = 1e-6) -> list[str]:
         if got is not None and not _close(got, link_load[i], tol):
             bad.append(f"link {link.between[0]}-{link.between[1]}: plan reports load {got:g}, edges sum to {link_load[i]:g}")
 
+    # latency budgets (system.yaml budget_ms) and the latency the plan states
+    bad.extend(_latency(system, plan, where, link_load, tol))
+
     # eq 1 / eq 2: the objective
     if not bad or plan.objective is not None:
         want = plan_objective(system, plan, problem)
         if plan.objective is None or not math.isfinite(plan.objective) or not _close(plan.objective, want, tol):
             bad.append(f"objective: plan says {plan.objective}, eq {problem} gives {want:g}")
+    return bad
+
+
+# ---- latency budgets: this checker's own copy of the latency rule (docs/solvers.md "Latency";
+# written apart from perfros_bag/system/latency.py) ------------------------------------------
+def _speed(own_max: float, own_threads: float, others: list[tuple[float, float]], capacity: float) -> float:
+    """CPU units a busy node (up to ``own_max``, ``own_threads`` slices) gets beside
+    ``others`` ((need, threads)) on ``capacity``: the water level L of max-min fairness per
+    thread (each gets min(need, threads x L)), found by bisection."""
+    if own_max + sum(o for o, _ in others) <= capacity:
+        return own_max
+    lo, hi = 0.0, max([capacity, own_max, *(o for o, _ in others)])
+    for _ in range(200):
+        mid = (lo + hi) / 2
+        if min(own_max, own_threads * mid) + sum(min(o, t * mid) for o, t in others) > capacity:
+            hi = mid
+        else:
+            lo = mid
+    return min(own_max, own_threads * lo)
+
+
+def _threads(node: Node, value: float | None) -> float:
+    """Busy threads at a value: the setting's ``threads``, else the node's, else 1."""
+    for s in node.settings:
+        if value is not None and s.value is not None and math.isclose(s.value, value, rel_tol=1e-9, abs_tol=1e-9):
+            if s.threads is not None:
+                return max(1.0, s.threads)
+            break
+    return max(1.0, node.threads) if node.threads is not None else 1.0
+
+
+def _waited(mean: float, rho: float, q: float) -> float:
+    if mean <= 0 or rho <= 0 or rho <= 1 - q:
+        return 0.0
+    return mean / rho * math.log(rho / (1 - q))
+
+
+def _chain_ms(system: System, plan: Plan, chain_topics: tuple[str, ...], where: dict[str, str],
+              link_load: list[float]) -> tuple[float, float, list[tuple[float, float]]] | str:
+    """(p50, p95, per hop (p50, p95)) in ms of a chain for the plan, or why it has none."""
+    lat = system.latency
+    total50 = total95 = 0.0
+    hops: list[tuple[float, float]] = []
+    for a, b in zip(chain_topics, chain_topics[1:], strict=False):
+        nodes = [n for n in system.nodes if b in n.topics and n.input == a]
+        pubs = [n for n in system.nodes if a in n.topics]
+        if not nodes or not pubs:
+            return f"hop {a} -> {b} cannot be followed"
+        node, pub = nodes[0].name, pubs[0].name
+        pn, pp = plan.nodes.get(node), plan.nodes.get(pub)
+        if pn is None or pp is None or not pn.input_hz:
+            return f"hop {a} -> {b}: its node or input rate is not in the plan"
+        lam = pn.input_hz
+        per_msg = pn.cpu / lam
+        comp = pn.computer
+        pc = plan.computers.get(comp)
+        capacity = pc.capacity if pc is not None and pc.capacity is not None else sum(
+            q.cpu for q in plan.nodes.values() if q.computer == comp)
+        k = _threads(nodes[0], pn.value)
+        speed = _speed(k * lat.units_per_core, k,
+                       [(q.cpu, _threads(system.node[n], q.value) if n in system.node else 1.0)
+                        for n, q in plan.nodes.items() if q.computer == comp and n != node], capacity)
+        if speed <= 0:
+            return f"hop {a} -> {b}: {node} gets no CPU"
+        rho = lam * per_msg / speed
+        service = lat.service_scale.get(node, 1.0) * per_msg / speed
+        cap_wait = lat.queue_size * service
+        if rho >= 1:
+            w50 = w95 = cap_wait
+        else:
+            mean = lat.queue_factor * rho * service / (2 * (1 - rho))
+            w50, w95 = min(_waited(mean, rho, 0.5), cap_wait), min(_waited(mean, rho, 0.95), cap_wait)
+        t50 = t95 = 0.0
+        if pp.computer != comp:
+            route = system.route(pp.computer, comp)
+            if route is None:
+                return f"hop {a} -> {b}: no path from {pp.computer} to {comp}"
+            rate = pp.topics.get(a)
+            hz = rate.frequency_hz if rate is not None else None
+            kbps = rate.bandwidth_kBps if rate is not None else None
+            size = kbps / hz if hz and kbps is not None else 0.0
+            stream = size * (hz or 0.0)
+            parts = [(system.links[li].bandwidth_kBps, link_load[li]) for li in route]
+            for m in sorted({md for li in route if (md := system.links[li].medium) is not None}):
+                parts.append((system.medium[m].bandwidth_kBps,
+                              sum(link_load[i] for i, link in enumerate(system.links) if link.medium == m)))
+            slowest = 0.0
+            for bw, load in parts:
+                t = size / (lat.link_efficiency * bw)
+                slowest = max(slowest, t)
+                u = min(max(load - stream, 0.0) / bw, 0.99)
+                mean = lat.queue_factor * u * t / (2 * (1 - u))
+                t50 += _waited(mean, u, 0.5)
+                t95 += _waited(mean, u, 0.95)
+            t50 += slowest
+            t95 += slowest
+        ratio = lat.node_p95_ratio.get(node, lat.p95_ratio)
+        h50 = lat.overhead_ms + 1000 * (t50 + w50 + service)
+        h95 = lat.overhead_ms + 1000 * (t95 + w95 + ratio * service)
+        hops.append((h50, h95))
+        total50 += h50
+        total95 += h95
+    return total50, total95, hops
+
+
+def _latency(system: System, plan: Plan, where: dict[str, str], link_load: list[float], tol: float) -> list[str]:
+    """Every budgeted chain within its budget, and every latency the plan states as this
+    checker predicts it."""
+    bad: list[str] = []
+    stated = {c.get("name"): c for c in plan.chains}
+    for chain in system.chains:
+        said = stated.get(chain.name)
+        if chain.budget_ms is None and said is None:
+            continue
+        got = _chain_ms(system, plan, chain.topics, where, link_load)
+        if isinstance(got, str):
+            if chain.budget_ms is not None:
+                bad.append(f"chain {chain.name}: has a budget but {got}")
+            continue
+        p50, p95, hops = got
+        for q, limit in chain.budget_ms.items() if chain.budget_ms is not None else []:
+            value = p50 if q == "p50" else p95
+            if _over(value, limit, tol):
+                bad.append(f"chain {chain.name}: predicted {q} {value:.6g} ms > budget {limit:g} ms")
+        pred = (said or {}).get("predicted_ms")
+        if isinstance(pred, dict):
+            for q, value in (("p50", p50), ("p95", p95)):
+                if pred.get(q) is not None and not _close(float(pred[q]), value, max(tol, 1e-5)):
+                    bad.append(f"chain {chain.name}: plan states {q} {pred[q]} ms, the model gives {value:.6g}")
     return bad

@@ -783,7 +783,7 @@ class _Master:
     """The restricted master LP/MILP on HiGHS, grown column by column."""
 
     def __init__(self, model: _Model, penalty: float) -> None:
-        import highspy
+        import highspy  # lazy, as in milp.py: a missing HiGHS fails the exact method only
 
         self.hs = highspy
         self.h = quiet_highs()

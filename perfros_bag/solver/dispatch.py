@@ -16,9 +16,21 @@ from collections.abc import Mapping
 
 from perfros_bag.errors import InputError
 from perfros_bag.solver.bruteforce import solve_bruteforce
+from perfros_bag.solver.budgets import (
+    budgeted,
+    impossible_budget,
+    restate_chains,
+    solve_with_cuts,
+    within_budgets,
+)
 from perfros_bag.solver.candidates import fixed_choices
 from perfros_bag.solver.flow import solve_heuristic
-from perfros_bag.solver.instance import Progress, active_links, prepare_instance, within_trivial_bound
+from perfros_bag.solver.instance import (
+    Progress,
+    active_links,
+    prepare_instance,
+    within_trivial_bound,
+)
 from perfros_bag.system.cpuerror import FAIR_SHARE, choice_error, states_errors
 from perfros_bag.system.plan import Assignment, Method, Plan, Status
 from perfros_bag.system.types import Choice, Problem, System
@@ -136,6 +148,7 @@ def _give_back_errors(system: System, plan: Plan, inflated: Mapping[str, list[Ch
         pc.margin = round(margin[name], 9)
         if sized and system.computer[name].kind == "server":
             pc.capacity = pc.cpu + pc.margin
+    restate_chains(system, plan)
 
 
 def _same_number(a: float | None, b: float | None) -> bool:
@@ -171,13 +184,17 @@ def _give_back(system: System, plan: Plan, headroom: float) -> Plan:
     if sized:
         plan.objective = None if plan.objective is None else plan.objective / keep
         plan.bound = None if plan.bound is None else plan.bound / keep
+    restate_chains(system, plan)
     return plan
 
 
 def _dispatch(system: System, problem: Problem, method: Method, choices: dict[str, list[Choice]],
               deadline: float | None, progress: Progress | None) -> Plan:
+    budgets = bool(budgeted(system))
+    if budgets and (impossible := impossible_budget(system, choices)) is not None:
+        return Plan.infeasible(problem, method, impossible, system=system.source)
     if method in (Method.GREEDY, Method.GREEDY_PLUS):
-        return solve_heuristic(system, problem, choices, method)
+        return within_budgets(system, problem, choices, solve_heuristic(system, problem, choices, method), method)
     if method == Method.BRUTEFORCE:
         return solve_bruteforce(system, problem, choices)
     try:  # deferred: numpy and HiGHS, for the exact method only
@@ -192,19 +209,25 @@ def _dispatch(system: System, problem: Problem, method: Method, choices: dict[st
     prepared = prepare_instance(system, problem, choices)  # once, for whichever solver runs
     columns = exact_columns(system, choices)
     # the decomposition prices robots one by one, each with the data flow it carries; a flow
-    # across robots is the MILP's (its rows): solve_decomposed then declines (None)
-    # Problem 2 (one choice a node: its size is nodes x computers) only where the network can
-    # bind: there the whole MILP stalls (the wifi fleet: 2.2 % at 30 s; decomposed 0.04 % in 10 s)
+    # across robots is the MILP's (its rows): solve_decomposed then declines (None). Latency
+    # budgets are the MILP's (its lazy cuts). Problem 2 (one choice a node: its size is nodes x
+    # computers) only where the network can bind: there the whole MILP stalls (the wifi fleet:
+    # 2.2 % at 30 s; decomposed 0.04 % in 12 s)
     big = columns > DECOMPOSE_COLUMNS if problem == Problem.PERFORMANCE else (
         len(system.nodes) * len(system.computers) > DECOMPOSE_COLUMNS
         and not isinstance(prepared, str) and bool(active_links(prepared)))
-    if big and not isinstance(prepared, str):
+    if big and not isinstance(prepared, str) and not budgets:
         from perfros_bag.solver.decompose import solve_decomposed  # deferred: numpy, HiGHS
 
         decomposed = solve_decomposed(system, problem, choices, time_limit=left(), progress=progress,
                                       prepared=prepared)
         if decomposed is not None:
             return within_trivial_bound(system, problem, choices, decomposed)
+    if budgets and not isinstance(prepared, str):  # lazy cuts; a start would be cut and offered again
+        return solve_with_cuts(system, problem, choices,
+                               lambda cuts: exact.solve_exact(system, problem, choices, time_limit=left(),
+                                                              prepared=prepared, cuts=cuts),
+                               lambda: deadline is not None and time.perf_counter() >= deadline)
     start = None if isinstance(prepared, str) else _exact_start(system, problem, choices, left(), columns)
     return exact.solve_exact(system, problem, choices, time_limit=left(), start=start, prepared=prepared)
 
@@ -236,9 +259,8 @@ def _exact_start(system: System, problem: Problem, choices: dict[str, list[Choic
     when greedy+ finds nothing."""
     if problem != Problem.PERFORMANCE or columns <= START_COLUMNS:
         return None
-    from perfros_bag.solver.starts import (
-        start_of,  # deferred: greedy+'s numpy, on big instances only
-    )
+    # deferred: starts imports greedy+ (numpy), needed on big instances only
+    from perfros_bag.solver.starts import start_of
 
     budget = None if time_limit is None else START_SHARE * time_limit
     plan = solve_heuristic(system, problem, choices, Method.GREEDY_PLUS, time_budget=budget)

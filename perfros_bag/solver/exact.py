@@ -38,6 +38,7 @@ from dataclasses import dataclass, field
 
 from perfros_bag.errors import InputError
 from perfros_bag.solver import milp as mip
+from perfros_bag.solver.budgets import Row
 from perfros_bag.solver.instance import (
     EPS,
     Group,
@@ -127,7 +128,7 @@ class _OutOfTime(Exception):
 
 
 def _build(inst: Instance, *, elastic: bool = False, compact_form: bool = False,
-           deadline: float | None = None) -> _Built:
+           deadline: float | None = None, cuts: Sequence[Row] = ()) -> _Built:
     """The MILP of the instance. Past ``deadline`` (``time.perf_counter()``), raises
     :class:`_OutOfTime` (checked per node group, computer and edge: at 1,000 x 100 the whole
     build takes over a second)."""
@@ -307,6 +308,17 @@ def _build(inst: Instance, *, elastic: bool = False, compact_form: bool = False,
                 slack[f"medium {medium.name}"] = s
                 terms.append((s, -1.0))
             milp.row(terms, -_INF, medium.bandwidth_kBps)
+    for row_terms, upper in cuts:  # latency budgets: floors and no-good cuts (perfros_bag.solver.budgets)
+        cut_row: list[tuple[int, float]] = []
+        for term in row_terms:
+            if term.choice is None:
+                cut_row += [(col, term.coef * a) for col, a in placed(term.node, term.computer)]
+                continue
+            pos = next((i for i, ch in enumerate(inst.choices[term.node]) if ch == term.choice), None)
+            column = None if pos is None else x.get((term.node, pos, term.computer))
+            if column is not None:  # a pruned choice or a computer its group cannot use has no column
+                cut_row.append((column, term.coef))
+        milp.row(cut_row, -_INF, upper)
     return _Built(milp, x, server_cap, slack, compact)
 
 
@@ -374,7 +386,7 @@ def _extract(inst: Instance, built: _Built, values: Sequence[float]) -> Assignme
 def _diagnose(inst: Instance, time_limit: float | None) -> str:
     """Why the MILP is infeasible: solve an elastic copy where capacities and bandwidths may
     overflow at a cost, and name what overflows in its best placement."""
-    import highspy
+    import highspy  # lazy, as in milp.py: a missing HiGHS fails the exact method only
 
     built = _build(inst, elastic=True)
     h = built.milp.solve(False, time_limit=time_limit, mip_gap=0.0)
@@ -433,7 +445,8 @@ def _reserve(time_limit: float) -> float:
 
 def solve_exact(system: System, problem: Problem, choices: dict[str, list[Choice]], *,
                 time_limit: float | None = None, mip_gap: float = 0.0,
-                start: Assignment | None = None, prepared: Instance | str | None = None) -> Plan:
+                start: Assignment | None = None, prepared: Instance | str | None = None,
+                cuts: Sequence[Row] = ()) -> Plan:
     """Solve Problem 1 (max Σ w·P) or Problem 2 (min Σ server capacity) exactly with HiGHS.
 
     ``choices`` are each node's candidates (:func:`perfros_bag.solver.fixed_choices`).
@@ -444,9 +457,10 @@ def solve_exact(system: System, problem: Problem, choices: dict[str, list[Choice
     what lets HiGHS close the gap quickly (docs/solvers.md). ``time_limit`` covers the
     whole call, set-up included: when the set-up uses it up, the start is the answer (with
     the LP bound when there is one). ``prepared``: :func:`prepare_instance`'s answer when
-    the caller has it.
+    the caller has it. ``cuts``: rows over the placement columns (latency budgets:
+    :func:`perfros_bag.solver.budgets.floor_rows` and the no-good cuts of ``cut_of``).
     """
-    import highspy
+    import highspy  # lazy, as in milp.py: a missing HiGHS fails the exact method only
 
     t0 = time.perf_counter()
     if problem not in (1, 2):
@@ -489,7 +503,7 @@ def solve_exact(system: System, problem: Problem, choices: dict[str, list[Choice
     if mapped is not None and out_of_time():  # the set-up used the time: the start is the answer
         return done(mapped[0], _INF if maximise else -_INF, False)
     try:  # with a start to fall back on, building the model may stop at the time limit
-        built = _build(inst, deadline=None if time_limit is None or mapped is None
+        built = _build(inst, cuts=cuts, deadline=None if time_limit is None or mapped is None
                        else t0 + time_limit - _reserve(time_limit))
     except _OutOfTime:  # so did building the model: the start is the answer
         assert mapped is not None

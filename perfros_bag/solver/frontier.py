@@ -42,6 +42,7 @@ from typing import Any
 import numpy as np
 
 from perfros_bag.errors import InputError
+from perfros_bag.fileio import atomic_write_text, read_json
 from perfros_bag.solver.candidates import fixed_choices, lowest_settings
 from perfros_bag.solver.decompose import cpu_grid_scale, home_options
 from perfros_bag.solver.dispatch import solve
@@ -97,6 +98,12 @@ class FrontierPoint:
         if self.objective is None or self.bound is None:
             return None
         return max(self.bound - self.objective, 0.0) / max(abs(self.objective), 1e-12)
+
+    def to_json(self) -> dict[str, Any]:
+        """The point as frontier.json holds it (docs/formats.md, the one place)."""
+        return {"server_capacity": round(self.capacity, 9), "status": str(self.status), "objective": self.objective,
+                "bound": self.bound, "gap": self.gap, "solve_s": round(self.solve_s, 6),
+                "carried_from": None if self.carried_from is None else round(self.carried_from, 9)}
 
 
 def _servers(system: System) -> list[str]:
@@ -305,24 +312,18 @@ def frontier_document(system: System, points: list[FrontierPoint], method: str) 
         "system": system.source,
         "method": method,
         "servers": _servers(system),
-        "points": [{"server_capacity": round(p.capacity, 9), "status": str(p.status), "objective": p.objective,
-                    "bound": p.bound, "gap": p.gap, "solve_s": round(p.solve_s, 6),
-                    "carried_from": None if p.carried_from is None else round(p.carried_from, 9)} for p in points],
+        "points": [p.to_json() for p in points],
     }
 
 
 def write_frontier(path: str | Path, doc: dict[str, Any]) -> None:
     """frontier.json, written atomically (the one writer)."""
-    from perfros_bag.fileio import atomic_write_text
-
     atomic_write_text(path, json.dumps(doc, indent=2) + "\n")
 
 
 def read_frontier(path: str | Path) -> dict[str, Any]:
     """frontier.json, checked field by field (the one reader): an :class:`InputError` naming
     the broken place otherwise."""
-    from perfros_bag.fileio import read_json
-
     doc = read_json(path)
     if not isinstance(doc, dict) or doc.get("format") != FORMAT:
         raise InputError(path, f"not a frontier (expected a JSON object with format {FORMAT!r})")

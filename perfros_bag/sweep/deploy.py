@@ -8,10 +8,13 @@ made). The launch file runs once with the plan's parameter values (through the `
 moved into its computer's group and the caps are set. The run is recorded (``run.bag``, a
 CPU trace rescaled to the emulated computers, ``manifest.yaml``) and validated against
 the plan (eq 10, ``validation.json``); ``deploy.json`` says what ran, where, capped or not.
+While the nodes run, ``live.json`` (:mod:`perfros_bag.sweep.livestate`) says how to reach
+them, for ``watch --deployment``; it is removed when the run ends.
 """
 
 from __future__ import annotations
 
+import os
 import shutil
 import time
 import uuid
@@ -23,8 +26,10 @@ from typing import TYPE_CHECKING, Any
 
 from perfros_bag.errors import InputError, PerfrosWarning
 from perfros_bag.fileio import atomic_write_json
+from perfros_bag.sweep.control import CONTROL_FILE, Control
 from perfros_bag.sweep.graph import Graph, write_graph
 from perfros_bag.sweep.launchfile import check_space, read_launch
+from perfros_bag.sweep.livestate import LIVE_FILE, LiveState, write_live
 from perfros_bag.sweep.space import Run, Space, Value, arg_text, default_value, load_space
 
 if TYPE_CHECKING:
@@ -94,7 +99,7 @@ def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Pat
     outdir.mkdir(parents=True, exist_ok=True)
     require_free_space(outdir)
     for stale in ("run.bag", "run.cpu.csv", "run.host.cpu.csv", "manifest.yaml", "graph.yaml", "deploy.json",
-                  "validation.json"):
+                  "validation.json", LIVE_FILE, CONTROL_FILE):
         (outdir / stale).unlink(missing_ok=True)
     system = plan_system(plan, plan_path, system_path)
     run_id = uuid.uuid4().hex[:10]
@@ -106,6 +111,8 @@ def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Pat
     throttle: dict[str, dict[str, dict[str, float]]] = {}  # "start"/"end" -> computer -> CFS counters
     media_before: list[dict[str, Any]] = []
     media_after: list[dict[str, Any]] = []
+    master: list[str] = []  # the run's master URI, once roscore answers
+    live: list[LiveState] = []
 
     def place(graph: Graph) -> None:
         """Move every planned node into its computer's group, then cap the groups."""
@@ -121,6 +128,23 @@ def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Pat
             placed[node.name] = computer
         if cap:
             groups.apply()
+        live[:] = [LiveState(
+            run_id, os.getpid(), master[0] if master else "", network.master_computer() if network.emulated else None,
+            str(Path(plan_path).absolute()), None if system is None or system.source is None else str(Path(system.source).absolute()),
+            units_per_core, dict(network.namespaces), {c: str(d) for c, d in groups.dirs.items()}, dict(cores),
+            cap and groups.capped,
+            {n.name: {"pid": n.pid, "computer": where.get(system_node_name(n.name))} for n in graph.nodes
+             if n.launched})]
+        write_live(outdir / LIVE_FILE, live[0])
+
+    def applied(pids: dict[str, int]) -> None:
+        """A new plan applied (control.json): the restarted nodes' PIDs and computers in live.json."""
+        for name, pid in pids.items():
+            placed[name] = control.where.get(system_node_name(name), placed.get(name, ""))
+            if live:
+                live[0].nodes[name] = {"pid": pid, "computer": placed[name]}
+        if live:
+            write_live(outdir / LIVE_FILE, live[0])
 
     def window(edge: str) -> None:
         """The links', the shared media's and the groups' counters as the recording starts and ends."""
@@ -131,6 +155,7 @@ def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Pat
         throttle[edge] = {c: groups.throttled(c) for c in cores}
 
     network = Network(f"d{run_id}", system if system is not None and net else _no_links(plan))
+    control = Control(outdir, space, dict(launch.args), run, dict(where), groups, units_per_core, cap, applied)
     groups.create(capped=False, quiet=not cap)
     mode, reason = (groups.mode, groups.reason) if cap else ("uncapped", "capping not asked for")
     try:
@@ -141,8 +166,11 @@ def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Pat
             network.reason = "the plan's system was not found: its links are unknown"
         described = network.describe()
         graph = record_run(launch, space, run, outdir, interval=interval, progress=progress, run_id=run_id,
-                           on_graph=place, network=network, where=where, on_window=window)
+                           on_graph=place, network=network, where=where, on_window=window, on_master=master.append,
+                           on_tick=control.tick)
     finally:
+        (outdir / LIVE_FILE).unlink(missing_ok=True)
+        (outdir / CONTROL_FILE).unlink(missing_ok=True)
         left = groups.remove()
         net_left = network.remove()
     host_trace = outdir / "run.host.cpu.csv"
@@ -166,13 +194,14 @@ def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Pat
         "duration_s": space.duration_s, "values": dict(run.values), "args": dict(run.args),
         "params": dict(run.params),
         "cpu_cap": {"mode": mode, "reason": reason, "cgroups": groups.mode, "cores": cores,
-                    "units_per_core": units_per_core},
+                    "units_per_core": units_per_core, **groups.cap_record()},
         "throttling": {c: {k: v - throttle.get("start", {}).get(c, {}).get(k, 0.0) for k, v in end.items()}
                        for c, end in throttle.get("end", {}).items()},
         "network": {**described, "links_measured": _link_use(links_before, links_after, network),
                     "media_measured": _medium_use(media_before, media_after, network)},
         "nodes": {n.name: {"pid": n.pid, "computer": placed.get(n.name, where.get(system_node_name(n.name)))}
                   for n in graph.nodes if n.launched},
+        "replans": control.applied,
         "leftover_cgroups": [str(p) for p in left],
         "leftover_namespaces": net_left,
     }

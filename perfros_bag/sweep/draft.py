@@ -12,7 +12,9 @@
   runs at that value; the characterisation of every run with a skeleton of this system);
 - a node whose output followed the rate of a topic it subscribes to as driven (``input:``,
   per setting ``cpu`` + ``cpu_per_hz`` x the input's rate, ``out_per_in``, ``bytes_per_msg``:
-  :mod:`perfros_bag.sweep.driven`); the node publishing that topic keeps its settings;
+  :mod:`perfros_bag.sweep.driven`), a throttle of that topic likewise with its value as
+  ``max_frequency_hz`` (and ``step: period`` for topic_tools' rule); the node publishing that
+  topic keeps its settings;
 - what only the user knows, as a stated default and a comment: weights equal; performance
   ``100 x`` the node's measured output frequency ``/`` its highest (eq 10 measures
   performance through the output frequency);
@@ -31,11 +33,19 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from perfros_bag.characterisation.manifest import SWEEP_UNITS_PER_CORE, load_manifest
+from perfros_bag.characterisation.table import characterise, check_settings, table_one
+from perfros_bag.cpu.trace import read_cpu_trace
 from perfros_bag.errors import InputError, PerfrosWarning
 from perfros_bag.fileio import atomic_write_text
+from perfros_bag.ingest import read_recording
+from perfros_bag.ingest.rosgraph import read_graph as read_recording_graph
+from perfros_bag.sweep.driven import find_inputs, per_run, rated_topics
 from perfros_bag.sweep.graph import Graph, GraphNode, GraphTopic, read_graph
+from perfros_bag.sweep.runner import computer_name
 from perfros_bag.sweep.space import Space, load_space
 from perfros_bag.system.names import NameKind, name_problem, system_node_name
+from perfros_bag.system.systemfile import parse_system
 
 if TYPE_CHECKING:
     from perfros_bag.characterisation.manifest import Manifest
@@ -46,7 +56,7 @@ if TYPE_CHECKING:
 #: recorders (ROS 1 ``record_<pid>``, ROS 2 ``rosbag2_recorder``) and the ros2 command line's.
 NOT_APP = re.compile(r"^/(rosout|perfros_[a-z_]+|rosbag2_recorder|record_\d+|_ros2cli_\d+)$")
 #: Message types that are not a node's output (logs, reconfiguration).
-NOT_OUTPUT = re.compile(r"^(rosgraph_msgs|dynamic_reconfigure)/")
+NOT_OUTPUT = re.compile(r"^(rosgraph_msgs|dynamic_reconfigure|bond)/")  # bond: a nodelet's tie to its manager
 MIN_CPU = 0.1  # a setting's CPU must be > 0: what a node measured at 0 gets
 
 
@@ -70,8 +80,6 @@ class Draft:
 
 def draft_system(directory: str | Path, out: str | Path) -> Draft:
     """Write the drafted system.yaml to ``out``; returns its text and nodes."""
-    from perfros_bag.characterisation.table import characterise, check_settings
-
     d = Path(directory)
     manifest = _manifest(d)
     values = _values(manifest)
@@ -101,8 +109,7 @@ def draft_system(directory: str | Path, out: str | Path) -> Draft:
         result = characterise(manifest.recordings, skeleton)
     if result.failures:
         raise InputError(result.failures[0].recording, result.failures[0].message)
-    from perfros_bag.sweep.driven import find_inputs, per_run
-
+    _warn_members(skeleton, result.splits)
     by_run = per_run(result.rows)
     follows = find_inputs(skeleton.nodes, graph, by_run, {node_name(n.name): n.name for n in app})
     text = _render(d, graph, skeleton, result.rows, values, machine, graph_path.exists(), follows, by_run)
@@ -112,8 +119,6 @@ def draft_system(directory: str | Path, out: str | Path) -> Draft:
 
 
 def _manifest(d: Path) -> Manifest:
-    from perfros_bag.characterisation.manifest import load_manifest
-
     if not d.is_dir():
         raise InputError(d, "not a directory (expected the folder sweep recorded into)")
     path = d / "manifest.yaml"
@@ -154,10 +159,6 @@ class _Machine:
 
 def _computer(manifest: Manifest) -> _Machine:
     """This machine, as the runs measured it."""
-    from perfros_bag.characterisation.manifest import SWEEP_UNITS_PER_CORE
-    from perfros_bag.cpu.trace import read_cpu_trace
-    from perfros_bag.sweep.runner import computer_name
-
     names = {e.computer for e in manifest.recordings if e.computer}
     if len(names) > 1:
         raise InputError(manifest.path, f"the runs name several computers ({', '.join(sorted(names))}): "
@@ -188,9 +189,6 @@ def _graph_from_recordings(manifest: Manifest) -> Graph:
     :func:`perfros_bag.ingest.rosgraph.read_graph`) of every recording; a topic no callerid
     names (ROS 2 records none) goes to the node whose name is its namespace (``/detector``
     publishes ``/detector/circles``; the longest such name)."""
-    from perfros_bag.ingest import read_recording
-    from perfros_bag.ingest.rosgraph import read_graph as read_recording_graph
-
     names: dict[str, None] = {}
     types: dict[str, str] = {}
     publishers: dict[str, set[str]] = {}
@@ -222,8 +220,6 @@ def _output_topics(node: GraphNode, graph: Graph) -> tuple[str, ...]:
 def _skeleton(app: Sequence[GraphNode], graph: Graph, values: Mapping[str, list[float]],
               parameters: Mapping[str, tuple[str, str | None]], machine: _Machine) -> Any:
     """The system the runs are characterised with: the nodes, their topics and patterns."""
-    from perfros_bag.system.systemfile import parse_system
-
     nodes = []
     for n in app:
         name = node_name(n.name)
@@ -232,6 +228,8 @@ def _skeleton(app: Sequence[GraphNode], graph: Graph, values: Mapping[str, list[
         topics = _output_topics(n, graph)
         if topics:
             entry["topics"] = list(topics)
+        if n.container is not None:
+            entry["container"] = node_name(n.container)
         if name in values:
             pname, unit = parameters.get(name, ("value", None))
             entry["parameter"] = {"name": pname} if unit is None else {"name": pname, "unit": unit}
@@ -264,8 +262,6 @@ def _render(d: Path, graph: Graph, skeleton: Any, rows: Sequence[Row], values: M
             machine: _Machine, from_graph: bool, follows: Mapping[str, Follow],
             by_run: Mapping[str, Mapping[str, RunMeasure]]) -> str:
     import yaml
-
-    from perfros_bag.characterisation.table import table_one
 
     def flow(obj: Any) -> str:  # one line of YAML, names quoted where YAML needs it
         return yaml.safe_dump([obj], default_flow_style=True, sort_keys=False, width=1 << 20).strip()[1:-1]
@@ -302,7 +298,7 @@ def _render(d: Path, graph: Graph, skeleton: Any, rows: Sequence[Row], values: M
         exe = ros.executable if ros is not None and ros.executable else "executable unknown"
         keys = [_norm(v) for v in values.get(node.name, [])] if node.parameter else [None]
         if node.name in follows:
-            lines += _render_driven(node, exe, keys, weight, follows[node.name], by_run[node.name], flow)
+            lines += _render_driven(node, exe, keys, weight, follows[node.name], by_run[node.name], flow, ros)
             continue
         measured = [_measured(node, key, per_value, topic_means) for key in keys]
         freqs = [m.frequency_hz for m in measured if m.frequency_hz]
@@ -310,11 +306,7 @@ def _render(d: Path, graph: Graph, skeleton: Any, rows: Sequence[Row], values: M
         lines.append(f"  # /{node.name} ({exe})")
         lines.append(f"  - name: {flow(node.name)}")
         lines.append(f"    weight: {weight!r}  # REPLACE: every node weighs the same (a stated default)")
-        if node.parameter is not None:
-            lines.append(f"    parameter: {flow(_parameter(node.parameter))}")
-        if node.topics:
-            lines.append(f"    topics: {flow(list(node.topics))}")
-        lines.append(f"    process: {flow(node.process)}  # its ROS name in the sweep's CPU traces")
+        lines += _process_lines(node, ros, flow)
         if top:
             lines.append(f"    # performance: REPLACE. A stated default: 100 x the measured output frequency / "
                          f"its highest ({_r(top)} Hz)")
@@ -328,40 +320,107 @@ def _render(d: Path, graph: Graph, skeleton: Any, rows: Sequence[Row], values: M
         lines += [f"  - {flow(e)}" for e in edges]
     elif not from_graph:
         lines.append("# edges: unknown without graph.yaml: add {from: NODE, to: NODE, topic: TOPIC} per subscription")
+    lines += _render_chains(nodes, follows, flow)
     return "\n".join(lines) + "\n"
 
 
-def _render_driven(node: Any, exe: str, keys: Sequence[int | float | None], weight: float, follow: Follow,
-                   runs: Mapping[str, RunMeasure], flow: Callable[[Any], str]) -> list[str]:
-    """A driven node's lines (perfros_bag/sweep/driven.py: the rule and the numbers)."""
-    from perfros_bag.sweep.driven import INPUT_VARIED, RATIO_TOLERANCE, draft_settings
+def _process_lines(node: Any, ros: GraphNode | None, flow: Callable[[Any], str]) -> list[str]:
+    """A node's parameter, topics, container and process lines (every drafted node has them)."""
+    lines = []
+    if node.parameter is not None:
+        lines.append(f"    parameter: {flow(_parameter(node.parameter))}")
+    if node.topics:
+        lines.append(f"    topics: {flow(list(node.topics))}")
+    lines += _container_lines(node, ros)
+    lines.append(f"    process: {flow(node.process)}  # its ROS name in the sweep's CPU traces")
+    return lines
 
-    drafted = draft_settings(node.topics, runs, follow)
+
+def _container_lines(node: Any, ros: GraphNode | None) -> list[str]:
+    """A hosted node's ``container:`` (its CPU: its share of the container's, fitted)."""
+    if node.container is None:
+        return []
+    kind = f"nodelet {ros.nodelet}" if ros is not None and ros.nodelet else "hosted"
+    return [f"    container: {node.container}  # {kind}: runs in {node.container}'s process; its CPU is its share "
+            "of that process's, fitted over the runs (docs/formats.md, Nodelets)"]
+
+
+def _render_chains(nodes: Sequence[Any], follows: Mapping[str, Follow], flow: Callable[[Any], str]) -> list[str]:
+    """One chain per driven node fed by a node on its own clock: its input, then its first
+    topic, on through the driven nodes each one feeds (their first topics); its budget is
+    left for the user to state (docs/formats.md, ``budget_ms``)."""
+    topics_of = {n.name: list(n.topics) for n in nodes}
+    fed_by = {f.topic: name for name, f in follows.items()}
+    chains: list[tuple[str, list[str]]] = []
+    for name, f in follows.items():
+        if f.publisher in follows or not topics_of.get(name):
+            continue
+        path, at = [f.topic, topics_of[name][0]], name
+        while (nxt := fed_by.get(path[-1])) is not None and nxt not in path and topics_of.get(nxt):
+            path.append(topics_of[nxt][0])
+            at = nxt
+        chains.append((at, path))
+    if not chains:
+        return []
+    lines = ["# the data flow's chains: their latency is measured (validate) and predicted (solve);",
+             "# a budget_ms makes every plan keep its predicted latency within it",
+             "chains:"]
+    for at, path in chains:
+        lines += [f"  - name: {flow(at)}", f"    topics: {flow(path)}",
+                  "    # budget_ms: {p95: 250}  # REPLACE: the most its latency may be, in ms (p50 and/or p95)"]
+    return lines
+
+
+def _render_driven(node: Any, exe: str, keys: Sequence[int | float | None], weight: float, follow: Follow,
+                   runs: Mapping[str, RunMeasure], flow: Callable[[Any], str],
+                   ros: GraphNode | None = None) -> list[str]:
+    """A driven node's lines (perfros_bag/sweep/driven.py: the rule and the numbers)."""
+    from perfros_bag.sweep.driven import (
+        INPUT_VARIED,
+        RATIO_TOLERANCE,
+        draft_settings,
+        draft_throttle,
+    )
+
+    drafted = (draft_settings if follow.throttle is None else draft_throttle)(node.topics, runs, follow)
     missing = [k for k in keys if repr(k) not in drafted]
     if missing:
         raise InputError(None, f"node {node.name}: no run measured it at value {missing[0]}")
     settings = [drafted[repr(k)] for k in keys]
     top = max(s.out_per_in for s in settings)
+    if follow.throttle is not None:  # its performance follows what it lets through, as a paper node's
+        f_out = _throttle_output(node.topics, runs)
+        perf = {repr(k): 100.0 * f_out[repr(k)] / max(f_out.values()) for k in keys}
+        how = ("the step F_in / ceil(F_in / value) (a message passes once 1/value s have elapsed since the last)"
+               if follow.throttle == "period" else "min(F_in, value)")
+        said = [f"    # driven, a throttle: its output moved with its value, never above {follow.topic}'s rate, and",
+                f"    # every run gave {how}, the worst {100 * follow.spread:.1f} % off (max_frequency_hz = its value)"]
+    else:
+        said = [f"    # driven: its output kept one rate per message of {follow.topic} (within "
+                f"{100 * (RATIO_TOLERANCE - 1):.0f} %) while that rate varied by more than {100 * (INPUT_VARIED - 1):.0f} %"]
     lines = [f"  # /{node.name} ({exe})",
              f"  - name: {flow(node.name)}",
              f"    weight: {weight!r}  # REPLACE: every node weighs the same (a stated default)",
-             f"    # driven: its output kept one rate per message of {follow.topic} (within "
-             f"{100 * (RATIO_TOLERANCE - 1):.0f} %) while that rate varied by more than {100 * (INPUT_VARIED - 1):.0f} %",
+             *said,
              f"    input: {flow(follow.topic)}"]
-    if node.parameter is not None:
-        lines.append(f"    parameter: {flow(_parameter(node.parameter))}")
-    if node.topics:
-        lines.append(f"    topics: {flow(list(node.topics))}")
-    lines.append(f"    process: {flow(node.process)}  # its ROS name in the sweep's CPU traces")
+    lines += _process_lines(node, ros, flow)
     lines.append("    # cpu + cpu_per_hz x input rate: least squares over the runs at each setting; "
                  "performance: REPLACE.")
-    lines.append(f"    # A stated default: 100 x its out_per_in / the highest ({_r(top)})")
+    if follow.throttle is not None:
+        lines.append("    # A stated default: 100 x its measured output rate / the highest")
+    else:
+        lines.append(f"    # A stated default: 100 x its out_per_in / the highest ({_r(top)})")
     lines.append("    settings:")
     for s in settings:
         entry: dict[str, Any] = {} if s.value is None else {"value": _norm(s.value)}
         entry.update(cpu=_r(s.cpu), cpu_per_hz=_r(s.cpu_per_hz),
                      performance=_r(100.0 * s.out_per_in / top) if top > 0 else 100.0,
                      out_per_in=_r(s.out_per_in), bytes_per_msg=_r(s.bytes_per_msg))
+        if follow.throttle is not None:
+            entry["performance"] = _r(perf[repr(s.value)])
+            entry["max_frequency_hz"] = _norm(s.value)
+            if follow.throttle == "period":
+                entry["step"] = "period"
         note = ""
         if s.clipped is not None:
             note = f"  # {s.clipped}"
@@ -370,6 +429,15 @@ def _render_driven(node: Any, exe: str, keys: Sequence[int | float | None], weig
                     "this setting's CPU")
         lines.append(f"      - {flow(entry)}{note}")
     return lines
+
+
+def _throttle_output(topics: Sequence[str], runs: Mapping[str, RunMeasure]) -> dict[str, float]:
+    """own value (``repr``) -> a throttle's mean output rate over its rated topics and runs."""
+    rated = rated_topics(topics, runs)
+    acc: dict[str, list[float]] = {}
+    for m in runs.values():
+        acc.setdefault(repr(m.value), []).extend(m.rate(t) for t in rated)
+    return {k: sum(v) / len(v) for k, v in acc.items()}
 
 
 def _norm(v: float) -> float | int:
@@ -437,11 +505,26 @@ def _edges(graph: Graph, nodes: Sequence[Any]) -> list[dict[str, str]]:
     return out
 
 
+def _warn_members(skeleton: Any, splits: Sequence[Any]) -> None:
+    """Never silent about what a process hosts: a nodelet with no topic of its own (only its
+    bond) and each container fit's problem are warnings naming the node and what was done."""
+    for n in skeleton.nodes:
+        if n.container is not None and not n.topics:
+            warnings.warn(PerfrosWarning(f"node {n.name}: a nodelet of {n.container} whose only published topic is "
+                                         "its bond: drafted with no topics (performance 100, no rate)"), stacklevel=3)
+    for s in splits:
+        for note in s.notes:
+            warnings.warn(PerfrosWarning(note), stacklevel=3)
+        for k in s.cpu:
+            lo = min(s.cpu[k].values())
+            if lo <= 0:
+                warnings.warn(PerfrosWarning(f"node {k}: its share of {s.container}'s CPU fitted to 0 at some value: "
+                                             f"drafted at {MIN_CPU} there"), stacklevel=3)
+
+
 def _check_loads(text: str, out: Path) -> None:
     """The draft must load as a system.yaml (a bug here, not the user's input)."""
     import yaml
-
-    from perfros_bag.system.systemfile import parse_system
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", PerfrosWarning)

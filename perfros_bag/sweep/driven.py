@@ -14,7 +14,9 @@ other drafted node publishes when, over the runs,
 A subscriber whose output keeps its own clock fails the second test (its ratio changes as
 much as the input's rate did: more than 20 % > 10 %), and a node with no output at a rate is
 never driven (nothing shows it follows). Several qualifying topics: the steadiest ratio wins;
-a choice that would close a cycle of inputs is not made.
+a choice that would close a cycle of inputs is not made. A subscriber that fails the ratio
+test may still be a **throttle** of the topic, its value capping its output
+(:func:`throttle_rule`; drafted with ``max_frequency_hz`` and ``step``, :func:`draft_throttle`).
 
 Per own setting, from the runs at it:
 
@@ -85,6 +87,9 @@ class Follow:
     publisher: str
     input_hz: dict[str, float]
     spread: float  # the largest max / min of its output/input ratios over its own settings
+    #: a throttle (its setting caps its output, :func:`throttle_rule`): ``"period"`` or
+    #: ``"min"`` (how the cap acts), None for a node that keeps one ratio to its input
+    throttle: str | None = None
 
 
 def _groups(runs: Mapping[str, RunMeasure]) -> dict[str, list[str]]:
@@ -140,8 +145,10 @@ def find_inputs(nodes: Sequence[Any], graph: Graph, measured: Mapping[str, Mappi
             if not runs or len(input_hz) != len(runs) or min(input_hz.values()) <= 0:
                 continue  # a run without the input at a rate shows nothing to follow
             spread = _follows(topics, runs, input_hz)
-            if spread is not None and (best is None or spread < best.spread):
+            if spread is not None and (best is None or best.throttle is not None or spread < best.spread):
                 best = Follow(g.name, source, input_hz, spread)
+            elif best is None and (rule := throttle_rule(topics, runs, input_hz)) is not None:
+                best = Follow(g.name, source, input_hz, rule[1], rule[0])
         if best is not None:
             out[n.name] = best
     return out
@@ -213,4 +220,81 @@ def draft_settings(topics: Sequence[str], runs: Mapping[str, RunMeasure], follow
             clipped, scaled = None, runs[groups[ref][0]].value
         out[key] = DrivenSetting(runs[recs[0]].value, a, b, sum(ratios) / len(ratios), sum(sizes) / len(sizes),
                                  clipped, scaled)
+    return out
+
+
+# --- throttles: a setting that caps the output (docs/formats.md "init: throttles") ---------
+
+#: a throttle's rule must give every run's output within this share of what it measured
+THROTTLE_TOLERANCE = 0.10
+
+
+def _rule_error(step: str | None, value: float, f_in: float, f_out: float) -> float | None:
+    """How far ``f_out`` lies from the throttle rule's output (a share of it) at cap
+    ``value`` and input ``f_in``; where a period throttle is ambiguous (a whole ratio n), 0
+    anywhere between its two steps F_in / (n + 1) and F_in / n, else from the nearer. None
+    when the rule gives no output."""
+    from perfros_bag.system.types import Setting, driven_rates, step_ambiguous
+
+    s = Setting(0.0, 0.0, max_frequency_hz=value, step="period" if step == "period" else None)
+    want = driven_rates(s, f_in)[1]
+    if step_ambiguous(s, f_in):
+        n = max(round(f_in / value), 1)
+        lo, hi = f_in / (n + 1), f_in / n
+        return 0.0 if lo <= f_out <= hi else min(abs(f_out - lo) / lo, abs(f_out - hi) / hi)
+    return abs(f_out - want) / want if want > 0 else None
+
+
+def throttle_rule(topics: Sequence[str], runs: Mapping[str, RunMeasure],
+                  input_hz: Mapping[str, float]) -> tuple[str, float] | None:
+    """``(rule, worst error)`` when the node is a throttle of this input, else None.
+
+    A throttle: its own values are numbers > 0 and at least two of them ran, its output
+    moved with them (the mean output rate over its own values varied by more than
+    :data:`INPUT_VARIED`) and never ran above its input (2 % of measurement allowed), and one
+    rule with the value as its cap gives every run's output of every rated topic within
+    :data:`THROTTLE_TOLERANCE`: ``"period"`` (topic_tools/throttle: F_in / ceil(F_in /
+    value); at a whole ratio either neighbouring step) or ``"min"`` (min(F_in, value)).
+    Where both do, the smaller worst error wins, the period rule on a tie."""
+    groups = _groups(runs)
+    values = [runs[recs[0]].value for recs in groups.values()]
+    if not topics or len(groups) < 2 or not all(isinstance(v, int | float) and v > 0 for v in values):
+        return None
+    means = [sum(runs[r].rate(t) for r in recs for t in topics) / (len(recs) * len(topics))
+             for recs in groups.values()]
+    if min(means) <= 0 or max(means) / min(means) <= INPUT_VARIED:
+        return None
+    if any(runs[r].rate(t) > 1.02 * input_hz[r] for r in runs for t in topics):
+        return None
+    best: tuple[str, float] | None = None
+    for rule in ("period", "min"):
+        errors = [_rule_error(rule, float(runs[r].value), input_hz[r], runs[r].rate(t)) for r in runs for t in topics]
+        worst = max((e if e is not None else float("inf")) for e in errors)
+        if worst <= THROTTLE_TOLERANCE and (best is None or worst < best[1]):
+            best = (rule, worst)
+    return best
+
+
+def draft_throttle(topics: Sequence[str], runs: Mapping[str, RunMeasure], follow: Follow) -> dict[str, DrivenSetting]:
+    """A throttle's settings: per own value, the CPU line over its input rate (the fit's own,
+    :func:`perfros_bag.fitting.build.cpu_line`: with one input rate, ``cpu`` 0 and all its CPU
+    per input Hz), ``out_per_in`` the mean F_out / F_in of the runs its cap did not reach
+    (1 when it reached every one: a throttle passes each message it keeps unchanged) and
+    ``bytes_per_msg`` as for any driven node; the cap (its value) and rule are the caller's."""
+    from perfros_bag.fitting.build import cpu_line
+
+    rated = rated_topics(topics, runs)
+    out = {}
+    for key, recs in _groups(runs).items():
+        value = runs[recs[0]].value
+        a, b, _r2, notes = cpu_line([(follow.input_hz[r], runs[r].cpu or 0.0) for r in recs])
+        free = [runs[r].rate(t) / follow.input_hz[r] for r in recs for t in rated
+                if follow.input_hz[r] < 0.98 * value]
+        sizes = []
+        for r in recs:
+            f_out = sum(runs[r].rate(t) for t in rated) / len(rated)
+            bw = sum(b for _f, b in runs[r].topics.values() if b is not None)
+            sizes.append(bw * 1000.0 / f_out)
+        out[key] = DrivenSetting(value, a, b, sum(free) / len(free) if free else 1.0, sum(sizes) / len(sizes),
+                                 "; ".join(notes) or None)
     return out

@@ -13,7 +13,10 @@
 Under space.yaml ``replay:`` a replaced node is not started: the ``rosbag play`` standing in
 for it runs under its name (so it is ``launched``, with the player's PID and executable) and
 carries ``replay: {recording: robot_day1.bag, factor: 2.0}`` (the recording as space.yaml
-names it, the run's play-rate factor).
+names it, the run's play-rate factor). A nodelet (``nodelet load PKG/TYPE MANAGER``) carries
+``container: /MANAGER`` and ``nodelet: PKG/TYPE``: its PID is its loader's, and the topics the
+manager carries for it list the nodelet as their publisher or subscriber
+(:mod:`perfros_bag.sweep.nodelets`).
 :func:`capture_graph` asks the master (getSystemState, getTopicTypes, lookupNode) and each
 node (getPid); the tool's own nodes are left out.
 """
@@ -25,7 +28,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from perfros_bag.errors import InputError, PerfrosError
+from perfros_bag.doccheck import Doc
+from perfros_bag.errors import PerfrosError
 from perfros_bag.fileio import atomic_write_text, read_yaml
 from perfros_bag.rosrun.master import master_call, master_state, node_call
 
@@ -48,6 +52,8 @@ class GraphNode:
     executable: str | None
     launched: bool = True
     replay: Replayed | None = None  # a rosbag play standing in for this launch-file node
+    container: str | None = None  # a nodelet: the manager that hosts it
+    nodelet: str | None = None  # a nodelet: its PKG/TYPE
 
 
 @dataclass(frozen=True)
@@ -81,6 +87,10 @@ def _node_dict(n: GraphNode) -> dict[str, Any]:
     out: dict[str, Any] = {"name": n.name, "pid": n.pid, "executable": n.executable, "launched": n.launched}
     if n.replay is not None:
         out["replay"] = {"recording": n.replay.recording, "factor": n.replay.factor}
+    if n.container is not None:
+        out["container"] = n.container
+    if n.nodelet is not None:
+        out["nodelet"] = n.nodelet
     return out
 
 
@@ -137,20 +147,17 @@ def write_graph(path: str | Path, graph: Graph) -> None:
 def read_graph(path: str | Path) -> Graph:
     p = Path(path)
     data = read_yaml(p)
-
-    def fail(problem: str) -> InputError:
-        return InputError(p, problem)
-
+    fail = Doc(p).fail
     if not isinstance(data, dict) or data.get("format") != GRAPH_FORMAT:
         got = data.get("format") if isinstance(data, dict) else type(data).__name__
-        raise fail(f"not a graph.yaml (format {got!r}, expected {GRAPH_FORMAT!r})")
+        raise fail("", f"not a graph.yaml (format {got!r}, expected {GRAPH_FORMAT!r})")
     nodes = []
     for i, raw in enumerate(data.get("nodes") or []):
         if not isinstance(raw, dict) or not isinstance(raw.get("name"), str) or not raw["name"]:
-            raise fail(f"nodes[{i}]: expected {{name, pid, executable}}, got {raw!r}")
+            raise fail(f"nodes[{i}]", f"expected {{name, pid, executable}}, got {raw!r}")
         pid = raw.get("pid")
         if pid is not None and (isinstance(pid, bool) or not isinstance(pid, int)):
-            raise fail(f"nodes[{i}].pid: must be a whole number, got {pid!r}")
+            raise fail(f"nodes[{i}].pid", f"must be a whole number, got {pid!r}")
         exe = raw.get("executable")
         replay = raw.get("replay")
         replayed = None
@@ -158,19 +165,25 @@ def read_graph(path: str | Path) -> Graph:
             factor = replay.get("factor") if isinstance(replay, dict) else None
             if not isinstance(replay, dict) or not isinstance(replay.get("recording"), str) \
                     or isinstance(factor, bool) or not isinstance(factor, int | float) or not factor > 0:
-                raise fail(f"nodes[{i}].replay: expected {{recording, factor > 0}}, got {replay!r}")
+                raise fail(f"nodes[{i}].replay", f"expected {{recording, factor > 0}}, got {replay!r}")
             replayed = Replayed(replay["recording"], float(factor))
+        member = {}
+        for key in ("container", "nodelet"):
+            if raw.get(key) is not None:
+                if not isinstance(raw[key], str) or not raw[key]:
+                    raise fail(f"nodes[{i}].{key}", f"must be a name, got {raw[key]!r}")
+                member[key] = raw[key]
         nodes.append(GraphNode(raw["name"], pid, None if exe is None else str(exe), bool(raw.get("launched", True)),
-                               replayed))
+                               replayed, **member))
     topics = []
     for i, raw in enumerate(data.get("topics") or []):
         if not isinstance(raw, dict) or not isinstance(raw.get("name"), str) or not raw["name"]:
-            raise fail(f"topics[{i}]: expected {{name, type, publishers, subscribers}}, got {raw!r}")
+            raise fail(f"topics[{i}]", f"expected {{name, type, publishers, subscribers}}, got {raw!r}")
         lists = {}
         for key in ("publishers", "subscribers"):
             val = raw.get(key) or []
             if not isinstance(val, list) or not all(isinstance(x, str) for x in val):
-                raise fail(f"topics[{i}].{key}: must be a list of node names, got {val!r}")
+                raise fail(f"topics[{i}].{key}", f"must be a list of node names, got {val!r}")
             lists[key] = tuple(val)
         ty = raw.get("type")
         topics.append(GraphTopic(raw["name"], None if ty is None else str(ty), lists["publishers"], lists["subscribers"]))

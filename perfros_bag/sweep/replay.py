@@ -302,10 +302,10 @@ def _raw_messages(path: Path, topics: list[str]) -> Iterator[tuple[str, str, int
     from perfros_bag.ingest import decode
 
     try:
-        if decode._anyreader_usable(path):  # noqa: SLF001 - the one dispatch of the tool's decoders
+        if decode.anyreader_usable(path):
             yield from _anyreader_raw(path, topics)
         else:
-            for f in decode._mcap_files(path):  # noqa: SLF001
+            for f in decode.mcap_files(path):
                 yield from _mcap_raw(f, topics)
     except InputError:
         raise
@@ -329,10 +329,10 @@ def _anyreader_raw(path: Path, topics: list[str]) -> Iterator[tuple[str, str, in
 def _mcap_raw(path: Path, topics: list[str]) -> Iterator[tuple[str, str, int, Any, _Source]]:
     from rosbags.typesys.msg import normalize_msgtype
 
-    from perfros_bag.ingest.decode import _mcap_reader, typestore_from_definitions
+    from perfros_bag.ingest.decode import mcap_reader, typestore_from_definitions
 
     with path.open("rb") as f:
-        reader, summary = _mcap_reader(f)
+        reader, summary = mcap_reader(f)
         typestore = typestore_from_definitions(
             (s.name, s.encoding, bytes(s.data).decode("utf-8", "replace")) for s in summary.schemas.values())
         latched = frozenset(ch.topic for ch in summary.channels.values()

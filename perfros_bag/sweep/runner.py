@@ -48,7 +48,14 @@ from perfros_bag.characterisation.manifest import (
 )
 from perfros_bag.errors import InputError, PerfrosError
 from perfros_bag.fileio import atomic_write_text, read_yaml
-from perfros_bag.rosrun.master import bus_stats, master_call, master_state, port_of, start_roscore
+from perfros_bag.rosrun.master import (
+    bus_stats,
+    master_call,
+    master_state,
+    parse_bus_stats,
+    port_of,
+    start_roscore,
+)
 from perfros_bag.rosrun.processes import (
     Processes,
     Started,
@@ -67,6 +74,7 @@ from perfros_bag.sweep.graph import Graph, capture_graph, write_graph
 from perfros_bag.sweep.launchfile import (
     ROSLAUNCH,
     LaunchFile,
+    NodeCommand,
     check_space,
     launch_argv,
     launch_nodes,
@@ -74,6 +82,7 @@ from perfros_bag.sweep.launchfile import (
     node_command,
     read_launch,
 )
+from perfros_bag.sweep.nodelets import Nodelet, with_membership
 from perfros_bag.sweep.space import PLAYER_TOPICS, Run, Space, load_space, plan_runs
 
 if TYPE_CHECKING:
@@ -130,6 +139,7 @@ def sweep(launch_path: str | Path, space_path: str | Path, out: str | Path, *, d
     if outdir.exists() and not outdir.is_dir():
         raise InputError(outdir, "is not a directory, expected the folder to record into")
     inspected = _inspect_replay(launch, space, runs[0])
+    runs += _standalone_runs(launch, space, runs)
     outdir.mkdir(parents=True, exist_ok=True)
     require_free_space(outdir)
     manifest_path = outdir / "manifest.yaml"
@@ -167,11 +177,16 @@ def sweep(launch_path: str | Path, space_path: str | Path, out: str | Path, *, d
         entries[f"{run.name}.bag"] = {"path": f"{run.name}.bag", "cpu": f"{run.name}.cpu.csv",
                                       "computer": computer_name(), "units_per_core": SWEEP_UNITS_PER_CORE,
                                       "settings": settings}
+        if run.standalone:
+            from perfros_bag.system.names import system_node_name
+
+            entries[f"{run.name}.bag"]["standalone"] = [system_node_name(n) for n in run.standalone]
         speed = trace_speed(outdir / f"{run.name}.cpu.csv")  # measured by record-cpu as the run began
         if speed is not None:
             entries[f"{run.name}.bag"]["speed_factor"] = round(speed, 4)
         write_manifest(manifest_path, list(entries.values()), system_ref)
-        write_graph(outdir / "graph.yaml", graph)
+        if not run.standalone or not (outdir / "graph.yaml").exists():  # the graph with the managers
+            write_graph(outdir / "graph.yaml", graph)
         result.recorded.append(run.name)
         note(i, len(runs), run.name, "done", 1.0)
     with contextlib.suppress(OSError):
@@ -198,6 +213,35 @@ def _inspect_replay(launch: LaunchFile, space: Space, run: Run) -> Inspected | N
         raise InputError(space.path, f"replay.replaces: node(s) {', '.join(missing)} not in {launch.path} "
                          f"(its nodes: {', '.join(nodes)})")
     return inspected
+
+
+def _standalone_runs(launch: LaunchFile, space: Space, runs: list[Run]) -> list[Run]:
+    """The launch file's nodelets checked before anything starts (each loaded into a manager
+    it starts, of a type its package exports: :func:`~perfros_bag.sweep.nodelets.check_nodelets`)
+    and, when it loads any, one more run with every nodelet standalone at the defaults: what
+    splits the managers' CPU among their nodelets (:mod:`perfros_bag.characterisation.containers`)."""
+    import tempfile
+    from dataclasses import replace
+
+    from perfros_bag.rosrun.processes import ros_env
+    from perfros_bag.sweep.launchfile import resolve_launch
+    from perfros_bag.sweep.nodelets import check_nodelets
+    from perfros_bag.sweep.space import arg_text, default_value
+
+    values = {v.system_name: default_value(v, launch.args) for v in space.vary}
+    args = {v.arg: arg_text(values[v.system_name]) for v in space.vary if v.arg is not None}
+    with tempfile.TemporaryDirectory(prefix="perfros-nodelets-") as home:
+        env = ros_env("nodelets-" + uuid.uuid4().hex[:10], Path(home))
+        resolved = resolve_launch(launch, [{**runs[0].args, **args}], env, space.startup_timeout_s)[0]
+    if resolved.error is not None:
+        raise InputError(launch.path, f"roslaunch cannot load it: {resolved.error}")
+    nodelets = check_nodelets(resolved, launch.path)
+    if not nodelets or space.replay is not None:
+        return []
+    base = next((r for r in runs if dict(r.values) == values), None)
+    return [replace(runs[0], name=f"{base.name if base is not None else 'defaults'}__standalone", values=values,
+                    args=args, params={v.param: values[v.system_name] for v in space.vary if v.param is not None},
+                    repeat=1, standalone=tuple(sorted(nodelets)))]
 
 
 def _warn_unsubscribed(graph: Graph, inspected: Inspected) -> None:
@@ -295,11 +339,14 @@ def record_run(launch: LaunchFile, space: Space, run: Run, out: Path, *, interva
                progress: Callable[[str, float], None] | None = None, run_id: str | None = None,
                on_graph: Callable[[Graph], None] | None = None, network: Network | None = None,
                where: Mapping[str, str] | None = None, on_window: Callable[[str], None] | None = None,
-               replay: Prepared | None = None) -> Graph:
+               replay: Prepared | None = None, on_master: Callable[[str], None] | None = None,
+               on_tick: Callable[[Restarter], None] | None = None) -> Graph:
     """Record one run into ``out/<run>.bag`` and ``out/<run>.cpu.csv``; returns its graph.
     ``on_graph`` is called with the graph (every node up, with its PID) before recording
     starts; ``on_window`` with ``"start"`` and ``"end"`` as the recording's ``duration_s``
-    begins and ends; ``run_id`` tags the run's processes (default: a new one).
+    begins and ends; ``on_master`` with the master's URI once roscore answers; ``on_tick``
+    about four times a second while recording, with a :class:`Restarter` (runs across
+    emulated computers only); ``run_id`` tags the run's processes (default: a new one).
 
     With an emulated ``network`` (:class:`~perfros_bag.rosrun.network.Network`, made by the
     caller) the run happens across its namespaces: roscore in the namespace of
@@ -327,10 +374,11 @@ def record_run(launch: LaunchFile, space: Space, run: Run, out: Path, *, interva
                     spread = _Spread(network, dict(where or {}))
                     with network.inside(spread.master):
                         graph = _record(launch, space, run, work, procs, timeout, interval, note, on_graph,
-                                        spread, on_window)
+                                        spread, on_window, on_master=on_master, on_tick=on_tick)
                 else:
                     graph = _record(launch, space, run, work, procs, timeout, interval, note, on_graph,
-                                    on_window=on_window, replay=replay if run.factor is not None else None)
+                                    on_window=on_window, replay=replay if run.factor is not None else None,
+                                    on_master=on_master)
             except PerfrosError as exc:
                 raise PerfrosError(f"run {run.name}: {exc}") from None
     except KeyboardInterrupt:
@@ -377,27 +425,92 @@ class _Spread:
         return [f"{k}={v}" for k, v in addresses.items()]
 
 
+def _nodelets(launch: LaunchFile, args: Mapping[str, str], env: Mapping[str, str],
+              timeout: float) -> tuple[dict[str, Nodelet], set[str]]:
+    """The launch file's nodelets and nodelet managers with ``args`` (roslaunch's resolution)."""
+    from perfros_bag.sweep.launchfile import resolve_launch
+    from perfros_bag.sweep.nodelets import managers_of, nodelets_of
+
+    resolved = resolve_launch(launch, [args], env, timeout)[0]
+    return nodelets_of(resolved), managers_of(resolved)
+
+
 def _start_nodes(launch: LaunchFile, run: Run, nodes: list[str], spread: _Spread | None, uri: str, work: Path,
-                 procs: Processes, timeout: float) -> list[Started]:
+                 procs: Processes, timeout: float, standalone: frozenset[str] = frozenset()) -> list[Started]:
     """Each node (in its computer's namespace with a ``spread``), as ``roslaunch --args``
     would start it, after the launch file's parameters (``roslaunch --dump-params``) are set
-    on the master."""
+    on the master; a nodelet named in ``standalone`` as ``nodelet standalone``."""
     with ThreadPoolExecutor(max_workers=4) as pool:
         params = pool.submit(launch_params, launch, run.args, dict(procs.env), timeout)
         commands = list(pool.map(lambda n: node_command(launch, n, run.args, dict(procs.env), timeout), nodes))
         for name, value in params.result().items():
             if master_call(uri, "setParam", name, value) is None:
                 raise PerfrosError(f"the master did not take the launch file's parameter {name}")
-    started = []
-    for i, cmd in enumerate(commands):
-        argv = ["env", *(f"{k}={v}" for k, v in cmd.env.items())]
-        if spread is not None:
-            comp = spread.computer(cmd.node)
-            argv = spread.network.wrap(comp, [*argv, *spread.env(comp, uri), *cmd.argv])
-        else:
-            argv += cmd.argv
-        started.append(procs.start(cmd.node, argv, work / f"node{i}.log", cwd=Path(procs.env["ROS_HOME"])))
-    return started
+    return [procs.start(cmd.node, _node_argv(cmd, spread, uri, standalone), work / f"node{i}.log",
+                        cwd=Path(procs.env["ROS_HOME"])) for i, cmd in enumerate(commands)]
+
+
+def _node_argv(cmd: NodeCommand, spread: _Spread | None, uri: str, standalone: frozenset[str] = frozenset()) -> list[str]:
+    """A node's command line as ``roslaunch --args`` gave it (a nodelet named in
+    ``standalone`` as ``nodelet standalone``), in its computer's namespace."""
+    from perfros_bag.sweep.nodelets import standalone_argv
+
+    argv = ["env", *(f"{k}={v}" for k, v in cmd.env.items())]
+    words = standalone_argv(cmd.argv) if cmd.node in standalone else list(cmd.argv)
+    if spread is None:
+        return argv + words
+    comp = spread.computer(cmd.node)
+    return spread.network.wrap(comp, [*argv, *spread.env(comp, uri), *words])
+
+
+@dataclass
+class Restarter:
+    """Restarts launched nodes of a run across emulated computers while it records
+    (``deploy``'s control file): one node at a time, the others and the master untouched."""
+
+    launch: LaunchFile
+    spread: _Spread
+    uri: str
+    work: Path
+    procs: Processes
+    watch: _Watch
+    timeout: float
+    restarts: int = 0
+
+    def restart(self, node: str, args: Mapping[str, str], params: Mapping[str, Any], computer: str) -> int:
+        """Stop ROS node ``node``, set the launch file's parameters for ``args`` (and
+        ``params``) on the master, start it again with ``args`` on ``computer``; its new PID
+        once it answers. The run's failure check follows the new process."""
+        from perfros_bag.rosrun.master import node_call
+        from perfros_bag.system.names import system_node_name
+
+        old = self.watch.pids.pop(node, (None, 0.0))[0]
+        self.watch.others = [st for st in self.watch.others if st.name != node]
+        self.procs.stop([node])
+        env = dict(self.procs.env)
+        values = {**launch_params(self.launch, args, env, self.timeout), **params}
+        for name, value in values.items():
+            if master_call(self.uri, "setParam", name, value) is None:
+                raise PerfrosError(f"the master did not take the parameter {name} for node {node}'s restart")
+        cmd = node_command(self.launch, node, args, env, self.timeout)
+        self.spread.where[system_node_name(node)] = computer
+        self.restarts += 1
+        st = self.procs.start(node, _node_argv(cmd, self.spread, self.uri), self.work / f"restart{self.restarts}.log",
+                              cwd=Path(self.procs.env["ROS_HOME"]))
+        self.watch.others.append(st)
+        pid: list[int] = []
+
+        def up() -> bool:
+            node_uri = master_call(self.uri, "lookupNode", node)
+            answer = node_call(node_uri, "getPid") if isinstance(node_uri, str) else None
+            if isinstance(answer, int) and answer != old:
+                pid[:] = [answer]
+            return bool(pid)
+
+        wait_for(f"node {node} to start again", up, self.timeout, self.watch.failure)
+        self.watch.pids[node] = (pid[0], _create_time(pid[0]))
+        self.procs.remember()
+        return pid[0]
 
 
 def _start_players(replay: Prepared, factor: float, work: Path, procs: Processes) -> list[Started]:
@@ -411,19 +524,29 @@ def _start_players(replay: Prepared, factor: float, work: Path, procs: Processes
 def _record(launch: LaunchFile, space: Space, run: Run, work: Path, procs: Processes, timeout: float,
             interval: float, note: Callable[[str, float], None],
             on_graph: Callable[[Graph], None] | None = None, spread: _Spread | None = None,
-            on_window: Callable[[str], None] | None = None, replay: Prepared | None = None) -> Graph:
+            on_window: Callable[[str], None] | None = None, replay: Prepared | None = None,
+            on_master: Callable[[str], None] | None = None,
+            on_tick: Callable[[Restarter], None] | None = None) -> Graph:
     note("roscore", 0.0)
     if spread is not None:
         procs.env["ROS_IP"] = spread.network.address(spread.master)
-    with ThreadPoolExecutor(max_workers=1) as pool:  # roslaunch --nodes while roscore starts
+    with ThreadPoolExecutor(max_workers=2) as pool:  # roslaunch --nodes while roscore starts
         listing = pool.submit(launch_nodes, launch, run.args, dict(procs.env), timeout)
+        members = pool.submit(_nodelets, launch, run.args, dict(procs.env), timeout)
         uri = start_roscore(procs, work, timeout, host=procs.env["ROS_IP"])
         nodes = listing.result()
+        nodelets, managers = members.result()
+    if on_master is not None:
+        on_master(uri)
     for name, value in run.params.items():
         if master_call(uri, "setParam", name, value) is None:
             raise PerfrosError(f"the master did not take the parameter {name}={value!r}")
     log = work / "roslaunch.log"
-    if replay is not None and run.factor is not None:  # the replaced nodes: a player each, under their names
+    if run.standalone:  # every nodelet in a process of its own; no manager
+        nodes = [n for n in nodes if n not in managers]
+        watch = _Watch(None, log, _start_nodes(launch, run, nodes, spread, uri, work, procs, timeout,
+                                               frozenset(run.standalone)))
+    elif replay is not None and run.factor is not None:  # the replaced nodes: a player each, under their names
         replaced = {s.node for s in replay.inspected.stands}
         started = _start_nodes(launch, run, [n for n in nodes if n not in replaced], spread, uri, work, procs,
                                timeout)
@@ -473,7 +596,7 @@ def _record(launch: LaunchFile, space: Space, run: Run, work: Path, procs: Proce
         _check(watch, "settling")
         note("settling", 0.0)
         time.sleep(min(0.2, max(0.0, deadline - time.monotonic())))
-    graph = capture_graph(uri, nodes, OWN_NODES, run.name)
+    graph = with_membership(capture_graph(uri, nodes, OWN_NODES, run.name), nodelets)
     if replay is not None and run.factor is not None:
         graph = _replayed_graph(graph, space, replay, run.factor)
     for n in graph.nodes:
@@ -517,14 +640,17 @@ def _record(launch: LaunchFile, space: Space, run: Run, work: Path, procs: Proce
     window("start")
     started_ns = time.time_ns()
     t0 = time.monotonic()
+    restarter = None if spread is None else Restarter(launch, spread, uri, work, procs, watch, timeout)
     while (elapsed := time.monotonic() - t0) < space.duration_s:
         _check(watch, "the recording")
+        if on_tick is not None and restarter is not None:
+            on_tick(restarter)
         note("recording", elapsed / space.duration_s)
         time.sleep(min(0.25, space.duration_s - elapsed))
     _check(watch, "the recording")
     window("end")
     ended_ns = time.time_ns()
-    graph = _with_later_edges(graph, capture_graph(uri, nodes, OWN_NODES, run.name))
+    graph = _with_later_edges(graph, with_membership(capture_graph(uri, nodes, OWN_NODES, run.name), nodelets))
     if replay is not None and run.factor is not None:
         graph = _replayed_graph(graph, space, replay, run.factor)
     note("recording", 1.0)
@@ -645,38 +771,27 @@ def _silent_topics(uri: str, graph: Graph, nodes: list[str]) -> list[str]:
 
 def _published_bytes(stats: Any) -> dict[str, int]:
     """Message bytes sent per published topic, from a node's ``getBusStats`` (handshake
-    headers not counted). roscpp: ``[topic, [[id, bytes, message_bytes, messages, _], ...]]``
-    (``bytes`` already without headers); rospy: ``[topic, message_bytes, [[id, bytes with
-    headers, messages, connected], ...]]``."""
-    out: dict[str, int] = {}
-    if not isinstance(stats, list) or not stats or not isinstance(stats[0], list):
-        return out
-    for entry in stats[0]:
-        if not isinstance(entry, list) or len(entry) < 2 or not isinstance(entry[0], str):
-            continue
-        if isinstance(entry[1], int) and not isinstance(entry[1], bool):  # rospy
-            out[entry[0]] = entry[1]
-        elif isinstance(entry[1], list):  # roscpp
-            out[entry[0]] = sum(c[2] for c in entry[1] if isinstance(c, list) and len(c) > 2
-                                and isinstance(c[2], int))
-    return out
+    headers not counted): roscpp's per connection summed, rospy's own total
+    (:func:`~perfros_bag.rosrun.master.parse_bus_stats`)."""
+    return {topic: c.total_bytes if c.total_bytes is not None else sum(b for _, b in c.connections.values())
+            for topic, c in parse_bus_stats(stats).items()}
 
 
 def _node_trace(raw: Path, graph: Graph) -> Path:
     """The CPU trace with each row labelled with its ROS node (matched by PID); rows of
     other processes are dropped. Written beside ``raw`` as ``node.cpu.csv``."""
-    from perfros_bag.cpu.trace import read_cpu_trace, write_cpu_trace
+    from perfros_bag.cpu.trace import has_threads, read_cpu_trace, trace_rows, write_cpu_trace
 
     by_pid: Mapping[int, str] = {n.pid: n.name for n in graph.nodes if n.launched and n.pid is not None}
     tr = read_cpu_trace(raw)
-    rows: list[tuple[float, int, str, str, float, int]] = []
-    for t, pid, proc, cpu, rss in zip(tr.time.tolist(), tr.pid.tolist(), tr.process, tr.cpu_percent.tolist(),
-                                      tr.rss_bytes.tolist(), strict=True):
-        node = by_pid.get(int(pid))
+    rows: list[tuple[Any, ...]] = []
+    for row in trace_rows(tr):
+        node = by_pid.get(int(row[1]))
         if node is not None:
-            rows.append((t, int(pid), node, proc, cpu, int(rss)))
+            rows.append((row[0], int(row[1]), node, *row[3:]))
     dest = raw.with_name("node.cpu.csv")
     write_cpu_trace(dest, rows, host=tr.host or socket.gethostname(), logical_cpus=tr.logical_cpus,
-                    interval_s=tr.interval_s or 0.5, speed_factor=tr.speed_factor, reference_s=tr.reference_s)
+                    interval_s=tr.interval_s or 0.5, speed_factor=tr.speed_factor, reference_s=tr.reference_s,
+                    threads=has_threads(tr))
     return dest
 

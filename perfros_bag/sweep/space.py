@@ -39,8 +39,9 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
+from perfros_bag.doccheck import Doc
 from perfros_bag.errors import InputError
-from perfros_bag.fileio import kind_of, read_yaml, unknown_keys
+from perfros_bag.fileio import read_yaml, unknown_keys
 from perfros_bag.system.names import NameKind, name_problem
 
 Value = int | float | str
@@ -164,6 +165,9 @@ class Run:
     params: Mapping[str, Value]  # ROS parameter -> value
     repeat: int
     factor: float | None = None  # replay: the recording's play-rate factor in this run
+    #: nodelets run standalone (``nodelet standalone``) instead of in their manager (full ROS
+    #: names); their managers are not started (perfros_bag.sweep.nodelets)
+    standalone: tuple[str, ...] = ()
 
 
 def load_space(path: str | Path) -> Space:
@@ -172,34 +176,26 @@ def load_space(path: str | Path) -> Space:
 
 
 def parse_space(data: Any, path: Path) -> Space:
-    def fail(where: str, problem: str) -> InputError:
-        return InputError(path, f"{where}: {problem}" if where else problem)
-
+    doc = Doc(path)
+    fail = doc.fail
     if data is None:
         raise fail("", "the file is empty (expected 'vary:')")
-    if not isinstance(data, Mapping):
-        raise fail("", f"expected a mapping with 'vary:', got {kind_of(data)}")
-    unknown = unknown_keys(data, TOP_KEYS)
-    if unknown:
-        raise fail("", unknown)
+    doc.mapping(data, "", TOP_KEYS, expected="a mapping with 'vary:'")
     duration = _number(data.get("duration_s", 20), "duration_s", fail, positive=True)
     settle = _number(data.get("settle_s", 5), "settle_s", fail, positive=False)
     timeout = _number(data.get("startup_timeout_s", 30), "startup_timeout_s", fail, positive=True)
     repeats = data.get("repeats", 1)
     if isinstance(repeats, bool) or not isinstance(repeats, int) or repeats < 1:
         raise fail("repeats", f"must be a whole number >= 1, got {repeats!r}")
-    raw_design = data.get("design", Design.ONE_AT_A_TIME.value)
-    try:
-        design = Design(raw_design)
-    except ValueError:
-        raise fail("design", f"must be 'one-at-a-time' or 'grid', got {raw_design!r}") from None
-    replay = _replay(data["replay"], path, fail) if data.get("replay") is not None else None
+    design = doc.enum(data.get("design", Design.ONE_AT_A_TIME.value), "design", Design,
+                      wording="must be 'one-at-a-time' or 'grid'")
+    replay = _replay(data["replay"], path, doc) if data.get("replay") is not None else None
     raw_vary = data.get("vary")
     if raw_vary is None and replay is None:
         raise fail("", "missing 'vary:' (a list of {node, parameter, arg or param, values})")
     if raw_vary is not None and (not isinstance(raw_vary, list) or not raw_vary):
         raise fail("vary", f"must be a non-empty list, got {raw_vary!r}")
-    vary = tuple(_varied(item, f"vary[{i}]", fail) for i, item in enumerate(raw_vary or []))
+    vary = tuple(_varied(item, f"vary[{i}]", doc) for i, item in enumerate(raw_vary or []))
     for v in vary:
         if replay is not None and v.node in replay.replaces:
             raise fail("vary", f"node {v.node} is replaced by the replay (not started): it cannot be varied")
@@ -223,12 +219,9 @@ def parse_space(data: Any, path: Path) -> Space:
     return Space(path, duration, settle, repeats, design, vary, timeout, exclude, replay)
 
 
-def _replay(raw: Any, path: Path, fail: Any) -> Replay:
-    if not isinstance(raw, Mapping):
-        raise fail("replay", f"expected a mapping {{recording, replaces, topics, rates}}, got {kind_of(raw)}")
-    bad = unknown_keys(raw, REPLAY_KEYS)
-    if bad:
-        raise fail("replay", bad)
+def _replay(raw: Any, path: Path, doc: Doc) -> Replay:
+    fail = doc.fail
+    doc.mapping(raw, "replay", REPLAY_KEYS, expected="a mapping {recording, replaces, topics, rates}")
     recording = raw.get("recording")
     if not isinstance(recording, str) or not recording.strip():
         raise fail("replay.recording", f"must be the path of a recording, got {recording!r}")
@@ -265,12 +258,9 @@ def _replay(raw: Any, path: Path, fail: Any) -> Replay:
                   tuple(float(r) for r in rates))
 
 
-def _varied(item: Any, where: str, fail: Any) -> Varied:
-    if not isinstance(item, Mapping):
-        raise fail(where, f"expected a mapping {{node, parameter, arg, values}}, got {kind_of(item)}")
-    bad = unknown_keys(item, VARY_KEYS)
-    if bad:
-        raise fail(where, bad)
+def _varied(item: Any, where: str, doc: Doc) -> Varied:
+    fail = doc.fail
+    doc.mapping(item, where, VARY_KEYS, expected="a mapping {node, parameter, arg, values}")
     node = item.get("node")
     problem = name_problem(NameKind.GRAPH_NODE, node)
     if problem is not None or not isinstance(node, str):

@@ -97,6 +97,10 @@ class Plan:
     nodes: dict[str, PlannedNode] = field(default_factory=dict)
     reason: str | None = None
     system: str | None = None  # path of the system/model it was solved from
+    #: the system's chains with their predicted latency (perfros_bag.system.latency), as
+    #: plan.json's ``chains`` holds them: name, topics, predicted_ms {p50, p95} (None when it
+    #: cannot be predicted), budget_ms, hops
+    chains: list[dict[str, Any]] = field(default_factory=list)
     extra: dict[str, Any] = field(default_factory=dict)  # optional fields we do not interpret
 
     def __post_init__(self) -> None:

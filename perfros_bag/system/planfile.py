@@ -11,6 +11,7 @@ import warnings
 from pathlib import Path
 from typing import Any
 
+from perfros_bag.doccheck import Doc
 from perfros_bag.errors import InputError, PerfrosWarning
 from perfros_bag.fileio import DOCUMENT_KINDS, atomic_write_json, expect_kind, read_json
 from perfros_bag.limits import number_problem
@@ -27,7 +28,7 @@ from perfros_bag.system.types import Problem, System
 
 PLAN_FORMAT = "perfros-bag/plan@1"
 _KNOWN = {"format", "problem", "method", "status", "objective", "bound", "solve_s", "reason", "system",
-          "computers", "links", "nodes"}
+          "computers", "links", "nodes", "chains"}
 
 
 def plan_document(plan: Plan) -> dict[str, Any]:
@@ -61,6 +62,8 @@ def plan_document(plan: Plan) -> dict[str, Any]:
         }
         for name, n in plan.nodes.items()
     }
+    if plan.chains:
+        out["chains"] = plan.chains
     out.update(plan.extra)
     return out
 
@@ -89,17 +92,17 @@ def _num(d: dict[str, Any], key: str, where: str, path: str, *, optional: bool =
     if v is None:
         if optional:
             return None
-        raise InputError(path, f"{where}: missing {key!r}")
+        raise Doc(path).fail(where, f"missing {key!r}")
     problem = number_problem(v, nonneg=nonneg, positive=positive)
     if problem is not None:
-        raise InputError(path, f"{where}: {key!r} {problem}")
+        raise Doc(path).fail(where, f"{key!r} {problem}")
     return float(v)
 
 
 def _text(d: dict[str, Any], key: str, where: str, path: str) -> str | None:
     v = d.get(key)
     if v is not None and not isinstance(v, str):
-        raise InputError(path, f"{where}: {key!r} must be a string, got {type(v).__name__}")
+        raise Doc(path).fail(where, f"{key!r} must be a string, got {type(v).__name__}")
     return v
 
 
@@ -163,7 +166,34 @@ def parse_plan(data: Any, path: str = "plan.json") -> Plan:
     for name, n in nodes.items():
         plan.nodes[name] = _parse_node(n, f"node {name!r}", path)
         _check_placed(plan, name, path, forced=forced)
+    plan.chains = _parse_chains(data.get("chains"), path)
     return plan
+
+
+def _parse_chains(raw: Any, path: str) -> list[dict[str, Any]]:
+    """plan.json ``chains``: each a name, its topics, ``predicted_ms`` {p50, p95} (numbers
+    >= 0, or null when it cannot be predicted), ``budget_ms`` and ``hops`` (each with its own
+    ``predicted_ms``); kept as read."""
+    if raw is None:
+        return []
+    if not isinstance(raw, list):
+        raise InputError(path, "chains must be a list")
+    for i, c in enumerate(raw):
+        where = f"chains[{i}]"
+        if not isinstance(c, dict) or not isinstance(c.get("name"), str):
+            raise InputError(path, f"{where}: needs a name")
+        for label, d in [(where, c), *((f"{where}.hops[{j}]", h) for j, h in enumerate(c.get("hops") or []))]:
+            if not isinstance(d, dict):
+                raise InputError(path, f"{label}: must be an object")
+            for key in ("predicted_ms", "budget_ms"):
+                pred = d.get(key)
+                if pred is None:
+                    continue
+                if not isinstance(pred, dict):
+                    raise InputError(path, f"{label}: {key!r} must be an object")
+                for q in ("p50", "p95"):
+                    _num(pred, q, f"{label}.{key}", path, nonneg=True)
+    return raw
 
 
 def is_forced(plan: Plan) -> bool:
@@ -211,10 +241,11 @@ def _parse_node(n: Any, where: str, path: str) -> PlannedNode:
     )
 
 
-def check_against_system(plan: Plan, system: System) -> None:
+def check_against_system(plan: Plan, system: System, plan_path: str | Path | None = None) -> None:
     """Every node of the plan must be a node of ``system`` and every computer of the plan
     one of its computers (an :class:`InputError` naming the system otherwise): a plan
-    for another system cannot be validated or deployed with this one."""
+    for another system cannot be validated or deployed with this one. The nodes of one
+    container must share a computer (:meth:`System.container_problem`: an error naming the plan)."""
     unknown = [n for n in plan.nodes if n not in system.node]
     if unknown:
         raise InputError(system.source, f"plan node(s) {', '.join(map(repr, unknown))} are not in the system")
@@ -222,6 +253,9 @@ def check_against_system(plan: Plan, system: System) -> None:
     if strange:
         raise InputError(system.source, f"plan computer(s) {', '.join(map(repr, strange))} are not in the system "
                                         f"(its computers: {', '.join(map(repr, system.computer))})")
+    split = system.container_problem({n: p.computer for n, p in plan.nodes.items()})
+    if split is not None:
+        raise InputError(plan_path, split)
 
 
 def plan_system(plan: Plan, plan_path: str | Path, system_path: str | Path | None = None) -> System | None:
@@ -233,7 +267,7 @@ def plan_system(plan: Plan, plan_path: str | Path, system_path: str | Path | Non
 
     if system_path is not None:
         system = load_system(system_path)
-        check_against_system(plan, system)
+        check_against_system(plan, system, plan_path)
         return system
     if not plan.system:
         return None
@@ -246,7 +280,7 @@ def plan_system(plan: Plan, plan_path: str | Path, system_path: str | Path | Non
                 warnings.warn(f"the plan's system could not be read ({exc}); going on without it",
                               PerfrosWarning, stacklevel=2)
                 return None
-            check_against_system(plan, system)
+            check_against_system(plan, system, plan_path)
             return system
     warnings.warn(f"the plan's system {plan.system!r} was not found (beside the plan or here): "
                   "links are not checked and CPU traces match nodes by name only",

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
+from perfros_bag.system.latency import plan_predictions
 from perfros_bag.system.plan import (
     Assignment,
     Method,
@@ -89,4 +90,6 @@ def build_plan(system: System, assignment: Assignment, *, problem: Problem, meth
             bandwidth_kBps=ch.bandwidth_kBps if node.input is not None else None,
         )
     obj = objective_value if objective_value is not None else objective(system, assignment, problem)
-    return Plan(problem, method, status, obj, bound, solve_s, computers, links, nodes, system=system.source)
+    plan = Plan(problem, method, status, obj, bound, solve_s, computers, links, nodes, system=system.source)
+    plan.chains = [p.to_dict() for p in plan_predictions(system, plan)]
+    return plan

@@ -14,10 +14,11 @@ from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
+from perfros_bag.doccheck import Doc
 from perfros_bag.errors import InputError, PerfrosWarning
-from perfros_bag.fileio import SYSTEM_KIND, expect_kind, file_kind, kind_of, read_yaml, unknown_keys
-from perfros_bag.fitting.modelfile import read_model_system
+from perfros_bag.fileio import SYSTEM_KIND, expect_kind, file_kind, kind_of, read_yaml
 from perfros_bag.limits import MAX_COEFFICIENT, MAX_MAGNITUDE, number_problem
+from perfros_bag.system.modelpart import read_model_system
 from perfros_bag.system.names import (
     NameKind,
     address_problem,
@@ -29,10 +30,12 @@ from perfros_bag.system.types import (
     CURVE_FORMS,
     Aggregate,
     Better,
+    Budget,
     Chain,
     Computer,
     Curve,
     Edge,
+    LatencyParams,
     Link,
     Medium,
     Metric,
@@ -43,22 +46,31 @@ from perfros_bag.system.types import (
     TopicRate,
 )
 
-TOP_KEYS = {"cpu_unit", "computers", "links", "media", "nodes", "edges", "machines", "chains"}
-CHAIN_KEYS = {"name", "topics"}
+TOP_KEYS = {"cpu_unit", "computers", "links", "media", "nodes", "edges", "machines", "chains", "latency"}
+CHAIN_KEYS = {"name", "topics", "budget_ms"}
+BUDGET_KEYS = {"p50", "p95"}
+#: system.yaml ``latency:`` (the latency model's parameters, perfros_bag.system.latency)
+LATENCY_KEYS = {"units_per_core", "overhead_ms", "queue_factor", "p95_ratio", "queue_size", "link_efficiency",
+                "service_scale", "node_p95_ratio", "source"}
 COMPUTER_KEYS = {"name", "kind", "capacity", "max_capacity"}
 LINK_KEYS = {"between", "bandwidth_kBps", "medium"}
 MEDIUM_KEYS = {"name", "bandwidth_kBps"}
 NODE_KEYS = {
     "name", "weight", "residence", "coresidence", "parameter", "topics", "process",
-    "settings", "curve", "launch", "relations", "metric", "input", "cpu_error_between",
+    "settings", "curve", "launch", "relations", "metric", "input", "cpu_error_between", "container", "threads",
 }
 METRIC_KEYS = {"topic", "field", "aggregate", "better", "range"}
 #: ``cpu_error`` (optional, CPU units >= 0): what the setting may need beyond its ``cpu``
 #: (measured headroom, perfros_bag.system.cpuerror; ``fit`` writes it)
-SETTING_KEYS = {"value", "cpu", "performance", "frequency_hz", "bandwidth_kBps", "topics", "cpu_error"}
+#: ``threads`` (optional, >= 1, on a node or a setting): its busy threads, its weight in the
+#: CFS share of an overloaded computer (perfros_bag.system.cpushare; ``fit`` writes the node's)
+SETTING_KEYS = {"value", "cpu", "performance", "frequency_hz", "bandwidth_kBps", "topics", "cpu_error", "threads"}
 #: a driven node's setting (``input:``) also says how it follows its input rate, and its
-#: error as a share of its CPU (``cpu_error_share``, >= 0) instead of ``cpu_error``
-DRIVEN_KEYS = {"cpu_per_hz", "out_per_in", "max_frequency_hz", "bytes_per_msg", "cpu_error_share"}
+#: error as a share of its CPU (``cpu_error_share``, >= 0) instead of ``cpu_error``; ``step``
+#: (with ``max_frequency_hz``): how the cap acts, :data:`STEPS`
+DRIVEN_KEYS = {"cpu_per_hz", "out_per_in", "max_frequency_hz", "bytes_per_msg", "cpu_error_share", "step"}
+#: ``step: period``: a period throttle (topic_tools/throttle), its output ``x / ceil(x / cap)``
+STEPS = ("period",)
 TOPIC_RATE_KEYS = {"frequency_hz", "bandwidth_kBps"}
 PARAMETER_KEYS = {"name", "unit", "type"}
 CURVE_KEYS = {"form", "coef", "cpu", "domain", "scale"}
@@ -73,32 +85,11 @@ LAUNCH_NAME_KINDS = {"package": NameKind.PACKAGE, "type": NameKind.EXECUTABLE, "
                      "name": NameKind.NODE, "namespace": NameKind.NAMESPACE}
 
 
-class _Ctx:
-    """Where we are in the file, for error messages."""
+class _Ctx(Doc):
+    """Where we are in the file, for error messages (:class:`~perfros_bag.doccheck.Doc`),
+    and system.yaml's own checks."""
 
-    def __init__(self, path: str) -> None:
-        self.path = path
-
-    def fail(self, where: str, problem: str) -> InputError:
-        return InputError(self.path, f"{where}: {problem}" if where else problem)
-
-    def mapping(self, obj: Any, where: str, allowed: set[str], required: set[str] = frozenset()) -> Mapping[str, Any]:  # type: ignore[assignment]
-        if not isinstance(obj, Mapping):
-            raise self.fail(where, f"expected a mapping, got {kind_of(obj)}")
-        unknown = unknown_keys(obj, allowed)
-        if unknown:
-            raise self.fail(where, unknown)
-        missing = sorted(k for k in required if k not in obj)
-        if missing:
-            raise self.fail(where, f"missing required field(s) {', '.join(repr(k) for k in missing)}")
-        return obj
-
-    def number(self, obj: Any, where: str, *, positive: bool = False, nonneg: bool = False,
-               limit: float = MAX_MAGNITUDE) -> float:
-        problem = number_problem(obj, positive=positive, nonneg=nonneg, limit=limit)
-        if problem is not None:
-            raise self.fail(where, problem)
-        return float(obj)
+    path: str  # the source as the system states it (System.source)
 
     def label(self, obj: Any, where: str) -> str | None:
         """A free-text label (a unit): text, or a finite number taken as text; None stays None."""
@@ -107,14 +98,6 @@ class _Ctx:
         if number_problem(obj, limit=math.inf) is not None:
             raise self.fail(where, f"must be text, got {kind_of(obj)} {obj!r}"[:200])
         return str(obj)
-
-    def opt_number(self, obj: Any, where: str, **kw: bool) -> float | None:
-        return None if obj is None else self.number(obj, where, **kw)
-
-    def string(self, obj: Any, where: str) -> str:
-        if not isinstance(obj, str) or not obj.strip():
-            raise self.fail(where, f"must be a non-empty string, got {obj!r}")
-        return obj
 
     def name(self, obj: Any, where: str, kind: NameKind) -> str:
         """A name ROS can use (:mod:`perfros_bag.system.names`); one valid for ROS 1 only
@@ -139,11 +122,7 @@ class _Ctx:
         return tuple(self.string(x, f"{where}[{i}]") for i, x in enumerate(obj))
 
     def seq(self, obj: Any, where: str) -> list[Any]:
-        if obj is None:
-            return []
-        if not isinstance(obj, list):
-            raise self.fail(where, f"must be a list, got {kind_of(obj)}")
-        return obj
+        return [] if obj is None else self.items(obj, where)
 
     def named(self, obj: Any, section: str, what: str, allowed: set[str], required: set[str], *,
               at_least_one: bool = True, kind: NameKind | None = None) -> Iterator[tuple[str, str, Mapping[str, Any]]]:
@@ -208,6 +187,7 @@ def parse_system(data: Any, source: str = "system.yaml") -> System:
                 raise ctx.fail(f"node {n.name!r}: coresidence", f"unknown node {m!r}")
             if m == n.name:
                 raise ctx.fail(f"node {n.name!r}: coresidence", "a node cannot list itself")
+    _check_containers(ctx, nodes)
 
     total = sum(n.weight for n in nodes)
     if abs(total - 1.0) > 1e-6:
@@ -215,11 +195,60 @@ def parse_system(data: Any, source: str = "system.yaml") -> System:
         nodes = [_reweight(n, n.weight / total) for n in nodes]
 
     chains = _chains(ctx, top.get("chains"), nodes, edges)
+    latency = _latency(ctx, top.get("latency"), node_names)
     system = System(tuple(computers), tuple(nodes), tuple(links), tuple(media), tuple(edges),
-                    cpu_unit, machines, source, chains)
+                    cpu_unit, machines, source, chains, latency)
     _check_groups(ctx, system)
     _check_flow(ctx, system)
+    _check_budgets(ctx, system)
     return system
+
+
+def _check_budgets(ctx: _Ctx, system: System) -> None:
+    """A chain with a budget must be one the latency model can follow, hop by hop."""
+    from perfros_bag.system.latency import chain_hops
+
+    for chain in system.chains:
+        if chain.budget_ms is None:
+            continue
+        hops = chain_hops(system, chain)
+        if isinstance(hops, str):
+            raise ctx.fail(f"chain {chain.name!r}: budget_ms", f"its latency cannot be predicted: {hops}")
+
+
+def _latency(ctx: _Ctx, raw: Any, nodes: set[str]) -> LatencyParams:
+    """``latency: {units_per_core, overhead_ms, queue_factor, p95_ratio, queue_size,
+    link_efficiency, service_scale: {node: x}, node_p95_ratio: {node: x}, source}``, every
+    field optional (the defaults of :class:`LatencyParams`)."""
+    if raw is None:
+        return LatencyParams()
+    m = ctx.mapping(raw, "latency", LATENCY_KEYS)
+    base = LatencyParams()
+    kw: dict[str, Any] = {}
+    for key in ("units_per_core", "p95_ratio", "link_efficiency"):
+        if m.get(key) is not None:
+            kw[key] = ctx.number(m[key], f"latency.{key}", positive=True)
+    for key in ("overhead_ms", "queue_factor"):
+        if m.get(key) is not None:
+            kw[key] = ctx.number(m[key], f"latency.{key}", nonneg=True)
+    if kw.get("p95_ratio", base.p95_ratio) < 1:
+        raise ctx.fail("latency.p95_ratio", f"must be at least 1, got {kw['p95_ratio']:g}")
+    if kw.get("link_efficiency", base.link_efficiency) > 1:
+        raise ctx.fail("latency.link_efficiency", f"must be at most 1, got {kw['link_efficiency']:g}")
+    if m.get("queue_size") is not None:
+        q = ctx.number(m["queue_size"], "latency.queue_size", positive=True)
+        if q != int(q):
+            raise ctx.fail("latency.queue_size", f"must be a whole number of messages, got {q:g}")
+        kw["queue_size"] = int(q)
+    for key in ("service_scale", "node_p95_ratio"):
+        per = ctx.mapping(m.get(key) or {}, f"latency.{key}", nodes)
+        kw[key] = {str(n): ctx.number(v, f"latency.{key}.{n}", positive=True) for n, v in per.items()}
+        low = [n for n, v in kw[key].items() if key == "node_p95_ratio" and v < 1]
+        if low:
+            raise ctx.fail(f"latency.{key}.{low[0]}", "must be at least 1")
+    if m.get("source") is not None:
+        kw["source"] = ctx.string(m["source"], "latency.source")
+    return LatencyParams(**kw)
 
 
 def _check_flow(ctx: _Ctx, system: System) -> None:
@@ -345,6 +374,23 @@ def _check_outputs(ctx: _Ctx, curve: Curve, where: str) -> None:
         raise ctx.fail(where, problem)
 
 
+def _check_containers(ctx: _Ctx, nodes: list[Node]) -> None:
+    """``container`` names another node of the system, one that is not hosted itself."""
+    by_name = {n.name: n for n in nodes}
+    for n in nodes:
+        if n.container is None:
+            continue
+        host = by_name.get(n.container)
+        if host is None:
+            raise ctx.fail(f"node {n.name!r}: container", f"unknown node {n.container!r} (the container is a node "
+                                                          "of the system: the process that hosts it)")
+        if host.name == n.name:
+            raise ctx.fail(f"node {n.name!r}: container", "a node cannot host itself")
+        if host.container is not None:
+            raise ctx.fail(f"node {n.name!r}: container", f"{host.name!r} is itself hosted by {host.container!r}: "
+                                                          "a container runs in a process of its own")
+
+
 def _nodes(ctx: _Ctx, raw: Any, computers: set[str]) -> list[Node]:
     out: list[Node] = []
     for name, where, m in ctx.named(raw, "nodes", "node", NODE_KEYS, {"name", "weight"}, kind=NameKind.NODE):
@@ -416,9 +462,20 @@ def _nodes(ctx: _Ctx, raw: Any, computers: set[str]) -> list[Node]:
         between = ctx.opt_number(m.get("cpu_error_between"), f"{where}: cpu_error_between", nonneg=True)
         if between is not None and curve is None:
             raise ctx.fail(f"{where}: cpu_error_between", "only a node with a curve has CPU levels between its settings")
+        container = None if m.get("container") is None else ctx.name(m["container"], f"{where}: container",
+                                                                       NameKind.NODE)
+        threads = _threads(ctx, m.get("threads"), f"{where}: threads")
         out.append(Node(name, weight, settings, curve, residence, coresidence, parameter,
-                        topics, process, launch, relations, metric, driven_by, between))
+                        topics, process, launch, relations, metric, driven_by, between, container, threads))
     return out
+
+
+def _threads(ctx: _Ctx, raw: Any, where: str) -> float | None:
+    """An optional busy-thread count: a number >= 1."""
+    value = ctx.opt_number(raw, where, positive=True)
+    if value is not None and value < 1:
+        raise ctx.fail(where, f"must be >= 1 (busy threads), got {raw!r}")
+    return value
 
 
 def _metric(ctx: _Ctx, raw: Any, where: str) -> Metric:
@@ -454,6 +511,12 @@ def _setting(ctx: _Ctx, raw: Any, where: str, *, driven: bool = False) -> Settin
     elif "cpu_error" in m:
         raise ctx.fail(f"{where}.cpu_error", "a driven node (input:) states its error relative to its CPU: "
                                              "cpu_error_share")
+    step = m.get("step")
+    if step is not None:
+        if step not in STEPS:
+            raise ctx.fail(f"{where}.step", f"must be one of {', '.join(STEPS)}, got {step!r}"[:200])
+        if m.get("max_frequency_hz") is None:
+            raise ctx.fail(f"{where}.step", "a step says how max_frequency_hz caps the output: give max_frequency_hz")
     topics: dict[str, TopicRate] = {}
     if m.get("topics") is not None:
         tm = ctx.mapping(m["topics"], f"{where}.topics", set(m["topics"]) if isinstance(m["topics"], Mapping) else set())
@@ -476,8 +539,10 @@ def _setting(ctx: _Ctx, raw: Any, where: str, *, driven: bool = False) -> Settin
         out_per_in=ctx.opt_number(m.get("out_per_in"), f"{where}.out_per_in", nonneg=True),
         max_frequency_hz=ctx.opt_number(m.get("max_frequency_hz"), f"{where}.max_frequency_hz", nonneg=True),
         bytes_per_msg=ctx.opt_number(m.get("bytes_per_msg"), f"{where}.bytes_per_msg", nonneg=True),
+        step="period" if step == "period" else None,
         cpu_error=ctx.opt_number(m.get("cpu_error"), f"{where}.cpu_error", nonneg=True),
         cpu_error_share=ctx.opt_number(m.get("cpu_error_share"), f"{where}.cpu_error_share", nonneg=True),
+        threads=_threads(ctx, m.get("threads"), f"{where}.threads"),
     )
 
 
@@ -511,8 +576,21 @@ def _chains(ctx: _Ctx, raw: Any, nodes: list[Node], edges: list[Edge]) -> tuple[
         for i, t in enumerate(topics):
             if t not in known:
                 raise ctx.fail(f"{where}: topics[{i}]", f"{t!r} is not a topic of any node or edge of the system")
-        out.append(Chain(name, topics))
+        out.append(Chain(name, topics, _budget(ctx, m.get("budget_ms"), f"{where}: budget_ms")))
     return tuple(out)
+
+
+def _budget(ctx: _Ctx, raw: Any, where: str) -> Budget | None:
+    """``budget_ms: {p50: X, p95: Y}`` (either or both): positive, finite milliseconds."""
+    if raw is None:
+        return None
+    m = ctx.mapping(raw, where, BUDGET_KEYS)
+    bounds = {k: ctx.number(m[k], f"{where}.{k}", positive=True) for k in ("p50", "p95") if m.get(k) is not None}
+    if not bounds:
+        raise ctx.fail(where, "give p50, p95 or both (milliseconds)")
+    if "p50" in bounds and "p95" in bounds and bounds["p95"] < bounds["p50"]:
+        raise ctx.fail(where, f"p95 {bounds['p95']:g} ms is below p50 {bounds['p50']:g} ms")
+    return Budget(bounds.get("p50"), bounds.get("p95"))
 
 
 def _machines(ctx: _Ctx, raw: Any, computers: set[str]) -> dict[str, dict[str, str]]:

@@ -163,7 +163,8 @@ class Setting:
 
     A driven node's setting (its node has an ``input``) also says how it follows its input
     rate F_in: CPU ``cpu + cpu_per_hz·F_in``, output ``min(out_per_in·F_in,
-    max_frequency_hz)``, ``bytes_per_msg`` per output message (:func:`driven_rates`).
+    max_frequency_hz)`` (with ``step: period``: ``x / ceil(x / max_frequency_hz)``, x =
+    ``out_per_in·F_in``), ``bytes_per_msg`` per output message (:func:`driven_rates`).
     """
 
     cpu: float
@@ -175,11 +176,41 @@ class Setting:
     cpu_per_hz: float | None = None  # driven only: CPU units per input message per second
     out_per_in: float | None = None  # driven only: output messages per input message (default 1)
     max_frequency_hz: float | None = None  # driven only: the output's cap (a throttle), none when absent
+    # driven only: how the cap acts. None: min(rate, cap) (an averaging throttle); "period": a
+    # message passes once 1/cap has elapsed since the last one passed (topic_tools throttle), so
+    # the output steps: rate / ceil(rate / cap) (:func:`driven_rates`)
+    step: Literal["period"] | None = None
     bytes_per_msg: float | None = None  # driven only: bytes of all its topics per output message
     # measured headroom (perfros_bag.system.cpuerror): CPU units it may need beyond ``cpu``;
     # a driven node's as a share of its CPU at any input rate
     cpu_error: float | None = None
     cpu_error_share: float | None = None  # driven only
+    threads: float | None = None  # busy threads at this setting (None: the node's)
+
+
+#: a period throttle whose free rate over its cap lies within this of a whole number n >= 1
+#: (its period is then n input periods give or take this share of one) passes every n-th or
+#: every (n+1)-th message as the arrival times jitter: the output there is not told by the
+#: rule (measured on topic_tools/throttle, docs/formats.md "Driven nodes")
+STEP_AMBIGUOUS = 0.05
+
+
+def period_steps(rate: float, cap: float) -> int:
+    """How many messages of a stream at ``rate`` a period throttle at ``cap`` (> 0) takes per
+    message it passes: ``ceil(rate / cap)``, at least 1 (a whole ratio within 1e-9 counts as
+    whole: the rule's answer at the boundary, where the real node is ambiguous)."""
+    n = rate / cap
+    return max(1, math.ceil(n - 1e-9 * max(1.0, n)))
+
+
+def step_ambiguous(setting: Setting, input_hz: float) -> bool:
+    """Is a period throttle's output at ``input_hz`` not told by the rule: its free rate over
+    its cap within :data:`STEP_AMBIGUOUS` of a whole number >= 1 (:func:`period_steps`)?"""
+    cap = setting.max_frequency_hz
+    if setting.step != "period" or cap is None or cap <= 0:
+        return False
+    n = (1.0 if setting.out_per_in is None else setting.out_per_in) * input_hz / cap
+    return n >= 1.0 - STEP_AMBIGUOUS and abs(n - round(n)) <= STEP_AMBIGUOUS
 
 
 def driven_rates(setting: Setting, input_hz: float) -> tuple[float, float, float]:
@@ -192,8 +223,11 @@ def driven_rates(setting: Setting, input_hz: float) -> tuple[float, float, float
     cpu = setting.cpu + (setting.cpu_per_hz or 0.0) * input_hz
     ratio = 1.0 if setting.out_per_in is None else setting.out_per_in
     out = ratio * input_hz
-    if setting.max_frequency_hz is not None:
-        out = min(out, setting.max_frequency_hz)
+    cap = setting.max_frequency_hz
+    if cap is not None and setting.step == "period":
+        out = out / period_steps(out, cap) if cap > 0 else 0.0
+    elif cap is not None:
+        out = min(out, cap)
     size = setting.bytes_per_msg
     if size is None:
         f, bw = setting.frequency_hz, setting.bandwidth_kBps
@@ -308,6 +342,44 @@ class Chain:
 
     name: str
     topics: tuple[str, ...]
+    #: system.yaml ``budget_ms``: the most its predicted latency may be, in milliseconds
+    #: (p50 and/or p95; None: not bounded). See :mod:`perfros_bag.system.latency`.
+    budget_ms: Budget | None = None
+
+
+@dataclass(frozen=True)
+class Budget:
+    """A chain's latency budget in milliseconds: its p50, its p95 or both (None: unbounded)."""
+
+    p50: float | None = None
+    p95: float | None = None
+
+    def items(self) -> list[tuple[str, float]]:
+        """(``"p50"``/``"p95"``, ms) for each bound it sets."""
+        return [(k, v) for k, v in (("p50", self.p50), ("p95", self.p95)) if v is not None]
+
+    def to_dict(self) -> dict[str, float]:
+        return dict(self.items())
+
+
+@dataclass(frozen=True)
+class LatencyParams:
+    """The latency model's parameters (system.yaml ``latency:``; ``fit`` writes them into
+    model.json from the sweep's hop latencies, ``tune`` refits them from each deployment).
+    The model and each parameter: :mod:`perfros_bag.system.latency`, docs/solvers.md."""
+
+    units_per_core: float = 100.0  # CPU units of one core busy for one second per second
+    overhead_ms: float = 1.0  # what every hop adds beyond its service, wait and transfer
+    queue_factor: float = 1.0  # the M/D/1 wait's multiplier (0: periodic arrivals never wait)
+    p95_ratio: float = 1.3  # a service time's p95 over its p50 (nodes without their own)
+    queue_size: int = 1  # messages a subscriber's drop-oldest queue holds: bounds the wait
+    link_efficiency: float = 0.96  # the share of a link's bandwidth a message's payload gets
+    #: per node: measured hop time over its CPU time per message (wall / CPU: 1 for a node
+    #: that only computes), and its own p95 ratio
+    service_scale: dict[str, float] = field(default_factory=dict)
+    node_p95_ratio: dict[str, float] = field(default_factory=dict)
+    #: where they came from: "default", "fit" (the sweep) or "tune" (deployments)
+    source: str = "default"
 
 
 @dataclass(frozen=True)
@@ -331,6 +403,18 @@ class Node:
     #: a curve node: CPU units a level between its settings carries beyond their interpolated
     #: errors (perfros_bag.system.cpuerror; ``fit``: the parameter->cpu fit's leave-one-out RMSE)
     cpu_error_between: float | None = None
+    #: the node that hosts it in its process (system.yaml ``container``: a nodelet's manager, a
+    #: ROS 2 component's container); None: a process of its own
+    container: str | None = None
+    #: its busy threads (system.yaml ``threads``; ``fit`` measures them): its weight in the CFS
+    #: share of an overloaded computer (perfros_bag.system.cpushare); None: one
+    threads: float | None = None
+
+    def threads_at(self, value: float | None) -> float:
+        """Busy threads at the setting of ``value`` (that setting's, else the node's, else 1)."""
+        j = self.setting_index(value)
+        at = self.settings[j].threads if j is not None else None
+        return at if at is not None else (self.threads if self.threads is not None else 1.0)
 
     @property
     def driven(self) -> bool:
@@ -432,6 +516,7 @@ class System:
     machines: dict[str, dict[str, str]] = field(default_factory=dict)
     source: str | None = None  # the file it was loaded from, for messages
     chains: tuple[Chain, ...] = ()  # topics whose end-to-end latency is measured
+    latency: LatencyParams = field(default_factory=LatencyParams)  # the latency model's parameters
 
     @cached_property
     def computer(self) -> dict[str, Computer]:
@@ -462,6 +547,27 @@ class System:
         return [self.allowed_to_all(g) for g in self.coresidence_groups]
 
     @cached_property
+    def containers(self) -> dict[str, tuple[str, ...]]:
+        """Each container (a node that hosts others: system.yaml ``container``) -> the nodes
+        it hosts, in node order."""
+        out: dict[str, list[str]] = {}
+        for n in self.nodes:
+            if n.container is not None:
+                out.setdefault(n.container, []).append(n.name)
+        return {k: tuple(v) for k, v in out.items()}
+
+    def container_problem(self, where: Mapping[str, str]) -> str | None:
+        """The first container whose nodes ``where`` (node -> computer) puts on different
+        computers: the membership is kept, so a container's nodes share its computer."""
+        for host, members in self.containers.items():
+            split = {m: where[m] for m in (host, *members) if m in where}
+            if len(set(split.values())) > 1:
+                return (f"container {host}: its nodes are on different computers "
+                        f"({', '.join(f'{m} on {c}' for m, c in split.items())}); a container's nodes share its "
+                        "process, so its computer")
+        return None
+
+    @cached_property
     def coresidence_groups(self) -> list[tuple[str, ...]]:
         """Nodes that must share a computer (the transitive closure of coresidence), in node
         order; singletons included."""
@@ -473,8 +579,8 @@ class System:
                 x = parent[x]
             return x
 
-        for n in self.nodes:
-            for m in n.coresidence:
+        for n in self.nodes:  # a container's nodes share its process, so its computer
+            for m in (*n.coresidence, *((n.container,) if n.container is not None else ())):
                 ra, rb = find(n.name), find(m)
                 if ra != rb:
                     parent[rb] = ra
@@ -614,7 +720,8 @@ class System:
                      pick: Callable[[str, list[Choice]], list[Choice]] | None = None) -> dict[str, list[Choice]]:
         """``base`` with every driven node's choices made concrete: each of its own settings
         (``base``'s choices name them by ``setting``) at every input rate its input's
-        publisher can give (the propagated rule, :func:`driven_rates`), sorted by CPU.
+        publisher can give (the propagated rule, :func:`driven_rates`; a period throttle not at
+        a rate where its output is ambiguous, :meth:`_told`), sorted by CPU.
         Driven nodes are expanded in :attr:`flow_order`; ``pick`` (node, expanded) may keep
         a subset of each before its children are expanded (Problem 2's fixed settings)."""
         out = {name: list(options) for name, options in base.items()}
@@ -623,11 +730,19 @@ class System:
             parent = self.flow_parent[name]
             rates = sorted({self.input_hz(name, ch) for ch in out[parent]})
             own = sorted({ch.setting for ch in base[name] if ch.setting is not None})
-            made = [self.driven_choice(node, j, f) for j in own for f in rates]
+            made = [self.driven_choice(node, j, f) for f in rates for j in self._told(node, own, f)]
             made.sort(key=lambda c: (c.cpu, -c.performance, c.input_hz or 0.0))
             made = [replace(c, index=i) for i, c in enumerate(made)]
             out[name] = pick(name, made) if pick is not None else made
         return out
+
+    @staticmethod
+    def _told(node: Node, own: Sequence[int], input_hz: float) -> list[int]:
+        """The settings of ``own`` whose output at ``input_hz`` the rule tells: a period
+        throttle at a whole ratio of its input (:func:`step_ambiguous`) is left out, unless
+        every setting of ``own`` is."""
+        told = [j for j in own if not step_ambiguous(node.settings[j], input_hz)]
+        return told or list(own)
 
     def flow_violation(self, choice: Mapping[str, Choice], tol: float = 1e-9) -> str | None:
         """Why chosen settings break the data flow: a driven node whose choice was made for

@@ -56,8 +56,23 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from perfros_bag.characterisation import table
+from perfros_bag.characterisation.csvfile import read_characterisation, write_characterisation
+from perfros_bag.characterisation.manifest import load_manifest, write_manifest
 from perfros_bag.errors import InputError, PerfrosError, PerfrosWarning
+from perfros_bag.fileio import atomic_open
+from perfros_bag.fitting.build import build_model
+from perfros_bag.fitting.modelfile import write_model
+from perfros_bag.solver import METHODS, check_headroom, solve
+from perfros_bag.sweep.deploy import deploy, plan_run
+from perfros_bag.sweep.launchfile import check_space, read_launch
+from perfros_bag.sweep.runner import computer_name, sweep
+from perfros_bag.sweep.space import load_space
+from perfros_bag.system.planfile import save_plan
+from perfros_bag.system.systemfile import load_system
+from perfros_bag.system.types import driven_rates
 from perfros_bag.tune.tunefile import TUNE_FORMAT, read_tune, write_tune
+from perfros_bag.validation import DEFAULT_TOLERANCE
 
 if TYPE_CHECKING:
     from perfros_bag.characterisation.csvfile import Row
@@ -88,6 +103,8 @@ _ROUND_RECORDING = re.compile(r"round-\d+/run\.bag")
 RESCALED_COLUMNS = ("cpu_units_mean", "cpu_units_p95", "frequency_hz", "bandwidth_kBps", "median_rate_hz")
 
 Progress = Callable[[str], None]
+#: the rounds of tune.json -> a PNG (tune.png)
+Plot = Callable[[list[dict[str, Any]]], bytes]
 
 
 @dataclass
@@ -98,8 +115,6 @@ class TuneResult:
 
 
 def _check_args(rounds: int, tolerance: float, headroom: float | str, method: str, units_per_core: float) -> None:
-    from perfros_bag.solver import METHODS, check_headroom
-
     check_headroom(headroom)  # a number in [0, 1) or "auto"
     if isinstance(rounds, bool) or not isinstance(rounds, int) or rounds < 1:
         raise InputError(None, f"rounds must be a whole number >= 1, got {rounds!r}")
@@ -115,18 +130,13 @@ def tune(launch_path: str | Path, space_path: str | Path, system_path: str | Pat
          rounds: int = 3, tolerance: float | None = None, method: str = "exact", headroom: float | str = 0.0,
          duration: float | None = None, units_per_core: float = 100.0, net: bool = True, interval: float = 0.5,
          progress: Progress | None = None, on_round: Callable[[dict[str, Any]], None] | None = None,
-         base: str | Path | None = None) -> TuneResult:
+         base: str | Path | None = None, plot: Plot | None = None) -> TuneResult:
     """Run the loop into ``out`` (docs/formats.md, "tune"); resumes after the rounds an
     earlier start finished (``out/tune.json``). ``base``: a characterisation.csv to start
-    from instead of sweeping (the launch file and space still say how to deploy)."""
-    from perfros_bag.sweep.deploy import deploy
-    from perfros_bag.sweep.launchfile import check_space, read_launch
-    from perfros_bag.sweep.runner import sweep
-    from perfros_bag.sweep.space import load_space
-    from perfros_bag.system.planfile import save_plan
-    from perfros_bag.system.systemfile import load_system
-    from perfros_bag.validation import DEFAULT_TOLERANCE
-
+    from instead of sweeping (the launch file and space still say how to deploy).
+    ``plot``: the rounds -> a PNG, written to ``out/tune.png`` after every round (the CLI
+    passes :func:`perfros_bag.report.tune_plots.plot_tune`: the report sits above the
+    loop, whose tune.json it reads)."""
     tol = DEFAULT_TOLERANCE if tolerance is None else tolerance
     _check_args(rounds, tol, headroom, method, units_per_core)
     system = load_system(system_path)
@@ -196,12 +206,12 @@ def tune(launch_path: str | Path, space_path: str | Path, system_path: str | Pat
         done.append(entry)
         ran += 1
         write_tune(outdir / "tune.json", doc)
-        _plot(outdir, doc)
+        _plot(outdir, doc, plot)
         if on_round is not None:
             on_round(entry)
     write_tune(outdir / "tune.json", doc)
     if doc["rounds"]:
-        _plot(outdir, doc)
+        _plot(outdir, doc, plot)
     return TuneResult(doc, resumed, ran)
 
 
@@ -238,9 +248,6 @@ def _entries(outdir: Path, done: list[dict[str, Any]], units_per_core: float,
     them) and each finished round's, as ``outdir/manifest.yaml`` lists them (written here:
     the manifest the refit characterises), every one in the scale the plans are emulated in
     (``units_per_core``: ``cpu_percent / 100 x units_per_core``)."""
-    from perfros_bag.characterisation.manifest import load_manifest, write_manifest
-    from perfros_bag.sweep.runner import computer_name
-
     if swept:
         sweep = load_manifest(outdir / "sweep" / "manifest.yaml").recordings
         host = next((e.computer for e in sweep if e.computer), None)
@@ -327,8 +334,6 @@ def check_base(path: Path, system_path: str | Path) -> None:
     """A base characterisation ``tune`` can start from: readable, naming nodes of the
     system and fitting it (tried now, before anything runs); every problem an
     :class:`InputError` naming ``path``."""
-    from perfros_bag.fitting.build import build_model
-
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", PerfrosWarning)
@@ -344,8 +349,6 @@ def check_base(path: Path, system_path: str | Path) -> None:
 def base_rows(path: Path) -> list[Row]:
     """The rows of a base characterisation, a recording named like one of the loop's rounds
     renamed with :data:`BASE_PREFIX` (the refit tells the rounds' rows by their recording)."""
-    from perfros_bag.characterisation.csvfile import read_characterisation
-
     return [dataclasses.replace(r, recording=BASE_PREFIX + r.recording) if _ROUND_RECORDING.fullmatch(r.recording)
             else r for r in read_characterisation(path).rows]
 
@@ -395,18 +398,18 @@ def fit_rounds(outdir: Path, system_path: str | Path, system: System, done: list
     """Characterise the sweep (or take ``base``'s rows instead) and the finished rounds,
     weigh the rows (:func:`weigh`) and fit: ``outdir/characterisation-<k>.csv`` and
     ``outdir/model-<k>.json``, k = len(done)."""
-    from perfros_bag.characterisation.csvfile import write_characterisation
-    from perfros_bag.characterisation.table import characterise
-    from perfros_bag.fitting.build import build_model
-    from perfros_bag.fitting.modelfile import write_model
-
     rows = [] if base is None else base_rows(base)
     if base is None or done:
-        result = characterise(_entries(outdir, done, units_per_core, swept=base is None), system)
+        # the latency model is fitted on the sweep's runs (uncapped, without links, as its rule
+        # assumes there); each deployment recalibrates it below, beside its prediction
+        result = table.characterise(_entries(outdir, done, units_per_core, swept=base is None), system,
+                                    latency=bool(system.chains) and system.has_flow)
         if result.failures:
             f = result.failures[0]
             raise InputError(outdir / "manifest.yaml", f"recording {f.recording}: {f.message}")
-        rows += result.rows
+        rounds = {round_recording(r) for r in done}
+        rows += [dataclasses.replace(r, latency_p50_s=None, latency_p95_s=None, latency_max_s=None)
+                 if r.recording in rounds else r for r in result.rows]
     k = len(done)
     csv_path, model_path = outdir / f"characterisation-{k}.csv", outdir / f"model-{k}.json"
     weighed = weigh(rows, done, {n.name for n in system.nodes if n.driven})
@@ -416,14 +419,77 @@ def fit_rounds(outdir: Path, system_path: str | Path, system: System, done: list
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", PerfrosWarning)  # the fit's notes are in model.json
         model = build_model(system_path, csv_path)
+    if done and system.chains:
+        _recalibrate_latency(outdir, model.document.system, done)
     write_model(model_path, model.document)
     return model_path
 
 
+def _recalibrate_latency(outdir: Path, doc_system: dict[str, Any], done: list[dict[str, Any]]) -> None:
+    """The latency model refitted from the deployments (validation.json's chains beside the
+    round's plan.json and model), with the new fit's overhead:
+
+    - each hop node's service scale: the mean over the rounds of the scale that round's model
+      used times what its measured p50 left after overhead and transfer over its predicted
+      service and wait (both grow with the scale);
+    - its p95 ratio and the queue factor, from what its measured p95 left after overhead and
+      transfer: when it holds the rescaled service and p95 wait, the ratio takes the rest (at
+      least 1); when it does not, the ratio is 1 and the wait shrinks to fit: the queue factor
+      is the mean over every hop of the one its round used, times that share where it shrank."""
+    from perfros_bag.fileio import read_json
+    from perfros_bag.fitting.latency import params_json
+    from perfros_bag.system.systemfile import parse_system
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", PerfrosWarning)
+        system = parse_system(doc_system, "model")
+    over = system.latency.overhead_ms
+    # node, the scale and queue factor its round used, the measured hop, the planned hop
+    seen: list[tuple[str, float, float, dict[str, Any], dict[str, Any]]] = []
+    for r in done:
+        path = outdir / r["dir"] / "validation.json"
+        if not path.is_file() or not (outdir / r["model"]).is_file():
+            continue
+        used = ((read_json(outdir / r["model"]).get("system") or {}).get("latency") or {})
+        plan_chains = {c.get("name"): c for c in (read_json(outdir / r["dir"] / "plan.json").get("chains") or [])}
+        for chain in read_json(path).get("chains") or []:
+            hops = {(h.get("from"), h.get("to")): h for h in plan_chains.get(chain.get("name"), {}).get("hops") or []}
+            for h in chain.get("hops") or []:
+                ph = hops.get((h.get("from"), h.get("to")))
+                if ph is not None and h.get("p50_s") is not None:
+                    seen.append((ph["node"], float((used.get("service_scale") or {}).get(ph["node"], 1.0)),
+                                 float(used.get("queue_factor", 1.0)), h, ph))
+    scales: dict[str, list[float]] = {}
+    for node, used_scale, _, h, ph in seen:
+        own = (ph.get("service_ms") or 0.0) + (ph.get("wait_ms") or 0.0)
+        left = 1000.0 * h["p50_s"] - over - (ph.get("transfer_ms") or 0.0)
+        if own > 0 and left > 0:
+            scales.setdefault(node, []).append(used_scale * left / own)
+    if not scales:
+        return
+    fitted = {n: sum(v) / len(v) for n, v in scales.items()}
+    ratios: dict[str, list[float]] = {}
+    queue: list[float] = []
+    for node, used_scale, used_queue, h, ph in seen:
+        if node not in fitted or h.get("p95_s") is None or not ph.get("service_ms"):
+            continue
+        k = fitted[node] / used_scale
+        service, wait95 = ph["service_ms"] * k, (ph.get("wait_p95_ms") or 0.0) * k
+        left95 = 1000.0 * h["p95_s"] - over - (ph.get("transfer_p95_ms") or 0.0)
+        if left95 >= service + wait95:
+            ratios.setdefault(node, []).append((left95 - wait95) / service)
+            queue.append(used_queue)
+        else:
+            ratios.setdefault(node, []).append(1.0)
+            queue.append(used_queue * max(0.0, left95 - service) / wait95 if wait95 > 0 else used_queue)
+    params = dataclasses.replace(
+        system.latency, service_scale={**system.latency.service_scale, **fitted},
+        node_p95_ratio={**system.latency.node_p95_ratio, **{n: sum(v) / len(v) for n, v in ratios.items()}},
+        queue_factor=sum(queue) / len(queue) if queue else system.latency.queue_factor, source="tune")
+    doc_system["latency"] = params_json(params)
+
 def load_model(model_path: Path) -> System:
     """model.json's system (its fits' notes are in the file, not repeated as warnings)."""
-    from perfros_bag.system.systemfile import load_system
-
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", PerfrosWarning)
         return load_system(model_path)
@@ -433,8 +499,6 @@ def model_cpu(model: System, node: str, value: Any, input_hz: float | None = Non
     """The model's CPU for ``node`` at ``value``: its fitted ``parameter->cpu`` when it has
     one, else the setting at that value (the only setting of a node without a parameter); a
     driven node's at ``input_hz`` (:func:`~perfros_bag.system.types.driven_rates`)."""
-    from perfros_bag.system.types import driven_rates
-
     n = model.node.get(node)
     if n is None:
         return None
@@ -464,8 +528,6 @@ def kept_share(node: dict[str, Any]) -> float | None:
 # --------------------------------------------------------------------------- solve, deploy
 
 def _solve(model_path: Path, method: str, headroom: float | str) -> Plan:
-    from perfros_bag.solver import solve
-
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", PerfrosWarning)
         plan = solve(load_model(model_path), 1, method, headroom=headroom)
@@ -476,8 +538,6 @@ def _solve(model_path: Path, method: str, headroom: float | str) -> Plan:
 def _deployed(plan: Plan, space: Any, arg_defaults: dict[str, str | None]) -> tuple[dict[str, Any], dict[str, str]]:
     """What deploying ``plan`` runs: each varied node's value (as deploy sets it) and each
     node's computer."""
-    from perfros_bag.sweep.deploy import plan_run
-
     run = plan_run(plan, space, arg_defaults)
     return dict(run.values), {n: pn.computer for n, pn in sorted(plan.nodes.items())}
 
@@ -550,9 +610,8 @@ def _fill_after(entry: dict[str, Any], model_path: Path) -> None:
         n["model_cpu_after"] = model_cpu(model, name, n["value"], n.get("input_hz"))
 
 
-def _plot(outdir: Path, doc: dict[str, Any]) -> None:
-    from perfros_bag.fileio import atomic_open
-    from perfros_bag.report.tune_plots import plot_tune
-
+def _plot(outdir: Path, doc: dict[str, Any], plot: Plot | None) -> None:
+    if plot is None:
+        return
     with atomic_open(outdir / "tune.png", "wb", encoding=None) as fh:
-        fh.write(plot_tune(doc["rounds"]))
+        fh.write(plot(doc["rounds"]))

@@ -232,6 +232,8 @@ class Validation:
     network: list[NetworkCheck] = field(default_factory=list)
     chains: list[ChainLatency] = field(default_factory=list)
     kept: KeptRates | None = None  # the rates an overloaded plan keeps (None: nothing capped)
+    #: the plan's chains (plan.json ``chains``): their predicted latency, set beside the measured
+    predicted_chains: list[dict[str, Any]] = field(default_factory=list)
 
     @property
     def passed(self) -> bool:
@@ -264,10 +266,33 @@ class Validation:
             "links": [link.to_dict() for link in self.links],
             "media": [m.to_dict() for m in self.media],
             "network": [c.to_dict() for c in self.network],
-            "chains": [c.to_dict() for c in self.chains],
+            "chains": chains_beside_predicted([c.to_dict() for c in self.chains], self.predicted_chains),
             "kept": None if self.kept is None else self.kept.to_dict(),
             "notes": self.notes,
         }
+
+
+def chains_beside_predicted(measured: list[dict[str, Any]], predicted: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """validation.json ``chains``: each measured chain (``p50_s``/``p95_s``) with the plan's
+    ``predicted_ms`` and ``budget_ms`` beside it (null when the plan has none), whether the
+    measured latency held the budget (``budget_held``: each bound against the measured
+    quantile; null without a budget or a measurement), and each hop's ``predicted_ms``."""
+    by_name = {c.get("name"): c for c in predicted if isinstance(c, dict)}
+    out = []
+    for c in measured:
+        p = by_name.get(c["name"], {})
+        hops = {(h.get("from"), h.get("to")): h for h in p.get("hops") or [] if isinstance(h, dict)}
+        budget = p.get("budget_ms")
+        held: bool | None = None
+        if isinstance(budget, dict) and budget:
+            got = {"p50": c.get("p50_s"), "p95": c.get("p95_s")}
+            seen = {q: got.get(q) for q in budget}
+            if all(isinstance(v, int | float) for v in seen.values()):
+                held = all(1000 * float(seen[q]) <= b for q, b in budget.items())  # type: ignore[arg-type]
+        out.append({**c, "predicted_ms": p.get("predicted_ms"), "budget_ms": budget, "budget_held": held,
+                    "hops": [{**h, "predicted_ms": hops.get((h["from"], h["to"]), {}).get("predicted_ms")}
+                             for h in c["hops"]]})
+    return out
 
 
 def _ratio(measured: float, expected: float) -> float | None:
@@ -435,8 +460,18 @@ def check_run(stats: RecordingStats, plan: Plan, *, cap: bool = False,
         deviation_pct=_deviation(overall_m, overall_e), nodes=nodes, computers=computers,
         links=links, media=media, unplanned_topics=unplanned, cpu_traces=list(cpu_traces),
         system=system.source if system is not None else None, notes=notes + (kept.notes if kept else []),
-        network=network, chains=list(chains), kept=kept,
+        network=network, chains=list(chains), kept=kept, predicted_chains=_predicted_chains(plan, system, chains),
     )
+
+
+def _predicted_chains(plan: Plan, system: System | None, chains: Sequence[ChainLatency]) -> list[dict[str, Any]]:
+    """The plan's predicted chains; a plan that states none (written before chains were
+    predicted, or built by hand) predicted here from its own numbers when the system is known."""
+    if plan.chains or system is None or not chains:
+        return list(plan.chains)
+    from perfros_bag.system.latency import plan_predictions
+
+    return [p.to_dict() for p in plan_predictions(system, plan, warn=False)]
 
 
 def _check_input(n: NodeCheck, stats: RecordingStats, topic: str, expected: float | None, notes: list[str]) -> None:

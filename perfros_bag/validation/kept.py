@@ -5,9 +5,11 @@ rates"):
 - a node's need is its CPU at its current input rate (a driven node: the data-flow rule of
   :func:`perfros_bag.system.types.driven_rates` at its planned setting; any other node: its
   planned CPU), times its calibration (measured / planned CPU where the run showed more);
-- a computer whose nodes need more than its capacity shares it in proportion to need: each
-  busy node gets capacity x need / Σ need, and its output rate scales by share / need (the
-  same factor capacity / Σ need for all of them);
+- a computer whose nodes need more than its capacity shares it as CFS does
+  (:func:`perfros_bag.system.cpushare.fair_shares`): max-min fair per busy thread, so a node
+  that needs less than its slices keeps all it needs and the others share the rest, a node
+  with k busy threads (system.yaml ``threads``, measured by ``record-cpu``; default 1)
+  counting as k slices; its output rate scales by share / need;
 - a node's lower output rate is the lower input rate of the nodes it drives: their need and
   their output fall too, all the way down the ``input`` chains;
 - repeated to a fixed point (damped: each round moves the input rates half way to what the
@@ -21,6 +23,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
+from perfros_bag.system.cpushare import Demand, fair_shares
 from perfros_bag.system.plan import Plan
 from perfros_bag.system.types import Setting, System, driven_rates
 
@@ -107,6 +110,14 @@ def planned_settings(plan: Plan, system: System | None) -> tuple[dict[str, Setti
     return out, notes
 
 
+def node_threads(plan: Plan, system: System | None) -> dict[str, float]:
+    """Each plan node's busy threads at its planned value (system.yaml ``threads`` of its
+    setting, else of the node; 1 without)."""
+    if system is None:
+        return {}
+    return {name: system.node[name].threads_at(pn.value) for name, pn in plan.nodes.items() if name in system.node}
+
+
 def overloaded_capacities(plan: Plan, system: System | None) -> dict[str, float]:
     """The capacity each planned computer has: the system's (the robot it runs on) when it
     gives one, else the plan's."""
@@ -128,6 +139,7 @@ def predict_kept(plan: Plan, system: System | None, capacities: Mapping[str, flo
     parent = {n: system.flow_parent[n] for n in settings} if system is not None else {}
     parent = {n: p for n, p in parent.items() if p in plan.nodes}
     inputs = {n: float(plan.nodes[n].input_hz or 0.0) for n in settings}
+    threads = node_threads(plan, system)
 
     def topic_rates(name: str) -> dict[str, float]:
         return {t: r.frequency_hz for t, r in plan.nodes[name].topics.items() if r.frequency_hz is not None}
@@ -145,13 +157,16 @@ def predict_kept(plan: Plan, system: System | None, capacities: Mapping[str, flo
                 need[name], out_at[name] = pn.cpu, None
             need[name] *= calibration.get(name, 1.0)
         load: dict[str, float] = {}
+        demands: dict[str, list[Demand]] = {}
         for name, pn in plan.nodes.items():
             load[pn.computer] = load.get(pn.computer, 0.0) + need[name]
+            demands.setdefault(pn.computer, []).append(Demand(name, need[name], threads.get(name, 1.0)))
         factor = {}
-        for name, pn in plan.nodes.items():
-            cap = capacities.get(pn.computer)
-            total = load[pn.computer]
-            factor[name] = 1.0 if cap is None or total <= cap or need[name] <= 0 else cap / total
+        for comp, ds in demands.items():
+            cap = capacities.get(comp)
+            shares = {d.name: d.need for d in ds} if cap is None else fair_shares(cap, ds)
+            for d in ds:
+                factor[d.name] = 1.0 if d.need <= 0 else min(1.0, shares[d.name] / d.need)
         new_in: dict[str, float] = {}
         for name, p in parent.items():
             topic = system.node[name].input if system is not None else None

@@ -32,6 +32,9 @@ import sys
 import tempfile
 import time
 import uuid
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -70,6 +73,69 @@ for _line in sys.stdin:
     with lock:
         print(json.dumps({"t": time.monotonic(), "counts": dict(counts)}), flush=True)
 """
+
+
+@dataclass
+class BenchRun:
+    """What :func:`bench_run` gives a bench: its run tag, a temp folder with the case study's
+    scene, its processes and its (uncapped) cgroups; ``left`` after the run."""
+
+    run_id: str
+    tmp: Path
+    scene: Path
+    procs: Any
+    groups: Any
+    left_groups: list[Path] = field(default_factory=list)
+
+    def leftovers(self) -> dict[str, list[Any]]:
+        from perfros_bag.rosrun.cgroups import leftover_groups
+        from perfros_bag.rosrun.processes import leftover_processes
+
+        return {"leftover_processes": leftover_processes(self.run_id),
+                "leftover_cgroups": [str(p) for p in self.left_groups + leftover_groups(run_id=self.run_id)]}
+
+
+@contextmanager
+def bench_run(bench: str, tag: str, cores: dict[str, float]) -> Iterator[BenchRun]:
+    """Root and cgroups checked (SystemExit naming ``bench`` without), a run tag ``tag`` +
+    8 hex digits, the scene drawn, the groups ``cores`` created uncapped, everything started
+    stopped and removed on exit, Ctrl-C, SIGTERM or an error (then its processes waited for up
+    to 5 s). Start roscore with ``start_roscore(run.procs, run.tmp, 30.0)``."""
+    import shutil
+
+    from perfros_bag.rosrun.cgroups import CpuGroups, cgroup_version
+    from perfros_bag.rosrun.processes import (
+        Processes,
+        leftover_processes,
+        ros_env,
+        sigterm_as_interrupt,
+    )
+
+    if os.geteuid() != 0 or cgroup_version() == "none":
+        raise SystemExit(f"{bench}: needs root and a cgroup cpu controller (v1 or v2)")
+    run_id = f"{tag}{uuid.uuid4().hex[:8]}"
+    tmp = Path(tempfile.mkdtemp(prefix=f"bench-{tag}-"))
+    sys.path.insert(0, str(ROOT / "pipelines"))
+    from casestudy_real import draw_scene  # the case study's own 320x240 scene
+
+    scene = tmp / "scene.png"
+    draw_scene(scene)
+    (tmp / "ros").mkdir()
+    run = BenchRun(run_id, tmp, scene, Processes(run_id, ros_env(run_id, tmp / "ros")), CpuGroups(run_id, cores))
+    try:
+        with sigterm_as_interrupt():
+            run.groups.create(capped=False)
+            if not run.groups.capped:
+                raise SystemExit(f"{bench}: no cgroups ({run.groups.reason})")
+            yield run
+    finally:
+        run.procs.stop()
+        run.procs.kill_leftovers()
+        run.left_groups = run.groups.remove()
+        shutil.rmtree(tmp, ignore_errors=True)
+        deadline = time.monotonic() + 5
+        while leftover_processes(run_id) and time.monotonic() < deadline:
+            time.sleep(0.2)
 
 
 def _cpu_s(pid: int) -> float:
@@ -116,99 +182,67 @@ def measure(nodes: list[str], factors: list[float], window: float = 8.0, settle:
             scale0: float = 1.05, kernel: int = 15, log: Any = print, warmup: float = 5.0) -> dict[str, Any]:
     """Run the bench; the result document (see the module's docstring)."""
     from perfros_bag.cpu.speed import measure_speed
-    from perfros_bag.rosrun.cgroups import CpuGroups, cgroup_version, leftover_groups
     from perfros_bag.rosrun.master import start_roscore
-    from perfros_bag.rosrun.processes import (
-        Processes,
-        leftover_processes,
-        ros_env,
-        sigterm_as_interrupt,
-    )
 
-    if os.geteuid() != 0 or cgroup_version() == "none":
-        raise SystemExit("bench_cgroup_fairness: needs root and a cgroup cpu controller (v1 or v2)")
-    run_id = f"fair{uuid.uuid4().hex[:8]}"
-    tmp = Path(tempfile.mkdtemp(prefix="bench-fairness-"))
-    sys.path.insert(0, str(ROOT / "pipelines"))
-    from casestudy_real import draw_scene  # the case study's own 320x240 scene
-
-    scene = tmp / "scene.png"
-    draw_scene(scene)
-    procs = Processes(run_id, ros_env(run_id, tmp / "ros"))
-    (tmp / "ros").mkdir()
-    groups = CpuGroups(run_id, {n: 1.0 for n in nodes})
     results: dict[str, Any] = {}
     speed_before = measure_speed()
     started = time.monotonic()
-    try:
-        with sigterm_as_interrupt():
-            groups.create(capped=False)
-            if not groups.capped:
-                raise SystemExit(f"bench_cgroup_fairness: no cgroups ({groups.reason})")
-            uri = start_roscore(procs, tmp, 30.0)
-            log(f"roscore at {uri}; run tag {run_id}")
-            cam_name, cam_exe, _a, _t = NODES["camera"]
-            camera_args = [str(scene), f"_publish_rate:={RATE_HZ:g}", f"__name:={cam_name}"]
-            for key in nodes:
-                name, exe, extra, out_topic = NODES[key]
-                opts = {"scale0": f"{scale0:g}", "kernel": str(kernel)}
-                argv = [exe, *(a % opts for a in extra), f"__name:={name}"]
-                if key == "camera":  # the camera itself is the node under test: started in the group
-                    node = procs.start(key, groups.wrap(key, [cam_exe, *camera_args]), tmp / f"{key}.log")
-                else:
-                    procs.start(f"camera-{key}", [cam_exe, *camera_args], tmp / f"camera-{key}.log")
-                    node = procs.start(key, groups.wrap(key, argv), tmp / f"{key}.log")
-                topics = [INPUT] if key == "camera" else [INPUT, out_topic]
-                cpop = subprocess.Popen([ROS_PY, "-c", COUNTER, *topics], stdin=subprocess.PIPE,
-                                        stdout=subprocess.PIPE, stderr=open(tmp / f"counter-{key}.log", "wb"),
-                                        env=procs.env, start_new_session=True)
-                procs.started.append(type(node)(f"counter-{key}", cpop, open(os.devnull, "wb")))
-                counter = _Counter(cpop)
-                pid = node.popen.pid  # the wrapper execs the node: same pid
-                time.sleep(warmup)  # connections made, the node's first frames done
-                base = _window(counter, pid, window, out_topic, groups, key)
-                need = base["cpu_cores"]
-                base_kept = base["frames_out"] / base["frames_in"] if key != "camera" else 1.0
-                row: dict[str, Any] = {"node": key, "executable": Path(exe).name, "need_cores": need,
-                                       "uncapped": {**base, "kept": round(base_kept, 4)}, "capped": []}
-                log(f"{key}: need {100 * need:.1f} % of a core uncapped, kept {100 * base_kept:.1f} % "
-                    f"({base['frames_out']}/{base['frames_in']})")
-                for f in factors:
-                    groups.cores[key] = max(need * f, 0.01)
-                    groups.apply()
-                    time.sleep(settle)
-                    w = _window(counter, pid, window, out_topic, groups, key)
-                    if key == "camera":
-                        kept = w["out_hz"] / base["out_hz"] if base["out_hz"] else 0.0
-                    else:
-                        kept = w["frames_out"] / w["frames_in"] if w["frames_in"] else 0.0
-                    row["capped"].append({"factor": f, "quota_cores": round(groups.cores[key], 4),
-                                          "predicted_kept": round(min(1.0, f), 4), **w, "kept": round(kept, 4)})
-                    log(f"  x{f:g}: quota {100 * groups.cores[key]:.1f} %, used {100 * w['cpu_cores']:.1f} %, "
-                        f"kept {100 * kept:.1f} % ({w['frames_out']}/{w['frames_in']}), "
-                        f"throttled {w['nr_throttled']:.0f}/{w['nr_periods']:.0f} periods")
-                groups.cores[key] = 64.0  # uncapped again: has the need moved meanwhile?
+    with bench_run("bench_cgroup_fairness", "fair", {n: 1.0 for n in nodes}) as run:
+        procs, groups, tmp, scene, run_id = run.procs, run.groups, run.tmp, run.scene, run.run_id
+        uri = start_roscore(procs, tmp, 30.0)
+        log(f"roscore at {uri}; run tag {run_id}")
+        cam_name, cam_exe, _a, _t = NODES["camera"]
+        camera_args = [str(scene), f"_publish_rate:={RATE_HZ:g}", f"__name:={cam_name}"]
+        for key in nodes:
+            name, exe, extra, out_topic = NODES[key]
+            opts = {"scale0": f"{scale0:g}", "kernel": str(kernel)}
+            argv = [exe, *(a % opts for a in extra), f"__name:={name}"]
+            if key == "camera":  # the camera itself is the node under test: started in the group
+                node = procs.start(key, groups.wrap(key, [cam_exe, *camera_args]), tmp / f"{key}.log")
+            else:
+                procs.start(f"camera-{key}", [cam_exe, *camera_args], tmp / f"camera-{key}.log")
+                node = procs.start(key, groups.wrap(key, argv), tmp / f"{key}.log")
+            topics = [INPUT] if key == "camera" else [INPUT, out_topic]
+            cpop = subprocess.Popen([ROS_PY, "-c", COUNTER, *topics], stdin=subprocess.PIPE,
+                                    stdout=subprocess.PIPE, stderr=open(tmp / f"counter-{key}.log", "wb"),
+                                    env=procs.env, start_new_session=True)
+            procs.started.append(type(node)(f"counter-{key}", cpop, open(os.devnull, "wb")))
+            counter = _Counter(cpop)
+            pid = node.popen.pid  # the wrapper execs the node: same pid
+            time.sleep(warmup)  # connections made, the node's first frames done
+            base = _window(counter, pid, window, out_topic, groups, key)
+            need = base["cpu_cores"]
+            base_kept = base["frames_out"] / base["frames_in"] if key != "camera" else 1.0
+            row: dict[str, Any] = {"node": key, "executable": Path(exe).name, "need_cores": need,
+                                   "uncapped": {**base, "kept": round(base_kept, 4)}, "capped": []}
+            log(f"{key}: need {100 * need:.1f} % of a core uncapped, kept {100 * base_kept:.1f} % "
+                f"({base['frames_out']}/{base['frames_in']})")
+            for f in factors:
+                groups.cores[key] = max(need * f, 0.01)
                 groups.apply()
                 time.sleep(settle)
-                after = _window(counter, pid, window, out_topic, groups, key)
-                row["need_after_cores"] = after["cpu_cores"]
-                row["uncapped_after"] = after
-                both = (need + after["cpu_cores"]) / 2  # the need as best known afterwards
-                for c in row["capped"]:
-                    c["predicted_kept_mean_need"] = round(min(1.0, c["quota_cores"] / both), 4) if both else None
-                log(f"  uncapped again: {100 * after['cpu_cores']:.1f} % of a core")
-                results[key] = row
-                procs.stop([key, f"camera-{key}", f"counter-{key}"])
-    finally:
-        procs.stop()
-        procs.kill_leftovers()
-        left_groups = groups.remove()
-        import shutil
-
-        shutil.rmtree(tmp, ignore_errors=True)
-    deadline = time.monotonic() + 5
-    while leftover_processes(run_id) and time.monotonic() < deadline:
-        time.sleep(0.2)
+                w = _window(counter, pid, window, out_topic, groups, key)
+                if key == "camera":
+                    kept = w["out_hz"] / base["out_hz"] if base["out_hz"] else 0.0
+                else:
+                    kept = w["frames_out"] / w["frames_in"] if w["frames_in"] else 0.0
+                row["capped"].append({"factor": f, "quota_cores": round(groups.cores[key], 4),
+                                      "predicted_kept": round(min(1.0, f), 4), **w, "kept": round(kept, 4)})
+                log(f"  x{f:g}: quota {100 * groups.cores[key]:.1f} %, used {100 * w['cpu_cores']:.1f} %, "
+                    f"kept {100 * kept:.1f} % ({w['frames_out']}/{w['frames_in']}), "
+                    f"throttled {w['nr_throttled']:.0f}/{w['nr_periods']:.0f} periods")
+            groups.cores[key] = 64.0  # uncapped again: has the need moved meanwhile?
+            groups.apply()
+            time.sleep(settle)
+            after = _window(counter, pid, window, out_topic, groups, key)
+            row["need_after_cores"] = after["cpu_cores"]
+            row["uncapped_after"] = after
+            both = (need + after["cpu_cores"]) / 2  # the need as best known afterwards
+            for c in row["capped"]:
+                c["predicted_kept_mean_need"] = round(min(1.0, c["quota_cores"] / both), 4) if both else None
+            log(f"  uncapped again: {100 * after['cpu_cores']:.1f} % of a core")
+            results[key] = row
+            procs.stop([key, f"camera-{key}", f"counter-{key}"])
     speed_after = measure_speed()
     kept1 = {k: next((c["kept"] for c in r["capped"] if c["factor"] == 1.0), None) for k, r in results.items()}
     return {"format": "perfros-bag/bench-cgroup-fairness@1", "run_id": run_id, "cgroups": groups.mode,
@@ -218,8 +252,7 @@ def measure(nodes: list[str], factors: list[float], window: float = 8.0, settle:
             "load_average": os.getloadavg(), "nodes": results,
             "kept_at_1x": kept1,
             "kept_at_1x_min": min((v for v in kept1.values() if v is not None), default=None),
-            "leftover_processes": leftover_processes(run_id),
-            "leftover_cgroups": [str(p) for p in left_groups + leftover_groups(run_id=run_id)]}
+            **run.leftovers()}
 
 
 def table(doc: dict[str, Any]) -> str:
@@ -257,15 +290,21 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("interrupted: everything the bench started is stopped", file=sys.stderr)
         return 130
-    print(table(doc))
-    print(f"kept share at 1.0x of need: {', '.join(f'{k} {100 * v:.1f} %' for k, v in doc['kept_at_1x'].items() if v is not None)}"
-          f"; smallest {100 * (doc['kept_at_1x_min'] or 0):.1f} %; wall {doc['wall_s']} s; "
-          f"speed factor {doc['speed_factor']['before']} -> {doc['speed_factor']['after']}; "
-          f"left: {len(doc['leftover_processes'])} processes, {len(doc['leftover_cgroups'])} cgroups")
-    if args.out:
+    return finish(doc, table(doc),
+                  f"kept share at 1.0x of need: {', '.join(f'{k} {100 * v:.1f} %' for k, v in doc['kept_at_1x'].items() if v is not None)}"
+                  f"; smallest {100 * (doc['kept_at_1x_min'] or 0):.1f} %; wall {doc['wall_s']} s; "
+                  f"speed factor {doc['speed_factor']['before']} -> {doc['speed_factor']['after']}", args.out)
+
+
+def finish(doc: dict[str, Any], table_text: str, summary: str, out: Path | None) -> int:
+    """Print a bench's table and summary with what it left, write its JSON to ``out``; the
+    exit code: 1 when a process or cgroup was left."""
+    print(table_text)
+    print(f"{summary}; left: {len(doc['leftover_processes'])} processes, {len(doc['leftover_cgroups'])} cgroups")
+    if out:
         from perfros_bag.fileio import atomic_write_json
 
-        atomic_write_json(args.out, doc)
+        atomic_write_json(out, doc)
     return 0 if not doc["leftover_processes"] and not doc["leftover_cgroups"] else 1
 
 

@@ -153,7 +153,7 @@ print(n)
 
 SPLIT = """
 import sys
-from perfros_bag.ingest.split import read_split
+from perfros_bag.characterisation.cluster import read_split
 workers = int(sys.argv[1]) or None
 for f in sys.argv[2:]:
     print(read_split(f, workers=workers).messages)

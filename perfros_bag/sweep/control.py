@@ -1,0 +1,116 @@
+"""``DIR/control.json``: a new plan for a ``deploy --out DIR`` in progress (format
+``perfros-bag/deploy-control@1``, docs/formats.md "control.json").
+
+``watch --deployment DIR --adapt`` writes it (atomically) with a sequence number and the
+new plan's path. The deploy reads it about four times a second while it records
+(:class:`Control`, ``record_run``'s ``on_tick``); on a new sequence number it restarts only
+the nodes whose value or computer the new plan changes (with the launch file's arguments and
+parameters of the new values, in the new computer's namespace and cgroup), and keeps the
+master and every other node running. The caps are set again from the new plan's computers
+(in place: the cgroups' quota); the links keep their rates (a re-plan keeps the system's
+links). Each application is one entry of ``deploy.json`` ``replans``. The validation at the
+end is still against the plan the deploy started with.
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from perfros_bag.errors import PerfrosError, PerfrosWarning
+from perfros_bag.fileio import atomic_write_json, read_json
+
+if TYPE_CHECKING:
+    from perfros_bag.rosrun.cgroups import CpuGroups
+    from perfros_bag.sweep.runner import Restarter
+    from perfros_bag.sweep.space import Run, Space
+    from perfros_bag.system.plan import Plan
+
+CONTROL_FILE = "control.json"
+CONTROL_FORMAT = "perfros-bag/deploy-control@1"
+
+
+def write_control(folder: str | Path, seq: int, plan_path: str | Path, why: list[str]) -> None:
+    atomic_write_json(Path(folder) / CONTROL_FILE, {"format": CONTROL_FORMAT, "seq": seq,
+                                                    "plan": str(Path(plan_path).absolute()), "why": why})
+
+
+def changed_nodes(old: Run, new: Run, old_where: dict[str, str], new_where: dict[str, str]) -> list[str]:
+    """The system nodes whose value or computer differs between two runs of a plan."""
+    names = sorted(set(old.values) | set(new.values) | set(old_where) | set(new_where))
+    return [n for n in names if old.values.get(n) != new.values.get(n) or old_where.get(n) != new_where.get(n)]
+
+
+@dataclass
+class Control:
+    """The deploy's side: polls ``folder/control.json`` and applies a new plan."""
+
+    folder: Path
+    space: Space
+    arg_defaults: dict[str, str | None]
+    run: Run  # what runs now
+    where: dict[str, str]  # system node -> computer, now
+    groups: CpuGroups
+    units_per_core: float
+    cap: bool  # set the new plan's caps (deploy --cap)
+    on_applied: Callable[[dict[str, int]], None] | None = None  # ROS node -> new PID
+    seq: int = 0
+    applied: list[dict[str, Any]] = field(default_factory=list)
+    _mtime: float = 0.0
+
+    def tick(self, restarter: Restarter) -> None:
+        path = self.folder / CONTROL_FILE
+        try:
+            mtime = path.stat().st_mtime
+        except OSError:
+            return
+        if mtime == self._mtime:
+            return
+        self._mtime = mtime
+        try:
+            self._apply(restarter, read_json(path))
+        except PerfrosError as exc:  # a bad control file is not a reason to stop the run
+            warnings.warn(f"{path}: not applied: {exc}", PerfrosWarning, stacklevel=2)
+
+    def _apply(self, restarter: Restarter, doc: Any) -> None:
+        from perfros_bag.rosrun.cgroups import computer_cores
+        from perfros_bag.sweep.deploy import plan_run
+        from perfros_bag.system.names import system_node_name
+        from perfros_bag.system.planfile import load_plan
+
+        if not isinstance(doc, dict) or doc.get("format") != CONTROL_FORMAT or not isinstance(doc.get("seq"), int):
+            raise PerfrosError(f"not a deploy control file ({CONTROL_FORMAT} with a whole seq)")
+        if doc["seq"] <= self.seq:
+            return
+        plan: Plan = load_plan(str(doc.get("plan")))
+        plan.require_feasible(doc.get("plan"), "apply")
+        new_run = plan_run(plan, self.space, self.arg_defaults)
+        new_where = {name: pn.computer for name, pn in plan.nodes.items()}
+        unknown = sorted({c for c in new_where.values() if c not in self.groups.dirs})
+        if unknown:
+            raise PerfrosError(f"computer(s) {', '.join(unknown)} are not emulated in this run")
+        changed = changed_nodes(self.run, new_run, self.where, new_where)
+        ros = {system_node_name(n): n for n in restarter.watch.pids}
+        pids: dict[str, int] = {}
+        for node in changed:
+            if node not in ros:
+                continue
+            pid = restarter.restart(ros[node], new_run.args, new_run.params, new_where[node])
+            procs = self.groups.procs_file(new_where[node])
+            if procs is not None:
+                procs.write_text(str(pid))
+            pids[ros[node]] = pid
+        cores = computer_cores(plan, self.units_per_core)
+        self.groups.cores.update(cores)
+        if self.cap and self.groups.capped:
+            self.groups.apply()
+        self.seq = doc["seq"]
+        self.run, self.where = new_run, {**self.where, **new_where}
+        self.applied.append({"seq": self.seq, "plan": doc.get("plan"), "t": time.time(), "restarted": sorted(pids),
+                             "values": dict(new_run.values), "cores": cores})
+        if self.on_applied is not None:
+            self.on_applied(pids)

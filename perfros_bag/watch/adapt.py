@@ -1,0 +1,136 @@
+"""``watch --adapt``: when a drift persists, refit with the live windows, re-solve, write.
+
+The plan's model (plan.json ``system``, a model.json) is refitted, as ``tune`` refits on a
+deployment, on the characterisation it was fitted on (read as ``tune --base`` reads one:
+:func:`perfros_bag.tune.loop.base_rows`) plus the live windows' rows (recordings
+``watch-<k>``, the nodes at their planned values); the new model is solved with the same
+problem, method and headroom (the plan's ``headroom: auto``, else the largest share of a
+computer its ``margin`` kept) and the plan's budgets (they are in the model). Applying is
+writing, never restarting: ``DIR/replan-<k>/`` gets ``characterisation.csv``,
+``model.json``, ``plan.json``, ``changes.txt`` (one line per node whose value or computer
+changed) and, with the launch file and space.yaml, ``planned.launch`` (``export --launch
+--space``). Every re-plan, its reason (the alarms' lines) and what changed is one line of
+``DIR/adapt.jsonl``.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from perfros_bag.errors import PerfrosError, PerfrosWarning
+
+if TYPE_CHECKING:
+    from perfros_bag.characterisation.csvfile import Row
+    from perfros_bag.system.plan import Plan
+
+ADAPT_LOG = "adapt.jsonl"
+
+
+def plan_headroom(plan: Plan) -> float | str:
+    """The headroom the plan was solved with: ``auto`` when it says so, else the largest
+    share of a computer's capacity its ``margin`` keeps free (0 without margins)."""
+    if plan.extra.get("headroom") == "auto":
+        return "auto"
+    shares = [c.margin / c.capacity for c in plan.computers.values() if c.margin and c.capacity]
+    return min(0.99, max(shares)) if shares else 0.0
+
+
+def changes(old: Plan, new: Plan) -> list[str]:
+    """One line per node whose value or computer differs between two plans."""
+    lines = []
+    for name in sorted(set(old.nodes) | set(new.nodes)):
+        a, b = old.nodes.get(name), new.nodes.get(name)
+        if a is None or b is None:
+            lines.append(f"{name}: {'added' if a is None else 'removed'}")
+            continue
+        what = []
+        if a.value != b.value:
+            what.append(f"{a.parameter or 'value'} {a.value} -> {b.value}")
+        if a.computer != b.computer:
+            what.append(f"computer {a.computer} -> {b.computer}")
+        if what:
+            lines.append(f"{name}: {', '.join(what)}")
+    return lines
+
+
+@dataclass
+class Adapter:
+    out: Path
+    plan_path: Path
+    launch: Path | None = None
+    space: Path | None = None
+    deployment: Path | None = None  # a deploy in progress: the new plan goes to its control.json
+    sent: int = 0  # control.json's last sequence number
+
+    def _model(self, plan: Plan) -> Path:
+        if not plan.system:
+            raise PerfrosError(f"{self.plan_path}: names no model.json (plan.json \"system\"): nothing to refit")
+        raw = Path(plan.system)
+        for cand in ([raw] if raw.is_absolute() else [self.plan_path.parent / raw, raw]):
+            if cand.is_file():
+                return cand
+        raise PerfrosError(f"{self.plan_path}: its model {plan.system} was not found")
+
+    def replan(self, plan: Plan, rows: list[Row], alarms: list[dict[str, Any]], k: int) -> dict[str, Any] | None:
+        """Refit, re-solve and write; the log entry (also appended to ``adapt.jsonl``), or
+        None with a warning when it cannot (no model, or the new model has no plan)."""
+        try:
+            return self._replan(plan, rows, alarms, k)
+        except PerfrosError as exc:
+            warnings.warn(f"--adapt: window {k}: no re-plan: {exc}", PerfrosWarning, stacklevel=2)
+            return None
+
+    def _replan(self, plan: Plan, rows: list[Row], alarms: list[dict[str, Any]], k: int) -> dict[str, Any]:
+        import time
+
+        from perfros_bag.characterisation.csvfile import write_characterisation
+        from perfros_bag.fileio import atomic_write_text, json_text
+        from perfros_bag.fitting.build import build_model
+        from perfros_bag.fitting.modelfile import read_model, write_model
+        from perfros_bag.solver import solve
+        from perfros_bag.system.planfile import save_plan
+        from perfros_bag.tune.loop import base_rows, load_model
+
+        model_path = self._model(plan)
+        base = Path(read_model(model_path).characterisation)
+        if not base.is_absolute() and not base.is_file():
+            base = model_path.parent / base
+        folder = self.out / f"replan-{k:05d}"
+        folder.mkdir(parents=True, exist_ok=True)
+        csv_path, new_model, new_plan_path = folder / "characterisation.csv", folder / "model.json", folder / "plan.json"
+        write_characterisation(csv_path, [*base_rows(base), *rows])
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", PerfrosWarning)
+            write_model(new_model, build_model(model_path, csv_path).document)
+            headroom = plan_headroom(plan)
+            new = solve(load_model(new_model), plan.problem, str(plan.method), headroom=headroom)
+        new.require_feasible(new_model, "apply")
+        save_plan(new, new_plan_path)
+        changed = changes(plan, new)
+        atomic_write_text(folder / "changes.txt", "".join(f"{line}\n" for line in changed) or "no change\n")
+        launch = None
+        if self.launch is not None and self.space is not None:
+            from perfros_bag.export.planned import export_planned
+
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", PerfrosWarning)
+                export_planned(new_plan_path, self.launch, self.space, folder / "planned.launch")
+            launch = str(folder / "planned.launch")
+        applied = "written (nothing restarted)"
+        if self.deployment is not None and changed:
+            from perfros_bag.sweep.control import write_control
+
+            self.sent += 1
+            write_control(self.deployment, self.sent, new_plan_path, [a["line"] for a in alarms])
+            applied = (f"sent to the deploy ({self.deployment / 'control.json'} seq {self.sent}): it restarts the "
+                       "nodes whose value or computer changed")
+        entry = {"window": k, "t": time.time(), "why": [a["line"] for a in alarms], "plan": str(new_plan_path),
+                 "launch": launch, "objective_before": plan.objective, "objective_after": new.objective,
+                 "headroom": headroom, "changes": changed, "applied": applied}
+        log = self.out / ADAPT_LOG
+        previous = log.read_text(encoding="utf-8") if log.exists() else ""
+        atomic_write_text(log, previous + json_text(entry, indent=None) + "\n")
+        return entry

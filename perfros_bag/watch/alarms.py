@@ -1,0 +1,88 @@
+"""Drifts and alarms.
+
+A window drifts on a node's rate when its topics' measured rate (the mean over its topics
+with an expectation, as the window's ``measured_hz``) is further from the plan's than
+``tolerance`` % plus one message per window (a count over a short window is whole
+messages: 10 Hz over 2 s is 20 +- 1), and on a chain's latency when its measured p95
+exceeds the plan's predicted p95 by more than ``tolerance`` %. A drift of the same node or
+chain and quantity in ``persist`` windows in a row is an alarm; a node that died is an
+alarm at once. An alarm stays listed while its drift lasts.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+
+@dataclass(frozen=True)
+class Drift:
+    kind: str  # "node" | "chain"
+    name: str
+    quantity: str  # "rate_hz" | "alive" | "latency_p95_ms"
+    planned: float
+    measured: float
+    immediate: bool = False  # an alarm without waiting for persistence (a node that died)
+
+    @property
+    def key(self) -> tuple[str, str, str]:
+        return (self.kind, self.name, self.quantity)
+
+
+@dataclass(frozen=True)
+class Alarm:
+    drift: Drift
+    windows: int  # windows in a row it has drifted
+    new: bool  # raised in this window
+
+    def line(self) -> str:
+        d = self.drift
+        return f"alarm: {d.kind} {d.name}: {d.quantity} planned {d.planned:.4g}, measured {d.measured:.4g}"
+
+    def to_dict(self) -> dict[str, Any]:
+        d = self.drift
+        return {d.kind: d.name, "quantity": d.quantity, "planned": d.planned, "measured": d.measured,
+                "windows": self.windows, "new": self.new, "line": self.line()}
+
+
+def rate_drifts(window: dict[str, Any], tolerance: float) -> list[Drift]:
+    """The node drifts of one window's JSON object (its ``nodes`` and ``seconds``)."""
+    seconds = float(window["seconds"])
+    slack = 1.0 / seconds if seconds > 0 else 0.0
+    out: list[Drift] = []
+    for name, n in window["nodes"].items():
+        if not n.get("alive", True):
+            out.append(Drift("node", name, "alive", 1.0, 0.0, immediate=True))
+            continue
+        exp, meas = n.get("expected_hz"), n.get("measured_hz")
+        if exp and meas is not None and abs(meas - exp) > tolerance / 100.0 * exp + slack:
+            out.append(Drift("node", name, "rate_hz", float(exp), float(meas)))
+    for c in window.get("chains", []):
+        pred = (c.get("predicted_ms") or {}).get("p95")
+        meas = (c.get("measured_ms") or {}).get("p95") if c.get("measured_ms") else None
+        if pred and meas is not None and meas > pred * (1.0 + tolerance / 100.0):
+            out.append(Drift("chain", str(c["chain"]), "latency_p95_ms", float(pred), float(meas)))
+    return out
+
+
+class Persistence:
+    """Counts each drift's windows in a row; a drift missing from a window starts again at 0."""
+
+    def __init__(self, persist: int) -> None:
+        if persist < 1:
+            raise ValueError("persist must be >= 1")
+        self.persist = persist
+        self.count: dict[tuple[str, str, str], int] = {}
+        self.raised: set[tuple[str, str, str]] = set()
+
+    def update(self, drifts: list[Drift]) -> list[Alarm]:
+        """The alarms of this window, given its drifts."""
+        now = {d.key: d for d in drifts}
+        self.count = {k: (self.count.get(k, 0) + 1) for k in now}
+        self.raised &= set(now)
+        alarms = []
+        for k, d in now.items():
+            if d.immediate or self.count[k] >= self.persist:
+                alarms.append(Alarm(d, self.count[k], k not in self.raised))
+                self.raised.add(k)
+        return alarms

@@ -1,0 +1,301 @@
+"""The watch loop: attach, then one window after another until told to stop.
+
+Attached to ``ROS_MASTER_URI`` (or ``master_uri``), or to a deploy in progress
+(``deployment``: its ``live.json``, see :mod:`perfros_bag.sweep.livestate`): then the
+watch runs on a thread of its own that enters the network namespace the deploy's master
+runs in (``setns(2)`` on that thread only, as the deploy's own runner does; the process
+stays in the host's), every node is local and a node's CPU is in the units of its emulated
+computer. The watch starts no process and stops none.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+import warnings
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from perfros_bag.errors import InputError, PerfrosError, PerfrosWarning
+from perfros_bag.validation import DEFAULT_TOLERANCE
+
+if TYPE_CHECKING:
+    from perfros_bag.characterisation.csvfile import Row
+    from perfros_bag.system.plan import Plan
+    from perfros_bag.system.types import System
+    from perfros_bag.watch.observe import Observer, Reading
+    from perfros_bag.watch.stamps import StampListener
+
+#: Windows a watch waits for a master that does not answer: none (bad input at once).
+MASTER_TIMEOUT_S = 3.0
+PERSIST_DEFAULT = 2
+
+
+@dataclass
+class WatchResult:
+    windows: int = 0
+    alarms: list[dict[str, Any]] = field(default_factory=list)  # every alarm raised (when new)
+    ended: str | None = None  # why the watch ended by itself (the master or the deploy went away)
+    replans: list[dict[str, Any]] = field(default_factory=list)
+
+
+def check_window(window_s: float) -> float:
+    if isinstance(window_s, bool) or not isinstance(window_s, int | float) or not math.isfinite(window_s) \
+            or window_s <= 0:
+        raise InputError(None, f"--window must be a positive finite number of seconds, got {window_s!r}")
+    return float(window_s)
+
+
+def _master_up(uri: str) -> bool:
+    import socket
+    from urllib.parse import urlsplit
+
+    from perfros_bag.rosrun.master import master_call
+
+    parts = urlsplit(uri)
+    try:
+        with socket.create_connection((parts.hostname or "localhost", parts.port or 11311), timeout=MASTER_TIMEOUT_S):
+            pass
+    except (OSError, ValueError):
+        return False
+    return master_call(uri, "getPid") is not None
+
+
+def _only(plan: Plan, nodes: list[str]) -> Plan:
+    return replace(plan, nodes={n: pn for n, pn in plan.nodes.items() if n in nodes})
+
+
+def window_rows(k: int, doc: dict[str, Any], plan: Plan, stats_types: dict[str, str]) -> list[Row]:
+    """The window as characterisation rows (one per node and topic, recording ``watch-<k>``):
+    what ``fit`` and ``tune --base`` take, with the node's planned value as its setting."""
+    from perfros_bag.characterisation.csvfile import Row
+
+    rows = []
+    for name, n in doc["nodes"].items():
+        pn = plan.nodes[name]
+        if not n.get("alive", True):
+            continue
+        input_hz = None
+        if pn.input is not None:
+            src = next((m for m in doc["nodes"].values() if pn.input in m["topics"]), None)
+            input_hz = None if src is None else src["topics"][pn.input]["measured_hz"]
+        for topic, tc in (n["topics"].items() or [(None, None)]):
+            rows.append(Row(f"watch-{k:05d}", name, pn.parameter, pn.value, topic,
+                            stats_types.get(topic or "") or None,
+                            None if tc is None else int(tc["messages"]), float(doc["seconds"]),
+                            None if tc is None else float(tc["measured_hz"]), None if tc is None else float(tc["kBps"]),
+                            n.get("cpu"), None, 1 if "cpu" in n else 0, input_hz=input_hz))
+    return rows
+
+
+def watch(plan_path: str | Path, *, master_uri: str | None = None, deployment: str | Path | None = None,
+          system_path: str | Path | None = None, window_s: float = 5.0, tolerance: float = DEFAULT_TOLERANCE,
+          persist: int = PERSIST_DEFAULT, partial: bool = False, windows: int | None = None,
+          out: str | Path | None = None, adapt: Any = None,
+          on_window: Callable[[dict[str, Any], list[dict[str, Any]]], None] | None = None) -> WatchResult:
+    """Watch the plan at ``plan_path`` until ``windows`` windows (None: until Ctrl-C, or the
+    master or the deploy goes away). ``on_window(doc, new_alarms)`` gets every window's JSON
+    object. ``adapt``: an :class:`~perfros_bag.watch.adapt.Adapter`, asked to re-plan
+    when a new alarm is raised."""
+    import os
+
+    from perfros_bag.system.planfile import load_plan, plan_system
+
+    window_s = check_window(window_s)
+    if not math.isfinite(tolerance) or tolerance < 0:
+        raise InputError(None, f"--tolerance must be a finite number >= 0, got {tolerance!r}")
+    if persist < 1:
+        raise InputError(None, f"--persist must be >= 1, got {persist}")
+    plan = load_plan(plan_path)
+    plan.require_feasible(plan_path, "watch")
+    live = None
+    if deployment is not None:
+        from perfros_bag.sweep.livestate import read_live
+
+        live = read_live(deployment)
+        master_uri = live.master_uri
+        if system_path is None and live.system is not None:
+            system_path = live.system
+    master_uri = master_uri or os.environ.get("ROS_MASTER_URI")
+    if not master_uri:
+        raise InputError(None, "no ROS master to watch: set ROS_MASTER_URI, or give --master or --deployment")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", PerfrosWarning)
+        system = plan_system(plan, plan_path, system_path)
+    ns = live.namespaces.get(live.master_computer) if live is not None and live.master_computer else None
+    stop = threading.Event()
+
+    def run() -> WatchResult:
+        return _watch(plan, plan_path, system, master_uri, live is not None, live, window_s, tolerance, persist,
+                      partial, windows, out, adapt, on_window, stop)
+
+    if ns is None:
+        return run()
+    return _in_namespace(ns, run, stop, window_s)
+
+
+def _in_namespace(ns: str, run: Callable[[], WatchResult], stop: threading.Event, window_s: float) -> WatchResult:
+    """``run()`` on a thread of its own inside network namespace ``ns``. Only that thread
+    enters it: the process stays in the host's namespace, so the deploy, removing its
+    namespaces at its end (it ends the processes still inside), does not take the watch with
+    them. Ctrl-C in the main thread asks the watch to end after its current reading."""
+    from perfros_bag.rosrun.network import enter_namespace
+
+    box: dict[str, Any] = {}
+
+    def work() -> None:
+        try:
+            with enter_namespace(Path("/run/netns") / ns):
+                box["result"] = run()
+        except BaseException as exc:  # noqa: BLE001 - handed to the main thread
+            box["error"] = exc
+
+    worker = threading.Thread(target=work, name="perfros-watch", daemon=True)
+    worker.start()
+    try:
+        while worker.is_alive():
+            worker.join(0.2)
+    except KeyboardInterrupt:
+        stop.set()
+        worker.join(window_s + 30.0)
+    error = box.get("error")
+    if isinstance(error, OSError):
+        raise PerfrosError(f"cannot reach the deploy's network namespace {ns}: {error}") from None
+    if error is not None:
+        raise error
+    result: WatchResult = box["result"]
+    return result
+
+
+def _watch(plan: Plan, plan_path: str | Path, system: System | None, master_uri: str, attached: bool, live: Any,
+           window_s: float, tolerance: float, persist: int, partial: bool, windows: int | None,
+           out: str | Path | None, adapt: Any,
+           on_window: Callable[[dict[str, Any], list[dict[str, Any]]], None] | None,
+           stop: threading.Event) -> WatchResult:
+    from perfros_bag.watch.alarms import Persistence
+    from perfros_bag.watch.observe import Observer
+
+    if not _master_up(master_uri):
+        raise InputError(None, f"no ROS master reachable at {master_uri} (waited {MASTER_TIMEOUT_S:g} s)")
+    observer = Observer(master_uri, {n: list(pn.topics) for n, pn in plan.nodes.items()}, all_local=attached)
+    missing = observer.attach()
+    if missing:
+        if not partial or len(missing) == len(plan.nodes):
+            raise InputError(plan_path, f"planned node(s) not running: {', '.join(missing)}"
+                             + ("" if partial else " (--partial watches the others)"))
+        warnings.warn(f"planned node(s) not running, not watched: {', '.join(missing)}", PerfrosWarning, stacklevel=2)
+        plan = _only(plan, [n for n in plan.nodes if n not in missing])
+    units = live.units_per_core if live is not None else None
+    outdir = None if out is None else Path(out)
+    if outdir is not None:
+        outdir.mkdir(parents=True, exist_ok=True)
+    persistence = Persistence(persist)
+    result = WatchResult()
+    listeners = _listen_to_chains(observer, plan)
+    try:
+        _windows(observer, plan, system, live, units, window_s, tolerance, persistence, windows, outdir, adapt,
+                 on_window, result, master_uri, listeners, stop)
+    except KeyboardInterrupt:
+        result.ended = "interrupted (Ctrl-C)"
+    finally:
+        for listener in listeners.values():
+            listener.close()
+    return result
+
+
+def _listen_to_chains(observer: Observer, plan: Plan) -> dict[str, StampListener]:
+    """Per chain with a prediction, a subscriber to its last topic (its header stamps)."""
+    from perfros_bag.watch.stamps import StampListener
+    from perfros_bag.watch.window import planned_chains
+
+    out = {}
+    for c in planned_chains(plan):
+        topic = str(c["topics"][-1])
+        uris = [u for p in observer.publishers.get(topic, []) if (u := observer._uri(p)) is not None]
+        out[str(c["name"])] = StampListener(topic, observer.types.get(topic, "*"), uris)
+    return out
+
+
+def chain_latency(listeners: dict[str, StampListener]) -> dict[str, dict[str, Any] | None]:
+    """Per chain, its window's latency in ms ``{p50, p95, messages}``; None without a message."""
+    from perfros_bag.watch.stamps import percentile
+
+    out: dict[str, dict[str, Any] | None] = {}
+    for name, listener in listeners.items():
+        xs = listener.take()
+        out[name] = None if not xs else {"p50": 1000.0 * percentile(xs, 50), "p95": 1000.0 * percentile(xs, 95),
+                                         "messages": len(xs)}
+    return out
+
+
+def _windows(observer: Observer, plan: Plan, system: System | None, live: Any, units: float | None, window_s: float,
+             tolerance: float, persistence: Any, windows: int | None, outdir: Path | None, adapt: Any,
+             on_window: Callable[[dict[str, Any], list[dict[str, Any]]], None] | None, result: WatchResult,
+             master_uri: str, listeners: dict[str, StampListener], stop: threading.Event) -> None:
+    from perfros_bag.characterisation.csvfile import write_characterisation
+    from perfros_bag.fileio import atomic_write_text, json_text
+    from perfros_bag.watch.alarms import rate_drifts
+    from perfros_bag.watch.window import evaluate, window_cpu, window_document, window_stats
+
+    rows: list[Row] = []
+    lines: list[str] = []
+    before = observer.read()
+    for listener in listeners.values():
+        listener.take()  # what came before the first window's start is not in it
+    k = 0
+    while windows is None or k < windows:
+        end = before.t + window_s
+        after = _read_until(observer, end, live, stop)
+        if stop.is_set():
+            result.ended = "interrupted (Ctrl-C)"
+            break
+        latency = chain_latency(listeners)  # right after the counters, so both cover the same seconds
+        k += 1
+        stats = window_stats(before, after, observer.types, f"window-{k}")
+        cpu = window_cpu(before, after, plan, units)
+        v = evaluate(stats, plan, system, cpu, tolerance)
+        doc = window_document(k, after.t, after.t - before.t, v, plan, after.alive, set(cpu), [], latency)
+        alarms = persistence.update(rate_drifts(doc, tolerance))
+        doc["alarms"] = [a.to_dict() for a in alarms]
+        new = [a.to_dict() for a in alarms if a.new]
+        result.alarms += new
+        result.windows = k
+        if adapt is not None and new:
+            replan = adapt.replan(plan, rows + window_rows(k, doc, plan, observer.types), new, k)
+            if replan is not None:
+                result.replans.append(replan)
+                doc["replan"] = replan
+                if replan["applied"].startswith("sent"):  # the deploy runs it now: watch it against that
+                    from perfros_bag.system.planfile import load_plan
+
+                    plan = load_plan(replan["plan"])
+        if on_window is not None:
+            on_window(doc, new)
+        if outdir is not None:
+            rows += window_rows(k, doc, plan, observer.types)
+            lines.append(json_text(doc, indent=None))
+            atomic_write_text(outdir / "windows.jsonl", "\n".join(lines) + "\n")
+            write_characterisation(outdir / "characterisation.csv", rows)
+        if not after.master_up or (live is not None and not _deploy_running(live)):
+            result.ended = "the deploy ended" if live is not None else f"the master at {master_uri} went away"
+            break
+        before = after
+
+
+def _deploy_running(live: Any) -> bool:
+    return bool(live.running())
+
+
+def _read_until(observer: Observer, end: float, live: Any, stop: threading.Event) -> Reading:
+    """Sleep until ``end`` (seconds since the epoch), in short steps so a deploy that ends is
+    noticed, then read."""
+    while True:
+        left = end - time.time()
+        if left <= 0:
+            break
+        if stop.wait(min(left, 0.25)) or (live is not None and not _deploy_running(live)):
+            break
+    return observer.read()

@@ -1,0 +1,148 @@
+"""One window of a watch: the counters' differences as statistics eq 10 takes, and its JSON.
+
+A window's topic rate is its messages over the seconds between the two readings (every
+publisher of the topic summed, as a recording would hold them), its bandwidth its payload
+bytes over the same seconds. They go into a :class:`~perfros_bag.ingest.stats.RecordingStats`
+whose topics answer with those numbers, so validation's own eq 10
+(:func:`perfros_bag.validation.eq10.check_run`, with the system's link loads) judges the
+window exactly as it judges a recording. A node's CPU is its CPU seconds' difference over
+the same seconds, given to eq 10 in the units its computer is planned in.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from perfros_bag.ingest.stats import RecordingStats, TopicStats
+from perfros_bag.watch.counters import window_counts
+
+if TYPE_CHECKING:
+    from perfros_bag.system.plan import Plan
+    from perfros_bag.system.types import System
+    from perfros_bag.validation.eq10 import TracedCpu, Validation
+    from perfros_bag.watch.observe import Reading
+
+WINDOW_FORMAT = "perfros-bag/watch-window@1"
+
+
+@dataclass
+class WindowTopic(TopicStats):
+    """A topic over one window: its rate and bandwidth are its counts over the window's
+    seconds (not over the span between its first and last message, which a window does not see)."""
+
+    window_s: float = 0.0
+
+    @property
+    def span_s(self) -> float:
+        return self.window_s
+
+    @property
+    def frequency_hz(self) -> float:
+        return self.messages / self.window_s if self.window_s > 0 else 0.0
+
+    @property
+    def rate_note(self) -> str | None:
+        return None if self.window_s > 0 else "an empty window"
+
+    @property
+    def bandwidth_kBps(self) -> float:
+        return self.bytes / self.window_s / 1000.0 if self.window_s > 0 else 0.0
+
+
+def window_stats(before: Reading, after: Reading, types: dict[str, str], name: str = "window") -> RecordingStats:
+    """The topics counted between two readings (topics whose publishers counted nothing are
+    absent). A topic's seconds are those between its publisher's two answers (the mean over
+    its publishers): a reading asks the nodes one after the other."""
+    sums: dict[str, list[float]] = {}
+    for key, counters in after.topics.items():
+        m, b = window_counts(before.topics.get(key), counters)
+        seconds = after.stamps.get(key, after.t) - before.stamps.get(key, before.t)
+        s = sums.setdefault(key[0], [0, 0, 0.0, 0])
+        s[0] += m
+        s[1] += b
+        s[2] += seconds
+        s[3] += 1
+    topics: dict[str, TopicStats] = {
+        t: WindowTopic(t, types.get(t, ""), int(m), int(b), window_s=secs / n)
+        for t, (m, b, secs, n) in sums.items() if m > 0}
+    return RecordingStats(Path(name), "ros1-live", topics, "getBusStats")
+
+
+def window_cpu(before: Reading, after: Reading, plan: Plan, units_per_core: float | None) -> dict[str, TracedCpu]:
+    """Each measured node's CPU over the window, for eq 10: ``percent`` of one core as a
+    trace of this machine gives it; with ``units_per_core`` (a deploy's emulated computers)
+    scaled as :func:`perfros_bag.rosrun.cgroups.emulated_trace` scales a deploy's trace,
+    so that eq 10 reads ``percent / 100 * units_per_core`` units."""
+    from perfros_bag.validation.eq10 import TracedCpu
+
+    n = os.cpu_count() or 1
+    out: dict[str, TracedCpu] = {}
+    for node, used in after.cpu_s.items():
+        if node not in before.cpu_s or node not in plan.nodes \
+                or before.cpu_pid.get(node) != after.cpu_pid.get(node):  # restarted meanwhile: no difference
+            continue
+        seconds = after.cpu_t.get(node, after.t) - before.cpu_t.get(node, before.t)
+        if seconds <= 0:
+            continue
+        percent = max(0.0, used - before.cpu_s[node]) / seconds * 100.0
+        cap = plan.computers[plan.nodes[node].computer].capacity if plan.nodes[node].computer in plan.computers \
+            else None
+        if units_per_core is not None and cap:
+            percent = percent * n * units_per_core / cap
+        out[node] = TracedCpu(percent, n, "live")
+    return out
+
+
+def evaluate(stats: RecordingStats, plan: Plan, system: System | None, cpu: dict[str, TracedCpu],
+             tolerance: float) -> Validation:
+    """Eq 10 of one window (validation's own check, links included with the system)."""
+    from perfros_bag.validation.eq10 import check_run
+
+    return check_run(stats, plan, tolerance=tolerance, system=system, node_cpu=cpu, cpu_traces=["live"])
+
+
+def _mean(xs: list[float]) -> float | None:
+    return sum(xs) / len(xs) if xs else None
+
+
+def planned_chains(plan: Plan) -> list[dict[str, Any]]:
+    """plan.json's ``chains`` that have a prediction (``predicted_ms``) and topics."""
+    chains = getattr(plan, "chains", None) or plan.extra.get("chains") or []
+    return [c for c in chains if isinstance(c, dict) and isinstance(c.get("predicted_ms"), dict)
+            and isinstance(c.get("topics"), list) and c["topics"]]
+
+
+def window_document(k: int, t: float, seconds: float, v: Validation, plan: Plan, alive: dict[str, bool],
+                    measured_cpu: set[str], alarms: list[dict[str, Any]],
+                    latency: dict[str, dict[str, Any] | None] | None = None) -> dict[str, Any]:
+    """The window's JSON object (docs/formats.md "watch --json")."""
+    nodes: dict[str, Any] = {}
+    for n in v.nodes:
+        rated = [tc for tc in n.topics if tc.f_expected]
+        nodes[n.node] = {
+            "expected_hz": _mean([float(tc.f_expected or 0.0) for tc in rated]),
+            "measured_hz": _mean([tc.f_measured for tc in rated]) if rated
+            else _mean([tc.f_measured for tc in n.topics]),
+            **({"cpu": n.cpu_measured} if n.node in measured_cpu and n.cpu_measured is not None else {}),
+            "cpu_expected": n.cpu_expected, "computer": n.computer, "alive": alive.get(n.node, False),
+            "p_expected": n.p_expected, "p_measured": n.p_measured, "deviation_pct": n.deviation_pct,
+            "topics": {tc.topic: {"expected_hz": tc.f_expected, "measured_hz": tc.f_measured,
+                                  "kBps": tc.bandwidth_kBps, "messages": tc.messages} for tc in n.topics},
+        }
+    chains = [{"chain": c.get("name"), "topic": c["topics"][-1], "predicted_ms": c.get("predicted_ms"),
+               "measured_ms": (latency or {}).get(str(c.get("name")))} for c in planned_chains(plan)]
+    return {
+        "format": WINDOW_FORMAT, "window": k, "t": t, "seconds": seconds,
+        "overall": {"expected": v.overall_expected, "measured": v.overall_measured, "deviation_pct": v.deviation_pct},
+        "nodes": nodes,
+        "computers": {c.name: {"capacity": c.capacity, "cpu_expected": c.cpu_expected, "cpu": c.cpu_measured,
+                               "overloaded": c.overloaded} for c in v.computers},
+        "links": [{"between": list(lc.between), "capacity_kBps": lc.capacity_kBps, "expected_kBps": lc.expected_kBps,
+                   "measured_kBps": lc.measured_kBps, "overloaded": lc.overloaded} for lc in v.links],
+        "chains": chains,
+        "unmeasured": sorted(n for n in plan.nodes if n not in measured_cpu),
+        "alarms": alarms,
+    }

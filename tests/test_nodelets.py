@@ -1,0 +1,303 @@
+"""Nodelets: membership (roslaunch's resolution -> graph), system.yaml ``container`` (a
+coresidence the checker and the plan reader keep), and the manager's CPU split among its
+nodelets (perfros_bag/characterisation/containers.py).
+
+The split is checked against numbers the test makes itself: per-nodelet CPU chosen at random,
+the manager's total their sum; and, with noise, against the least-squares optimality condition
+(no single estimate can be moved without raising the squared error over the runs)."""
+
+from __future__ import annotations
+
+import itertools
+import json
+import random
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+from perfros_bag.characterisation.containers import fit_split, split_containers
+from perfros_bag.characterisation.csvfile import Row
+from perfros_bag.characterisation.manifest import RecordingEntry
+from perfros_bag.errors import InputError
+from perfros_bag.solver.check import check_plan
+from perfros_bag.sweep.graph import Graph, GraphNode, GraphTopic, read_graph, write_graph
+from perfros_bag.sweep.launchfile import Resolved, ResolvedNode
+from perfros_bag.sweep.nodelets import check_nodelets, nodelets_of, standalone_argv, with_membership
+from perfros_bag.system.planfile import load_plan
+from perfros_bag.system.systemfile import parse_system
+
+BIN = Path(sys.executable).with_name("perfros-bag")
+
+
+def _node(name: str, args: str, remaps: tuple[tuple[str, str], ...] = (), ns: str = "/") -> ResolvedNode:
+    return ResolvedNode("nodelet", "nodelet", name, ns, args, remaps, (), None, "x.launch", {})
+
+
+def _resolved() -> Resolved:
+    return Resolved((ResolvedNode("image_publisher", "image_publisher", "camera", "/", "", (), (), None, "", {}),
+                     _node("vision_manager", "manager"),
+                     _node("people", "load opencv_apps/people_detect vision_manager", (("image", "camera/image_raw"),)),
+                     _node("smooth", "load opencv_apps/smoothing /vision_manager", (("image", "camera/image_raw"),))),
+                    {}, {})
+
+
+def test_membership_from_resolution_and_graph(tmp_path: Path) -> None:
+    nodelets = nodelets_of(_resolved())
+    assert {n: (x.type, x.manager) for n, x in nodelets.items()} == {
+        "/people": ("opencv_apps/people_detect", "/vision_manager"),
+        "/smooth": ("opencv_apps/smoothing", "/vision_manager")}
+    # as the master sees it: the manager publishes and subscribes for its nodelets
+    graph = Graph((GraphNode("/camera", 1, "ip"), GraphNode("/people", 2, "nodelet"), GraphNode("/smooth", 3, "nodelet"),
+                   GraphNode("/vision_manager", 4, "nodelet")),
+                  (GraphTopic("/camera/image_raw", "sensor_msgs/Image", ("/camera",), ("/vision_manager",)),
+                   GraphTopic("/people/found", "opencv_apps/RectArrayStamped", ("/vision_manager",), ()),
+                   GraphTopic("/smooth/image", "sensor_msgs/Image", ("/vision_manager",), ()),
+                   GraphTopic("/vision_manager/bond", "bond/Status", ("/people", "/smooth", "/vision_manager"),
+                              ("/people", "/smooth", "/vision_manager"))))
+    g = with_membership(graph, nodelets)
+    by = {t.name: t for t in g.topics}
+    assert by["/people/found"].publishers == ("/people",)
+    assert by["/smooth/image"].publishers == ("/smooth",)
+    assert by["/camera/image_raw"].subscribers == ("/people", "/smooth")  # both remap image to it
+    assert by["/vision_manager/bond"] == graph.topics[3]  # the bond is left as it is
+    assert g.node("/people").container == "/vision_manager" and g.node("/people").nodelet == "opencv_apps/people_detect"
+    assert g.node("/vision_manager").container is None
+    write_graph(tmp_path / "graph.yaml", g)
+    assert read_graph(tmp_path / "graph.yaml") == g
+
+
+def test_manager_never_started_is_one_error() -> None:
+    r = _resolved()
+    r = Resolved(tuple(n for n in r.nodes if n.name != "vision_manager"), {}, {})
+    with pytest.raises(InputError, match=r"node /people: nodelet load .* into manager /vision_manager, which the "
+                                         r"launch file never starts"):
+        check_nodelets(r, "x.launch")
+
+
+def test_standalone_argv() -> None:
+    argv = ["/usr/lib/nodelet/nodelet", "load", "opencv_apps/smoothing", "vision_manager", "image:=/camera/image_raw",
+            "__name:=smooth"]
+    assert standalone_argv(argv) == ["/usr/lib/nodelet/nodelet", "standalone", "opencv_apps/smoothing",
+                                     "image:=/camera/image_raw", "__name:=smooth"]
+    with pytest.raises(InputError):
+        standalone_argv(["/usr/lib/nodelet/nodelet", "manager"])
+
+
+# --------------------------------------------------------------------------- the split
+
+
+def _rows(totals: dict[str, float], values: dict[str, dict[str, float]], loader: float = 0.05,
+          alone: dict[str, dict[str, float]] | None = None) -> tuple[list[Row], list[RecordingEntry]]:
+    rows, entries = [], []
+    for rec, total in totals.items():
+        rows.append(Row(rec, "mgr", None, None, None, None, None, 10.0, None, None, total, total * 1.2, 20))
+        for k, v in values[rec].items():
+            rows.append(Row(rec, k, "p", v, f"/{k}/out", "t", 50, 10.0, 5.0, 1.0, loader, loader, 20))
+        entries.append(RecordingEntry(Path(rec), rec, settings=values[rec]))
+    for rec, cpus in (alone or {}).items():
+        for k, c in cpus.items():
+            rows.append(Row(rec, k, "p", values[rec][k], f"/{k}/out", "t", 50, 10.0, 5.0, 1.0, c, c, 20))
+        entries.append(RecordingEntry(Path(rec), rec, settings=values[rec], standalone=tuple(cpus)))
+    return rows, entries
+
+
+def _system() -> object:
+    return parse_system({"computers": [{"name": "c", "kind": "robot", "capacity": 200}],
+                         "nodes": [{"name": "mgr", "weight": 0.4, "settings": [{"cpu": 1, "performance": 1}]},
+                                   {"name": "a", "weight": 0.3, "container": "mgr", "parameter": {"name": "p"},
+                                    "settings": [{"value": 1, "cpu": 1, "performance": 1},
+                                                 {"value": 2, "cpu": 2, "performance": 2}]},
+                                   {"name": "b", "weight": 0.3, "container": "mgr", "parameter": {"name": "p"},
+                                    "settings": [{"value": 1, "cpu": 1, "performance": 1},
+                                                 {"value": 2, "cpu": 2, "performance": 2}]}]}, "t")
+
+
+def test_split_recovers_chosen_cpu_exactly() -> None:
+    rnd = random.Random(4)
+    true = {"a": {1: rnd.uniform(5, 30), 2: rnd.uniform(5, 30), 3: rnd.uniform(5, 30)},
+            "b": {1: rnd.uniform(1, 9), 2: rnd.uniform(1, 9)}}
+    lam = 0.8  # standalone costs 1/0.8 of in-manager
+    design = [(1, 1), (2, 1), (3, 1), (1, 2)]  # one at a time around (1, 1)
+    totals, values = {}, {}
+    for i, (va, vb) in enumerate(design):
+        totals[f"r{i}"] = true["a"][va] + true["b"][vb]
+        values[f"r{i}"] = {"a": va, "b": vb}
+    values["alone"] = {"a": 1, "b": 1}
+    rows, entries = _rows(totals, values, alone={"alone": {"a": true["a"][1] / lam, "b": true["b"][1] / lam}})
+    s = fit_split(rows, "mgr", ["a", "b"], {"alone": ("a", "b")})
+    assert s is not None and s.notes == ()
+    assert s.factor == pytest.approx(lam)
+    for k in true:
+        for v, c in true[k].items():
+            assert s.cpu[k][repr(v)] == pytest.approx(c)
+    out, _ = split_containers(rows, _system(), entries)
+    assert not [r for r in out if r.recording == "alone"]  # a standalone run is not the system's configuration
+    for r in out:
+        if r.node in true:
+            assert r.cpu_units_mean == pytest.approx(true[r.node][r.value] + 0.05)  # + its loader's
+        else:
+            assert r.cpu_units_mean == pytest.approx(0.0, abs=1e-9)  # the manager: nothing beyond its nodelets
+
+
+def test_split_with_noise_is_least_squares() -> None:
+    rnd = random.Random(7)
+    design = list(itertools.product([1, 2, 3], [1, 2]))  # a grid: more runs than unknowns
+    totals = {f"r{i}": 10 * va + 3 * vb + rnd.gauss(0, 1.5) for i, (va, vb) in enumerate(design)}
+    values = {f"r{i}": {"a": va, "b": vb} for i, (va, vb) in enumerate(design)}
+    values["alone"] = {"a": 1, "b": 1}
+    rows, _ = _rows(totals, values, alone={"alone": {"a": 11.0, "b": 4.0}})
+    s = fit_split(rows, "mgr", ["a", "b"], {"alone": ("a", "b")})
+    assert s is not None
+
+    def sse(cpu: dict[str, dict[str, float]]) -> float:
+        return sum((totals[r] - cpu["a"][repr(v["a"])] - cpu["b"][repr(v["b"])]) ** 2
+                   for r, v in values.items() if r != "alone")
+
+    best = sse(s.cpu)
+    assert best == pytest.approx(sum((m - f) ** 2 for m, f in s.runs.values()))
+    for k, v in [("a", "2"), ("a", "3"), ("b", "2")]:  # each free value: moving it only raises the error
+        for step in (-0.01, 0.01):
+            moved = {n: dict(c) for n, c in s.cpu.items()}
+            moved[k][v] += step
+            assert sse(moved) > best
+    # lambda: moving the reference level of both (in the ratio of the standalone anchors) raises it too
+    for step in (-0.01, 0.01):
+        moved = {n: {x: c + step * s.reference[n] for x, c in cs.items()} for n, cs in s.cpu.items()}
+        assert sse(moved) > best
+
+
+def test_split_without_standalone_run_warns() -> None:
+    rows, entries = _rows({"r0": 10.0, "r1": 14.0, "r2": 12.0}, {"r0": {"a": 1, "b": 1}, "r1": {"a": 2, "b": 1},
+                                                               "r2": {"a": 1, "b": 2}})
+    s = fit_split(rows, "mgr", ["a", "b"], {})
+    assert s is not None and any("never ran standalone" in n and "split evenly" in n for n in s.notes)
+    assert s.cpu["a"]["1"] == pytest.approx(5.0) and s.cpu["a"]["2"] == pytest.approx(9.0)
+    assert s.cpu["b"]["2"] == pytest.approx(7.0)
+
+
+# --------------------------------------------------------------------------- the model
+
+
+def _doc(**extra: object) -> dict[str, object]:
+    nodes = [{"name": "cam", "weight": 0.25, "settings": [{"cpu": 10, "performance": 1}]},
+             {"name": "mgr", "weight": 0.25, "settings": [{"cpu": 1, "performance": 1}]},
+             {"name": "a", "weight": 0.25, "container": "mgr", "settings": [{"cpu": 30, "performance": 1}]},
+             {"name": "b", "weight": 0.25, "container": "mgr", "settings": [{"cpu": 30, "performance": 1}]}]
+    doc = {"computers": [{"name": "robot", "kind": "robot", "capacity": 60},
+                         {"name": "server", "kind": "server", "capacity": 400}],
+           "nodes": nodes, "edges": [{"from": "cam", "to": "a", "topic": "/img"}]}
+    doc.update(extra)
+    return doc
+
+
+@pytest.mark.parametrize(("container", "message"), [("nope", "unknown node 'nope'"), ("a", "is itself hosted"),
+                                                   ("b", "a node cannot host itself")])
+def test_container_must_name_a_host(container: str, message: str) -> None:
+    doc = _doc()
+    doc["nodes"][3]["container"] = container  # type: ignore[index]
+    with pytest.raises(InputError, match=message):
+        parse_system(doc, "s.yaml")
+
+
+def test_container_is_coresidence_and_the_checker_refuses_a_split(tmp_path: Path) -> None:
+    system = parse_system(_doc(), "s.yaml")
+    groups = sorted(sorted(g) for g in system.coresidence_groups)
+    assert groups == [["a", "b", "mgr"], ["cam"]]
+    (tmp_path / "s.yaml").write_text(yaml.safe_dump(_doc()))
+    out = tmp_path / "plan.json"
+    done = subprocess.run([str(BIN), "solve", str(tmp_path / "s.yaml"), "--problem", "1", "--method", "exact",
+                           "--out", str(out)], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    plan = load_plan(out)
+    where = {n: p.computer for n, p in plan.nodes.items()}
+    assert where["a"] == where["b"] == where["mgr"]  # 60 units on the robot cannot hold both: all on the server
+    assert check_plan(system, plan) == []
+    # move one nodelet away from its manager: the checker and every plan reader refuse it
+    raw = json.loads(out.read_text())
+    other = "robot" if where["a"] == "server" else "server"
+    raw["nodes"]["a"]["computer"] = other
+    split = tmp_path / "split.json"
+    split.write_text(json.dumps(raw))
+    bad = load_plan(split)
+    assert any(p.startswith("container: a on") for p in check_plan(system, bad))
+    done = subprocess.run([str(BIN), "export", str(split), "--format", "roslaunch", "--system",
+                           str(tmp_path / "s.yaml"), "--out", str(tmp_path / "x.launch")],
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2
+    lines = [x for x in done.stderr.splitlines() if x.strip()]
+    assert len(lines) == 1 and "container mgr" in lines[0] and "split.json" in lines[0], done.stderr
+    assert not (tmp_path / "x.launch").exists()
+
+
+def test_ros2_export_writes_a_container_per_computer(tmp_path: Path) -> None:
+    """Per computer, a ``<node_container>`` with a ``<composable_node>`` per hosted node, the
+    element and attribute names of ROS 2's "Launching composable nodes" guide (XML)."""
+    import xml.etree.ElementTree as ET
+
+    from perfros_bag.export.writers import ros2_launch_path
+
+    doc = _doc()
+    doc["nodes"][2]["launch"] = {"package": "opencv_apps", "type": "people_detect"}  # type: ignore[index]
+    (tmp_path / "s.yaml").write_text(yaml.safe_dump(doc))
+    plan = tmp_path / "plan.json"
+    done = subprocess.run([str(BIN), "solve", str(tmp_path / "s.yaml"), "--problem", "1", "--method", "exact",
+                           "--out", str(plan)], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    out = tmp_path / "params.yaml"
+    done = subprocess.run([str(BIN), "export", str(plan), "--format", "ros2-params", "--system", str(tmp_path / "s.yaml"),
+                           "--out", str(out)], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    where = {n: p.computer for n, p in load_plan(plan).nodes.items()}
+    hosted = {n["name"]: n["container"] for n in doc["nodes"] if "container" in n}  # type: ignore[index, union-attr]
+    seen: dict[str, str] = {}
+    for computer in sorted(set(where.values())):
+        root = ET.parse(ros2_launch_path(out, computer)).getroot()
+        assert root.tag == "launch"
+        for el in root:
+            if el.tag == "node":
+                assert set(el.attrib) >= {"pkg", "exec", "name"}
+                seen[el.get("name") or ""] = computer
+            elif el.tag == "node_container":
+                assert set(el.attrib) == {"pkg", "exec", "name", "namespace"}
+                assert (el.get("pkg"), el.get("exec")) == ("rclcpp_components", "component_container")
+                seen[el.get("name") or ""] = computer
+                members = [c for c in el if c.tag == "composable_node"]
+                assert sorted(c.get("name") for c in members) == sorted(m for m, h in hosted.items()
+                                                                       if h == el.get("name"))
+                for c in members:
+                    assert set(c.attrib) >= {"pkg", "plugin", "name"}
+                    seen[c.get("name") or ""] = computer
+                plugins = {c.get("name"): c.get("plugin") for c in members}
+                assert plugins["a"] == "people_detect"
+    assert seen == where  # every node once, on its plan computer, the hosted ones inside their container
+
+
+def test_a_nodelet_with_only_its_bond_is_a_warning() -> None:
+    from perfros_bag.errors import PerfrosWarning
+    from perfros_bag.sweep.draft import _warn_members
+
+    doc = _doc()
+    doc["nodes"][2]["topics"] = ["/a/out"]  # type: ignore[index]
+    system = parse_system(doc, "s.yaml")  # b publishes nothing of its own (only its bond)
+    with pytest.warns(PerfrosWarning) as got:
+        _warn_members(system, [])
+    messages = [str(w.message) for w in got]
+    assert messages == ["node b: a nodelet of mgr whose only published topic is its bond: drafted with no topics "
+                        "(performance 100, no rate)"]
+
+
+def test_a_step_the_runs_spread_hides_is_a_warning() -> None:
+    # a's step (1 -> 2) is 20 units, b's 0.2: runs repeated with a spread of +-2 units
+    design = [(1, 1), (2, 1), (1, 2)] * 3
+    spread = [2.0, -2.0, 1.5, -1.5, 0.5, -0.5, 2.0, -2.0, 0.0]
+    totals = {f"r{i}": 10 + 20 * (va - 1) + 0.2 * (vb - 1) + spread[i] for i, (va, vb) in enumerate(design)}
+    values = {f"r{i}": {"a": va, "b": vb} for i, (va, vb) in enumerate(design)}
+    values["alone"] = {"a": 1, "b": 1}
+    rows, _ = _rows(totals, values, alone={"alone": {"a": 8.0, "b": 2.0}})
+    s = fit_split(rows, "mgr", ["a", "b"], {"alone": ("a", "b")})
+    assert s is not None
+    assert [n.split(":")[0] for n in s.notes] == ["node b"]
+    assert "at value 2" in s.notes[0] and "standard error" in s.notes[0]

@@ -1,0 +1,515 @@
+"""``watch`` without ROS: the counters, the persistence of alarms, eq 10 per window and the
+window's JSON, against independent computations; and the whole loop against a fake ROS 1
+master and publisher over real XML-RPC (Python's own server), counting at known rates.
+
+Independent checks: a topic's window rate is its messages' difference over the readings'
+seconds, computed here from the fake's own counters; eq 10's Σ w·P is recomputed from the
+plan's numbers and those rates by hand; an alarm is raised exactly when the last
+``persist`` windows all drifted (run lengths counted here by brute force).
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import os
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+from xmlrpc.server import SimpleXMLRPCServer
+
+import pytest
+import yaml
+
+from perfros_bag.characterisation.csvfile import Row, read_characterisation, write_characterisation
+from perfros_bag.errors import InputError, PerfrosWarning
+from perfros_bag.system.plan import Plan, PlannedComputer, PlannedNode, PlannedTopic
+from perfros_bag.system.planfile import load_plan, save_plan
+from perfros_bag.watch.adapt import Adapter, changes
+from perfros_bag.watch.alarms import Drift, Persistence, rate_drifts
+from perfros_bag.watch.counters import WRAP, TopicCounters, parse_bus_stats, window_counts
+from perfros_bag.watch.loop import check_window, watch
+from perfros_bag.watch.observe import Reading
+from perfros_bag.watch.window import evaluate, window_cpu, window_document, window_stats
+
+# --------------------------------------------------------------------------- counters
+
+
+def test_bus_stats_of_roscpp_and_rospy_are_read_per_connection() -> None:
+    roscpp = [[["/cam/image", [[1, 1000, 900, 10, 0], [2, 500, 450, 5, 0]]]], [], []]
+    rospy = [[["/count", 240, [[7, 300, 12, True]]]], [], []]
+    a = parse_bus_stats(roscpp)["/cam/image"]
+    assert a.connections == {1: (10, 900), 2: (5, 450)} and a.total_bytes is None
+    b = parse_bus_stats(rospy)["/count"]
+    assert b.connections == {7: (12, 0)} and b.total_bytes == 240
+    assert parse_bus_stats("nonsense") == {} and parse_bus_stats([[["/x", "y"]]]) == {}
+
+
+def test_a_window_counts_the_largest_connection_difference_new_connections_and_wraps() -> None:
+    before = TopicCounters({1: (10, 900), 2: (WRAP - 5, WRAP - 50)})
+    after = TopicCounters({1: (30, 2700), 2: (15, 150), 3: (4, 360)})  # 2 wrapped, 3 is new
+    # connection 2 went from 2^32-5 to 15: 20 messages, 200 bytes; 1: 20 and 1800; 3: 4 and 360
+    assert window_counts(before, after) == (20, 1800)
+    assert window_counts(None, after) == (30, 2700)
+    rospy = window_counts(TopicCounters({7: (12, 0)}, 240), TopicCounters({7: (20, 0)}, 400))
+    assert rospy == (8, 160)
+
+
+# --------------------------------------------------------------------------- persistence
+
+
+@pytest.mark.parametrize("persist", [1, 2, 3])
+def test_an_alarm_is_raised_exactly_when_the_last_n_windows_all_drifted(persist: int) -> None:
+    for pattern in itertools.product([False, True], repeat=7):
+        p = Persistence(persist)
+        run = 0
+        for i, drifting in enumerate(pattern):
+            alarms = p.update([Drift("node", "cam", "rate_hz", 10.0, 5.0)] if drifting else [])
+            run = run + 1 if drifting else 0
+            assert (len(alarms) == 1) == (run >= persist), (pattern, i)
+            if alarms:
+                assert alarms[0].windows == run and alarms[0].new == (run == persist)
+
+
+def test_a_dead_node_is_an_alarm_at_once_and_drifts_of_others_are_kept_apart() -> None:
+    p = Persistence(3)
+    dead = Drift("node", "cam", "alive", 1.0, 0.0, immediate=True)
+    slow = Drift("node", "det", "rate_hz", 10.0, 2.0)
+    first = p.update([dead, slow])
+    assert [a.drift.name for a in first] == ["cam"] and first[0].new
+    assert [a.drift.name for a in p.update([dead, slow])] == ["cam"]
+    third = p.update([dead, slow])
+    assert {a.drift.name: a.new for a in third} == {"cam": False, "det": True}
+    with pytest.raises(ValueError):
+        Persistence(0)
+
+
+def test_rate_drift_allows_one_message_per_window_and_the_tolerance() -> None:
+    def window(measured: float, seconds: float = 2.0, alive: bool = True) -> dict[str, Any]:
+        return {"seconds": seconds, "nodes": {"cam": {"expected_hz": 10.0, "measured_hz": measured, "alive": alive}}}
+
+    # 5 % of 10 Hz + 1 message / 2 s = 1.0 Hz of slack
+    assert rate_drifts(window(9.01), 5.0) == [] and rate_drifts(window(10.99), 5.0) == []
+    [d] = rate_drifts(window(8.9), 5.0)
+    assert (d.name, d.quantity, d.planned, d.measured) == ("cam", "rate_hz", 10.0, 8.9)
+    assert rate_drifts(window(9.5, seconds=100.0), 1.0) != []
+    [dead] = rate_drifts(window(10.0, alive=False), 5.0)
+    assert dead.quantity == "alive" and dead.immediate
+
+
+# --------------------------------------------------------------------------- eq 10 per window
+
+
+def _plan(cam_hz: float = 10.0, det_hz: float = 5.0) -> Plan:
+    return Plan(1, "exact", "optimal", objective=None, computers={
+        "robot": PlannedComputer("robot", 50.0, 30.0), "server": PlannedComputer("server", 100.0, 20.0)},
+        nodes={"camera": PlannedNode("robot", 30.0, 80.0, 2.0, "rate", cam_hz,
+                                     {"/camera/image": PlannedTopic(cam_hz, 100.0)}),
+               "detector": PlannedNode("server", 20.0, 60.0, 1.0, "threshold", 100.0,
+                                       {"/detector/found": PlannedTopic(det_hz, 1.0),
+                                        "/detector/debug": PlannedTopic(det_hz, 1.0)})})
+
+
+def test_eq10_of_a_window_is_the_counters_rates_against_the_plan() -> None:
+    plan = _plan()
+    before = Reading(1000.0, {("/camera/image", "/camera"): TopicCounters({1: (100, 10_000)}),
+                              ("/detector/found", "/detector"): TopicCounters({4: (50, 500)}),
+                              ("/detector/debug", "/detector"): TopicCounters({5: (50, 500)})},
+                     cpu_s={"camera": 10.0, "detector": 3.0})
+    after = Reading(1004.0, {("/camera/image", "/camera"): TopicCounters({1: (136, 13_600)}),
+                             ("/detector/found", "/detector"): TopicCounters({4: (70, 700)}),
+                             ("/detector/debug", "/detector"): TopicCounters({5: (62, 620)})},
+                    cpu_s={"camera": 11.2, "detector": 3.4})
+    stats = window_stats(before, after, {"/camera/image": "sensor_msgs/Image"})
+    cpu = window_cpu(before, after, plan, units_per_core=100.0)
+    v = evaluate(stats, plan, None, cpu, 5.0)
+    # by hand: camera 36 msgs / 4 s = 9 Hz against 10; detector (20/4 = 5 Hz, 12/4 = 3 Hz) against 5 each
+    cam_ratio, det_ratio = 9.0 / 10.0, (5.0 / 5.0 + 3.0 / 5.0) / 2
+    expected = 2.0 * 80.0 + 1.0 * 60.0
+    measured = 2.0 * 80.0 * cam_ratio + 1.0 * 60.0 * det_ratio
+    assert v.overall_expected == pytest.approx(expected)
+    assert v.overall_measured == pytest.approx(measured)
+    assert v.deviation_pct == pytest.approx(100.0 * abs(measured - expected) / expected)
+    # CPU: 1.2 s over 4 s = 30 % of a core = 30 units at 100 units per core, whatever the computer
+    by = {n.node: n for n in v.nodes}
+    assert by["camera"].cpu_measured == pytest.approx(30.0) and by["detector"].cpu_measured == pytest.approx(10.0)
+    assert stats.topics["/camera/image"].bandwidth_kBps == pytest.approx(3600 / 4 / 1000)
+    doc = window_document(3, after.t, 4.0, v, plan, {"camera": True, "detector": True}, {"camera"}, [])
+    assert doc["t"] == 1004.0 and doc["nodes"]["camera"] == {**doc["nodes"]["camera"], "expected_hz": 10.0,
+                                                           "measured_hz": pytest.approx(9.0), "cpu": pytest.approx(30.0)}
+    assert "cpu" not in doc["nodes"]["detector"]  # not measured
+    assert doc["nodes"]["detector"]["measured_hz"] == pytest.approx(4.0)
+    assert doc["unmeasured"] == ["detector"] and doc["alarms"] == []
+    json.dumps(doc, allow_nan=False)
+
+
+# --------------------------------------------------------------------------- a fake ROS 1 over XML-RPC
+
+
+class FakeRos:
+    """A master and two publishers on loopback: the camera counts ``rate`` messages a second
+    of 1000 bytes from its start, the detector 5 a second; ``stop(node)`` ends a node."""
+
+    def __init__(self, rate: float = 20.0) -> None:
+        self.t0 = time.time()
+        self.rates = {"/camera": rate, "/detector": 5.0}
+        self.servers: dict[str, SimpleXMLRPCServer] = {}
+        self.uris: dict[str, str] = {}
+        for name in ("/camera", "/detector"):
+            self._serve(name, self._node(name))
+        master = self._serve("master", self._master())
+        self.master_uri = master
+
+    def _serve(self, name: str, funcs: dict[str, Any]) -> str:
+        server = SimpleXMLRPCServer(("127.0.0.1", 0), logRequests=False, allow_none=True)
+        for fname, f in funcs.items():
+            server.register_function(f, fname)
+        threading.Thread(target=server.serve_forever, daemon=True).start()
+        self.servers[name] = server
+        self.uris[name] = f"http://127.0.0.1:{server.server_address[1]}/"
+        return self.uris[name]
+
+    def count(self, name: str) -> int:
+        return int((time.time() - self.t0) * self.rates[name])
+
+    def _node(self, name: str) -> dict[str, Any]:
+        topic = {"/camera": "/camera/image", "/detector": "/detector/found"}[name]
+
+        def stats(caller: str) -> Any:
+            n = self.count(name)
+            return [1, "", [[[topic, [[1, n * 1010, n * 1000, n, 0]]]], [], []]]
+
+        funcs = {"getBusStats": stats, "getPid": lambda caller: [1, "", os.getpid()]}
+        if name == "/detector":
+            funcs["requestTopic"] = self._request_topic
+        return funcs
+
+    #: the delays (s) the detector's stamped messages are sent with, in turn, every 20 ms
+    DELAYS = (0.010, 0.020, 0.030, 0.040, 0.100)
+
+    def _request_topic(self, caller: str, topic: str, protocols: list[Any]) -> Any:
+        """TCPROS: a port that sends messages starting with a Header whose stamp is the
+        sending time less the next of :attr:`DELAYS`."""
+        import struct
+
+        listener = socket.socket()
+        listener.bind(("127.0.0.1", 0))
+        listener.listen(1)
+        self.sent: list[float] = []
+
+        def send() -> None:
+            conn, _ = listener.accept()
+            with conn:
+                size = struct.unpack("<I", conn.recv(4))[0]
+                while size > 0:
+                    size -= len(conn.recv(size))
+                conn.sendall(struct.pack("<I", 4 + 10) + struct.pack("<I", 10) + b"md5sum=abc")
+                for i in itertools.count():
+                    if "/detector" not in self.servers:
+                        return
+                    delay = self.DELAYS[i % len(self.DELAYS)]
+                    now = time.time() - delay
+                    body = struct.pack("<III", i, int(now), int((now % 1) * 1e9)) + struct.pack("<I", 0)
+                    try:
+                        conn.sendall(struct.pack("<I", len(body)) + body)
+                    except OSError:
+                        return
+                    self.sent.append(delay)
+                    time.sleep(0.02)
+
+        threading.Thread(target=send, daemon=True).start()
+        return [1, "", ["TCPROS", "127.0.0.1", listener.getsockname()[1]]]
+
+    def _master(self) -> dict[str, Any]:
+        def state(caller: str) -> Any:
+            live = [n for n in ("/camera", "/detector") if n in self.servers]
+            pubs = [[{"/camera": "/camera/image", "/detector": "/detector/found"}[n], [n]] for n in live]
+            return [1, "", [pubs, [["/camera/image", ["/detector"]]], []]]
+
+        def lookup(caller: str, node: str) -> Any:
+            return [1, "", self.uris[node]] if node in self.servers else [-1, "unknown node", ""]
+
+        return {"getSystemState": state, "lookupNode": lookup, "getPid": lambda caller: [1, "", os.getpid()],
+                "getTopicTypes": lambda caller: [1, "", [["/camera/image", "sensor_msgs/Image"]]]}
+
+    def stop(self, name: str) -> None:
+        server = self.servers.pop(name)
+        server.shutdown()
+        server.server_close()
+
+    def close(self) -> None:
+        for name in list(self.servers):
+            self.stop(name)
+
+
+@pytest.fixture
+def fake() -> Iterator[FakeRos]:
+    ros = FakeRos()
+    yield ros
+    ros.close()
+
+
+def _fake_plan(tmp_path: Path, cam_hz: float = 20.0) -> Path:
+    plan = Plan(1, "exact", "optimal", computers={"host": PlannedComputer("server", 100.0, 10.0)},
+                nodes={"camera": PlannedNode("host", 5.0, 50.0, 1.0, "rate", cam_hz,
+                                             {"/camera/image": PlannedTopic(cam_hz, cam_hz)}),
+                       "detector": PlannedNode("host", 5.0, 50.0, 1.0, None, None,
+                                               {"/detector/found": PlannedTopic(5.0, 0.01)})})
+    path = tmp_path / "plan.json"
+    save_plan(plan, path)
+    return path
+
+
+def test_a_steady_plan_raises_no_alarm_and_its_rates_are_the_counters(fake: FakeRos, tmp_path: Path) -> None:
+    docs: list[dict[str, Any]] = []
+    result = watch(_fake_plan(tmp_path), master_uri=fake.master_uri, window_s=0.6, windows=4, out=tmp_path / "w",
+                   on_window=lambda d, new: docs.append(d))
+    assert result.alarms == [] and result.windows == 4 and len(docs) == 4
+    for d in docs:
+        cam = d["nodes"]["camera"]
+        # the fake counts int(20 t): over a window of s seconds, 20 s +- 1 messages
+        assert abs(cam["measured_hz"] * d["seconds"] - 20.0 * d["seconds"]) <= 1.0 + 1e-9
+        assert cam["expected_hz"] == 20.0 and "cpu" in cam and cam["alive"]
+        assert d["t"] == pytest.approx(time.time(), abs=10)
+    rows = (tmp_path / "w" / "characterisation.csv").read_text().splitlines()
+    assert len(rows) == 1 + 4 * 2 and rows[1].startswith("watch-00001,camera,rate,20.0,/camera/image,sensor_msgs/Image,")
+    assert len((tmp_path / "w" / "windows.jsonl").read_text().splitlines()) == 4
+
+
+def test_a_slow_node_raises_its_alarm_after_persist_windows_and_a_dead_one_at_once(fake: FakeRos,
+                                                                                  tmp_path: Path) -> None:
+    docs: list[dict[str, Any]] = []
+    plan = _fake_plan(tmp_path, cam_hz=40.0)  # the camera runs at half its plan
+
+    def on(doc: dict[str, Any], new: list[dict[str, Any]]) -> None:
+        docs.append(doc)
+        if doc["window"] == 3:
+            fake.stop("/detector")
+
+    result = watch(plan, master_uri=fake.master_uri, window_s=0.6, windows=5, persist=2, on_window=on)
+    assert [a["node"] for a in docs[0]["alarms"]] == []
+    assert [(a["node"], a["quantity"], a["planned"]) for a in docs[1]["alarms"]] == [("camera", "rate_hz", 40.0)]
+    dead = [a for a in docs[3]["alarms"] if a["node"] == "detector"]
+    assert [(a["quantity"], a["planned"], a["measured"]) for a in dead] == [("alive", 1.0, 0.0)]
+    assert {(a["node"], a["quantity"]) for a in result.alarms} == {("camera", "rate_hz"), ("detector", "alive")}
+    for a in docs[1]["alarms"]:
+        assert "camera" in a["line"] and "40" in a["line"]
+
+
+def test_bad_input_no_master_missing_nodes_and_windows(fake: FakeRos, tmp_path: Path) -> None:
+    plan = _fake_plan(tmp_path)
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        closed = s.getsockname()[1]
+    t0 = time.monotonic()
+    with pytest.raises(InputError, match="no ROS master reachable"):
+        watch(plan, master_uri=f"http://127.0.0.1:{closed}", windows=1)
+    assert time.monotonic() - t0 < 10
+    for bad in (0.0, -1.0, float("nan"), float("inf")):
+        with pytest.raises(InputError, match="--window"):
+            check_window(bad)
+    fake.stop("/detector")
+    docs: list[dict[str, Any]] = []
+    with pytest.raises(InputError, match=r"not running: detector \(--partial"):
+        watch(plan, master_uri=fake.master_uri, window_s=0.3, windows=1)
+    with pytest.warns(PerfrosWarning, match="not running, not watched: detector"):
+        result = watch(plan, master_uri=fake.master_uri, window_s=0.3, windows=1, partial=True,
+                       on_window=lambda d, new: docs.append(d))
+    assert result.windows == 1 and result.alarms == [] and list(docs[0]["nodes"]) == ["camera"]
+
+
+def test_the_cli_prints_json_lines_and_exits_by_its_alarms(fake: FakeRos, tmp_path: Path) -> None:
+    plan = _fake_plan(tmp_path)
+    cmd = [sys.executable, "-m", "perfros_bag", "watch", str(plan), "--master", fake.master_uri, "--window", "0.5",
+           "--windows", "2", "--json"]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    docs = [json.loads(line) for line in done.stdout.splitlines()]
+    assert len(docs) == 2 and all({"t", "nodes", "alarms"} <= set(d) for d in docs)
+    assert set(docs[0]["nodes"]["camera"]) >= {"expected_hz", "measured_hz", "cpu"}
+    fast = _fake_plan(tmp_path, cam_hz=80.0)
+    done = subprocess.run([*cmd[:4], str(fast), *cmd[5:]], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 1, done.stderr
+    assert "alarm: node camera: rate_hz planned 80" in done.stderr
+    done = subprocess.run([*cmd[:7], "--window", "nan"], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2 and len(done.stderr.strip().splitlines()) == 1 and "--window" in done.stderr
+
+
+# --------------------------------------------------------------------------- --adapt
+
+ADAPT_SYSTEM = {
+    "computers": [{"name": "host", "kind": "server", "capacity": 100}],
+    "nodes": [
+        {"name": "camera", "weight": 1, "parameter": {"name": "rate", "unit": "Hz"}, "topics": ["/camera/image"],
+         "settings": [{"value": 20, "cpu": 10, "performance": 50, "frequency_hz": 20, "bandwidth_kBps": 20},
+                      {"value": 40, "cpu": 20, "performance": 100, "frequency_hz": 40, "bandwidth_kBps": 40}]},
+        {"name": "detector", "weight": 1, "topics": ["/detector/found"],
+         "settings": [{"cpu": 5, "performance": 50, "frequency_hz": 5, "bandwidth_kBps": 0.01}]},
+    ],
+}
+
+
+def _fit_solve(system: Path, csv: Path, model: Path, plan: Path) -> None:
+    """fit, then solve Problem 1 exactly, as the CLI's verbs do."""
+    from perfros_bag.fitting.build import build_model
+    from perfros_bag.fitting.modelfile import write_model
+    from perfros_bag.solver import solve
+    from perfros_bag.system.systemfile import load_system
+
+    write_model(model, build_model(system, csv).document)
+    save_plan(solve(load_system(model), 1, "exact"), plan)
+
+
+def test_adapt_refits_with_the_live_windows_resolves_and_writes_without_restarting(fake: FakeRos,
+                                                                                   tmp_path: Path) -> None:
+    system = tmp_path / "system.yaml"
+    system.write_text(yaml.safe_dump(ADAPT_SYSTEM, sort_keys=False))
+    base = [Row(f"sweep-{v}", "camera", "rate", v, "/camera/image", None, 100, 5.0, float(v), float(v), v / 2.0,
+                None, 10) for v in (20, 40)]
+    base += [Row(f"sweep-{v}", "detector", None, None, "/detector/found", None, 25, 5.0, 5.0, 0.01, 5.0, None, 10)
+             for v in (20, 40)]
+    write_characterisation(tmp_path / "char.csv", base)
+    with pytest.warns(PerfrosWarning):  # the fit's notes on two points
+        _fit_solve(system, tmp_path / "char.csv", tmp_path / "model.json", tmp_path / "plan.json")
+    plan = load_plan(tmp_path / "plan.json")
+    assert plan.nodes["camera"].value == 40  # the plan expects 40 Hz; the fake camera sends 20
+    out = tmp_path / "watched"
+    result = watch(tmp_path / "plan.json", master_uri=fake.master_uri, window_s=0.5, windows=3, out=out,
+                   adapt=Adapter(out, tmp_path / "plan.json"))
+    [replan] = result.replans  # the alarm is raised once (window 2), so one re-plan
+    assert replan["window"] == 2 and any("camera" in why for why in replan["why"])
+    folder = out / "replan-00002"
+    rows = read_characterisation(folder / "characterisation.csv").rows
+    live = [r for r in rows if r.recording.startswith("watch-")]
+    assert {r.recording for r in live} == {"watch-00001", "watch-00002"}
+    assert len(rows) == len(base) + len(live)
+    # fit and solve on the rows it wrote give the same plan
+    with pytest.warns(PerfrosWarning):
+        _fit_solve(tmp_path / "model.json", folder / "characterisation.csv", tmp_path / "model2.json",
+                   tmp_path / "plan2.json")
+    mine, theirs = load_plan(folder / "plan.json"), load_plan(tmp_path / "plan2.json")
+    assert {n: (p.value, p.computer) for n, p in mine.nodes.items()} == \
+        {n: (p.value, p.computer) for n, p in theirs.nodes.items()}
+    assert mine.objective == pytest.approx(theirs.objective)
+    listed = (folder / "changes.txt").read_text().splitlines()
+    assert listed == (changes(plan, mine) or ["no change"])
+    [logged] = [json.loads(line) for line in (out / "adapt.jsonl").read_text().splitlines()]
+    assert logged["plan"] == str(folder / "plan.json") and logged["applied"].startswith("written")
+    # nothing was restarted: the fake nodes still answer
+    assert set(fake.servers) == {"/camera", "/detector", "master"}
+    # the report's timeline: every new alarm and the re-plan, one row each, and the picture
+    from perfros_bag.report.html import build_report
+
+    index = build_report(tmp_path / "report", watch=out)
+    page = index.read_text()
+    windows = [json.loads(line) for line in (out / "windows.jsonl").read_text().splitlines()]
+    raised = [a["line"] for w in windows for a in w["alarms"] if a["new"]]
+    assert raised and all(line in page for line in raised)
+    assert page.count('<td class="t">alarm</td>') == len(raised) and page.count('<td class="t">re-plan</td>') == 1
+    assert (tmp_path / "report" / "watch.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+# --------------------------------------------------------------------------- chain latency
+
+
+def test_a_chain_s_latency_is_its_last_topic_s_receipt_less_its_stamp(fake: FakeRos, tmp_path: Path) -> None:
+    import numpy as np
+
+    from perfros_bag.system.planfile import load_plan
+
+    path = _fake_plan(tmp_path)
+    doc = json.loads(path.read_text())
+    doc["chains"] = [{"name": "vision", "topics": ["/camera/image", "/detector/found"],
+                      "predicted_ms": {"p50": 30.0, "p95": 100.0}},
+                     {"name": "tight", "topics": ["/camera/image", "/detector/found"],
+                      "predicted_ms": {"p50": 1.0, "p95": 2.0}}]
+    path.write_text(json.dumps(doc))
+    load_plan(path)
+    docs: list[dict[str, Any]] = []
+    result = watch(path, master_uri=fake.master_uri, window_s=1.0, windows=3, tolerance=5.0,
+                   on_window=lambda d, new: docs.append(d))
+    sent = np.array(fake.sent) * 1000.0
+    for d in docs:
+        vision = next(c for c in d["chains"] if c["chain"] == "vision")
+        assert vision["topic"] == "/detector/found" and vision["predicted_ms"] == {"p50": 30.0, "p95": 100.0}
+        m = vision["measured_ms"]
+        # receipt less stamp = the delay it was sent with + loopback transfer (ms, a loaded machine)
+        assert m is not None and m["messages"] >= 10
+        assert np.percentile(sent, 50) - 1 <= m["p50"] <= np.percentile(sent, 50) + 25, m
+        assert np.percentile(sent, 95) - 1 <= m["p95"] <= np.percentile(sent, 95) + 25, m
+    # the tight chain drifts from the first window: an alarm from the second (persist 2)
+    tight = [(d["window"], a) for d in docs for a in d["alarms"] if a.get("chain") == "tight"]
+    assert [w for w, _ in tight] == [2, 3] and tight[0][1]["quantity"] == "latency_p95_ms"
+    assert not any(a.get("chain") == "vision" for d in docs for a in d["alarms"])
+    assert {a.get("chain") for a in result.alarms} == {"tight"}
+
+
+def test_ctrl_c_ends_the_watch_with_its_alarm_status_and_stops_nothing(fake: FakeRos, tmp_path: Path) -> None:
+    import signal
+
+    proc = subprocess.Popen([sys.executable, "-m", "perfros_bag", "watch", str(_fake_plan(tmp_path)), "--master",
+                             fake.master_uri, "--window", "0.5", "--json"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    assert proc.stdout is not None
+    json.loads(proc.stdout.readline())  # one window, then Ctrl-C
+    proc.send_signal(signal.SIGINT)
+    _, stderr = proc.communicate(timeout=30)
+    assert proc.returncode == 0, stderr
+    assert "watch ended: interrupted" in stderr and "Traceback" not in stderr
+    assert set(fake.servers) == {"/camera", "/detector", "master"}  # every node still answers
+
+
+# --------------------------------------------------------------------------- a deploy's control file
+
+
+def test_a_deploy_restarts_only_the_nodes_a_new_plan_changes(tmp_path: Path) -> None:
+    from types import SimpleNamespace
+
+    from perfros_bag.rosrun.cgroups import CpuGroups
+    from perfros_bag.sweep.control import CONTROL_FORMAT, Control, write_control
+    from perfros_bag.sweep.deploy import plan_run
+    from perfros_bag.sweep.space import load_space
+
+    root = Path(__file__).resolve().parents[1]
+    space = load_space(root / "fixtures" / "app" / "space.yaml")
+    defaults: dict[str, str | None] = {"camera_rate": "10", "canny_threshold": "200"}
+
+    def plan(rate: float, threshold: float, detector_on: str) -> Plan:
+        return Plan(1, "exact", "optimal", computers={"robot1": PlannedComputer("robot", 100.0, 10.0),
+                                                      "server": PlannedComputer("server", 100.0, 10.0)},
+                    nodes={"camera": PlannedNode("robot1", 5.0, 50.0, 1.0, "publish_rate", rate),
+                           "detector": PlannedNode(detector_on, 5.0, 50.0, 1.0, "canny_threshold", threshold)})
+
+    calls: list[tuple[str, dict[str, str], str]] = []
+    restarter = SimpleNamespace(watch=SimpleNamespace(pids={"/camera": (11, 0.0), "/detector": (12, 0.0)}),
+                                restart=lambda node, args, params, computer: calls.append((node, dict(args), computer))
+                                or 100 + len(calls))
+    groups = CpuGroups("t", {"robot1": 1.0, "server": 1.0}, root=tmp_path)
+    for c in ("robot1", "server"):
+        (tmp_path / c).mkdir()
+        groups.dirs[c] = tmp_path / c
+    first = plan(10, 200, "server")
+    applied: list[dict[str, int]] = []
+    control = Control(tmp_path, space, defaults, plan_run(first, space, defaults), {"camera": "robot1",
+                      "detector": "server"}, groups, 100.0, False, applied.append)
+    for k, (new, moved) in enumerate([(plan(5, 200, "server"), {"camera"}),
+                                      (plan(5, 100, "robot1"), {"detector"}),
+                                      (plan(5, 100, "robot1"), set())], 1):
+        save_plan(new, tmp_path / f"plan{k}.json")
+        write_control(tmp_path, k, tmp_path / f"plan{k}.json", ["why"])
+        os.utime(tmp_path / "control.json", (k, k))  # a new file each time, whatever the clock's resolution
+        before = len(calls)
+        control.tick(restarter)  # type: ignore[arg-type]
+        restarted = {node.strip("/") for node, _, _ in calls[before:]}
+        assert restarted == moved and control.seq == k
+        for node, args, computer in calls[before:]:
+            assert args == {"camera_rate": "5", "canny_threshold": "100" if k > 1 else "200"}
+            assert computer == new.nodes[node.strip("/")].computer
+            assert (tmp_path / computer / "cgroup.procs").read_text() == str(applied[-1][node])
+    control.tick(restarter)  # type: ignore[arg-type]  # the same file again: nothing
+    assert len(control.applied) == 3 and json.loads((tmp_path / "control.json").read_text())["format"] == CONTROL_FORMAT
