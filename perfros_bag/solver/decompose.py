@@ -29,6 +29,23 @@ with its price: a block's own edges load them (exactly, per column) and are pric
 subproblem by a tree over its home/away patterns (:func:`_price_network`, never above a
 column's true reduced value, so the bound stays a bound); the traffic between blocks is
 reserved on them when the plan is made. The plan is checked against the whole network.
+Problem 2 (servers sized to their load, settings fixed) is the same search with a column
+worth minus the CPU it puts on the relaxed computers (nothing at home): the plan's servers
+are sized to their load, its objective and bound are Σ sizes (the bound: minus the
+Lagrangian one, a lower bound on every plan's).
+
+Driven nodes (system.yaml ``input:``): a block carries the data flow on its robot (a
+camera whose rate is a knob and the detector it drives, wherever the detector runs). Its
+*views* are the consistent assignments of its publishers' rates (:func:`flow_views`): in
+each, every member keeps only the choices that agree with it (the detector's at the
+camera's rate, so its CPU and the image traffic on the access point follow the rate), and
+the choices are independent again. The block's pricing is the best over its views; every
+consistent column lies in exactly one, so the pricing is exact and the Lagrangian bound
+stays a proof. A flow that leaves its robot's block (a driven node that may only run on a
+server, a node driven from two robots) is not decomposed: :func:`decomposable` is False
+and ``exact`` solves the whole MILP, whose flow rows tie the choices; so is a block with
+more than :data:`MAX_VIEWS` views.
+
 :func:`decomposable` says whether an instance qualifies; otherwise ``solve --method exact``
 uses the MILP.
 """
@@ -57,7 +74,7 @@ from perfros_bag.solver.local import combine_tables, on_grid
 from perfros_bag.solver.milp import quiet_highs
 from perfros_bag.solver.starts import PLUS_START_MAX_S, greedy_start, plus_start
 from perfros_bag.system.plan import Assignment, Method, Plan, Status
-from perfros_bag.system.rules import build_plan, computer_loads, weighted_performance
+from perfros_bag.system.rules import build_plan, computer_loads, server_sizes, weighted_performance
 from perfros_bag.system.types import Choice, Edge, Problem, System
 
 __all__ = ["decomposable", "solve_decomposed"]
@@ -76,6 +93,7 @@ NEAR_LIMIT = 20_000  # columns the reduced-cost enumeration may add (else it is 
 CG_TOL = 1e-7  # column generation stops when the LP is this close to the bound (relative)
 GREEDY_PLUS_SHARE = 0.1  # of the budget, for greedy+'s first plan when the greedy finds none (at most starts.PLUS_START_MAX_S)
 MAX_PATTERNS = 1024  # with network rows: home/away patterns of one block's pricing
+MAX_VIEWS = 64  # consistent rate assignments of one block's data-flow trees (each priced)
 
 
 @dataclass
@@ -128,6 +146,11 @@ class _Class:
     edges: list[_Edge] = field(default_factory=list)  # with network rows: the block's own edges
     outer: list[_Outer] = field(default_factory=list)  # ... and its edges to the rest, at their least
     links: frozenset[int] = frozenset()  # the network rows' links those edges may cross
+    # a block carrying data-flow trees (a camera and the detector it drives): per consistent
+    # assignment of its publishers' rates, the block with each member's choices cut to those
+    # that agree with it (masked items; their edges' and outer edges' home traffic to match).
+    # Pricing takes the best of them; empty: the block itself, every choice free
+    views: list[_Class] = field(default_factory=list)
 
 
 @dataclass
@@ -149,6 +172,9 @@ class _Model:
     reserve: np.ndarray = field(default_factory=lambda: np.zeros(0))  # per row: traffic between blocks, at most
     row_names: list[str] = field(default_factory=list)  # per row: "computer C", "link A-B", "medium M"
     cramped: list[int] = field(default_factory=list)  # rows the traffic between blocks could fill alone
+    # Problem 2 (servers sized to their load): a column's value is minus the CPU it puts on
+    # the relaxed computers (the servers), nothing at home; maximising it minimises Σ sizes
+    sized: bool = False
 
 
 def cpu_grid_scale(cpus: Sequence[float]) -> int | None:
@@ -158,16 +184,20 @@ def cpu_grid_scale(cpus: Sequence[float]) -> int | None:
     return None
 
 
-def home_options(inst: Instance, members: tuple[str, ...], scale: int) -> tuple[np.ndarray, np.ndarray,
-                                                                            list[tuple[int, ...]]] | None:
-    """A group's settings on its robot: every combination of its members' choices, keeping
-    for each CPU the best value (and nothing dominated)."""
+def home_options(inst: Instance, members: tuple[str, ...], scale: int,
+                 allowed: dict[str, frozenset[int]] | None = None) -> tuple[np.ndarray, np.ndarray,
+                                                                          list[tuple[int, ...]]] | None:
+    """A group's settings on its robot: every combination of its members' choices (only the
+    positions ``allowed`` names, for the members it names), keeping for each CPU the best
+    value (and nothing dominated)."""
     lists = [inst.choices[n] for n in members]
-    if math.prod(len(x) for x in lists) > MAX_GROUP_OPTIONS:
+    positions = [sorted(allowed[n]) if allowed and n in allowed else list(range(len(x)))
+                 for n, x in zip(members, lists, strict=True)]
+    if math.prod(len(x) for x in positions) > MAX_GROUP_OPTIONS:
         return None
     weight = {n: inst.system.node[n].weight for n in members}
     best: dict[int, tuple[float, tuple[int, ...]]] = {}
-    for levels in itertools.product(*(range(len(x)) for x in lists)):
+    for levels in itertools.product(*positions):
         cpu = sum(lists[i][k].cpu for i, k in enumerate(levels))
         value = sum(weight[n] * lists[i][k].performance for i, (n, k) in enumerate(zip(members, levels, strict=True)))
         units = int(round(cpu * scale))
@@ -183,11 +213,46 @@ def home_options(inst: Instance, members: tuple[str, ...], scale: int) -> tuple[
     return (np.array(keep, dtype=np.int64), np.array([best[u][0] for u in keep]), [best[u][1] for u in keep])
 
 
+def flow_views(inst: Instance, nodes: Sequence[str]) -> list[dict[str, frozenset[int]]]:
+    """The consistent rate assignments of one data-flow tree (``nodes``: its source, then the
+    nodes it drives in flow order): per assignment, each node's kept choices that agree with
+    it (a source's choices at one output rate; a driven node's at the input rate its
+    publisher then gives and, when it drives others, at one output rate of its own). Every
+    consistent choice of the tree's nodes lies in exactly one assignment."""
+    system = inst.system
+
+    def output(n: str, k: int) -> tuple[float, ...]:
+        return tuple(round(system.input_hz(child, inst.choices[n][k]), 9) for child in system.flow_children.get(n, ()))
+
+    out: list[dict[str, frozenset[int]]] = []
+    # depth-first over the nodes in flow order: (next node, positions so far, rate each node is given)
+    stack: list[tuple[int, dict[str, frozenset[int]], dict[str, float]]] = [(0, {}, {})]
+    while stack:
+        i, chosen, given = stack.pop()
+        if i == len(nodes):
+            out.append(chosen)
+            continue
+        n = nodes[i]
+        ks = [k for k, ch in enumerate(inst.choices[n])
+              if n not in given or (ch.input_hz is not None and math.isclose(ch.input_hz, given[n], rel_tol=1e-9,
+                                                                                abs_tol=1e-9))]
+        by_output: dict[tuple[float, ...], list[int]] = {}
+        for k in ks:
+            by_output.setdefault(output(n, k), []).append(k)
+        for rates, group in by_output.items():
+            more = dict(given)
+            for child, f in zip(system.flow_children.get(n, ()), rates, strict=True):
+                more[child] = f
+            stack.append((i + 1, {**chosen, n: frozenset(group)}, more))
+    return out
+
+
 def _model(system: System, inst: Instance, active: set[int] | None = None) -> _Model | str:
     """The blocks and classes of a prepared instance, or why it does not decompose.
     ``active``: the links that can overflow (``instance.active_links``): each, and each medium
     of one, becomes a network row beside the relaxed computers' CPU rows."""
     active = active or set()
+    sized = inst.problem == Problem.SERVER_CAPACITY
     kind = {c.name: c.kind for c in system.computers}
     robots_of = {g.members: [c for c in g.allowed if kind[c] == "robot"] for g in inst.groups}
     private = {c.name for c in system.computers if c.kind == "robot"}
@@ -208,15 +273,37 @@ def _model(system: System, inst: Instance, active: set[int] | None = None) -> _M
     if any(inst.cap[c] * scale > MAX_CELLS for c in private):
         return f"a robot's capacity exceeds {MAX_CELLS} grid cells"
 
-    def item(g: Group, home: str | None) -> _Item | None:
+    # the data flow: each tree (a source and the nodes it drives) must lie in one robot's block
+    block_of = {n: home for home, gs in blocks.items() for g in gs for n in g.members}
+    trees: dict[str, list[str]] = {}
+    for n in system.flow_order:
+        root = n
+        while root in system.flow_parent:
+            root = system.flow_parent[root]
+        trees.setdefault(root, [root]).append(n)
+    block_trees: dict[str, list[list[str]]] = {}
+    for root, nodes in trees.items():
+        homes = {block_of.get(n) for n in nodes}
+        if len(homes) != 1 or None in homes:
+            return (f"the data flow from {root} spans more than one robot's block (or reaches a node shared "
+                    f"between robots): its rates cannot be priced robot by robot")
+        block_trees.setdefault(block_of[root], []).append(nodes)
+
+    def item(g: Group, home: str | None, allowed: dict[str, frozenset[int]] | None = None) -> _Item | None:
         relaxed_ok = np.array([rindex[c] for c in g.allowed if c in rindex], dtype=np.int64)
         mc = [np.array([ch.cpu for ch in inst.choices[n]]) for n in g.members]
-        mv = [np.array([system.node[n].weight * ch.performance for ch in inst.choices[n]]) for n in g.members]
+        mv = [-c if sized else np.array([system.node[n].weight * ch.performance for ch in inst.choices[n]])
+              for n, c in zip(g.members, mc, strict=True)]
+        if allowed:  # a view: a choice that disagrees with the view's rates is worth -inf
+            mv = [v if n not in allowed else np.where(np.isin(np.arange(len(v)), sorted(allowed[n])), v, -np.inf)
+                  for n, v in zip(g.members, mv, strict=True)]
         if home is None:
             return _Item(g.members, relaxed_ok, np.zeros(0, dtype=np.int64), np.zeros(0), [], mc, mv)
-        opts = home_options(inst, g.members, scale)
+        opts = home_options(inst, g.members, scale, allowed)
         if opts is None:
             return None
+        if sized:  # at home a group costs nothing: its cheapest option alone
+            opts = (opts[0][:1], np.zeros(1), opts[2][:1])
         return _Item(g.members, relaxed_ok, opts[0], opts[1], opts[2], mc, mv)
 
     def signature(g: Group) -> tuple[Any, ...]:
@@ -230,8 +317,9 @@ def _model(system: System, inst: Instance, active: set[int] | None = None) -> _M
         if not gs:
             continue
         cap_units = int(math.floor(inst.cap[home] * scale + 1e-6))
+        flow = block_trees.get(home, [])
         sig: tuple[Any, ...] = (cap_units, tuple(sorted((signature(g) for g in gs), key=repr)),
-                                home if active else None)  # with network rows, every block its own class
+                                home if active or flow else None)  # network rows, a data flow: its own class
         gs = sorted(gs, key=lambda g: repr(signature(g)))
         if sig in by_sig:
             cl = classes[by_sig[sig]]
@@ -244,6 +332,20 @@ def _model(system: System, inst: Instance, active: set[int] | None = None) -> _M
         by_sig[sig] = len(classes)
         classes.append(_Class(home, cap_units, [it for it in items if it is not None], [[g.members for g in gs]],
                               [home]))
+        if flow:
+            masks = [dict(itertools.chain.from_iterable(m.items() for m in combo))
+                     for combo in itertools.product(*(flow_views(inst, nodes) for nodes in flow))]
+            if not masks:
+                return f"robot {home}'s data flow has no choices that agree with their inputs' rates"
+            if len(masks) > MAX_VIEWS:
+                return (f"robot {home} carries {len(masks)} consistent rate assignments of its data flow: "
+                        f"more than {MAX_VIEWS} to price")
+            for mask in masks:
+                view_items = [item(g, home, mask) for g in gs]
+                if any(it is None for it in view_items):
+                    return "a coresidence group has too many setting combinations"
+                classes[-1].views.append(_Class(home, cap_units, [it for it in view_items if it is not None],
+                                                classes[-1].instances, [home]))
     for g in lone:
         sig = ("lone", signature(g))
         if sig in by_sig:
@@ -254,13 +356,20 @@ def _model(system: System, inst: Instance, active: set[int] | None = None) -> _M
         assert it is not None
         by_sig[sig] = len(classes)
         classes.append(_Class(None, 0, [it], [[g.members]], [None]))
-    cap = np.array([inst.cap[c] for c in relaxed], dtype=float)
-    model = _Model(inst, relaxed, cap, classes, row_names=[f"computer {c}" for c in relaxed])
+    # a Problem 2 server without max_capacity: no plan puts more than every node's CPU on it
+    room = sum(max(ch.cpu for ch in opts) for opts in inst.choices.values()) + 1.0
+    cap = np.array([min(inst.cap[c], room) for c in relaxed], dtype=float)
+    model = _Model(inst, relaxed, cap, classes, row_names=[f"computer {c}" for c in relaxed], sized=sized)
     if active:
         why = _network_rows(model, active)
         if why is not None:
             return why
     return model
+
+
+def _home_bw(it: _Item, member: int, bw: np.ndarray) -> np.ndarray:
+    """kB/s at each home option of ``it`` of its ``member``'s edge (``bw`` per kept choice)."""
+    return np.array([bw[levels[member]] for levels in it.home_levels]) if it.home_levels else np.zeros(0)
 
 
 def _add_outer(model: _Model, e: Edge, end: tuple[int, int, int], bw: np.ndarray, publishes: bool) -> None:
@@ -290,8 +399,7 @@ def _add_outer(model: _Model, e: Edge, end: tuple[int, int, int], bw: np.ndarray
     if not at_home and not any(away.values()):
         return
     if publishes:
-        home_bw = np.array([bw[levels[end[2]]] for levels in it.home_levels]) if it.home_levels else np.zeros(0)
-        cl.outer.append(_Outer(end[1], end[2], bw, home_bw, at_home, away))
+        cl.outer.append(_Outer(end[1], end[2], bw, _home_bw(it, end[2], bw), at_home, away))
     else:
         least = float(bw.min())
         cl.outer.append(_Outer(end[1], -1, np.array([least]), np.full(len(it.home_levels), least), at_home, away))
@@ -339,9 +447,7 @@ def _network_rows(model: _Model, active: set[int]) -> str | None:
         if a is not None and b is not None and a[0] == b[0]:
             if a[1] != b[1]:
                 cl = model.classes[a[0]]
-                it = cl.items[a[1]]
-                home_bw = np.array([bw[levels[a[2]]] for levels in it.home_levels]) if it.home_levels else np.zeros(0)
-                cl.edges.append(_Edge(a[1], a[2], b[1], bw, home_bw))
+                cl.edges.append(_Edge(a[1], a[2], b[1], bw, _home_bw(cl.items[a[1]], a[2], bw)))
                 cl.links = cl.links | frozenset(li for li in maybe if li in model.link_rows)
             continue
         for row in rows:
@@ -353,6 +459,15 @@ def _network_rows(model: _Model, active: set[int]) -> str | None:
         free = sum(1 for it in cl.items if len(it.relaxed) and len(it.home_units))
         if (cl.edges or cl.outer) and 2 ** free > MAX_PATTERNS:
             return f"a block has {free} node groups that may go either way: more than {MAX_PATTERNS} patterns to price"
+    for cl in model.classes:  # each view: the same edges, their home traffic at its own home options
+        for view in cl.views:
+            view.links = cl.links
+            view.edges = [_Edge(e.pub, e.member, e.sub, e.bw, _home_bw(view.items[e.pub], e.member, e.bw))
+                          for e in cl.edges]
+            view.outer = [_Outer(o.item, o.member, o.bw,
+                                 _home_bw(view.items[o.item], o.member, o.bw) if o.member >= 0
+                                 else np.full(len(view.items[o.item].home_levels), float(o.bw[0])),
+                                 o.at_home, o.away) for o in cl.outer]
     model.cap = np.concatenate([model.cap, np.array(caps)])
     model.reserve = reserve
     # rows the traffic between blocks could fill on its own: the MILP over the columns cannot
@@ -365,7 +480,7 @@ def _qualified(system: System, problem: Problem, choices: dict[str, list[Choice]
                prepared: Instance | str | None) -> _Model | None:
     """The decomposition's model when the instance qualifies (:func:`decomposable`), else
     None. ``prepared``: ``instance.prepare_instance``'s answer when the caller has it."""
-    if problem != Problem.PERFORMANCE:
+    if problem not in (Problem.PERFORMANCE, Problem.SERVER_CAPACITY):
         return None
     inst = prepare_instance(system, problem, choices) if prepared is None else prepared
     if isinstance(inst, str):
@@ -375,7 +490,8 @@ def _qualified(system: System, problem: Problem, choices: dict[str, list[Choice]
 
 
 def decomposable(system: System, problem: Problem, choices: dict[str, list[Choice]]) -> bool:
-    """Whether :func:`solve_decomposed` applies: Problem 1, CPU levels on a grid, and links
+    """Whether :func:`solve_decomposed` applies: Problem 1 or 2, CPU levels on a grid, each
+    data-flow tree inside one robot's block (at most :data:`MAX_VIEWS` views), and links
     or media that can overflow carried as coupling rows (at most :data:`MAX_PATTERNS`
     home/away patterns per block, traffic between blocks that cannot fill a row on its
     own); an instance infeasible on its face is left to the exact solver (which names the
@@ -403,10 +519,18 @@ def _offload(it: _Item, lam: np.ndarray) -> tuple[float, int, tuple[int, ...]]:
 
 def _price(model: _Model, ci: int, lam: np.ndarray) -> tuple[float, _Column]:
     """The class's best column at prices ``lam`` and its reduced value (before the
-    convexity dual)."""
+    convexity dual): a block with a data flow, the best over its views (each consistent
+    assignment of its rates; every consistent column lies in one, so the best is exact)."""
     cl = model.classes[ci]
+    if cl.views:
+        return max((_price_view(model, ci, view, lam) for view in cl.views), key=lambda t: t[0])
+    return _price_view(model, ci, cl, lam)
+
+
+def _price_view(model: _Model, ci: int, cl: _Class, lam: np.ndarray) -> tuple[float, _Column]:
+    """:func:`_price` on one view ``cl`` of class ``ci`` (the class itself when it has none)."""
     if (cl.edges or cl.outer) and any(lam[row] > 0 for li in cl.links for row in model.link_rows[li]):
-        return _price_network(model, ci, lam)
+        return _price_network(model, ci, cl, lam)
     offs = [_offload(it, lam) for it in cl.items]
     if cl.home is None:
         red, r, levels = offs[0]
@@ -434,7 +558,7 @@ def _price(model: _Model, ci: int, lam: np.ndarray) -> tuple[float, _Column]:
     return float(table[-1]), _column(model, ci, tuple(parts))
 
 
-def _price_network(model: _Model, ci: int, lam: np.ndarray) -> tuple[float, _Column]:
+def _price_network(model: _Model, ci: int, cl: _Class, lam: np.ndarray) -> tuple[float, _Column]:
     """A block's best column when its own edges' traffic is priced (``lam`` on the network
     rows): every home/away pattern of its items, in a tree (each item decided in turn, the
     items that must stay home first; a home item adds its settings to the robot's knapsack
@@ -444,8 +568,7 @@ def _price_network(model: _Model, ci: int, lam: np.ndarray) -> tuple[float, _Col
     otherwise at its least (the publisher's least traffic, the cheapest route). An edge with
     both ends home or both away is free. So the returned value is at least the best column's
     true reduced value (the Lagrangian bound stays a bound), and the column is a real one
-    (its load is computed exactly by :func:`_column`)."""
-    cl = model.classes[ci]
+    (its load is computed exactly by :func:`_column`). ``cl``: the class ``ci`` or one of its views."""
     home = cl.home_of[0]
     assert home is not None
     system = model.inst.system
@@ -552,7 +675,8 @@ def _column(model: _Model, ci: int, parts: tuple[tuple[int, tuple[int, ...]], ..
     use: dict[int, float] = {}
     for it, (r, levels) in zip(cl.items, parts, strict=True):
         for cpu, val, k in zip(it.member_cpu, it.member_val, levels, strict=True):
-            value += float(val[k])
+            if r >= 0 or not model.sized:
+                value += float(val[k])
             if r >= 0:
                 use[r] = use.get(r, 0.0) + float(cpu[k])
     if cl.edges:  # the block's own traffic on the network rows, exactly
@@ -626,30 +750,31 @@ def _near_columns(model: _Model, lam: np.ndarray, priced: Sequence[tuple[float, 
             if len(out) > limit:
                 return out[:limit], False
             continue
-        tables = [np.zeros(cl.cap_units + 1)]
-        options: list[list[tuple[int, float, tuple[int, tuple[int, ...]]]]] = []
-        for it in cl.items:
-            best_off = _offload(it, lam)[0]
-            offs = _offload_options(it, lam, best_off - slack - 1e-9) if len(it.relaxed) else []
-            opts = [(0, red, (r, levels)) for red, r, levels in offs]
-            opts += [(int(u), float(v), (-1, lv)) for u, v, lv in zip(it.home_units, it.home_values, it.home_levels,
-                                                                      strict=True)]
-            options.append(opts)
-            units = np.concatenate([[0], it.home_units]).astype(np.int64)
-            values = np.concatenate([[best_off], it.home_values])
-            tables.append(combine_tables(tables[-1], units, values)[0])
-        stack: list[tuple[int, int, float, tuple[tuple[int, tuple[int, ...]], ...]]] = [
-            (len(cl.items) - 1, cl.cap_units, 0.0, ())]
-        while stack:
-            q, x, acc, parts = stack.pop()
-            if q < 0:
-                out.append(_column(model, ci, parts))
-                if len(out) > limit:
-                    return out[:limit], False
-                continue
-            for u, v, part in options[q]:
-                if u <= x and acc + v + tables[q][x - u] >= floor:
-                    stack.append((q - 1, x - u, acc + v, (part, *parts)))
+        for view in cl.views or [cl]:  # a data flow: each view's columns (every consistent one is in one)
+            tables = [np.zeros(view.cap_units + 1)]
+            options: list[list[tuple[int, float, tuple[int, tuple[int, ...]]]]] = []
+            for it in view.items:
+                best_off = _offload(it, lam)[0]
+                offs = _offload_options(it, lam, best_off - slack - 1e-9) if len(it.relaxed) else []
+                opts = [(0, red, (r, levels)) for red, r, levels in offs]
+                opts += [(int(u), float(v), (-1, lv)) for u, v, lv in zip(it.home_units, it.home_values, it.home_levels,
+                                                                          strict=True)]
+                options.append(opts)
+                units = np.concatenate([[0], it.home_units]).astype(np.int64)
+                values = np.concatenate([[best_off], it.home_values])
+                tables.append(combine_tables(tables[-1], units, values)[0])
+            stack: list[tuple[int, int, float, tuple[tuple[int, tuple[int, ...]], ...]]] = [
+                (len(view.items) - 1, view.cap_units, 0.0, ())]
+            while stack:
+                q, x, acc, parts = stack.pop()
+                if q < 0:
+                    out.append(_column(model, ci, parts))
+                    if len(out) > limit:
+                        return out[:limit], False
+                    continue
+                for u, v, part in options[q]:
+                    if u <= x and acc + v + tables[q][x - u] >= floor:
+                        stack.append((q - 1, x - u, acc + v, (part, *parts)))
     return out, True
 
 
@@ -805,12 +930,11 @@ def _proven_infeasible(model: _Model, rows: Sequence[int], ceiling: float, *, de
     any prices the bound is at least every plan's value, so no plan exists, and that row's
     computer, link or medium is what cannot hold (the least its blocks must put on it,
     wherever they run, exceeds it). None when no row proves it (or past ``deadline``)."""
-    system = model.inst.system
-    floor = sum(system.node[n].weight * min(ch.performance for ch in opts) for n, opts in model.inst.choices.items())
+    floor = _floor(model)
     for j in rows:
         if time.perf_counter() > deadline:
             return None
-        steep = 1e6 * (ceiling + 1.0) / max(float(model.cap[j]), 1.0)
+        steep = 1e6 * (ceiling - floor + 1.0) / max(float(model.cap[j]), 1.0)
         lam = np.zeros(len(model.cap))
         lam[j] = steep
         value, _ = _lagrangian(model, lam)
@@ -822,10 +946,34 @@ def _proven_infeasible(model: _Model, rows: Sequence[int], ceiling: float, *, de
     return None
 
 
+def _ceiling(model: _Model) -> float:
+    """No plan's value is above this: Σ w·max P (Problem 1); 0, nothing on a server (Problem 2)."""
+    return 0.0 if model.sized else trivial_bound(model.inst.system, model.inst.choices)
+
+
+def _floor(model: _Model) -> float:
+    """Every plan's value is at least this: every node at its worst setting (Problem 1);
+    every node on a server at its most CPU (Problem 2)."""
+    if model.sized:
+        return -sum(max(ch.cpu for ch in opts) for opts in model.inst.choices.values())
+    system = model.inst.system
+    return sum(system.node[n].weight * min(ch.performance for ch in opts) for n, opts in model.inst.choices.items())
+
+
+def _value(model: _Model, assignment: Assignment) -> float:
+    """A plan's value in the master's sense (bigger is better): Σ w·P, or minus Σ server sizes."""
+    system = model.inst.system
+    if model.sized:
+        return -sum(server_sizes(system, assignment.placement, assignment.choice).values())
+    return weighted_performance(system, assignment.choice)
+
+
 def _fits(model: _Model, assignment: Assignment) -> bool:
     system = model.inst.system
     load = computer_loads(system, assignment.placement, assignment.choice)
     if any(load[c] > model.inst.cap[c] + 1e-9 * max(1.0, model.inst.cap[c]) for c in load):
+        return False
+    if system.has_flow and system.flow_violation(assignment.choice) is not None:
         return False
     return system.network_violation(assignment.placement, assignment.choice) is None
 
@@ -833,7 +981,7 @@ def _fits(model: _Model, assignment: Assignment) -> bool:
 def solve_decomposed(system: System, problem: Problem, choices: dict[str, list[Choice]], *,
                      time_limit: float | None = None, progress: Progress | None = None,
                      prepared: Instance | str | None = None) -> Plan | None:
-    """Problem 1 by column generation and a MILP over the columns (module docstring).
+    """Problem 1 or 2 by column generation and a MILP over the columns (module docstring).
 
     Returns the best plan found with ``bound`` the best Lagrangian bound (never above
     Σ w·max P); ``status`` is ``optimal`` only when they agree within 1e-6 (relative),
@@ -852,25 +1000,32 @@ def solve_decomposed(system: System, problem: Problem, choices: dict[str, list[C
     model = _qualified(system, problem, choices, prepared)
     if model is None:
         return None
+    if model.sized and progress is not None:  # the master maximises minus Σ sizes: reported as Σ sizes
+        told = progress
+
+        def progress(incumbent: float | None, bound: float, seconds: float) -> None:
+            told(None if incumbent is None else -incumbent, -bound, seconds)
     inst = model.inst
-    ceiling = trivial_bound(system, inst.choices)
+    ceiling = _ceiling(model)
+    spread = ceiling - _floor(model)  # the most two plans' values differ by
     if model.cramped:  # not for this solver (decomposable() is False), unless such a row proves there is no plan
         deadline = math.inf if time_limit is None else t0 + time_limit / 2
         why = _proven_infeasible(model, model.cramped, ceiling, deadline=deadline)
         return None if why is None else Plan.infeasible(problem, Method.EXACT, why, solve_s=elapsed(),
                                                          system=system.source)
     budget = NO_LIMIT_S if time_limit is None else time_limit - max(PLAN_SHARE * time_limit, PLAN_MIN_S)
-    master = _Master(model, penalty=ceiling + 1.0)
+    master = _Master(model, penalty=spread + 1.0)
 
     # the paper's greedy: the first columns, and the MILP's start
-    mapped = greedy_start(inst, choices)
+    # (along a data flow the greedy searches the rates, each try a whole greedy run: bounded)
+    mapped = greedy_start(inst, choices, min(GREEDY_PLUS_SHARE * budget, PLUS_START_MAX_S) if system.has_flow else None)
     if mapped is None and len(model.cap) > len(model.relaxed):  # a binding network: the greedy gets stuck
         mapped = plus_start(inst, choices, min(GREEDY_PLUS_SHARE * budget, PLUS_START_MAX_S))
     incumbent: Assignment | None = None
     if mapped is not None:
         incumbent = mapped[0]
         master.add(_column_of(model, *mapped))
-    best_value = weighted_performance(system, incumbent.choice) if incumbent is not None else None
+    best_value = _value(model, incumbent) if incumbent is not None else None
     bound = ceiling
     lam = np.zeros(len(model.cap))
     lp_value: float | None = None
@@ -921,7 +1076,7 @@ def solve_decomposed(system: System, problem: Problem, choices: dict[str, list[C
         if result is not None:
             counts, optimal_here = result
             found = _assignment(model, counts, master.columns)
-            value = weighted_performance(system, found.choice)
+            value = _value(model, found)
             fits = _fits(model, found)
             if fits and (best_value is None or value > best_value + 1e-12):
                 incumbent, best_value = found, value
@@ -938,6 +1093,10 @@ def solve_decomposed(system: System, problem: Problem, choices: dict[str, list[C
     proven = bound - best_value <= REL_TOL * max(1.0, abs(best_value))
     if progress is not None:
         progress(best_value, bound, elapsed())
+    if model.sized:  # Problem 2: the servers sized to their load; objective and bound Σ sizes
+        incumbent = Assignment(incumbent.placement, incumbent.choice,
+                               server_sizes(system, incumbent.placement, incumbent.choice))
+        best_value, bound = -best_value, -bound
     return build_plan(system, incumbent, problem=problem, method=Method.EXACT,
                       status=Status.OPTIMAL if proven else Status.FEASIBLE,
                       bound=best_value if proven else bound, solve_s=elapsed())

@@ -27,10 +27,14 @@ from __future__ import annotations
 import itertools
 import time
 from collections.abc import Iterable, Mapping
+from typing import TYPE_CHECKING
 
 from perfros_bag.solver.greedy import solve_greedy
 from perfros_bag.system.plan import Method, Plan, Status
 from perfros_bag.system.types import Choice, Problem, System
+
+if TYPE_CHECKING:
+    from perfros_bag.solver.local import Improver
 
 #: at most this many rate-class assignments are all tried; above, a coordinate search
 ENUMERATE = 64
@@ -42,6 +46,18 @@ SEARCH_BUDGET_S = 60.0
 #: greedy+'s own budget (seconds) on the assignment the search found (its local search can
 #: take minutes on a few hundred nodes)
 FINAL_BUDGET_S = 10.0
+
+#: greedy+ along a data flow with many rate assignments (Problem 1), on a fleet: the
+#: greedy's tree-by-tree passes stop after this long (seconds), or at the caller's deadline
+PLUS_PASSES_S = 2.0
+#: ... when one pass (a greedy run per tree option) would take longer than this (seconds)
+PLUS_PASS_MAX_S = 20.0
+#: ... and greedy+ on their best assignment with its rate moves after this long
+PLUS_RATES_S = 5.0
+#: of that time, greedy+'s own search on the start's rates (the rest: the rate moves)
+PLUS_SHARE = 0.5
+#: a rate move may send a following group to this many servers (those with the most free CPU)
+MOVE_SERVERS = 2
 
 #: per publisher: the rates it publishes (one per node it drives), or a driven publisher's own setting
 Pick = tuple[float, ...] | int
@@ -84,7 +100,9 @@ def solve_heuristic(system: System, problem: Problem, choices: dict[str, list[Ch
     # a move sets every publisher of one source's tree at once (a camera's rate together
     # with its detector's setting), one publisher at a time where a tree has too many
     current: Classes = {p: options[p][0] for p in publishers}
+    t_run = time.monotonic()
     best = run(current, Method.GREEDY)
+    t_run = time.monotonic() - t_run  # one greedy run: what a try of the passes costs
     moves: list[list[Classes]] = []
     for members in _trees(system, publishers):
         joint = [dict(zip(members, pick, strict=True)) for pick in itertools.product(*(options[p] for p in members))]
@@ -104,11 +122,17 @@ def solve_heuristic(system: System, problem: Problem, choices: dict[str, list[Ch
             plan = run(trial, Method.GREEDY)
             if _better(plan, best, problem):
                 best, current = plan, trial
+    # greedy+ (Problem 1) where a pass of whole greedy runs would cost more than
+    # PLUS_PASS_MAX_S (a fleet): the passes get PLUS_PASSES_S, then greedy+ on their best
+    # and its rate moves (valued on the computers they touch)
+    rates = (method == Method.GREEDY_PLUS and problem == Problem.PERFORMANCE
+             and t_run * sum(len(m) for m in moves) > PLUS_PASS_MAX_S)
+    passes_until = min(deadline, time.monotonic() + PLUS_PASSES_S) if rates else deadline
     for _ in range(PASSES):
         changed = False
         for move in moves:
             for change in move:
-                if late():
+                if time.monotonic() > passes_until:
                     break
                 trial = {**current, **change}
                 plan = run(trial, Method.GREEDY)
@@ -118,9 +142,122 @@ def solve_heuristic(system: System, problem: Problem, choices: dict[str, list[Ch
             break
     if method == Method.GREEDY:
         return _best(tried.values(), problem, method, system)
+    if rates:
+        plus = _greedy_plus_rates(system, choices, current, moves, min(deadline, time.monotonic() + PLUS_RATES_S))
+        if plus is not None:  # greedy+ from the greedy's plan on ``current``: never below it
+            return _best([plus], problem, method, system)
     run(current, method)  # greedy+ on the best assignment the search found
     return _best([plan for (how, _), plan in tried.items() if how == method] or list(tried.values()),
                  problem, method, system)
+
+
+def _greedy_plus_rates(system: System, choices: dict[str, list[Choice]], current: Classes,
+                       moves: list[list[Classes]], deadline: float) -> Plan | None:
+    """greedy+ on the rate classes ``current``, then rate moves until none improves or the
+    deadline: a move sets one tree's publishers (``moves``' options) and places the nodes
+    whose choices follow (their groups anywhere allowed, when at most :data:`ENUMERATE`
+    placements), valued by the knapsack optimum of the computers it touches. None when
+    greedy+ finds no plan on ``current``."""
+    from perfros_bag.solver.local import run_greedy_plus  # deferred: numpy, for greedy+ only
+
+    restricted = _restricted(system, choices, current)
+    if restricted is None:
+        return None
+    improver = run_greedy_plus(system, Problem.PERFORMANCE, restricted,
+                               time_budget=PLUS_SHARE * max(deadline - time.monotonic(), 0.0))
+    if isinstance(improver, str):
+        return None
+    _rate_moves(improver, system, choices, dict(current), moves, deadline)
+    improver.run()
+    return improver.s.plan(Method.GREEDY_PLUS)
+
+
+def _following(system: System, publishers: Iterable[str]) -> list[str]:
+    """The publishers and every node their rates drive, in node order."""
+    out = set(publishers)
+    for name in system.flow_order:
+        if system.flow_parent[name] in out:
+            out.add(name)
+    return [n.name for n in system.nodes if n.name in out]
+
+
+def _rate_moves(improver: Improver, system: System, choices: dict[str, list[Choice]], current: Classes,
+                moves: list[list[Classes]], deadline: float) -> None:
+    """Best-improvement rate moves on ``improver``'s state (see :func:`_greedy_plus_rates`),
+    sweeping the trees until a sweep changes nothing or the deadline. A following group may
+    stay, go to a robot it may use, or to one of the :data:`MOVE_SERVERS` allowed servers
+    with the most free CPU."""
+    from perfros_bag.solver.state import ladder
+
+    s = improver.s
+    changed = True
+    while changed and time.monotonic() < deadline:
+        changed = False
+        for move, nodes in [(move, _following(system, move[0])) for move in moves]:
+            if time.monotonic() > deadline:
+                return
+            gis = sorted({s.group_of[n] for n in nodes})
+            here = {c for n in nodes if (c := s.place[n]) is not None}
+            targets = []
+            for gi in gis:
+                servers = sorted((c for c in s.group_allowed[gi] if s.kind[c] == "server"), key=lambda c: -s.free(c))
+                keep = {s.place[s.groups[gi][0]], *servers[:MOVE_SERVERS]}
+                targets.append([c for c in s.group_allowed[gi] if c in keep or s.kind[c] != "server"])
+            placements = list(itertools.product(*targets))
+            if len(placements) > ENUMERATE:
+                placements = [tuple(s.place[s.groups[gi][0]] or "" for gi in gis)]
+            best: tuple[float, Classes, dict[str, str], dict[str, list[Choice]] | None] | None = None
+            now = tuple(s.place[s.groups[gi][0]] for gi in gis)
+            for change in move:
+                same = all(current[p] == cls for p, cls in change.items())  # then a move of place alone
+                restricted = _restricted(system, choices, {**current, **change}) if change else None
+                if change and restricted is None:
+                    continue
+                lads = {n: ladder(restricted[n]) if restricted else s.ladder[n] for n in nodes}
+                for combo in placements:
+                    if same and combo == now:
+                        continue
+                    where = {n: combo[gis.index(s.group_of[n])] for n in nodes}
+                    gain = 0.0
+                    for c in here | set(combo):
+                        base = [m for m in s.members[c] if m not in where]
+                        gain += improver.trial_value(c, base, {n: lads[n] for n in nodes if where[n] == c})
+                        gain -= improver.current(s.members[c])
+                    if gain > 1e-9 and (best is None or gain > best[0] + 1e-12):
+                        best = (gain, change, where, restricted)
+            if best is not None and _apply_rates(improver, best[2], best[3]):
+                current.update(best[1])
+                changed = True
+
+
+def _apply_rates(improver: Improver, where: dict[str, str], restricted: dict[str, list[Choice]] | None) -> bool:
+    """Move the following nodes ``where`` with their choices from ``restricted`` (None: their
+    own), every computer touched at its best settings, in one checked change; undone when
+    it fails."""
+    s = improver.s
+    nodes = list(where)
+    comps = {s.place[n] for n in nodes} | set(where.values())
+    snap, old = s.snapshot(), {n: list(s.ladder[n]) for n in nodes}
+    if s.change({n: (None, 0) for n in nodes}) is not None:
+        return False
+    for n in nodes:
+        if restricted is not None:
+            s.set_ladder(n, restricted[n])
+    changes: dict[str, tuple[str | None, int]] = {}
+    for c in comps:
+        assert c is not None
+        held = sorted(s.members[c] | {n for n in nodes if where[n] == c}, key=s.order.__getitem__)
+        for m, k in improver.levels(c, held).items():
+            changes[m] = (c, k)
+    if any(n not in changes for n in nodes) or s.change(changes) is not None:
+        for n in nodes:
+            s.place[n] = None
+            s.set_ladder(n, old[n])
+        s.restore(snap)
+        return False
+    if restricted is not None:
+        improver.relevel(nodes)
+    return True
 
 
 def _trees(system: System, publishers: list[str]) -> list[list[str]]:

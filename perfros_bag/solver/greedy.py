@@ -129,10 +129,17 @@ def upgrade(state: State, conf: list[str]) -> None:
 
 
 def is_full(state: State, c: str) -> bool:
+    """No free CPU on ``c``, or a node on it whose next step does not fit (read straight
+    from the ladders: a fleet's relocation asks this of every target, thousands of times)."""
     free = state.free(c)
     if free <= EPS:
         return True
-    return any(not state.at_max(n) and state.step(n)[0] > free + EPS for n in state.on(c) if len(state.ladder[n]) > 1)
+    room = free + EPS
+    for n in state.members[c]:
+        lad, k = state.ladder[n], state.level[n]
+        if k + 1 < len(lad) and lad[k + 1].cpu - lad[k].cpu > room:
+            return True
+    return False
 
 
 def relocate_from(state: State, c: str, *, only_nonmax: bool) -> None:

@@ -51,12 +51,23 @@ def solve_greedy_plus(system: System, problem: Problem, choices: dict[str, list[
     """The greedy, then local search. ``time_budget`` (seconds, default
     :data:`TIME_BUDGET_S`) bounds the whole search: the plan found by then is returned
     (the exact solver's dispatcher uses it to get a MIP start on big instances)."""
+    found = run_greedy_plus(system, problem, choices, time_budget=time_budget)
+    if isinstance(found, str):
+        return Plan.infeasible(problem, Method.GREEDY_PLUS, found, system=system.source)
+    return found.s.plan(Method.GREEDY_PLUS)
+
+
+def run_greedy_plus(system: System, problem: Problem, choices: dict[str, list[Choice]], *,
+                    time_budget: float | None = None) -> Improver | str:
+    """:func:`solve_greedy_plus`'s search, its improver (its state the plan) returned for
+    more moves (the data flow's rate moves, :mod:`perfros_bag.solver.flow`); or why the
+    greedy found no plan and no feasible start was found either."""
     deadline = time.monotonic() + (TIME_BUDGET_S if time_budget is None else max(time_budget, 0.0))
     state, reason = run_greedy(system, problem, choices)
     if reason is not None:
         found = feasible_start(system, problem, choices)
         if found is None:
-            return Plan.infeasible(problem, Method.GREEDY_PLUS, reason, system=system.source)
+            return reason
         state = found
         if problem == Problem.PERFORMANCE:
             upgrade(state, [n for n in state.nodes if len(state.ladder[n]) > 1])
@@ -69,7 +80,7 @@ def solve_greedy_plus(system: System, problem: Problem, choices: dict[str, list[
     if len(state.groups) * len(state.computers) > MOVES_LIMIT and problem == Problem.PERFORMANCE:
         consolidate(improver)
     kick(improver)
-    return state.plan(Method.GREEDY_PLUS)
+    return improver
 
 
 def consolidate(improver: Improver) -> None:
@@ -249,13 +260,36 @@ class Improver:
         self.values: dict[tuple[str, frozenset[str]], float] = {}
         self.trios = True  # try three-computer reassignments (off during perturbations)
         self.subsets: dict[tuple[str, frozenset[str], tuple[int, ...]], list[float]] = {}
-        self.sig = [tuple(sorted((state.weight[n], tuple((c.cpu, c.performance) for c in state.ladder[n]),
-                                  tuple(state.system.allowed(n))) for n in g)) for g in state.groups]
+        self.sig = [self._sig(gi) for gi in range(len(state.groups))]
         if self.scale is not None:
             for n in state.nodes:
-                lad = state.ladder[n]
-                self.items[n] = (np.array([int(round(ch.cpu * self.scale)) for ch in lad]),
-                                 np.array([state.weight[n] * ch.performance for ch in lad]))
+                self.items[n] = self._item(n, state.ladder[n])
+
+    def _item(self, n: str, lad: list[Choice]) -> tuple[np.ndarray, np.ndarray]:
+        """Node ``n`` at ladder ``lad`` as a knapsack item: CPU in grid units, w·P per level."""
+        assert self.scale is not None
+        return (np.array([int(round(ch.cpu * self.scale)) for ch in lad]),
+                np.array([self.s.weight[n] * ch.performance for ch in lad]))
+
+    def _sig(self, gi: int) -> tuple[object, ...]:
+        """What makes two groups interchangeable (no swap between them is tried)."""
+        s = self.s
+        return tuple(sorted((s.weight[n], tuple((c.cpu, c.performance) for c in s.ladder[n]),
+                             tuple(s.system.allowed(n))) for n in s.groups[gi]))
+
+    def relevel(self, nodes: Iterable[str]) -> None:
+        """Nodes whose ladders changed (:meth:`State.set_ladder`): their knapsack items
+        rebuilt, every cached value that holds them dropped."""
+        s, changed = self.s, set(nodes)
+        if self.scale is not None:
+            for n in changed:
+                self.items[n] = self._item(n, s.ladder[n])
+        for gi in {s.group_of[n] for n in changed}:
+            self.sig[gi] = self._sig(gi)
+        self.tables = {k: v for k, v in self.tables.items() if not k[1] & changed}
+        self.values = {k: v for k, v in self.values.items() if not k[1] & changed}
+        self.subsets = {k: v for k, v in self.subsets.items()
+                        if not k[1] & changed and not any(set(s.groups[gi]) & changed for gi in k[2])}
 
     # ---- values --------------------------------------------------------------------
     def _cap(self, comp: str) -> int:
@@ -311,6 +345,23 @@ class Improver:
                 v = float(t[-1])
         self.values[key] = v
         return v
+
+    def trial_value(self, comp: str, base: Iterable[str], extra: dict[str, list[Choice]]) -> float:
+        """The best value (Problem 1) on ``comp`` of ``base`` at their ladders plus the nodes
+        of ``extra`` at the ladders it gives them (a move that changes their choices: the
+        data flow's rate moves); -inf when they do not fit. Nothing is cached or changed."""
+        s = self.s
+        if self.scale is not None and on_grid([ch.cpu for lad in extra.values() for ch in lad], self.scale):
+            t = self.table(comp, frozenset(base))
+            for n, lad in extra.items():
+                t = combine_tables(t, *self._item(n, lad))[0]
+            return float(t[-1])
+        saved = {n: s.ladder[n] for n in extra}
+        try:  # Algorithm 2's rule reads the state's ladders: lent the trial ones for the call
+            s.ladder.update(extra)
+            return _marginal(s, s.cap[comp], sorted([*base, *extra], key=s.order.__getitem__))[0]
+        finally:
+            s.ladder.update(saved)
 
     def levels(self, comp: str, nodes: list[str]) -> dict[str, int]:
         s = self.s

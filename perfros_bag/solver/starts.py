@@ -33,9 +33,11 @@ def start_of(plan: Plan, choices: Mapping[str, list[Choice]]) -> Assignment | No
     return Assignment(placement, chosen, {})
 
 
-def greedy_start(inst: Instance, choices: dict[str, list[Choice]]) -> tuple[Assignment, dict[str, int]] | None:
-    """The paper's greedy's plan mapped onto the pruned model, None when it finds none."""
-    plan = solve_heuristic(inst.system, inst.problem, choices, Method.GREEDY)
+def greedy_start(inst: Instance, choices: dict[str, list[Choice]],
+                 budget: float | None = None) -> tuple[Assignment, dict[str, int]] | None:
+    """The paper's greedy's plan mapped onto the pruned model, None when it finds none.
+    ``budget``: seconds for its search of the rates along a data flow (None: its own default)."""
+    plan = solve_heuristic(inst.system, inst.problem, choices, Method.GREEDY, time_budget=budget)
     raw = start_of(plan, choices) if plan.status != Status.INFEASIBLE else None
     return start_assignment(inst, raw) if raw is not None else None
 

@@ -52,7 +52,7 @@ class State:
         self.members: dict[str, set[str]] = {c: set() for c in self.computers}
         self.groups: list[tuple[str, ...]] = list(system.coresidence_groups)
         self.group_of = {n: gi for gi, g in enumerate(self.groups) for n in g}
-        self.group_allowed: list[list[str]] = [list(system.allowed_to_all(g)) for g in self.groups]
+        self.group_allowed: list[list[str]] = [list(a) for a in system.group_computers]
         # network: per edge the bandwidth at each of its publisher's ladder levels
         self.edges = list(system.edges)
         self.pub_bw = {n: [ch.bandwidth_kBps or 0.0 for ch in self.ladder[n]] for n in self.nodes}
@@ -241,6 +241,20 @@ class State:
             self.place[n] = target
             self.level[n] = lvl
         return None
+
+    def set_ladder(self, n: str, choices: list[Choice]) -> None:
+        """Give unplaced node ``n`` other choices (along a data flow: those at another input
+        rate), its level reset to 0; its outgoing edges' traffic follows."""
+        assert self.place[n] is None, "a node's choices change only while it is off every computer"
+        self.ladder[n] = ladder(choices) if self.problem == Problem.PERFORMANCE else list(choices[:1])
+        self.level[n] = 0
+        self.pub_bw[n] = [ch.bandwidth_kBps or 0.0 for ch in self.ladder[n]]
+        for ei in self.incident[n]:
+            e = self.edges[ei]
+            if e.src == n:
+                self.edge_bw[ei] = (self.pub_bw[n] if e.bandwidth_kBps is None and not e.topic
+                                    else [self.system.edge_bandwidth(e, ch) for ch in self.ladder[n]])
+        self._out.pop(n, None)
 
     def move_group(self, gi: int, c: str | None) -> str | None:
         return self.change({n: (c, self.level[n]) for n in self.groups[gi]})

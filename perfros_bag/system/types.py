@@ -541,6 +541,12 @@ class System:
         return tuple(c.name for c in self.computers if all(c.name in a for a in allowed))
 
     @cached_property
+    def group_computers(self) -> list[tuple[str, ...]]:
+        """Per :attr:`coresidence_groups` entry, the computers all its nodes may sit on
+        (:meth:`allowed_to_all`), computed once (every heuristic run starts from them)."""
+        return [self.allowed_to_all(g) for g in self.coresidence_groups]
+
+    @cached_property
     def containers(self) -> dict[str, tuple[str, ...]]:
         """Each container (a node that hosts others: system.yaml ``container``) -> the nodes
         it hosts, in node order."""
