@@ -29,7 +29,8 @@ TABLE_I: dict[str, tuple[float, tuple[str, str] | None, list[tuple[float | None,
     "model": (0.2, ("goals", ""), [(4, 17, 20, 10, 5.0), (3500, 40, 70, 10, 5.0), (10000, 60, 100, 10, 5.0)]),
     "planner": (0.05, None, [(None, 1, 100, 10, 0.5)]),
     "amcl": (0.2, ("particles", ""), [(200, 19, 20, 2.5, 1.0), (500, 41, 50, 2.5, 1.0), (3000, 66, 100, 2.5, 1.0)]),
-    "navigation": (0.2, ("controller_freq", "Hz"), [(2, 25, 10, 2, 0.1), (10, 39, 65, 10, 0.5), (20, 50, 100, 20, 1.0)]),
+    "navigation": (0.2, ("controller_freq", "Hz"),
+                   [(2, 25, 10, 2, 0.1), (10, 39, 65, 10, 0.5), (20, 50, 100, 20, 1.0)]),
     "youbot_core": (0.05, None, [(None, 16, 100, 10, 0.5)]),
 }
 
@@ -204,7 +205,8 @@ def random_tiny(rng: random.Random, n_nodes: int | None = None, n_computers: int
         node: dict[str, Any] = {"name": f"n{j}", "weight": rng.randint(1, 10)}
         if k > 1:
             node["parameter"] = {"name": "p"}
-        node["settings"] = [{"value": idx + 1, "cpu": c, "performance": p, "bandwidth_kBps": rng.choice([1, 2, 3, 4, 6])}
+        node["settings"] = [{"value": idx + 1, "cpu": c, "performance": p,
+                             "bandwidth_kBps": rng.choice([1, 2, 3, 4, 6])}
                             for idx, (c, p) in enumerate(zip(cpus, perf, strict=True))]
         if nc > 1 and rng.random() < 0.3:
             node["residence"] = rng.sample(names, rng.randint(1, nc - 1))
@@ -370,5 +372,6 @@ def wifi_fleet_instance(n_robots: int = 90, n_servers: int = 10, *, robots_per_a
         if robot is not None:
             link["medium"] = ap_of[robot]
             link["bandwidth_kBps"] = ap_kBps
-    data["media"] = [{"name": ap, "bandwidth_kBps": ap_kBps} for ap in sorted(set(ap_of.values()), key=lambda a: int(a[2:]))]
+    data["media"] = [{"name": ap, "bandwidth_kBps": ap_kBps}
+                     for ap in sorted(set(ap_of.values()), key=lambda a: int(a[2:]))]
     return data

@@ -110,7 +110,8 @@ def run_plan(system: System, plan: Plan, out: Path, cfg: RunConfig, *,
     """Deploy ``plan`` for ``cfg.duration`` seconds of recording; returns run.json's content."""
     for tool in (ROSCORE, ROSBAG):
         if shutil.which(tool) is None:
-            raise PerfrosError(f"{tool} not found: install Debian's ROS 1 (apt-get install ros-core python3-rospy python3-rosbag)")
+            raise PerfrosError(f"{tool} not found: install Debian's ROS 1 "
+                               "(apt-get install ros-core python3-rospy python3-rosbag)")
     if not Path("/usr/bin/python3").exists():
         raise PerfrosError("/usr/bin/python3 not found (rospy runs under Debian's python3)")
     note = progress or (lambda stage, done, total: None)

@@ -224,7 +224,8 @@ def _capacity(entry: RecordingEntry, system: System | None, logical_cpus: int) -
     return comp.capacity
 
 
-def _setting(node: str, settings: Mapping[str, SettingValue], system: System | None) -> tuple[str | None, SettingValue | None]:
+def _setting(node: str, settings: Mapping[str, SettingValue],
+             system: System | None) -> tuple[str | None, SettingValue | None]:
     value = settings.get(node)
     parameter = None
     if system is not None and node in system.node:

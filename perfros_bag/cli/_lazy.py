@@ -31,7 +31,8 @@ class Verb(NamedTuple):
 VERBS: Mapping[str, Verb] = {
     "characterise": Verb("perfros_bag.cli.characterise", "Characterise every recording in DIR: per node and "
                          "topic, frequency, bandwidth and CPU."),
-    "export": Verb("perfros_bag.cli.export", "Write a plan as a ROS 1 launch file (yours, with --launch) or ROS 2 files."),
+    "export": Verb("perfros_bag.cli.export",
+                   "Write a plan as a ROS 1 launch file (yours, with --launch) or ROS 2 files."),
     "fit": Verb("perfros_bag.cli.fit", "Fit parameter -> CPU/performance/frequency/bandwidth and CPU -> "
                 "performance per configurable node."),
     "info": Verb("perfros_bag.cli.info", "Per-topic table like `rosbag info` / `ros2 bag info`, with rates and "

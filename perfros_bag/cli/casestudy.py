@@ -11,7 +11,8 @@ from rich.markup import escape
 from perfros_bag.cli._app import app, command, err, out
 from perfros_bag.cli._lazy import QuickHelpGroup
 
-casestudy_app = typer.Typer(cls=QuickHelpGroup, help="The paper's case study on real ROS 1 nodes (roscore, rospy, rosbag).",
+casestudy_app = typer.Typer(cls=QuickHelpGroup,
+                            help="The paper's case study on real ROS 1 nodes (roscore, rospy, rosbag).",
                             no_args_is_help=True)
 app.add_typer(casestudy_app, name="casestudy")
 

@@ -42,15 +42,20 @@ def _fmt(v: float | None, digits: int = 1) -> str:
 @command("characterise")
 def characterise_cmd(
     directory: Path = typer.Argument(..., metavar="DIR", help="Directory of recordings (or one recording)."),  # noqa: B008
-    manifest: Path | None = typer.Option(None, "--manifest", "-m", help="manifest.yaml (default: DIR/manifest.yaml when present)."),  # noqa: B008
-    system_path: Path | None = typer.Option(None, "--system", "-s", help="system.yaml: nodes' topics and process patterns, computers' capacities."),  # noqa: B008
+    manifest: Path | None = typer.Option(  # noqa: B008
+        None, "--manifest", "-m", help="manifest.yaml (default: DIR/manifest.yaml when present)."),
+    system_path: Path | None = typer.Option(  # noqa: B008
+        None, "--system", "-s", help="system.yaml: nodes' topics and process patterns, computers' capacities."),
     out_path: Path | None = typer.Option(None, "--out", "-o", help="characterisation.csv to write."),  # noqa: B008
     as_json: bool = typer.Option(False, "--json", help="Print the rows as a JSON array on stdout (only)."),
     slow: bool = typer.Option(False, "--slow", help="Stream every message instead of reading the indexes."),
     scheduler: str | None = typer.Option(None, "--scheduler", help="Run on a dask.distributed cluster (tcp://HOST:PORT)."),
     workers: int | None = typer.Option(None, "--workers", help="Run on a local Dask cluster of N worker processes."),
-    latency: bool = typer.Option(False, "--latency", help="Also the latency_* columns: receive time - header.stamp of the topics with a std_msgs/Header."),
-    plot: Path | None = typer.Option(None, "--plot", help="Also write a PNG: CPU and frequency per setting of each configurable node."),  # noqa: B008
+    latency: bool = typer.Option(
+        False, "--latency",
+        help="Also the latency_* columns: receive time - header.stamp of the topics with a std_msgs/Header."),
+    plot: Path | None = typer.Option(  # noqa: B008
+        None, "--plot", help="Also write a PNG: CPU and frequency per setting of each configurable node."),
 ) -> None:
     """Characterise every recording in DIR: per node and topic, frequency, bandwidth and CPU."""
     from rich.markup import escape
@@ -110,7 +115,8 @@ def characterise_cmd(
     for t in table_one(result.rows):
         value = "" if t.value is None else f"{t.value:g}" if isinstance(t.value, int | float) else str(t.value)
         setting = f"{t.parameter}={value}" if t.parameter and value else value
-        table.add_row(t.node, setting, str(t.recordings), _fmt(t.cpu), _fmt(t.frequency_hz, 2), _fmt(t.bandwidth_kBps, 3))
+        table.add_row(t.node, setting, str(t.recordings), _fmt(t.cpu), _fmt(t.frequency_hz, 2),
+                      _fmt(t.bandwidth_kBps, 3))
     (err if as_json else out).print(table)
     summary = f"{len(result.rows)} rows from {result.recordings - len(result.failures)}/{result.recordings} recordings"
     if out_path is not None:

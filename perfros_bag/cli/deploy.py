@@ -13,14 +13,21 @@ from perfros_bag.cli._app import command, err, out
 def deploy_cmd(
     plan: Path = typer.Argument(..., metavar="PLAN", help="plan.json from solve."),  # noqa: B008
     launch: Path = typer.Argument(..., metavar="APP.launch", help="Your ROS 1 launch file."),  # noqa: B008
-    space: Path = typer.Option(..., "--space", help="The space.yaml of the sweep: how each node's value reaches the launch file."),  # noqa: B008
-    out_dir: Path = typer.Option(..., "--out", "-o", help="Folder for run.bag, run.cpu.csv, validation.json, deploy.json."),  # noqa: B008
-    duration: float | None = typer.Option(None, "--duration", "-d", help="Seconds recorded (default: space.yaml's duration_s)."),
+    space: Path = typer.Option(  # noqa: B008
+        ..., "--space", help="The space.yaml of the sweep: how each node's value reaches the launch file."),
+    out_dir: Path = typer.Option(  # noqa: B008
+        ..., "--out", "-o", help="Folder for run.bag, run.cpu.csv, validation.json, deploy.json."),
+    duration: float | None = typer.Option(
+        None, "--duration", "-d", help="Seconds recorded (default: space.yaml's duration_s)."),
     units_per_core: float = typer.Option(100.0, "--units-per-core", help="CPU units of one core (init drafts 100)."),
     cap: bool = typer.Option(True, "--cap/--no-cap", help="Cap each computer's cgroup at its capacity."),
-    tolerance: float | None = typer.Option(None, "--tolerance", help="Largest overall deviation in % that passes (exit 0)."),
-    net: bool = typer.Option(True, "--net/--no-net", help="Emulate the system's links: each computer a network namespace, each link a veth shaped with tc to its bandwidth (root)."),
-    system: Path | None = typer.Option(None, "--system", help="The plan's system.yaml (default: the one the plan was solved from)."),  # noqa: B008
+    tolerance: float | None = typer.Option(
+        None, "--tolerance", help="Largest overall deviation in % that passes (exit 0)."),
+    net: bool = typer.Option(True, "--net/--no-net",
+                             help="Emulate the system's links: each computer a network namespace, "
+                                  "each link a veth shaped with tc to its bandwidth (root)."),
+    system: Path | None = typer.Option(  # noqa: B008
+        None, "--system", help="The plan's system.yaml (default: the one the plan was solved from)."),
 ) -> None:
     """Run PLAN on this machine (capped cgroups, shaped links), record it and validate it (eq 10)."""
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
@@ -39,7 +46,8 @@ def deploy_cmd(
                         tolerance=tolerance, net=net, system_path=system, progress=show)
     render(result.validation, out)
     if result.record["forced"]:
-        err.print("plan: forced (plan.json \"forced\": true): deployed beyond its computers on purpose", highlight=False)
+        err.print("plan: forced (plan.json \"forced\": true): deployed beyond its computers on purpose",
+                  highlight=False)
     capped, network = result.record["cpu_cap"], result.record["network"]
     err.print(f"links: {network['mode']}{' (' + network['reason'] + ')' if network['reason'] else ''}", highlight=False)
     for link in network["links_measured"]:

@@ -14,14 +14,17 @@ from perfros_bag.cli._app import command, err
 @command("export")
 def export(
     plan: Annotated[Path, typer.Argument(help="plan.json to deploy.")],
-    fmt: Annotated[str, typer.Option("--format", help="roslaunch (ROS 1 launch XML) or ros2-params (YAML, and a ROS 2 launch file per computer beside it).")],
+    fmt: Annotated[str, typer.Option(
+        "--format",
+        help="roslaunch (ROS 1 launch XML) or ros2-params (YAML, and a ROS 2 launch file per computer beside it).")],
     out_path: Annotated[Path, typer.Option("--out", help="File to write (atomically).")],
     system: Annotated[Path | None, typer.Option(
         "--system", help="system.yaml: launch: fields (package, type, param, name, namespace) and machines:.")] = None,
     launch: Annotated[Path | None, typer.Option(
         "--launch", help="roslaunch: your own ROS 1 launch file; the plan is written into it (needs --space).")] = None,
     space: Annotated[Path | None, typer.Option(
-        "--space", help="with --launch: the sweep's space.yaml (how each node's value reaches the launch file).")] = None,
+        "--space",
+        help="with --launch: the sweep's space.yaml (how each node's value reaches the launch file).")] = None,
 ) -> None:
     """Write a plan as a ROS 1 launch file (yours, with --launch) or ROS 2 files."""
     from perfros_bag.errors import InputError

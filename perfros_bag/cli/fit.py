@@ -12,12 +12,17 @@ from perfros_bag.cli._app import command, err, out
 
 @command("fit")
 def fit(
-    system: Annotated[Path, typer.Argument(help="system.yaml: nodes, settings with the expert's performance levels, weights.")],
-    characterisation: Annotated[Path, typer.Argument(help="characterisation.csv written by `perfros-bag characterise`.")],
-    out_path: Annotated[Path, typer.Option("--out", "-o", help="model.json to write (atomically).")] = Path("model.json"),
-    plots: Annotated[Path | None, typer.Option("--plots", help="Directory for one PNG per fitted node (Fig 3/4).")] = None,
+    system: Annotated[Path, typer.Argument(
+        help="system.yaml: nodes, settings with the expert's performance levels, weights.")],
+    characterisation: Annotated[Path, typer.Argument(
+        help="characterisation.csv written by `perfros-bag characterise`.")],
+    out_path: Annotated[Path, typer.Option(
+        "--out", "-o", help="model.json to write (atomically).")] = Path("model.json"),
+    plots: Annotated[Path | None, typer.Option(
+        "--plots", help="Directory for one PNG per fitted node (Fig 3/4).")] = None,
     as_json: Annotated[bool, typer.Option("--json", help="Print the model.json document on stdout (only).")] = False,
-    cpu: Annotated[str, typer.Option("--cpu", help="A setting's CPU: 'mean' of its samples, or 'p95' (room for bursts).")] = "mean",
+    cpu: Annotated[str, typer.Option(
+        "--cpu", help="A setting's CPU: 'mean' of its samples, or 'p95' (room for bursts).")] = "mean",
 ) -> None:
     """Fit parameter -> CPU/performance/frequency/bandwidth and CPU -> performance per configurable node."""
     from rich.table import Table

@@ -25,10 +25,15 @@ def _utc(ns: int | None) -> str:
 @command("info")
 def info(
     recording: Annotated[Path, typer.Argument(help="A .bag, .mcap or .db3 file or a rosbag2 directory.")],
-    as_json: Annotated[bool, typer.Option("--json", help="Print the perfros-bag/info@1 JSON document on stdout.")] = False,
-    slow: Annotated[bool, typer.Option("--slow", help="Stream every record instead of reading the indexes (same numbers, slower).")] = False,
-    latency: Annotated[bool, typer.Option("--latency", help="Also read header.stamp of the topics with a std_msgs/Header: receive time - stamp, p50/p95/max.")] = False,
-    system: Annotated[Path | None, typer.Option("--system", help="With --latency: also the end-to-end latency of this system.yaml's chains.")] = None,
+    as_json: Annotated[bool, typer.Option(
+        "--json", help="Print the perfros-bag/info@1 JSON document on stdout.")] = False,
+    slow: Annotated[bool, typer.Option(
+        "--slow", help="Stream every record instead of reading the indexes (same numbers, slower).")] = False,
+    latency: Annotated[bool, typer.Option(
+        "--latency", help="Also read header.stamp of the topics with a std_msgs/Header: "
+                          "receive time - stamp, p50/p95/max.")] = False,
+    system: Annotated[Path | None, typer.Option(
+        "--system", help="With --latency: also the end-to-end latency of this system.yaml's chains.")] = None,
 ) -> None:
     """Per-topic table like `rosbag info` / `ros2 bag info`, with rates and bandwidth."""
     from rich.console import Console
@@ -98,7 +103,8 @@ def info(
     console.print(table)
     for c in doc.get("chains", []):
         console.print(f"chain {c['name']} ({' -> '.join(c['topics'])}): end-to-end "
-                      + ("-" if c["p50_s"] is None else f"p50/p95/max {c['p50_s']:.4f}/{c['p95_s']:.4f}/{c['max_s']:.4f} s")
+                      + ("-" if c["p50_s"] is None
+                         else f"p50/p95/max {c['p50_s']:.4f}/{c['p95_s']:.4f}/{c['max_s']:.4f} s")
                       + f", {c['matched']} of {c['messages']} matched", highlight=False, markup=False)
     if not rec.topics:
         err.print("(no topics)")

@@ -20,7 +20,8 @@ def record_cpu_cmd(
     duration: float | None = typer.Option(None, "--duration", "-d", help="Stop after S seconds."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No live status on stderr."),
     speed: bool = typer.Option(True, "--speed/--no-speed",
-                               help="Measure the machine's speed first (~0.2 s of CPU): '# speed_factor=' in the trace."),
+                               help="Measure the machine's speed first (~0.2 s of CPU): "
+                                    "'# speed_factor=' in the trace."),
 ) -> None:
     """Sample CPU % and RSS of matching processes until the duration ends, Ctrl-C, or COMMAND exits."""
     import time

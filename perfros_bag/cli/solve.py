@@ -139,7 +139,8 @@ def print_plan(console: Console, plan: Plan, unmeasured: Mapping[str, Unmeasured
     nodes = Table(title=title, title_justify="left")
     flow = any(n.input is not None for n in plan.nodes.values())  # driven nodes: their input's rate too
     notes = measured_note(plan, unmeasured) if unmeasured else {}
-    cols = ("node", "computer", "parameter", "value", "CPU", "performance", "weight") + (("input Hz",) if flow else ()) \
+    cols = ("node", "computer", "parameter", "value", "CPU", "performance", "weight") \
+        + (("input Hz",) if flow else ()) \
         + (("measured?",) if notes else ())
     for col in cols:
         nodes.add_column(col, justify="left" if col in ("node", "computer", "parameter") else "right")

@@ -13,8 +13,10 @@ from perfros_bag.cli._app import command, err
 def sweep_cmd(
     launch: Path = typer.Argument(..., metavar="APP.launch", help="Your ROS 1 launch file."),  # noqa: B008
     space: Path = typer.Option(..., "--space", help="space.yaml: what to vary and how it reaches the launch file."),  # noqa: B008
-    out_dir: Path = typer.Option(..., "--out", "-o", help="Folder for <run>.bag, <run>.cpu.csv, manifest.yaml, graph.yaml."),  # noqa: B008
-    duration: float | None = typer.Option(None, "--duration", "-d", help="Seconds recorded per run (default: space.yaml's duration_s)."),
+    out_dir: Path = typer.Option(  # noqa: B008
+        ..., "--out", "-o", help="Folder for <run>.bag, <run>.cpu.csv, manifest.yaml, graph.yaml."),
+    duration: float | None = typer.Option(
+        None, "--duration", "-d", help="Seconds recorded per run (default: space.yaml's duration_s)."),
     interval: float = typer.Option(0.5, "--interval", "-i", help="Seconds between CPU samples (>= 0.05)."),
 ) -> None:
     """Run APP.launch once per setting of space.yaml; record every topic and the nodes' CPU."""

@@ -43,16 +43,28 @@ def render_rounds(rounds: list[dict[str, Any]]) -> None:
 def tune_cmd(
     launch: Path = typer.Argument(..., metavar="APP.launch", help="Your ROS 1 launch file."),  # noqa: B008
     space: Path = typer.Option(..., "--space", help="space.yaml: what to vary and how it reaches the launch file."),  # noqa: B008
-    system: Path = typer.Option(..., "--system", help="system.yaml: your computers, links and nodes (init drafts one)."),  # noqa: B008
-    out_dir: Path = typer.Option(..., "--out", "-o", help="Folder for sweep/, round-K/, model-K.json, tune.json, tune.png."),  # noqa: B008
+    system: Path = typer.Option(  # noqa: B008
+        ..., "--system", help="system.yaml: your computers, links and nodes (init drafts one)."),
+    out_dir: Path = typer.Option(  # noqa: B008
+        ..., "--out", "-o", help="Folder for sweep/, round-K/, model-K.json, tune.json, tune.png."),
     rounds: int = typer.Option(3, "--rounds", "-n", help="Most deployments (rounds) to run."),
-    tolerance: float | None = typer.Option(None, "--tolerance", help="A round whose overall deviation (eq 10) is at most this % ends the loop (default 5)."),
+    tolerance: float | None = typer.Option(
+        None, "--tolerance",
+        help="A round whose overall deviation (eq 10) is at most this % ends the loop (default 5)."),
     method: str = typer.Option("exact", "--method", "-m", help="Solver: greedy, greedy+, exact, bruteforce."),
-    headroom: str = typer.Option("0", "--headroom", metavar="H|auto", help="Share of every computer's capacity each plan keeps free, in [0, 1), or auto: each node's measured CPU error (solve --headroom)."),
-    duration: float | None = typer.Option(None, "--duration", "-d", help="Seconds recorded per sweep run and deployment (default: space.yaml's duration_s)."),
+    headroom: str = typer.Option(
+        "0", "--headroom", metavar="H|auto",
+        help="Share of every computer's capacity each plan keeps free, in [0, 1), "
+             "or auto: each node's measured CPU error (solve --headroom)."),
+    duration: float | None = typer.Option(
+        None, "--duration", "-d",
+        help="Seconds recorded per sweep run and deployment (default: space.yaml's duration_s)."),
     units_per_core: float = typer.Option(100.0, "--units-per-core", help="CPU units of one core (init drafts 100)."),
     net: bool = typer.Option(True, "--net/--no-net", help="Emulate the system's links in each deployment (root)."),
-    base: Path | None = typer.Option(None, "--base", metavar="CHARACTERISATION.csv", help="Start from this characterisation instead of sweeping: model 0 is fitted on it, each refit on it plus the rounds' recordings (same CPU scale as --units-per-core)."),  # noqa: B008
+    base: Path | None = typer.Option(  # noqa: B008
+        None, "--base", metavar="CHARACTERISATION.csv",
+        help="Start from this characterisation instead of sweeping: model 0 is fitted on it, "
+             "each refit on it plus the rounds' recordings (same CPU scale as --units-per-core)."),
 ) -> None:
     """Sweep, fit, solve and deploy APP.launch, then refit on each deployment until its plan holds."""
     from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn

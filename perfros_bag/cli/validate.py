@@ -75,7 +75,8 @@ def render(v: Validation, console: Console) -> None:
         for col in ("node", "input", "expected", "measured", "dev%"):
             dt.add_column(col, justify="left" if col in ("node", "input") else "right")
         for n in driven:
-            measured = _f(n.input_hz_measured) if n.input_rate_note is None else f"[yellow]{escape(n.input_rate_note)}[/]"
+            measured = (_f(n.input_hz_measured) if n.input_rate_note is None
+                        else f"[yellow]{escape(n.input_rate_note)}[/]")
             dt.add_row(escape(n.node), escape(n.input or ""), _f(n.input_hz_expected), measured,
                        _f(n.input_deviation_pct, ".1f"))
         console.print(dt)

@@ -42,18 +42,30 @@ def window_table(doc: dict[str, Any]) -> Table:
 @command("watch", interrupted="interrupted: watch started nothing, nothing is left running")
 def watch_cmd(
     plan: Path = typer.Argument(..., metavar="PLAN", help="The plan.json that runs."),  # noqa: B008
-    deployment: Path | None = typer.Option(None, "--deployment", help="Attach to `deploy --out DIR` in progress (its master, namespaces, cgroups)."),  # noqa: B008
+    deployment: Path | None = typer.Option(  # noqa: B008
+        None, "--deployment",
+        help="Attach to `deploy --out DIR` in progress (its master, namespaces, cgroups)."),
     master: str | None = typer.Option(None, "--master", help="The ROS master's URI (default: ROS_MASTER_URI)."),
-    system: Path | None = typer.Option(None, "--system", help="The plan's system.yaml, for link loads (default: the plan's)."),  # noqa: B008
+    system: Path | None = typer.Option(  # noqa: B008
+        None, "--system", help="The plan's system.yaml, for link loads (default: the plan's)."),
     window: float = typer.Option(5.0, "--window", help="Seconds per window (positive, finite)."),
-    tolerance: float = typer.Option(DEFAULT_TOLERANCE, "--tolerance", help="Drift in % (of a node's planned rate, a chain's predicted p95) beyond which a window drifts."),
+    tolerance: float = typer.Option(
+        DEFAULT_TOLERANCE, "--tolerance",
+        help="Drift in % (of a node's planned rate, a chain's predicted p95) beyond which a window drifts."),
     persist: int = typer.Option(2, "--persist", help="Windows in a row a drift must last to raise an alarm."),
     partial: bool = typer.Option(False, "--partial", help="Watch the planned nodes that run when some do not."),
-    windows: int | None = typer.Option(None, "--windows", help="Stop after N windows (default: until Ctrl-C or the master/deploy ends)."),
+    windows: int | None = typer.Option(
+        None, "--windows", help="Stop after N windows (default: until Ctrl-C or the master/deploy ends)."),
     json_out: bool = typer.Option(False, "--json", help="One JSON object per window on stdout."),
-    out_dir: Path | None = typer.Option(None, "--out", "-o", help="Folder for windows.jsonl, characterisation.csv (a row per window, node, topic) and the re-plans."),  # noqa: B008
-    adapt: bool = typer.Option(False, "--adapt", help="On a new alarm, refit with the live windows, re-solve and write the new plan (needs --out); with --deployment the deploy applies it, else nothing is restarted."),
-    launch: Path | None = typer.Option(None, "--launch", help="With --adapt: your launch file, to write each new plan's planned.launch."),  # noqa: B008
+    out_dir: Path | None = typer.Option(  # noqa: B008
+        None, "--out", "-o",
+        help="Folder for windows.jsonl, characterisation.csv (a row per window, node, topic) and the re-plans."),
+    adapt: bool = typer.Option(
+        False, "--adapt",
+        help="On a new alarm, refit with the live windows, re-solve and write the new plan (needs --out); "
+             "with --deployment the deploy applies it, else nothing is restarted."),
+    launch: Path | None = typer.Option(  # noqa: B008
+        None, "--launch", help="With --adapt: your launch file, to write each new plan's planned.launch."),
     space: Path | None = typer.Option(None, "--space", help="With --adapt and --launch: the space.yaml of the sweep."),  # noqa: B008
 ) -> None:
     """Watch a running plan live: rates, CPU, links and eq 10 per window; alarms on persisting drift.
