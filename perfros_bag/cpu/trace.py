@@ -253,7 +253,8 @@ def _num(p: Path, lineno: int, name: str, raw: str, kind: Callable[[str], Any]) 
     try:
         value = kind(raw.strip())
     except ValueError:
-        raise InputError(p, f"line {lineno}: {name} {raw!r} is not a{'n integer' if kind is int else ' number'}") from None
+        raise InputError(p, f"line {lineno}: {name} {raw!r} is not "
+                            f"a{'n integer' if kind is int else ' number'}") from None
     if kind is float and not math.isfinite(value):
         raise InputError(p, f"line {lineno}: {name} {raw!r} is not a finite number")
     problem = number_problem(value) if kind is float else None  # time and CPU %: the stated limit

@@ -217,7 +217,8 @@ def ros2_launch_xml(plan: Plan, system: System | None, computer: str) -> str:
             continue
         launch = _launch(system, name)
         if name in containers:
-            attrs = {"pkg": launch.get("package", "rclcpp_components"), "exec": launch.get("type", "component_container"),
+            attrs = {"pkg": launch.get("package", "rclcpp_components"),
+                     "exec": launch.get("type", "component_container"),
                      "name": launch.get("name", name), "namespace": launch.get("namespace", "")}
             el = ET.SubElement(root, "node_container", attrs)
             for member in containers[name]:

@@ -87,7 +87,8 @@ def input_rates(rows: list[Row]) -> dict[tuple[str, str], float]:
     return out
 
 
-def measured_settings(table: CharacterisationFile, system: System, cpu: str = "mean") -> dict[str, list[MeasuredSetting]]:
+def measured_settings(table: CharacterisationFile, system: System,
+                      cpu: str = "mean") -> dict[str, list[MeasuredSetting]]:
     """Per node of ``system``: what was measured at each parameter value, over the
     recordings (rows of other nodes are ignored), the CPU as ``cpu`` says
     (:data:`CPU_STATISTICS`)."""
@@ -205,7 +206,8 @@ def build_model(system_path: str | Path, characterisation_path: str | Path, *, c
     if not measured:
         known = sorted({r.node for r in table.rows if r.node})
         raise InputError(csv_path, "no row names a node of " + sys_path
-                         + (f" (its nodes: {', '.join(known[:8])}{'...' if len(known) > 8 else ''})" if known else " (the node column is empty)"))
+                         + (f" (its nodes: {', '.join(known[:8])}{'...' if len(known) > 8 else ''})" if known
+                            else " (the node column is empty)"))
     warn = _Warn()
     doc_system = copy.deepcopy(dict(raw))
     raw_nodes = {str(n.get("name")): n for n in doc_system["nodes"]}
@@ -334,7 +336,8 @@ def _fit_node(node: Node, measured: list[MeasuredSetting], raw: dict[str, Any], 
                 rs["frequency_hz"] = round9(freq)
             if bw is not None:
                 rs["bandwidth_kBps"] = round9(bw)
-            topics = {t: {k: round9(st.mean) for k, st in (("frequency_hz", f), ("bandwidth_kBps", b)) if st is not None}
+            topics = {t: {k: round9(st.mean) for k, st in (("frequency_hz", f), ("bandwidth_kBps", b))
+                          if st is not None}
                       for t, (f, b) in m.topics.items()}
             if "topics" not in rs and len(topics) > 1:
                 rs["topics"] = topics
@@ -667,7 +670,8 @@ def _fit_driven_node(node: Node, samples: dict[float | None, list[DrivenSample]]
     known += [(m.value, m.cpu, m.cpu_per_hz, m.out_per_in, m.bytes_per_msg) for m in extra if m.value is not None]
     rated = [(d.value, d.performance) for d in written if d.value is not None]
     if perf is not None:
-        rated += [(m.value, p) for m in extra if m.value is not None and (p := _measured_perf(perf, m.value)) is not None]
+        rated += [(m.value, p) for m in extra
+                  if m.value is not None and (p := _measured_perf(perf, m.value)) is not None]
     fits: dict[str, FittedRelation] = {}
     for rel, pts in (("parameter->cpu_base", [(k[0], k[1]) for k in known]),
                      ("parameter->cpu_per_hz", [(k[0], k[2]) for k in known]),

@@ -394,7 +394,8 @@ def _measured(doc: _Doc, raw: Any, where: str) -> MeasuredSetting:
     recordings = m.get("recordings")
     recordings = _whole(doc, recordings, f"{where}.recordings")
     return MeasuredSetting(doc.opt_number(m.get("value"), f"{where}.value"), recordings,
-                           doc.stat(m.get("cpu"), f"{where}.cpu"), doc.stat(m.get("frequency_hz"), f"{where}.frequency_hz"),
+                           doc.stat(m.get("cpu"), f"{where}.cpu"),
+                           doc.stat(m.get("frequency_hz"), f"{where}.frequency_hz"),
                            doc.stat(m.get("bandwidth_kBps"), f"{where}.bandwidth_kBps"), topics,
                            doc.stat(m.get("input_hz"), f"{where}.input_hz"))
 
@@ -415,7 +416,8 @@ def _driven(doc: _Doc, raw: Any, where: str) -> DrivenSetting:
         None if r2 is None else doc.number(r2, f"{where}.r2"),
         tuple((x, y) for x, y in (doc.numbers(p, f"{where}.points[{i}]", 2)
                                   for i, p in enumerate(doc.items(m.get("points", []), f"{where}.points")))),
-        tuple(doc.string(w, f"{where}.notes[{i}]") for i, w in enumerate(doc.items(m.get("notes", []), f"{where}.notes"))),
+        tuple(doc.string(w, f"{where}.notes[{i}]")
+              for i, w in enumerate(doc.items(m.get("notes", []), f"{where}.notes"))),
     )
 
 

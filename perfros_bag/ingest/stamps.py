@@ -148,7 +148,8 @@ def read_with_stamps(path: Path, *, stamped_only: bool = False) -> tuple[Accumul
             index = rosbag1.read_index(mm)
             wanted = finder(index)
             if stamped_only:
-                index = index.select([i for i, c in enumerate(index.chunks) if wanted.keys() & c.connection_counts.keys()])
+                index = index.select([i for i, c in enumerate(index.chunks)
+                                      if wanted.keys() & c.connection_counts.keys()])
             return rosbag1.read_chunks(mm, index, wanted), fmt, finder
         if not stamped_only:
             return mcapfile.read_fast(mm, stamps=finder), fmt, finder

@@ -94,7 +94,8 @@ def read_validation(path: str | Path) -> dict[str, Any]:
     data = read_json(path)
     validation = DOCUMENT_KINDS["perfros-bag/validation@1"]  # validation/eq10.py VALIDATION_FORMAT
     expect_kind(path, data, validation, {validation})
-    if not isinstance(data, dict) or not isinstance(data.get("nodes"), list) or not isinstance(data.get("overall"), dict):
+    if (not isinstance(data, dict) or not isinstance(data.get("nodes"), list)
+            or not isinstance(data.get("overall"), dict)):
         raise InputError(path, "not a validation (expected a JSON object with a 'nodes' list and an 'overall' object)")
     problem = tree_problem(data)  # every number within the stated limits, the place named
     if problem is not None:
@@ -297,7 +298,8 @@ def section_validation(v: dict[str, Any], images: list[Image]) -> str:
                else '<span class="bad">deviation above tolerance</span>' if passed is False else "")
     head = (f'<p class="summary">Recording {esc(v.get("recording"))}: overall Σ w·P expected '
             f'{esc(fmt(number(ov.get("expected"))))}, measured {esc(fmt(number(ov.get("measured"))))}, deviation '
-            f'{esc(fmt(number(ov.get("deviation_pct")), 3))} % (tolerance {esc(fmt(number(v.get("tolerance_pct"))))} %) '
+            f'{esc(fmt(number(ov.get("deviation_pct")), 3))} % '
+            f'(tolerance {esc(fmt(number(v.get("tolerance_pct"))))} %) '
             f'{verdict}</p>')
     rows, classes = [], []
     for n in v["nodes"]:
@@ -307,7 +309,8 @@ def section_validation(v: dict[str, Any], images: list[Image]) -> str:
         freq = "; ".join(f"{t.get('topic')}: {fmt(number(t.get('f_measured')))} / {fmt(number(t.get('f_expected')))} Hz"
                          + (f" ({t.get('status')})" if t.get("status") != "ok" else "") for t in topics)
         rows.append((n.get("node"), n.get("computer"), freq or "–", number(n.get("p_expected")),
-                     number(n.get("p_measured")), number(n.get("deviation_pct")) if n.get("counted", True) else "not counted"))
+                     number(n.get("p_measured")),
+                     number(n.get("deviation_pct")) if n.get("counted", True) else "not counted"))
         classes.append("bad" if n.get("flagged") else "")
     nodes = table(("node", "computer", "F measured / expected", "P expected", "P measured", "deviation %"),
                   rows, text_cols=(0, 1, 2), row_classes=classes, table_id="validation-table")
@@ -327,7 +330,8 @@ def section_validation(v: dict[str, Any], images: list[Image]) -> str:
     if comps:
         parts.append("<h3>CPU per computer</h3>" + table(
             ("computer", "capacity", "planned", "measured", "overloaded"),
-            [(c.get("computer"), number(c.get("capacity")), number(c.get("cpu_expected")), number(c.get("cpu_measured")),
+            [(c.get("computer"), number(c.get("capacity")), number(c.get("cpu_expected")),
+              number(c.get("cpu_measured")),
               c.get("overloaded")) for c in comps],
             row_classes=["bad" if c.get("overloaded") else "" for c in comps], table_id="validation-cpu"))
     links = [c for c in v.get("links", []) + v.get("media", []) if isinstance(c, dict)]
@@ -358,7 +362,8 @@ def section_frontier(doc: dict[str, Any], images: list[Image]) -> str:
     gains = ""
     if len(solved) >= 2:
         first, last = solved[0], solved[-1]
-        per_unit = (last["objective"] - first["objective"]) / max(last["server_capacity"] - first["server_capacity"], 1e-12)
+        per_unit = ((last["objective"] - first["objective"])
+                    / max(last["server_capacity"] - first["server_capacity"], 1e-12))
         gains = (f'<p class="summary">From {esc(fmt(first["server_capacity"]))} to '
                  f'{esc(fmt(last["server_capacity"]))} CPU units of server capacity Σ w·P rises from '
                  f'{esc(fmt(first["objective"]))} to {esc(fmt(last["objective"]))} '

@@ -350,7 +350,8 @@ class Network:
             try:
                 _run([self.tc, "-n", ns, "-batch", "-"], "".join(
                     f"filter add dev {end.ifname} {hook} protocol all pref 1 {match} "
-                    f"action mirred egress redirect dev {m.ifname}\n" for end in ends for hook in ("egress", "ingress")))
+                    f"action mirred egress redirect dev {m.ifname}\n"
+                    for end in ends for hook in ("egress", "ingress")))
             except OSError:
                 if name == "u32" or self.media_filter:
                     raise

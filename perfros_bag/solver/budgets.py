@@ -165,7 +165,8 @@ def cut_of(system: System, problem: Problem, assignment: Assignment, chain: Chai
     return list(terms.values())
 
 
-def impossible_budget(system: System, choices: Mapping[str, Sequence[Choice]], chain: Chain | None = None) -> str | None:
+def impossible_budget(system: System, choices: Mapping[str, Sequence[Choice]],
+                      chain: Chain | None = None) -> str | None:
     """A chain whose budget is below a lower bound of its latency over every plan (each hop at
     its fastest choice, alone on the largest computer it may use, beside its input), named
     with that bound; None when every budget may be met. ``chain``: only that one."""
@@ -295,7 +296,8 @@ def excess(system: System, problem: Problem, assignment: Assignment) -> float:
     loads = system.link_loads(assignment.placement, assignment.choice)
     total = 0.0
     for c in budgeted(system):
-        for _, got, limit in predict_chain(system, c, assignment.placement, assignment.choice, caps, loads).over_budget():
+        for _, got, limit in predict_chain(system, c, assignment.placement, assignment.choice, caps,
+                                           loads).over_budget():
             total += got - limit
     return total
 

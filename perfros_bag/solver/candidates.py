@@ -47,7 +47,8 @@ def _match_cpu(system: System, node: Node, cpu: float, resolution: float) -> Cho
         lo, hi = node.curve.domain
         if lo - 1e-6 <= cpu <= hi + 1e-6:
             return node.choice_at(0, min(max(cpu, lo), hi))
-        raise InputError(_where(system), f"node {node.name!r}: setting CPU {cpu:g} is outside its curve's range [{lo:g}, {hi:g}]")
+        raise InputError(_where(system), f"node {node.name!r}: setting CPU {cpu:g} "
+                                         f"is outside its curve's range [{lo:g}, {hi:g}]")
     have = ", ".join(f"{c.cpu:g}" for c in choices)
     raise InputError(_where(system), f"node {node.name!r}: no setting with CPU {cpu:g} (its settings' CPU: {have})")
 
@@ -168,7 +169,8 @@ def settings_from_values(system: System, values: Mapping[str, float], resolution
         rel = node.relations.get("parameter->cpu")
         # a setting first (its own, measured CPU: on a fitted curve several CPU levels may
         # map back to the same end value), then the fitted relation, then a choice
-        match = [s.cpu for s in node.settings if s.value is not None and math.isclose(s.value, v, rel_tol=1e-9, abs_tol=1e-9)]
+        match = [s.cpu for s in node.settings
+                 if s.value is not None and math.isclose(s.value, v, rel_tol=1e-9, abs_tol=1e-9)]
         if not (match or (rel is not None and node.curve is not None)):
             match = [c.cpu for c in node.choices(resolution)
                      if c.value is not None and math.isclose(c.value, v, rel_tol=1e-9, abs_tol=1e-9)]
@@ -183,7 +185,8 @@ def settings_from_values(system: System, values: Mapping[str, float], resolution
         else:
             have = sorted({c.value for c in node.choices(resolution) if c.value is not None}
                           | {s.value for s in node.settings if s.value is not None})
-            hint = f"its values: {', '.join(f'{x:g}' for x in have)}" if have else "it has no parameter values, only CPU levels"
+            hint = (f"its values: {', '.join(f'{x:g}' for x in have)}" if have
+                    else "it has no parameter values, only CPU levels")
             raise InputError(_where(system), f"settings: node {name!r} has no setting with value {v:g} ({hint})")
         if not math.isfinite(cpu):
             raise InputError(_where(system), f"settings: node {name!r}: value {v:g} gives no finite CPU level "

@@ -67,7 +67,8 @@ def _driven_choice(node: Node, input_hz: float, cpu: float, performance: float, 
             out = cap
         size = s.bytes_per_msg
         if size is None:
-            size = s.bandwidth_kBps * 1000.0 / s.frequency_hz if s.frequency_hz and s.bandwidth_kBps is not None else 0.0
+            size = (s.bandwidth_kBps * 1000.0 / s.frequency_hz
+                    if s.frequency_hz and s.bandwidth_kBps is not None else 0.0)
         return Choice(j, need, s.performance, s.value, out, size * out / 1000.0, {}, input_hz=input_hz, setting=j)
     return None
 
@@ -222,7 +223,8 @@ def check_plan(system: System, plan: Plan, *, tol: float = 1e-6) -> list[str]:
             link_load[li] += bw
     for i, link in enumerate(system.links):
         if _over(link_load[i], link.bandwidth_kBps, tol):
-            bad.append(f"link {link.between[0]}-{link.between[1]}: load {link_load[i]:g} > bandwidth {link.bandwidth_kBps:g} kB/s")
+            bad.append(f"link {link.between[0]}-{link.between[1]}: load {link_load[i]:g} "
+                       f"> bandwidth {link.bandwidth_kBps:g} kB/s")
     for m in system.media:
         total = sum(link_load[i] for i, link in enumerate(system.links) if link.medium == m.name)
         if _over(total, m.bandwidth_kBps, tol):
@@ -231,7 +233,8 @@ def check_plan(system: System, plan: Plan, *, tol: float = 1e-6) -> list[str]:
     for i, link in enumerate(system.links):
         got = reported.get(tuple(link.between))
         if got is not None and not _close(got, link_load[i], tol):
-            bad.append(f"link {link.between[0]}-{link.between[1]}: plan reports load {got:g}, edges sum to {link_load[i]:g}")
+            bad.append(f"link {link.between[0]}-{link.between[1]}: plan reports load {got:g}, "
+                       f"edges sum to {link_load[i]:g}")
 
     # latency budgets (system.yaml budget_ms) and the latency the plan states
     bad.extend(_latency(system, plan, where, link_load, tol))

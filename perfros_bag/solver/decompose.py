@@ -91,7 +91,8 @@ REL_TOL = 1e-6  # "optimal": bound - objective within this (relative), as exact.
 FIRST_MIP_SHARE = 0.5  # of the time left, for the MILP over the generated columns
 NEAR_LIMIT = 20_000  # columns the reduced-cost enumeration may add (else it is not tried)
 CG_TOL = 1e-7  # column generation stops when the LP is this close to the bound (relative)
-GREEDY_PLUS_SHARE = 0.1  # of the budget, for greedy+'s first plan when the greedy finds none (at most starts.PLUS_START_MAX_S)
+# of the budget, for greedy+'s first plan when the greedy finds none (at most starts.PLUS_START_MAX_S)
+GREEDY_PLUS_SHARE = 0.1
 MAX_PATTERNS = 1024  # with network rows: home/away patterns of one block's pricing
 MAX_VIEWS = 64  # consistent rate assignments of one block's data-flow trees (each priced)
 
@@ -861,7 +862,8 @@ class _Master:
         reserve = self.model.reserve
         if reserve.any():  # the plan leaves room for the traffic between blocks (at its most)
             rows = np.nonzero(reserve)[0]
-            self.h.changeRowsBounds(len(rows), (self.n_cls + rows).astype(np.int32), np.full(len(rows), -self.hs.kHighsInf),
+            self.h.changeRowsBounds(len(rows), (self.n_cls + rows).astype(np.int32),
+                                    np.full(len(rows), -self.hs.kHighsInf),
                                     self.model.cap[rows] - reserve[rows])
         self.h.setOptionValue("time_limit", max(time_limit, 0.01))
         self.h.setOptionValue("mip_rel_gap", 0.0)
@@ -871,7 +873,8 @@ class _Master:
             full.update({self.n_over + j: v for j, v in start.items()})
             self.h.setSolution(n, np.array(list(full), dtype=np.int32), np.array(list(full.values())))
         if improved is not None and not self.subscribed:
-            self.h.cbMipImprovingSolution.subscribe(lambda event: improved(float(event.data_out.objective_function_value)))
+            self.h.cbMipImprovingSolution.subscribe(
+                lambda event: improved(float(event.data_out.objective_function_value)))
             self.subscribed = True
         self.h.run()
         if self.h.getInfo().primal_solution_status != 2:

@@ -51,7 +51,8 @@ def check_headroom(headroom: object) -> float | str:
     if headroom == AUTO:
         return AUTO
     if isinstance(headroom, bool) or not isinstance(headroom, int | float) or not 0.0 <= headroom < 1.0:
-        raise InputError(None, f"headroom must be in [0, 1), got {headroom!r} (or {AUTO!r}: the model's measured errors)")
+        raise InputError(None, f"headroom must be in [0, 1), got {headroom!r} "
+                               f"(or {AUTO!r}: the model's measured errors)")
     return float(headroom)
 
 

@@ -302,7 +302,8 @@ def _class_options(system: System, choices: Mapping[str, list[Choice]]) -> dict[
     return out
 
 
-def _restricted(system: System, choices: Mapping[str, list[Choice]], classes: Classes) -> dict[str, list[Choice]] | None:
+def _restricted(system: System, choices: Mapping[str, list[Choice]],
+                classes: Classes) -> dict[str, list[Choice]] | None:
     """The choices consistent with ``classes``: a source publisher's in its rate class, a
     driven node's at the rate its publisher then gives it (and a driven publisher's at its
     own setting); None when a node has none left."""

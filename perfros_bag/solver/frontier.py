@@ -7,7 +7,8 @@ server capacity, from the Problem 2 minimum up to where performance stops rising
 - The lowest capacity worth asking about is where Problem 2's plan with every node at its
   lowest setting fits those shares (one server: Problem 2's minimum, below which no plan
   exists); the highest is where Problem 2's plan with every node at its highest setting
-  fits them (every node can run at its best: Σ w·P cannot rise further). Each point is Problem 1 solved by ``method`` (default ``exact``: a proven
+  fits them (every node can run at its best: Σ w·P cannot rise further). Each point is
+  Problem 1 solved by ``method`` (default ``exact``: a proven
   optimum, or a plan with its bound and gap when a time limit stops it).
 - Only proven bounds are stated: a heuristic's point (greedy, greedy+) has none (``None``,
   ``null`` in frontier.json), not its own objective.

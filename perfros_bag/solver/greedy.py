@@ -97,7 +97,8 @@ def explain(state: State, gi: int, why: dict[str, str]) -> str:
     who = " + ".join(group)
     cpu = state.group_cpu(gi)
     allowed = state.group_allowed[gi]
-    lowest = " at its lowest setting" if state.problem == Problem.PERFORMANCE and any(len(state.ladder[n]) > 1 for n in group) else ""
+    lowest = (" at its lowest setting"
+              if state.problem == Problem.PERFORMANCE and any(len(state.ladder[n]) > 1 for n in group) else "")
     if len(allowed) == 1:
         c = allowed[0]
         # alone on its only computer it does not fit: no solver can do better
@@ -147,7 +148,8 @@ def relocate_from(state: State, c: str, *, only_nonmax: bool) -> None:
     each to the non-full allowed computer with the largest free capacity that holds it."""
     groups = sorted({state.group_of[n] for n in state.on(c)})
     if only_nonmax:
-        groups = [gi for gi in groups if any(len(state.ladder[n]) > 1 and not state.at_max(n) for n in state.groups[gi])]
+        groups = [gi for gi in groups
+                  if any(len(state.ladder[n]) > 1 and not state.at_max(n) for n in state.groups[gi])]
     groups.sort(key=lambda gi: (-max(state.gradient(n) for n in state.groups[gi]), -state.group_cpu(gi), gi))
     for gi in groups:
         targets = [t for t in state.group_allowed[gi] if t != c and not is_full(state, t)]

@@ -182,7 +182,8 @@ class State:
                         delta[li] = delta.get(li, 0.0) + bw
         return delta, None
 
-    def check(self, changes: Mapping[str, tuple[str | None, int]]) -> tuple[str | None, dict[int, float], dict[str, float]]:
+    def check(self, changes: Mapping[str, tuple[str | None, int]]
+              ) -> tuple[str | None, dict[int, float], dict[str, float]]:
         """Whether ``changes`` (node -> (computer, level)) keeps the state feasible: the
         reason it does not (or None), the link load deltas and the computer load deltas."""
         dload: dict[str, float] = {}
@@ -216,7 +217,8 @@ class State:
                     m = self.system.medium[name]
                     now = self.system.medium_load(self.link_load, name)
                     if now + d > m.bandwidth_kBps + EPS * max(1.0, m.bandwidth_kBps):
-                        return f"medium {name} would carry {fmt_units(now + d)} > {fmt_units(m.bandwidth_kBps)} kB/s", {}, {}
+                        return (f"medium {name} would carry {fmt_units(now + d)} "
+                                f"> {fmt_units(m.bandwidth_kBps)} kB/s", {}, {})
         return None, delta, dload
 
     def change(self, changes: Mapping[str, tuple[str | None, int]]) -> str | None:

@@ -136,7 +136,8 @@ def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Pat
             groups.apply()
         live[:] = [LiveState(
             run_id, os.getpid(), master[0] if master else "", network.master_computer() if network.emulated else None,
-            str(Path(plan_path).absolute()), None if system is None or system.source is None else str(Path(system.source).absolute()),
+            str(Path(plan_path).absolute()),
+            None if system is None or system.source is None else str(Path(system.source).absolute()),
             units_per_core, dict(network.namespaces), {c: str(d) for c, d in groups.dirs.items()}, dict(cores),
             cap and groups.capped,
             {n.name: {"pid": n.pid, "computer": where.get(system_node_name(n.name))} for n in graph.nodes

@@ -397,7 +397,8 @@ def _render_driven(node: Any, exe: str, keys: Sequence[int | float | None], weig
                 f"    # every run gave {how}, the worst {100 * follow.spread:.1f} % off (max_frequency_hz = its value)"]
     else:
         said = [f"    # driven: its output kept one rate per message of {follow.topic} (within "
-                f"{100 * (RATIO_TOLERANCE - 1):.0f} %) while that rate varied by more than {100 * (INPUT_VARIED - 1):.0f} %"]
+                f"{100 * (RATIO_TOLERANCE - 1):.0f} %) while that rate varied by more than "
+                f"{100 * (INPUT_VARIED - 1):.0f} %"]
     lines = [f"  # /{node.name} ({exe})",
              f"  - name: {flow(node.name)}",
              f"    weight: {weight!r}  # REPLACE: every node weighs the same (a stated default)",

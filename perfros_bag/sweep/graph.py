@@ -186,6 +186,7 @@ def read_graph(path: str | Path) -> Graph:
                 raise fail(f"topics[{i}].{key}", f"must be a list of node names, got {val!r}")
             lists[key] = tuple(val)
         ty = raw.get("type")
-        topics.append(GraphTopic(raw["name"], None if ty is None else str(ty), lists["publishers"], lists["subscribers"]))
+        topics.append(GraphTopic(raw["name"], None if ty is None else str(ty),
+                                 lists["publishers"], lists["subscribers"]))
     run = data.get("run")
     return Graph(tuple(nodes), tuple(topics), None if run is None else str(run))

@@ -292,7 +292,8 @@ class _Watch:
             return died
         if self.launcher is not None and self.launcher.popen.poll() is not None:
             cause = _last_error(self.log)
-            return f"roslaunch ({cause + '; ' if cause else ''}exit code {self.launcher.popen.returncode}; see {self.log})"
+            return (f"roslaunch ({cause + '; ' if cause else ''}"
+                    f"exit code {self.launcher.popen.returncode}; see {self.log})")
         for st in self.others:
             if st.popen.poll() is not None:
                 cause = _last_error(Path(st.log.name))
@@ -494,7 +495,8 @@ def _start_nodes(launch: LaunchFile, run: Run, nodes: list[str], spread: _Spread
                         cwd=Path(procs.env["ROS_HOME"])) for i, cmd in enumerate(commands)]
 
 
-def _node_argv(cmd: NodeCommand, spread: _Spread | None, uri: str, standalone: frozenset[str] = frozenset()) -> list[str]:
+def _node_argv(cmd: NodeCommand, spread: _Spread | None, uri: str,
+               standalone: frozenset[str] = frozenset()) -> list[str]:
     """A node's command line as ``roslaunch --args`` gave it (a nodelet named in
     ``standalone`` as ``nodelet standalone``), in its computer's namespace."""
     from perfros_bag.sweep.nodelets import standalone_argv

@@ -297,7 +297,8 @@ def plan_predictions(system: System, plan: Plan, *, warn: bool = True) -> list[C
     if warn:
         for p in out:
             if p.why is not None:
-                warnings.warn(f"{system.source or 'system'}: chain {p.name!r}: its latency cannot be predicted: {p.why}",
+                warnings.warn(f"{system.source or 'system'}: chain {p.name!r}: "
+                              f"its latency cannot be predicted: {p.why}",
                               PerfrosWarning, stacklevel=2)
     return out
 

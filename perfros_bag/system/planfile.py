@@ -43,7 +43,8 @@ def plan_document(plan: Plan) -> dict[str, Any]:
     if plan.system is not None:
         out["system"] = plan.system
     out["computers"] = {
-        name: {"kind": c.kind, "capacity": c.capacity, "cpu": c.cpu, **({} if c.margin is None else {"margin": c.margin})}
+        name: {"kind": c.kind, "capacity": c.capacity, "cpu": c.cpu,
+               **({} if c.margin is None else {"margin": c.margin})}
         for name, c in plan.computers.items()
     }
     out["links"] = [

@@ -191,7 +191,8 @@ def parse_system(data: Any, source: str = "system.yaml") -> System:
 
     total = sum(n.weight for n in nodes)
     if abs(total - 1.0) > 1e-6:
-        warnings.warn(f"{source}: node weights sum to {total:g}, not 1; normalised (eq 6)", PerfrosWarning, stacklevel=2)
+        warnings.warn(f"{source}: node weights sum to {total:g}, not 1; normalised (eq 6)",
+                      PerfrosWarning, stacklevel=2)
         nodes = [_reweight(n, n.weight / total) for n in nodes]
 
     chains = _chains(ctx, top.get("chains"), nodes, edges)
@@ -293,7 +294,8 @@ def _computers(ctx: _Ctx, raw: Any) -> list[Computer]:
 
 def _media(ctx: _Ctx, raw: Any) -> list[Medium]:
     out: list[Medium] = []
-    for name, where, m in ctx.named(raw, "media", "medium", MEDIUM_KEYS, {"name", "bandwidth_kBps"}, at_least_one=False):
+    for name, where, m in ctx.named(raw, "media", "medium", MEDIUM_KEYS, {"name", "bandwidth_kBps"},
+                                    at_least_one=False):
         out.append(Medium(name, ctx.number(m["bandwidth_kBps"], f"{where}: bandwidth_kBps", nonneg=True)))
     return out
 
@@ -461,7 +463,8 @@ def _nodes(ctx: _Ctx, raw: Any, computers: set[str]) -> list[Node]:
         metric = _metric(ctx, m["metric"], f"{where}: metric") if m.get("metric") is not None else None
         between = ctx.opt_number(m.get("cpu_error_between"), f"{where}: cpu_error_between", nonneg=True)
         if between is not None and curve is None:
-            raise ctx.fail(f"{where}: cpu_error_between", "only a node with a curve has CPU levels between its settings")
+            raise ctx.fail(f"{where}: cpu_error_between",
+                           "only a node with a curve has CPU levels between its settings")
         container = None if m.get("container") is None else ctx.name(m["container"], f"{where}: container",
                                                                        NameKind.NODE)
         threads = _threads(ctx, m.get("threads"), f"{where}: threads")
@@ -483,7 +486,8 @@ def _metric(ctx: _Ctx, raw: Any, where: str) -> Metric:
     topic = ctx.string(m["topic"], f"{where}.topic")
     aggregate = m.get("aggregate", "mean")
     if aggregate not in {a.value for a in Aggregate}:
-        raise ctx.fail(f"{where}.aggregate", f"must be one of {', '.join(a.value for a in Aggregate)}, got {aggregate!r}")
+        raise ctx.fail(f"{where}.aggregate",
+                       f"must be one of {', '.join(a.value for a in Aggregate)}, got {aggregate!r}")
     better = m.get("better", "higher")
     if better not in {b.value for b in Better}:
         raise ctx.fail(f"{where}.better", f"must be 'higher' or 'lower', got {better!r}")
@@ -503,7 +507,8 @@ def _metric(ctx: _Ctx, raw: Any, where: str) -> Metric:
 
 
 def _setting(ctx: _Ctx, raw: Any, where: str, *, driven: bool = False) -> Setting:
-    m = ctx.mapping(raw, where, SETTING_KEYS | DRIVEN_KEYS, {"cpu", "performance"} | ({"cpu_per_hz"} if driven else set()))
+    m = ctx.mapping(raw, where, SETTING_KEYS | DRIVEN_KEYS,
+                    {"cpu", "performance"} | ({"cpu_per_hz"} if driven else set()))
     if not driven:
         extra = sorted(k for k in DRIVEN_KEYS if k in m)
         if extra:
@@ -519,7 +524,8 @@ def _setting(ctx: _Ctx, raw: Any, where: str, *, driven: bool = False) -> Settin
             raise ctx.fail(f"{where}.step", "a step says how max_frequency_hz caps the output: give max_frequency_hz")
     topics: dict[str, TopicRate] = {}
     if m.get("topics") is not None:
-        tm = ctx.mapping(m["topics"], f"{where}.topics", set(m["topics"]) if isinstance(m["topics"], Mapping) else set())
+        tm = ctx.mapping(m["topics"], f"{where}.topics",
+                         set(m["topics"]) if isinstance(m["topics"], Mapping) else set())
         for topic, rate in tm.items():
             ctx.name(topic, f"{where}.topics", NameKind.TOPIC)
             rm = ctx.mapping(rate, f"{where}.topics.{topic}", TOPIC_RATE_KEYS)
@@ -601,7 +607,8 @@ def _machines(ctx: _Ctx, raw: Any, computers: set[str]) -> dict[str, dict[str, s
     m = ctx.mapping(raw, "machines", computers)
     out: dict[str, dict[str, str]] = {}
     for name, attrs in m.items():
-        am = ctx.mapping(attrs, f"machines.{name}", {"address", "user", "env_loader", "ssh_port", "password", "default"})
+        am = ctx.mapping(attrs, f"machines.{name}",
+                         {"address", "user", "env_loader", "ssh_port", "password", "default"})
         out[str(name)] = {str(k): _machine_attr(ctx, f"machines.{name}.{k}", str(k), v) for k, v in am.items()}
     return out
 
@@ -623,4 +630,5 @@ def _check_groups(ctx: _Ctx, system: System) -> None:
     for group in system.coresidence_groups:
         if not system.allowed_to_all(group):
             who = ", ".join(repr(n) for n in group)
-            raise ctx.fail(f"node {group[0]!r}: residence", f"coresident nodes {who} have no computer allowed for all of them")
+            raise ctx.fail(f"node {group[0]!r}: residence",
+                           f"coresident nodes {who} have no computer allowed for all of them")

@@ -66,7 +66,8 @@ class Curve:
     def __post_init__(self) -> None:
         curve_form(self.form)  # a curve read from a file is checked at run time too
         if len(self.coef) != CURVE_NCOEF[self.form]:
-            raise ValueError(f"curve form {self.form!r} takes {CURVE_NCOEF[self.form]} coefficients, got {len(self.coef)}")
+            raise ValueError(f"curve form {self.form!r} takes {CURVE_NCOEF[self.form]} coefficients, "
+                             f"got {len(self.coef)}")
         lo, hi = self.domain
         if not (math.isfinite(lo) and math.isfinite(hi)) or lo > hi:
             raise ValueError(f"curve domain [{lo}, {hi}] is not a finite range")

@@ -389,7 +389,8 @@ def calibrate(rows: list[Row], done: list[dict[str, Any]], model0: System) -> tu
     out: list[Row] = []
     for row in rows:
         f = factors.get(row.node)
-        out.append(row if f is None or row.recording in by_run else _scaled(row, ("cpu_units_mean", "cpu_units_p95"), f))
+        out.append(row if f is None or row.recording in by_run
+                   else _scaled(row, ("cpu_units_mean", "cpu_units_p95"), f))
     return out, factors
 
 

@@ -144,7 +144,8 @@ def predict_kept(plan: Plan, system: System | None, capacities: Mapping[str, flo
     def topic_rates(name: str) -> dict[str, float]:
         return {t: r.frequency_hz for t, r in plan.nodes[name].topics.items() if r.frequency_hz is not None}
 
-    def evaluate(fin: Mapping[str, float]) -> tuple[dict[str, float], dict[str, float], dict[str, float], dict[str, float]]:
+    def evaluate(fin: Mapping[str, float]
+                 ) -> tuple[dict[str, float], dict[str, float], dict[str, float], dict[str, float]]:
         """need, computer factor per node, output rate per node (planned: per the rule at fin),
         and the input rates the outputs give."""
         need: dict[str, float] = {}

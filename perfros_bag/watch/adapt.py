@@ -100,7 +100,8 @@ class Adapter:
             base = model_path.parent / base
         folder = self.out / f"replan-{k:05d}"
         folder.mkdir(parents=True, exist_ok=True)
-        csv_path, new_model, new_plan_path = folder / "characterisation.csv", folder / "model.json", folder / "plan.json"
+        csv_path, new_model, new_plan_path = (folder / "characterisation.csv", folder / "model.json",
+                                              folder / "plan.json")
         write_characterisation(csv_path, [*base_rows(base), *rows])
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", PerfrosWarning)
