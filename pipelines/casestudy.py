@@ -256,7 +256,8 @@ def rq3(out: Path, args: argparse.Namespace) -> list[dict[str, Any]]:
     system = load_system(model_path)
     baseline = solve(system, 1, "greedy")
     save_plan(baseline, d / "plan-baseline.json")
-    COMMANDS.append(f"perfros-bag solve {rel(model_path)} --problem 1 --method greedy --out {rel(d / 'plan-baseline.json')}"
+    COMMANDS.append(f"perfros-bag solve {rel(model_path)} --problem 1 --method greedy "
+                    f"--out {rel(d / 'plan-baseline.json')}"
                     "   # RQ3 baseline (done in-process)")
     truth_path = FIXTURES / "instance1.yaml"
     truth = load_system(truth_path)
@@ -304,8 +305,10 @@ def plots(out: Path, results: list[dict[str, Any]], rq3_rows: list[dict[str, Any
         rows = [r for r in results if r["problem"] == problem]
         xs = list(range(len(rows)))
         ref = [r["optimum"] if problem == 1 and r["optimum"] else r["expected"] for r in rows]
-        ax.bar([x - 0.2 for x in xs], [r["expected"] / f for r, f in zip(rows, ref, strict=True)], 0.4, label="expected")
-        ax.bar([x + 0.2 for x in xs], [r["measured"] / f for r, f in zip(rows, ref, strict=True)], 0.4, label="measured")
+        ax.bar([x - 0.2 for x in xs], [r["expected"] / f for r, f in zip(rows, ref, strict=True)], 0.4,
+               label="expected")
+        ax.bar([x + 0.2 for x in xs], [r["measured"] / f for r, f in zip(rows, ref, strict=True)], 0.4,
+               label="measured")
         ax.set_xticks(xs, [str(r["instance"]) for r in rows])
         ax.set_xlabel("instance")
         ax.set_ylim(0.8, 1.05)
@@ -341,7 +344,8 @@ def markdown(results: list[dict[str, Any]], rq3_rows: list[dict[str, Any]], args
         return "-" if x is None else f"{x:.{nd}f}"
 
     span = f"{min(RUN_TIMES)} to {max(RUN_TIMES)}" if RUN_TIMES else "-"
-    lines = [f"Runs recorded {span} (UTC), report written {datetime.now(UTC).strftime('%Y-%m-%d %H:%M UTC')}, on this machine "
+    lines = [f"Runs recorded {span} (UTC), "
+             f"report written {datetime.now(UTC).strftime('%Y-%m-%d %H:%M UTC')}, on this machine "
              f"({args.units_per_core:g} CPU units per core: a robot of 100 = {100 / args.units_per_core:g} core, "
              f"the server of 400 = {400 / args.units_per_core:g} core; a deployment whose computers would need more "
              f"than {args.max_cores:g} cores is shrunk further, see the last column; {args.duration:g} s per run).", "",
@@ -364,7 +368,8 @@ def markdown(results: list[dict[str, Any]], rq3_rows: list[dict[str, Any]], args
               "![expected vs measured](casestudy/fig5.png)", ""]
     if rq3_rows:
         lines += ["### RQ3: parameters forced above the plan (Table III), instance 1, robot nodes on the robot", "",
-                  "| config | model goals | AMCL particles | nav. Hz | robot CPU predicted | capacity | overload predicted "
+                  "| config | model goals | AMCL particles | nav. Hz | robot CPU predicted | capacity "
+                  "| overload predicted "
                   "| robot CPU measured | robot throttled periods | expected Σ w·P | measured Σ w·P | deviation % |",
                   "|---|---|---|---|---|---|---|---|---|---|---|---|"]
         for r in rq3_rows:
@@ -376,7 +381,8 @@ def markdown(results: list[dict[str, Any]], rq3_rows: list[dict[str, Any]], args
                          f"{'-' if thr is None else f'{thr:.0%}'} | {f(r['expected'])} | {f(r['measured'])} | "
                          f"{f(r['deviation_pct'])} |")
         lines += ["", "![RQ3](casestudy/rq3.png)", ""]
-    lines += ["### Commands", "", "```", f"make casestudy   # = .venv/bin/python pipelines/casestudy.py {' '.join(argv)}",
+    lines += ["### Commands", "", "```",
+              f"make casestudy   # = .venv/bin/python pipelines/casestudy.py {' '.join(argv)}",
               *dict.fromkeys(COMMANDS), "```", ""]
     return "\n".join(lines)
 
@@ -406,7 +412,8 @@ def main(argv: list[str]) -> int:
         results = deploy_all(out, plans, args)
         rq3_rows = [] if args.skip_rq3 or 1 not in instances else rq3(out, args)
         BAR.clear()
-    atomic_write_json(out / "results.json", {"rq2": results, "rq3": rq3_rows, "args": vars(args) | {"out": str(out), "docs": str(args.docs)}})
+    atomic_write_json(out / "results.json", {"rq2": results, "rq3": rq3_rows,
+                                             "args": vars(args) | {"out": str(out), "docs": str(args.docs)}})
     plots(out, results, rq3_rows)
     section = markdown(results, rq3_rows, args, argv)
     atomic_write_text(out / "results.md", section)

@@ -671,7 +671,8 @@ def rq3(out: Path, app: Path, plans: dict[int, dict[str, Path]], args: argparse.
         base = plans[4]["p1-exact"]
         configs.append(("instance 4 plan (baseline)", 4, base, "link", "robot2"))
         configs.append(("link: robot 2's camera at 10 Hz, its people detector on the server (2,000 kB/s link)", 4,
-                        forced(d, "link-over", base, {"robot2_camera": (None, 10.0), "robot2_people": ("server", None)}),
+                        forced(d, "link-over", base,
+                               {"robot2_camera": (None, 10.0), "robot2_people": ("server", None)}),
                         "link", "robot2"))
     for label, i, plan_path, what, where in configs:
         robots = len(INSTANCES[i].robot_capacity)
@@ -926,7 +927,8 @@ def plots(out: Path, results: list[dict[str, Any]], rq3_rows: list[dict[str, Any
         ax.bar([x + 0.2 for x in xs], [(r["observed_load"] or 0) / r["capacity"] for r in rq3_rows], 0.4,
                label="observed load / capacity")
         ax.axhline(1.0, color="red", lw=1)
-        ax.set_xticks(xs, [r["config"].split(":")[0].replace(" (baseline)", "\nbaseline") for r in rq3_rows], fontsize=7)
+        ax.set_xticks(xs, [r["config"].split(":")[0].replace(" (baseline)", "\nbaseline") for r in rq3_rows],
+                      fontsize=7)
         ax.set_title("RQ3: robot CPU and link load against capacity")
         ax.legend(fontsize=8)
         fig.tight_layout()
@@ -1030,14 +1032,18 @@ def markdown(results: list[dict[str, Any]], rq3_rows: list[dict[str, Any]], erro
         for r in rq3_rows:
             if r["what"] == "cpu":
                 evidence = (f"CFS throttled {f(None if r.get('throttled') is None else 100 * r['throttled'], 0)} % "
-                            f"of periods; slowest node at {f(None if r.get('slowest_ratio') is None else 100 * r['slowest_ratio'], 0)} % of its planned rate")
+                            "of periods; slowest node at "
+                            f"{f(None if r.get('slowest_ratio') is None else 100 * r['slowest_ratio'], 0)} "
+                            "% of its planned rate")
                 resource = f"{r['where']} CPU (units)"
             else:
-                evidence = f"link at {f(None if r.get('utilisation') is None else 100 * r['utilisation'], 0)} % of its rate, {r.get('overlimits')} overlimits"
+                evidence = (f"link at {f(None if r.get('utilisation') is None else 100 * r['utilisation'], 0)} "
+                            f"% of its rate, {r.get('overlimits')} overlimits")
                 resource = f"link {r['where']}-server (kB/s)"
             lines.append(f"| {r['config']} | {resource} | {f(r['predicted_load'], 1)} | {f(r['capacity'], 0)} | "
                          f"{'yes' if r['predicted_overload'] else 'no'} | {f(r['observed_load'], 1)} | "
-                         f"{'yes' if r['observed_overload'] else 'no'} | {evidence} | {kept_cell(r)} | {f(r['expected'])} | "
+                         f"{'yes' if r['observed_overload'] else 'no'} | {evidence} | {kept_cell(r)} | "
+                         f"{f(r['expected'])} | "
                          f"{f(r['measured'])} | {f(r['freq_dev_mean_pct'])} |")
         kerr = kept_errors(rq3_rows)
         if kerr:
@@ -1111,7 +1117,8 @@ def markdown(results: list[dict[str, Any]], rq3_rows: list[dict[str, Any]], erro
                   "| camera Hz | people output Hz | camera CPU | people CPU | people, drafted line | smooth CPU "
                   "| smooth, drafted line |", "|---|---|---|---|---|---|---|"]
         for r in rates:
-            lines.append(f"| {r['rate_hz']:g} | {f(r.get('people_hz'))} | {f(r.get('camera'), 3)} | {f(r.get('people'))} | "
+            lines.append(f"| {r['rate_hz']:g} | {f(r.get('people_hz'))} | {f(r.get('camera'), 3)} | "
+                         f"{f(r.get('people'))} | "
                          f"{f(r.get('people_line'))} | {f(r.get('smooth'))} | {f(r.get('smooth_line'))} |")
     lines += ["", "### Commands", "", "```",
               f"make casestudy-real   # = .venv/bin/python pipelines/casestudy_real.py {' '.join(argv)}",
@@ -1172,7 +1179,8 @@ def run(out: Path, numbers: list[int], args: argparse.Namespace, argv: list[str]
         results = deploy_all(out, app, plans, args, bar) + tuned
         results += [] if args.skip_tune else confirm_all(out, app, numbers, args, bar)
         rq3_rows = [] if args.skip_rq3 else rq3(out, app, plans, args, bar)
-    errors = {"plans": model_errors([r for r in results if "tuned" not in r["plan"] and not r["plan"].endswith(NO_MARGIN)]),
+    errors = {"plans": model_errors([r for r in results
+                                     if "tuned" not in r["plan"] and not r["plan"].endswith(NO_MARGIN)]),
               "after_loop": model_errors([r for r in results if r.get("final")]),
               "last_round": model_errors([r for r in results if r.get("last_round")])}
     computers = computer_errors(results)

@@ -83,7 +83,8 @@ def table_rows(rows: list[dict[str, Any]]) -> list[list[str]]:
             "n/a" if opt is None else f"{opt['objective']:.4f} ({opt['status']})",
             f"{r['greedy']['objective']:.4f}", fmt_ratio(r["greedy"]["ratio"]),
             f"{r['greedy+']['objective']:.4f}", fmt_ratio(r["greedy+"]["ratio"]),
-            fmt_s(r["greedy"]["solve_s"]), fmt_s(r["greedy+"]["solve_s"]), fmt_s(None if opt is None else opt["solve_s"]),
+            fmt_s(r["greedy"]["solve_s"]), fmt_s(r["greedy+"]["solve_s"]),
+            fmt_s(None if opt is None else opt["solve_s"]),
         ])
     for problem in (1, 2):
         mine = [r for r in rows if r["problem"] == problem]
