@@ -140,7 +140,8 @@ def _parameter_value(ts: Any, value: Any) -> Any:
     fields[{1: "bool_value", 2: "integer_value", 3: "double_value", 4: "string_value"}[kind]] = value
     empty = np.array([], dtype=np.int64)
     return ts.types["rcl_interfaces/msg/ParameterValue"](
-        type=kind, **fields, byte_array_value=np.array([], dtype=np.uint8), bool_array_value=np.array([], dtype=np.bool_),
+        type=kind, **fields, byte_array_value=np.array([], dtype=np.uint8),
+        bool_array_value=np.array([], dtype=np.bool_),
         integer_array_value=empty, double_array_value=np.array([], dtype=np.float64), string_array_value=[])
 
 
@@ -155,7 +156,8 @@ def graph_messages(ts: Any, t0: int = 1_700_000_000_000_000_000) -> list[tuple[s
         param = ts.types["rcl_interfaces/msg/Parameter"](name=name, value=_parameter_value(ts, value))
         is_new = (node, name) not in new_seen
         new_seen.add((node, name))
-        out.append(("/parameter_events", "rcl_interfaces/msg/ParameterEvent", t, ts.types["rcl_interfaces/msg/ParameterEvent"](
+        out.append(("/parameter_events", "rcl_interfaces/msg/ParameterEvent", t,
+                    ts.types["rcl_interfaces/msg/ParameterEvent"](
             stamp=time_t(sec=t // 10**9, nanosec=t % 10**9), node=node,
             new_parameters=[param] if is_new else [], changed_parameters=[] if is_new else [param],
             deleted_parameters=[])))
@@ -203,7 +205,8 @@ def write_graph_ros1(path: Path) -> Path:
                                                     function="f", line=1, topics=["/data"])
             w.write(rosout, t0 + i, ts.serialize_ros1(log, "rosgraph_msgs/msg/Log"))
         for i, conn in enumerate(data.values()):
-            w.write(conn, t0 + 10 + i, ts.serialize_ros1(ts.types["std_msgs/msg/String"](data="x"), "std_msgs/msg/String"))
+            w.write(conn, t0 + 10 + i,
+                    ts.serialize_ros1(ts.types["std_msgs/msg/String"](data="x"), "std_msgs/msg/String"))
     return path
 
 
@@ -302,7 +305,8 @@ def write_chain(path: Path, kind: str = "ros1", messages: list[tuple[str, int, i
         for name, text in CUSTOM_MSGS.items():
             ts.register(get_types_from_msg(text, name))
         with W1(path) as w1:
-            c1 = {t: w1.add_connection(t, m, typestore=ts, callerid="/" + t.split("/")[1]) for t, m in CHAIN_TOPICS.items()}
+            c1 = {t: w1.add_connection(t, m, typestore=ts, callerid="/" + t.split("/")[1])
+                  for t, m in CHAIN_TOPICS.items()}
             for topic, t, stamp in msgs:
                 w1.write(c1[topic], t, ts.serialize_ros1(_chain_message(ts, topic, stamp), CHAIN_TOPICS[topic]))
         return path

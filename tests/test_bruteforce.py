@@ -57,7 +57,8 @@ def independent_optimum(s, problem: int) -> float | None:  # type: ignore[no-unt
     from perfros_bag.system.rules import build_plan
 
     names = [n.name for n in s.nodes]
-    opts = [[(c, ch) for c in s.allowed(n) for ch in (s.node[n].choices() if problem == 1 else s.node[n].choices()[-1:])]
+    opts = [[(c, ch) for c in s.allowed(n)
+             for ch in (s.node[n].choices() if problem == 1 else s.node[n].choices()[-1:])]
             for n in names]
     best: float | None = None
     for combo in itertools.product(*opts):

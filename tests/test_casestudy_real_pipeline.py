@@ -229,7 +229,8 @@ def test_rq2l_rows_summary_and_line_against_a_hand_count() -> None:
     lat = cs.latency_rows(rows)
     assert [(r["run"], r["chain"]) for r in lat] == [("i1/run-a", "robot1_people"), ("i1/run-a", "robot1_smooth"),
                                                     ("i1/run-b", "robot1_people"), ("i1/run-b", "robot1_smooth")]
-    assert lat[0]["p95_ms"] == pytest.approx(80.0) and lat[0]["pred_p95_ms"] == 60.0 and lat[0]["budget_p95_ms"] == 100.0
+    assert lat[0]["p95_ms"] == pytest.approx(80.0) and lat[0]["pred_p95_ms"] == 60.0 \
+        and lat[0]["budget_p95_ms"] == 100.0
     got = cs.latency_summary(lat)
     # p50: measured >= 20 ms: a 5/50, b 20/100, b-smooth 10/40 -> (10 + 20 + 25) / 3 %; a-smooth 10 ms: 3 ms off
     assert got["p50"]["error_pct"] == pytest.approx((10 + 20 + 25) / 3)
@@ -243,7 +244,8 @@ def test_rq2l_rows_summary_and_line_against_a_hand_count() -> None:
     assert line.startswith("full run 2026-11-27 18:00 UTC: latency p50 |error| 18.3 % p95 |error| 25.0 % "
                            "over 4 chain-deployments; budgets held 1 of 2")
     section = "\n".join(cs.rq2l_lines(rows, "2026-11-27 18:00"))
-    assert "### RQ2-L" in section and "| 1 | p1-greedy | robot1_people | 80.0 | 100.0 | 250.0 | 200.0 | 190 | **no** |" in section
+    assert "### RQ2-L" in section \
+        and "| 1 | p1-greedy | robot1_people | 80.0 | 100.0 | 250.0 | 200.0 | 190 | **no** |" in section
     assert "This run 2026-11-27 18:00 UTC: latency p50 |error| 18.3 %" in section
     assert "nomargin" not in section
 
@@ -252,7 +254,8 @@ def test_chain_rows_take_prediction_and_budget_from_the_plan_when_validation_lac
     plan = {"chains": [{"name": "robot1_people", "predicted_ms": {"p50": 40.0, "p95": 70.0},
                         "budget_ms": {"p50": 60.0, "p95": 120.0}}]}
     (row,) = cs.chain_rows({"chains": [_chain("robot1_people", 45.0, 75.0, None)]}, plan)
-    assert (row["pred_p50_ms"], row["pred_p95_ms"], row["budget_p50_ms"], row["budget_p95_ms"]) == (40.0, 70.0, 60.0, 120.0)
+    assert (row["pred_p50_ms"], row["pred_p95_ms"], row["budget_p50_ms"], row["budget_p95_ms"]) \
+        == (40.0, 70.0, 60.0, 120.0)
     (bare,) = cs.chain_rows({"chains": [_chain("robot1_people", 45.0, 75.0, None)]})
     assert bare["pred_p95_ms"] is None and cs.latency_summary([bare])["chain_deployments"] == 0
 

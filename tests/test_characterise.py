@@ -84,7 +84,8 @@ def table_i(node: str, value: float | None) -> tuple[float, float, float]:
     raise AssertionError(f"{node}={value} not in Table I")
 
 
-def independent_cpu(trace: Path, start_s: float, end_s: float, capacity: float, procs: dict[str, str | None]) -> dict[str, tuple[float, float, int]]:
+def independent_cpu(trace: Path, start_s: float, end_s: float, capacity: float,
+                    procs: dict[str, str | None]) -> dict[str, tuple[float, float, int]]:
     """pandas: rows in the window, node by name or regex, sum per time."""
     lines = trace.read_text().splitlines()
     meta = dict(ln[1:].strip().split("=", 1) for ln in lines if ln.startswith("#"))
@@ -300,13 +301,17 @@ def test_single_recording_with_malformed_trace_is_one_line_exit_2(tmp_path: Path
 
 @pytest.mark.parametrize(("mutate", "needle"), [
     (lambda d: (d / "manifest.yaml").write_text("recordings: [\n  {path: x"), "invalid YAML"),
-    (lambda d: (d / "manifest.yaml").write_text("recordings:\n  - {path: a.bag, colour: red}\n"), "unknown key(s) 'colour'"),
+    (lambda d: (d / "manifest.yaml").write_text("recordings:\n  - {path: a.bag, colour: red}\n"),
+     "unknown key(s) 'colour'"),
     (lambda d: (d / "manifest.yaml").write_text("recordings: 3\n"), "recordings: must be a list"),
-    (lambda d: (d / "manifest.yaml").write_text("system: system.yaml\nrecordings:\n  - {path: tracker_f10.bag, settings: {nobody: 3}}\n"),
+    (lambda d: (d / "manifest.yaml").write_text("system: system.yaml\nrecordings:\n"
+                                                "  - {path: tracker_f10.bag, settings: {nobody: 3}}\n"),
      "unknown node 'nobody'"),
-    (lambda d: (d / "manifest.yaml").write_text("system: system.yaml\nrecordings:\n  - {path: tracker_f10.bag, computer: mars}\n"),
+    (lambda d: (d / "manifest.yaml").write_text("system: system.yaml\nrecordings:\n"
+                                                "  - {path: tracker_f10.bag, computer: mars}\n"),
      "unknown computer 'mars'"),
-    (lambda d: (d / "manifest.yaml").write_text("recordings:\n  - {path: tracker_f10.bag, settings: {tracker1: [1]}}\n"),
+    (lambda d: (d / "manifest.yaml").write_text("recordings:\n"
+                                                "  - {path: tracker_f10.bag, settings: {tracker1: [1]}}\n"),
      "must be a number or a string"),
     (lambda d: (d / "system.yaml").write_text("computers: [}\n"), "system.yaml: invalid YAML"),
     (lambda d: (d / "system.yaml").write_text("computers: []\nnodes: []\n"), "at least one computer"),
@@ -343,7 +348,8 @@ def test_without_manifest_topics_publishers_and_cpu_only_rows(tmp_path: Path) ->
     rows = json.loads(r.stdout)
     # every topic of every recording has a row
     topics = {(x["recording"], x["topic"]) for x in rows if x["topic"]}
-    assert topics == {(rec.path, f"/{n}/out") for rec in mf.RECORDINGS if rec.path in ("tracker_f10.bag", "tracker_f25.mcap", "robot_mid")
+    assert topics == {(rec.path, f"/{n}/out") for rec in mf.RECORDINGS
+                      if rec.path in ("tracker_f10.bag", "tracker_f25.mcap", "robot_mid")
                       for n in rec.nodes}
     ros1 = {x["topic"]: x for x in rows if x["recording"] == "tracker_f10.bag" and x["topic"]}
     assert ros1["/tracker1/out"]["node"] == "/tracker1"  # ROS 1 callerid
@@ -594,7 +600,8 @@ def test_units_per_core_keeps_the_measurement_apart_from_the_robot(tmp_path: Pat
     for name in ("system.yaml", "small.yaml"):
         r = run("characterise", d, "--system", d / name, "--json")
         assert r.returncode == 0, r.stderr
-        rows[name] = next(x for x in json.loads(r.stdout) if x["recording"] == "tracker_f15" and x["node"] == "tracker1")
+        rows[name] = next(x for x in json.loads(r.stdout)
+                          if x["recording"] == "tracker_f15" and x["node"] == "tracker1")
     assert rows["small.yaml"]["cpu_units_mean"] == pytest.approx(rows["system.yaml"]["cpu_units_mean"] / 4)
 
 

@@ -27,11 +27,13 @@ SYSTEM: dict[str, Any] = {
     ],
     "media": [{"name": "wifi", "bandwidth_kBps": 15}],
     "nodes": [
-        {"name": "a", "weight": 0.25, "residence": ["r1"], "settings": [{"cpu": 10, "performance": 100, "bandwidth_kBps": 4}]},
+        {"name": "a", "weight": 0.25, "residence": ["r1"],
+         "settings": [{"cpu": 10, "performance": 100, "bandwidth_kBps": 4}]},
         {"name": "b", "weight": 0.25, "parameter": {"name": "p"},
          "settings": [{"value": 1, "cpu": 20, "performance": 50, "bandwidth_kBps": 2},
                       {"value": 2, "cpu": 40, "performance": 90, "bandwidth_kBps": 8}]},
-        {"name": "c", "weight": 0.25, "coresidence": ["d"], "settings": [{"cpu": 30, "performance": 80, "bandwidth_kBps": 1}]},
+        {"name": "c", "weight": 0.25, "coresidence": ["d"],
+         "settings": [{"cpu": 30, "performance": 80, "bandwidth_kBps": 1}]},
         {"name": "d", "weight": 0.25, "settings": [{"cpu": 5, "performance": 100, "bandwidth_kBps": 1}]},
     ],
     "edges": [{"from": "a", "to": "b"}, {"from": "b", "to": "c"}, {"from": "c", "to": "d"}],
@@ -90,7 +92,8 @@ def one(violations: list[str], needle: str) -> None:
 
 
 def test_cpu_over_capacity() -> None:
-    one(check_plan(system(computers__r1__capacity=45), parse_plan(copy.deepcopy(GOOD))), "computer r1: cpu 50 > capacity 45")
+    one(check_plan(system(computers__r1__capacity=45), parse_plan(copy.deepcopy(GOOD))),
+        "computer r1: cpu 50 > capacity 45")
 
 
 def test_link_over_bandwidth() -> None:
@@ -115,7 +118,8 @@ def test_coresidence() -> None:
 
 
 def test_setting_that_does_not_exist() -> None:
-    one(check_plan(system(), plan(b={"cpu": 30, "performance": 70})), "node b: cpu 30 / performance 70 is none of its settings")
+    one(check_plan(system(), plan(b={"cpu": 30, "performance": 70})),
+        "node b: cpu 30 / performance 70 is none of its settings")
 
 
 def test_wrong_objective() -> None:

@@ -164,7 +164,8 @@ def test_an_undecodable_topic_warns_and_leaves_the_others(tmp_path: Path) -> Non
         w.start(profile="ros2", library="test")
         text, _ = ts.generate_msgdef("sensor_msgs/msg/Imu", ros_version=2)
         imu = w.register_channel("/imu", "cdr", w.register_schema("sensor_msgs/msg/Imu", "ros2msg", text.encode()))
-        bad = w.register_channel("/odd", "cdr", w.register_schema("odd_msgs/msg/Odd", "ros2msg", b"std_msgs/Header header\n%%% not a field"))
+        bad = w.register_channel("/odd", "cdr", w.register_schema("odd_msgs/msg/Odd", "ros2msg",
+                                                                  b"std_msgs/Header header\n%%% not a field"))
         from contents_gen import _message
 
         for s in good:
@@ -281,7 +282,8 @@ def test_metric_rate_is_the_topic_frequency(generated: dict[str, Path], tmp_path
     metric = load_system(_system(tmp_path, how="rate")).node["detector"].metric
     times = [s.time_ns for s in SENT if s.topic == "/detector/scored"]
     assert metric is not None
-    assert read_metric(generated["rosbag2-mcap"], metric) == pytest.approx((len(times) - 1) / ((times[-1] - times[0]) / 1e9))
+    assert read_metric(generated["rosbag2-mcap"], metric) \
+        == pytest.approx((len(times) - 1) / ((times[-1] - times[0]) / 1e9))
 
 
 def test_a_metric_field_that_is_not_there_warns_and_stays_empty(generated: dict[str, Path], tmp_path: Path) -> None:
@@ -340,7 +342,8 @@ def test_validate_puts_the_measured_metric_beside_eq10(generated: dict[str, Path
     mean_score = float(np.mean([s.score for s in SENT if s.topic == "/detector/scored"]))
     assert node["metric_value"] == pytest.approx(mean_score)
     assert node["p_metric"] == pytest.approx(100 * mean_score / 10)  # range [0, 10], higher is better
-    assert node["metric_deviation_pct"] == pytest.approx(100 * abs(node["p_metric"] - node["p_expected"]) / node["p_expected"])
+    assert node["metric_deviation_pct"] \
+        == pytest.approx(100 * abs(node["p_metric"] - node["p_expected"]) / node["p_expected"])
     assert "measured metric" in res.stderr  # the table beside eq 10
     from perfros_bag.report.html import build_report, fmt
 
@@ -440,7 +443,8 @@ def test_metric_of_json_payloads_through_the_mcap_reader(tmp_path: Path) -> None
 
     path = write_mcap_json(tmp_path / "json.mcap", SENT)
     scores = [s.score for s in SENT if s.topic == "/detector/scored"]
-    assert read_metric(path, Metric("/detector/scored", "score", Aggregate.MEDIAN)) == pytest.approx(float(np.median(scores)))
+    assert read_metric(path, Metric("/detector/scored", "score", Aggregate.MEDIAN)) \
+        == pytest.approx(float(np.median(scores)))
     assert read_metric(path, Metric("/detector/scored", "boxes", Aggregate.MEAN)) == pytest.approx(
         float(np.mean([int(abs(s)) for s in scores])))
     assert read_latency(path) == {}  # json: no definition says it has a Header
@@ -610,7 +614,8 @@ def test_cdr_head_stamps_equal_cdr_stamps_both_byte_orders() -> None:
         cdr_head_stamps(matrix)
 
 
-def test_metrics_of_several_nodes_are_read_in_one_pass(generated: dict[str, Path], monkeypatch: pytest.MonkeyPatch) -> None:
+def test_metrics_of_several_nodes_are_read_in_one_pass(generated: dict[str, Path],
+                                                       monkeypatch: pytest.MonkeyPatch) -> None:
     import perfros_bag.ingest.contents as contents
     from perfros_bag.system.types import Aggregate, Metric
 

@@ -61,7 +61,8 @@ def test_window_alignment_keeps_samples_inside_start_end() -> None:
 
 
 def test_assign_nodes_by_name_then_regex() -> None:
-    tr = parse_cpu_trace(HEADER + "1,1,/robot1/amcl1,amcl,1,0\n1,2,amcl,amcl,1,0\n1,3,x,people_tracker,1,0\n1,4,zzz,zzz,1,0\n")
+    tr = parse_cpu_trace(HEADER + "1,1,/robot1/amcl1,amcl,1,0\n1,2,amcl,amcl,1,0\n"
+                                  "1,3,x,people_tracker,1,0\n1,4,zzz,zzz,1,0\n")
     nodes = {"amcl1": None, "amclx": "^amcl$", "tracker1": "tracker"}
     assert assign_nodes(tr, nodes) == ["amcl1", "amclx", "tracker1", ""]
     assert assign_nodes(tr, None) == ["/robot1/amcl1", "amcl", "x", "zzz"]
@@ -114,7 +115,8 @@ def _percentile_95(values: list[float]) -> float:
 
 
 @settings(max_examples=40, deadline=None)
-@given(rows=rows_st, ncpu=st.integers(1, 16), capacity=st.floats(1, 1000), lo=st.integers(0, 30), width=st.integers(0, 30))
+@given(rows=rows_st, ncpu=st.integers(1, 16), capacity=st.floats(1, 1000), lo=st.integers(0, 30),
+       width=st.integers(0, 30))
 def test_node_cpu_by_hand(tmp_path_factory: pytest.TempPathFactory, rows: list[tuple[int, str, int, float]],
                           ncpu: int, capacity: float, lo: int, width: int) -> None:
     """Round trip through the file, then per-node mean/p95 computed by hand from the trace
@@ -142,7 +144,8 @@ def test_node_cpu_by_hand(tmp_path_factory: pytest.TempPathFactory, rows: list[t
 
 
 def test_ros_node_label() -> None:
-    assert ros_node_label("python3", ["python3", "/opt/x/tracker.py", "__name:=tracker1", "__log:=/tmp/x"]) == "tracker1"
+    assert ros_node_label("python3", ["python3", "/opt/x/tracker.py", "__name:=tracker1", "__log:=/tmp/x"]) \
+        == "tracker1"
     assert ros_node_label("component", ["component", "--ros-args", "-r", "__node:=amcl1"]) == "amcl1"
     assert ros_node_label("python3", ["python3", "-u", "/opt/x/model.py"]) == "model.py"
     assert ros_node_label("python3", ["python3", "-m", "pkg.node"]) == "pkg.node"

@@ -40,7 +40,8 @@ out = {}
 with rosbag.Bag(sys.argv[1]) as bag:
     callers = {c.topic: (c.header.get("callerid") or b"").decode() for c in bag._get_connections()}
     for topic, raw, t in bag.read_messages(raw=True):
-        s = out.setdefault(topic, {"n": 0, "bytes": 0, "t0": t.to_sec(), "t1": t.to_sec(), "callerid": callers.get(topic)})
+        s = out.setdefault(topic, {"n": 0, "bytes": 0, "t0": t.to_sec(), "t1": t.to_sec(),
+                                   "callerid": callers.get(topic)})
         s["n"] += 1
         s["bytes"] += len(raw[1])
         s["t1"] = t.to_sec()
@@ -90,7 +91,8 @@ def deployed(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     system.write_text(yaml.safe_dump(doc, sort_keys=False))
     for args in (["characterise", str(rec), "--system", str(system), "--out", str(d / "char.csv")],
                  ["fit", str(system), str(d / "char.csv"), "--out", str(d / "model.json")],
-                 ["solve", str(d / "model.json"), "--problem", "1", "--method", "exact", "--out", str(d / "plan.json")]):
+                 ["solve", str(d / "model.json"), "--problem", "1", "--method", "exact",
+                  "--out", str(d / "plan.json")]):
         step = _cli(*args)
         assert step.returncode == 0, (args[0], step.stderr)
     run = d / "deployed"

@@ -73,9 +73,12 @@ def cases(tmp_path: Path, d: Path) -> dict[str, list[str]]:
     app_, space, system = str(APP), str(SPACE), str(RECORDINGS / "system.yaml")
     return {
         # the defect: deploy removed the earlier run.bag, validation.json, ... before reading --system
-        "deploy --system missing": ["deploy", plan, app_, "--space", space, "--out", str(d), "--system", bad["missing"]],
-        "deploy --system corrupt": ["deploy", plan, app_, "--space", space, "--out", str(d), "--system", bad["corrupt"]],
-        "deploy --system mismatched": ["deploy", plan, app_, "--space", space, "--out", str(d), "--system", bad["other"]],
+        "deploy --system missing": ["deploy", plan, app_, "--space", space, "--out", str(d),
+                                    "--system", bad["missing"]],
+        "deploy --system corrupt": ["deploy", plan, app_, "--space", space, "--out", str(d),
+                                    "--system", bad["corrupt"]],
+        "deploy --system mismatched": ["deploy", plan, app_, "--space", space, "--out", str(d),
+                                       "--system", bad["other"]],
         "deploy bad space": ["deploy", plan, app_, "--space", bad["corrupt"], "--out", str(d)],
         "casestudy run bad --set": ["casestudy", "run", "--system", str(INSTANCE), "--plan", str(tmp_path / "cs.json"),
                                     "--out", str(d), "--set", "no_such_node=1"],

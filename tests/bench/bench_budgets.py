@@ -45,7 +45,8 @@ def fleet(robots: int, budget: float | None = None) -> dict[str, Any]:
                       "parameter": {"name": "kernel"}, "topics": [f"/robot{k}/smooth/image"],
                       "residence": [f"robot{k}", "server"], "coresidence": [f"robot{k}_camera"],
                       "settings": [{"value": v, "cpu": 0.3, "cpu_per_hz": c, "performance": p,
-                                    "bytes_per_msg": 230000} for v, c, p in ((3, 0.5, 50), (7, 1.2, 80), (11, 2.4, 100))]})
+                                    "bytes_per_msg": 230000}
+                                   for v, c, p in ((3, 0.5, 50), (7, 1.2, 80), (11, 2.4, 100))]})
         edges += [{"from": f"robot{k}_camera", "to": f"robot{k}_people", "topic": cam},
                   {"from": f"robot{k}_camera", "to": f"robot{k}_smooth", "topic": cam}]
         chains.append({"name": f"robot{k}_vision", "topics": [cam, f"/robot{k}/people/found"],

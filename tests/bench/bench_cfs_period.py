@@ -142,7 +142,8 @@ def measure(periods_ms: list[float], repeats: int = 2, window: float = 10.0, cap
                              "period_us": groups.group_period_us(ROBOT), **w})
                 log(f"{name} (repeat {r}): " + _line(w))
     return {"format": "perfros-bag/bench-cfs-period@1", "run_id": run_id, "cgroups": groups.mode,
-            "window_s": window, "cap": cap, "robot": ["camera", *measured], "need_cores": round(need, 4), "scale0": scale0, "kernel": kernel,
+            "window_s": window, "cap": cap, "robot": ["camera", *measured], "need_cores": round(need, 4),
+            "scale0": scale0, "kernel": kernel,
             "rate_hz": RATE_HZ, "wall_s": round(time.monotonic() - started, 1),
             "load_average": {"before": load_before, "after": os.getloadavg()}, "rows": rows,
             **run.leftovers()}

@@ -256,7 +256,8 @@ def measure(nodes: list[str], factors: list[float], window: float = 8.0, settle:
 
 
 def table(doc: dict[str, Any]) -> str:
-    lines = ["| node | need (% core) | cap | quota (% core) | used (% core) | frames out/in | kept | predicted | throttled periods |",
+    lines = ["| node | need (% core) | cap | quota (% core) | used (% core) | frames out/in | kept | predicted "
+             "| throttled periods |",
              "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for key, r in doc["nodes"].items():
         u = r["uncapped"]
@@ -291,7 +292,8 @@ def main(argv: list[str] | None = None) -> int:
         print("interrupted: everything the bench started is stopped", file=sys.stderr)
         return 130
     return finish(doc, table(doc),
-                  f"kept share at 1.0x of need: {', '.join(f'{k} {100 * v:.1f} %' for k, v in doc['kept_at_1x'].items() if v is not None)}"
+                  "kept share at 1.0x of need: "
+                  f"{', '.join(f'{k} {100 * v:.1f} %' for k, v in doc['kept_at_1x'].items() if v is not None)}"
                   f"; smallest {100 * (doc['kept_at_1x_min'] or 0):.1f} %; wall {doc['wall_s']} s; "
                   f"speed factor {doc['speed_factor']['before']} -> {doc['speed_factor']['after']}", args.out)
 

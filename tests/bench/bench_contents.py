@@ -183,7 +183,8 @@ def metric_messages(ros1: bool, scale: float) -> Iterator[tuple[str, str, int, b
             off = (i * 7919 * 64) % (len(pool) - IMAGE_BYTES)
             yield "/camera/image", "sensor_msgs/msg/Image", t, template[:-IMAGE_BYTES] + pool[off:off + IMAGE_BYTES]
         else:
-            yield "/detector/count", "std_msgs/msg/Int32", t, bytes(ser(ts.types["std_msgs/msg/Int32"](data=k % 97), "std_msgs/msg/Int32"))
+            yield "/detector/count", "std_msgs/msg/Int32", t, bytes(ser(ts.types["std_msgs/msg/Int32"](data=k % 97),
+                                                                        "std_msgs/msg/Int32"))
             k += 1
 
 

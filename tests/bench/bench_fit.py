@@ -64,14 +64,16 @@ def bench_build_model(nodes: int, repeat: int) -> None:
             values = [10, 20, 30, 40, 50]
             sys_nodes.append({"name": name, "weight": 1.0 / nodes, "parameter": {"name": "p"},
                               "topics": [f"/{name}"],
-                              "settings": [{"value": v, "cpu": v, "performance": 20 * k + 20} for k, v in enumerate(values)]})
+                              "settings": [{"value": v, "cpu": v, "performance": 20 * k + 20}
+                                           for k, v in enumerate(values)]})
             for v in values:
                 for r in range(3):
                     rows.append({"recording": f"{name}_{v}_{r}", "node": name, "value": v, "topic": f"/{name}",
                                  "frequency_hz": v / 2 * (1 + rng.normal(0, 0.01)),
                                  "bandwidth_kBps": v / 20 * (1 + rng.normal(0, 0.01)),
                                  "cpu_units_mean": v * (1 + rng.normal(0, 0.02))})
-        (d / "system.yaml").write_text(yaml.safe_dump({"computers": [{"name": "s", "kind": "server", "capacity": 10000}],
+        (d / "system.yaml").write_text(yaml.safe_dump({"computers": [{"name": "s", "kind": "server",
+                                                                      "capacity": 10000}],
                                                         "nodes": sys_nodes}))
         with (d / "c.csv").open("w", newline="") as h:
             w = csv.DictWriter(h, fieldnames=["recording", "node", "value", "topic", "frequency_hz",

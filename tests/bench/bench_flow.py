@@ -131,7 +131,8 @@ def main() -> None:
             if plan.status != "infeasible":
                 assert check_plan(system, plan) == [], method
             bound = "-" if plan.bound is None else f"{plan.bound:.4f}"
-            print(f"   {method:>8} {plan.objective or 0:>10.4f} {bound:>10} {plan.status:>9} {seconds:>8.2f}", flush=True)
+            print(f"   {method:>8} {plan.objective or 0:>10.4f} {bound:>10} {plan.status:>9} {seconds:>8.2f}",
+                  flush=True)
 
 
 if __name__ == "__main__":

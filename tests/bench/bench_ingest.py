@@ -217,10 +217,12 @@ def main() -> None:
             what = "wall" if unit == "s" else "cpu "
             if r["kind"] == "small" and f"any_{unit}" in r:
                 x = float(r[f"any_{unit}"]) / ours  # type: ignore[arg-type]
-                print(f"target small {r['format']:16s} {what} >= 20x AnyReader: {x:7.1f}x  {'met' if x >= 20 else 'MISSED'}")
+                print(f"target small {r['format']:16s} {what} >= 20x AnyReader: {x:7.1f}x  "
+                      f"{'met' if x >= 20 else 'MISSED'}")
             if r["kind"] == "big":
                 f = float(r[f"raw_{unit}"]) / ours  # type: ignore[arg-type]
-                print(f"target big   {r['format']:16s} {what} >= 30% raw read:   {100 * f:7.1f}%  {'met' if f >= 0.3 else 'MISSED'}")
+                print(f"target big   {r['format']:16s} {what} >= 30% raw read:   {100 * f:7.1f}%  "
+                      f"{'met' if f >= 0.3 else 'MISSED'}")
     if any(r.get("agree") is False for r in rows):
         print("DISAGREEMENT between perfros-bag and a baseline reader")
         sys.exit(1)

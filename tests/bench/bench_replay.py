@@ -93,7 +93,8 @@ def bench_convert(mb: float, repeats: int) -> None:
                 (("read raw", read_raw), ("read + deserialise", read_deserialise), ("copy the files", copy),
                  ("convert", convert))}
         bag = next(p for p in (out / ".replay").iterdir() if not p.name.endswith(".loop.bag"))
-        print(f"recording: {rec} ({size / 1e6:.0f} MB, rosbag2 MCAP); ROS 1 bag written: {bag.stat().st_size / 1e6:.0f} MB")
+        print(f"recording: {rec} ({size / 1e6:.0f} MB, rosbag2 MCAP); "
+              f"ROS 1 bag written: {bag.stat().st_size / 1e6:.0f} MB")
     finally:
         shutil.rmtree(out, ignore_errors=True)
     conv = statistics.median(rows["convert"])
@@ -116,7 +117,8 @@ def bench_rates(repeats: int) -> None:
         t = time.perf_counter()
         subprocess.run([sys.executable, "-m", "perfros_bag", "sweep", str(ROOT / "fixtures" / "app" / "app.launch"),
                         "--space", str(space), "--out", f"{tmp}/runs"], check=True)
-        print(f"sweep: {len(factors) * repeats} runs in {time.perf_counter() - t:.0f} s; recorded rate {recorded:.4f} Hz")
+        print(f"sweep: {len(factors) * repeats} runs in {time.perf_counter() - t:.0f} s; "
+              f"recorded rate {recorded:.4f} Hz")
         for f in factors:
             errs = []
             for r in range(1, repeats + 1):

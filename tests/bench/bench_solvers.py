@@ -113,7 +113,8 @@ def table2(results: dict[str, Any]) -> None:
 
 def random_set(results: dict[str, Any], count: int, limit: float) -> None:
     print(f"\n## {count} random case-study-like instances (Problem 1, resolution 1, exact limit {limit:g} s)")
-    print(f"{'seed':>4} {'nodes':>5} {'comps':>5} {'exact':>8} {'wall s':>7} {'gap':>7} {'greedy':>8} {'greedy+':>8}  vs")
+    print(f"{'seed':>4} {'nodes':>5} {'comps':>5} {'exact':>8} {'wall s':>7} {'gap':>7} {'greedy':>8} "
+          f"{'greedy+':>8}  vs")
     rows = []
     for seed in range(count):
         system = system_of(random_instance(random.Random(seed)), f"random-{seed}")
@@ -144,7 +145,8 @@ def random_set(results: dict[str, Any], count: int, limit: float) -> None:
               f"below 99.5 %: {sum(1 for x in gp_proven if x < 0.995)}")
     if gp_all:
         print(f"greedy+ vs optimum-or-bound (all): min {pct(min(gp_all))}, mean {pct(statistics.mean(gp_all))}; "
-              f"target >= 99.5 % on every instance: {'MET' if min(gp_all) >= 0.995 else 'MISSED (see rows; bound rows understate)'}")
+              "target >= 99.5 % on every instance: "
+              f"{'MET' if min(gp_all) >= 0.995 else 'MISSED (see rows; bound rows understate)'}")
         print(f"paper's greedy vs optimum-or-bound: min {pct(min(g_all))}, mean {pct(statistics.mean(g_all))}")
     results["random"] = rows
 
@@ -196,7 +198,8 @@ def scale(results: dict[str, Any], exact_limit: float) -> None:
                 print(f"exact P1 200x20 without a start: {alone.status} {alone.reason or ''}", flush=True)
             # the paper's greedy (fast at any size) as the start instead
             g = solve_greedy(system, problem, choices)
-            gs, wall, cpu = timed(solve_exact, system, problem, choices, time_limit=exact_limit, start=as_start(g, choices))
+            gs, wall, cpu = timed(solve_exact, system, problem, choices, time_limit=exact_limit,
+                                  start=as_start(g, choices))
             if gs.status != "infeasible" and gs.bound is not None and gs.objective:
                 gap = abs(gs.bound - gs.objective) / abs(gs.objective)
                 print(f"exact P1 200x20 with the paper's greedy as start ({g.objective:.4f}): {gs.status}, objective "
@@ -208,7 +211,8 @@ def scale(results: dict[str, Any], exact_limit: float) -> None:
             if disp.status != "infeasible" and disp.bound is not None and disp.objective:
                 gap = abs(disp.bound - disp.objective) / abs(disp.objective)
                 print(f"exact P1 200x20 via solve() (greedy+ start, {START_SHARE:.0%} of the limit): {disp.status}, "
-                      f"objective {disp.objective:.4f}, bound {disp.bound:.4f}, gap {100 * gap:.3f}%, {wall:.2f} s wall "
+                      f"objective {disp.objective:.4f}, bound {disp.bound:.4f}, gap {100 * gap:.3f}%, "
+                      f"{wall:.2f} s wall "
                       f"({cpu:.2f} s cpu) -> 1 % in < 30 s "
                       f"{'MET' if gap <= 0.01 + 1e-9 and wall < exact_limit + 1 else 'MISSED'}", flush=True)
                 results["exact_200_p1_dispatch"] = (gap, wall)

@@ -113,7 +113,8 @@ def measure(window: float, rounds: int, loads: list[int], log: Any = print) -> d
                          "normalised_cores": round(cores * sp.factor, 4), "load_average_1m": os.getloadavg()[0]}
                     windows.append(w)
                     log(f"round {rnd + 1}, {load} spinner(s): factor {sp.factor:.3f} (end {sp_end.factor:.3f}), "
-                        f"people {100 * cores:.1f} % of a core ({frames} frames), x factor {100 * cores * sp.factor:.1f} %")
+                        f"people {100 * cores:.1f} % of a core ({frames} frames), "
+                        f"x factor {100 * cores * sp.factor:.1f} %")
     finally:
         stop.set()
         for p in spinners:

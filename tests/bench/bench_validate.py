@@ -59,7 +59,8 @@ def main() -> None:
         full = best(lambda: validate_files(d / "run.mcap", d / "plan.json"), args.repeat)
         v = validate_files(d / "run.mcap", d / "plan.json")
         assert abs(v.deviation_pct) < 0.5, v.deviation_pct
-        print(f"{args.nodes} nodes, {n} messages, {args.seconds:g} s, CPU trace {len(plan.nodes) * int(args.seconds)} rows")
+        print(f"{args.nodes} nodes, {n} messages, {args.seconds:g} s, "
+              f"CPU trace {len(plan.nodes) * int(args.seconds)} rows")
         print(f"| step | best of {args.repeat} (s) | ratio to reading |")
         print("|---|---:|---:|")
         print(f"| read_recording (baseline) | {base:.3f} | 1.00 |")
