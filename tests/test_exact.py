@@ -138,7 +138,8 @@ def test_binding_link() -> None:
 def test_bandwidth_follows_the_publishers_setting() -> None:
     def case(link_bw: float) -> System:
         return system_of({
-            "computers": [{"name": "r", "kind": "robot", "capacity": 10}, {"name": "s", "kind": "server", "capacity": 10}],
+            "computers": [{"name": "r", "kind": "robot", "capacity": 10},
+                          {"name": "s", "kind": "server", "capacity": 10}],
             "links": [{"between": ["r", "s"], "bandwidth_kBps": link_bw}],
             "nodes": [
                 {"name": "cam", "weight": 0.5, "residence": ["r"], "settings": [setting(1, 40, 2), setting(2, 100, 6)]},
@@ -159,7 +160,8 @@ def medium_case(medium_bw: float) -> System:
     for i in (1, 2):
         robot_nodes += [
             {"name": f"a{i}", "weight": 0.1, "residence": [f"r{i}"], "settings": [setting(1, 100, 4)]},
-            {"name": f"b{i}", "weight": 0.4, "residence": [f"r{i}", "s"], "settings": [setting(1, 10), setting(30, 100)]},
+            {"name": f"b{i}", "weight": 0.4, "residence": [f"r{i}", "s"],
+             "settings": [setting(1, 10), setting(30, 100)]},
         ]
     return system_of({
         "computers": [{"name": "r1", "kind": "robot", "capacity": 20}, {"name": "r2", "kind": "robot", "capacity": 20},
@@ -218,10 +220,12 @@ def test_binding_coresidence() -> None:
 
 def test_problem2_sizes_servers_and_respects_max_capacity() -> None:
     def case(max_cap: float | None) -> System:
-        servers = [{"name": f"s{i}", "kind": "server", **({"max_capacity": max_cap} if max_cap else {})} for i in (1, 2)]
+        servers = [{"name": f"s{i}", "kind": "server", **({"max_capacity": max_cap} if max_cap else {})}
+                   for i in (1, 2)]
         return system_of({
             "computers": [{"name": "r", "kind": "robot", "capacity": 20}, *servers],
-            "nodes": [{"name": f"n{i}", "weight": 1, "settings": [setting(c, 100)]} for i, c in enumerate((15, 15, 30))],
+            "nodes": [{"name": f"n{i}", "weight": 1, "settings": [setting(c, 100)]}
+                      for i, c in enumerate((15, 15, 30))],
         })
 
     plan = exact(case(None), 2)
@@ -266,7 +270,8 @@ def test_infeasible_bandwidth() -> None:
         if dst_residence:
             dst["residence"] = dst_residence
         return system_of({
-            "computers": [{"name": "a", "kind": "server", "capacity": 10}, {"name": "b", "kind": "server", "capacity": 10}],
+            "computers": [{"name": "a", "kind": "server", "capacity": 10},
+                          {"name": "b", "kind": "server", "capacity": 10}],
             "links": [{"between": ["a", "b"], "bandwidth_kBps": 1}],
             "nodes": [{"name": "n1", "weight": 1, "residence": ["a"], "settings": [setting(8, 1, 5)]}, dst],
             "edges": [{"from": "n1", "to": "n2"}],
@@ -319,7 +324,8 @@ def test_exact_bounds_greedy_on_tiny(seed: int) -> None:
         if greedy.status == "infeasible" or best.status == "infeasible":
             assert not (best.status == "infeasible" and greedy.status != "infeasible")
             continue
-        assert (best.objective >= greedy.objective - 1e-9) if problem == 1 else (best.objective <= greedy.objective + 1e-9)
+        assert ((best.objective >= greedy.objective - 1e-9) if problem == 1
+                else (best.objective <= greedy.objective + 1e-9))
 
 
 def test_mip_start_and_gap() -> None:

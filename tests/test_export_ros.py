@@ -271,7 +271,8 @@ def test_bad_input_is_one_line_and_writes_nothing(tmp_path: Path) -> None:
     # a plan whose nodes are not in the launch file: named
     stray = _plan(tmp_path / "stray.json", {"camera": ("robot1", "publish_rate", 7.0, {}),
                                             "detector": ("robot1", "canny_threshold", 100.0, {}),
-                                            "tracker": ("robot1", None, None, {}), "mapper": ("robot1", None, None, {})})
+                                            "tracker": ("robot1", None, None, {}),
+                                            "mapper": ("robot1", None, None, {})})
     _one_line(_export(stray, APP, SPACE, out), out,
               str(APP), "tracker, mapper", "not in it")
     # a space.yaml that does not match the plan's parameters

@@ -26,7 +26,8 @@ HEADER = ["recording", "node", "parameter", "value", "topic", "msgtype", "messag
 
 # Table I (casestudy.md): node -> (parameter, type, [(value, cpu, freq, kB/s, performance)])
 TABLE_I: dict[str, tuple[str, str, list[tuple[float, float, float, float, float]]]] = {
-    "tracker1": ("output_freq", "float", [(10, 80, 10, 1.0, 40), (15, 120, 15, 1.5, 70), (20, 160, 20, 2.0, 90), (25, 200, 25, 2.5, 100)]),
+    "tracker1": ("output_freq", "float",
+                 [(10, 80, 10, 1.0, 40), (15, 120, 15, 1.5, 70), (20, 160, 20, 2.0, 90), (25, 200, 25, 2.5, 100)]),
     "model1": ("goals", "int", [(4, 17, 10, 5, 20), (3500, 40, 10, 5, 70), (10000, 60, 10, 5, 100)]),
     "amcl1": ("particles", "int", [(200, 19, 2.5, 1, 20), (500, 41, 2.5, 1, 50), (3000, 66, 2.5, 1, 100)]),
     "navigation1": ("controller_freq", "float", [(2, 25, 2, 0.1, 10), (10, 39, 10, 0.5, 65), (20, 50, 20, 1.0, 100)]),
@@ -65,8 +66,10 @@ def table_i_rows(seed: int = 0, repeats: int = 3, noise: float = 0.01) -> list[d
             for r in range(repeats):
                 rows.append({"recording": f"{name}_{v}_{r}.bag", "node": name, "parameter": param, "value": v,
                              "topic": f"/{name}/out", "msgtype": "std_msgs/String", "messages": 100, "duration_s": 10,
-                             "frequency_hz": f * (1 + rng.normal(0, noise)), "bandwidth_kBps": b * (1 + rng.normal(0, noise)),
-                             "cpu_units_mean": c * (1 + rng.normal(0, noise)), "cpu_units_p95": c * 1.1, "cpu_samples": 20})
+                             "frequency_hz": f * (1 + rng.normal(0, noise)),
+                             "bandwidth_kBps": b * (1 + rng.normal(0, noise)),
+                             "cpu_units_mean": c * (1 + rng.normal(0, noise)), "cpu_units_p95": c * 1.1,
+                             "cpu_samples": 20})
     for name, (cpu, f, bw, _res) in FIXED.items():
         rows.append({"recording": "fixed.bag", "node": name, "parameter": "", "value": "", "topic": f"/{name}/out",
                      "msgtype": "std_msgs/String", "messages": 100, "duration_s": 10, "frequency_hz": f,
@@ -110,7 +113,8 @@ def one_error_line(result: Any) -> str:
 
 # --- the model ---------------------------------------------------------------------------
 
-def test_fit_writes_a_model_that_load_system_reads(table_i: tuple[Path, Path, list[dict[str, Any]]], tmp_path: Path) -> None:
+def test_fit_writes_a_model_that_load_system_reads(table_i: tuple[Path, Path, list[dict[str, Any]]],
+                                                   tmp_path: Path) -> None:
     system_path, csv_path, rows = table_i
     out = tmp_path / "model.json"
     result = run(str(system_path), str(csv_path), "--out", str(out))
@@ -229,8 +233,10 @@ def test_empty_or_foreign_csv_is_one_error_line(tmp_path: Path, content: str, pr
 
 def test_missing_files_are_one_error_line(tmp_path: Path, table_i: tuple[Path, Path, list[dict[str, Any]]]) -> None:
     system_path, csv_path, _ = table_i
-    assert "nope.csv" in one_error_line(run(str(system_path), str(tmp_path / "nope.csv"), "--out", str(tmp_path / "m.json")))
-    assert "nope.yaml" in one_error_line(run(str(tmp_path / "nope.yaml"), str(csv_path), "--out", str(tmp_path / "m.json")))
+    assert "nope.csv" in one_error_line(run(str(system_path), str(tmp_path / "nope.csv"),
+                                            "--out", str(tmp_path / "m.json")))
+    assert "nope.yaml" in one_error_line(run(str(tmp_path / "nope.yaml"), str(csv_path),
+                                             "--out", str(tmp_path / "m.json")))
 
 
 def test_single_setting_is_a_warning_and_stays_discrete(tmp_path: Path) -> None:
@@ -239,12 +245,14 @@ def test_single_setting_is_a_warning_and_stays_discrete(tmp_path: Path) -> None:
     amcl["settings"] = amcl["settings"][:1]
     rows = [r for r in table_i_rows() if not (r["node"] == "amcl1" and r["value"] != 200)]
     out = tmp_path / "m.json"
-    result = run(str(write_yaml(tmp_path / "s.yaml", system)), str(write_csv(tmp_path / "c.csv", rows)), "--out", str(out))
+    result = run(str(write_yaml(tmp_path / "s.yaml", system)), str(write_csv(tmp_path / "c.csv", rows)),
+                 "--out", str(out))
     assert result.exit_code == 0, result.stderr
     assert "amcl1" in result.stderr and "single setting" in result.stderr
     node = load_system(out).node["amcl1"]
     assert node.curve is None and len(node.settings) == 1
-    assert node.settings[0].cpu == pytest.approx(statistics.fmean(float(r["cpu_units_mean"]) for r in rows if r["node"] == "amcl1"))
+    assert node.settings[0].cpu == pytest.approx(
+        statistics.fmean(float(r["cpu_units_mean"]) for r in rows if r["node"] == "amcl1"))
 
 
 def _grid(node: Node) -> np.ndarray:
@@ -268,7 +276,8 @@ def test_non_monotone_performance_is_enforced_and_reported(tmp_path: Path) -> No
         rows.append({"recording": f"t{v}.bag", "node": "tracker1", "value": v, "topic": "/tracker1/out",
                      "frequency_hz": v, "bandwidth_kBps": v / 10, "cpu_units_mean": 40 * (i + 1)})
     out = tmp_path / "m.json"
-    result = run(str(write_yaml(tmp_path / "s.yaml", system)), str(write_csv(tmp_path / "c.csv", rows)), "--out", str(out))
+    result = run(str(write_yaml(tmp_path / "s.yaml", system)), str(write_csv(tmp_path / "c.csv", rows)),
+                 "--out", str(out))
     assert result.exit_code == 0, result.stderr
     assert "tracker1" in result.stderr and "non-decreasing" in result.stderr
     node = load_system(out).node["tracker1"]
@@ -341,12 +350,14 @@ def _check_plan_maps_back(model: Path, plan: dict[str, Any]) -> int:
 
 
 @pytest.mark.parametrize("method", ["greedy", "exact"])
-def test_round_trip_table_i_fit_solve(table_i: tuple[Path, Path, list[dict[str, Any]]], tmp_path: Path, method: str) -> None:
+def test_round_trip_table_i_fit_solve(table_i: tuple[Path, Path, list[dict[str, Any]]], tmp_path: Path,
+                                      method: str) -> None:
     system_path, csv_path, _ = table_i
     model = tmp_path / "model.json"
     assert run(str(system_path), str(csv_path), "--out", str(model)).exit_code == 0
     plan_path = tmp_path / "plan.json"
-    result = CliRunner().invoke(app, ["solve", str(model), "--problem", "1", "--method", method, "--out", str(plan_path)])
+    result = CliRunner().invoke(app, ["solve", str(model), "--problem", "1", "--method", method,
+                                      "--out", str(plan_path)])
     assert result.exit_code == 0, result.stderr
     plan = json.loads(plan_path.read_text())
     assert plan["status"] in ("optimal", "feasible")
@@ -381,7 +392,8 @@ def test_a_node_with_several_topics_gets_per_topic_rates_in_the_plan(tmp_path: P
         rows.append({"recording": f"r{v}", "node": "lidar", "value": v, "topic": "/cloud",
                      "frequency_hz": v / 10, "bandwidth_kBps": v * 3, "cpu_units_mean": 2 * v})
     model = tmp_path / "m.json"
-    result = run(str(write_yaml(tmp_path / "s.yaml", system)), str(write_csv(tmp_path / "c.csv", rows)), "--out", str(model))
+    result = run(str(write_yaml(tmp_path / "s.yaml", system)), str(write_csv(tmp_path / "c.csv", rows)),
+                 "--out", str(model))
     assert result.exit_code == 0, result.stderr
     rels = load_system(model).node["lidar"].relations
     assert {"parameter->frequency:/scan", "parameter->frequency:/cloud",
@@ -468,7 +480,8 @@ def test_a_plan_of_the_mean_model_sets_problem_2_on_the_p95_model(tmp_path: Path
     assert run(str(system_path), str(csv_path), "--out", str(mean_model)).exit_code == 0
     assert run(str(system_path), str(csv_path), "--out", str(p95_model), "--cpu", "p95").exit_code == 0
     plan1, plan2 = tmp_path / "p1.json", tmp_path / "p2.json"
-    solved = CliRunner().invoke(app, ["solve", str(mean_model), "--problem", "1", "--method", "exact", "--out", str(plan1)])
+    solved = CliRunner().invoke(app, ["solve", str(mean_model), "--problem", "1", "--method", "exact",
+                                      "--out", str(plan1)])
     assert solved.exit_code == 0, solved.stderr
     solved = CliRunner().invoke(app, ["solve", str(p95_model), "--problem", "2", "--method", "exact",
                                       "--settings", str(plan1), "--out", str(plan2)])

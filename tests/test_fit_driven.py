@@ -113,7 +113,8 @@ def test_driven_settings_recovered_exactly(tmp_path: Path) -> None:
     fits = model["fits"]["detector"]
     for rel, index in (("parameter->cpu_base", 0), ("parameter->cpu_per_hz", 1)):
         pts = np.array(sorted(fits[rel]["points"]))
-        np.testing.assert_allclose(pts, np.array(sorted([v, DETECTOR[v][index]] for v in DETECTOR)), rtol=1e-7, atol=1e-9)
+        np.testing.assert_allclose(pts, np.array(sorted([v, DETECTOR[v][index]] for v in DETECTOR)),
+                                   rtol=1e-7, atol=1e-9)
         assert 0 <= fits[rel]["r2"] <= 1
     assert fits["parameter->performance"]["source"] == "settings"
     for d in grid:  # a grid setting is its curves at its value

@@ -475,7 +475,8 @@ def _chain(stages: int, settings: int, seed: int = 0) -> dict[str, Any]:
         nodes.append({"name": f"stage{k}", "weight": 1, "input": f"/s{k - 1}", "parameter": {"name": "p"},
                       "topics": [f"/s{k}"],
                       "settings": [{"value": j, "cpu": 0.1, "cpu_per_hz": round(rng.uniform(0.01, 0.2), 3),
-                                    "performance": 100 - j, "out_per_in": round(0.5 + 0.1 * j + rng.uniform(0, 0.05), 4),
+                                    "performance": 100 - j,
+                                    "out_per_in": round(0.5 + 0.1 * j + rng.uniform(0, 0.05), 4),
                                     "bytes_per_msg": 10} for j in range(settings)]})
     return {"computers": [{"name": "robot", "kind": "robot", "capacity": 1000},
                           {"name": "server", "kind": "server", "capacity": 1000}],

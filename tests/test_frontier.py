@@ -277,7 +277,8 @@ def test_the_picture_labels_only_proven_bounds(monkeypatch: pytest.MonkeyPatch) 
     plot_frontier(frontier_document(system, heuristic, "greedy")["points"])
     assert labels and not any("bound" in label for label in labels)
     labels.clear()
-    unproven = [FrontierPoint(300.0, Status.FEASIBLE, 70.0, 72.0, 1.0), FrontierPoint(400.0, Status.OPTIMAL, 80.0, 80.0, 1.0)]
+    unproven = [FrontierPoint(300.0, Status.FEASIBLE, 70.0, 72.0, 1.0),
+                FrontierPoint(400.0, Status.OPTIMAL, 80.0, 80.0, 1.0)]
     plot_frontier(frontier_document(system, unproven, "exact")["points"])
     assert "proven bound" in labels
 

@@ -79,8 +79,10 @@ MEDIUM = {
     "nodes": [
         {"name": "x1", "weight": 0.25, "residence": ["r1"], "settings": [setting(10, 100)]},
         {"name": "x2", "weight": 0.25, "residence": ["r2"], "settings": [setting(10, 100)]},
-        {"name": "y1", "weight": 0.25, "parameter": {"name": "k"}, "settings": [setting(10, 10, 1, 1), setting(50, 100, 4, 2)]},
-        {"name": "y2", "weight": 0.25, "parameter": {"name": "k"}, "settings": [setting(10, 10, 1, 1), setting(50, 100, 4, 2)]},
+        {"name": "y1", "weight": 0.25, "parameter": {"name": "k"},
+         "settings": [setting(10, 10, 1, 1), setting(50, 100, 4, 2)]},
+        {"name": "y2", "weight": 0.25, "parameter": {"name": "k"},
+         "settings": [setting(10, 10, 1, 1), setting(50, 100, 4, 2)]},
     ],
     "edges": [{"from": "y1", "to": "x1"}, {"from": "y2", "to": "x2"}],
 }
@@ -260,7 +262,8 @@ def test_discrete_table_i_settings() -> None:
 def test_fixtures_are_the_generators_output() -> None:
     for i in TABLE_II:
         path = FIXTURES / f"instance{i}.yaml"
-        assert yaml.safe_load(path.read_text()) == table2_instance(i), f"{path} is stale: run fixtures/casestudy/generate.py"
+        assert yaml.safe_load(path.read_text()) == table2_instance(i), \
+            f"{path} is stale: run fixtures/casestudy/generate.py"
         s = load_system(path)
         robots, cameras = TABLE_II[i]
         assert len(s.nodes) == 1 + cameras + 6 * robots

@@ -80,7 +80,8 @@ def test_cli_headroom(tmp_path: Any) -> None:
     bad = subprocess.run([sys.executable, "-m", "perfros_bag", "solve", str(path), "--headroom", "1"],
                          capture_output=True, text=True)
     assert bad.returncode == 2 and "Traceback" not in bad.stderr
-    assert [line for line in bad.stderr.splitlines() if line.strip()] == ["error: --headroom must be in [0, 1), got 1.0"]
+    assert [line for line in bad.stderr.splitlines() if line.strip()] \
+        == ["error: --headroom must be in [0, 1), got 1.0"]
     good = subprocess.run([sys.executable, "-m", "perfros_bag", "solve", str(path), "--method", "exact",
                            "--headroom", "0.2", "--out", str(tmp_path / "plan.json")], capture_output=True, text=True)
     assert good.returncode == 0, good.stderr

@@ -205,6 +205,7 @@ def test_fuzz_truncate_and_flip(tmp_path: Path) -> None:
             _sane(rec)
             if kind == "truncate":
                 assert {k: (t.messages, t.bytes, t.times_ns.tolist()) for k, t in rec.topics.items()} == \
-                    {k: (t.messages, t.bytes, t.times_ns.tolist()) for k, t in original.topics.items()}, (name, len(raw))
+                    {k: (t.messages, t.bytes, t.times_ns.tolist()) for k, t in original.topics.items()}, \
+                    (name, len(raw))
         done[kind] += 1
     assert done["truncate"] >= 10 and done["flip"] >= 10 and done["errors"] > 0, done

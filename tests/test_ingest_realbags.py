@@ -93,7 +93,8 @@ def _same(a: RecordingStats, b: RecordingStats) -> None:
     assert list(a.topics) == list(b.topics)
     for k, ta in a.topics.items():
         tb = b.topics[k]
-        assert (ta.msgtype, ta.messages, ta.bytes, ta.publishers) == (tb.msgtype, tb.messages, tb.bytes, tb.publishers), k
+        assert (ta.msgtype, ta.messages, ta.bytes, ta.publishers) \
+            == (tb.msgtype, tb.messages, tb.bytes, tb.publishers), k
         np.testing.assert_array_equal(ta.times_ns, tb.times_ns)
 
 

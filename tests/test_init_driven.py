@@ -50,7 +50,8 @@ def write_run_files(d: Path, name: str, topics: dict[str, tuple[str, list[int], 
         conns = {topic: w.add_connection(topic, "std_msgs/msg/String", typestore=ts, callerid=caller)
                  for topic, (caller, _t, _b) in topics.items()}
         for t, topic in msgs:
-            w.write(conns[topic], t, ts.serialize_ros1(string(data="x" * (topics[topic][2] - 4)), "std_msgs/msg/String"))
+            w.write(conns[topic], t,
+                    ts.serialize_ros1(string(data="x" * (topics[topic][2] - 4)), "std_msgs/msg/String"))
     lines = ["# host=robot1", "# logical_cpus=2", "# interval_s=0.5", "time,pid,node,process,cpu_percent,rss_bytes"]
     for s in range(1, 2 * span_s):
         lines += [f"{T0 / 1e9 + s * 0.5:.3f},{100 + i},{node},x,{c},1000" for i, (node, c) in enumerate(cpu.items())]
@@ -108,7 +109,8 @@ def _lstsq(points: list[tuple[float, float]]) -> tuple[float, float]:
 
 def _solve(system_path: Path, tmp_path: Path) -> dict[str, dict[str, object]]:
     plan = tmp_path / "plan.json"
-    res = CliRunner().invoke(app, ["solve", str(system_path), "--problem", "1", "--method", "exact", "--out", str(plan)])
+    res = CliRunner().invoke(app, ["solve", str(system_path), "--problem", "1", "--method", "exact",
+                                   "--out", str(plan)])
     assert res.exit_code == 0, res.output
     nodes: dict[str, dict[str, object]] = json.loads(plan.read_text())["nodes"]
     return nodes
@@ -158,7 +160,8 @@ def test_a_grid_drafts_one_least_squares_line_per_own_setting(tmp_path: Path) ->
     # and it characterises (input_hz: the camera's rate as written), fits and solves as drafted
     char, model = tmp_path / "c.csv", tmp_path / "model.json"
     runner = CliRunner()
-    res = runner.invoke(app, ["characterise", str(tmp_path / "sweep"), "--system", str(system_path), "--out", str(char)])
+    res = runner.invoke(app, ["characterise", str(tmp_path / "sweep"), "--system", str(system_path),
+                              "--out", str(char)])
     assert res.exit_code == 0, res.output
     rates = {f"run{k}.bag": rate for k, (rate, _v) in enumerate(runs)}
     inputs = {r.recording: r.input_hz for r in read_characterisation(char).rows if r.node == "detector"}
@@ -209,7 +212,8 @@ def test_a_negative_base_is_clipped_and_the_line_goes_through_the_origin(tmp_pat
 
 
 def _runs(ratios: list[float], rates: list[float]) -> tuple[dict[str, RunMeasure], dict[str, float]]:
-    runs = {f"r{i}": RunMeasure(1, 5.0, {"/out": (q * f, 1.0)}) for i, (q, f) in enumerate(zip(ratios, rates, strict=True))}
+    runs = {f"r{i}": RunMeasure(1, 5.0, {"/out": (q * f, 1.0)})
+            for i, (q, f) in enumerate(zip(ratios, rates, strict=True))}
     return runs, {f"r{i}": f for i, f in enumerate(rates)}
 
 

@@ -177,7 +177,8 @@ def test_plan_json_states_each_chain_and_hop_prediction(tmp_path: Path) -> None:
     [chain] = plan["chains"]
     system = parse_system(data)
     nodes = plan["nodes"]
-    choice = _choices(system, nodes["camera"]["value"], system.node["detector"].setting_index(nodes["detector"]["value"]))
+    choice = _choices(system, nodes["camera"]["value"],
+                      system.node["detector"].setting_index(nodes["detector"]["value"]))
     placement = {n: v["computer"] for n, v in nodes.items()}
     want = predict_chain(system, system.chains[0], placement, choice, {"robot": 100, "server": 200})
     assert chain["predicted_ms"] == pytest.approx({"p50": want.p50_ms, "p95": want.p95_ms}, rel=1e-6)

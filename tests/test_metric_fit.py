@@ -35,7 +35,8 @@ nodes:
 MEASURED = [(1, "a", 11.0, 2.0), (1, "b", 13.0, 4.0), (2, "c", 21.0, 5.0), (3, "d", 29.0, 9.0)]
 
 
-def _files(tmp_path: Path, metric: str, measured: list[tuple[int, str, float, float | None]] = MEASURED) -> tuple[Path, Path]:
+def _files(tmp_path: Path, metric: str,
+           measured: list[tuple[int, str, float, float | None]] = MEASURED) -> tuple[Path, Path]:
     system = tmp_path / "system.yaml"
     system.write_text(SYSTEM % metric)
     table = tmp_path / "c.csv"
@@ -61,7 +62,8 @@ def _expected(better: str, lo: float, hi: float) -> list[tuple[float, float]]:
 
 @pytest.mark.parametrize("better", ["higher", "lower"])
 def test_fit_takes_performance_from_the_metric(tmp_path: Path, better: str) -> None:
-    system, table = _files(tmp_path, f"metric: {{topic: /detector/count, field: data, better: {better}, range: [0, 10]}}")
+    system, table = _files(tmp_path,
+                           f"metric: {{topic: /detector/count, field: data, better: {better}, range: [0, 10]}}")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", PerfrosWarning)
         result = build_model(system, table)

@@ -35,7 +35,8 @@ COMPUTER = st.lists(LABEL, min_size=1, max_size=3).map(".".join)
 PACKAGE = st.from_regex(r"[A-Za-z][A-Za-z0-9_-]{0,20}", fullmatch=True)
 EXECUTABLE = st.from_regex(r"[A-Za-z0-9_][A-Za-z0-9_.+-]{0,20}", fullmatch=True)
 VALID = {NameKind.NODE: NODE, NameKind.TOPIC: GRAPH, NameKind.PARAMETER: GRAPH, NameKind.NAMESPACE: GRAPH,
-         NameKind.GRAPH_NODE: GRAPH_NODE, NameKind.COMPUTER: COMPUTER, NameKind.PACKAGE: PACKAGE, NameKind.EXECUTABLE: EXECUTABLE}
+         NameKind.GRAPH_NODE: GRAPH_NODE, NameKind.COMPUTER: COMPUTER, NameKind.PACKAGE: PACKAGE,
+         NameKind.EXECUTABLE: EXECUTABLE}
 #: characters no rule allows anywhere (XML specials, spaces, controls, non-ASCII)
 FORBIDDEN = st.sampled_from(list('"<>&\' \t\n\x00\x1b\x7f;:!?*$()[]{}|\\,=@#%^`é→'))
 

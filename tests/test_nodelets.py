@@ -50,7 +50,8 @@ def test_membership_from_resolution_and_graph(tmp_path: Path) -> None:
         "/people": ("opencv_apps/people_detect", "/vision_manager"),
         "/smooth": ("opencv_apps/smoothing", "/vision_manager")}
     # as the master sees it: the manager publishes and subscribes for its nodelets
-    graph = Graph((GraphNode("/camera", 1, "ip"), GraphNode("/people", 2, "nodelet"), GraphNode("/smooth", 3, "nodelet"),
+    graph = Graph((GraphNode("/camera", 1, "ip"), GraphNode("/people", 2, "nodelet"),
+                   GraphNode("/smooth", 3, "nodelet"),
                    GraphNode("/vision_manager", 4, "nodelet")),
                   (GraphTopic("/camera/image_raw", "sensor_msgs/Image", ("/camera",), ("/vision_manager",)),
                    GraphTopic("/people/found", "opencv_apps/RectArrayStamped", ("/vision_manager",), ()),
@@ -247,7 +248,8 @@ def test_ros2_export_writes_a_container_per_computer(tmp_path: Path) -> None:
                            "--out", str(plan)], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
     out = tmp_path / "params.yaml"
-    done = subprocess.run([str(BIN), "export", str(plan), "--format", "ros2-params", "--system", str(tmp_path / "s.yaml"),
+    done = subprocess.run([str(BIN), "export", str(plan), "--format", "ros2-params",
+                           "--system", str(tmp_path / "s.yaml"),
                            "--out", str(out)], capture_output=True, text=True, timeout=60)
     assert done.returncode == 0, done.stderr
     where = {n: p.computer for n, p in load_plan(plan).nodes.items()}

@@ -146,7 +146,8 @@ def test_sweep_init_characterise_per_nodelet(tmp_path: Path) -> None:
 
 
 @pytest.mark.parametrize(("edit", "message"), [
-    (("args=\"manager\"", "args=\"manager\" if=\"false\""), "into manager /vision_manager, which the launch file never starts"),
+    (("args=\"manager\"", "args=\"manager\" if=\"false\""),
+     "into manager /vision_manager, which the launch file never starts"),
     (("opencv_apps/smoothing", "opencv_apps/no_such_nodelet"), "class opencv_apps/no_such_nodelet does not exist"),
 ])
 def test_bad_nodelets_refused_before_anything_starts(tmp_path: Path, edit: tuple[str, str], message: str) -> None:

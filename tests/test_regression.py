@@ -53,7 +53,8 @@ def _jacobian(form: str, coef: tuple[float, ...], x: np.ndarray) -> np.ndarray:
 
 @pytest.mark.parametrize("form,coef,span", KNOWN)
 @pytest.mark.parametrize("seed", [0, 1, 2])
-def test_known_curve_with_noise_is_recovered(form: str, coef: tuple[float, ...], span: tuple[float, float], seed: int) -> None:
+def test_known_curve_with_noise_is_recovered(form: str, coef: tuple[float, ...], span: tuple[float, float],
+                                             seed: int) -> None:
     rng = np.random.default_rng(seed)
     x = np.linspace(*span, 20)
     clean = _truth(form, coef, x)

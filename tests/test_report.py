@@ -73,7 +73,8 @@ def inputs(tmp: Path) -> dict[str, Path]:
                                         "r2": 1.0, "points": [[10, 80], [15, 120], [20, 160], [25, 200]]},
                     "cpu->performance": {"form": "log", "coef": [66.62, 56.308], "domain": [80, 200],
                                          "scale": 100, "r2": 0.99, "points": [[80, 40], [120, 70], [200, 100]]}},
-        EVIL: {"parameter->cpu": {"form": "linear", "coef": [1, 2], "domain": [1, 2], "r2": 1.0, "points": [[1, 3], [2, 4]]}},
+        EVIL: {"parameter->cpu": {"form": "linear", "coef": [1, 2], "domain": [1, 2], "r2": 1.0,
+                                  "points": [[1, 3], [2, 4]]}},
         "not_fitted": {},
     }}
     (tmp / "model.json").write_text(json.dumps(model))

@@ -62,9 +62,11 @@ def test_an_executable_without_its_package_xml_names_the_dev_package(tmp_path: P
 
 def test_what_the_layout_tells_in_each_case(tmp_path: Path) -> None:
     share, lib = _layout(tmp_path, exe=False, xml=False)
-    assert missing_package("topic_tools/throttle", share, lib).startswith("the ROS package topic_tools is not installed")  # type: ignore[union-attr]
+    assert missing_package("topic_tools/throttle", share, lib).startswith(  # type: ignore[union-attr]
+        "the ROS package topic_tools is not installed")
     share, lib = _layout(tmp_path / "b", exe=False, xml=True)
-    assert missing_package("topic_tools/throttle", share, lib) == f"the package topic_tools has no executable throttle in {lib}/topic_tools"
+    assert missing_package("topic_tools/throttle", share, lib) \
+        == f"the package topic_tools has no executable throttle in {lib}/topic_tools"
     share, lib = _layout(tmp_path / "c", exe=True, xml=True)
     assert missing_package("topic_tools/throttle", share, lib) is None  # both there: another cause
     assert missing_package("../etc/passwd", share, lib) is None  # no path games with the log's text

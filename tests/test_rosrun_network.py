@@ -8,7 +8,8 @@ link's bandwidth and an unshaped control, and nothing left - no namespace, no pr
 no interface on the host - after success, an exception, and SIGINT to the process that made
 them. Shared media: which computer hosts a medium's queue, checked against a brute-force
 search, and (``net``) concurrent TCP streams whose aggregate rate, measured by the receivers,
-is capped at the medium's bandwidth, against a control whose medium is wider than its links. Where namespaces cannot be made here, each test asserts that the fallback is reported.
+is capped at the medium's bandwidth, against a control whose medium is wider than its links.
+Where namespaces cannot be made here, each test asserts that the fallback is reported.
 """
 
 from __future__ import annotations
@@ -564,7 +565,8 @@ def test_a_medium_caps_the_sum_of_its_links(flows: tuple[tuple[str, str], ...], 
         assert {c: _ifb_in(ns) for c, ns in net.namespaces.items()} == {"robot1": [], "server": ["pfr-m0"],
                                                                         "robot2": []}
         [m0] = net.media_stats()
-        link0 = {(end, dev): _tbf_sent_bytes(net, end, dev) for end, dev in (("server", "pfr-l0"), ("server", "pfr-l1"))}
+        link0 = {(end, dev): _tbf_sent_bytes(net, end, dev)
+                 for end, dev in (("server", "pfr-l0"), ("server", "pfr-l1"))}
         got = _transfers(net, list(flows), size)
         [m1] = net.media_stats()
         assert [g["bytes"] for g in got] == [size, size]

@@ -106,12 +106,14 @@ def test_problem2_settings_values_and_plan(tmp_path: Path) -> None:
         ([str(INSTANCE1), "--problem", "3"], "--problem must be 1 or 2"),
         ([str(INSTANCE1), "--method", "magic"], "--method must be one of"),
         ([str(INSTANCE1), "--resolution", "0"], "--resolution must be a finite number > 0"),
-        ([str(INSTANCE1), "--problem", "2", "--settings", "tracker1=30"], "value 30 is outside its parameter's range [10, 25]"),
+        ([str(INSTANCE1), "--problem", "2", "--settings", "tracker1=30"],
+         "value 30 is outside its parameter's range [10, 25]"),
         ([str(INSTANCE1), "--problem", "2", "--settings", "youbot_core1=3"], "no setting with value 3"),
         ([str(INSTANCE1), "--problem", "2", "--settings", "ghost=1"], "unknown node 'ghost'"),
         ([str(INSTANCE1), "--problem", "2", "--settings", "tracker1"], "expected node=value"),
         ([str(INSTANCE1), "--settings", "tracker1=10"], "--settings applies to Problem 2"),
-        ([str(ROOT / "fixtures" / "casestudy" / "instance6.yaml"), "--method", "bruteforce"], "too large for bruteforce"),
+        ([str(ROOT / "fixtures" / "casestudy" / "instance6.yaml"), "--method", "bruteforce"],
+         "too large for bruteforce"),
     ],
 )
 def test_bad_input_one_error_line(args: list[str], message: str) -> None:

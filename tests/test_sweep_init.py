@@ -59,7 +59,8 @@ def test_bus_stats_of_both_client_libraries() -> None:
     from perfros_bag.sweep.runner import _published_bytes
 
     roscpp = [[["/rosout", [[0, 0, 0, 0, 0]]], ["/cam/image", [[4, 900, 900, 3, 0], [6, 600, 600, 2, 0]]]], [], []]
-    rospy = [[["/rosout", 0, [[1, 1257, 0, True]]], ["/q/never", 0, [[3, 161, 0, True]]], ["/q/x", 12, [[3, 173, 1, True]]]],
+    rospy = [[["/rosout", 0, [[1, 1257, 0, True]]], ["/q/never", 0, [[3, 161, 0, True]]],
+              ["/q/x", 12, [[3, 173, 1, True]]]],
              [], []]
     assert _published_bytes(roscpp) == {"/rosout": 0, "/cam/image": 1500}
     assert _published_bytes(rospy) == {"/rosout": 0, "/q/never": 0, "/q/x": 12}
@@ -79,7 +80,8 @@ def test_deploy_sets_each_varied_node_to_its_plan_value(tmp_path: Path) -> None:
         {"node": "other", "parameter": {"name": "gain"}, "arg": "gain", "values": [0.5, 1.5]}]}))
     space = load_space(space_path)
     plan = Plan(1, "exact", "optimal",
-                computers={"robot": PlannedComputer("robot", 150.0, 10.0), "server": PlannedComputer("server", 400.0, 5.0)},
+                computers={"robot": PlannedComputer("robot", 150.0, 10.0),
+                           "server": PlannedComputer("server", 400.0, 5.0)},
                 nodes={"camera": PlannedNode("robot", 1.0, 50.0, 0.5, "rate", 7.6),
                        "detector": PlannedNode("server", 5.0, 90.0, 0.5, "thr", 150.0)})
     run = plan_run(plan, space, {"camera_rate": "10", "gain": "1.5"})

@@ -150,7 +150,8 @@ def _short_bag(path: Path, seconds: float, rate: float = 10.0) -> Path:
     with Writer(path) as writer:
         conn = writer.add_connection("/camera/status", msgtype, typestore=store, callerid="/camera")
         for i in range(int(seconds * rate) + 1):
-            writer.write(conn, 10**18 + int(i * 1e9 / rate), store.serialize_ros1(store.types[msgtype](f"{i}"), msgtype))
+            writer.write(conn, 10**18 + int(i * 1e9 / rate),
+                         store.serialize_ros1(store.types[msgtype](f"{i}"), msgtype))
     return path
 
 
@@ -184,7 +185,8 @@ def test_a_replay_recording_that_is_a_named_pipe_is_refused_at_once(tmp_path: Pa
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=30,
                           cwd=Path(__file__).resolve().parent.parent)
     assert done.returncode == 2, done.stderr
-    assert done.stdout.strip() == f"{fifo}: is not a regular file (a named pipe, device or socket), expected a recording"
+    assert done.stdout.strip() \
+        == f"{fifo}: is not a regular file (a named pipe, device or socket), expected a recording"
     info = subprocess.run([sys.executable, "-m", "perfros_bag", "info", str(fifo)], capture_output=True, text=True,
                           timeout=30, cwd=Path(__file__).resolve().parent.parent)
     assert info.returncode == 2 and "is not a regular file" in info.stderr and "Traceback" not in info.stderr

@@ -20,8 +20,10 @@ APP = FIXTURES / "app" / "app.launch"
 GOOD: dict[str, Any] = {
     "duration_s": 4, "settle_s": 1, "repeats": 1, "design": "grid",
     "vary": [
-        {"node": "camera", "parameter": {"name": "publish_rate", "unit": "Hz"}, "arg": "camera_rate", "values": [5, 10]},
-        {"node": "/detector", "parameter": {"name": "canny_threshold"}, "arg": "canny_threshold", "values": [100, 200, 300]},
+        {"node": "camera", "parameter": {"name": "publish_rate", "unit": "Hz"}, "arg": "camera_rate",
+         "values": [5, 10]},
+        {"node": "/detector", "parameter": {"name": "canny_threshold"}, "arg": "canny_threshold",
+         "values": [100, 200, 300]},
     ],
 }
 
@@ -61,7 +63,8 @@ BAD = [
     ("vary item not mapping", _with(["vary", 0], "camera"), "vary[0]: expected a mapping"),
     ("vary unknown key", _with(["vary", 0, "rate"], 3), "vary[0]: unknown key(s) 'rate'"),
     ("node missing", _with(["vary", 0, "node"], _DROP), "vary[0].node: None is not a valid ROS node graph name"),
-    ("node bad", _with(["vary", 0, "node"], "my camera"), "vary[0].node: 'my camera' is not a valid ROS node graph name"),
+    ("node bad", _with(["vary", 0, "node"], "my camera"),
+     "vary[0].node: 'my camera' is not a valid ROS node graph name"),
     ("parameter missing", _with(["vary", 0, "parameter"], _DROP), "vary[0] (node /camera).parameter: must be"),
     ("parameter unknown key", _with(["vary", 0, "parameter", "type"], "int"), ".parameter: unknown key(s) 'type'"),
     ("neither arg nor param", _with(["vary", 0, "arg"], _DROP), "needs exactly one of 'arg'"),
@@ -140,7 +143,8 @@ def test_explicit_default_and_param_entries(tmp_path: Path) -> None:
 def test_an_undeclared_arg_is_an_error_before_anything_runs(tmp_path: Path) -> None:
     space = load_space(_write(tmp_path, _with(["vary", 1, "arg"], "threshold")))
     launch = read_launch(FIXTURES / "app" / "app.launch")
-    with pytest.raises(InputError, match=r"arg 'threshold' is not declared in .*app.launch \(its <arg>s: camera_rate, canny_threshold, image\)"):
+    with pytest.raises(InputError, match=r"arg 'threshold' is not declared in .*app.launch "
+                                         r"\(its <arg>s: camera_rate, canny_threshold, image\)"):
         check_space(launch, space)
 
 

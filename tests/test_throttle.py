@@ -183,7 +183,8 @@ def _sweep(d: Path, runs: list[tuple[float, float]]) -> None:
         out = camera_hz / -(-camera_hz // rate) if camera_hz > rate else camera_hz
         entries.append(_write_run(d, f"run{k}", camera_hz, rate, 2.0 + 10.0 * out))
     (d / "manifest.yaml").write_text(yaml.safe_dump({"recordings": entries}))
-    nodes = tuple(GraphNode(n, 100 + i, f"/usr/lib/x{n}", True) for i, n in enumerate(("/camera", "/throttle", "/flow")))
+    nodes = tuple(GraphNode(n, 100 + i, f"/usr/lib/x{n}", True)
+                  for i, n in enumerate(("/camera", "/throttle", "/flow")))
     topics = (GraphTopic("/camera/image_raw", "std_msgs/String", ("/camera",), ("/throttle",)),
               GraphTopic("/camera/image_throttled", "std_msgs/String", ("/throttle",), ("/flow",)),
               GraphTopic("/flow/flows", "std_msgs/String", ("/flow",), ()))
@@ -220,7 +221,8 @@ def test_init_keeps_a_node_on_its_own_clock_that_is_no_throttle(tmp_path: Path) 
     assert throttle_rule(["/o"], runs, dict.fromkeys(runs, 15.0)) == ("min", pytest.approx(0.0))
     step = {f"r{k}": RunMeasure(v, 1.0, {"/o": (15.0 / -(-15.0 // v), None)}) for k, v in enumerate((4.2, 6.0, 9.0))}
     assert throttle_rule(["/o"], step, dict.fromkeys(step, 15.0)) == ("period", pytest.approx(0.0))
-    own = {f"r{k}": RunMeasure(v, 1.0, {"/o": (f, None)}) for k, (v, f) in enumerate(((4.2, 2.0), (6.0, 3.0), (9.0, 4.0)))}
+    own = {f"r{k}": RunMeasure(v, 1.0, {"/o": (f, None)})
+           for k, (v, f) in enumerate(((4.2, 2.0), (6.0, 3.0), (9.0, 4.0)))}
     assert throttle_rule(["/o"], own, dict.fromkeys(own, 15.0)) is None  # neither rule gives its output
     above = {f"r{k}": RunMeasure(v, 1.0, {"/o": (f, None)}) for k, (v, f) in enumerate(((4.2, 3.75), (30.0, 16.0)))}
     assert throttle_rule(["/o"], above, dict.fromkeys(above, 15.0)) is None  # ran above its input

@@ -357,7 +357,8 @@ def test_cli_links_with_system(tmp_path: Path, plan_file: Path) -> None:
                       {"name": "server", "kind": "server", "capacity": 400}],
         "links": [{"between": ["robot1", "server"], "bandwidth_kBps": 3.0}],
         "nodes": [{"name": "a", "weight": 0.5, "topics": ["/a/out"], "settings": [{"cpu": 60, "performance": 80}]},
-                  {"name": "b", "weight": 0.5, "topics": ["/b/x", "/b/y"], "settings": [{"cpu": 120, "performance": 50}]}],
+                  {"name": "b", "weight": 0.5, "topics": ["/b/x", "/b/y"],
+                   "settings": [{"cpu": 120, "performance": 50}]}],
         "edges": [{"from": "a", "to": "b"}, {"from": "b", "to": "a", "topic": "/b/y"}],
     }
     sp = tmp_path / "system.yaml"
@@ -427,7 +428,8 @@ def test_real_recordings_against_expected_tsv(realbags: Path, tmp_path: Path, na
                       "topics": {"/not/recorded": {"frequency_hz": 1.0, "bandwidth_kBps": None}}}
     plan_path = tmp_path / "plan.json"
     plan_path.write_text(json.dumps({"format": "perfros-bag/plan@1", "problem": 1, "method": "t",
-                                     "status": "optimal", "computers": {"c": {"kind": "server", "capacity": 100, "cpu": 1}},
+                                     "status": "optimal",
+                                     "computers": {"c": {"kind": "server", "capacity": 100, "cpu": 1}},
                                      "links": [], "nodes": nodes}))
     r = run_cli("validate", str(realbags / name), str(plan_path), "--json")
     assert r.exit_code == 1, r.output
@@ -469,7 +471,8 @@ def test_simulated_demo_run(tmp_path: Path, plan_file: Path) -> None:
         assert r.exit_code == code
         doc = json.loads(r.stdout)
         assert doc["overall"]["deviation_pct"] == pytest.approx(100 * (1 - rate), abs=1e-6)
-        assert {c["computer"]: c["cpu_measured"] for c in doc["computers"]} == pytest.approx({"robot1": 60, "server": 120})
+        assert {c["computer"]: c["cpu_measured"] for c in doc["computers"]} \
+            == pytest.approx({"robot1": 60, "server": 120})
 
 
 def test_trace_host_differing_from_the_plan_is_noted() -> None:

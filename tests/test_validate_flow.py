@@ -277,7 +277,8 @@ def test_cpu_trace_overload_gives_kept_rates_through_the_cli(tmp_path: Path, sol
     k = {n["node"]: n for n in doc["kept"]["nodes"]}
     want = kept_brute(100, 20, cal=1.5)
     assert k["detector"]["input_hz_predicted"] == pytest.approx(want["f_in"], rel=1e-6)
-    assert k["camera"]["f_predicted"] == pytest.approx(want["f_in"], rel=1e-6)  # the camera keeps what the detector gets
+    # the camera keeps what the detector gets
+    assert k["camera"]["f_predicted"] == pytest.approx(want["f_in"], rel=1e-6)
     assert k["detector"]["factor"] == pytest.approx(want["detector"], rel=1e-6)
     assert k["camera"]["f_measured"] == pytest.approx(20)
 

@@ -141,7 +141,8 @@ def test_eq10_of_a_window_is_the_counters_rates_against_the_plan() -> None:
     assert stats.topics["/camera/image"].bandwidth_kBps == pytest.approx(3600 / 4 / 1000)
     doc = window_document(3, after.t, 4.0, v, plan, {"camera": True, "detector": True}, {"camera"}, [])
     assert doc["t"] == 1004.0 and doc["nodes"]["camera"] == {**doc["nodes"]["camera"], "expected_hz": 10.0,
-                                                           "measured_hz": pytest.approx(9.0), "cpu": pytest.approx(30.0)}
+                                                           "measured_hz": pytest.approx(9.0),
+                                                           "cpu": pytest.approx(30.0)}
     assert "cpu" not in doc["nodes"]["detector"]  # not measured
     assert doc["nodes"]["detector"]["measured_hz"] == pytest.approx(4.0)
     assert doc["unmeasured"] == ["detector"] and doc["alarms"] == []
@@ -277,7 +278,8 @@ def test_a_steady_plan_raises_no_alarm_and_its_rates_are_the_counters(fake: Fake
         assert cam["expected_hz"] == 20.0 and "cpu" in cam and cam["alive"]
         assert d["t"] == pytest.approx(time.time(), abs=10)
     rows = (tmp_path / "w" / "characterisation.csv").read_text().splitlines()
-    assert len(rows) == 1 + 4 * 2 and rows[1].startswith("watch-00001,camera,rate,20.0,/camera/image,sensor_msgs/Image,")
+    assert len(rows) == 1 + 4 * 2 \
+        and rows[1].startswith("watch-00001,camera,rate,20.0,/camera/image,sensor_msgs/Image,")
     assert len((tmp_path / "w" / "windows.jsonl").read_text().splitlines()) == 4
 
 

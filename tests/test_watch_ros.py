@@ -64,7 +64,8 @@ def test_watch_attaches_to_a_deploy_and_names_a_killed_node(tmp_path: Path) -> N
                       "predicted_ms": {"p50": 1000.0, "p95": 1000.0}}]
     (tmp_path / "plan.json").write_text(json.dumps(doc))
     space = _space(tmp_path / "space.yaml", duration_s=4, settle_s=1, design="grid",
-                   vary=[{"node": "camera", "parameter": {"name": "publish_rate"}, "arg": "camera_rate", "values": [10]},
+                   vary=[{"node": "camera", "parameter": {"name": "publish_rate"}, "arg": "camera_rate",
+                          "values": [10]},
                          {"node": "detector", "parameter": {"name": "canny_threshold"}, "arg": "canny_threshold",
                           "values": [200]}])
     run = tmp_path / "deployed"
