@@ -25,6 +25,7 @@ from perfros_bag.characterisation.csvfile import CharacterisationFile, Row, read
 from perfros_bag.characterisation.settings import by_setting
 from perfros_bag.errors import InputError, PerfrosWarning
 from perfros_bag.fitting.cpu_error import Runs, driven_errors, node_errors
+from perfros_bag.fitting.drops import RunRates, dropped_share, processed_hz, split_runs
 from perfros_bag.fitting.modelfile import (
     DrivenSetting,
     FittedRelation,
@@ -592,17 +593,26 @@ def _driven_measure(value: float | None, samples: list[DrivenSample], cap: float
     """The setting's line (:func:`cpu_line`), ``out_per_in`` = mean F_out / F_in over its
     recordings (those throttled by ``cap`` left out: with ``step: period`` every recording
     whose input reached the cap, since the step's output lies below it) and
-    ``bytes_per_msg`` = mean bandwidth x 1000 / F_out."""
-    points = [(s.input_hz, s.cpu) for s in samples if s.cpu is not None]
+    ``bytes_per_msg`` = mean bandwidth x 1000 / F_out. A recording where the node was
+    overloaded (:mod:`perfros_bag.fitting.drops`) is left out of ``out_per_in`` and its CPU
+    counts at the rate it processed."""
+    free = [s for s in samples if s.frequency_hz is not None and s.input_hz > 0
+            and (cap is None or s.frequency_hz < THROTTLED * cap)
+            and (cap is None or step != "period" or s.input_hz < THROTTLED * cap)]
+    rates = [RunRates(s.input_hz, s.frequency_hz or 0.0, s.cpu) for s in free]
+    drops = split_runs(rates)
+    processed = {id(free[i]): processed_hz(rates, drops, i) for i in drops.overloaded}
+    notes_drop = [f"overloaded at input {free[i].input_hz:.3g} Hz in {free[i].recording} (dropped "
+                  f"{100 * dropped_share(rates, drops, i):.0f} %): its ratio left out, its CPU at the rate processed"
+                  for i in drops.overloaded]
+    points = [(processed.get(id(s), s.input_hz), s.cpu) for s in samples if s.cpu is not None]
     if not points:
         raise FitError("no CPU measured")
     base, k, r2, notes = cpu_line(points)
-    ratios = [s.frequency_hz / s.input_hz for s in samples if s.frequency_hz is not None and s.input_hz > 0
-              and (cap is None or s.frequency_hz < THROTTLED * cap)
-              and (cap is None or step != "period" or s.input_hz < THROTTLED * cap)]
+    ratios = [rates[i].ratio for i in range(len(free)) if i not in drops.overloaded]
     sizes = [s.bandwidth_kBps * 1000.0 / s.frequency_hz for s in samples
              if s.bandwidth_kBps is not None and s.frequency_hz is not None and s.frequency_hz > 0]
-    return _DrivenMeasure(value, base, k, r2, _mean(ratios), _mean(sizes), tuple(points), tuple(notes))
+    return _DrivenMeasure(value, base, k, r2, _mean(ratios), _mean(sizes), tuple(points), tuple(notes + notes_drop))
 
 
 def _fit_driven_node(node: Node, samples: dict[float | None, list[DrivenSample]], raw: dict[str, Any], warn: _Warn,

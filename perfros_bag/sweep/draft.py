@@ -399,6 +399,13 @@ def _render_driven(node: Any, exe: str, keys: Sequence[int | float | None], weig
         said = [f"    # driven: its output kept one rate per message of {follow.topic} (within "
                 f"{100 * (RATIO_TOLERANCE - 1):.0f} %) while that rate varied by more than "
                 f"{100 * (INPUT_VARIED - 1):.0f} %"]
+        if follow.overloaded:
+            worst = max(follow.overloaded, key=lambda r: 1 - follow.overloaded[r] / follow.input_hz[r])
+            share = 100 * (1 - follow.overloaded[worst] / follow.input_hz[worst])
+            note = (f"overloaded in {len(follow.overloaded)} run(s) (dropped up to {share:.0f} % of its input, "
+                    f"in {worst}): their ratio left out, their CPU counted at the rate it processed")
+            said.append(f"    # {note}")
+            warnings.warn(PerfrosWarning(f"node {node.name}: {note}"), stacklevel=2)
     lines = [f"  # /{node.name} ({exe})",
              f"  - name: {flow(node.name)}",
              f"    weight: {weight!r}  # REPLACE: every node weighs the same (a stated default)",

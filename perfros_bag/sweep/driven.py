@@ -9,7 +9,9 @@ other drafted node publishes when, over the runs,
   node that was not varied), and
 - at every own setting, every output topic of the node that publishes at a rate kept one
   ratio to it: all ``F_out / F_in`` of its topics over the runs at that setting within
-  :data:`RATIO_TOLERANCE` of each other (max / min <= 1.10).
+  :data:`RATIO_TOLERANCE` of each other (max / min <= 1.10), leaving out the runs where the
+  node was overloaded and dropped part of its input (its output still rose with its input:
+  :mod:`perfros_bag.fitting.drops`, the one copy of that rule, which ``fit`` uses too).
 
 A subscriber whose output keeps its own clock fails the second test (its ratio changes as
 much as the input's rate did: more than 20 % > 10 %), and a node with no output at a rate is
@@ -20,8 +22,9 @@ test may still be a **throttle** of the topic, its value capping its output
 
 Per own setting, from the runs at it:
 
-- ``cpu`` + ``cpu_per_hz`` x F_in: the least-squares line through (measured input rate, CPU)
-  when the input rate varied there by more than 20 %; a negative base is clipped to 0 (the line
+- ``cpu`` + ``cpu_per_hz`` x F_in: the least-squares line through (the rate it processed:
+  the measured input rate, or for an overloaded run that rate less what it dropped, CPU) when
+  the input rate varied there by more than 20 %; a negative base is clipped to 0 (the line
   then goes through the origin: ``cpu_per_hz = sum(F C) / sum(F^2)``) and a negative slope to 0
   (``cpu`` = the mean CPU), and the draft says so in a comment (the line is ``fit``'s own,
   :func:`perfros_bag.fitting.build.cpu_line`);
@@ -31,7 +34,8 @@ Per own setting, from the runs at it:
   (cpu_ref + cpu_per_hz_ref x mean F_in)``, ``cpu = k cpu_ref``, ``cpu_per_hz = k
   cpu_per_hz_ref``. It reproduces the measured CPU there, stays >= 0, and assumes the own
   parameter scales the per-message work and the base alike;
-- ``out_per_in`` = the mean of ``F_out / F_in`` (its topics that publish at a rate, the runs);
+- ``out_per_in`` = the mean of ``F_out / F_in`` (its topics that publish at a rate, the runs
+  not overloaded);
 - ``bytes_per_msg`` = the mean over the runs of ``bandwidth x 1000 / F_out`` (all its topics'
   bandwidth, F_out the mean rate of its topics).
 """
@@ -46,10 +50,10 @@ if TYPE_CHECKING:
     from perfros_bag.characterisation.table import Row
     from perfros_bag.sweep.graph import Graph
 
+from perfros_bag.fitting.drops import RATIO_TOLERANCE, RunRates, processed_hz, split_runs
+
 #: The input's rate must vary by more than this factor (max / min) among runs at one own setting.
 INPUT_VARIED = 1.2
-#: ... and the output/input ratios at each own setting stay within this factor (max / min).
-RATIO_TOLERANCE = 1.10
 
 
 @dataclass
@@ -90,6 +94,13 @@ class Follow:
     #: a throttle (its setting caps its output, :func:`throttle_rule`): ``"period"`` or
     #: ``"min"`` (how the cap acts), None for a node that keeps one ratio to its input
     throttle: str | None = None
+    #: recording -> the input rate it processed, for the runs where the node was overloaded
+    #: and dropped part of its input (:mod:`perfros_bag.fitting.drops`)
+    overloaded: Mapping[str, float] = field(default_factory=dict)
+
+    def processed(self, rec: str) -> float:
+        """The input rate the node processed in recording ``rec``."""
+        return self.overloaded.get(rec, self.input_hz[rec])
 
 
 def _groups(runs: Mapping[str, RunMeasure]) -> dict[str, list[str]]:
@@ -109,19 +120,27 @@ def _varied(rates: Sequence[float]) -> bool:
     return len(rates) > 1 and min(rates) > 0 and max(rates) / min(rates) > INPUT_VARIED
 
 
-def _follows(topics: Sequence[str], runs: Mapping[str, RunMeasure], input_hz: Mapping[str, float]) -> float | None:
-    """The largest spread (max / min) of the output/input ratios over the own settings, or
-    None when the node does not follow this input (docstring of the module)."""
+def _follows(topics: Sequence[str], runs: Mapping[str, RunMeasure],
+             input_hz: Mapping[str, float]) -> tuple[float, dict[str, float]] | None:
+    """The largest spread (max / min) of the output/input ratios over the own settings (runs
+    where the node was overloaded left out) and those runs' processed input rates, or None
+    when the node does not follow this input (docstring of the module)."""
     groups = _groups(runs)
     if not topics or not any(_varied([input_hz[r] for r in recs]) for recs in groups.values()):
         return None
-    worst = 1.0
+    worst, overloaded = 1.0, {}
     for recs in groups.values():
-        ratios = [runs[r].rate(t) / input_hz[r] for r in recs for t in topics]
-        if min(ratios) <= 0:
+        if any(runs[r].rate(t) <= 0 for r in recs for t in topics):
             return None
+        rates = [RunRates(input_hz[r], sum(runs[r].rate(t) for t in topics) / len(topics), runs[r].cpu)
+                 for r in recs]
+        drops = split_runs(rates)
+        if not drops.follows:
+            return None
+        ratios = [runs[recs[i]].rate(t) / input_hz[recs[i]] for i in drops.kept for t in topics]
         worst = max(worst, max(ratios) / min(ratios))
-    return worst if worst <= RATIO_TOLERANCE else None
+        overloaded.update({recs[i]: processed_hz(rates, drops, i) for i in drops.overloaded})
+    return (worst, overloaded) if worst <= RATIO_TOLERANCE else None
 
 
 def find_inputs(nodes: Sequence[Any], graph: Graph, measured: Mapping[str, Mapping[str, RunMeasure]],
@@ -144,9 +163,9 @@ def find_inputs(nodes: Sequence[Any], graph: Graph, measured: Mapping[str, Mappi
             input_hz = {r: upstream[r].rate(g.name) for r in runs if r in upstream}
             if not runs or len(input_hz) != len(runs) or min(input_hz.values()) <= 0:
                 continue  # a run without the input at a rate shows nothing to follow
-            spread = _follows(topics, runs, input_hz)
-            if spread is not None and (best is None or best.throttle is not None or spread < best.spread):
-                best = Follow(g.name, source, input_hz, spread)
+            follows = _follows(topics, runs, input_hz)
+            if follows is not None and (best is None or best.throttle is not None or follows[0] < best.spread):
+                best = Follow(g.name, source, input_hz, follows[0], overloaded=follows[1])
             elif best is None and (rule := throttle_rule(topics, runs, input_hz)) is not None:
                 best = Follow(g.name, source, input_hz, rule[1], rule[0])
         if best is not None:
@@ -197,14 +216,13 @@ def draft_settings(topics: Sequence[str], runs: Mapping[str, RunMeasure], follow
     groups = _groups(runs)
     lines: dict[str, tuple[float, float, str | None]] = {}
     for key, recs in groups.items():
-        rates = [follow.input_hz[r] for r in recs]
-        if _varied(rates):
-            lines[key] = _line(rates, [runs[r].cpu or 0.0 for r in recs])
+        if _varied([follow.input_hz[r] for r in recs]):
+            lines[key] = _line([follow.processed(r) for r in recs], [runs[r].cpu or 0.0 for r in recs])
     ref = max(lines, key=lambda k: len(groups[k]))  # find_inputs made sure one exists
     out = {}
     for key, recs in groups.items():
         cpus = [runs[r].cpu or 0.0 for r in recs]
-        ratios = [runs[r].rate(t) / follow.input_hz[r] for r in recs for t in rated]
+        ratios = [runs[r].rate(t) / follow.input_hz[r] for r in recs for t in rated if r not in follow.overloaded]
         sizes = []
         for r in recs:
             f_out = sum(runs[r].rate(t) for t in rated) / len(rated)
@@ -215,7 +233,7 @@ def draft_settings(topics: Sequence[str], runs: Mapping[str, RunMeasure], follow
             scaled = None
         else:
             a_ref, b_ref, _ = lines[ref]
-            f_in = sum(follow.input_hz[r] for r in recs) / len(recs)
+            f_in = sum(follow.processed(r) for r in recs) / len(recs)
             a, b = scaled_line((a_ref, b_ref), f_in, sum(cpus) / len(cpus))
             clipped, scaled = None, runs[groups[ref][0]].value
         out[key] = DrivenSetting(runs[recs[0]].value, a, b, sum(ratios) / len(ratios), sum(sizes) / len(sizes),
