@@ -72,11 +72,15 @@ def split_runs(runs: Sequence[RunRates]) -> Drops:
             continue
         r = runs[i]
         if any(runs[j].input_hz < r.input_hz and r.output_hz > OUTPUT_ROSE * runs[j].output_hz
-               and (r.cpu is None or runs[j].cpu is None or r.cpu >= runs[j].cpu) for j in kept):
+               and _not_less_cpu(r.cpu, runs[j].cpu) for j in kept):
             overloaded.append(i)
         else:
             other.append(i)
     return Drops(tuple(kept), tuple(overloaded), tuple(sorted(other)))
+
+
+def _not_less_cpu(a: float | None, b: float | None) -> bool:
+    return a is None or b is None or a >= b
 
 
 def kept_ratio(runs: Sequence[RunRates], drops: Drops) -> float:
