@@ -16,10 +16,11 @@ DEBS ?= ros-core python3-rospy python3-rosbag ros-image-publisher ros-opencv-app
 PYTEST_ARGS ?=
 OUT ?= out
 
-.PHONY: help setup setup-debs test lint bench demo clean sanitize
+.PHONY: help setup setup-debs test test-slow lint bench demo clean sanitize
 help:
 	@echo "make demo   - run the pipeline on the bundled fixtures (sets everything up)"
-	@echo "make test   - run the test suite (sets everything up)"
+	@echo "make test   - run the test suite (sets everything up; ~10 min on 2 cores)"
+	@echo "make test-slow - the longest real-node end-to-end tests (marked slow)"
 	@echo "make lint   - ruff + mypy"
 	@echo "make bench  - benchmarks (results: docs/benchmarks.md)"
 	@echo "make sanitize - the C sqlite page decoder under ASan/UBSan with a long fuzz"
@@ -45,8 +46,15 @@ setup-debs:
 	  else echo "warning: Debian packages missing:$$missing (run: sudo apt-get install$$missing); tests that need them will fail" >&2; fi; \
 	fi
 
+# Two workers (the machine's 2 cores): the tests that run real ROS nodes, cgroups or network
+# namespaces share one of them, one at a time (tests/conftest.py); the longest real-node runs
+# (marked slow) are left to `make test-slow`.
+TEST_WORKERS ?= 2
 test: setup setup-debs
-	$(PY) -m pytest -q $(PYTEST_ARGS)
+	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadgroup -m "not slow" $(PYTEST_ARGS)
+
+test-slow: setup setup-debs
+	$(PY) -m pytest -q -m slow $(PYTEST_ARGS)
 
 lint: setup
 	$(BIN)/ruff check perfros_bag tests pipelines

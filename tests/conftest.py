@@ -20,6 +20,19 @@ FIXTURES = ROOT / "fixtures"
 REALBAGS = Path(os.environ.get("PERFROS_REALBAGS", ROOT.parent / "shared" / "realbags"))
 
 
+#: Test files that make real cgroups, namespaces or ROS processes without a ``ros``/``net`` mark
+SERIAL_FILES = frozenset({"test_casestudy.py"})
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Under ``pytest -n 2 --dist loadgroup`` (``make test``) the tests that run real ROS nodes,
+    cgroups or network namespaces share one worker, one at a time: two of them side by side on
+    a 2-core machine would starve each other's nodes; the rest spread over both workers."""
+    for item in items:
+        if item.get_closest_marker("ros") or item.get_closest_marker("net") or item.path.name in SERIAL_FILES:
+            item.add_marker(pytest.mark.xdist_group("ros"))
+
+
 @pytest.fixture
 def realbags() -> Path:
     if not REALBAGS.is_dir():

@@ -225,6 +225,35 @@ def test_record_cpu_measures_a_half_busy_process(tmp_path: Path) -> None:
     assert not list(tmp_path.glob(".*.tmp")), "no temp file left behind"
 
 
+def test_record_cpu_says_when_it_has_sampled(tmp_path: Path) -> None:
+    """``--ready FILE`` (what sweep, deploy and the case study wait on before their recording
+    starts): the file appears once the first round is taken, i.e. the trace (still a temp
+    file) already holds its header, and the run then records the matching process."""
+    marker = f"ready_{uuid.uuid4().hex[:8]}"
+    out, ready = tmp_path / "run.cpu.csv", tmp_path / "run.cpu.csv.ready"
+    child = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)", marker])
+    rec = subprocess.Popen([str(BIN), "record-cpu", "--match", marker, "--interval", "0.2", "--out", str(out),
+                            "--quiet", "--ready", str(ready)], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        end = time.monotonic() + 90
+        while not ready.exists():
+            assert rec.poll() is None, rec.communicate()[1]
+            assert time.monotonic() < end, "record-cpu never said it sampled"
+            time.sleep(0.05)
+        (temp,) = out.parent.glob(f".{out.name}.*.tmp")
+        assert temp.read_text().startswith("# host="), "ready before the first round was written"
+        time.sleep(1.0)
+        rec.send_signal(signal.SIGINT)
+        _, stderr = rec.communicate(timeout=60)
+    finally:
+        child.kill()
+        child.wait()
+        if rec.poll() is None:
+            rec.kill()
+    assert rec.returncode == 0, stderr
+    assert (read_cpu_trace(out).pid == child.pid).sum() >= 2
+
+
 def test_record_cpu_command_children_and_exit_code(tmp_path: Path) -> None:
     out = tmp_path / "cmd.cpu.csv"
     script = _duty_script(tmp_path)

@@ -59,6 +59,7 @@ def _from_xml() -> dict[str, tuple[str, str]]:
     return out
 
 
+@pytest.mark.slow  # a sweep of 7 runs of real nodelets (~3 min): `make test-slow`
 def test_sweep_init_characterise_per_nodelet(tmp_path: Path) -> None:
     _require_ros()
     runs = tmp_path / "runs"

@@ -25,7 +25,8 @@ import yaml
 from tests.conftest import FIXTURES
 from tests.test_sweep_e2e import BIN, _bag_rates, _nothing_left
 
-pytestmark = pytest.mark.ros
+# slow: three sweeps of real nodes (~2.5 min); `make test-slow` runs it, the rules have unit tests
+pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
 APP = FIXTURES / "throttle" / "throttle.launch"
 SPACE = FIXTURES / "throttle" / "space.yaml"

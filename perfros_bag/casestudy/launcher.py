@@ -44,7 +44,7 @@ from perfros_bag.rosrun.processes import (
     sigterm_as_interrupt,
     wait_for,
 )
-from perfros_bag.rosrun.recorders import ROSBAG, start_record_cpu, start_rosbag
+from perfros_bag.rosrun.recorders import ROSBAG, cpu_ready_path, start_record_cpu, start_rosbag
 from perfros_bag.system.plan import Plan
 from perfros_bag.system.planfile import plan_document, save_plan
 from perfros_bag.system.types import System
@@ -177,7 +177,10 @@ def run_plan(system: System, plan: Plan, out: Path, cfg: RunConfig, *,
             if cfg.cap:
                 groups.apply()
             note("rosbag", 0, 1)
-            start_record_cpu(procs, [f"--run {run_id} "], cfg.interval, trace, out / "record-cpu.log", out)
+            cpu = start_record_cpu(procs, [f"--run {run_id} "], cfg.interval, trace, out / "record-cpu.log", out)
+            wait_for("record-cpu to sample", cpu_ready_path(trace).exists, cfg.startup_timeout,
+                     lambda: "record-cpu" if cpu.popen.poll() is not None else nodes_dead())
+            cpu_ready_path(trace).unlink()
             rec = start_rosbag(procs, "rosbag", bag, topics, "perfros_record", out / "rosbag.log", out)
 
             def recording() -> bool:

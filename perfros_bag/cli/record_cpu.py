@@ -22,6 +22,8 @@ def record_cpu_cmd(
     speed: bool = typer.Option(True, "--speed/--no-speed",
                                help="Measure the machine's speed first (~0.2 s of CPU): "
                                     "'# speed_factor=' in the trace."),
+    ready: Path | None = typer.Option(None, "--ready", hidden=True,  # noqa: B008
+                                      help="Create this file once the first sample is taken (a caller waits on it)."),
 ) -> None:
     """Sample CPU % and RSS of matching processes until the duration ends, Ctrl-C, or COMMAND exits."""
     import time
@@ -38,6 +40,8 @@ def record_cpu_cmd(
         t0 = time.monotonic()
 
         def status(rnd: int, rows: int) -> None:
+            if rnd == 0 and ready is not None:
+                ready.touch()
             seen[0] += rows
             progress.update(task, completed=time.monotonic() - t0,
                             description=f"{rows} processes, {seen[0]} rows -> {out_path}")

@@ -78,9 +78,18 @@ def merge_bags(parts: list[Path], dest: Path, start_ns: int | None = None, end_n
 
 def start_record_cpu(procs: Processes, patterns: list[str], interval: float, trace: Path, log: Path,
                      cwd: Path) -> Started:
-    """``perfros-bag record-cpu`` (this interpreter) of the processes matching ``patterns``."""
+    """``perfros-bag record-cpu`` (this interpreter) of the processes matching ``patterns``;
+    it creates :func:`cpu_ready_path` of ``trace`` once its first sample is taken."""
     argv = [sys.executable, "-m", "perfros_bag", "record-cpu", "--quiet"]
     for pattern in patterns:
         argv += ["--match", pattern]
-    argv += ["--interval", f"{interval:g}", "--out", str(trace)]
+    ready = cpu_ready_path(trace)
+    ready.unlink(missing_ok=True)
+    argv += ["--interval", f"{interval:g}", "--out", str(trace), "--ready", str(ready)]
     return procs.start("record-cpu", argv, log, cwd=cwd)
+
+
+def cpu_ready_path(trace: Path) -> Path:
+    """The file record-cpu creates once it samples (a loaded machine may take seconds to
+    start it: a recording waits for it, or its trace would miss the start or be empty)."""
+    return trace.with_name(trace.name + ".ready")

@@ -65,6 +65,7 @@ from perfros_bag.rosrun.processes import (
     wait_for,
 )
 from perfros_bag.rosrun.recorders import (
+    cpu_ready_path,
     merge_bags,
     require_free_space,
     start_record_cpu,
@@ -675,6 +676,9 @@ def _record(launch: LaunchFile, space: Space, run: Run, work: Path, procs: Proce
         return all(who in subs.get(t, set()) for t, who in expected.items() if t in advertised)
 
     wait_for("rosbag record to subscribe", recording, timeout, watch.failure)
+    ready = cpu_ready_path(work / "host.cpu.csv")
+    wait_for("record-cpu to sample", ready.exists, timeout, watch.failure)
+    ready.unlink()
     procs.stop(["rosbag probe"])
     watch.others.remove(probe)
     if spread is not None:  # the recorders' first messages come in a burst, late: left out of the window
