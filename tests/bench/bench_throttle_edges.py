@@ -48,14 +48,13 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--capacities", default="200,40,30", help="the computer's capacities to plan and deploy at")
     ap.add_argument("--duration", type=float, default=10.0, help="seconds each deployment records")
-    ap.add_argument("--keep", type=Path, default=None, help="work here (a finished sweep there is reused)")
+    ap.add_argument("--keep", type=Path, default=None, help="work here (the runs a sweep there finished are kept)")
     args = ap.parse_args()
     work = args.keep or Path(tempfile.mkdtemp(prefix="throttle_edges-"))
     work.mkdir(parents=True, exist_ok=True)
     started = datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC")
     sweep_load = load()
-    if not (work / "runs" / "manifest.yaml").exists():
-        cli("sweep", str(LAUNCH), "--space", str(SPACE), "--out", "runs/", cwd=work)
+    cli("sweep", str(LAUNCH), "--space", str(SPACE), "--out", "runs/", cwd=work)  # runs already there are kept
     cli("init", "runs/", "--out", "system.yaml", cwd=work)
     draft = yaml.safe_load((work / "system.yaml").read_text())
     flow = next(n for n in draft["nodes"] if n["name"] == "flow")
