@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from perfros_bag.fitting.build import DrivenSample, _driven_measure
-from perfros_bag.fitting.drops import RunRates, dropped_share, processed_hz, split_runs
+from perfros_bag.fitting.drops import OUTPUT_ROSE, RunRates, dropped_share, processed_hz, split_runs
 from perfros_bag.sweep.driven import RunMeasure, draft_settings, find_inputs
 from perfros_bag.sweep.graph import Graph, GraphNode, GraphTopic
 
@@ -70,11 +70,41 @@ def test_a_node_on_its_own_clock_does_not_follow() -> None:
     assert not drops.follows and drops.overloaded == ()
 
 
-def test_a_run_whose_output_barely_rose_is_not_taken_for_an_overload() -> None:
-    runs = [RunRates(5.0, 5.0, 3.0), RunRates(20.0, 5.9, 3.5)]  # x1.18 <= x1.2
+def test_a_run_whose_output_barely_rose_is_an_overload_only_when_its_cpu_followed_what_it_processed() -> None:
+    runs = [RunRates(5.0, 5.0, 3.0), RunRates(20.0, 5.9, 2.6)]  # x1.18 <= x1.2, CPU 27 % below 0.6 x 5.9
     assert not split_runs(runs).follows
+    runs = [RunRates(5.0, 5.0, 3.0), RunRates(20.0, 5.1, 3.06)]  # x1.02: within a rate's noise (a clock)
+    assert not split_runs(runs).follows
+    runs = [RunRates(5.0, 5.0, 3.0), RunRates(20.0, 5.9, 3.5)]  # x1.18, CPU 0.6 per message: starved
+    assert split_runs(runs).overloaded == (1,)
     runs = [RunRates(5.0, 5.0, 3.0), RunRates(20.0, 6.1, 3.5)]  # x1.22
     assert split_runs(runs).overloaded == (1,)
+    runs = [RunRates(5.0, 5.0, 3.0), RunRates(20.0, 5.9, None)]  # no CPU: only the rates' rule (x1.2)
+    assert not split_runs(runs).follows
+
+
+def test_a_node_starved_by_the_machine_is_overloaded_at_the_rate_the_simulation_processed() -> None:
+    """A heavy node that gets a third of the CPU it needs for 7.5 Hz (the machine busy with
+    other work): its capacity falls to 3 Hz, its output barely rises past its lowest input's
+    (x1.11 < x1.2), its CPU follows what it processed."""
+    service = 1 / 3.0
+    inputs = [2.7, 5.0, 7.5]
+    runs = _runs(inputs, service)
+    drops = split_runs(runs)
+    assert drops.kept == (0,) and drops.overloaded == (1, 2)
+    assert all(runs[i].output_hz < OUTPUT_ROSE * runs[0].output_hz for i in (1, 2))  # not the x1.2 rule
+    for i in drops.overloaded:
+        assert processed_hz(runs, drops, i) == pytest.approx(simulate(inputs[i], service), rel=1e-9)
+
+
+def test_issue_31s_flow_node_as_swept_is_overloaded_not_a_node_of_its_own() -> None:
+    """fback_flow's runs on fixtures/throttle_edges at load 11 (input Hz, output Hz, CPU
+    units; 2026-11-27 20:33): kept at 2.7 Hz, starved at 5 and 7.5 Hz."""
+    runs = [RunRates(2.729, 2.716, 14.527), RunRates(2.707, 2.722, 14.319), RunRates(2.660, 2.653, 14.885),
+            RunRates(5.002, 2.849, 16.785), RunRates(5.001, 3.132, 19.483), RunRates(5.000, 3.703, 19.228),
+            RunRates(7.602, 2.898, 14.412), RunRates(7.501, 3.244, 18.714), RunRates(7.503, 3.361, 19.588)]
+    drops = split_runs(runs)
+    assert drops.kept == (0, 1, 2) and drops.overloaded == (3, 4, 5, 6, 7, 8)
 
 
 def test_an_overload_that_used_less_cpu_is_not_an_overload() -> None:

@@ -112,17 +112,14 @@ def measured_note(plan: Plan, unmeasured: Mapping[str, Unmeasured]) -> dict[str,
     """Per node of ``plan`` that ``unmeasured`` (model.json) knows: ``yes`` when its planned
     value was measured, else ``no`` and the fit's leave-one-out error at it of CPU, rate and
     bandwidth (``?``: the fit has none, two points)."""
-    from perfros_bag.fitting.modelfile import value_errors
+    from perfros_bag.fitting.modelfile import planned_errors
 
     out: dict[str, str] = {}
     for name, n in plan.nodes.items():
         entry = unmeasured.get(name)
         if entry is None:
             continue
-        f_out = next((t.frequency_hz for t in n.topics.values() if t.frequency_hz is not None), None)
-        bw = n.bandwidth_kBps if n.bandwidth_kBps is not None else \
-            sum(t.bandwidth_kBps for t in n.topics.values() if t.bandwidth_kBps is not None)
-        errors = value_errors(entry, n.value, input_hz=n.input_hz, frequency_hz=f_out, bandwidth_kBps=bw)
+        errors = planned_errors(entry, n)
         if errors is None:
             out[name] = "yes"
             continue
@@ -204,6 +201,9 @@ def solve(
         help="share of every computer's capacity the plan keeps free, in [0, 1), or auto: each node's "
              "measured CPU error (model.json cpu_error, at least 10 % of its CPU) (plan.json gives each "
              "computer its margin)")] = "0",
+    measured_only: Annotated[bool, typer.Option(
+        "--measured-only", help="a model.json: choose for each fitted node only values its recordings "
+                                "ran (no value between them; plan.json says which were measured)")] = False,
     pareto: Annotated[str | None, typer.Option(
         "--pareto", metavar="RANGE", help="Problem 1 per total server capacity: auto, LO:HI or LO:HI:POINTS "
                                           "(-o writes frontier.json and a PNG beside it)")] = None,
@@ -227,6 +227,11 @@ def solve(
     if time_limit is not None and method != "exact":
         warnings.warn(f"--time-limit applies to --method exact only; {method} ignores it", PerfrosWarning, stacklevel=1)
     system = load_system(system_path)
+    unmeasured = _unmeasured(system_path)
+    if measured_only:
+        from perfros_bag.fitting.modelfile import measured_system
+
+        system = measured_system(system, unmeasured, system_path)
     fixed = None
     if settings is not None:
         if problem != 2:
@@ -245,6 +250,10 @@ def solve(
                        progress=progress, headroom=kept)
     except ValueError as exc:  # a model that cannot be evaluated (e.g. a curve off its domain)
         raise InputError(system_path, str(exc)) from None
+    if unmeasured:
+        from perfros_bag.fitting.modelfile import mark_measured
+
+        mark_measured(plan, unmeasured)
     if out_path is not None:
         save_plan(plan, out_path)
     if as_json:
@@ -252,7 +261,7 @@ def solve(
 
         print(json_text(plan_document(plan), indent=2))
     plan.require_feasible(system_path)
-    print_plan(err if as_json else out, plan, _unmeasured(system_path))
+    print_plan(err if as_json else out, plan, unmeasured)
     if plan.reason:  # a feasible plan's note (--headroom auto on a model without errors)
         err.print(f"note: {plan.reason}", highlight=False, soft_wrap=True)
     if out_path is not None and not as_json:

@@ -13,6 +13,17 @@ The rule (one copy, used by ``init``'s draft and by ``fit``), per own setting of
 - a run below that is **overloaded** when its output still followed its input: there is a
   kept run at a lower input rate whose output it exceeds by more than :data:`OUTPUT_ROSE`
   (x1.2), and whose CPU it does not fall below (where both were measured);
+- a run below that is also **overloaded** when the machine starved it (other processes took
+  the CPU it needed: its output then sits near what it could process, whatever its input):
+  its output still rose above every kept run's by more than :data:`OUTPUT_MOVED` (x1.03,
+  beyond a rate's measurement noise), stayed at or below its input, and its CPU is what the
+  kept runs' CPU per message gives for the messages it processed (output / the kept mean
+  ratio) within :data:`CPU_MATCH` (20 %). Seen on issue 31's layout: opencv_apps'
+  fback_flow behind a throttle, swept at machine load 11 on 2 cores, put out 2.7 Hz at 2.7
+  Hz in and 2.8-3.7 Hz at 5 and 7.5 Hz in, at 5.0-6.2 CPU units per frame against 5.3-5.6
+  in the kept runs; deployed at load 8 it kept up with 7.5 Hz. A node on its own clock slower
+  than every input it got, whose CPU follows its output, looks the same; its output does not
+  move beyond the noise, which is what tells it apart here;
 - any other run means the node does not keep one ratio to this input (a node on its own
   clock: its output stays put while its input moves).
 
@@ -29,6 +40,10 @@ from dataclasses import dataclass
 RATIO_TOLERANCE = 1.10
 #: an overloaded run's output exceeds a kept run's at a lower input rate by more than this factor
 OUTPUT_ROSE = 1.2
+#: a starved run's output exceeds every kept run's by more than this factor
+OUTPUT_MOVED = 1.03
+#: a starved run's CPU lies within this share of the kept runs' CPU per message x what it processed
+CPU_MATCH = 0.20
 
 
 @dataclass(frozen=True)
@@ -72,11 +87,26 @@ def split_runs(runs: Sequence[RunRates]) -> Drops:
             continue
         r = runs[i]
         if any(runs[j].input_hz < r.input_hz and r.output_hz > OUTPUT_ROSE * runs[j].output_hz
-               and _not_less_cpu(r.cpu, runs[j].cpu) for j in kept):
+               and _not_less_cpu(r.cpu, runs[j].cpu) for j in kept) or _starved(runs, kept, i):
             overloaded.append(i)
         else:
             other.append(i)
     return Drops(tuple(kept), tuple(overloaded), tuple(sorted(other)))
+
+
+def _starved(runs: Sequence[RunRates], kept: Sequence[int], i: int) -> bool:
+    """Was run ``i`` (below the kept ratio) starved of CPU: its output rose beyond every kept
+    run's (:data:`OUTPUT_MOVED`), stayed at or below its input, and its CPU matches the kept
+    runs' CPU per message for what it processed (:data:`CPU_MATCH`)? Needs CPU everywhere."""
+    r = runs[i]
+    if r.cpu is None or r.output_hz > r.input_hz or any(runs[j].cpu is None for j in kept):
+        return False
+    if r.output_hz <= OUTPUT_MOVED * max(runs[j].output_hz for j in kept):
+        return False
+    per_message = sum(runs[j].cpu or 0.0 for j in kept) / sum(runs[j].input_hz for j in kept)
+    ratio = sum(runs[j].ratio for j in kept) / len(kept)
+    want = per_message * r.output_hz / ratio
+    return want > 0 and abs(r.cpu - want) <= CPU_MATCH * want
 
 
 def _not_less_cpu(a: float | None, b: float | None) -> bool:

@@ -12,7 +12,7 @@ import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from perfros_bag.doccheck import Doc
 from perfros_bag.errors import InputError
@@ -26,6 +26,10 @@ from perfros_bag.fileio import (
 from perfros_bag.limits import MAX_COEFFICIENT, MAX_MAGNITUDE, short_repr
 from perfros_bag.system.modelpart import MODEL_FORMAT
 from perfros_bag.system.types import Curve, CurveForm, curve_form
+
+if TYPE_CHECKING:
+    from perfros_bag.system.plan import Plan, PlannedNode
+    from perfros_bag.system.types import System
 
 
 def round9(v: float) -> float:
@@ -239,6 +243,50 @@ def value_errors(entry: Unmeasured, value: float | None, *, input_hz: float | No
     size_err = e.get("bytes_per_msg", 0.0)
     out["bandwidth_kBps"] = None if rate is None or size_err is None else (size_err * f_out + size * rate) / 1000.0
     return out
+
+
+def planned_errors(entry: Unmeasured, node: PlannedNode) -> dict[str, float | None] | None:
+    """:func:`value_errors` at a planned node's value, input rate and output (its first topic
+    with a rate; its bandwidth, the node's or its topics' sum)."""
+    f_out = next((t.frequency_hz for t in node.topics.values() if t.frequency_hz is not None), None)
+    bw = node.bandwidth_kBps if node.bandwidth_kBps is not None else \
+        sum(t.bandwidth_kBps for t in node.topics.values() if t.bandwidth_kBps is not None)
+    return value_errors(entry, node.value, input_hz=node.input_hz, frequency_hz=f_out, bandwidth_kBps=bw)
+
+
+def mark_measured(plan: Plan, unmeasured: Mapping[str, Unmeasured]) -> None:
+    """Set plan.json's ``measured`` (and, for a value never measured, ``loo_error``) on every
+    planned node that ``unmeasured`` knows (docs/formats.md, plan.json)."""
+    for name, n in plan.nodes.items():
+        entry = unmeasured.get(name)
+        if entry is None:
+            continue
+        errors = planned_errors(entry, n)
+        n.measured, n.loo_error = errors is None, errors
+
+
+def measured_system(system: System, unmeasured: Mapping[str, Unmeasured], source: str | Path) -> System:
+    """``solve --measured-only``: ``system`` with every node that ``unmeasured`` knows held to
+    the settings whose value a recording ran (:meth:`Unmeasured.measured`): its fitted curve
+    (a continuum of levels) dropped, its other settings (a driven node's grid) left out. A
+    node left with no setting is an :class:`InputError` naming ``source``."""
+    from dataclasses import replace
+
+    if not unmeasured:
+        raise InputError(source, "--measured-only needs a model.json written by `fit` (its 'unmeasured' "
+                                 "part says which values were measured)")
+    nodes = []
+    for node in system.nodes:
+        entry = unmeasured.get(node.name)
+        if entry is None:
+            nodes.append(node)
+            continue
+        kept = tuple(s for s in node.settings if s.value is not None and entry.measured(s.value))
+        if not kept:
+            raise InputError(source, f"--measured-only: node {node.name!r} has no setting at a measured value "
+                                     f"({', '.join(f'{v:g}' for v in entry.measured_values) or 'none'})")
+        nodes.append(replace(node, settings=kept, curve=None, cpu_error_between=None))
+    return replace(system, nodes=tuple(nodes))
 
 
 def read_unmeasured(path: str | Path) -> dict[str, Unmeasured]:

@@ -62,6 +62,11 @@ class PlannedNode:
     input: str | None = None
     input_hz: float | None = None
     bandwidth_kBps: float | None = None
+    #: was its value one a recording ran (``solve`` from a model.json); None: not said
+    measured: bool | None = None
+    #: a value never measured: per quantity (cpu, frequency_hz, bandwidth_kBps) the fit's
+    #: leave-one-out error at it, in its units (None inside: the fit has none)
+    loo_error: dict[str, float | None] | None = None
 
 
 @dataclass

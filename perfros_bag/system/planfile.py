@@ -60,6 +60,8 @@ def plan_document(plan: Plan) -> dict[str, Any]:
                        for t, r in n.topics.items()},
             **({"input": n.input, "input_hz": n.input_hz, "bandwidth_kBps": n.bandwidth_kBps}
                if n.input is not None else {}),
+            **({} if n.measured is None else {"measured": n.measured}),
+            **({} if n.loo_error is None else {"loo_error": n.loo_error}),
         }
         for name, n in plan.nodes.items()
     }
@@ -251,7 +253,25 @@ def _parse_node(n: Any, where: str, path: str) -> PlannedNode:
         parameter=_text(n, "parameter", where, path), value=_num(n, "value", where, path), topics=topics,
         input=_topic(n, "input", where, path), input_hz=_num(n, "input_hz", where, path, nonneg=True),
         bandwidth_kBps=_num(n, "bandwidth_kBps", where, path, nonneg=True),
+        measured=_flag(n, "measured", where, path), loo_error=_errors(n, "loo_error", where, path),
     )
+
+
+def _flag(d: dict[str, Any], key: str, where: str, path: str) -> bool | None:
+    v = d.get(key)
+    if v is not None and not isinstance(v, bool):
+        raise Doc(path).fail(where, f"{key!r} must be true or false, got {v!r}")
+    return v
+
+
+def _errors(d: dict[str, Any], key: str, where: str, path: str) -> dict[str, float | None] | None:
+    """A mapping of quantity -> a number >= 0 or null (``loo_error``); None when absent."""
+    v = d.get(key)
+    if v is None:
+        return None
+    if not isinstance(v, dict):
+        raise Doc(path).fail(where, f"{key!r} must be an object")
+    return {str(q): _num(v, q, f"{where}.{key}", path, nonneg=True) for q in v}
 
 
 def check_against_system(plan: Plan, system: System, plan_path: str | Path | None = None) -> None:
