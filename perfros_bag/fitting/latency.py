@@ -121,8 +121,13 @@ def _fell_behind(system: System, name: str, row: Row, lam: float) -> bool:
     return row.frequency_hz is not None and row.frequency_hz < KEPT_SHARE * want
 
 
+def _period(smp: HopSample) -> float:
+    """The sample's input period (s): ``rho = lam x service_s``."""
+    return smp.service_s / smp.rho
+
+
 def _g50(smp: HopSample, params: LatencyParams) -> float:
-    return smp.service_s + queue_wait(smp.service_s, smp.rho, params, 0.5)
+    return smp.service_s + queue_wait(smp.service_s, smp.rho, params, 0.5, _period(smp))
 
 
 def predict_sample(smp: HopSample, params: LatencyParams) -> tuple[float, float]:
@@ -131,8 +136,8 @@ def predict_sample(smp: HopSample, params: LatencyParams) -> tuple[float, float]
     ratio = params.node_p95_ratio.get(smp.node, params.p95_ratio)
     s = scale * smp.service_s
     over = params.overhead_ms / 1000.0
-    return (over + s + queue_wait(s, smp.rho, params, 0.5),
-            over + ratio * s + queue_wait(s, smp.rho, params, 0.95))
+    return (over + s + queue_wait(s, smp.rho, params, 0.5, _period(smp)),
+            over + ratio * s + queue_wait(s, smp.rho, params, 0.95, _period(smp)))
 
 
 def fit_latency(rows: Sequence[Row], system: System) -> LatencyFit:
@@ -180,7 +185,7 @@ def fit_latency(rows: Sequence[Row], system: System) -> LatencyFit:
         for s in (s for s in samples if s.node == n and s.p95_s is not None):
             sc = fitted.service_scale.get(n, 1.0) * s.service_s
             assert s.p95_s is not None
-            left = s.p95_s - overhead - queue_wait(sc, s.rho, fitted, 0.95)
+            left = s.p95_s - overhead - queue_wait(sc, s.rho, fitted, 0.95, _period(s))
             got.append(left / sc)
         if got:
             ratios[n] = min(max(statistics.median(got), 1.0), MAX_RATIO)

@@ -310,12 +310,12 @@ def _chain_ms(system: System, plan: Plan, chain_topics: tuple[str, ...], where: 
             return f"hop {a} -> {b}: {node} gets no CPU"
         rho = lam * per_msg / speed
         service = lat.service_scale.get(node, 1.0) * per_msg / speed
-        cap_wait = lat.queue_size * service
+        # periodic input: a message finds the node idle below rho 1; above, the drop-oldest queue
+        # is full when the node takes its oldest: it waited queue_size - 1 periods and part of one
+        w50 = w95 = 0.0
         if rho >= 1:
-            w50 = w95 = cap_wait
-        else:
-            mean = lat.queue_factor * rho * service / (2 * (1 - rho))
-            w50, w95 = min(_waited(mean, rho, 0.5), cap_wait), min(_waited(mean, rho, 0.95), cap_wait)
+            w50 = min((lat.queue_size - 0.5) / lam, lat.queue_size * service)
+            w95 = min((lat.queue_size - 0.05) / lam, lat.queue_size * service)
         t50 = t95 = 0.0
         if pp.computer != comp:
             route = system.route(pp.computer, comp)

@@ -12,18 +12,22 @@ per second from its input's publisher ``m`` on computer ``c_m`` (docs/solvers.md
   the others ask for their planned CPU, each weighted by its threads
   (:func:`perfros_bag.system.cpushare.fair_shares`, the one model of how a capped computer
   shares its CPU). ``scale_n`` (fitted; 1 by default) turns CPU time into wall time.
-* **wait** in its queue at utilisation ``rho = lam x w / v``: M/D/1, whose mean wait is
-  ``E[W] = k x rho x S / (2 (1 - rho))`` (``k`` = ``queue_factor``); its distribution taken as
-  ``P(W > 0) = rho`` and, when waiting, exponential with mean ``E[W] / rho``, so the quantile
-  ``q`` is ``E[W] / rho x ln(rho / (1 - q))`` above ``1 - rho``, else 0. ROS's drop-oldest
-  queue of ``queue_size`` messages bounds it: a message that waits longer than
-  ``queue_size x S`` is dropped, so no delivered one waits more (at ``rho >= 1`` the wait is
-  that bound).
+* **wait** in its queue. The hop's input arrives periodically (every ``T = 1 / lam``: a
+  chain starts at a timer-driven source, and each hop passes its input's period on), so the
+  queue is D/D/1, not M/D/1: at utilisation ``rho = lam x w / v < 1`` a message finds the node
+  idle and waits 0. At ``rho >= 1`` the node is always busy and ROS's drop-oldest queue of
+  ``queue_size`` messages is full whenever it takes one: it holds the ``queue_size`` newest
+  arrivals and the node takes the oldest of them, so a delivered message waits
+  ``(queue_size - 1 + u) x T`` with ``u`` uniform on [0, 1) (the running message ends at any
+  point of an input period): the quantile ``q`` is ``(queue_size - 1 + q) x T``, never more
+  than ``queue_size x S`` (``T <= S`` there).
 * **transfer** of the input's message (``B`` kB: its bandwidth over its frequency at ``m``'s
   choice) across every link and shared medium of ``System.route(c_m, c)``: the slowest
   element's ``B / (efficiency x bandwidth)`` (a message streams across the route), plus at each
-  element the same wait rule (mean ``k x u x t / (2 (1 - u))`` for its transfer time ``t``) at
-  the utilisation of the *other* traffic (its planned load less the hop's own stream, which is
+  element a wait behind the *other* traffic: their streams' phases are unrelated to the
+  hop's, so it is M/D/1, mean ``k x u x t / (2 (1 - u))`` (``k`` = ``queue_factor``) for
+  its transfer time ``t``, 0 with probability ``1 - u`` and else exponential, at the
+  utilisation of that traffic (its planned load less the hop's own stream, which is
   periodic and does not queue behind itself; at most 0.99).
 * **overhead**: ``overhead_ms`` (fitted) per hop.
 
@@ -154,21 +158,23 @@ def _topic_bytes_kB(system: System, node: str, choice: Choice, topic: str) -> fl
 
 
 def wait_quantile(mean_wait: float, rho: float, q: float) -> float:
-    """The ``q`` quantile of a queue's wait with mean ``mean_wait`` at utilisation ``rho``:
-    0 with probability ``1 - rho``, else exponential with mean ``mean_wait / rho``."""
+    """The ``q`` quantile of an M/D/1 queue's wait with mean ``mean_wait`` at utilisation
+    ``rho`` (a link's traffic of others): 0 with probability ``1 - rho``, else exponential
+    with mean ``mean_wait / rho``."""
     if rho <= 0 or mean_wait <= 0 or rho <= 1 - q:
         return 0.0
     return mean_wait / rho * math.log(rho / (1 - q))
 
 
-def queue_wait(service_s: float, rho: float, params: LatencyParams, q: float) -> float:
-    """Seconds a message waits for the node (quantile ``q``): M/D/1 at ``rho``, bounded by
-    the drop-oldest queue (``queue_size`` x ``service_s``)."""
-    bound = params.queue_size * service_s
-    if rho >= 1:
-        return bound
-    mean = params.queue_factor * rho * service_s / (2 * (1 - rho))
-    return min(wait_quantile(mean, rho, q), bound)
+def queue_wait(service_s: float, rho: float, params: LatencyParams, q: float, period_s: float) -> float:
+    """Seconds a message waits for the node (quantile ``q``) when its input arrives every
+    ``period_s``: 0 below ``rho`` 1 (D/D/1: a periodic message finds the node idle); at ``rho
+    >= 1`` ROS's drop-oldest queue is full when the node takes its oldest message, so it
+    waited ``queue_size - 1`` periods and the rest of one (uniform: quantile ``q``); never
+    more than ``queue_size x service_s``."""
+    if rho < 1:
+        return 0.0
+    return min((params.queue_size - 1 + q) * period_s, params.queue_size * service_s)
 
 
 def threads_of(system: System, node: str, choice: Choice) -> float:
@@ -237,7 +243,7 @@ def predict_hop(system: System, hop: Hop, placement: Mapping[str, str], choice: 
         return f"hop {hop.src} -> {hop.dst}: {node.name!r} gets no CPU on {comp}"
     rho = lam * w / v
     service = params.service_scale.get(hop.node, 1.0) * w / v
-    wait50, wait95 = queue_wait(service, rho, params, 0.5), queue_wait(service, rho, params, 0.95)
+    wait50, wait95 = queue_wait(service, rho, params, 0.5, 1 / lam), queue_wait(service, rho, params, 0.95, 1 / lam)
     transfer50 = transfer95 = 0.0
     src_comp = placement[parent]
     if src_comp != comp:
@@ -334,8 +340,8 @@ def hop_floor(system: System, node: str, choice: Choice, capacity: float) -> tup
     s = params.service_scale.get(node, 1.0) * w / v
     ratio = params.node_p95_ratio.get(node, params.p95_ratio)
     over = params.overhead_ms / 1000.0
-    return (1000 * (over + s + queue_wait(s, rho, params, 0.5)),
-            1000 * (over + ratio * s + queue_wait(s, rho, params, 0.95)))
+    return (1000 * (over + s + queue_wait(s, rho, params, 0.5, 1 / lam)),
+            1000 * (over + ratio * s + queue_wait(s, rho, params, 0.95, 1 / lam)))
 
 
 def fastest_bound(system: System, chain: Chain, choices: Mapping[str, Sequence[Choice]]) -> tuple[float, float] | None:
