@@ -371,7 +371,7 @@ class LatencyParams:
 
     units_per_core: float = 100.0  # CPU units of one core busy for one second per second
     overhead_ms: float = 1.0  # what every hop adds beyond its service, wait and transfer
-    queue_factor: float = 1.0  # the M/D/1 wait's multiplier (0: periodic arrivals never wait)
+    queue_factor: float = 1.0  # the multiplier of the M/D/1 wait behind other traffic on a link
     p95_ratio: float = 1.3  # a service time's p95 over its p50 (nodes without their own)
     queue_size: int = 1  # messages a subscriber's drop-oldest queue holds: bounds the wait
     link_efficiency: float = 0.96  # the share of a link's bandwidth a message's payload gets
