@@ -13,6 +13,7 @@ import yaml
 
 from perfros_bag.system.latency import predict_chain
 from perfros_bag.system.systemfile import parse_system
+from perfros_bag.system.types import System
 
 CFS_PERIOD = 0.010  # deploy's CFS period (rosrun/cgroups.py)
 
@@ -62,7 +63,7 @@ def quantile(xs: list[float], q: float) -> float:
     return xs[lo] + (xs[hi] - xs[lo]) * (k - lo)
 
 
-def _system(rate: float, work_units: float, capacity: float, queue_size: int) -> object:
+def _system(rate: float, work_units: float, capacity: float, queue_size: int) -> System:
     return parse_system(yaml.safe_load(f"""
 computers:
   - {{name: source, kind: robot, capacity: 100}}
