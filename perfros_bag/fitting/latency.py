@@ -8,7 +8,8 @@ on this machine, uncapped, without links, so the model's hop there is
 ``overhead + scale_n x g`` with ``g = S + W50`` at ``S = w / (threads x units_per_core)``
 (its threads' cores: the node is not capped) and its wait at ``rho = lam x w /
 units_per_core`` (0 below utilisation 1: the input is periodic;
-:mod:`perfros_bag.system.latency`). A run where the node fell behind its input (published less than 90 % of what its input asked) is left out: its delay is the sweep machine's
+:mod:`perfros_bag.system.latency`). A run where the node fell behind its input (published
+less than 90 % of what its input asked) is left out: its delay is the sweep machine's
 contention, bounded by the queue. Least squares over every (node, run) gives the one
 ``overhead_ms`` (>= 0) and each node's ``service_scale`` (> 0); each node's ``p95_ratio`` is the
 median over its runs of what its measured p95 leaves for ``ratio x S``, at least 1. The
