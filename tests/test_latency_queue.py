@@ -63,14 +63,14 @@ def quantile(xs: list[float], q: float) -> float:
     return xs[lo] + (xs[hi] - xs[lo]) * (k - lo)
 
 
-def _system(rate: float, work_units: float, capacity: float, queue_size: int) -> System:
+def _system(rate: float, work_units: float, capacity: float, queue_size: int, backlog: float) -> System:
     return parse_system(yaml.safe_load(f"""
 computers:
   - {{name: source, kind: robot, capacity: 100}}
   - {{name: box, kind: server, capacity: {capacity}}}
 links:
   - {{between: [source, box], bandwidth_kBps: 1.0e+12}}
-latency: {{overhead_ms: 0, p95_ratio: 1.0, queue_size: {queue_size}}}
+latency: {{overhead_ms: 0, p95_ratio: 1.0, queue_size: {queue_size}, backlog_msgs: {backlog}}}
 nodes:
   - name: camera
     weight: 0.5
@@ -90,23 +90,27 @@ chains:
 """))
 
 
-# (input Hz, CPU units x s per message, the node's computer's capacity, queue_size): below and
-# above utilisation 1, CFS caps from 15 to 50 % of a core, input periods that are no multiple
-# of the CFS period (the phase of each message against CFS's periods moves)
-CASES = [(9.963, 2.0, 50, 1), (9.963, 2.0, 25, 1), (4.98, 1.0, 15, 1), (7.47, 2.0, 30, 1),
-         (9.963, 6.0, 50, 1), (9.963, 3.0, 20, 1), (9.963, 3.0, 20, 2), (9.963, 6.0, 50, 3)]
+# (input Hz, CPU units x s per message, the node's computer's capacity, queue_size, backlog):
+# below and above utilisation 1, CFS caps from 15 to 50 % of a core, input periods that are
+# no multiple of the CFS period (the phase of each message against CFS's periods moves). The
+# backlog (socket buffers, first in first out ahead of the drop-oldest queue) holds its
+# messages in the simulation as a longer queue: saturated, both are full and the node takes
+# the oldest of all they hold.
+CASES = [(9.963, 2.0, 50, 1, 0), (9.963, 2.0, 25, 1, 0), (4.98, 1.0, 15, 1, 2), (7.47, 2.0, 30, 1, 2),
+         (9.963, 6.0, 50, 1, 0), (9.963, 3.0, 20, 1, 0), (9.963, 3.0, 20, 2, 0), (9.963, 6.0, 50, 3, 0),
+         (9.963, 3.0, 20, 1, 2), (4.98, 3.0, 10, 2, 1)]
 
 
-@pytest.mark.parametrize(("rate", "work", "capacity", "queue_size"), CASES)
+@pytest.mark.parametrize(("rate", "work", "capacity", "queue_size", "backlog"), CASES)
 def test_node_wait_and_service_match_a_simulated_capped_node(rate: float, work: float, capacity: float,
-                                                             queue_size: int) -> None:
-    system = _system(rate, work, capacity, queue_size)
+                                                             queue_size: int, backlog: int) -> None:
+    system = _system(rate, work, capacity, queue_size, backlog)
     node = system.node["node"]
     choice = {"camera": system.node["camera"].choices()[0], "node": system.driven_choice(node, 0, rate)}
     got = predict_chain(system, system.chains[0], {"camera": "source", "node": "box"}, choice,
                         {"source": 100, "box": capacity})
     hop = got.hops[0]
-    lat = simulate(1 / rate, work / 100, capacity / 100 * CFS_PERIOD, CFS_PERIOD, queue_size)
+    lat = simulate(1 / rate, work / 100, capacity / 100 * CFS_PERIOD, CFS_PERIOD, queue_size + backlog)
     # the model's node part (service + wait) within one CFS period of the simulation: a capped
     # node runs in bursts of its quota, so a message ends up to one period before its mean
     for q, model in ((0.5, hop.service_ms + hop.wait_ms), (0.95, hop.service_ms + hop.wait_p95_ms)):

@@ -9,18 +9,20 @@ per second from its input's publisher ``m`` on computer ``c_m`` (docs/solvers.md
   message (a driven node's CPU is ``cpu + cpu_per_hz x lam``, so ``w`` carries it), ``v`` the
   CPU units ``n`` runs at while it is busy: its share of its computer when it asks for all its
   threads can run (``threads x units_per_core``; system.yaml ``threads``, 1 by default) and
-  the others ask for their planned CPU, each weighted by its threads
+  the others ask for their planned CPU, one slice each
   (:func:`perfros_bag.system.cpushare.fair_shares`, the one model of how a capped computer
   shares its CPU). ``scale_n`` (fitted; 1 by default) turns CPU time into wall time.
 * **wait** in its queue. The hop's input arrives periodically (every ``T = 1 / lam``: a
   chain starts at a timer-driven source, and each hop passes its input's period on), so the
   queue is D/D/1, not M/D/1: at utilisation ``rho = lam x w / v < 1`` a message finds the node
   idle and waits 0. At ``rho >= 1`` the node is always busy and ROS's drop-oldest queue of
-  ``queue_size`` messages is full whenever it takes one: it holds the ``queue_size`` newest
-  arrivals and the node takes the oldest of them, so a delivered message waits
-  ``(queue_size - 1 + u) x T`` with ``u`` uniform on [0, 1) (the running message ends at any
-  point of an input period): the quantile ``q`` is ``(queue_size - 1 + q) x T``, never more
-  than ``queue_size x S`` (``T <= S`` there).
+  ``queue_size`` messages is full whenever it takes one, and so are the socket buffers ahead
+  of it, which hold ``backlog_msgs`` more (first in, first out: the throttled node's own
+  receive thread drains them; measured ~2 of 230 kB frames). The node takes the oldest of the
+  ``H = queue_size + backlog_msgs`` newest arrivals, so a delivered message waits
+  ``(H - 1 + u) x T`` with ``u`` uniform on [0, 1) (the running message ends at any point of
+  an input period): the quantile ``q`` is ``(H - 1 + q) x T``, never more than ``H x S``
+  (``T <= S`` there).
 * **transfer** of the input's message (``B`` kB: its bandwidth over its frequency at ``m``'s
   choice) across every link and shared medium of ``System.route(c_m, c)``: the slowest
   element's ``B / (efficiency x bandwidth)`` (a message streams across the route), plus at each
@@ -169,12 +171,14 @@ def wait_quantile(mean_wait: float, rho: float, q: float) -> float:
 def queue_wait(service_s: float, rho: float, params: LatencyParams, q: float, period_s: float) -> float:
     """Seconds a message waits for the node (quantile ``q``) when its input arrives every
     ``period_s``: 0 below ``rho`` 1 (D/D/1: a periodic message finds the node idle); at ``rho
-    >= 1`` ROS's drop-oldest queue is full when the node takes its oldest message, so it
-    waited ``queue_size - 1`` periods and the rest of one (uniform: quantile ``q``); never
-    more than ``queue_size x service_s``."""
+    >= 1`` ROS's drop-oldest queue and the ``backlog_msgs`` ahead of it are full when the node
+    takes its oldest message, so it waited ``queue_size + backlog_msgs - 1`` periods and the
+    rest of one (uniform: quantile ``q``); never more than ``(queue_size + backlog_msgs) x
+    service_s``."""
     if rho < 1:
         return 0.0
-    return min((params.queue_size - 1 + q) * period_s, params.queue_size * service_s)
+    held = params.queue_size + params.backlog_msgs
+    return min((held - 1 + q) * period_s, held * service_s)
 
 
 def threads_of(system: System, node: str, choice: Choice) -> float:
@@ -187,7 +191,7 @@ def service_speed(system: System, node: str, computer: str, placement: Mapping[s
                   choice: Mapping[str, Choice], capacity: float) -> float:
     """CPU units ``node`` runs at while busy on ``computer``: its fair share when it asks for
     all its threads can run (threads x ``units_per_core``) and the others for their planned
-    CPU, each weighted by its threads (:func:`perfros_bag.system.cpushare.fair_shares`)."""
+    CPU, one slice each (:func:`perfros_bag.system.cpushare.fair_shares`)."""
     upc = system.latency.units_per_core
     k = threads_of(system, node, choice[node])
     demands = [Demand(node, math.inf, k, k * upc)]

@@ -375,6 +375,9 @@ class LatencyParams:
     p95_ratio: float = 1.3  # a service time's p95 over its p50 (nodes without their own)
     queue_size: int = 1  # messages a subscriber's drop-oldest queue holds: bounds the wait
     link_efficiency: float = 0.96  # the share of a link's bandwidth a message's payload gets
+    #: messages a saturated node's input holds ahead of its subscriber queue (the socket
+    #: buffers: first in, first out, nothing dropped there); measured ~2 for 230 kB frames
+    backlog_msgs: float = 2.0
     #: per node: measured hop time over its CPU time per message (wall / CPU: 1 for a node
     #: that only computes), and its own p95 ratio
     service_scale: dict[str, float] = field(default_factory=dict)
