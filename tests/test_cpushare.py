@@ -12,12 +12,12 @@ from perfros_bag.system.cpushare import Demand, fair_shares, share_level
 
 
 def brute_level(capacity: float, demands: list[Demand]) -> float:
-    """The level L with Σ min(need, L) = capacity (one slice per node), by bisection
-    (independent of the module's sort-and-sweep)."""
+    """The level L with Σ min(need, k·L) = capacity, by bisection (independent of the
+    module's sort-and-sweep)."""
     lo, hi = 0.0, max(d.need for d in demands) + 1.0
     for _ in range(200):
         mid = (lo + hi) / 2
-        used = sum(min(min(d.need, d.max_units), mid) for d in demands)
+        used = sum(min(min(d.need, d.max_units), max(1.0, d.threads) * mid) for d in demands)
         lo, hi = (mid, hi) if used < capacity else (lo, mid)
     return lo
 
@@ -36,12 +36,10 @@ def test_small_need_met_first() -> None:
     assert shares["c"] == pytest.approx(17.5)
 
 
-def test_busy_threads_do_not_count_as_slices() -> None:
-    """Measured in RQ3 (cpushare's docstring): people_detect with 2.0 busy threads got about
-    what smoothing (1.1) got on a capped robot, not twice as much."""
+def test_threads_count_as_slices() -> None:
     shares = fair_shares(30, [Demand("one", 40), Demand("two", 40, threads=2)])
-    assert shares["one"] == pytest.approx(15)
-    assert shares["two"] == pytest.approx(15)
+    assert shares["one"] == pytest.approx(10)
+    assert shares["two"] == pytest.approx(20)
 
 
 def test_max_units_bounds_the_need() -> None:
@@ -64,4 +62,4 @@ def test_random_against_bisection(seed: int) -> None:
     assert sum(shares.values()) == pytest.approx(cap)
     level = brute_level(cap, ds)
     for d in ds:
-        assert shares[d.name] == pytest.approx(min(min(d.need, d.max_units), level), abs=1e-6)
+        assert shares[d.name] == pytest.approx(min(min(d.need, d.max_units), max(1.0, d.threads) * level), abs=1e-6)

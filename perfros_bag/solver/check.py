@@ -249,20 +249,20 @@ def check_plan(system: System, plan: Plan, *, tol: float = 1e-6) -> list[str]:
 
 # ---- latency budgets: this checker's own copy of the latency rule (docs/solvers.md "Latency";
 # written apart from perfros_bag/system/latency.py) ------------------------------------------
-def _speed(own_max: float, others: list[float], capacity: float) -> float:
-    """CPU units a busy node (up to ``own_max``: its threads' cores) gets beside ``others``
-    (their needs) on ``capacity``: the water level L of max-min fairness, one slice per node
-    whatever its threads (each gets min(need, L)), found by bisection."""
-    if own_max + sum(others) <= capacity:
+def _speed(own_max: float, own_threads: float, others: list[tuple[float, float]], capacity: float) -> float:
+    """CPU units a busy node (up to ``own_max``, ``own_threads`` slices) gets beside
+    ``others`` ((need, threads)) on ``capacity``: the water level L of max-min fairness per
+    thread (each gets min(need, threads x L)), found by bisection."""
+    if own_max + sum(o for o, _ in others) <= capacity:
         return own_max
-    lo, hi = 0.0, max([capacity, own_max, *others])
+    lo, hi = 0.0, max([capacity, own_max, *(o for o, _ in others)])
     for _ in range(200):
         mid = (lo + hi) / 2
-        if min(own_max, mid) + sum(min(o, mid) for o in others) > capacity:
+        if min(own_max, own_threads * mid) + sum(min(o, t * mid) for o, t in others) > capacity:
             hi = mid
         else:
             lo = mid
-    return min(own_max, lo)
+    return min(own_max, own_threads * lo)
 
 
 def _threads(node: Node, value: float | None) -> float:
@@ -303,8 +303,9 @@ def _chain_ms(system: System, plan: Plan, chain_topics: tuple[str, ...], where: 
         capacity = pc.capacity if pc is not None and pc.capacity is not None else sum(
             q.cpu for q in plan.nodes.values() if q.computer == comp)
         k = _threads(nodes[0], pn.value)
-        speed = _speed(k * lat.units_per_core,
-                       [q.cpu for n, q in plan.nodes.items() if q.computer == comp and n != node], capacity)
+        speed = _speed(k * lat.units_per_core, k,
+                       [(q.cpu, _threads(system.node[n], q.value) if n in system.node else 1.0)
+                        for n, q in plan.nodes.items() if q.computer == comp and n != node], capacity)
         if speed <= 0:
             return f"hop {a} -> {b}: {node} gets no CPU"
         rho = lam * per_msg / speed

@@ -2,23 +2,16 @@
 prediction (validation), the latency model and ``watch`` use.
 
 A computer of capacity C is, on this machine, a cgroup whose CFS bandwidth quota is C. Inside
-it the Linux scheduler (CFS) gives every runnable thread an equal slice, and a node that asks
-for less than its slice keeps what it asks for while the rest is shared among the others
-(max-min fairness, "water-filling"). Its share is
+it the Linux scheduler (CFS) is fair per *thread*, not per process: every runnable thread gets
+an equal slice, and a thread that asks for less than its slice keeps what it asks for while the
+rest is shared among the others (max-min fairness, "water-filling"). A node with k busy threads
+therefore gets up to k slices. Its share is
 
-    share_i = min(need_i, L)
+    share_i = min(need_i, k_i * L)
 
-where the level L is the largest value with Σ_i min(need_i, L) <= C. When the needs fit
+where the level L is the largest value with Σ_i min(need_i, k_i * L) <= C. When the needs fit
 (Σ need <= C) every node gets its need. A node can never use more than its threads can run:
 ``max_units`` (k_i cores' worth of units) bounds its need first.
-
-Each node is one slice, whatever its busy threads (``threads``, the spread of its CPU seconds
-over its threads, kept in :class:`Demand` for the record). Measured (issue 29, RQ3 on a
-15-unit robot, camera 10 Hz, people_detect at scale0 1.2 with 2.0 busy threads beside
-smoothing at kernel 15): people got 6.8 units and smoothing 7.4, one slice each (7.05), not
-2 : 1 (9.1 and 5.0, the rule that counted busy threads as slices). Its busy threads are not
-runnable at once (OpenCV's parallel HOG runs in bursts), so they widen what the node can run
-alone (``max_units``), not its share beside others.
 
 This replaces the proportional rule (share = C * need / Σ need), which under-predicts light nodes:
 CFS gives a node asking for little all it asks for.
@@ -37,7 +30,7 @@ class Demand:
 
     name: str
     need: float  # what it would use unhindered
-    threads: float = 1.0  # busy threads (>= 1): the record; not a weight (the module's docstring)
+    threads: float = 1.0  # busy threads: its weight in the fair share (>= 1)
     max_units: float = math.inf  # the most its threads can run (threads x units per core)
 
 
@@ -48,7 +41,7 @@ def fair_shares(capacity: float, demands: Sequence[Demand]) -> dict[str, float]:
         raise ValueError("fair_shares: demand names must be unique")
     if sum(want.values()) <= capacity:
         return want
-    weight = {d.name: 1.0 for d in demands}  # one slice per node (the module's docstring)
+    weight = {d.name: max(1.0, d.threads) for d in demands}
     # satisfy the demands in the order of their need per slice; the rest share the level
     order = sorted(want, key=lambda n: want[n] / weight[n])
     left, w_left = max(0.0, capacity), sum(weight.values())
@@ -69,6 +62,6 @@ def fair_shares(capacity: float, demands: Sequence[Demand]) -> dict[str, float]:
 def share_level(capacity: float, demands: Sequence[Demand]) -> float:
     """The per-slice level L of the rule (``inf`` when every need fits)."""
     shares = fair_shares(capacity, demands)
-    capped = [shares[d.name] for d in demands
+    capped = [shares[d.name] / max(1.0, d.threads) for d in demands
               if shares[d.name] < max(0.0, min(d.need, d.max_units))]
     return max(capped) if capped else math.inf

@@ -9,7 +9,7 @@ per second from its input's publisher ``m`` on computer ``c_m`` (docs/solvers.md
   message (a driven node's CPU is ``cpu + cpu_per_hz x lam``, so ``w`` carries it), ``v`` the
   CPU units ``n`` runs at while it is busy: its share of its computer when it asks for all its
   threads can run (``threads x units_per_core``; system.yaml ``threads``, 1 by default) and
-  the others ask for their planned CPU, one slice each
+  the others ask for their planned CPU, each weighted by its threads
   (:func:`perfros_bag.system.cpushare.fair_shares`, the one model of how a capped computer
   shares its CPU). ``scale_n`` (fitted; 1 by default) turns CPU time into wall time.
 * **wait** in its queue. The hop's input arrives periodically (every ``T = 1 / lam``: a
@@ -191,7 +191,7 @@ def service_speed(system: System, node: str, computer: str, placement: Mapping[s
                   choice: Mapping[str, Choice], capacity: float) -> float:
     """CPU units ``node`` runs at while busy on ``computer``: its fair share when it asks for
     all its threads can run (threads x ``units_per_core``) and the others for their planned
-    CPU, one slice each (:func:`perfros_bag.system.cpushare.fair_shares`)."""
+    CPU, each weighted by its threads (:func:`perfros_bag.system.cpushare.fair_shares`)."""
     upc = system.latency.units_per_core
     k = threads_of(system, node, choice[node])
     demands = [Demand(node, math.inf, k, k * upc)]

@@ -6,10 +6,10 @@ rates"):
   :func:`perfros_bag.system.types.driven_rates` at its planned setting; any other node: its
   planned CPU), times its calibration (measured / planned CPU where the run showed more);
 - a computer whose nodes need more than its capacity shares it as CFS does
-  (:func:`perfros_bag.system.cpushare.fair_shares`): max-min fair, so a node that needs less
-  than its slice keeps all it needs and the others share the rest, one slice per node (its
-  busy threads, system.yaml ``threads``, do not widen its share: measured, see cpushare); its
-  output rate scales by share / need;
+  (:func:`perfros_bag.system.cpushare.fair_shares`): max-min fair per busy thread, so a node
+  that needs less than its slices keeps all it needs and the others share the rest, a node
+  with k busy threads (system.yaml ``threads``, measured by ``record-cpu``; default 1)
+  counting as k slices; its output rate scales by share / need;
 - a node's lower output rate is the lower input rate of the nodes it drives: their need and
   their output fall too, all the way down the ``input`` chains;
 - repeated to a fixed point (damped: each round moves the input rates half way to what the
