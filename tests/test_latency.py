@@ -282,3 +282,45 @@ def test_a_node_with_two_busy_threads_runs_on_two_cores_and_takes_two_slices() -
 
     plan = solve(system, 1, "exact")
     assert plan.chains[0]["predicted_ms"] is not None and check_plan(system, plan) == []
+
+
+def test_nodes_fed_the_same_message_run_at_once_and_share_the_computer() -> None:
+    """A smoother beside the detector, both driven by the camera's frames (5 Hz) on one robot
+    of 60: each frame reaches both at once. By hand: the camera's 5 is met, the other 55 split
+    evenly while both run: the smoother's 1.0 unit-s per frame ends after 1.0 / 27.5 s, by
+    then the detector did 1.0 of its 5.4 (2 + 5 x 5 Hz = 27 units over 5 Hz); then it gets
+    the 55 left for its 4.4. (The old rule, the others at their mean CPU, gave the smoother
+    60 - 5 - 27 = 28 units throughout and the detector 60 - 5 - 5 = 50.)"""
+    text = SYSTEM.replace("  - {name: logger,", """  - name: smoother
+    weight: 0.00005
+    input: /camera/image_raw
+    topics: [/smooth]
+    settings: [{cpu: 0, cpu_per_hz: 1, performance: 100, bytes_per_msg: 100}]
+  - {name: logger,""")
+    text = text.replace("weight: 0.0001, topics: [/log]", "weight: 0.00005, topics: [/log]")
+    vision_chain = "chains:\n  - name: vision\n    topics: [/camera/image_raw, /detector/found]\n"
+    text = text.replace(vision_chain, vision_chain + "  - name: smooth\n    topics: [/camera/image_raw, /smooth]\n")
+    system = _system(text.replace("{name: robot, kind: robot, capacity: 100}",
+                                  "{name: robot, kind: robot, capacity: 60}"))
+    choice = {**_choices(system, 5, 0), "smoother": system.driven_choice(system.node["smoother"], 0, 5)}
+    placement = {"camera": "robot", "detector": "robot", "smoother": "robot", "logger": "server"}
+    caps = {"robot": 60, "server": 200}
+    vision = predict_chain(system, system.chains[0], placement, choice, caps)
+    smooth = predict_chain(system, system.chains[1], placement, choice, caps)
+    s_smooth = 1.0 / 27.5
+    s_vision = s_smooth + (5.4 - 1.0) / 55
+    assert smooth.hops[0].service_ms == pytest.approx(1000 * s_smooth)
+    assert vision.hops[0].service_ms == pytest.approx(1000 * s_vision)
+    # the hop as _hop states it at the speed that gives that service time
+    assert (vision.p50_ms, vision.p95_ms) == pytest.approx(_hop(5.4, 5, 5.4 / s_vision), rel=1e-9)
+    assert (smooth.p50_ms, smooth.p95_ms) == pytest.approx(_hop(1.0, 5, 1.0 / s_smooth), rel=1e-9)
+    # the checker's own copy (its own water level, stepped finish to finish) agrees on the plan
+    from perfros_bag.solver.check import check_plan
+    from perfros_bag.system.plan import Assignment, Status
+    from perfros_bag.system.rules import build_plan
+    from perfros_bag.system.types import Problem
+
+    plan = build_plan(system, Assignment(placement, choice), problem=Problem.PERFORMANCE, method="test",
+                      status=Status.FEASIBLE)
+    assert [c["predicted_ms"]["p50"] for c in plan.chains] == pytest.approx([vision.p50_ms, smooth.p50_ms])
+    assert not [m for m in check_plan(system, plan) if "the model gives" in m]

@@ -5,7 +5,11 @@ that publishes ``t_i`` driven by ``t_{i-1}`` (its ``input``, so it copies the st
 delay, for a node ``n`` on computer ``c`` at its planned choice, receiving ``lam`` messages
 per second from its input's publisher ``m`` on computer ``c_m`` (docs/solvers.md, "Latency"):
 
-* **service** ``S = scale_n * w / v`` seconds: ``w = cpu_n / lam`` CPU units x seconds per
+* **service** ``S = scale_n x`` the wall time of one message (:func:`service_time`): every
+  node of the computer driven by the same input gets the message at the same moment, so
+  they run together, each at its fair share of what is left beside the others at their
+  planned CPU, until one finishes and the rest share what it leaves. Alone, that is
+  ``w / v`` seconds: ``w = cpu_n / lam`` CPU units x seconds per
   message (a driven node's CPU is ``cpu + cpu_per_hz x lam``, so ``w`` carries it), ``v`` the
   CPU units ``n`` runs at while it is busy: its share of its computer when it asks for all its
   threads can run (``threads x units_per_core``; system.yaml ``threads``, 1 by default) and
@@ -187,17 +191,42 @@ def threads_of(system: System, node: str, choice: Choice) -> float:
     return 1.0 if n is None else max(1.0, n.threads_at(choice.value))
 
 
-def service_speed(system: System, node: str, computer: str, placement: Mapping[str, str],
-                  choice: Mapping[str, Choice], capacity: float) -> float:
-    """CPU units ``node`` runs at while busy on ``computer``: its fair share when it asks for
-    all its threads can run (threads x ``units_per_core``) and the others for their planned
-    CPU, each weighted by its threads (:func:`perfros_bag.system.cpushare.fair_shares`)."""
+def released_together(system: System, node: str, computer: str, placement: Mapping[str, str],
+                      choice: Mapping[str, Choice]) -> list[str]:
+    """The nodes of ``computer`` driven by ``node``'s input (``node`` among them): each
+    message reaches them at the same moment, so they run at the same time."""
+    topic = system.node[node].input
+    return [n for n, c in placement.items()
+            if c == computer and n in choice and n in system.node and system.node[n].input == topic]
+
+
+def service_time(system: System, node: str, computer: str, placement: Mapping[str, str],
+                 choice: Mapping[str, Choice], capacity: float, lam: float) -> float:
+    """Seconds (wall, before ``service_scale``) ``node`` takes for one message on
+    ``computer``: it and the nodes released with it (:func:`released_together`) each start
+    their ``cpu / lam`` units x seconds at once and share the computer as CFS does while they
+    run (:func:`perfros_bag.system.cpushare.fair_shares`: each asks for all its threads can
+    run, weighted by its threads), beside the other nodes at their planned CPU; when one
+    finishes the rest share what it leaves. Inf when it gets no CPU."""
     upc = system.latency.units_per_core
-    k = threads_of(system, node, choice[node])
-    demands = [Demand(node, math.inf, k, k * upc)]
-    demands += [Demand(n, choice[n].cpu, threads_of(system, n, choice[n]))
-                for n, c in placement.items() if c == computer and n != node and n in choice]
-    return fair_shares(capacity, demands)[node]
+    together = released_together(system, node, computer, placement, choice)
+    left = {n: choice[n].cpu / lam for n in together}
+    rest = [Demand(n, choice[n].cpu, threads_of(system, n, choice[n]))
+            for n, c in placement.items() if c == computer and n in choice and n not in left]
+    t = 0.0
+    while left.get(node, 0.0) > 0:
+        k = {n: threads_of(system, n, choice[n]) for n in left}
+        shares = fair_shares(capacity, rest + [Demand(n, math.inf, k[n], k[n] * upc) for n in left])
+        running = {n: shares[n] for n in left if shares[n] > 0}
+        if node not in running:
+            return math.inf
+        first = min(running, key=lambda n: left[n] / running[n])
+        dt = left[first] / running[first]
+        t += dt
+        for n, v in running.items():
+            left[n] -= v * dt
+        left = {n: w for n, w in left.items() if n != first and w > 1e-12}
+    return t
 
 
 def _link_terms(system: System, route: Sequence[int], link_loads: Sequence[float], size_kB: float,
@@ -238,15 +267,14 @@ def predict_hop(system: System, hop: Hop, placement: Mapping[str, str], choice: 
     lam = ch.input_hz if ch.input_hz is not None else system.topic_hz(choice[parent], hop.src)
     if not lam or lam <= 0:
         return f"hop {hop.src} -> {hop.dst}: {node.name!r} has no measured input rate"
-    w = ch.cpu / lam
     cap = capacities.get(comp, math.inf)
     if not math.isfinite(cap):  # a server to be sized: its load
         cap = sum(choice[n].cpu for n, c in placement.items() if c == comp and n in choice)
-    v = service_speed(system, hop.node, comp, placement, choice, cap)
-    if v <= 0:
+    busy = service_time(system, hop.node, comp, placement, choice, cap, lam)
+    if not math.isfinite(busy):
         return f"hop {hop.src} -> {hop.dst}: {node.name!r} gets no CPU on {comp}"
-    rho = lam * w / v
-    service = params.service_scale.get(hop.node, 1.0) * w / v
+    rho = lam * busy
+    service = params.service_scale.get(hop.node, 1.0) * busy
     wait50, wait95 = queue_wait(service, rho, params, 0.5, 1 / lam), queue_wait(service, rho, params, 0.95, 1 / lam)
     transfer50 = transfer95 = 0.0
     src_comp = placement[parent]
