@@ -300,22 +300,39 @@ def write_system(path: Path, number: int, system: dict[str, Any]) -> None:
                     + yaml.safe_dump(system, sort_keys=False))
 
 
-def binding_budget(d: Path, inst: Instance, draft: dict[str, Any],
-                   given: dict[str, float] | None) -> dict[str, float] | None:
-    """A camera -> people p95 budget that binds on this instance's fitted model and that a
-    plan can keep: the unbudgeted exact plan (``--headroom auto``) predicts p95 ``U`` for its
-    slowest people chain; ``given`` (when below ``U``) is tried, then each of
-    :data:`BUDGET_FRACTIONS` x ``U``; the first that exact can keep is the instance's budget.
-    A budget fixed before the sweep cannot do this: the sweep's own latency sets the scale."""
+def with_budget(model: Path, dest: Path, budget: dict[str, float] | None) -> None:
+    """``model`` (a fitted model.json) written to ``dest`` with every camera -> people chain
+    carrying ``budget`` (none: no budget). A budget changes no fit (the latency fit reads the
+    chains only to warn about unmeasured hops), so the instance is fitted once and each budget
+    is written into the fitted model's system instead of fitting again."""
+    from perfros_bag.fileio import atomic_write_json
+
+    doc = json.loads(model.read_text())
+    for chain in (doc.get("system") or {}).get("chains") or []:
+        if str(chain.get("name", "")).endswith("_people"):
+            if budget:
+                chain["budget_ms"] = dict(budget)
+            else:
+                chain.pop("budget_ms", None)
+    atomic_write_json(dest, doc)
+
+
+def binding_budget(d: Path, inst: Instance, model: Path, given: dict[str, float] | None) -> dict[str, float] | None:
+    """A camera -> people p95 budget that binds on this instance's fitted ``model`` (fitted
+    without a budget) and that a plan can keep: the unbudgeted exact plan (``--headroom
+    auto``) predicts p95 ``U`` for its slowest people chain; ``given`` (when below ``U``) is
+    tried, then each of :data:`BUDGET_FRACTIONS` x ``U``; the first that exact can keep is the
+    instance's budget. A budget fixed before the sweep cannot do this: the sweep's own latency
+    sets the scale. Each try is the same fitted model with the budget written in (:func:`with_budget`)."""
     work = d / "budget-search"
     work.mkdir(parents=True, exist_ok=True)
-    sys_path, model, plan = work / "system.yaml", work / "model.json", work / "plan.json"
+    plan = work / "plan.json"
 
     def solve_with(budget: dict[str, float] | None) -> dict[str, Any] | None:
-        write_system(sys_path, inst.number, instance_system(inst, draft, budget, (inst.number,) if budget else ()))
-        sh([BIN, "fit", sys_path, d / "characterisation.csv", "--out", model])
+        tried = work / ("model.json" if budget is None else f"model-p95-{budget['p95']:g}.json")
+        with_budget(model, tried, budget)
         plan.unlink(missing_ok=True)
-        done = sh([BIN, "solve", model, "--problem", "1", "--method", "exact", "--headroom", "auto",
+        done = sh([BIN, "solve", tried, "--problem", "1", "--method", "exact", "--headroom", "auto",
                    "--out", plan], ok=(0, 2))
         return json.loads(plan.read_text()) if done.returncode == 0 else None
 
@@ -351,11 +368,16 @@ def fit_and_solve(out: Path, char_csv: Path, draft: dict[str, Any], numbers: lis
         inst_csv = d / "characterisation.csv"
         write_rows(inst_csv, fields, instance_csv(rows, len(inst.robot_capacity)))
         model = d / "model.json"
-        chosen = binding_budget(d, inst, draft, budget) if i in budgeted else None
-        if i in budgeted:
-            BUDGETS[i] = chosen
-        write_system(sys_path, i, instance_system(inst, draft, chosen, budgeted if chosen is not None else ()))
+        # one fit per instance: a budget changes no fit, it is written into the fitted model
+        write_system(sys_path, i, instance_system(inst, draft, None, ()))
         sh([BIN, "fit", sys_path, inst_csv, "--out", model] + (["--plots", d / "fit-plots"] if i == 1 else []))
+        if i in budgeted:
+            chosen = BUDGETS[i] = binding_budget(d, inst, model, budget)
+            if chosen is not None:
+                write_system(sys_path, i, instance_system(inst, draft, chosen, budgeted))
+                with_budget(model, model, chosen)
+                COMMANDS.append(f"# {rel(model)}: the budget p95 {chosen['p95']:g} ms written into its chains "
+                                f"(as {rel(sys_path)} states it)")
         plans[i] = {}
         for key, problem, method in METHODS:
             if key.endswith(NO_MARGIN) and i not in NO_MARGIN_INSTANCES:

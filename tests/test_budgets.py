@@ -125,7 +125,9 @@ def test_an_impossible_budget_is_one_line_naming_the_chain_and_its_bound(tmp_pat
     assert res.exit_code == 2
     [line] = [ln for ln in res.stderr.splitlines() if ln.strip()]
     # the bound, by hand: each hop at its fastest choice, alone on the largest computer (at most
-    # one core, 100 units), beside its input; overhead 1 ms, service w / v, its M/D/1 wait, 1.3 x service
+    # one core, 100 units), beside its input; overhead 1 ms, service w / v, 1.3 x service and the
+    # wait of a periodic input: none below utilisation 1, above it the oldest of the full queue
+    # (1) and socket backlog (2): 2.95 input periods, at most 3 services
     speed = min(100, max(c["capacity"] for c in data["computers"]))  # type: ignore[index]
     hops = []
     for settings in (data["nodes"][1]["settings"], data["nodes"][2]["settings"]):  # type: ignore[index]
@@ -135,8 +137,7 @@ def test_an_impossible_budget_is_one_line_naming_the_chain_and_its_bound(tmp_pat
                 w = (s["cpu"] + s["cpu_per_hz"] * lam) / lam
                 svc = w / speed
                 rho = lam * svc
-                mean = rho * svc / (2 * (1 - rho))
-                wait = 0.0 if rho <= 0.05 else min(mean / rho * math.log(rho / 0.05), svc)
+                wait = 0.0 if rho < 1 else min(2.95 / lam, 3 * svc)
                 best = min(best, 1 + 1000 * (1.3 * svc + wait))
         hops.append(best)
     assert f"chain 'vision': no plan keeps its predicted p95 within its budget of 0.5 ms: in every plan it is at " \

@@ -272,10 +272,17 @@ def test_rq3_kept_errors_in_points_per_node() -> None:
 def test_the_budget_is_chosen_on_the_fitted_model_to_bind_and_be_kept(tmp_path: Path,
                                                                      monkeypatch: pytest.MonkeyPatch) -> None:
     """binding_budget: the unbudgeted plan predicts 300 ms p95; a plan exists for a budget of
-    250 ms or more (a fake solve): the given 200 and 0.8 x 300 = 240 cannot be kept, 0.9 x 300 can."""
-    draft = {"nodes": [{"name": "robot1_people", "input": "/robot1/camera/image_raw",
-                        "topics": ["/robot1/people/found"], "settings": []}]}
+    250 ms or more (a fake solve): the given 200 and 0.8 x 300 = 240 cannot be kept, 0.9 x 300 can.
+    It never fits: each try is the fitted model with the budget written into its people chains
+    (and nothing else of the model changed)."""
+    fitted = {"format": 1, "system": {"nodes": [], "chains": [
+        {"name": "robot1_people", "topics": ["/robot1/camera/image_raw", "/robot1/people/found"]},
+        {"name": "robot1_smooth", "topics": ["/robot1/camera/image_raw", "/robot1/smooth/image"]}]},
+        "fits": {"x": 1}}
+    model = tmp_path / "model.json"
+    model.write_text(json.dumps(fitted))
     tried: list[float | None] = []
+    calls: list[str] = []
 
     class Done:
         def __init__(self, code: int) -> None:
@@ -283,12 +290,12 @@ def test_the_budget_is_chosen_on_the_fitted_model_to_bind_and_be_kept(tmp_path: 
 
     def fake_sh(args: Any, *, ok: tuple[int, ...] = (0,)) -> Done:
         words = [str(a) for a in args]
-        if "fit" in words:
-            return Done(0)
-        system = (tmp_path / "i" / "budget-search" / "system.yaml").read_text()
-        import yaml
-        chains = yaml.safe_load(system.split("\n", 1)[1])["chains"]
-        budget = next((c["budget_ms"]["p95"] for c in chains if "budget_ms" in c), None)
+        calls.append(words[1])
+        doc = json.loads(Path(words[2]).read_text())
+        assert doc["fits"] == fitted["fits"]
+        by_name = {c["name"]: c for c in doc["system"]["chains"]}
+        assert "budget_ms" not in by_name["robot1_smooth"]
+        budget = (by_name["robot1_people"].get("budget_ms") or {}).get("p95")
         tried.append(budget)
         if budget is not None and budget < 250:
             return Done(2)
@@ -298,6 +305,9 @@ def test_the_budget_is_chosen_on_the_fitted_model_to_bind_and_be_kept(tmp_path: 
 
     monkeypatch.setattr(cs, "sh", fake_sh)
     (tmp_path / "i").mkdir()
-    chosen = cs.binding_budget(tmp_path / "i", cs.INSTANCES[1], draft, {"p95": 200.0})
+    chosen = cs.binding_budget(tmp_path / "i", cs.INSTANCES[1], model, {"p95": 200.0})
     assert chosen == {"p95": 270.0}
     assert tried == [None, 200.0, 240.0, 270.0]
+    assert set(calls) == {"solve"}  # no fit per budget
+    cs.with_budget(model, tmp_path / "b.json", chosen)
+    assert json.loads((tmp_path / "b.json").read_text())["system"]["chains"][0]["budget_ms"] == {"p95": 270.0}

@@ -6,8 +6,9 @@ publishing ``b`` from its input ``a`` adds, in that run, ``lat(b) - lat(a)`` (``
 when ``a``'s publisher is a source: the chain starts at its stamp). The sweep runs every node
 on this machine, uncapped, without links, so the model's hop there is
 ``overhead + scale_n x g`` with ``g = S + W50`` at ``S = w / (threads x units_per_core)``
-(its threads' cores: the node is not capped) and its M/D/1 wait at ``rho = lam x w / units_per_core``
-(:mod:`perfros_bag.system.latency`). A run where the node fell behind its input (published
+(its threads' cores: the node is not capped) and its wait at ``rho = lam x w /
+units_per_core`` (0 below utilisation 1: the input is periodic;
+:mod:`perfros_bag.system.latency`). A run where the node fell behind its input (published
 less than 90 % of what its input asked) is left out: its delay is the sweep machine's
 contention, bounded by the queue. Least squares over every (node, run) gives the one
 ``overhead_ms`` (>= 0) and each node's ``service_scale`` (> 0); each node's ``p95_ratio`` is the
@@ -121,8 +122,13 @@ def _fell_behind(system: System, name: str, row: Row, lam: float) -> bool:
     return row.frequency_hz is not None and row.frequency_hz < KEPT_SHARE * want
 
 
+def _period(smp: HopSample) -> float:
+    """The sample's input period (s): ``rho = lam x service_s``."""
+    return smp.service_s / smp.rho
+
+
 def _g50(smp: HopSample, params: LatencyParams) -> float:
-    return smp.service_s + queue_wait(smp.service_s, smp.rho, params, 0.5)
+    return smp.service_s + queue_wait(smp.service_s, smp.rho, params, 0.5, _period(smp))
 
 
 def predict_sample(smp: HopSample, params: LatencyParams) -> tuple[float, float]:
@@ -131,8 +137,8 @@ def predict_sample(smp: HopSample, params: LatencyParams) -> tuple[float, float]
     ratio = params.node_p95_ratio.get(smp.node, params.p95_ratio)
     s = scale * smp.service_s
     over = params.overhead_ms / 1000.0
-    return (over + s + queue_wait(s, smp.rho, params, 0.5),
-            over + ratio * s + queue_wait(s, smp.rho, params, 0.95))
+    return (over + s + queue_wait(s, smp.rho, params, 0.5, _period(smp)),
+            over + ratio * s + queue_wait(s, smp.rho, params, 0.95, _period(smp)))
 
 
 def fit_latency(rows: Sequence[Row], system: System) -> LatencyFit:
@@ -180,7 +186,7 @@ def fit_latency(rows: Sequence[Row], system: System) -> LatencyFit:
         for s in (s for s in samples if s.node == n and s.p95_s is not None):
             sc = fitted.service_scale.get(n, 1.0) * s.service_s
             assert s.p95_s is not None
-            left = s.p95_s - overhead - queue_wait(sc, s.rho, fitted, 0.95)
+            left = s.p95_s - overhead - queue_wait(sc, s.rho, fitted, 0.95, _period(s))
             got.append(left / sc)
         if got:
             ratios[n] = min(max(statistics.median(got), 1.0), MAX_RATIO)
@@ -200,6 +206,7 @@ def params_json(params: LatencyParams) -> dict[str, Any]:
     return {"units_per_core": params.units_per_core, "overhead_ms": round(params.overhead_ms, 6),
             "queue_factor": params.queue_factor, "p95_ratio": round(params.p95_ratio, 6),
             "queue_size": params.queue_size, "link_efficiency": params.link_efficiency,
+            "backlog_msgs": params.backlog_msgs,
             "service_scale": {n: round(v, 6) for n, v in sorted(params.service_scale.items())},
             "node_p95_ratio": {n: round(v, 6) for n, v in sorted(params.node_p95_ratio.items())},
             "source": params.source}

@@ -265,6 +265,32 @@ def _speed(own_max: float, own_threads: float, others: list[tuple[float, float]]
     return min(own_max, own_threads * lo)
 
 
+def _busy_time(system: System, plan: Plan, node: str, comp: str, lam: float, capacity: float) -> float | None:
+    """Seconds ``node`` runs for one message: every node of ``comp`` with its input gets the
+    message at once and each asks for its threads' cores until its ``cpu / lam`` is done;
+    the rest of ``comp`` asks for its planned CPU. Stepped from one finish to the next, each
+    share from :func:`_speed` (the water level against everyone else's asks)."""
+    topic = system.node[node].input
+    upc = system.latency.units_per_core
+    same = {n for n, q in plan.nodes.items()
+            if q.computer == comp and n in system.node and system.node[n].input == topic}
+    todo = {n: plan.nodes[n].cpu / lam for n in same}
+    threads = {n: _threads(system.node[n], q.value) if n in system.node else 1.0 for n, q in plan.nodes.items()}
+    fixed = [(q.cpu, threads[n]) for n, q in plan.nodes.items() if q.computer == comp and n not in same]
+    clock = 0.0
+    while node in todo:
+        rates = {}
+        for n in todo:
+            asks = fixed + [(threads[m] * upc, threads[m]) for m in todo if m != n]
+            rates[n] = _speed(threads[n] * upc, threads[n], asks, capacity)
+        if rates[node] <= 0:
+            return None
+        step = min(todo[n] / r for n, r in rates.items() if r > 0)
+        clock += step
+        todo = {n: w - rates[n] * step for n, w in todo.items() if w - rates[n] * step > 1e-9 * max(w, 1e-12)}
+    return clock
+
+
 def _threads(node: Node, value: float | None) -> float:
     """Busy threads at a value: the setting's ``threads``, else the node's, else 1."""
     for s in node.settings:
@@ -297,25 +323,23 @@ def _chain_ms(system: System, plan: Plan, chain_topics: tuple[str, ...], where: 
         if pn is None or pp is None or not pn.input_hz:
             return f"hop {a} -> {b}: its node or input rate is not in the plan"
         lam = pn.input_hz
-        per_msg = pn.cpu / lam
         comp = pn.computer
         pc = plan.computers.get(comp)
         capacity = pc.capacity if pc is not None and pc.capacity is not None else sum(
             q.cpu for q in plan.nodes.values() if q.computer == comp)
-        k = _threads(nodes[0], pn.value)
-        speed = _speed(k * lat.units_per_core, k,
-                       [(q.cpu, _threads(system.node[n], q.value) if n in system.node else 1.0)
-                        for n, q in plan.nodes.items() if q.computer == comp and n != node], capacity)
-        if speed <= 0:
+        busy = _busy_time(system, plan, node, comp, lam, capacity)
+        if busy is None:
             return f"hop {a} -> {b}: {node} gets no CPU"
-        rho = lam * per_msg / speed
-        service = lat.service_scale.get(node, 1.0) * per_msg / speed
-        cap_wait = lat.queue_size * service
+        rho = lam * busy
+        service = lat.service_scale.get(node, 1.0) * busy
+        # periodic input: a message finds the node idle below rho 1; above, the drop-oldest queue
+        # is full when the node takes its oldest: it waited queue_size - 1 periods and part of one
+        # (and the backlog_msgs the socket buffers hold ahead of that queue)
+        w50 = w95 = 0.0
         if rho >= 1:
-            w50 = w95 = cap_wait
-        else:
-            mean = lat.queue_factor * rho * service / (2 * (1 - rho))
-            w50, w95 = min(_waited(mean, rho, 0.5), cap_wait), min(_waited(mean, rho, 0.95), cap_wait)
+            full = lat.queue_size + lat.backlog_msgs
+            w50 = min((full - 0.5) / lam, full * service)
+            w95 = min((full - 0.05) / lam, full * service)
         t50 = t95 = 0.0
         if pp.computer != comp:
             route = system.route(pp.computer, comp)

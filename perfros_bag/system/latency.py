@@ -5,25 +5,35 @@ that publishes ``t_i`` driven by ``t_{i-1}`` (its ``input``, so it copies the st
 delay, for a node ``n`` on computer ``c`` at its planned choice, receiving ``lam`` messages
 per second from its input's publisher ``m`` on computer ``c_m`` (docs/solvers.md, "Latency"):
 
-* **service** ``S = scale_n * w / v`` seconds: ``w = cpu_n / lam`` CPU units x seconds per
+* **service** ``S = scale_n x`` the wall time of one message (:func:`service_time`): every
+  node of the computer driven by the same input gets the message at the same moment, so
+  they run together, each at its fair share of what is left beside the others at their
+  planned CPU, until one finishes and the rest share what it leaves. Alone, that is
+  ``w / v`` seconds: ``w = cpu_n / lam`` CPU units x seconds per
   message (a driven node's CPU is ``cpu + cpu_per_hz x lam``, so ``w`` carries it), ``v`` the
   CPU units ``n`` runs at while it is busy: its share of its computer when it asks for all its
   threads can run (``threads x units_per_core``; system.yaml ``threads``, 1 by default) and
   the others ask for their planned CPU, each weighted by its threads
   (:func:`perfros_bag.system.cpushare.fair_shares`, the one model of how a capped computer
   shares its CPU). ``scale_n`` (fitted; 1 by default) turns CPU time into wall time.
-* **wait** in its queue at utilisation ``rho = lam x w / v``: M/D/1, whose mean wait is
-  ``E[W] = k x rho x S / (2 (1 - rho))`` (``k`` = ``queue_factor``); its distribution taken as
-  ``P(W > 0) = rho`` and, when waiting, exponential with mean ``E[W] / rho``, so the quantile
-  ``q`` is ``E[W] / rho x ln(rho / (1 - q))`` above ``1 - rho``, else 0. ROS's drop-oldest
-  queue of ``queue_size`` messages bounds it: a message that waits longer than
-  ``queue_size x S`` is dropped, so no delivered one waits more (at ``rho >= 1`` the wait is
-  that bound).
+* **wait** in its queue. The hop's input arrives periodically (every ``T = 1 / lam``: a
+  chain starts at a timer-driven source, and each hop passes its input's period on), so the
+  queue is D/D/1, not M/D/1: at utilisation ``rho = lam x w / v < 1`` a message finds the node
+  idle and waits 0. At ``rho >= 1`` the node is always busy and ROS's drop-oldest queue of
+  ``queue_size`` messages is full whenever it takes one, and so are the socket buffers ahead
+  of it, which hold ``backlog_msgs`` more (first in, first out: the throttled node's own
+  receive thread drains them; measured ~2 of 230 kB frames). The node takes the oldest of the
+  ``H = queue_size + backlog_msgs`` newest arrivals, so a delivered message waits
+  ``(H - 1 + u) x T`` with ``u`` uniform on [0, 1) (the running message ends at any point of
+  an input period): the quantile ``q`` is ``(H - 1 + q) x T``, never more than ``H x S``
+  (``T <= S`` there).
 * **transfer** of the input's message (``B`` kB: its bandwidth over its frequency at ``m``'s
   choice) across every link and shared medium of ``System.route(c_m, c)``: the slowest
   element's ``B / (efficiency x bandwidth)`` (a message streams across the route), plus at each
-  element the same wait rule (mean ``k x u x t / (2 (1 - u))`` for its transfer time ``t``) at
-  the utilisation of the *other* traffic (its planned load less the hop's own stream, which is
+  element a wait behind the *other* traffic: their streams' phases are unrelated to the
+  hop's, so it is M/D/1, mean ``k x u x t / (2 (1 - u))`` (``k`` = ``queue_factor``) for
+  its transfer time ``t``, 0 with probability ``1 - u`` and else exponential, at the
+  utilisation of that traffic (its planned load less the hop's own stream, which is
   periodic and does not queue behind itself; at most 0.99).
 * **overhead**: ``overhead_ms`` (fitted) per hop.
 
@@ -154,21 +164,25 @@ def _topic_bytes_kB(system: System, node: str, choice: Choice, topic: str) -> fl
 
 
 def wait_quantile(mean_wait: float, rho: float, q: float) -> float:
-    """The ``q`` quantile of a queue's wait with mean ``mean_wait`` at utilisation ``rho``:
-    0 with probability ``1 - rho``, else exponential with mean ``mean_wait / rho``."""
+    """The ``q`` quantile of an M/D/1 queue's wait with mean ``mean_wait`` at utilisation
+    ``rho`` (a link's traffic of others): 0 with probability ``1 - rho``, else exponential
+    with mean ``mean_wait / rho``."""
     if rho <= 0 or mean_wait <= 0 or rho <= 1 - q:
         return 0.0
     return mean_wait / rho * math.log(rho / (1 - q))
 
 
-def queue_wait(service_s: float, rho: float, params: LatencyParams, q: float) -> float:
-    """Seconds a message waits for the node (quantile ``q``): M/D/1 at ``rho``, bounded by
-    the drop-oldest queue (``queue_size`` x ``service_s``)."""
-    bound = params.queue_size * service_s
-    if rho >= 1:
-        return bound
-    mean = params.queue_factor * rho * service_s / (2 * (1 - rho))
-    return min(wait_quantile(mean, rho, q), bound)
+def queue_wait(service_s: float, rho: float, params: LatencyParams, q: float, period_s: float) -> float:
+    """Seconds a message waits for the node (quantile ``q``) when its input arrives every
+    ``period_s``: 0 below ``rho`` 1 (D/D/1: a periodic message finds the node idle); at ``rho
+    >= 1`` ROS's drop-oldest queue and the ``backlog_msgs`` ahead of it are full when the node
+    takes its oldest message, so it waited ``queue_size + backlog_msgs - 1`` periods and the
+    rest of one (uniform: quantile ``q``); never more than ``(queue_size + backlog_msgs) x
+    service_s``."""
+    if rho < 1:
+        return 0.0
+    held = params.queue_size + params.backlog_msgs
+    return min((held - 1 + q) * period_s, held * service_s)
 
 
 def threads_of(system: System, node: str, choice: Choice) -> float:
@@ -177,17 +191,42 @@ def threads_of(system: System, node: str, choice: Choice) -> float:
     return 1.0 if n is None else max(1.0, n.threads_at(choice.value))
 
 
-def service_speed(system: System, node: str, computer: str, placement: Mapping[str, str],
-                  choice: Mapping[str, Choice], capacity: float) -> float:
-    """CPU units ``node`` runs at while busy on ``computer``: its fair share when it asks for
-    all its threads can run (threads x ``units_per_core``) and the others for their planned
-    CPU, each weighted by its threads (:func:`perfros_bag.system.cpushare.fair_shares`)."""
+def released_together(system: System, node: str, computer: str, placement: Mapping[str, str],
+                      choice: Mapping[str, Choice]) -> list[str]:
+    """The nodes of ``computer`` driven by ``node``'s input (``node`` among them): each
+    message reaches them at the same moment, so they run at the same time."""
+    topic = system.node[node].input
+    return [n for n, c in placement.items()
+            if c == computer and n in choice and n in system.node and system.node[n].input == topic]
+
+
+def service_time(system: System, node: str, computer: str, placement: Mapping[str, str],
+                 choice: Mapping[str, Choice], capacity: float, lam: float) -> float:
+    """Seconds (wall, before ``service_scale``) ``node`` takes for one message on
+    ``computer``: it and the nodes released with it (:func:`released_together`) each start
+    their ``cpu / lam`` units x seconds at once and share the computer as CFS does while they
+    run (:func:`perfros_bag.system.cpushare.fair_shares`: each asks for all its threads can
+    run, weighted by its threads), beside the other nodes at their planned CPU; when one
+    finishes the rest share what it leaves. Inf when it gets no CPU."""
     upc = system.latency.units_per_core
-    k = threads_of(system, node, choice[node])
-    demands = [Demand(node, math.inf, k, k * upc)]
-    demands += [Demand(n, choice[n].cpu, threads_of(system, n, choice[n]))
-                for n, c in placement.items() if c == computer and n != node and n in choice]
-    return fair_shares(capacity, demands)[node]
+    together = released_together(system, node, computer, placement, choice)
+    left = {n: choice[n].cpu / lam for n in together}
+    rest = [Demand(n, choice[n].cpu, threads_of(system, n, choice[n]))
+            for n, c in placement.items() if c == computer and n in choice and n not in left]
+    t = 0.0
+    while left.get(node, 0.0) > 0:
+        k = {n: threads_of(system, n, choice[n]) for n in left}
+        shares = fair_shares(capacity, rest + [Demand(n, math.inf, k[n], k[n] * upc) for n in left])
+        running = {n: shares[n] for n in left if shares[n] > 0}
+        if node not in running:
+            return math.inf
+        first = min(running, key=lambda n: left[n] / running[n])
+        dt = left[first] / running[first]
+        t += dt
+        for n, v in running.items():
+            left[n] -= v * dt
+        left = {n: w for n, w in left.items() if n != first and w > 1e-12}
+    return t
 
 
 def _link_terms(system: System, route: Sequence[int], link_loads: Sequence[float], size_kB: float,
@@ -228,16 +267,15 @@ def predict_hop(system: System, hop: Hop, placement: Mapping[str, str], choice: 
     lam = ch.input_hz if ch.input_hz is not None else system.topic_hz(choice[parent], hop.src)
     if not lam or lam <= 0:
         return f"hop {hop.src} -> {hop.dst}: {node.name!r} has no measured input rate"
-    w = ch.cpu / lam
     cap = capacities.get(comp, math.inf)
     if not math.isfinite(cap):  # a server to be sized: its load
         cap = sum(choice[n].cpu for n, c in placement.items() if c == comp and n in choice)
-    v = service_speed(system, hop.node, comp, placement, choice, cap)
-    if v <= 0:
+    busy = service_time(system, hop.node, comp, placement, choice, cap, lam)
+    if not math.isfinite(busy):
         return f"hop {hop.src} -> {hop.dst}: {node.name!r} gets no CPU on {comp}"
-    rho = lam * w / v
-    service = params.service_scale.get(hop.node, 1.0) * w / v
-    wait50, wait95 = queue_wait(service, rho, params, 0.5), queue_wait(service, rho, params, 0.95)
+    rho = lam * busy
+    service = params.service_scale.get(hop.node, 1.0) * busy
+    wait50, wait95 = queue_wait(service, rho, params, 0.5, 1 / lam), queue_wait(service, rho, params, 0.95, 1 / lam)
     transfer50 = transfer95 = 0.0
     src_comp = placement[parent]
     if src_comp != comp:
@@ -334,8 +372,8 @@ def hop_floor(system: System, node: str, choice: Choice, capacity: float) -> tup
     s = params.service_scale.get(node, 1.0) * w / v
     ratio = params.node_p95_ratio.get(node, params.p95_ratio)
     over = params.overhead_ms / 1000.0
-    return (1000 * (over + s + queue_wait(s, rho, params, 0.5)),
-            1000 * (over + ratio * s + queue_wait(s, rho, params, 0.95)))
+    return (1000 * (over + s + queue_wait(s, rho, params, 0.5, 1 / lam)),
+            1000 * (over + ratio * s + queue_wait(s, rho, params, 0.95, 1 / lam)))
 
 
 def fastest_bound(system: System, chain: Chain, choices: Mapping[str, Sequence[Choice]]) -> tuple[float, float] | None:

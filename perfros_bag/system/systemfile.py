@@ -51,7 +51,7 @@ CHAIN_KEYS = {"name", "topics", "budget_ms"}
 BUDGET_KEYS = {"p50", "p95"}
 #: system.yaml ``latency:`` (the latency model's parameters, perfros_bag.system.latency)
 LATENCY_KEYS = {"units_per_core", "overhead_ms", "queue_factor", "p95_ratio", "queue_size", "link_efficiency",
-                "service_scale", "node_p95_ratio", "source"}
+                "backlog_msgs", "service_scale", "node_p95_ratio", "source"}
 COMPUTER_KEYS = {"name", "kind", "capacity", "max_capacity"}
 LINK_KEYS = {"between", "bandwidth_kBps", "medium"}
 MEDIUM_KEYS = {"name", "bandwidth_kBps"}
@@ -219,7 +219,7 @@ def _check_budgets(ctx: _Ctx, system: System) -> None:
 
 def _latency(ctx: _Ctx, raw: Any, nodes: set[str]) -> LatencyParams:
     """``latency: {units_per_core, overhead_ms, queue_factor, p95_ratio, queue_size,
-    link_efficiency, service_scale: {node: x}, node_p95_ratio: {node: x}, source}``, every
+    link_efficiency, backlog_msgs, service_scale: {node: x}, node_p95_ratio: {node: x}, source}``, every
     field optional (the defaults of :class:`LatencyParams`)."""
     if raw is None:
         return LatencyParams()
@@ -229,7 +229,7 @@ def _latency(ctx: _Ctx, raw: Any, nodes: set[str]) -> LatencyParams:
     for key in ("units_per_core", "p95_ratio", "link_efficiency"):
         if m.get(key) is not None:
             kw[key] = ctx.number(m[key], f"latency.{key}", positive=True)
-    for key in ("overhead_ms", "queue_factor"):
+    for key in ("overhead_ms", "queue_factor", "backlog_msgs"):
         if m.get(key) is not None:
             kw[key] = ctx.number(m[key], f"latency.{key}", nonneg=True)
     if kw.get("p95_ratio", base.p95_ratio) < 1:

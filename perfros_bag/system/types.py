@@ -371,10 +371,13 @@ class LatencyParams:
 
     units_per_core: float = 100.0  # CPU units of one core busy for one second per second
     overhead_ms: float = 1.0  # what every hop adds beyond its service, wait and transfer
-    queue_factor: float = 1.0  # the M/D/1 wait's multiplier (0: periodic arrivals never wait)
+    queue_factor: float = 1.0  # the multiplier of the M/D/1 wait behind other traffic on a link
     p95_ratio: float = 1.3  # a service time's p95 over its p50 (nodes without their own)
     queue_size: int = 1  # messages a subscriber's drop-oldest queue holds: bounds the wait
     link_efficiency: float = 0.96  # the share of a link's bandwidth a message's payload gets
+    #: messages a saturated node's input holds ahead of its subscriber queue (the socket
+    #: buffers: first in, first out, nothing dropped there); measured ~2 for 230 kB frames
+    backlog_msgs: float = 2.0
     #: per node: measured hop time over its CPU time per message (wall / CPU: 1 for a node
     #: that only computes), and its own p95 ratio
     service_scale: dict[str, float] = field(default_factory=dict)

@@ -431,12 +431,13 @@ def _recalibrate_latency(outdir: Path, doc_system: dict[str, Any], done: list[di
     round's plan.json and model), with the new fit's overhead:
 
     - each hop node's service scale: the mean over the rounds of the scale that round's model
-      used times what its measured p50 left after overhead and transfer over its predicted
-      service and wait (both grow with the scale);
-    - its p95 ratio and the queue factor, from what its measured p95 left after overhead and
-      transfer: when it holds the rescaled service and p95 wait, the ratio takes the rest (at
-      least 1); when it does not, the ratio is 1 and the wait shrinks to fit: the queue factor
-      is the mean over every hop of the one its round used, times that share where it shrank."""
+      used times what its measured p50 left after overhead, transfer and the predicted wait
+      over its predicted service (the service grows with the scale; the wait of a periodic
+      input does not: it is 0 below utilisation 1 and a share of the input period above);
+    - its p95 ratio: what its measured p95 leaves after overhead, transfer and the p95 wait
+      over the rescaled service (at least 1). ``queue_factor`` (now only the wait behind other
+      traffic on a link) is kept.
+    """
     from perfros_bag.fileio import read_json
     from perfros_bag.fitting.latency import params_json
     from perfros_bag.system.systemfile import parse_system
@@ -462,31 +463,24 @@ def _recalibrate_latency(outdir: Path, doc_system: dict[str, Any], done: list[di
                                  float(used.get("queue_factor", 1.0)), h, ph))
     scales: dict[str, list[float]] = {}
     for node, used_scale, _, h, ph in seen:
-        own = (ph.get("service_ms") or 0.0) + (ph.get("wait_ms") or 0.0)
-        left = 1000.0 * h["p50_s"] - over - (ph.get("transfer_ms") or 0.0)
-        if own > 0 and left > 0:
-            scales.setdefault(node, []).append(used_scale * left / own)
+        service = ph.get("service_ms") or 0.0
+        left = 1000.0 * h["p50_s"] - over - (ph.get("transfer_ms") or 0.0) - (ph.get("wait_ms") or 0.0)
+        if service > 0 and left > 0:
+            scales.setdefault(node, []).append(used_scale * left / service)
     if not scales:
         return
     fitted = {n: sum(v) / len(v) for n, v in scales.items()}
     ratios: dict[str, list[float]] = {}
-    queue: list[float] = []
-    for node, used_scale, used_queue, h, ph in seen:
+    for node, used_scale, _, h, ph in seen:
         if node not in fitted or h.get("p95_s") is None or not ph.get("service_ms"):
             continue
-        k = fitted[node] / used_scale
-        service, wait95 = ph["service_ms"] * k, (ph.get("wait_p95_ms") or 0.0) * k
-        left95 = 1000.0 * h["p95_s"] - over - (ph.get("transfer_p95_ms") or 0.0)
-        if left95 >= service + wait95:
-            ratios.setdefault(node, []).append((left95 - wait95) / service)
-            queue.append(used_queue)
-        else:
-            ratios.setdefault(node, []).append(1.0)
-            queue.append(used_queue * max(0.0, left95 - service) / wait95 if wait95 > 0 else used_queue)
+        service = ph["service_ms"] * fitted[node] / used_scale
+        left95 = 1000.0 * h["p95_s"] - over - (ph.get("transfer_p95_ms") or 0.0) - (ph.get("wait_p95_ms") or 0.0)
+        ratios.setdefault(node, []).append(max(1.0, left95 / service))
     params = dataclasses.replace(
         system.latency, service_scale={**system.latency.service_scale, **fitted},
         node_p95_ratio={**system.latency.node_p95_ratio, **{n: sum(v) / len(v) for n, v in ratios.items()}},
-        queue_factor=sum(queue) / len(queue) if queue else system.latency.queue_factor, source="tune")
+        source="tune")
     doc_system["latency"] = params_json(params)
 
 def load_model(model_path: Path) -> System:
