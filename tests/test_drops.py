@@ -105,6 +105,19 @@ def test_issue_31s_flow_node_as_swept_is_overloaded_not_a_node_of_its_own() -> N
             RunRates(7.602, 2.898, 14.412), RunRates(7.501, 3.244, 18.714), RunRates(7.503, 3.361, 19.588)]
     drops = split_runs(runs)
     assert drops.kept == (0, 1, 2) and drops.overloaded == (3, 4, 5, 6, 7, 8)
+    # swept again at load 14 (21:14): starved at 2.7 Hz and 5 Hz in too, below the kept runs' output
+    runs = [RunRates(2.707, 2.734, 14.75), RunRates(2.644, 2.649, 15.22), RunRates(2.749, 2.469, 11.80),
+            RunRates(4.967, 2.520, 11.87), RunRates(5.004, 5.069, 28.23), RunRates(4.998, 5.028, 26.77),
+            RunRates(7.500, 2.924, 19.97), RunRates(7.608, 2.507, 12.81), RunRates(7.560, 4.510, 38.77)]
+    drops = split_runs(runs)
+    assert drops.kept == (0, 1, 4, 5) and drops.overloaded == (2, 3, 6, 7, 8)
+
+
+def test_a_clock_slower_than_every_input_is_not_taken_for_a_starved_node() -> None:
+    """One output rate (within 3 %) at 2.7, 5 and 7.5 Hz in, its CPU per output message the
+    same: a node on its own 2.5 Hz clock, not a driven one."""
+    runs = [RunRates(2.7, 2.50, 5.0), RunRates(5.0, 2.52, 5.1), RunRates(7.5, 2.49, 5.0)]
+    assert not split_runs(runs).follows
 
 
 def test_an_overload_that_used_less_cpu_is_not_an_overload() -> None:
