@@ -239,12 +239,7 @@ def flow_decline(system: System, choices: dict[str, list[Choice]]) -> str | None
             private -= set(robots)
     block_of = {n: robots[0] for g, robots in zip(system.coresidence_groups, robots_of, strict=True)
                 for n in g if len(robots) == 1 and robots[0] in private}
-    trees: dict[str, list[str]] = {}
-    for n in system.flow_order:
-        root = n
-        while root in system.flow_parent:
-            root = system.flow_parent[root]
-        trees.setdefault(root, [root]).append(n)
+    trees = _flow_trees(system)
     per_robot: dict[str, int] = {}
     for root, nodes in trees.items():
         homes = {block_of.get(n) for n in nodes}
@@ -257,6 +252,17 @@ def flow_decline(system: System, choices: dict[str, list[Choice]]) -> str | None
             return (f"robot {home} carries more than {MAX_VIEWS} consistent rate assignments of its data flow "
                     f"to price")
     return None
+
+
+def _flow_trees(system: System) -> dict[str, list[str]]:
+    """Per data-flow source, its tree: the source, then the nodes it drives in flow order."""
+    trees: dict[str, list[str]] = {}
+    for n in system.flow_order:
+        root = n
+        while root in system.flow_parent:
+            root = system.flow_parent[root]
+        trees.setdefault(root, [root]).append(n)
+    return trees
 
 
 def _views(system: System, choices: dict[str, list[Choice]], nodes: Sequence[str]) -> list[dict[str, frozenset[int]]]:
@@ -315,12 +321,7 @@ def _model(system: System, inst: Instance, active: set[int] | None = None) -> _M
 
     # the data flow: each tree (a source and the nodes it drives) must lie in one robot's block
     block_of = {n: home for home, gs in blocks.items() for g in gs for n in g.members}
-    trees: dict[str, list[str]] = {}
-    for n in system.flow_order:
-        root = n
-        while root in system.flow_parent:
-            root = system.flow_parent[root]
-        trees.setdefault(root, [root]).append(n)
+    trees = _flow_trees(system)
     block_trees: dict[str, list[list[str]]] = {}
     for root, nodes in trees.items():
         homes = {block_of.get(n) for n in nodes}
