@@ -56,7 +56,7 @@ PLUS_PASS_MAX_S = 20.0
 PLUS_RATES_S = 4.0
 #: of that time, greedy+'s own search on the start's rates (its relocation moves; the rest:
 #: the rate moves)
-PLUS_SHARE = 0.6
+PLUS_SHARE = 0.8
 #: a rate move may send a following group to this many servers (those with the most free CPU)
 MOVE_SERVERS = 2
 

@@ -47,7 +47,7 @@ TIME_BUDGET_S = 60.0  # safety net: stop improving after this long (the plan sta
 SEARCH_BUDGET = 20_000
 #: above MOVES_LIMIT (Problem 1), the share of the search's time for the fleet's relocation
 #: moves (:mod:`perfros_bag.solver.fleetmoves`); the rest re-sets settings
-FLEET_SHARE = 0.7
+FLEET_SHARE = 0.85
 
 
 def solve_greedy_plus(system: System, problem: Problem, choices: dict[str, list[Choice]], *,
