@@ -77,7 +77,7 @@ from perfros_bag.system.plan import Assignment, Method, Plan, Status
 from perfros_bag.system.rules import build_plan, computer_loads, server_sizes, weighted_performance
 from perfros_bag.system.types import Choice, Edge, Problem, System
 
-__all__ = ["decomposable", "solve_decomposed"]
+__all__ = ["decomposable", "flow_decline", "solve_decomposed"]
 
 
 GRID_SCALES = (1, 2, 4, 5, 10)  # CPU grid factors tried (CPU x factor must be integers)
@@ -220,10 +220,55 @@ def flow_views(inst: Instance, nodes: Sequence[str]) -> list[dict[str, frozenset
     it (a source's choices at one output rate; a driven node's at the input rate its
     publisher then gives and, when it drives others, at one output rate of its own). Every
     consistent choice of the tree's nodes lies in exactly one assignment."""
-    system = inst.system
+    return _views(inst.system, inst.choices, nodes)
 
+
+def flow_decline(system: System, choices: dict[str, list[Choice]]) -> str | None:
+    """Why the decomposition cannot take this system's data flow, read from the system and
+    its choices alone (no prepared instance: milliseconds on a fleet), or None: a flow tree
+    that does not lie in one robot's block (:func:`_model`'s blocks), or a robot whose trees
+    have more than :data:`MAX_VIEWS` consistent rate assignments (counted on ``choices``,
+    before the instance drops dominated ones)."""
+    if not system.has_flow:
+        return None
+    kind = {c.name: c.kind for c in system.computers}
+    robots_of = [[c for c in allowed if kind[c] == "robot"] for allowed in system.group_computers]
+    private = {c for c, k in kind.items() if k == "robot"}
+    for robots in robots_of:
+        if len(robots) != 1:
+            private -= set(robots)
+    block_of = {n: robots[0] for g, robots in zip(system.coresidence_groups, robots_of, strict=True)
+                for n in g if len(robots) == 1 and robots[0] in private}
+    trees = _flow_trees(system)
+    per_robot: dict[str, int] = {}
+    for root, nodes in trees.items():
+        homes = {block_of.get(n) for n in nodes}
+        if len(homes) != 1 or None in homes:
+            return (f"the data flow from {root} spans more than one robot's block (or reaches a node shared "
+                    f"between robots): its rates cannot be priced robot by robot")
+        home = block_of[root]
+        per_robot[home] = per_robot.get(home, 1) * len(_views(system, choices, nodes))
+        if per_robot[home] > MAX_VIEWS:
+            return (f"robot {home} carries more than {MAX_VIEWS} consistent rate assignments of its data flow "
+                    f"to price")
+    return None
+
+
+def _flow_trees(system: System) -> dict[str, list[str]]:
+    """Per data-flow source, its tree: the source, then the nodes it drives in flow order."""
+    trees: dict[str, list[str]] = {}
+    for n in system.flow_order:
+        root = n
+        while root in system.flow_parent:
+            root = system.flow_parent[root]
+        trees.setdefault(root, [root]).append(n)
+    return trees
+
+
+def _views(system: System, choices: dict[str, list[Choice]], nodes: Sequence[str]) -> list[dict[str, frozenset[int]]]:
+    """:func:`flow_views` on ``choices`` (node -> its choices)."""
     def output(n: str, k: int) -> tuple[float, ...]:
-        return tuple(round(system.input_hz(child, inst.choices[n][k]), 9) for child in system.flow_children.get(n, ()))
+        return tuple(round(system.input_hz(child, choices[n][k]), 9) for child in system.flow_children.get(n, ()))
 
     out: list[dict[str, frozenset[int]]] = []
     # depth-first over the nodes in flow order: (next node, positions so far, rate each node is given)
@@ -234,7 +279,7 @@ def flow_views(inst: Instance, nodes: Sequence[str]) -> list[dict[str, frozenset
             out.append(chosen)
             continue
         n = nodes[i]
-        ks = [k for k, ch in enumerate(inst.choices[n])
+        ks = [k for k, ch in enumerate(choices[n])
               if n not in given or (ch.input_hz is not None and math.isclose(ch.input_hz, given[n], rel_tol=1e-9,
                                                                                 abs_tol=1e-9))]
         by_output: dict[tuple[float, ...], list[int]] = {}
@@ -276,12 +321,7 @@ def _model(system: System, inst: Instance, active: set[int] | None = None) -> _M
 
     # the data flow: each tree (a source and the nodes it drives) must lie in one robot's block
     block_of = {n: home for home, gs in blocks.items() for g in gs for n in g.members}
-    trees: dict[str, list[str]] = {}
-    for n in system.flow_order:
-        root = n
-        while root in system.flow_parent:
-            root = system.flow_parent[root]
-        trees.setdefault(root, [root]).append(n)
+    trees = _flow_trees(system)
     block_trees: dict[str, list[list[str]]] = {}
     for root, nodes in trees.items():
         homes = {block_of.get(n) for n in nodes}

@@ -29,6 +29,7 @@ from perfros_bag.solver.instance import (
     Progress,
     active_links,
     prepare_instance,
+    trivial_bound,
     within_trivial_bound,
 )
 from perfros_bag.system.cpuerror import FAIR_SHARE, choice_error, states_errors
@@ -207,8 +208,26 @@ def _dispatch(system: System, problem: Problem, method: Method, choices: dict[st
         """Seconds to the deadline (0 when past it), None without a time limit."""
         return None if deadline is None else max(deadline - time.perf_counter(), 0.0)
 
-    prepared = prepare_instance(system, problem, choices)  # once, for whichever solver runs
     columns = exact_columns(system, choices)
+    declined = None  # why the decomposition cannot take the data flow, decided before any preparation
+    if system.has_flow and columns > DECOMPOSE_COLUMNS and problem == Problem.PERFORMANCE:
+        from perfros_bag.solver.decompose import flow_decline  # deferred: numpy, HiGHS
+
+        declined = flow_decline(system, choices)
+    if declined is not None and not budgets:
+        if columns > DECLINED_MILP_COLUMNS:  # the whole MILP would overrun any limit: greedy+, stated as such
+            budget = None if left() is None else 0.8 * (left() or 0.0)
+            plan = solve_heuristic(system, problem, choices, Method.GREEDY_PLUS, time_budget=budget)
+            if plan.status == Status.INFEASIBLE:
+                return plan
+            plan.method, plan.bound = Method.EXACT, None
+            return _declined(within_trivial_bound(system, problem, choices, plan), declined, "greedy+'s plan",
+                             trivial_bound(system, choices))
+        plan = exact.solve_exact(system, problem, choices, time_limit=left(),
+                                 start=_exact_start(system, problem, choices, left(), columns))
+        return _declined(within_trivial_bound(system, problem, choices, plan), declined, "the whole MILP's plan",
+                         trivial_bound(system, choices))
+    prepared = prepare_instance(system, problem, choices)  # once, for whichever solver runs
     # the decomposition prices robots one by one, each with the data flow it carries; a flow
     # across robots is the MILP's (its rows): solve_decomposed then declines (None). Latency
     # budgets are the MILP's (its lazy cuts). Problem 2 (one choice a node: its size is nodes x
@@ -231,6 +250,24 @@ def _dispatch(system: System, problem: Problem, method: Method, choices: dict[st
                                lambda: deadline is not None and time.perf_counter() >= deadline)
     start = None if isinstance(prepared, str) else _exact_start(system, problem, choices, left(), columns)
     return exact.solve_exact(system, problem, choices, time_limit=left(), start=start, prepared=prepared)
+
+
+def _declined(plan: Plan, why: str, whose: str, ceiling: float) -> Plan:
+    """``plan`` on a fleet the decomposition declined, saying so in one line with what its
+    bound is: HiGHS's on the whole MILP, or the trivial Σ w·max P (never one that was not
+    proven)."""
+    if plan.status != Status.INFEASIBLE and not plan.reason and plan.bound is not None:
+        trivial = plan.bound >= ceiling - 1e-9
+        stated = "the trivial one, Σ w·max P" if trivial else "HiGHS's on the whole MILP"
+        plan.reason = f"the fleet decomposition declines ({why}): {whose}; bound {plan.bound:.6g}: {stated}"
+    return plan
+
+
+#: a fleet the decomposition declines (:func:`perfros_bag.solver.decompose.flow_decline`) goes
+#: to the whole MILP up to this many columns; above (the 1,180-node driven wifi fleet has
+#: ~600,000: the MILP's build alone overran a 20 s limit by 77 s), greedy+ answers with the
+#: trivial bound
+DECLINED_MILP_COLUMNS = 100_000
 
 
 #: above this many (node, choice, computer) columns the exact solver gets a MIP start from

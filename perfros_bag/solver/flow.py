@@ -29,7 +29,8 @@ import time
 from collections.abc import Iterable, Mapping
 from typing import TYPE_CHECKING
 
-from perfros_bag.solver.greedy import solve_greedy
+from perfros_bag.solver.greedy import greedy_plan, run_greedy, solve_greedy
+from perfros_bag.solver.state import State
 from perfros_bag.system.plan import Method, Plan, Status
 from perfros_bag.system.types import Choice, Problem, System
 
@@ -47,15 +48,15 @@ SEARCH_BUDGET_S = 60.0
 #: take minutes on a few hundred nodes)
 FINAL_BUDGET_S = 10.0
 
-#: greedy+ along a data flow with many rate assignments (Problem 1), on a fleet: the
-#: greedy's tree-by-tree passes stop after this long (seconds), or at the caller's deadline
-PLUS_PASSES_S = 2.0
-#: ... when one pass (a greedy run per tree option) would take longer than this (seconds)
+#: greedy+ along a data flow with many rate assignments (Problem 1), on a fleet: when one
+#: pass of the greedy's tree-by-tree search (a greedy run per tree option) would take longer
+#: than this (seconds), no passes: greedy+ on every publisher at its cheapest, then rate moves
 PLUS_PASS_MAX_S = 20.0
-#: ... and greedy+ on their best assignment with its rate moves after this long
-PLUS_RATES_S = 5.0
-#: of that time, greedy+'s own search on the start's rates (the rest: the rate moves)
-PLUS_SHARE = 0.5
+#: ... greedy+'s whole time there (seconds), or the caller's deadline
+PLUS_RATES_S = 4.0
+#: of that time, greedy+'s own search on the start's rates (its relocation moves; the rest:
+#: the rate moves)
+PLUS_SHARE = 0.8
 #: a rate move may send a following group to this many servers (those with the most free CPU)
 MOVE_SERVERS = 2
 
@@ -101,7 +102,14 @@ def solve_heuristic(system: System, problem: Problem, choices: dict[str, list[Ch
     # with its detector's setting), one publisher at a time where a tree has too many
     current: Classes = {p: options[p][0] for p in publishers}
     t_run = time.monotonic()
+    start: State | None = None  # greedy+ (Problem 1): the greedy's state, greedy+'s start on a fleet
+    restricted = _restricted(system, choices, current)
+    if restricted is not None and method == Method.GREEDY_PLUS and problem == Problem.PERFORMANCE:
+        start, why = run_greedy(system, problem, restricted)
+        tried[(Method.GREEDY, tuple(current[p] for p in publishers))] = greedy_plan(start, why)
+        start = start if why is None else None
     best = run(current, Method.GREEDY)
+    first = dict(current)
     t_run = time.monotonic() - t_run  # one greedy run: what a try of the passes costs
     moves: list[list[Classes]] = []
     for members in _trees(system, publishers):
@@ -110,9 +118,15 @@ def solve_heuristic(system: System, problem: Problem, choices: dict[str, list[Ch
             moves.append(joint)
         else:
             moves.extend([{p: cls} for cls in options[p]] for p in members)
+    # greedy+ (Problem 1) where a pass of whole greedy runs would cost more than
+    # PLUS_PASS_MAX_S (a fleet): no passes; greedy+ from every publisher at its cheapest, its
+    # relocation moves (:mod:`perfros_bag.solver.fleetmoves`) and its rate moves (valued on
+    # the computers they touch)
+    rates = (method == Method.GREEDY_PLUS and problem == Problem.PERFORMANCE
+             and t_run * sum(len(m) for m in moves) > PLUS_PASS_MAX_S)
     # a fleet of alike robots: first every tree at its k-th option together (one run each),
     # the best of them the start of the tree-by-tree moves
-    if len(moves) > 1 and len({len(m) for m in moves}) == 1:
+    if not rates and len(moves) > 1 and len({len(m) for m in moves}) == 1:
         for k in range(len(moves[0])):
             if late():
                 break
@@ -122,12 +136,7 @@ def solve_heuristic(system: System, problem: Problem, choices: dict[str, list[Ch
             plan = run(trial, Method.GREEDY)
             if _better(plan, best, problem):
                 best, current = plan, trial
-    # greedy+ (Problem 1) where a pass of whole greedy runs would cost more than
-    # PLUS_PASS_MAX_S (a fleet): the passes get PLUS_PASSES_S, then greedy+ on their best
-    # and its rate moves (valued on the computers they touch)
-    rates = (method == Method.GREEDY_PLUS and problem == Problem.PERFORMANCE
-             and t_run * sum(len(m) for m in moves) > PLUS_PASS_MAX_S)
-    passes_until = min(deadline, time.monotonic() + PLUS_PASSES_S) if rates else deadline
+    passes_until = time.monotonic() if rates else deadline
     for _ in range(PASSES):
         changed = False
         for move in moves:
@@ -143,7 +152,8 @@ def solve_heuristic(system: System, problem: Problem, choices: dict[str, list[Ch
     if method == Method.GREEDY:
         return _best(tried.values(), problem, method, system)
     if rates:
-        plus = _greedy_plus_rates(system, choices, current, moves, min(deadline, time.monotonic() + PLUS_RATES_S))
+        plus = _greedy_plus_rates(system, choices, current, moves, min(deadline, time.monotonic() + PLUS_RATES_S),
+                                  start if current == first else None)
         if plus is not None:  # greedy+ from the greedy's plan on ``current``: never below it
             return _best([plus], problem, method, system)
     run(current, method)  # greedy+ on the best assignment the search found
@@ -152,19 +162,20 @@ def solve_heuristic(system: System, problem: Problem, choices: dict[str, list[Ch
 
 
 def _greedy_plus_rates(system: System, choices: dict[str, list[Choice]], current: Classes,
-                       moves: list[list[Classes]], deadline: float) -> Plan | None:
+                       moves: list[list[Classes]], deadline: float, start: State | None = None) -> Plan | None:
     """greedy+ on the rate classes ``current``, then rate moves until none improves or the
     deadline: a move sets one tree's publishers (``moves``' options) and places the nodes
     whose choices follow (their groups anywhere allowed, when at most :data:`ENUMERATE`
     placements), valued by the knapsack optimum of the computers it touches. None when
-    greedy+ finds no plan on ``current``."""
+    greedy+ finds no plan on ``current``. ``start``: the greedy's state on ``current``, when
+    the caller has it (changed in place)."""
     from perfros_bag.solver.local import run_greedy_plus  # deferred: numpy, for greedy+ only
 
     restricted = _restricted(system, choices, current)
     if restricted is None:
         return None
     improver = run_greedy_plus(system, Problem.PERFORMANCE, restricted,
-                               time_budget=PLUS_SHARE * max(deadline - time.monotonic(), 0.0))
+                               time_budget=PLUS_SHARE * max(deadline - time.monotonic(), 0.0), start=start)
     if isinstance(improver, str):
         return None
     _rate_moves(improver, system, choices, dict(current), moves, deadline)

@@ -32,7 +32,12 @@ from perfros_bag.system.types import Choice, Problem, System
 
 
 def solve_greedy(system: System, problem: Problem, choices: dict[str, list[Choice]]) -> Plan:
-    state, reason = run_greedy(system, problem, choices)
+    return greedy_plan(*run_greedy(system, problem, choices))
+
+
+def greedy_plan(state: State, reason: str | None) -> Plan:
+    """The plan of the greedy's final ``state``, or why it found none (``reason``)."""
+    system, problem = state.system, state.problem
     if reason is not None:
         if not state.proven:
             reason += " (this is where the greedy got stuck: greedy+ or exact may still find a plan)"

@@ -28,6 +28,7 @@ from collections.abc import Iterable, Iterator
 
 import numpy as np
 
+from perfros_bag.solver.fleetmoves import fleet_moves
 from perfros_bag.solver.greedy import run_greedy, upgrade
 from perfros_bag.solver.state import EPS, State
 from perfros_bag.system.plan import Method, Plan
@@ -44,6 +45,9 @@ KICKS_IDLE = 12  # stop after this many perturbations without improvement
 KICK_LIMIT = 600  # groups x computers above which no perturbations
 TIME_BUDGET_S = 60.0  # safety net: stop improving after this long (the plan stays feasible)
 SEARCH_BUDGET = 20_000
+#: above MOVES_LIMIT (Problem 1), the share of the search's time for the fleet's relocation
+#: moves (:mod:`perfros_bag.solver.fleetmoves`); the rest re-sets settings
+FLEET_SHARE = 0.85
 
 
 def solve_greedy_plus(system: System, problem: Problem, choices: dict[str, list[Choice]], *,
@@ -58,12 +62,13 @@ def solve_greedy_plus(system: System, problem: Problem, choices: dict[str, list[
 
 
 def run_greedy_plus(system: System, problem: Problem, choices: dict[str, list[Choice]], *,
-                    time_budget: float | None = None) -> Improver | str:
+                    time_budget: float | None = None, start: State | None = None) -> Improver | str:
     """:func:`solve_greedy_plus`'s search, its improver (its state the plan) returned for
     more moves (the data flow's rate moves, :mod:`perfros_bag.solver.flow`); or why the
-    greedy found no plan and no feasible start was found either."""
+    greedy found no plan and no feasible start was found either. ``start``: the greedy's
+    final state on ``choices`` when the caller ran it already (it is changed in place)."""
     deadline = time.monotonic() + (TIME_BUDGET_S if time_budget is None else max(time_budget, 0.0))
-    state, reason = run_greedy(system, problem, choices)
+    state, reason = (start, None) if start is not None else run_greedy(system, problem, choices)
     if reason is not None:
         found = feasible_start(system, problem, choices)
         if found is None:
@@ -76,8 +81,12 @@ def run_greedy_plus(system: System, problem: Problem, choices: dict[str, list[Ch
             if state.kind[c] == "server":
                 state.cap[c] = state.maxcap[c]
     improver = Improver(state, deadline=deadline)
+    fleet = len(state.groups) * len(state.computers) > MOVES_LIMIT and problem == Problem.PERFORMANCE
+    if fleet:  # the relocations Improver leaves out at this size, in most of the time
+        now = time.monotonic()
+        fleet_moves(state, now + FLEET_SHARE * max(improver.stop() - now, 0.0))
     improver.run()
-    if len(state.groups) * len(state.computers) > MOVES_LIMIT and problem == Problem.PERFORMANCE:
+    if fleet:
         consolidate(improver)
     kick(improver)
     return improver
