@@ -15,6 +15,7 @@ from typing import Any
 import pytest
 import yaml
 from hypothesis import HealthCheck, given, settings
+from hypothesis import example as hypothesis_example
 from hypothesis import strategies as st
 
 from perfros_bag.errors import InputError
@@ -340,6 +341,8 @@ def test_exact_equals_enumeration_and_heuristics_are_feasible(seed: int) -> None
 
 @settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(seed=st.integers(0, 2**32 - 1))
+# d1_0: settings 1 and 2 share CPU and performance, not their output (told apart by value)
+@hypothesis_example(seed=5921)
 def test_problem_2_equals_enumeration(seed: int) -> None:
     rng = random.Random(seed)
     data = random_flow(rng)

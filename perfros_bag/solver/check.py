@@ -40,13 +40,21 @@ def _node_choice(node: Node, cpu: float, performance: float, tol: float, value: 
     return None
 
 
-def _driven_choice(node: Node, input_hz: float, cpu: float, performance: float, tol: float) -> Choice | None:
+def _driven_choice(node: Node, input_hz: float, cpu: float, performance: float, tol: float,
+                   value: float | None = None) -> Choice | None:
     """A driven node's setting the plan claims at input rate ``input_hz``: its CPU is
     ``cpu + cpu_per_hz·F_in``, its output ``min(out_per_in·F_in, max_frequency_hz)`` (``step:
     period``: one per k messages of ``out_per_in·F_in``, k the fewest with k x cap >= it), its
     bandwidth ``bytes_per_msg`` per output message (docs/formats.md; this checker's own
-    copy of the rule)."""
-    for j, s in enumerate(node.settings):
+    copy of the rule). Two settings with the same CPU and performance (their outputs may
+    differ) are told apart by the plan's ``value``."""
+    def named(j: int) -> bool:
+        own = node.settings[j].value
+        return value is not None and own is not None and _close(float(own), float(value), tol)
+
+    order = sorted(range(len(node.settings)), key=lambda j: not named(j))
+    for j in order:
+        s = node.settings[j]
         need = s.cpu + (s.cpu_per_hz or 0.0) * input_hz
         if not (_close(need, cpu, tol) and _close(s.performance, performance, tol)):
             continue
@@ -104,7 +112,7 @@ def _flow(system: System, plan: Plan, chosen: dict[str, Choice], tol: float) -> 
             if f_in is None:
                 bad.append(f"node {node.name}: its input {node.input} has no rate at {pubs[0]}'s setting")
                 continue
-            ch = _driven_choice(node, f_in, pn.cpu, pn.performance, tol)
+            ch = _driven_choice(node, f_in, pn.cpu, pn.performance, tol, pn.value)
             if ch is None:
                 bad.append(f"node {node.name}: cpu {pn.cpu:g} / performance {pn.performance:g} is none of its "
                            f"settings at its input's rate {f_in:g} Hz")
