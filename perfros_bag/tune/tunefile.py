@@ -7,7 +7,7 @@ interrupted or fails keeps every round it finished, and a new start resumes afte
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -27,15 +27,14 @@ class RoundComputer:
     """A computer of a round (tune.json ``rounds[].computers``): its cap, planned and measured
     CPU, and whether its cgroup was starved (throttled in enough CFS periods)."""
 
-    capacity: float | None
-    cpu_planned: float | None
-    cpu_measured: float | None
-    throttled_share: float
-    starved: bool
+    capacity: float | None  # its CPU cap in the run (units)
+    cpu_planned: float | None  # the plan's load on it (validation.json ``cpu_expected``)
+    cpu_measured: float | None  # its nodes' CPU from the trace; None without one
+    throttled_share: float  # share of the CFS periods its cgroup was throttled in
+    starved: bool  # throttled_share >= THROTTLED_SHARE (tune/loop.py)
 
     def to_json(self) -> dict[str, Any]:
-        return {"capacity": self.capacity, "cpu_planned": self.cpu_planned, "cpu_measured": self.cpu_measured,
-                "throttled_share": self.throttled_share, "starved": self.starved}
+        return asdict(self)  # the fields in tune.json's key order
 
     @classmethod
     def from_json(cls, d: Mapping[str, Any]) -> RoundComputer:
@@ -48,25 +47,21 @@ class RoundNode:
     """A node of a round (tune.json ``rounds[].nodes``): predicted vs measured CPU and how the
     refit uses its recording (``refit``: measured, rescaled to its planned rate, left out)."""
 
-    computer: str | None
-    value: Any
-    cpu_planned: float | None
-    cpu_measured: float | None
-    kept_ratio: float | None
-    starved: bool
-    cpu_need: float | None
-    cpu_factor: float | None
-    refit: str | None
-    input_hz: float | None = None
-    model_cpu_before: float | None = None
-    model_cpu_after: float | None = None
+    computer: str | None  # where the plan put it
+    value: Any  # its parameter's value as deployed (None: a node without a parameter)
+    cpu_planned: float | None  # the plan's CPU at that value
+    cpu_measured: float | None  # validation.json's, from the CPU trace
+    kept_ratio: float | None  # its kept share of its planned rate (kept_share); None: no rate to compare
+    starved: bool  # its computer was starved
+    cpu_need: float | None  # what the refit takes: cpu_measured x cpu_factor; None when left out
+    cpu_factor: float | None  # 1, or 1 / kept_ratio for a starved node rescaled to its planned rate
+    refit: str | None  # how the refit uses its row: measured, rescaled to its planned rate, left out
+    input_hz: float | None = None  # a driven node's planned input rate, else None
+    model_cpu_before: float | None = None  # model k-1's CPU at the deployed value (and input rate)
+    model_cpu_after: float | None = None  # model k's, filled after the refit
 
     def to_json(self) -> dict[str, Any]:
-        return {"computer": self.computer, "value": self.value, "cpu_planned": self.cpu_planned,
-                "cpu_measured": self.cpu_measured, "kept_ratio": self.kept_ratio, "starved": self.starved,
-                "cpu_need": self.cpu_need, "cpu_factor": self.cpu_factor, "refit": self.refit,
-                "input_hz": self.input_hz, "model_cpu_before": self.model_cpu_before,
-                "model_cpu_after": self.model_cpu_after}
+        return asdict(self)  # the fields in tune.json's key order
 
     @classmethod
     def from_json(cls, d: Mapping[str, Any]) -> RoundNode:
@@ -80,21 +75,21 @@ class TuneRound:
     """One finished round of the loop (tune.json ``rounds[]``, docs/formats.md "tune"): what it
     deployed, eq 10 expected vs measured, and per computer and node what the refit learned."""
 
-    round: int
-    dir: str
-    plan: str | None
-    model: str | None
-    refit_model: str | None
-    objective: float | None
-    values: dict[str, Any]
-    placement: dict[str, str]
-    expected: float
-    measured: float
+    round: int  # 1, 2, ...
+    dir: str  # its folder under the loop's, ``round-K``
+    plan: str | None  # its plan.json, relative to the loop's folder
+    model: str | None  # the model it was solved on (model-(K-1).json)
+    refit_model: str | None  # the model refitted with its recording (model-K.json)
+    objective: float | None  # the plan's
+    values: dict[str, Any]  # what its deployment set (deploy.json ``values``)
+    placement: dict[str, str]  # node -> computer
+    expected: float  # eq 10's Σ w·P planned
+    measured: float  # and measured
     deviation_pct: float
-    within_tolerance: bool | None
-    run_id: str | None
-    cpu_cap: str | None
-    network: str | None
+    within_tolerance: bool | None  # the round holds (:func:`~perfros_bag.tune.loop.holds`)
+    run_id: str | None  # deploy.json's
+    cpu_cap: str | None  # how CPU was capped (deploy.json ``cpu_cap.mode``)
+    network: str | None  # how links were shaped (deploy.json ``network.mode``)
     computers: dict[str, RoundComputer]
     nodes: dict[str, RoundNode]
 
@@ -104,13 +99,8 @@ class TuneRound:
         return f"{self.dir}/run.bag"
 
     def to_json(self) -> dict[str, Any]:
-        return {"round": self.round, "dir": self.dir, "plan": self.plan, "model": self.model,
-                "refit_model": self.refit_model, "objective": self.objective, "values": self.values,
-                "placement": self.placement, "expected": self.expected, "measured": self.measured,
-                "deviation_pct": self.deviation_pct, "within_tolerance": self.within_tolerance,
-                "run_id": self.run_id, "cpu_cap": self.cpu_cap, "network": self.network,
-                "computers": {c: v.to_json() for c, v in self.computers.items()},
-                "nodes": {n: v.to_json() for n, v in self.nodes.items()}}
+        """The round as tune.json holds it: the fields in its key order, computers and nodes too."""
+        return asdict(self)
 
     @classmethod
     def from_json(cls, d: Mapping[str, Any]) -> TuneRound:
