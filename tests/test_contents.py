@@ -592,7 +592,7 @@ def test_one_pass_equals_the_two_reads_on_realbags(path: Path) -> None:
 def test_cdr_head_stamps_equal_cdr_stamps_both_byte_orders() -> None:
     """The (rows, 12) matrix decoder against the positional one (and rosbags) on little- and
     big-endian heads, negative seconds included."""
-    from perfros_bag.ingest._accum import cdr_head_stamps, cdr_stamps
+    from perfros_bag.ingest._payload import cdr_head_stamps, cdr_stamps
 
     store = typestore()
     time_t = store.types["builtin_interfaces/msg/Time"]

@@ -18,7 +18,7 @@ import numpy as np
 import psutil
 import pytest
 
-from perfros_bag.ingest import mcapfile, read_recording, rosbag1, rosbag2, sqlitepages
+from perfros_bag.ingest import _accum, mcapfile, read_recording, rosbag1, rosbag2, sqlitepages
 from perfros_bag.ingest.stats import RecordingStats
 from tests.bench.gen_corpus import TopicSpec, default_topics, write_recording
 
@@ -78,8 +78,7 @@ def test_reader_releases_pages(fmt: str, fast: bool, recordings: dict[str, Path]
     size = path.stat().st_size
     assert size > 30 * MB
     path.read_bytes()  # in the page cache, so a touched page maps at once
-    monkeypatch.setattr(rosbag1, "RELEASE_STEP", 1 * MB)  # streaming: release every 1 MB
-    monkeypatch.setattr(mcapfile, "RELEASE_STEP", 1 * MB)
+    monkeypatch.setattr(_accum, "RELEASE_STEP", 1 * MB)  # streaming (rosbag1, mcap): release every 1 MB
     stats, resident = read_measured(path, fast, monkeypatch)
     assert stats.messages > 1000
     assert resident < size // 10, f"{resident / MB:.1f} MB of a {size / MB:.0f} MB file still mapped"
@@ -88,7 +87,7 @@ def test_reader_releases_pages(fmt: str, fast: bool, recordings: dict[str, Path]
     def keep(mm: mmap.mmap, start: int, end: int) -> None:
         return None
 
-    for module in (rosbag1, mcapfile, sqlitepages):
+    for module in (_accum, rosbag1, mcapfile, sqlitepages):
         monkeypatch.setattr(module, "release", keep)
     control, resident_control = read_measured(path, fast, monkeypatch)
     assert resident_control > size // 4, f"control: only {resident_control / MB:.1f} MB mapped"

@@ -251,7 +251,12 @@ def test_tune_refits_scale_and_p95_ratio_from_a_deployment(p95_s: float, tmp_pat
     (tmp_path / "round-1" / "validation.json").write_text(json.dumps({"chains": [measured]}))
     doc_system = json.loads(json.dumps(data))
     doc_system["latency"] = {"overhead_ms": 2.0, "service_scale": {"detector": 2.5}, "queue_factor": 0.7}
-    _recalibrate_latency(tmp_path, doc_system, [{"dir": "round-1", "model": "model-0.json"}])
+    from perfros_bag.tune.tunefile import TuneRound
+
+    done = TuneRound.from_json({"round": 1, "dir": "round-1", "model": "model-0.json", "values": {}, "placement": {},
+                                "expected": 0.0, "measured": 0.0, "deviation_pct": 0.0, "within_tolerance": None,
+                                "computers": {}, "nodes": {}})
+    _recalibrate_latency(tmp_path, doc_system, [done])
     got = doc_system["latency"]
     # p50: 100 ms measured - 2 ms overhead - 80 ms transfer - 8 ms wait (a share of the input
     # period: it does not grow with the scale) = 10 ms of service, predicted 50 ms at scale 3

@@ -30,7 +30,8 @@ from perfros_bag.tune.loop import (
     round_entry,
     weigh,
 )
-from perfros_bag.tune.tunefile import TUNE_FORMAT, read_tune, write_tune
+from perfros_bag.tune.tunefile import TUNE_FORMAT, TuneRound, read_tune, write_tune
+from perfros_bag.validation.eq10 import ComputerCheck, NodeCheck, Validation
 from tests.conftest import FIXTURES
 
 BIN = Path(sys.executable).with_name("perfros-bag")
@@ -41,8 +42,19 @@ def _row(recording: str, node: str, value: Any, cpu: float | None = 10.0, freq: 
                None if cpu is None else cpu * 1.2, 6, median_rate_hz=freq)
 
 
-def _round(nodes: dict[str, tuple[str, float]]) -> dict[str, Any]:
-    return {"dir": "round-1", "nodes": {n: {"refit": use, "cpu_factor": f} for n, (use, f) in nodes.items()}}
+def _round(uses: dict[str, tuple[str, float]], **over: Any) -> TuneRound:
+    """Round 1 as tune.json holds it, with each node's refit use and CPU factor."""
+    return TuneRound.from_json({"round": 1, "dir": "round-1", "values": {}, "placement": {}, "expected": 1.0,
+                                "measured": 1.0, "deviation_pct": 0.0, "within_tolerance": None, "computers": {},
+                                "nodes": {n: {"refit": use, "cpu_factor": f} for n, (use, f) in uses.items()},
+                                **over})
+
+
+def _node(counted: bool, ratio: float, expected: float | None = None, measured: float | None = None,
+          **over: Any) -> NodeCheck:
+    """A node of validation.json: its kept ratio (and a driven node's input rates)."""
+    return NodeCheck(over.pop("node", "n"), over.pop("computer", "r1"), 0.2, 50.0, 50.0 * ratio, ratio, 0.0, counted,
+                     input_hz_expected=expected, input_hz_measured=measured, **over)
 
 
 def test_a_deployment_supersedes_the_sweep_at_its_values_and_a_starved_node_is_rescaled() -> None:
@@ -92,12 +104,11 @@ def test_a_round_weighs_each_node_by_its_computers_throttling_and_its_kept_rate(
                              "r2": {"nr_periods": periods, "nr_throttled": THROTTLED_SHARE * periods - 1}}}
     node = {"a": (30.0, 0.6, True), "b": (25.0, 0.99, True), "c": (28.0, 1.0, False), "d": (30.0, 0.6, True),
             "e": (None, 1.0, True)}
-    validation = {"overall": {"expected": 100.0, "measured": 80.0, "deviation_pct": 20.0},
-                  "computers": [{"computer": c, "capacity": 100.0, "cpu_expected": 80.0, "cpu_measured": 99.0}
-                                for c in ("r1", "r2")],
-                  "nodes": [{"node": n, "computer": plan.nodes[n].computer, "cpu_expected": 20.0, "cpu_measured": m,
-                             "ratio": r, "counted": counted} for n, (m, r, counted) in node.items()]}
-    entry = round_entry(1, plan, plan_path, model, record, validation, tolerance=5.0)
+    validation = Validation("run.bag", "ros1", "plan.json", 5.0, True, 100.0, 80.0, 20.0,
+                            [_node(counted, r, node=n, computer=plan.nodes[n].computer, cpu_expected=20.0,
+                                   cpu_measured=m) for n, (m, r, counted) in node.items()],
+                            [ComputerCheck(c, 100.0, 80.0, 99.0, False) for c in ("r1", "r2")])
+    entry = round_entry(1, plan, plan_path, model, record, validation, tolerance=5.0).to_json()
     assert entry["computers"]["r1"]["starved"] and not entry["computers"]["r2"]["starved"]
     n = entry["nodes"]
     assert n["a"]["refit"] == USE_RESCALED and n["a"]["cpu_need"] == pytest.approx(30.0 / 0.6)  # starved, kept 60 %
@@ -107,8 +118,15 @@ def test_a_round_weighs_each_node_by_its_computers_throttling_and_its_kept_rate(
     assert n["e"]["refit"] == USE_LEFT_OUT  # no CPU measured
     assert n["a"]["model_cpu_before"] == 20.0 and n["a"]["value"] == 2  # the system's setting at the value
     assert not entry["within_tolerance"] and entry["placement"] == {k: v.computer for k, v in plan.nodes.items()}
-    validation["nodes"][0]["ratio"] = 0.001
-    assert round_entry(1, plan, plan_path, model, record, validation, 5.0)["nodes"]["a"]["cpu_factor"] == 1 / MIN_KEPT
+    # the round as tune.json holds it, read back (TuneRound.from_json) and written again: the same bytes
+    path = tmp_path / "tune.json"
+    write_tune(path, _doc(rounds=[entry]))
+    again = read_tune(path)
+    again["rounds"] = [TuneRound.from_json(r).to_json() for r in again["rounds"]]
+    write_tune(tmp_path / "again.json", again)
+    assert (tmp_path / "again.json").read_bytes() == path.read_bytes()
+    validation.nodes[0].ratio = 0.001
+    assert round_entry(1, plan, plan_path, model, record, validation, 5.0).nodes["a"].cpu_factor == 1 / MIN_KEPT
 
 
 def _doc(**over: Any) -> dict[str, Any]:
@@ -200,10 +218,9 @@ def test_a_driven_node_is_judged_by_what_it_made_of_its_input(tmp_path: Path) ->
     """A driven node's kept share is its output's over its input's (a camera that dropped
     frames upstream does not make its detector look starved); its model CPU follows the
     plan's input rate (cpu + cpu_per_hz x F_in)."""
-    assert kept_share({"counted": True, "ratio": 0.4, "input_hz_expected": 10.0, "input_hz_measured": 5.0}) == \
-        pytest.approx(0.8)
-    assert kept_share({"counted": True, "ratio": 0.4, "input_hz_expected": None, "input_hz_measured": None}) == 0.4
-    assert kept_share({"counted": False, "ratio": 1.0}) is None
+    assert kept_share(_node(True, 0.4, 10.0, 5.0)) == pytest.approx(0.8)
+    assert kept_share(_node(True, 0.4)) == 0.4
+    assert kept_share(_node(False, 1.0)) is None
     system = {"computers": [{"name": "r1", "kind": "robot", "capacity": 100}],
               "nodes": [{"name": "cam", "weight": 0.5, "topics": ["/cam/out"],
                          "settings": [{"cpu": 1, "performance": 100, "frequency_hz": 10}]},
@@ -262,8 +279,9 @@ def test_a_starved_driven_node_is_rescaled_at_the_input_rate_it_got() -> None:
     (one point of its line: output over input stays its out_per_in)."""
     row = _driven_row("round-1/run.bag", 2, 8.0, cpu=12.0)
     row = Row(**{**row.__dict__, "frequency_hz": 6.0, "median_rate_hz": 6.0, "bandwidth_kBps": 0.6})
-    r = kept_share({"counted": True, "ratio": 0.6, "input_hz_expected": 10.0, "input_hz_measured": 8.0})
+    r = kept_share(_node(True, 0.6, 10.0, 8.0))
     assert r == pytest.approx(0.75)  # it made 6 of the 8 messages a second it got
+    assert r is not None
     out = weigh([row], [_round({"det": (USE_RESCALED, 1 / r)})], driven={"det"})[0]
     assert out.input_hz == 8.0 and out.frequency_hz == pytest.approx(8.0) and out.median_rate_hz == pytest.approx(8.0)
     assert out.cpu_units_mean == pytest.approx(16.0) and out.bandwidth_kBps == pytest.approx(0.8)
@@ -314,9 +332,8 @@ def test_a_base_run_fits_model_0_on_the_base_and_each_refit_on_it_plus_the_round
                 Row("round-1/run.bag", "detector", "scale", 1.0, "/det/out", "std_msgs/String", 30, 3.0, f_in, 4.08,
                     2.0 + 3.0 * f_in + 4.0, 40.0, 6, input_hz=f_in)]
     _fake_round(monkeypatch, out, deployed)
-    done = [{"dir": "round-1", "values": {"camera": 10, "detector": 1.0},
-             "nodes": {"camera": {"refit": USE_MEASURED, "cpu_factor": 1.0},
-                       "detector": {"refit": USE_MEASURED, "cpu_factor": 1.0}}}]
+    done = [_round({"camera": (USE_MEASURED, 1.0), "detector": (USE_MEASURED, 1.0)},
+                   values={"camera": 10, "detector": 1.0})]
     m1 = fit_rounds(out, sys_path, system, done, 100.0, base=base)
     manifest = yaml.safe_load((out / "manifest.yaml").read_text())["recordings"]
     assert [e["path"] for e in manifest] == ["round-1/run.bag"]
@@ -399,13 +416,13 @@ def test_a_round_holds_only_within_tolerance_and_with_no_node_held_back_by_its_c
         return {"starved": starved, "kept_ratio": kept}
 
     fine = {"deviation_pct": 1.0, "nodes": {"a": node(False, 1.0), "b": node(True, 0.995)}}
-    assert holds(fine, 2.5)  # b's computer was throttled, but b kept its rate: a burst, not a lack
-    assert not holds({**fine, "deviation_pct": 3.0}, 2.5)
+    assert holds(_round({}, **fine), 2.5)  # b's computer was throttled, but b kept its rate: a burst, not a lack
+    assert not holds(_round({}, **{**fine, "deviation_pct": 3.0}), 2.5)
     # within tolerance, but a node on a throttled computer fell behind: not a plan that holds
-    assert not holds({**fine, "nodes": {"a": node(False, 1.0), "b": node(True, KEPT_ALL - 0.01)}}, 2.5)
+    assert not holds(_round({}, **{**fine, "nodes": {"a": node(False, 1.0), "b": node(True, KEPT_ALL - 0.01)}}), 2.5)
     # behind on a computer that was not throttled (its input fell): judged by the deviation
-    assert holds({**fine, "nodes": {"a": node(False, 0.9)}}, 2.5)
-    assert holds({"deviation_pct": 0.0, "nodes": {"c": node(True, None)}}, 0.0)
+    assert holds(_round({}, **{**fine, "nodes": {"a": node(False, 0.9)}}), 2.5)
+    assert holds(_round({}, deviation_pct=0.0, nodes={"c": node(True, None)}), 0.0)
 
 
 def test_calibration_carries_how_a_node_ran_in_the_deployments_to_the_values_they_did_not_run() -> None:
@@ -422,7 +439,7 @@ def test_calibration_carries_how_a_node_ran_in_the_deployments_to_the_values_the
                                      for n in ("a", "b")]})
     sweep = [_row("sweep/x.bag", "a", 1, 10.0), _row("sweep/y.bag", "a", 2, 20.0), _row("sweep/x.bag", "b", 1, 10.0)]
     deployed = [_row("round-1/run.bag", "a", 2, 25.0)]
-    out, factors = calibrate(sweep + deployed, [{"dir": "round-1"}], model0)
+    out, factors = calibrate(sweep + deployed, [_round({})], model0)
     assert factors == {"a": pytest.approx(1.25)}
     got = {(r.recording, r.node): r for r in out}
     assert got[("sweep/x.bag", "a")].cpu_units_mean == pytest.approx(12.5)
@@ -431,9 +448,9 @@ def test_calibration_carries_how_a_node_ran_in_the_deployments_to_the_values_the
     assert got[("round-1/run.bag", "a")].cpu_units_mean == 25.0  # the round's own row as measured
     assert got[("sweep/x.bag", "b")].cpu_units_mean == 10.0
     # a deployment at ten times the sweep: the factor stops at the upper bound
-    _, capped = calibrate(sweep + [_row("round-1/run.bag", "a", 2, 200.0)], [{"dir": "round-1"}], model0)
+    _, capped = calibrate(sweep + [_row("round-1/run.bag", "a", 2, 200.0)], [_round({})], model0)
     assert capped["a"] == CALIBRATION_BOUNDS[1]
     assert calibrate(sweep, [], model0) == (sweep, {})
     # a starved round's rescaled row sets no factor
-    starved = [{"dir": "round-1", "nodes": {"a": {"refit": USE_RESCALED}}}]
+    starved = [_round({}, nodes={"a": {"refit": USE_RESCALED}})]
     assert calibrate(sweep + deployed, starved, model0) == (sweep + deployed, {})

@@ -349,10 +349,9 @@ def test_cli_cpu_trace_overload(tmp_path: Path, plan_file: Path) -> None:
     assert "overloaded" in r.stdout
 
 
-def test_cli_links_with_system(tmp_path: Path, plan_file: Path) -> None:
-    import yaml
-
-    system = {
+def linked_system() -> dict[str, Any]:
+    """The plan's system with a 3 kB/s link between its two computers, crossed both ways."""
+    return {
         "computers": [{"name": "robot1", "kind": "robot", "capacity": 100},
                       {"name": "server", "kind": "server", "capacity": 400}],
         "links": [{"between": ["robot1", "server"], "bandwidth_kBps": 3.0}],
@@ -361,6 +360,12 @@ def test_cli_links_with_system(tmp_path: Path, plan_file: Path) -> None:
                    "settings": [{"cpu": 120, "performance": 50}]}],
         "edges": [{"from": "a", "to": "b"}, {"from": "b", "to": "a", "topic": "/b/y"}],
     }
+
+
+def test_cli_links_with_system(tmp_path: Path, plan_file: Path) -> None:
+    import yaml
+
+    system = linked_system()
     sp = tmp_path / "system.yaml"
     sp.write_text(yaml.safe_dump(system))
     run = tmp_path / "run.mcap"
@@ -526,3 +531,26 @@ def test_missing_plan_system_is_said_not_skipped_silently(tmp_path: Path) -> Non
         assert plan_system(plan, tmp_path / "plan.json") is None
     messages = [str(w.message) for w in caught if issubclass(w.category, PerfrosWarning)]
     assert len(messages) == 1 and "gone/system.yaml" in messages[0] and "links are not checked" in messages[0]
+
+
+def test_validation_json_parts_read_back_to_the_same_bytes(tmp_path: Path, plan_file: Path) -> None:
+    """Each typed part of a real validation.json (a run with a dropped topic, a CPU trace and
+    a link) read back with its ``from_json`` writes the same JSON text, key order included."""
+    import yaml
+
+    from perfros_bag.fileio import json_text
+    from perfros_bag.validation.eq10 import ComputerCheck, LinkCheck, NetworkCheck, NodeCheck, UnplannedTopic
+
+    sp = tmp_path / "system.yaml"
+    sp.write_text(yaml.safe_dump(linked_system()))
+    run = tmp_path / "run.mcap"
+    write_mcap(run, 0.8, drop=("/b/y",))
+    write_trace(tmp_path / "run.cpu.csv", [("/a", 130.0), ("b", 100.0)], 2, 1_700_000_000.0)
+    doc = json.loads(run_cli("validate", str(run), str(plan_file), "--system", str(sp), "--json").stdout)
+    parts = {"nodes": NodeCheck, "computers": ComputerCheck, "links": LinkCheck, "media": LinkCheck,
+             "network": NetworkCheck, "unplanned_topics": UnplannedTopic}
+    assert doc["nodes"] and doc["computers"] and doc["links"]
+    assert any(t["status"] == "missing" for n in doc["nodes"] for t in n["topics"])  # a topic of every status kind
+    for key, kind in parts.items():
+        again = [kind.from_json(x).to_dict() for x in doc[key]]  # type: ignore[attr-defined]
+        assert json_text(again) == json_text(doc[key]), key

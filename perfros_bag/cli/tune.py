@@ -3,18 +3,21 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import typer
 
 from perfros_bag.cli._app import command, err
+
+if TYPE_CHECKING:
+    from perfros_bag.tune.tunefile import TuneRound
 
 
 def _f(x: Any, nd: int = 1) -> str:
     return "-" if x is None else f"{x:.{nd}f}"
 
 
-def render_rounds(rounds: list[dict[str, Any]]) -> None:
+def render_rounds(rounds: list[TuneRound]) -> None:
     """Each round's plan, prediction, measurement and the fit's change, as tables on stderr."""
     from rich.table import Table
 
@@ -22,20 +25,20 @@ def render_rounds(rounds: list[dict[str, Any]]) -> None:
     for col in ("round", "values deployed", "expected Σ w·P", "measured Σ w·P", "deviation %", "starved"):
         table.add_column(col, justify="left" if col in ("values deployed", "starved") else "right")
     for r in rounds:
-        starved = [c for c, v in r["computers"].items() if v["starved"]]
-        table.add_row(str(r["round"]), ", ".join(f"{n}={v}" for n, v in r["values"].items()), _f(r["expected"], 2),
-                      _f(r["measured"], 2), _f(r["deviation_pct"], 2), ", ".join(starved) or "-")
+        starved = [c for c, v in r.computers.items() if v.starved]
+        table.add_row(str(r.round), ", ".join(f"{n}={v}" for n, v in r.values.items()), _f(r.expected, 2),
+                      _f(r.measured, 2), _f(r.deviation_pct, 2), ", ".join(starved) or "-")
     err.print(table)
     nodes = Table(title="tune: per node, CPU units (model: fit before -> after the round)", title_justify="left")
     for col in ("round", "node", "computer", "value", "planned", "measured", "kept rate", "need", "model before",
                 "model after", "refit"):
         nodes.add_column(col, justify="left" if col in ("node", "computer", "refit") else "right")
     for r in rounds:
-        for name, n in r["nodes"].items():
-            nodes.add_row(str(r["round"]), name, n["computer"], "-" if n["value"] is None else f"{n['value']:g}"
-                          if isinstance(n["value"], int | float) else str(n["value"]), _f(n["cpu_planned"]),
-                          _f(n["cpu_measured"]), "-" if n["kept_ratio"] is None else f"{100 * n['kept_ratio']:.0f} %",
-                          _f(n["cpu_need"]), _f(n["model_cpu_before"]), _f(n["model_cpu_after"]), n["refit"])
+        for name, n in r.nodes.items():
+            nodes.add_row(str(r.round), name, n.computer, "-" if n.value is None else f"{n.value:g}"
+                          if isinstance(n.value, int | float) else str(n.value), _f(n.cpu_planned),
+                          _f(n.cpu_measured), "-" if n.kept_ratio is None else f"{100 * n.kept_ratio:.0f} %",
+                          _f(n.cpu_need), _f(n.model_cpu_before), _f(n.model_cpu_after), n.refit)
     err.print(nodes)
 
 
@@ -81,16 +84,16 @@ def tune_cmd(
         def show(stage: str) -> None:
             progress.update(task, description=stage)
 
-        def finished(r: dict[str, Any]) -> None:
-            progress.console.print(f"round {r['round']}: expected {_f(r['expected'], 2)} measured "
-                                   f"{_f(r['measured'], 2)} ({_f(r['deviation_pct'], 2)} %)", highlight=False)
+        def finished(r: TuneRound) -> None:
+            progress.console.print(f"round {r.round}: expected {_f(r.expected, 2)} measured "
+                                   f"{_f(r.measured, 2)} ({_f(r.deviation_pct, 2)} %)", highlight=False)
 
         result = tune(launch, space, system, out_dir, rounds=rounds, tolerance=tolerance, method=method,
                       headroom=kept, duration=duration, units_per_core=units_per_core, net=net,
                       progress=show, on_round=finished, base=base, plot=plot_tune)
     doc = result.document
-    if doc["rounds"]:
-        render_rounds(doc["rounds"])
+    if result.rounds:
+        render_rounds(result.rounds)
     stopped = doc["stopped"]
     err.print(f"{result.ran} round(s) run, {result.resumed} resumed; stopped: {stopped['reason']} after round "
               f"{stopped['after_round']}; wrote {out_dir}/tune.json" + (", tune.png" if doc["rounds"] else ""),

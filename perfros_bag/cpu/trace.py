@@ -57,9 +57,9 @@ class CpuTrace:
     """A parsed CPU trace; one entry per (sample time, process) row."""
 
     path: Path
-    logical_cpus: int
-    host: str | None = None
-    interval_s: float | None = None
+    logical_cpus: int  # ``# logical_cpus=``: the cores its CPU percentages are out of (100 each)
+    host: str | None = None  # ``# host=``: the computer it was recorded on
+    interval_s: float | None = None  # ``# interval_s=``: the sampling interval it was recorded at
     speed_factor: float | None = None  # ``# speed_factor=``: REFERENCE_S / the reference workload's seconds
     reference_s: float | None = None  # ``# reference_s=``: the reference workload's best CPU seconds
     time: npt.NDArray[np.float64] = field(default_factory=lambda: np.empty(0))

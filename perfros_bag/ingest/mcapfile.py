@@ -31,19 +31,16 @@ import numpy.typing as npt
 from perfros_bag.ingest import MCAP_MAGIC
 from perfros_bag.ingest._accum import (
     I64,
-    RELEASE_STEP,
-    STAMP_SIZE,
     U8,
     Accumulator,
     Damaged,
     NoIndex,
-    StampAt,
-    StampFinder,
     gather_u64,
-    payload_stamps,
     release,
+    release_behind,
     zstd_size,
 )
+from perfros_bag.ingest._payload import StampAt, StampFinder, payload_stamps
 
 MAGIC = MCAP_MAGIC
 OP_HEADER, OP_FOOTER, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_CHUNK = 1, 2, 3, 4, 5, 6
@@ -273,10 +270,8 @@ def _scan_records(buf: Buf, pos: int, end: int, st: _State, message_zstd: bool,
             if data_end:  # summary cut off after the data section: every message was read
                 break
             raise
-        if mapped and start - released >= RELEASE_STEP:  # pages behind this record: unmap
-            cut = start - start % mmap.PAGESIZE
-            release(buf, released, cut)  # type: ignore[arg-type]
-            released = cut
+        if mapped:  # pages behind this record: unmap
+            released = release_behind(buf, released, start)  # type: ignore[arg-type]
         pos = start + length
         if op == OP_MESSAGE:
             c = _Cursor(buf, start, start + length)
@@ -538,10 +533,9 @@ def _index_chunk(mm: mmap.mmap, ci: ChunkIndex, buf: U8, base: int, blen: int, s
         st.add(cid, times[k:k + cnt], nbytes)
         where = stamps.get(cid)
         if where is not None and cnt:
-            if int(lengths[k:k + cnt].min()) < MSG_HEADER + where.offset + STAMP_SIZE:
-                raise NoIndex(f"{where.topic}: a stamped message shorter than its header")
             st.stamps.append((where.topic, times[k:k + cnt],
-                              payload_stamps(buf, at[k:k + cnt] + 9 + MSG_HEADER, where)))
+                              payload_stamps(buf, at[k:k + cnt] + 9 + MSG_HEADER, lengths[k:k + cnt] - MSG_HEADER,
+                                             where)))
         k += cnt
 
 

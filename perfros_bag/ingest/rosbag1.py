@@ -27,19 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
-from perfros_bag.ingest._accum import (
-    I64,
-    RELEASE_STEP,
-    STAMP_SIZE,
-    U8,
-    Accumulator,
-    Damaged,
-    NoIndex,
-    StampAt,
-    gather_u32,
-    payload_stamps,
-    release,
-)
+from perfros_bag.ingest._accum import I64, U8, Accumulator, Damaged, NoIndex, gather_u32, release, release_behind
+from perfros_bag.ingest._payload import StampAt, payload_stamps
 from perfros_bag.ingest.stats import RecordingStats
 
 MAGIC = b"#ROSBAG V2.0\n"
@@ -348,9 +337,7 @@ def read_chunks(mm: mmap.mmap, index: BagIndex, stamps: Mapping[int, StampAt] | 
             at = stamps.get(cid) if stamps else None
             if at is not None and o.size:
                 data = offs[k:k + o.size] + 8 + hlen[k:k + o.size]
-                if int((dlen[k:k + o.size]).min()) < at.offset + STAMP_SIZE:
-                    raise NoIndex(f"{at.topic}: a stamped message shorter than its header")
-                out.add_stamps(at.topic, times, payload_stamps(chunk.buf, chunk.base + data, at))
+                out.add_stamps(at.topic, times, payload_stamps(chunk.buf, chunk.base + data, dlen[k:k + o.size], at))
             k += o.size
         end = chunk.end
         del chunk, parts
@@ -445,10 +432,7 @@ def read_stream(path: Path, mm: mmap.mmap) -> RecordingStats:
     index_pos, chunk_count, chunks_seen = None, 0, 0
     released = 0
     for rec in _records(mm, len(MAGIC), size):
-        if rec.end - released >= RELEASE_STEP:  # pages behind this record: unmap them
-            cut = rec.data_start - rec.data_start % mmap.PAGESIZE
-            release(mm, released, cut)
-            released = cut
+        released = release_behind(mm, released, rec.data_start, reached=rec.end)  # pages behind this record
         if rec.op == OP_BAG_HEADER:
             index_pos = _u64(rec.header, "index_pos")
             chunk_count = _u32(rec.header, "chunk_count")

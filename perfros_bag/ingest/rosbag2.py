@@ -20,7 +20,7 @@ sqlite3 (database opened read-only and immutable), cheapest exact way first:
    frame header (``substr(data, 1, 18)``);
 4. ``stream`` (``fast=False``): every row with its blob.
 
-Header stamps (``stamps``: a :data:`~perfros_bag.ingest._accum.StampFinder` given the
+Header stamps (``stamps``: a :data:`~perfros_bag.ingest._payload.StampFinder` given the
 connection): the first 12 bytes of the stamped topics' blobs are copied in the same page
 walk (:func:`~perfros_bag.ingest.sqlitepages.read_messages_heads`, C); without the extension
 or with a WAL, from a second page walk (numpy) or one SQL pass.
@@ -48,19 +48,16 @@ from perfros_bag.fileio import read_yaml
 from perfros_bag.ingest import mcapfile, read_head, sniff, sqlitepages
 from perfros_bag.ingest._accum import (
     I64,
-    STAMP_SIZE,
     U8,
     Accumulator,
     Damaged,
     NoIndex,
-    StampAt,
-    StampFinder,
-    cdr_head_stamps,
     close_mmap,
     describe,
     zstd_header_size,
     zstd_size,
 )
+from perfros_bag.ingest._payload import STAMP_SIZE, StampAt, StampFinder, cdr_head_stamps
 from perfros_bag.ingest.discover import natural_key, storage_of
 
 

@@ -37,7 +37,8 @@ from typing import TYPE_CHECKING
 
 from perfros_bag.errors import InputError
 from perfros_bag.ingest import detect_format, mcapfile, read_recording, rosbag1
-from perfros_bag.ingest._accum import I64, Accumulator, Damaged, NoIndex, StampAt
+from perfros_bag.ingest._accum import I64, Accumulator, Damaged, NoIndex
+from perfros_bag.ingest._payload import StampAt
 from perfros_bag.ingest.rosbag2 import open_mmap
 from perfros_bag.ingest.stats import RecordingStats
 

@@ -12,7 +12,7 @@ Which topics are stamped is decided by rosbags from the definitions stored in th
 pass already holds: a ROS 1 bag's connection records (:attr:`rosbag1.Connection.msgdef`), an
 MCAP summary's schemas (:attr:`mcapfile.Summary.definitions`), a rosbag2 sqlite3 file's
 ``message_definitions`` table. A :class:`Finder` is handed to the readers
-(:data:`~perfros_bag.ingest._accum.StampFinder`): given their index it says which
+(:data:`~perfros_bag.ingest._payload.StampFinder`): given their index it says which
 connections to read the stamps of, and the readers gather them in the same pass as counts
 and sizes (:func:`rosbag1.read_chunks <perfros_bag.ingest.rosbag1.read_chunks>`,
 :func:`mcapfile.read_chunks <perfros_bag.ingest.mcapfile.read_chunks>`,
@@ -36,7 +36,8 @@ from typing import Any
 import numpy as np
 
 from perfros_bag.ingest import mcapfile, rosbag1
-from perfros_bag.ingest._accum import I64, Accumulator, NoIndex, StampAt
+from perfros_bag.ingest._accum import I64, Accumulator, NoIndex
+from perfros_bag.ingest._payload import StampAt
 from perfros_bag.ingest.decode import TopicType, Undecodable, channel_types, topic_type
 
 #: topic -> (receive/log times ns, header stamps ns), one entry per message, in file order
@@ -89,7 +90,7 @@ def sqlite_types(con: sqlite3.Connection) -> dict[int, TopicType]:
 
 
 class Finder:
-    """The :data:`~perfros_bag.ingest._accum.StampFinder` the readers call with their index:
+    """The :data:`~perfros_bag.ingest._payload.StampFinder` the readers call with their index:
     the stamped connections and where their stamps are. Keeps every topic's
     :class:`TopicType` it saw in :attr:`types` (the first file's, for a topic in several)."""
 

@@ -15,15 +15,7 @@ from perfros_bag.doccheck import Doc
 from perfros_bag.errors import InputError, PerfrosWarning
 from perfros_bag.fileio import DOCUMENT_KINDS, atomic_write_json, expect_kind, read_json
 from perfros_bag.limits import number_problem
-from perfros_bag.system.plan import (
-    Plan,
-    PlannedComputer,
-    PlannedLink,
-    PlannedNode,
-    PlannedTopic,
-    Status,
-    method_of,
-)
+from perfros_bag.system.plan import Plan, PlannedComputer, PlannedLink, PlannedNode, PlannedTopic, Status, method_of
 from perfros_bag.system.types import Problem, System
 
 PLAN_FORMAT = "perfros-bag/plan@1"

@@ -51,7 +51,7 @@ import hashlib
 import math
 import re
 import warnings
-from collections.abc import Callable, Collection
+from collections.abc import Callable, Collection, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -71,7 +71,7 @@ from perfros_bag.sweep.space import load_space
 from perfros_bag.system.planfile import save_plan
 from perfros_bag.system.systemfile import load_system
 from perfros_bag.system.types import driven_rates
-from perfros_bag.tune.tunefile import TUNE_FORMAT, read_tune, write_tune
+from perfros_bag.tune.tunefile import TUNE_FORMAT, RoundComputer, RoundNode, TuneRound, read_tune, write_tune
 from perfros_bag.validation import DEFAULT_TOLERANCE
 
 if TYPE_CHECKING:
@@ -79,6 +79,7 @@ if TYPE_CHECKING:
     from perfros_bag.characterisation.manifest import RecordingEntry
     from perfros_bag.system.plan import Plan
     from perfros_bag.system.types import System
+    from perfros_bag.validation.eq10 import NodeCheck, Validation
 
 #: a computer whose cgroup was throttled in at least this share of the CFS periods of the
 #: recording is starved: its nodes' CPU is a lower bound
@@ -112,6 +113,7 @@ class TuneResult:
     document: dict[str, Any]  # tune.json
     resumed: int  # rounds finished by an earlier start
     ran: int  # rounds this start ran
+    rounds: list[TuneRound] = dataclasses.field(default_factory=list)  # tune.json's rounds, typed
 
 
 def _check_args(rounds: int, tolerance: float, headroom: float | str, method: str, units_per_core: float) -> None:
@@ -129,7 +131,7 @@ def _check_args(rounds: int, tolerance: float, headroom: float | str, method: st
 def tune(launch_path: str | Path, space_path: str | Path, system_path: str | Path, out: str | Path, *,
          rounds: int = 3, tolerance: float | None = None, method: str = "exact", headroom: float | str = 0.0,
          duration: float | None = None, units_per_core: float = 100.0, net: bool = True, interval: float = 0.5,
-         progress: Progress | None = None, on_round: Callable[[dict[str, Any]], None] | None = None,
+         progress: Progress | None = None, on_round: Callable[[TuneRound], None] | None = None,
          base: str | Path | None = None, plot: Plot | None = None) -> TuneResult:
     """Run the loop into ``out`` (docs/formats.md, "tune"); resumes after the rounds an
     earlier start finished (``out/tune.json``). ``base``: a characterisation.csv to start
@@ -156,7 +158,8 @@ def tune(launch_path: str | Path, space_path: str | Path, system_path: str | Pat
               "method": method, "headroom": headroom, "units_per_core": units_per_core}
     from_base = {} if base_path is None else {"base": str(base_path), "base_sha256": _sha256(base_path)}
     doc = _resume(outdir / "tune.json", inputs, from_base)
-    resumed = len(doc["rounds"])
+    done = [TuneRound.from_json(r) for r in doc["rounds"]]
+    resumed = len(done)
     doc.update(tolerance_pct=tol, rounds_max=rounds, stopped=None)
 
     outdir.mkdir(parents=True, exist_ok=True)
@@ -167,10 +170,9 @@ def tune(launch_path: str | Path, space_path: str | Path, system_path: str | Pat
 
     ran = 0
     while True:
-        done: list[dict[str, Any]] = doc["rounds"]
         last = done[-1] if done else None
         if last is not None and holds(last, tol):  # this start's tolerance (it may differ)
-            doc["stopped"] = {"reason": "within tolerance", "after_round": last["round"]}
+            doc["stopped"] = {"reason": "within tolerance", "after_round": last.round}
             break
         if len(done) >= rounds:
             doc["stopped"] = {"reason": "rounds", "after_round": len(done)}
@@ -181,8 +183,8 @@ def tune(launch_path: str | Path, space_path: str | Path, system_path: str | Pat
         say(f"round {k}: solve")
         plan = _solve(model_path, method, headroom)
         values, placement = _deployed(plan, space, dict(launch.args))
-        if last is not None and values == last["values"] and placement == last["placement"]:
-            doc["stopped"] = {"reason": "plan unchanged", "after_round": last["round"]}
+        if last is not None and values == last.values and placement == last.placement:
+            doc["stopped"] = {"reason": "plan unchanged", "after_round": last.round}
             break
         rdir = outdir / f"round-{k}"
         rdir.mkdir(exist_ok=True)
@@ -200,19 +202,25 @@ def tune(launch_path: str | Path, space_path: str | Path, system_path: str | Pat
                                    f"{outdir / 'tune.json'}" if k > 1 else
                              f"round {k}: the deployment failed ({exc})") from None
         say(f"round {k}: refit")
-        entry = round_entry(k, plan, plan_path, model_path, result.record, result.validation.to_dict(), tol)
+        entry = round_entry(k, plan, plan_path, model_path, result.record, result.validation, tol)
         after = fit_rounds(outdir, system_path, system, [*done, entry], units_per_core, base=base_path)
         _fill_after(entry, after)
         done.append(entry)
         ran += 1
-        write_tune(outdir / "tune.json", doc)
+        _save(outdir, doc, done)
         _plot(outdir, doc, plot)
         if on_round is not None:
             on_round(entry)
-    write_tune(outdir / "tune.json", doc)
-    if doc["rounds"]:
+    _save(outdir, doc, done)
+    if done:
         _plot(outdir, doc, plot)
-    return TuneResult(doc, resumed, ran)
+    return TuneResult(doc, resumed, ran, done)
+
+
+def _save(outdir: Path, doc: dict[str, Any], done: Sequence[TuneRound]) -> None:
+    """tune.json: ``doc`` with ``done`` as its rounds (the one place rounds become JSON)."""
+    doc["rounds"] = [r.to_json() for r in done]
+    write_tune(outdir / "tune.json", doc)
 
 
 def _sha256(path: Path) -> str:
@@ -242,7 +250,7 @@ def _resume(path: Path, inputs: dict[str, Any], from_base: dict[str, Any] | None
 
 # --------------------------------------------------------------------------- fit
 
-def _entries(outdir: Path, done: list[dict[str, Any]], units_per_core: float,
+def _entries(outdir: Path, done: Sequence[TuneRound], units_per_core: float,
              swept: bool = True) -> list[RecordingEntry]:
     """The sweep's recordings (none when not ``swept``: a base characterisation stands for
     them) and each finished round's, as ``outdir/manifest.yaml`` lists them (written here:
@@ -265,9 +273,9 @@ def _entries(outdir: Path, done: list[dict[str, Any]], units_per_core: float,
             item["speed_factor"] = e.speed_factor
         items.append(item)
     for r in done:  # the host's own trace: every node in the measurement's units
-        items.append({"path": round_recording(r), "cpu": f"{r['dir']}/run.host.cpu.csv",
+        items.append({"path": r.recording, "cpu": f"{r.dir}/run.host.cpu.csv",
                       **({"computer": host} if host else {}), "units_per_core": units_per_core,
-                      "settings": dict(r["values"])})
+                      "settings": dict(r.values)})
     write_manifest(outdir / "manifest.yaml", items)
     return list(load_manifest(outdir / "manifest.yaml").recordings)
 
@@ -278,18 +286,13 @@ def _same(a: Any, b: Any) -> bool:
     return bool(a == b)
 
 
-def round_recording(entry: dict[str, Any]) -> str:
-    """A round's recording as the refit's manifest names it (and so its rows' ``recording``)."""
-    return f"{entry['dir']}/run.bag"
-
-
 def _scaled(row: Row, columns: Collection[str], factor: float) -> Row:
     """``row`` with ``columns`` (those it has) multiplied by ``factor``."""
     values: dict[str, Any] = {c: None if getattr(row, c) is None else getattr(row, c) * factor for c in columns}
     return dataclasses.replace(row, **values)
 
 
-def weigh(rows: list[Row], done: list[dict[str, Any]], driven: Collection[str] = ()) -> list[Row]:
+def weigh(rows: list[Row], done: Sequence[TuneRound], driven: Collection[str] = ()) -> list[Row]:
     """The rows the refit uses (the rules of this module's docstring): each round's rows as
     its ``nodes[*].refit`` says (kept, rescaled by ``cpu_factor`` or left out), and the
     sweep's rows of a node at a value a round measured and kept left out; of a node in
@@ -297,18 +300,18 @@ def weigh(rows: list[Row], done: list[dict[str, Any]], driven: Collection[str] =
     (:data:`SAME_INPUT`). Rows of recordings no round made are the sweep's (or the base's)."""
     out: list[Row] = []
     measured: list[Row] = []  # the kept deployment rows: each stands for its (node, value[, input rate])
-    rounds = {round_recording(r): r for r in done}
+    rounds = {r.recording: r for r in done}
     for row in rows:
         r = rounds.get(row.recording)
         if r is None:
             continue
-        node = r["nodes"].get(row.node)
+        node = r.nodes.get(row.node)
         if node is None:  # not a node of the plan: as any run
             out.append(row)
             continue
-        if node["refit"] == USE_LEFT_OUT:
+        if node.refit == USE_LEFT_OUT:
             continue
-        factor = node.get("cpu_factor") or 1.0
+        factor = node.cpu_factor or 1.0
         if factor != 1.0:  # a starved node as at its planned rate: its CPU, rates and bandwidth
             row = _scaled(row, RESCALED_COLUMNS, factor)
         out.append(row)
@@ -358,7 +361,7 @@ def base_rows(path: Path) -> list[Row]:
 CALIBRATION_BOUNDS = (0.5, 2.0)
 
 
-def calibrate(rows: list[Row], done: list[dict[str, Any]], model0: System) -> tuple[list[Row], dict[str, float]]:
+def calibrate(rows: list[Row], done: Sequence[TuneRound], model0: System) -> tuple[list[Row], dict[str, float]]:
     """The sweep's (or base's) rows of each node the rounds measured, scaled by how that node
     ran in the deployments: factor = Σ its CPU in the rounds' kept rows / Σ model 0's CPU at
     the same values (and input rates), model 0 being the fit on the sweep alone. A deployment
@@ -368,14 +371,15 @@ def calibrate(rows: list[Row], done: list[dict[str, Any]], model0: System) -> tu
     scale again. Only rows that measured the node as it ran unhindered (refit ``measured``)
     set a factor: a starved node's rescaled need is an estimate. The rounds' own rows are not
     scaled. Returns the rows and node -> factor."""
-    by_run = {round_recording(r): r for r in done}
+    by_run = {r.recording: r for r in done}
     measured: dict[str, float] = {}
     predicted: dict[str, float] = {}
     seen: set[tuple[str, str]] = set()
     for row in rows:
         if row.recording not in by_run or row.cpu_units_mean is None or (row.recording, row.node) in seen:
             continue
-        use = (by_run[row.recording].get("nodes") or {}).get(row.node, {}).get("refit", USE_MEASURED)
+        node = by_run[row.recording].nodes.get(row.node)
+        use = USE_MEASURED if node is None or node.refit is None else node.refit
         if use != USE_MEASURED:  # a starved node's rescaled need is an estimate: not a scale to carry
             continue
         seen.add((row.recording, row.node))
@@ -394,7 +398,7 @@ def calibrate(rows: list[Row], done: list[dict[str, Any]], model0: System) -> tu
     return out, factors
 
 
-def fit_rounds(outdir: Path, system_path: str | Path, system: System, done: list[dict[str, Any]],
+def fit_rounds(outdir: Path, system_path: str | Path, system: System, done: Sequence[TuneRound],
                units_per_core: float, base: Path | None = None) -> Path:
     """Characterise the sweep (or take ``base``'s rows instead) and the finished rounds,
     weigh the rows (:func:`weigh`) and fit: ``outdir/characterisation-<k>.csv`` and
@@ -408,7 +412,7 @@ def fit_rounds(outdir: Path, system_path: str | Path, system: System, done: list
         if result.failures:
             f = result.failures[0]
             raise InputError(outdir / "manifest.yaml", f"recording {f.recording}: {f.message}")
-        rounds = {round_recording(r) for r in done}
+        rounds = {r.recording for r in done}
         rows += [dataclasses.replace(r, latency_p50_s=None, latency_p95_s=None, latency_max_s=None)
                  if r.recording in rounds else r for r in result.rows]
     k = len(done)
@@ -426,7 +430,7 @@ def fit_rounds(outdir: Path, system_path: str | Path, system: System, done: list
     return model_path
 
 
-def _recalibrate_latency(outdir: Path, doc_system: dict[str, Any], done: list[dict[str, Any]]) -> None:
+def _recalibrate_latency(outdir: Path, doc_system: dict[str, Any], done: Sequence[TuneRound]) -> None:
     """The latency model refitted from the deployments (validation.json's chains beside the
     round's plan.json and model), with the new fit's overhead:
 
@@ -449,11 +453,11 @@ def _recalibrate_latency(outdir: Path, doc_system: dict[str, Any], done: list[di
     # node, the scale and queue factor its round used, the measured hop, the planned hop
     seen: list[tuple[str, float, float, dict[str, Any], dict[str, Any]]] = []
     for r in done:
-        path = outdir / r["dir"] / "validation.json"
-        if not path.is_file() or not (outdir / r["model"]).is_file():
+        path = outdir / r.dir / "validation.json"
+        if not path.is_file() or r.model is None or not (outdir / r.model).is_file():
             continue
-        used = ((read_json(outdir / r["model"]).get("system") or {}).get("latency") or {})
-        plan_chains = {c.get("name"): c for c in (read_json(outdir / r["dir"] / "plan.json").get("chains") or [])}
+        used = ((read_json(outdir / r.model).get("system") or {}).get("latency") or {})
+        plan_chains = {c.get("name"): c for c in (read_json(outdir / r.dir / "plan.json").get("chains") or [])}
         for chain in read_json(path).get("chains") or []:
             hops = {(h.get("from"), h.get("to")): h for h in plan_chains.get(chain.get("name"), {}).get("hops") or []}
             for h in chain.get("hops") or []:
@@ -507,14 +511,14 @@ def model_cpu(model: System, node: str, value: Any, input_hz: float | None = Non
     return driven_rates(s, input_hz)[0] if n.driven and input_hz is not None else s.cpu
 
 
-def kept_share(node: dict[str, Any]) -> float | None:
+def kept_share(node: NodeCheck) -> float | None:
     """The share of its planned rate a node of validation.json kept by itself: its topics'
     mean F_measured / F_expected; for a driven node, over the share its input kept (what it
     made of the messages it got); None without a rate to compare."""
-    if not node.get("counted"):
+    if not node.counted:
         return None
-    ratio = float(node["ratio"])
-    given, planned = node.get("input_hz_measured"), node.get("input_hz_expected")
+    ratio = float(node.ratio)
+    given, planned = node.input_hz_measured, node.input_hz_expected
     if given and planned:
         return ratio * planned / given
     return ratio
@@ -538,25 +542,25 @@ def _deployed(plan: Plan, space: Any, arg_defaults: dict[str, str | None]) -> tu
 
 
 def round_entry(k: int, plan: Plan, plan_path: Path, model_path: Path, record: dict[str, Any],
-                validation: dict[str, Any], tolerance: float) -> dict[str, Any]:
-    """Round ``k``'s entry of tune.json from its plan, deploy.json and validation.json: per
+                validation: Validation, tolerance: float) -> TuneRound:
+    """Round ``k``'s entry of tune.json from its plan, deploy.json and validation: per
     computer its throttling, per node predicted vs measured CPU and how the refit uses it."""
     throttling = record.get("throttling") or {}
-    computers: dict[str, dict[str, Any]] = {}
-    for c in validation.get("computers", []):
-        t = throttling.get(c["computer"]) or {}
+    computers: dict[str, RoundComputer] = {}
+    for c in validation.computers:
+        t = throttling.get(c.name) or {}
         share = t["nr_throttled"] / t["nr_periods"] if t.get("nr_periods") else 0.0
-        computers[c["computer"]] = {"capacity": c["capacity"], "cpu_planned": c["cpu_expected"],
-                                    "cpu_measured": c["cpu_measured"], "throttled_share": round(share, 4),
-                                    "starved": share >= THROTTLED_SHARE}
+        computers[c.name] = RoundComputer(c.capacity, c.cpu_expected, c.cpu_measured, round(share, 4),
+                                          share >= THROTTLED_SHARE)
     values = dict(record["values"])
     model = load_model(model_path)
-    nodes: dict[str, dict[str, Any]] = {}
-    for n in validation["nodes"]:
+    nodes: dict[str, RoundNode] = {}
+    for n in validation.nodes:
         # ratio: the node's kept share of its planned rate; None without a rate to compare
-        name, measured = n["node"], n.get("cpu_measured")
+        name, measured = n.node, n.cpu_measured
         ratio = kept_share(n)
-        starved = computers.get(n["computer"], {}).get("starved", False)
+        here = computers.get(n.computer)
+        starved = here is not None and here.starved
         factor, use = 1.0, USE_MEASURED
         if measured is None or (starved and ratio is None):
             use = USE_LEFT_OUT
@@ -564,26 +568,19 @@ def round_entry(k: int, plan: Plan, plan_path: Path, model_path: Path, record: d
             factor, use = 1.0 / max(ratio, MIN_KEPT), USE_RESCALED
         value = values.get(name, plan.nodes[name].value if name in plan.nodes else None)
         input_hz = plan.nodes[name].input_hz if name in plan.nodes else None
-        nodes[name] = {"computer": n["computer"], "value": value, "cpu_planned": n.get("cpu_expected"),
-                       "cpu_measured": measured, "kept_ratio": ratio, "starved": starved,
-                       "cpu_need": None if measured is None or use == USE_LEFT_OUT else measured * factor,
-                       "cpu_factor": factor, "refit": use, "input_hz": input_hz,
-                       "model_cpu_before": model_cpu(model, name, value, input_hz), "model_cpu_after": None}
-    overall = validation["overall"]
-    entry: dict[str, Any] = {
-            "round": k, "dir": f"round-{k}", "plan": str(plan_path.relative_to(plan_path.parent.parent)),
-            "model": model_path.name, "refit_model": None, "objective": plan.objective,
-            "values": values, "placement": {name: pn.computer for name, pn in sorted(plan.nodes.items())},
-            "expected": overall["expected"], "measured": overall["measured"],
-            "deviation_pct": overall["deviation_pct"],
-            "within_tolerance": None,
-            "run_id": record["run_id"], "cpu_cap": record["cpu_cap"]["mode"], "network": record["network"]["mode"],
-            "computers": computers, "nodes": nodes}
-    entry["within_tolerance"] = holds(entry, tolerance)
+        nodes[name] = RoundNode(n.computer, value, n.cpu_expected, measured, ratio, starved,
+                                None if measured is None or use == USE_LEFT_OUT else measured * factor,
+                                factor, use, input_hz, model_cpu(model, name, value, input_hz), None)
+    entry = TuneRound(
+        k, f"round-{k}", str(plan_path.relative_to(plan_path.parent.parent)), model_path.name, None, plan.objective,
+        values, {name: pn.computer for name, pn in sorted(plan.nodes.items())},
+        validation.overall_expected, validation.overall_measured, validation.deviation_pct, None,
+        record["run_id"], record["cpu_cap"]["mode"], record["network"]["mode"], computers, nodes)
+    entry.within_tolerance = holds(entry, tolerance)
     return entry
 
 
-def holds(entry: dict[str, Any], tolerance: float) -> bool:
+def holds(entry: TuneRound, tolerance: float) -> bool:
     """Does a round's plan hold? Its deviation (eq 10) is within ``tolerance`` and no node was
     held back by its computer's cap: on a starved computer (throttled in at least
     :data:`THROTTLED_SHARE` of the CFS periods) no node kept less than :data:`KEPT_ALL` of its
@@ -593,16 +590,15 @@ def holds(entry: dict[str, Any], tolerance: float) -> bool:
     quota within a period and is throttled there without missing a message (measured:
     people_detect on a server planned to 58 % of its cap, throttled in 27-43 % of periods,
     kept 99-100 %)."""
-    behind = any(n.get("starved") and n.get("kept_ratio") is not None and n["kept_ratio"] < KEPT_ALL
-                 for n in (entry.get("nodes") or {}).values())
-    return bool(entry["deviation_pct"] <= tolerance and not behind)
+    behind = any(n.starved and n.kept_ratio is not None and n.kept_ratio < KEPT_ALL for n in entry.nodes.values())
+    return bool(entry.deviation_pct <= tolerance and not behind)
 
 
-def _fill_after(entry: dict[str, Any], model_path: Path) -> None:
-    entry["refit_model"] = model_path.name
+def _fill_after(entry: TuneRound, model_path: Path) -> None:
+    entry.refit_model = model_path.name
     model = load_model(model_path)
-    for name, n in entry["nodes"].items():
-        n["model_cpu_after"] = model_cpu(model, name, n["value"], n.get("input_hz"))
+    for name, n in entry.nodes.items():
+        n.model_cpu_after = model_cpu(model, name, n.value, n.input_hz)
 
 
 def _plot(outdir: Path, doc: dict[str, Any], plot: Plot | None) -> None:

@@ -85,6 +85,12 @@ class TopicCheck:
             "bandwidth_kBps": self.bandwidth_kBps, "messages": self.messages, "rate_note": self.rate_note,
         }
 
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any]) -> TopicCheck:
+        """A topic of validation.json ``nodes[].topics`` (what :meth:`to_dict` wrote)."""
+        return cls(d["topic"], d["f_expected"], d["f_measured"], d["ratio"], d["deviation_pct"], d["bandwidth_kBps"],
+                   d["messages"], TopicStatus(d["status"]), d.get("rate_note"))
+
 
 @dataclass
 class NodeCheck:
@@ -132,6 +138,16 @@ class NodeCheck:
             "topics": [t.to_dict() for t in self.topics],
         }
 
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any]) -> NodeCheck:
+        """A node of validation.json ``nodes`` (``flagged`` and ``input_deviation_pct`` follow
+        from the rest)."""
+        return cls(d["node"], d["computer"], d["weight"], d["p_expected"], d["p_measured"], d["ratio"],
+                   d["deviation_pct"], d["counted"], [TopicCheck.from_json(t) for t in d.get("topics") or []],
+                   d.get("parameter"), d.get("value"), d.get("cpu_expected"), d.get("cpu_measured"), d.get("note"),
+                   d.get("metric_value"), d.get("p_metric"), d.get("metric_deviation_pct"), d.get("input"),
+                   d.get("input_hz_expected"), d.get("input_hz_measured"), d.get("input_rate_note"))
+
     @property
     def input_deviation_pct(self) -> float | None:
         """100 x |measured - expected| / expected of a driven node's input rate."""
@@ -156,6 +172,11 @@ class ComputerCheck:
             "unmatched_nodes": self.unmatched_nodes,
         }
 
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any]) -> ComputerCheck:
+        return cls(d["computer"], d["capacity"], d["cpu_expected"], d["cpu_measured"], d["overloaded"],
+                   list(d.get("unmatched_nodes") or []))
+
 
 @dataclass
 class LinkCheck:
@@ -173,6 +194,13 @@ class LinkCheck:
             "expected_kBps": self.expected_kBps, "measured_kBps": self.measured_kBps,
             "overloaded": self.overloaded, "edges": self.edges,
         }
+
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any]) -> LinkCheck:
+        """A link or medium of validation.json ``links``/``media``."""
+        a, b = d["between"]
+        return cls((a, b), d["capacity_kBps"], d["expected_kBps"], d["measured_kBps"], d["overloaded"], d.get("medium"),
+                   list(d.get("edges") or []))
 
 
 @dataclass
@@ -196,6 +224,11 @@ class NetworkCheck:
                 "latency_p50_s": self.latency_p50_s, "latency_p95_s": self.latency_p95_s,
                 "latency_max_s": self.latency_max_s}
 
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any]) -> NetworkCheck:
+        return cls(d["edge"], d["topic"], [(a, b) for a, b in d["links"]], d["message_bytes"], d["predicted_delay_s"],
+                   d.get("latency_p50_s"), d.get("latency_p95_s"), d.get("latency_max_s"))
+
 
 @dataclass
 class UnplannedTopic:
@@ -209,6 +242,10 @@ class UnplannedTopic:
     def to_dict(self) -> dict[str, Any]:
         return {"topic": self.topic, "msgtype": self.msgtype, "messages": self.messages,
                 "f_measured": self.f_measured, "bandwidth_kBps": self.bandwidth_kBps, "rate_note": self.rate_note}
+
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any]) -> UnplannedTopic:
+        return cls(d["topic"], d["msgtype"], d["messages"], d["f_measured"], d["bandwidth_kBps"], d.get("rate_note"))
 
 
 @dataclass
