@@ -155,7 +155,8 @@ def test_tune_json_reader(tmp_path: Path) -> None:
 
 
 def _cli(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([str(BIN), "tune", *args], capture_output=True, text=True, timeout=60)
+    # a hang guard: a refusal takes seconds, a minute or more on a loaded machine
+    return subprocess.run([str(BIN), "tune", *args], capture_output=True, text=True, timeout=300)
 
 
 def test_bad_input_is_one_line_exit_2_and_writes_nothing(tmp_path: Path) -> None:
