@@ -239,3 +239,31 @@ def test_time_limit_is_the_whole_process_the_solver_gets_the_rest(monkeypatch: p
     cli(str(INSTANCE1), "--method", "exact", "--time-limit", "60")
     (given,) = handed
     assert given is not None and 60 - (1 + 0.6 + 0.005 * rows) - 5 < given <= 60 - (1 + 0.6 + 0.005 * rows)
+
+
+def test_a_fleet_plan_shows_its_first_node_rows_and_says_how_many_more() -> None:
+    """Above NODE_ROWS nodes the table stops (rendering a fleet's 1,180 rows cost seconds):
+    the first rows are the plan's own nodes in order, then one line counts the rest."""
+    import io
+
+    from rich.console import Console
+
+    from perfros_bag.casestudy.instances import fleet_instance
+    from perfros_bag.cli.solve import NODE_ROWS, print_plan
+    from perfros_bag.solver import solve
+    from perfros_bag.system.systemfile import parse_system
+
+    system = parse_system(fleet_instance(NODE_ROWS + 37, 40, seed=3), "fleet.yaml")
+    plan = solve(system, 1, "greedy")
+    assert len(plan.nodes) > NODE_ROWS
+    buf = io.StringIO()
+    print_plan(Console(file=buf, width=240, color_system=None), plan)
+    text = buf.getvalue()
+    names = list(plan.nodes)
+    shown = [n for n in names if f"│ {n} " in text]
+    assert shown == names[:NODE_ROWS]
+    assert "... 37 more (plan.json has every node)" in text
+    small = solve(parse_system(table2_instance(1), "t2.yaml"), 1, "greedy")
+    buf = io.StringIO()
+    print_plan(Console(file=buf, width=240, color_system=None), small)
+    assert all(f"│ {n} " in buf.getvalue() for n in small.nodes) and "more (plan.json" not in buf.getvalue()

@@ -129,6 +129,10 @@ def measured_note(plan: Plan, unmeasured: Mapping[str, Unmeasured]) -> dict[str,
     return out
 
 
+#: a fleet's plan shows this many node rows (rendering 1,180 rows took 10-15 s on a loaded machine)
+NODE_ROWS = 200
+
+
 def print_plan(console: Console, plan: Plan, unmeasured: Mapping[str, Unmeasured] | None = None) -> None:
     """Nodes (computer, parameter value, CPU, performance; with model.json's ``unmeasured``,
     whether the value was measured), computers and links."""
@@ -145,6 +149,9 @@ def print_plan(console: Console, plan: Plan, unmeasured: Mapping[str, Unmeasured
         row = [name, n.computer, n.parameter or "-", _num(n.value, 3), _num(n.cpu), _num(n.performance),
                _num(n.weight, 4)]
         nodes.add_row(*row, *((_num(n.input_hz),) if flow else ()), *((notes.get(name, "-"),) if notes else ()))
+        if len(nodes.rows) == NODE_ROWS and len(plan.nodes) > NODE_ROWS:
+            nodes.add_row(f"... {len(plan.nodes) - NODE_ROWS} more (plan.json has every node)")
+            break
     console.print(nodes)
     comps = Table(title="computers", title_justify="left")
     kept = any(c.margin for c in plan.computers.values())  # --headroom: the CPU each keeps free
