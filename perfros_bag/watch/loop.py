@@ -238,34 +238,50 @@ def _windows(observer: Observer, plan: Plan, system: System | None, live: Any, u
     from perfros_bag.characterisation.csvfile import write_characterisation
     from perfros_bag.fileio import atomic_write_text, json_text
     from perfros_bag.watch.alarms import rate_drifts
-    from perfros_bag.watch.window import evaluate, window_cpu, window_document, window_stats
+    from perfros_bag.watch.window import cgroup_cpu_s, evaluate, window_cpu, window_document, window_stats
 
     rows: list[Row] = []
     lines: list[str] = []
+    groups = dict(live.cgroups) if live is not None else {}
     before = observer.read()
+    used_before = {c: cgroup_cpu_s(d) for c, d in groups.items()}
     for listener in listeners.values():
         listener.take()  # what came before the first window's start is not in it
     k = 0
     while windows is None or k < windows:
         end = before.t + window_s
         after = _read_until(observer, end, live, stop)
+        used_after = {c: cgroup_cpu_s(d) for c, d in groups.items()}
         if stop.is_set():
             result.ended = "interrupted (Ctrl-C)"
             break
         latency = chain_latency(listeners)  # right after the counters, so both cover the same seconds
+        for listener in listeners.values():  # a restarted publisher (a new URI) is listened to again
+            listener.follow([u for p in observer.publishers.get(listener.topic, []) if (u := observer._uri(p))])
         k += 1
         stats = window_stats(before, after, observer.types, f"window-{k}")
         cpu = window_cpu(before, after, plan, units)
+        world = _world(live, plan, before, after, used_before, used_after, units)
+        if world.get("links") and system is not None:
+            from perfros_bag.watch.adapt import world_system
+
+            system = world_system(system, {"links": world["links"]})  # judged against the rates in force
         v = evaluate(stats, plan, system, cpu, tolerance)
         doc = window_document(k, after.t, after.t - before.t, v, plan, after.alive, set(cpu), [], latency)
+        for c, x in (world.get("foreign") or {}).items():
+            if c in doc["computers"]:
+                doc["computers"][c]["foreign"] = x
+        if world.get("pinned"):
+            doc["pinned"] = world["pinned"]
         alarms = persistence.update(rate_drifts(doc, tolerance))
         doc["alarms"] = [a.to_dict() for a in alarms]
         new = [a.to_dict() for a in alarms if a.new]
         result.alarms += new
         result.windows = k
         if adapt is not None and new:
-            replan = adapt.replan(plan, rows + window_rows(k, doc, plan, observer.types), new, k)
+            replan = adapt.replan(plan, rows + window_rows(k, doc, plan, observer.types), new, k, world)
             if replan is not None:
+                persistence = type(persistence)(persistence.persist)  # the new plan's drifts count afresh
                 result.replans.append(replan)
                 doc["replan"] = replan
                 if replan["applied"].startswith("sent"):  # the deploy runs it now: watch it against that
@@ -282,7 +298,29 @@ def _windows(observer: Observer, plan: Plan, system: System | None, live: Any, u
         if not after.master_up or (live is not None and not _deploy_running(live)):
             result.ended = "the deploy ended" if live is not None else f"the master at {master_uri} went away"
             break
-        before = after
+        before, used_before = after, used_after
+
+
+def _world(live: Any, plan: Plan, before: Reading, after: Reading, used_before: dict[str, float | None],
+           used_after: dict[str, float | None], units: float | None) -> dict[str, Any]:
+    """The world as a deploy in progress has it now (nothing without one): its links' rates
+    in force, each computer's CPU beyond its planned nodes (``foreign``), and the values it
+    runs that differ from the plan watched (``pinned``: an operator's change)."""
+    from perfros_bag.sweep.livestate import read_live
+    from perfros_bag.watch.window import foreign_cpu
+
+    if live is None or live.folder is None:
+        return {}
+    try:
+        now = read_live(live.folder)
+    except PerfrosError:
+        return {}
+    where = {n: pn.computer for n, pn in plan.nodes.items()}
+    pinned = {n: v for n, v in now.values.items()
+              if n in plan.nodes and plan.nodes[n].value is not None and isinstance(v, int | float)
+              and abs(float(v) - float(plan.nodes[n].value or 0.0)) > 1e-9}
+    return {"links": now.links, "foreign": foreign_cpu(before, after, used_before, used_after, where, units or 100.0),
+            "pinned": pinned}
 
 
 def _deploy_running(live: Any) -> bool:

@@ -11,6 +11,7 @@ the same seconds, given to eq 10 in the units its computer is planned in.
 
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -93,6 +94,54 @@ def window_cpu(before: Reading, after: Reading, plan: Plan, units_per_core: floa
         if units_per_core is not None and cap:
             percent = percent * n * units_per_core / cap
         out[node] = TracedCpu(percent, n, "live")
+    return out
+
+
+def cgroup_cpu_s(folder: str | Path) -> float | None:
+    """CPU seconds a cgroup's processes used so far (v2 ``cpu.stat`` ``usage_usec``, v1
+    ``cpuacct.usage``); None when it cannot be read."""
+    d = Path(folder)
+    try:
+        for line in (d / "cpu.stat").read_text().splitlines():
+            key, _, val = line.partition(" ")
+            if key == "usage_usec":
+                return float(val) / 1e6
+    except (OSError, ValueError):
+        pass
+    for cand in (d / "cpuacct.usage", Path(str(d).replace("/cpu/", "/cpuacct/")) / "cpuacct.usage"):
+        try:
+            return float(cand.read_text()) / 1e9
+        except (OSError, ValueError):
+            continue
+    return None
+
+
+def foreign_cpu(before: Reading, after: Reading, groups_before: dict[str, float | None],
+                groups_after: dict[str, float | None], where: dict[str, str],
+                units_per_core: float) -> dict[str, float]:
+    """Per emulated computer, CPU units its cgroup spent over the window beyond its launched
+    nodes' own (another process inside it: a hog; ``where``: plan node -> computer); a
+    computer with a node restarted in the window, or whose group cannot be read, is left out."""
+    seconds = after.t - before.t
+    out: dict[str, float] = {}
+    if seconds <= 0:
+        return out
+    for computer, b in groups_before.items():
+        a = groups_after.get(computer)
+        if a is None or b is None:
+            continue
+        nodes_s = 0.0
+        for node, at in where.items():
+            if at != computer:
+                continue
+            if node not in before.cpu_s or node not in after.cpu_s \
+                    or before.cpu_pid.get(node) != after.cpu_pid.get(node):
+                nodes_s = math.nan
+                break
+            nodes_s += after.cpu_s[node] - before.cpu_s[node]
+        if math.isnan(nodes_s):
+            continue
+        out[computer] = round(max(0.0, (a - b - nodes_s) / seconds * units_per_core), 3)
     return out
 
 
