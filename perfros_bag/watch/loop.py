@@ -94,7 +94,7 @@ def window_rows(k: int, doc: dict[str, Any], plan: Plan, stats_types: dict[str, 
 def watch(plan_path: str | Path, *, master_uri: str | None = None, deployment: str | Path | None = None,
           system_path: str | Path | None = None, window_s: float = 5.0, tolerance: float = DEFAULT_TOLERANCE,
           persist: int = PERSIST_DEFAULT, partial: bool = False, windows: int | None = None,
-          out: str | Path | None = None, adapt: Any = None,
+          out: str | Path | None = None, adapt: Any = None, latency_tolerance: float | None = None,
           on_window: Callable[[dict[str, Any], list[dict[str, Any]]], None] | None = None) -> WatchResult:
     """Watch the plan at ``plan_path`` until ``windows`` windows (None: until Ctrl-C, or the
     master or the deploy goes away). ``on_window(doc, new_alarms)`` gets every window's JSON
@@ -107,6 +107,9 @@ def watch(plan_path: str | Path, *, master_uri: str | None = None, deployment: s
     window_s = check_window(window_s)
     if not math.isfinite(tolerance) or tolerance < 0:
         raise InputError(None, f"--tolerance must be a finite number >= 0, got {tolerance!r}")
+    if latency_tolerance is not None and not latency_tolerance >= 0:  # inf: chains never alarm
+        raise InputError(None, f"--latency-tolerance must be a number >= 0 (inf: never), got {latency_tolerance!r}")
+    lat_tol = tolerance if latency_tolerance is None else latency_tolerance
     if persist < 1:
         raise InputError(None, f"--persist must be >= 1, got {persist}")
     plan = load_plan(plan_path)
@@ -129,8 +132,8 @@ def watch(plan_path: str | Path, *, master_uri: str | None = None, deployment: s
     stop = threading.Event()
 
     def run() -> WatchResult:
-        return _watch(plan, plan_path, system, master_uri, live is not None, live, window_s, tolerance, persist,
-                      partial, windows, out, adapt, on_window, stop)
+        return _watch(plan, plan_path, system, master_uri, live is not None, live, window_s, (tolerance, lat_tol),
+                      persist, partial, windows, out, adapt, on_window, stop)
 
     if ns is None:
         return run()
@@ -171,7 +174,7 @@ def _in_namespace(ns: str, run: Callable[[], WatchResult], stop: threading.Event
 
 
 def _watch(plan: Plan, plan_path: str | Path, system: System | None, master_uri: str, attached: bool, live: Any,
-           window_s: float, tolerance: float, persist: int, partial: bool, windows: int | None,
+           window_s: float, tolerance: tuple[float, float], persist: int, partial: bool, windows: int | None,
            out: str | Path | None, adapt: Any,
            on_window: Callable[[dict[str, Any], list[dict[str, Any]]], None] | None,
            stop: threading.Event) -> WatchResult:
@@ -232,7 +235,7 @@ def chain_latency(listeners: dict[str, StampListener]) -> dict[str, dict[str, An
 
 
 def _windows(observer: Observer, plan: Plan, system: System | None, live: Any, units: float | None, window_s: float,
-             tolerance: float, persistence: Any, windows: int | None, outdir: Path | None, adapt: Any,
+             tolerances: tuple[float, float], persistence: Any, windows: int | None, outdir: Path | None, adapt: Any,
              on_window: Callable[[dict[str, Any], list[dict[str, Any]]], None] | None, result: WatchResult,
              master_uri: str, listeners: dict[str, StampListener], stop: threading.Event) -> None:
     from perfros_bag.characterisation.csvfile import write_characterisation
@@ -240,6 +243,7 @@ def _windows(observer: Observer, plan: Plan, system: System | None, live: Any, u
     from perfros_bag.watch.alarms import rate_drifts
     from perfros_bag.watch.window import cgroup_cpu_s, evaluate, window_cpu, window_document, window_stats
 
+    tolerance, latency_tolerance = tolerances
     rows: list[Row] = []
     lines: list[str] = []
     groups = dict(live.cgroups) if live is not None else {}
@@ -273,7 +277,7 @@ def _windows(observer: Observer, plan: Plan, system: System | None, live: Any, u
                 doc["computers"][c]["foreign"] = x
         if world.get("pinned"):
             doc["pinned"] = world["pinned"]
-        alarms = persistence.update(rate_drifts(doc, tolerance))
+        alarms = persistence.update(rate_drifts(doc, tolerance, latency_tolerance))
         doc["alarms"] = [a.to_dict() for a in alarms]
         new = [a.to_dict() for a in alarms if a.new]
         result.alarms += new
@@ -318,9 +322,17 @@ def _world(live: Any, plan: Plan, before: Reading, after: Reading, used_before: 
     where = {n: pn.computer for n, pn in plan.nodes.items()}
     pinned = {n: v for n, v in now.values.items()
               if n in plan.nodes and plan.nodes[n].value is not None and isinstance(v, int | float)
-              and abs(float(v) - float(plan.nodes[n].value or 0.0)) > 1e-9}
+              and not _runs_as(float(plan.nodes[n].value or 0.0), v)}
     return {"links": now.links, "foreign": foreign_cpu(before, after, used_before, used_after, where, units or 100.0),
             "pinned": pinned}
+
+
+def _runs_as(planned: float, running: float) -> bool:
+    """Whether a node running at ``running`` runs its planned value (a whole-number
+    parameter runs the planned value rounded, as deploy's ``plan_run`` does)."""
+    if isinstance(running, int) and not isinstance(running, bool):
+        return int(round(planned)) == running
+    return abs(planned - float(running)) <= 1e-9 * max(1.0, abs(planned))
 
 
 def _deploy_running(live: Any) -> bool:
