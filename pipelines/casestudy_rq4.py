@@ -146,14 +146,21 @@ def adapt_log(folder: Path) -> list[dict[str, Any]]:
 
 
 def detection(ws: list[dict[str, Any]], t_change: float) -> dict[str, Any]:
-    """The first window ending after the change with an alarm: seconds after the change,
-    windows ending after it (that one included), its alarm lines; alarms before it."""
-    before = [a["line"] for w in ws if w["t"] <= t_change for a in w["alarms"]]
+    """The first window ending after the change with an alarm not standing before it:
+    seconds after the change, windows ending after it (that one included, the one the change
+    fell in counted whole), those alarms' lines; and every alarm raised before the change."""
+    def key(a: dict[str, Any]) -> tuple[str, str]:
+        return (str(a.get("node") or a.get("chain")), str(a["quantity"]))
+
+    pre = [w for w in ws if w["t"] <= t_change]
+    before = sorted({a["line"] for w in pre for a in w["alarms"]})
+    standing = {key(a) for a in pre[-1]["alarms"]} if pre else set()  # raised before the change, still on
     after = [w for w in ws if w["t"] > t_change]
     for j, w in enumerate(after, 1):
-        if w["alarms"]:
+        fresh = [a for a in w["alarms"] if key(a) not in standing]
+        if fresh:
             return {"detect_s": round(w["t"] - t_change, 1), "windows": j, "t": w["t"],
-                    "state": sorted({a["line"] for a in w["alarms"]}), "false_before": before}
+                    "state": sorted({a["line"] for a in fresh}), "false_before": before}
     return {"detect_s": None, "windows": None, "t": None, "state": [], "false_before": before}
 
 
