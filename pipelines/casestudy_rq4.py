@@ -122,7 +122,7 @@ def reap(proc: subprocess.Popen[str], started: float, timeout: float) -> dict[st
             break
         time.sleep(0.2)
     else:
-        proc.send_signal(signal.SIGINT)
+        proc.send_signal(signal.SIGTERM)  # taken as Ctrl-C
         pid, status, usage = os.wait4(proc.pid, 0)
     proc.returncode = os.waitstatus_to_exitcode(status)
     wall = time.monotonic() - started
@@ -276,9 +276,9 @@ def scenario(what: str, out: Path, app: Path, plan_path: Path, system_path: Path
         if hog is not None and hog.poll() is None:
             hog.kill()
             hog.wait(10)
-        for p in (alone, adapt, deploy):
+        for p in (alone, adapt, deploy):  # SIGTERM: perfros-bag takes it as Ctrl-C (SIGINT may be ignored)
             if p is not None and p.poll() is None:
-                p.send_signal(signal.SIGINT)
+                p.send_signal(signal.SIGTERM)
                 p.wait(60)
         deploy_log.close()
     res["load_end"] = load()
@@ -382,6 +382,11 @@ def main(argv: list[str]) -> int:
     args = ap.parse_args(argv)
     out: Path = args.out.resolve()
     out.mkdir(parents=True, exist_ok=True)
+
+    def interrupted(_sig: int, _frame: Any) -> None:
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, interrupted)  # stopped from outside: the same cleanup as Ctrl-C
     started, t0 = datetime.now(UTC).strftime("%Y-%m-%d %H:%M"), time.monotonic()
     try:
         results = run(out, args, started)
@@ -412,9 +417,12 @@ def tuned(out: Path, app: Path, number: int, robots: int, fallback: Path) -> Pat
                          "--system", d / "system.yaml", "--base", d / "characterisation.csv", "--out", d / "tune",
                          "--rounds", cr.TUNE_ROUNDS, "--tolerance", cr.TUNE_TOLERANCE, "--headroom", "auto",
                          "--duration", "15", "--units-per-core", f"{cr.UNITS_PER_CORE:g}"]
-    cr.err.print(f"[bold]RQ4[/]: tune instance {number} -> {cr.rel(d / 'tune')} (load {load()})")
-    cr.sh(cmd, ok=(0, 1, 2))
     doc_path = d / "tune" / "tune.json"
+    if doc_path.exists() and json.loads(doc_path.read_text()).get("rounds"):
+        cr.err.print(f"reusing {cr.rel(d / 'tune')}")
+    else:
+        cr.err.print(f"[bold]RQ4[/]: tune instance {number} -> {cr.rel(d / 'tune')} (load {load()})")
+        cr.sh(cmd, ok=(0, 1, 2))
     if not doc_path.exists():
         return fallback
     rounds = json.loads(doc_path.read_text())["rounds"]
