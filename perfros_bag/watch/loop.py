@@ -107,8 +107,8 @@ def watch(plan_path: str | Path, *, master_uri: str | None = None, deployment: s
     window_s = check_window(window_s)
     if not math.isfinite(tolerance) or tolerance < 0:
         raise InputError(None, f"--tolerance must be a finite number >= 0, got {tolerance!r}")
-    if latency_tolerance is not None and not latency_tolerance >= 0:  # inf: chains never alarm
-        raise InputError(None, f"--latency-tolerance must be a number >= 0 (inf: never), got {latency_tolerance!r}")
+    if latency_tolerance is not None and not latency_tolerance >= 0:  # math.inf: chains never alarm
+        raise InputError(None, f"--latency-tolerance must be a finite number >= 0, got {latency_tolerance!r}")
     lat_tol = tolerance if latency_tolerance is None else latency_tolerance
     if persist < 1:
         raise InputError(None, f"--persist must be >= 1, got {persist}")
