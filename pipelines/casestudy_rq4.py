@@ -143,7 +143,7 @@ def adapt_log(folder: Path) -> list[dict[str, Any]]:
     return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
 
 
-def detection(ws: list[dict[str, Any]], t_change: float) -> dict[str, Any]:
+def detection(ws: list[dict[str, Any]], t_change: float, until: float) -> dict[str, Any]:
     """The first window ending after the change with an alarm not standing before it:
     seconds after the change, windows ending after it (that one included, the one the change
     fell in counted whole), those alarms' lines; and every alarm raised before the change."""
@@ -153,7 +153,7 @@ def detection(ws: list[dict[str, Any]], t_change: float) -> dict[str, Any]:
     pre = [w for w in ws if w["t"] <= t_change]
     before = sorted({a["line"] for w in pre for a in w["alarms"]})
     standing = {key(a) for a in pre[-1]["alarms"]} if pre else set()  # raised before the change, still on
-    after = [w for w in ws if w["t"] > t_change]
+    after = [w for w in ws if t_change < w["t"] <= until]  # not the deploy's own end
     for j, w in enumerate(after, 1):
         fresh = [a for a in w["alarms"] if key(a) not in standing]
         if fresh:
@@ -229,6 +229,7 @@ def scenario(what: str, out: Path, app: Path, plan_path: Path, system_path: Path
     try:
         live = wait_live(dep, deploy)
         t_up = time.monotonic()
+        res["t_until"] = time.time() + seconds - 10.0
         alone = start_watch(plan_path, dep, d / "alone", False, app, robots)
         adapt = None if what == "steady" else start_watch(plan_path, dep, d / "adapt", True, app, robots)
         if what != "steady":
@@ -284,20 +285,21 @@ def scenario(what: str, out: Path, app: Path, plan_path: Path, system_path: Path
     record = json.loads((dep / "deploy.json").read_text()) if (dep / "deploy.json").exists() else {}
     res["leftovers"] = {"cgroups": record.get("leftover_cgroups"), "namespaces": record.get("leftover_namespaces")}
     res["deploy_replans"] = len(record.get("replans") or [])
-    alone_ws = windows_of(d / "alone")
+    # the windows while the plan ran (not those of the deploy stopping its nodes at its end)
+    alone_ws = [w for w in windows_of(d / "alone") if w["t"] <= res["t_until"]]
     if what == "steady":
         res["windows"] = len(alone_ws)
         res["false_alarms"] = sorted({a["line"] for w in alone_ws for a in w["alarms"]})
         res["steady_s"] = round(sum(w["seconds"] for w in alone_ws), 1)
         return res
     t_change = res["t_change"]
-    res["alone"] = detection(alone_ws, t_change)
+    res["alone"] = detection(alone_ws, t_change, res["t_until"])
     after = [w for w in alone_ws if res["alone"]["t"] is not None and w["t"] >= res["alone"]["t"]]
     res["old_measured_after"] = (round(sum(w["overall"]["measured"] for w in after) / len(after), 4)
                                  if after else None)
     res["old_expected"] = plan.get("objective")
-    adapt_ws = windows_of(d / "adapt")
-    res["adapt"] = detection(adapt_ws, t_change)
+    adapt_ws = [w for w in windows_of(d / "adapt") if w["t"] <= res["t_until"]]
+    res["adapt"] = detection(adapt_ws, t_change, res["t_until"])
     res["adapt"].update(recovery(adapt_ws, adapt_log(d / "adapt"), res["adapt"]["t"]))
     return res
 

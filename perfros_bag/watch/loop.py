@@ -305,8 +305,8 @@ def _windows(observer: Observer, plan: Plan, system: System | None, live: Any, u
         before, used_before = after, used_after
 
 
-def _world(live: Any, plan: Plan, before: Reading, after: Reading, used_before: dict[str, float | None],
-           used_after: dict[str, float | None], units: float | None) -> dict[str, Any]:
+def _world(live: Any, plan: Plan, before: Reading, after: Reading, used_before: dict[str, dict[int, float] | None],
+           used_after: dict[str, dict[int, float] | None], units: float | None) -> dict[str, Any]:
     """The world as a deploy in progress has it now (nothing without one): its links' rates
     in force, each computer's CPU beyond its planned nodes (``foreign``), and the values it
     runs that differ from the plan watched (``pinned``: an operator's change)."""

@@ -97,27 +97,47 @@ def window_cpu(before: Reading, after: Reading, plan: Plan, units_per_core: floa
     return out
 
 
-def cgroup_cpu_s(folder: str | Path) -> float | None:
-    """CPU seconds a cgroup's processes used so far (v2 ``cpu.stat`` ``usage_usec``, v1
-    ``cpuacct.usage``); None when it cannot be read."""
-    d = Path(folder)
+def cgroup_cpu_s(folder: str | Path) -> dict[int, float] | None:
+    """CPU seconds so far of each process in a cgroup (its ``cgroup.procs``, psutil's
+    user + system of each PID: the same on cgroup v1, whose ``cpu`` hierarchy need not
+    account usage, and v2); None when the group cannot be read."""
+    import psutil
+
     try:
-        for line in (d / "cpu.stat").read_text().splitlines():
-            key, _, val = line.partition(" ")
-            if key == "usage_usec":
-                return float(val) / 1e6
+        pids = [int(x) for x in (Path(folder) / "cgroup.procs").read_text().split()]
     except (OSError, ValueError):
-        pass
-    for cand in (d / "cpuacct.usage", Path(str(d).replace("/cpu/", "/cpuacct/")) / "cpuacct.usage"):
+        return None
+    out: dict[int, float] = {}
+    for pid in pids:
         try:
-            return float(cand.read_text()) / 1e9
-        except (OSError, ValueError):
+            ct = psutil.Process(pid).cpu_times()
+        except psutil.Error:
             continue
-    return None
+        out[pid] = float(ct.user + ct.system)
+    return out
 
 
-def foreign_cpu(before: Reading, after: Reading, groups_before: dict[str, float | None],
-                groups_after: dict[str, float | None], where: dict[str, str],
+def _group_delta(before: dict[int, float], after: dict[int, float], since: float) -> float:
+    """CPU seconds a group's processes used between two readings: each process present at
+    the second, from its first reading (one started after ``since``: all of its CPU)."""
+    import psutil
+
+    total = 0.0
+    for pid, used in after.items():
+        if pid in before:
+            total += max(0.0, used - before[pid])
+            continue
+        try:
+            born = psutil.Process(pid).create_time()
+        except psutil.Error:
+            continue
+        if born >= since:
+            total += used
+    return total
+
+
+def foreign_cpu(before: Reading, after: Reading, groups_before: dict[str, dict[int, float] | None],
+                groups_after: dict[str, dict[int, float] | None], where: dict[str, str],
                 units_per_core: float) -> dict[str, float]:
     """Per emulated computer, CPU units its cgroup spent over the window beyond its launched
     nodes' own (another process inside it: a hog; ``where``: plan node -> computer); a
@@ -141,7 +161,8 @@ def foreign_cpu(before: Reading, after: Reading, groups_before: dict[str, float 
             nodes_s += after.cpu_s[node] - before.cpu_s[node]
         if math.isnan(nodes_s):
             continue
-        out[computer] = round(max(0.0, (a - b - nodes_s) / seconds * units_per_core), 3)
+        used = _group_delta(b, a, before.t)
+        out[computer] = round(max(0.0, (used - nodes_s) / seconds * units_per_core), 3)
     return out
 
 
