@@ -154,13 +154,15 @@ def test_eq10_of_a_window_is_the_counters_rates_against_the_plan() -> None:
 
 class FakeRos:
     """A master and two publishers on loopback: the camera counts ``rate`` messages a second
-    of 1000 bytes from its start, the detector 5 a second; ``stop(node)`` ends a node."""
+    of 1000 bytes from its start, the detector 5 a second; ``stop(node)`` ends a node. Each
+    node's PID is a process of its own (a ``sleep``), ended with it, as a real node's is."""
 
     def __init__(self, rate: float = 20.0) -> None:
         self.t0 = time.time()
         self.rates = {"/camera": rate, "/detector": 5.0}
         self.servers: dict[str, SimpleXMLRPCServer] = {}
         self.uris: dict[str, str] = {}
+        self.procs = {name: subprocess.Popen(["sleep", "600"]) for name in ("/camera", "/detector")}
         for name in ("/camera", "/detector"):
             self._serve(name, self._node(name))
         master = self._serve("master", self._master())
@@ -185,7 +187,7 @@ class FakeRos:
             n = self.count(name)
             return [1, "", [[[topic, [[1, n * 1010, n * 1000, n, 0]]]], [], []]]
 
-        funcs = {"getBusStats": stats, "getPid": lambda caller: [1, "", os.getpid()]}
+        funcs = {"getBusStats": stats, "getPid": lambda caller: [1, "", self.procs[name].pid]}
         if name == "/detector":
             funcs["requestTopic"] = self._request_topic
         return funcs
@@ -242,10 +244,17 @@ class FakeRos:
         server = self.servers.pop(name)
         server.shutdown()
         server.server_close()
+        if name in self.procs:
+            self.procs[name].kill()
+            self.procs[name].wait()
 
     def close(self) -> None:
         for name in list(self.servers):
             self.stop(name)
+        for proc in self.procs.values():
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
 
 
 @pytest.fixture
