@@ -162,16 +162,21 @@ def detection(ws: list[dict[str, Any]], t_change: float, until: float) -> dict[s
     return {"detect_s": None, "windows": None, "t": None, "state": [], "false_before": before}
 
 
-def recovery(ws: list[dict[str, Any]], log: list[dict[str, Any]], detected: float | None) -> dict[str, Any]:
-    """After the first re-plan: the first window that starts after it was written and whose
-    Σ w·P is within GOAL_DEVIATION % of the new plan's prediction; seconds after detection."""
+def recovery(ws: list[dict[str, Any]], log: list[dict[str, Any]], detected: float | None,
+             t_change: float) -> dict[str, Any]:
+    """After the first re-plan made after the change: the first window that starts after it
+    was written and whose Σ w·P is within GOAL_DEVIATION % of the new plan's prediction;
+    seconds after detection. Re-plans before the change (a standing drift) are counted apart."""
+    out_before = sum(1 for e in log if e["t"] < t_change)
+    log = [e for e in log if e["t"] >= t_change]
     sent = [e for e in log if str(e.get("applied", "")).startswith("sent")]
     if not log:
-        return {"replanned": False}
+        return {"replanned": False, "replans_before_change": out_before}
     first = sent[0] if sent else log[0]
     out: dict[str, Any] = {"replanned": True, "applied": first["applied"], "changes": first["changes"],
                            "objective_before": first["objective_before"], "objective_after": first["objective_after"],
-                           "world": first.get("world"), "replans": len(log)}
+                           "world": first.get("world"), "replans": len(log),
+                           "replans_before_change": out_before, "replan_s": round(first["t"] - t_change, 1)}
     later = [w for w in ws if w["t"] - w["seconds"] >= first["t"]]
     held = next((w for w in later if abs(w["overall"]["deviation_pct"]) <= GOAL_DEVIATION), None)
     out["recover_s"] = None if held is None or detected is None else round(held["t"] - detected, 1)
@@ -234,7 +239,7 @@ def scenario(what: str, out: Path, app: Path, plan_path: Path, system_path: Path
         adapt = None if what == "steady" else start_watch(plan_path, dep, d / "adapt", True, app, robots)
         if what != "steady":
             time.sleep(LEAD_S)
-            res["t_change"] = t_change = time.time()
+            res["t_change"] = time.time()
             if what == "link":
                 link = busiest_link(plan)
                 rate = float(link["bandwidth_kBps"]) / 3.0
@@ -292,7 +297,14 @@ def scenario(what: str, out: Path, app: Path, plan_path: Path, system_path: Path
         res["false_alarms"] = sorted({a["line"] for w in alone_ws for a in w["alarms"]})
         res["steady_s"] = round(sum(w["seconds"] for w in alone_ws), 1)
         return res
+    analyse(res, d, plan)
+    return res
+
+
+def analyse(res: dict[str, Any], d: Path, plan: dict[str, Any]) -> dict[str, Any]:
+    """The scenario's numbers from its watchers' windows (also for a finished folder again)."""
     t_change = res["t_change"]
+    alone_ws = [w for w in windows_of(d / "alone") if w["t"] <= res["t_until"]]
     res["alone"] = detection(alone_ws, t_change, res["t_until"])
     after = [w for w in alone_ws if res["alone"]["t"] is not None and w["t"] >= res["alone"]["t"]]
     res["old_measured_after"] = (round(sum(w["overall"]["measured"] for w in after) / len(after), 4)
@@ -300,7 +312,7 @@ def scenario(what: str, out: Path, app: Path, plan_path: Path, system_path: Path
     res["old_expected"] = plan.get("objective")
     adapt_ws = [w for w in windows_of(d / "adapt") if w["t"] <= res["t_until"]]
     res["adapt"] = detection(adapt_ws, t_change, res["t_until"])
-    res["adapt"].update(recovery(adapt_ws, adapt_log(d / "adapt"), res["adapt"]["t"]))
+    res["adapt"].update(recovery(adapt_ws, adapt_log(d / "adapt"), res["adapt"]["t"], t_change))
     return res
 
 
