@@ -294,7 +294,9 @@ def scenario(what: str, out: Path, app: Path, plan_path: Path, system_path: Path
     alone_ws = [w for w in windows_of(d / "alone") if w["t"] <= res["t_until"]]
     if what == "steady":
         res["windows"] = len(alone_ws)
-        res["false_alarms"] = sorted({a["line"] for w in alone_ws for a in w["alarms"]})
+        res["false_alarms"] = sorted({f"{a.get('node') or a.get('chain')} {a['quantity']}"
+                                      for w in alone_ws for a in w["alarms"]})  # what alarmed, each once
+        res["alarm_windows"] = sum(1 for w in alone_ws if w["alarms"])
         res["steady_s"] = round(sum(w["seconds"] for w in alone_ws), 1)
         return res
     analyse(res, d, plan)
@@ -339,7 +341,7 @@ def table(results: dict[str, Any], started: str) -> list[str]:
     lines = [f"### RQ4: the world changes (run {started} UTC, instance {results['instance']}, plan "
              f"`{results['plan']}`, windows of {WINDOW_S:g} s, persist 2)", "",
              f"Steady plan, {steady['steady_s']:g} s ({steady['windows']} windows): "
-             f"**{len(steady['false_alarms'])} false alarm(s)**"
+             f"**{len(steady['false_alarms'])} false alarm(s)**, in {steady.get('alarm_windows')} window(s)"
              + (f" ({'; '.join(steady['false_alarms'])})" if steady["false_alarms"] else "")
              + f"; watcher cost **{fmt(steady['alone_proc']['cost_pct'], 2)} % of one core** "
                f"({steady['alone_proc']['cpu_s']} CPU s over {steady['alone_proc']['wall_s']} s, wait4 rusage, "
