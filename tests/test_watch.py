@@ -18,6 +18,7 @@ import subprocess
 import sys
 import threading
 import time
+import warnings
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -524,3 +525,44 @@ def test_a_deploy_restarts_only_the_nodes_a_new_plan_changes(tmp_path: Path) -> 
             assert (tmp_path / computer / "cgroup.procs").read_text() == str(applied[-1][node])
     control.tick(restarter)  # type: ignore[arg-type]  # the same file again: nothing
     assert len(control.applied) == 3 and json.loads((tmp_path / "control.json").read_text())["format"] == CONTROL_FORMAT
+
+
+def test_adapt_solves_against_the_world_as_it_is_now(tmp_path: Path) -> None:
+    """``--adapt`` attached to a deploy: another process's CPU (``foreign``) is taken off the
+    computer for the re-solve but the plan keeps the computer's capacity (its cap stays), and
+    an operator's value (``pinned``) is kept. Checked against the closed form: the camera's
+    rate is fitted over 20-40 Hz at CPU rate / 2 (as the rows say), the detector takes 5, and
+    a higher rate is better, so the best is the highest rate whose CPU fits what is left."""
+    system = tmp_path / "system.yaml"
+    system.write_text(yaml.safe_dump(ADAPT_SYSTEM, sort_keys=False))
+    base = [Row(f"sweep-{v}", "camera", "rate", v, "/camera/image", None, 100, 5.0, float(v), float(v), v / 2.0,
+                None, 10) for v in (20, 40)]
+    base += [Row(f"sweep-{v}", "detector", None, None, "/detector/found", None, 25, 5.0, 5.0, 0.01, 5.0, None, 10)
+             for v in (20, 40)]
+    write_characterisation(tmp_path / "char.csv", base)
+    with pytest.warns(PerfrosWarning):
+        _fit_solve(system, tmp_path / "char.csv", tmp_path / "model.json", tmp_path / "plan.json")
+    plan = load_plan(tmp_path / "plan.json")
+    assert plan.nodes["camera"].value == 40
+    why = [{"line": "alarm: test"}]
+    for foreign in (70.0, 80.0):
+        left = 100.0 - foreign
+        best = min(40.0, 2.0 * (left - 5.0))  # the fitted rate range 20-40, CPU rate / 2: the highest that fits
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", PerfrosWarning)
+            entry = Adapter(tmp_path / f"f{foreign:g}", tmp_path / "plan.json").replan(
+                plan, [], why, 1, {"foreign": {"host": foreign}})
+        assert entry is not None and entry["world"] == {"foreign": {"host": foreign}}
+        new = load_plan(entry["plan"])
+        assert new.nodes["camera"].value == pytest.approx(best, abs=0.05)
+        assert new.computers["host"].capacity == 100.0  # the cap is not lowered
+        assert new.extra["reserved_cpu"] == {"host": foreign}
+        assert sum(n.cpu for n in new.nodes.values()) <= left + 1e-6
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", PerfrosWarning)
+        entry = Adapter(tmp_path / "pinned", tmp_path / "plan.json").replan(plan, [], why, 1,
+                                                                             {"pinned": {"camera": 20}})
+    assert entry is not None
+    pinned = load_plan(entry["plan"])
+    assert pinned.nodes["camera"].value == pytest.approx(20)  # 40 fits, but the operator runs 20
+    assert "reserved_cpu" not in pinned.extra
