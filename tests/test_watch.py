@@ -377,8 +377,9 @@ def _fit_solve(system: Path, csv: Path, model: Path, plan: Path) -> None:
     save_plan(solve(load_system(model), 1, "exact"), plan)
 
 
-def test_adapt_refits_with_the_live_windows_resolves_and_writes_without_restarting(fake: FakeRos,
-                                                                                   tmp_path: Path) -> None:
+def _adapt_model(tmp_path: Path) -> list[Row]:
+    """ADAPT_SYSTEM fitted on two sweep rows per node (camera CPU = rate / 2) and solved:
+    model.json and plan.json in ``tmp_path``; the rows."""
     system = tmp_path / "system.yaml"
     system.write_text(yaml.safe_dump(ADAPT_SYSTEM, sort_keys=False))
     base = [Row(f"sweep-{v}", "camera", "rate", v, "/camera/image", None, 100, 5.0, float(v), float(v), v / 2.0,
@@ -388,6 +389,12 @@ def test_adapt_refits_with_the_live_windows_resolves_and_writes_without_restarti
     write_characterisation(tmp_path / "char.csv", base)
     with pytest.warns(PerfrosWarning):  # the fit's notes on two points
         _fit_solve(system, tmp_path / "char.csv", tmp_path / "model.json", tmp_path / "plan.json")
+    return base
+
+
+def test_adapt_refits_with_the_live_windows_resolves_and_writes_without_restarting(fake: FakeRos,
+                                                                                   tmp_path: Path) -> None:
+    base = _adapt_model(tmp_path)
     plan = load_plan(tmp_path / "plan.json")
     assert plan.nodes["camera"].value == 40  # the plan expects 40 Hz; the fake camera sends 20
     out = tmp_path / "watched"
@@ -533,15 +540,7 @@ def test_adapt_solves_against_the_world_as_it_is_now(tmp_path: Path) -> None:
     an operator's value (``pinned``) is kept. Checked against the closed form: the camera's
     rate is fitted over 20-40 Hz at CPU rate / 2 (as the rows say), the detector takes 5, and
     a higher rate is better, so the best is the highest rate whose CPU fits what is left."""
-    system = tmp_path / "system.yaml"
-    system.write_text(yaml.safe_dump(ADAPT_SYSTEM, sort_keys=False))
-    base = [Row(f"sweep-{v}", "camera", "rate", v, "/camera/image", None, 100, 5.0, float(v), float(v), v / 2.0,
-                None, 10) for v in (20, 40)]
-    base += [Row(f"sweep-{v}", "detector", None, None, "/detector/found", None, 25, 5.0, 5.0, 0.01, 5.0, None, 10)
-             for v in (20, 40)]
-    write_characterisation(tmp_path / "char.csv", base)
-    with pytest.warns(PerfrosWarning):
-        _fit_solve(system, tmp_path / "char.csv", tmp_path / "model.json", tmp_path / "plan.json")
+    _adapt_model(tmp_path)
     plan = load_plan(tmp_path / "plan.json")
     assert plan.nodes["camera"].value == 40
     why = [{"line": "alarm: test"}]
