@@ -18,6 +18,7 @@ import subprocess
 import sys
 import threading
 import time
+import warnings
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -154,13 +155,15 @@ def test_eq10_of_a_window_is_the_counters_rates_against_the_plan() -> None:
 
 class FakeRos:
     """A master and two publishers on loopback: the camera counts ``rate`` messages a second
-    of 1000 bytes from its start, the detector 5 a second; ``stop(node)`` ends a node."""
+    of 1000 bytes from its start, the detector 5 a second; ``stop(node)`` ends a node. Each
+    node's PID is a process of its own (a ``sleep``), ended with it, as a real node's is."""
 
     def __init__(self, rate: float = 20.0) -> None:
         self.t0 = time.time()
         self.rates = {"/camera": rate, "/detector": 5.0}
         self.servers: dict[str, SimpleXMLRPCServer] = {}
         self.uris: dict[str, str] = {}
+        self.procs = {name: subprocess.Popen(["sleep", "600"]) for name in ("/camera", "/detector")}
         for name in ("/camera", "/detector"):
             self._serve(name, self._node(name))
         master = self._serve("master", self._master())
@@ -185,7 +188,7 @@ class FakeRos:
             n = self.count(name)
             return [1, "", [[[topic, [[1, n * 1010, n * 1000, n, 0]]]], [], []]]
 
-        funcs = {"getBusStats": stats, "getPid": lambda caller: [1, "", os.getpid()]}
+        funcs = {"getBusStats": stats, "getPid": lambda caller: [1, "", self.procs[name].pid]}
         if name == "/detector":
             funcs["requestTopic"] = self._request_topic
         return funcs
@@ -242,10 +245,17 @@ class FakeRos:
         server = self.servers.pop(name)
         server.shutdown()
         server.server_close()
+        if name in self.procs:
+            self.procs[name].kill()
+            self.procs[name].wait()
 
     def close(self) -> None:
         for name in list(self.servers):
             self.stop(name)
+        for proc in self.procs.values():
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
 
 
 @pytest.fixture
@@ -367,8 +377,9 @@ def _fit_solve(system: Path, csv: Path, model: Path, plan: Path) -> None:
     save_plan(solve(load_system(model), 1, "exact"), plan)
 
 
-def test_adapt_refits_with_the_live_windows_resolves_and_writes_without_restarting(fake: FakeRos,
-                                                                                   tmp_path: Path) -> None:
+def _adapt_model(tmp_path: Path) -> list[Row]:
+    """ADAPT_SYSTEM fitted on two sweep rows per node (camera CPU = rate / 2) and solved:
+    model.json and plan.json in ``tmp_path``; the rows."""
     system = tmp_path / "system.yaml"
     system.write_text(yaml.safe_dump(ADAPT_SYSTEM, sort_keys=False))
     base = [Row(f"sweep-{v}", "camera", "rate", v, "/camera/image", None, 100, 5.0, float(v), float(v), v / 2.0,
@@ -378,6 +389,12 @@ def test_adapt_refits_with_the_live_windows_resolves_and_writes_without_restarti
     write_characterisation(tmp_path / "char.csv", base)
     with pytest.warns(PerfrosWarning):  # the fit's notes on two points
         _fit_solve(system, tmp_path / "char.csv", tmp_path / "model.json", tmp_path / "plan.json")
+    return base
+
+
+def test_adapt_refits_with_the_live_windows_resolves_and_writes_without_restarting(fake: FakeRos,
+                                                                                   tmp_path: Path) -> None:
+    base = _adapt_model(tmp_path)
     plan = load_plan(tmp_path / "plan.json")
     assert plan.nodes["camera"].value == 40  # the plan expects 40 Hz; the fake camera sends 20
     out = tmp_path / "watched"
@@ -515,3 +532,36 @@ def test_a_deploy_restarts_only_the_nodes_a_new_plan_changes(tmp_path: Path) -> 
             assert (tmp_path / computer / "cgroup.procs").read_text() == str(applied[-1][node])
     control.tick(restarter)  # type: ignore[arg-type]  # the same file again: nothing
     assert len(control.applied) == 3 and json.loads((tmp_path / "control.json").read_text())["format"] == CONTROL_FORMAT
+
+
+def test_adapt_solves_against_the_world_as_it_is_now(tmp_path: Path) -> None:
+    """``--adapt`` attached to a deploy: another process's CPU (``foreign``) is taken off the
+    computer for the re-solve but the plan keeps the computer's capacity (its cap stays), and
+    an operator's value (``pinned``) is kept. Checked against the closed form: the camera's
+    rate is fitted over 20-40 Hz at CPU rate / 2 (as the rows say), the detector takes 5, and
+    a higher rate is better, so the best is the highest rate whose CPU fits what is left."""
+    _adapt_model(tmp_path)
+    plan = load_plan(tmp_path / "plan.json")
+    assert plan.nodes["camera"].value == 40
+    why = [{"line": "alarm: test"}]
+    for foreign in (70.0, 80.0):
+        left = 100.0 - foreign
+        best = min(40.0, 2.0 * (left - 5.0))  # the fitted rate range 20-40, CPU rate / 2: the highest that fits
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", PerfrosWarning)
+            entry = Adapter(tmp_path / f"f{foreign:g}", tmp_path / "plan.json").replan(
+                plan, [], why, 1, {"foreign": {"host": foreign}})
+        assert entry is not None and entry["world"] == {"foreign": {"host": foreign}}
+        new = load_plan(entry["plan"])
+        assert new.nodes["camera"].value == pytest.approx(best, abs=0.05)
+        assert new.computers["host"].capacity == 100.0  # the cap is not lowered
+        assert new.extra["reserved_cpu"] == {"host": foreign}
+        assert sum(n.cpu for n in new.nodes.values()) <= left + 1e-6
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", PerfrosWarning)
+        entry = Adapter(tmp_path / "pinned", tmp_path / "plan.json").replan(plan, [], why, 1,
+                                                                             {"pinned": {"camera": 20}})
+    assert entry is not None
+    pinned = load_plan(entry["plan"])
+    assert pinned.nodes["camera"].value == pytest.approx(20)  # 40 fits, but the operator runs 20
+    assert "reserved_cpu" not in pinned.extra

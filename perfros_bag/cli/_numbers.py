@@ -52,6 +52,7 @@ POSITIVE = Range()
 #: for a sub-command) or ``"--flag"`` for every verb that has it.
 RANGES: Mapping[str, Range] = {
     "--tolerance": Range(0.0, low_open=False),  # a deviation in %: 0 passes only a perfect run
+    "--latency-tolerance": Range(0.0, low_open=False),  # watch: a chain's p95 drift in %
     "solve --problem": Range(1, low_open=False, high=2, text="1 or 2"),
     "record-cpu --duration": Range(0.0, low_open=False),
     "record-cpu --interval": Range(0.01, low_open=False),

@@ -3,6 +3,7 @@ links), alarms when a drift persists; ``--adapt`` re-plans."""
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Any
 
@@ -52,6 +53,12 @@ def watch_cmd(
     tolerance: float = typer.Option(
         DEFAULT_TOLERANCE, "--tolerance",
         help="Drift in % (of a node's planned rate, a chain's predicted p95) beyond which a window drifts."),
+    latency_tolerance: float | None = typer.Option(
+        None, "--latency-tolerance",
+        help="Drift in % of a chain's predicted p95 beyond which a window drifts (default: --tolerance)."),
+    latency_alarms: bool = typer.Option(
+        True, "--latency-alarms/--no-latency-alarms",
+        help="Alarm on chains' latency; --no-latency-alarms reports it without alarms."),
     persist: int = typer.Option(2, "--persist", help="Windows in a row a drift must last to raise an alarm."),
     partial: bool = typer.Option(False, "--partial", help="Watch the planned nodes that run when some do not."),
     windows: int | None = typer.Option(
@@ -111,7 +118,8 @@ def watch_cmd(
     try:
         result = watch(plan, master_uri=master, deployment=deployment, system_path=system, window_s=window,
                        tolerance=tolerance, persist=persist, partial=partial, windows=windows, out=out_dir,
-                       adapt=adapter, on_window=show)
+                       adapt=adapter,
+                       latency_tolerance=latency_tolerance if latency_alarms else math.inf, on_window=show)
     finally:
         if live_ctx is not None:
             live_ctx.stop()

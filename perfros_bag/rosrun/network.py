@@ -394,6 +394,28 @@ class Network:
                 self.media[k] = dataclasses.replace(m, reason=f"cannot redirect its links to an IFB ({exc})")
         self.shaped = True
 
+    def set_link_rate(self, link: int, bandwidth_kBps: float) -> None:
+        """Link ``link`` (its index in the system's links) shaped to ``bandwidth_kBps``, both
+        directions, in place: ``tc qdisc change`` on the running ``tbf`` of each veth end
+        (its queue, counters and the connections across it stay). ``self.system`` then
+        names the new bandwidth, so what is measured afterwards is judged against it."""
+        import math
+
+        if not (isinstance(bandwidth_kBps, int | float) and math.isfinite(bandwidth_kBps) and bandwidth_kBps > 0):
+            raise PerfrosError(f"a link's bandwidth must be a finite number > 0 kB/s, got {bandwidth_kBps!r}")
+        if not 0 <= link < len(self.system.links):
+            raise PerfrosError(f"no link {link} in this run (it has {len(self.system.links)})")
+        if self.emulated and self.shaped:
+            rate = tbf_rate_bit(bandwidth_kBps)
+            for end in self.ends:
+                if end.link == link:
+                    _run([self.tc, "-n", self.namespaces[end.computer], "qdisc", "change", "dev", end.ifname,
+                          "root", "tbf", "rate", f"{rate}bit", "burst", str(tbf_burst_bytes(rate)),
+                          "latency", f"{LATENCY_MS}ms"])
+        links = list(self.system.links)
+        links[link] = dataclasses.replace(links[link], bandwidth_kBps=float(bandwidth_kBps))
+        self.system = dataclasses.replace(self.system, links=tuple(links))
+
     # ---- use --------------------------------------------------------------------------------
     def master_computer(self) -> str:
         """Where a run's ROS master goes: the computer with the most links (the hub every

@@ -8,8 +8,13 @@ the nodes whose value or computer the new plan changes (with the launch file's a
 parameters of the new values, in the new computer's namespace and cgroup), and keeps the
 master and every other node running. The caps are set again from the new plan's computers
 (in place: the cgroups' quota); the links keep their rates (a re-plan keeps the system's
-links). Each application is one entry of ``deploy.json`` ``replans``. The validation at the
-end is still against the plan the deploy started with.
+links). Each application is one entry of ``deploy.json`` ``replans``; the validation at the
+end is against the plan in force then (the last one applied).
+
+A control file may also change the emulated world instead of (or beside) the plan:
+``links``, a list of ``{"between": [a, b], "bandwidth_kBps": x}``, re-shapes those links in
+place (``tc qdisc change`` on their running qdiscs, :meth:`Network.set_link_rate`): what a
+degrading wifi does to a robot. ``live.json`` then names every link's rate in force.
 """
 
 from __future__ import annotations
@@ -26,6 +31,7 @@ from perfros_bag.fileio import atomic_write_json, read_json
 
 if TYPE_CHECKING:
     from perfros_bag.rosrun.cgroups import CpuGroups
+    from perfros_bag.rosrun.network import Network
     from perfros_bag.sweep.runner import Restarter
     from perfros_bag.sweep.space import Run, Space
     from perfros_bag.system.plan import Plan
@@ -34,9 +40,29 @@ CONTROL_FILE = "control.json"
 CONTROL_FORMAT = "perfros-bag/deploy-control@1"
 
 
-def write_control(folder: str | Path, seq: int, plan_path: str | Path, why: list[str]) -> None:
-    atomic_write_json(Path(folder) / CONTROL_FILE, {"format": CONTROL_FORMAT, "seq": seq,
-                                                    "plan": str(Path(plan_path).absolute()), "why": why})
+def write_control(folder: str | Path, seq: int | None, plan_path: str | Path | None, why: list[str], *,
+                  links: list[dict[str, Any]] | None = None) -> int:
+    """Write ``folder/control.json``; ``seq`` None: one more than the file's present one.
+    Returns the sequence number written."""
+    if seq is None:
+        seq = control_seq(folder) + 1
+    doc: dict[str, Any] = {"format": CONTROL_FORMAT, "seq": seq, "why": why}
+    if plan_path is not None:
+        doc["plan"] = str(Path(plan_path).absolute())
+    if links:
+        doc["links"] = links
+    atomic_write_json(Path(folder) / CONTROL_FILE, doc)
+    return seq
+
+
+def control_seq(folder: str | Path) -> int:
+    """The sequence number of ``folder/control.json`` (0 when there is none or it is not one)."""
+    try:
+        doc = read_json(Path(folder) / CONTROL_FILE)
+    except (PerfrosError, OSError):
+        return 0
+    seq = doc.get("seq") if isinstance(doc, dict) else None
+    return seq if isinstance(seq, int) and not isinstance(seq, bool) else 0
 
 
 def changed_nodes(old: Run, new: Run, old_where: dict[str, str], new_where: dict[str, str]) -> list[str]:
@@ -58,6 +84,8 @@ class Control:
     units_per_core: float
     cap: bool  # set the new plan's caps (deploy --cap)
     on_applied: Callable[[dict[str, int]], None] | None = None  # ROS node -> new PID
+    network: Network | None = None  # the emulated links (``links`` entries re-shape them)
+    plan_path: str | None = None  # the plan in force (the last applied)
     seq: int = 0
     applied: list[dict[str, Any]] = field(default_factory=list)
     _mtime: float = 0.0
@@ -77,17 +105,55 @@ class Control:
             warnings.warn(f"{path}: not applied: {exc}", PerfrosWarning, stacklevel=2)
 
     def _apply(self, restarter: Restarter, doc: Any) -> None:
+        if not isinstance(doc, dict) or doc.get("format") != CONTROL_FORMAT or not isinstance(doc.get("seq"), int):
+            raise PerfrosError(f"not a deploy control file ({CONTROL_FORMAT} with a whole seq)")
+        if doc["seq"] <= self.seq:
+            return
+        entry: dict[str, Any] = {"seq": doc["seq"], "t": time.time(), "why": doc.get("why")}
+        if doc.get("links") is not None:
+            entry["links"] = self._links(doc["links"])
+        pids: dict[str, int] = {}
+        if doc.get("plan") is not None:
+            pids = self._plan(restarter, str(doc["plan"]), entry)
+        self.seq = doc["seq"]
+        self.applied.append(entry)
+        if self.on_applied is not None:
+            self.on_applied(pids)
+
+    def _links(self, raw: Any) -> list[dict[str, Any]]:
+        """Re-shape the links the control file names, in place; what was set."""
+        import math
+
+        if self.network is None:
+            raise PerfrosError("this run emulates no links")
+        system = self.network.system
+        if not isinstance(raw, list):
+            raise PerfrosError("'links' must be a list of {between: [a, b], bandwidth_kBps: x}")
+        done = []
+        for item in raw:
+            between = item.get("between") if isinstance(item, dict) else None
+            rate = item.get("bandwidth_kBps") if isinstance(item, dict) else None
+            index = next((i for i, link in enumerate(system.links)
+                          if isinstance(between, list) and sorted(link.between) == sorted(map(str, between))), None)
+            if index is None:
+                raise PerfrosError(f"no link between {between!r} in this run")
+            if isinstance(rate, bool) or not isinstance(rate, int | float) or not math.isfinite(rate) or rate <= 0:
+                raise PerfrosError(f"link {between}: bandwidth_kBps must be a finite number > 0, got {rate!r}")
+            try:
+                self.network.set_link_rate(index, float(rate))
+            except OSError as exc:
+                raise PerfrosError(f"link {between}: not re-shaped: {exc}") from None
+            done.append({"between": list(system.links[index].between), "bandwidth_kBps": float(rate)})
+        return done
+
+    def _plan(self, restarter: Restarter, plan_path: str, entry: dict[str, Any]) -> dict[str, int]:
         from perfros_bag.rosrun.cgroups import computer_cores
         from perfros_bag.sweep.deploy import plan_run
         from perfros_bag.system.names import system_node_name
         from perfros_bag.system.planfile import load_plan
 
-        if not isinstance(doc, dict) or doc.get("format") != CONTROL_FORMAT or not isinstance(doc.get("seq"), int):
-            raise PerfrosError(f"not a deploy control file ({CONTROL_FORMAT} with a whole seq)")
-        if doc["seq"] <= self.seq:
-            return
-        plan: Plan = load_plan(str(doc.get("plan")))
-        plan.require_feasible(doc.get("plan"), "apply")
+        plan: Plan = load_plan(plan_path)
+        plan.require_feasible(plan_path, "apply")
         new_run = plan_run(plan, self.space, self.arg_defaults)
         new_where = {name: pn.computer for name, pn in plan.nodes.items()}
         unknown = sorted({c for c in new_where.values() if c not in self.groups.dirs})
@@ -108,9 +174,7 @@ class Control:
         self.groups.cores.update(cores)
         if self.cap and self.groups.capped:
             self.groups.apply()
-        self.seq = doc["seq"]
         self.run, self.where = new_run, {**self.where, **new_where}
-        self.applied.append({"seq": self.seq, "plan": doc.get("plan"), "t": time.time(), "restarted": sorted(pids),
-                             "values": dict(new_run.values), "cores": cores})
-        if self.on_applied is not None:
-            self.on_applied(pids)
+        self.plan_path = plan_path
+        entry.update({"plan": plan_path, "restarted": sorted(pids), "values": dict(new_run.values), "cores": cores})
+        return pids

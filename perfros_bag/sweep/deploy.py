@@ -141,7 +141,7 @@ def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Pat
             units_per_core, dict(network.namespaces), {c: str(d) for c, d in groups.dirs.items()}, dict(cores),
             cap and groups.capped,
             {n.name: {"pid": n.pid, "computer": where.get(system_node_name(n.name))} for n in graph.nodes
-             if n.launched})]
+             if n.launched}, links=_links_in_force(network), values=dict(run.values))]
         write_live(outdir / LIVE_FILE, live[0])
 
     def applied(pids: dict[str, int]) -> None:
@@ -151,6 +151,9 @@ def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Pat
             if live:
                 live[0].nodes[name] = {"pid": pid, "computer": placed[name]}
         if live:
+            live[0].links = _links_in_force(network)
+            live[0].values = dict(control.run.values)
+            live[0].plan_in_force = control.plan_path
             write_live(outdir / LIVE_FILE, live[0])
 
     def window(edge: str) -> None:
@@ -162,7 +165,8 @@ def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Pat
         throttle[edge] = {c: groups.throttled(c) for c in cores}
 
     network = Network(f"d{run_id}", system if system is not None and net else _no_links(plan))
-    control = Control(outdir, space, dict(launch.args), run, dict(where), groups, units_per_core, cap, applied)
+    control = Control(outdir, space, dict(launch.args), run, dict(where), groups, units_per_core, cap, applied,
+                      network if network.emulated or net else None)
     groups.create(capped=False, quiet=not cap)
     mode, reason = (groups.mode, groups.reason) if cap else ("uncapped", "capping not asked for")
     try:
@@ -192,8 +196,11 @@ def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Pat
     if speed is not None:
         entry["speed_factor"] = round(speed, 4)
     write_manifest(outdir / "manifest.yaml", [entry])
-    validation = validate_files(outdir / "run.bag", plan_path, cpu=[outdir / "run.cpu.csv"],
-                                tolerance=DEFAULT_TOLERANCE if tolerance is None else tolerance, plan=plan)
+    # after a re-plan (control.json), the plan in force at the end is the one the run is judged against
+    in_force = control.plan_path
+    validation = validate_files(outdir / "run.bag", in_force or plan_path, cpu=[outdir / "run.cpu.csv"],
+                                tolerance=DEFAULT_TOLERANCE if tolerance is None else tolerance,
+                                plan=None if in_force else plan)
     atomic_write_json(outdir / "validation.json", validation.to_dict())
     record: dict[str, Any] = {
         "format": DEPLOY_FORMAT, "run_id": run_id, "plan": str(plan_path), "forced": is_forced(plan),
@@ -209,11 +216,17 @@ def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Pat
         "nodes": {n.name: {"pid": n.pid, "computer": placed.get(n.name, where.get(system_node_name(n.name)))}
                   for n in graph.nodes if n.launched},
         "replans": control.applied,
+        "validated_against": str(in_force or plan_path),
         "leftover_cgroups": [str(p) for p in left],
         "leftover_namespaces": net_left,
     }
     atomic_write_json(outdir / "deploy.json", record)
     return DeployResult(record, validation)
+
+
+def _links_in_force(network: Network) -> list[dict[str, Any]]:
+    """Every link of the run with the bandwidth it is shaped to now (live.json ``links``)."""
+    return [{"between": list(link.between), "bandwidth_kBps": link.bandwidth_kBps} for link in network.system.links]
 
 
 def _no_links(plan: Plan) -> System:

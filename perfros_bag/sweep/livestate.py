@@ -36,6 +36,10 @@ class LiveState:
     cores: dict[str, float] = field(default_factory=dict)  # computer -> cores of its cap
     capped: bool = False
     nodes: dict[str, dict[str, Any]] = field(default_factory=dict)  # ROS node -> {pid, computer}
+    links: list[dict[str, Any]] = field(default_factory=list)  # {between, bandwidth_kBps} in force now
+    values: dict[str, Any] = field(default_factory=dict)  # system node -> the value it runs at now
+    plan_in_force: str | None = None  # the last plan control.json applied (None: the deploy's own)
+    folder: str | None = None  # the deploy's --out (where it was read from; not written)
 
     def running(self) -> bool:
         """Whether the deploy that wrote it still runs."""
@@ -46,7 +50,8 @@ class LiveState:
                 "master_computer": self.master_computer, "plan": self.plan, "system": self.system,
                 "units_per_core": self.units_per_core, "namespaces": dict(self.namespaces),
                 "cgroups": dict(self.cgroups), "cores": dict(self.cores), "capped": self.capped,
-                "nodes": dict(self.nodes)}
+                "nodes": dict(self.nodes), "links": list(self.links), "values": dict(self.values),
+                "plan_in_force": self.plan_in_force}
 
 
 def write_live(path: Path, state: LiveState) -> None:
@@ -72,7 +77,10 @@ def read_live(folder: str | Path) -> LiveState:
             cgroups={str(k): str(v) for k, v in (data.get("cgroups") or {}).items()},
             cores={str(k): float(v) for k, v in (data.get("cores") or {}).items()},
             capped=bool(data.get("capped", False)),
-            nodes={str(k): dict(v) for k, v in (data.get("nodes") or {}).items()})
+            nodes={str(k): dict(v) for k, v in (data.get("nodes") or {}).items()},
+            links=[dict(x) for x in (data.get("links") or [])],
+            values={str(k): v for k, v in (data.get("values") or {}).items()},
+            plan_in_force=data.get("plan_in_force"), folder=str(folder))
     except (KeyError, TypeError, ValueError) as exc:
         raise InputError(path, f"damaged live state: {exc}") from None
     if not state.running():

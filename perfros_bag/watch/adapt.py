@@ -11,12 +11,21 @@ writing, never restarting: ``DIR/replan-<k>/`` gets ``characterisation.csv``,
 changed) and, with the launch file and space.yaml, ``planned.launch`` (``export --launch
 --space``). Every re-plan, its reason (the alarms' lines) and what changed is one line of
 ``DIR/adapt.jsonl``.
+
+Attached to a deploy, the re-solve also takes the world as it is now (``world``, from
+:func:`world_now`): the links at the rates they are shaped to (``live.json`` ``links``),
+each computer's capacity less the CPU its cgroup spends beyond the planned nodes (another
+process: ``foreign``; the new plan keeps the computer's own capacity, so its cap is not
+lowered, and says what it left to the other process in ``reserved_cpu``), and the values
+the deploy runs that differ from the plan watched (an operator's change: ``pinned``, kept
+as they are, never undone by the re-plan).
 """
 
 from __future__ import annotations
 
+import math
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -25,6 +34,7 @@ from perfros_bag.errors import PerfrosError, PerfrosWarning
 if TYPE_CHECKING:
     from perfros_bag.characterisation.csvfile import Row
     from perfros_bag.system.plan import Plan
+    from perfros_bag.system.types import System
 
 ADAPT_LOG = "adapt.jsonl"
 
@@ -56,6 +66,27 @@ def changes(old: Plan, new: Plan) -> list[str]:
     return lines
 
 
+def world_system(system: System, world: dict[str, Any]) -> System:
+    """``system`` as the world is now: links at their rates in force, each computer's
+    capacity less its ``foreign`` CPU (never below 0), pinned nodes at their one value."""
+    links = {tuple(sorted(map(str, x["between"]))): float(x["bandwidth_kBps"]) for x in world.get("links") or []}
+    foreign = world.get("foreign") or {}
+    pinned = world.get("pinned") or {}
+    new_links = tuple(replace(link, bandwidth_kBps=links.get(tuple(sorted(link.between)), link.bandwidth_kBps))
+                      for link in system.links)
+    computers = tuple(c if c.capacity is None or not foreign.get(c.name)
+                      else replace(c, capacity=max(0.0, c.capacity - float(foreign[c.name])))
+                      for c in system.computers)
+    nodes = []
+    for n in system.nodes:
+        value = pinned.get(n.name)
+        if value is not None and n.settings:
+            keep = min(n.settings, key=lambda st: abs((st.value if st.value is not None else math.inf) - value))
+            n = replace(n, settings=(keep,), curve=None)
+        nodes.append(n)
+    return replace(system, links=new_links, computers=computers, nodes=tuple(nodes))
+
+
 @dataclass
 class Adapter:
     out: Path
@@ -74,16 +105,18 @@ class Adapter:
                 return cand
         raise PerfrosError(f"{self.plan_path}: its model {plan.system} was not found")
 
-    def replan(self, plan: Plan, rows: list[Row], alarms: list[dict[str, Any]], k: int) -> dict[str, Any] | None:
+    def replan(self, plan: Plan, rows: list[Row], alarms: list[dict[str, Any]], k: int,
+               world: dict[str, Any] | None = None) -> dict[str, Any] | None:
         """Refit, re-solve and write; the log entry (also appended to ``adapt.jsonl``), or
         None with a warning when it cannot (no model, or the new model has no plan)."""
         try:
-            return self._replan(plan, rows, alarms, k)
+            return self._replan(plan, rows, alarms, k, world or {})
         except PerfrosError as exc:
             warnings.warn(f"--adapt: window {k}: no re-plan: {exc}", PerfrosWarning, stacklevel=2)
             return None
 
-    def _replan(self, plan: Plan, rows: list[Row], alarms: list[dict[str, Any]], k: int) -> dict[str, Any]:
+    def _replan(self, plan: Plan, rows: list[Row], alarms: list[dict[str, Any]], k: int,
+                world: dict[str, Any]) -> dict[str, Any]:
         import time
 
         from perfros_bag.characterisation.csvfile import write_characterisation
@@ -107,8 +140,16 @@ class Adapter:
             warnings.simplefilter("ignore", PerfrosWarning)
             write_model(new_model, build_model(model_path, csv_path).document)
             headroom = plan_headroom(plan)
-            new = solve(load_model(new_model), plan.problem, str(plan.method), headroom=headroom)
+            new = solve(world_system(load_model(new_model), world), plan.problem, str(plan.method),
+                        headroom=headroom)
         new.require_feasible(new_model, "apply")
+        reserved = {c: round(x, 3) for c, x in (world.get("foreign") or {}).items()
+                    if x > 0 and c in new.computers and new.computers[c].capacity is not None}
+        for c, x in reserved.items():  # the cap stays the computer's: the other process is in it
+            pc = new.computers[c]
+            new.computers[c] = replace(pc, capacity=(pc.capacity or 0.0) + x)
+        if reserved:
+            new.extra["reserved_cpu"] = reserved
         save_plan(new, new_plan_path)
         changed = changes(plan, new)
         atomic_write_text(folder / "changes.txt", "".join(f"{line}\n" for line in changed) or "no change\n")
@@ -122,15 +163,16 @@ class Adapter:
             launch = str(folder / "planned.launch")
         applied = "written (nothing restarted)"
         if self.deployment is not None and changed:
-            from perfros_bag.sweep.control import write_control
+            from perfros_bag.sweep.control import control_seq, write_control
 
-            self.sent += 1
+            self.sent = max(self.sent, control_seq(self.deployment)) + 1  # after an operator's own entries
             write_control(self.deployment, self.sent, new_plan_path, [a["line"] for a in alarms])
             applied = (f"sent to the deploy ({self.deployment / 'control.json'} seq {self.sent}): it restarts the "
                        "nodes whose value or computer changed")
         entry = {"window": k, "t": time.time(), "why": [a["line"] for a in alarms], "plan": str(new_plan_path),
                  "launch": launch, "objective_before": plan.objective, "objective_after": new.objective,
-                 "headroom": headroom, "changes": changed, "applied": applied}
+                 "headroom": headroom, "changes": changed, "applied": applied,
+                 **({"world": world} if world else {})}
         log = self.out / ADAPT_LOG
         previous = log.read_text(encoding="utf-8") if log.exists() else ""
         atomic_write_text(log, previous + json_text(entry, indent=None) + "\n")

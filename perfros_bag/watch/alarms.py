@@ -4,7 +4,8 @@ A window drifts on a node's rate when its topics' measured rate (the mean over i
 with an expectation, as the window's ``measured_hz``) is further from the plan's than
 ``tolerance`` % plus one message per window (a count over a short window is whole
 messages: 10 Hz over 2 s is 20 +- 1), and on a chain's latency when its measured p95
-exceeds the plan's predicted p95 by more than ``tolerance`` %. A drift of the same node or
+exceeds the plan's predicted p95 by more than ``latency_tolerance`` % (``watch
+--latency-tolerance``, default ``tolerance``). A drift of the same node or
 chain and quantity in ``persist`` windows in a row is an alarm; a node that died is an
 alarm at once. An alarm stays listed while its drift lasts.
 """
@@ -45,8 +46,10 @@ class Alarm:
                 "windows": self.windows, "new": self.new, "line": self.line()}
 
 
-def rate_drifts(window: dict[str, Any], tolerance: float) -> list[Drift]:
-    """The node drifts of one window's JSON object (its ``nodes`` and ``seconds``)."""
+def rate_drifts(window: dict[str, Any], tolerance: float, latency_tolerance: float | None = None) -> list[Drift]:
+    """The node and chain drifts of one window's JSON object (its ``nodes``, ``chains`` and
+    ``seconds``); a chain's p95 is judged with ``latency_tolerance`` (default ``tolerance``)."""
+    lat_tol = tolerance if latency_tolerance is None else latency_tolerance
     seconds = float(window["seconds"])
     slack = 1.0 / seconds if seconds > 0 else 0.0
     out: list[Drift] = []
@@ -60,7 +63,7 @@ def rate_drifts(window: dict[str, Any], tolerance: float) -> list[Drift]:
     for c in window.get("chains", []):
         pred = (c.get("predicted_ms") or {}).get("p95")
         meas = (c.get("measured_ms") or {}).get("p95") if c.get("measured_ms") else None
-        if pred and meas is not None and meas > pred * (1.0 + tolerance / 100.0):
+        if pred and meas is not None and meas > pred * (1.0 + lat_tol / 100.0):
             out.append(Drift("chain", str(c["chain"]), "latency_p95_ms", float(pred), float(meas)))
     return out
 

@@ -94,7 +94,7 @@ def window_rows(k: int, doc: dict[str, Any], plan: Plan, stats_types: dict[str, 
 def watch(plan_path: str | Path, *, master_uri: str | None = None, deployment: str | Path | None = None,
           system_path: str | Path | None = None, window_s: float = 5.0, tolerance: float = DEFAULT_TOLERANCE,
           persist: int = PERSIST_DEFAULT, partial: bool = False, windows: int | None = None,
-          out: str | Path | None = None, adapt: Any = None,
+          out: str | Path | None = None, adapt: Any = None, latency_tolerance: float | None = None,
           on_window: Callable[[dict[str, Any], list[dict[str, Any]]], None] | None = None) -> WatchResult:
     """Watch the plan at ``plan_path`` until ``windows`` windows (None: until Ctrl-C, or the
     master or the deploy goes away). ``on_window(doc, new_alarms)`` gets every window's JSON
@@ -107,6 +107,9 @@ def watch(plan_path: str | Path, *, master_uri: str | None = None, deployment: s
     window_s = check_window(window_s)
     if not math.isfinite(tolerance) or tolerance < 0:
         raise InputError(None, f"--tolerance must be a finite number >= 0, got {tolerance!r}")
+    if latency_tolerance is not None and not latency_tolerance >= 0:  # math.inf: chains never alarm
+        raise InputError(None, f"--latency-tolerance must be a finite number >= 0, got {latency_tolerance!r}")
+    lat_tol = tolerance if latency_tolerance is None else latency_tolerance
     if persist < 1:
         raise InputError(None, f"--persist must be >= 1, got {persist}")
     plan = load_plan(plan_path)
@@ -129,8 +132,8 @@ def watch(plan_path: str | Path, *, master_uri: str | None = None, deployment: s
     stop = threading.Event()
 
     def run() -> WatchResult:
-        return _watch(plan, plan_path, system, master_uri, live is not None, live, window_s, tolerance, persist,
-                      partial, windows, out, adapt, on_window, stop)
+        return _watch(plan, plan_path, system, master_uri, live is not None, live, window_s, (tolerance, lat_tol),
+                      persist, partial, windows, out, adapt, on_window, stop)
 
     if ns is None:
         return run()
@@ -171,7 +174,7 @@ def _in_namespace(ns: str, run: Callable[[], WatchResult], stop: threading.Event
 
 
 def _watch(plan: Plan, plan_path: str | Path, system: System | None, master_uri: str, attached: bool, live: Any,
-           window_s: float, tolerance: float, persist: int, partial: bool, windows: int | None,
+           window_s: float, tolerance: tuple[float, float], persist: int, partial: bool, windows: int | None,
            out: str | Path | None, adapt: Any,
            on_window: Callable[[dict[str, Any], list[dict[str, Any]]], None] | None,
            stop: threading.Event) -> WatchResult:
@@ -232,40 +235,57 @@ def chain_latency(listeners: dict[str, StampListener]) -> dict[str, dict[str, An
 
 
 def _windows(observer: Observer, plan: Plan, system: System | None, live: Any, units: float | None, window_s: float,
-             tolerance: float, persistence: Any, windows: int | None, outdir: Path | None, adapt: Any,
+             tolerances: tuple[float, float], persistence: Any, windows: int | None, outdir: Path | None, adapt: Any,
              on_window: Callable[[dict[str, Any], list[dict[str, Any]]], None] | None, result: WatchResult,
              master_uri: str, listeners: dict[str, StampListener], stop: threading.Event) -> None:
     from perfros_bag.characterisation.csvfile import write_characterisation
     from perfros_bag.fileio import atomic_write_text, json_text
     from perfros_bag.watch.alarms import rate_drifts
-    from perfros_bag.watch.window import evaluate, window_cpu, window_document, window_stats
+    from perfros_bag.watch.window import cgroup_cpu_s, evaluate, window_cpu, window_document, window_stats
 
+    tolerance, latency_tolerance = tolerances
     rows: list[Row] = []
     lines: list[str] = []
+    groups = dict(live.cgroups) if live is not None else {}
     before = observer.read()
+    used_before = {c: cgroup_cpu_s(d) for c, d in groups.items()}
     for listener in listeners.values():
         listener.take()  # what came before the first window's start is not in it
     k = 0
     while windows is None or k < windows:
         end = before.t + window_s
         after = _read_until(observer, end, live, stop)
+        used_after = {c: cgroup_cpu_s(d) for c, d in groups.items()}
         if stop.is_set():
             result.ended = "interrupted (Ctrl-C)"
             break
         latency = chain_latency(listeners)  # right after the counters, so both cover the same seconds
+        for listener in listeners.values():  # a restarted publisher (a new URI) is listened to again
+            listener.follow([u for p in observer.publishers.get(listener.topic, []) if (u := observer._uri(p))])
         k += 1
         stats = window_stats(before, after, observer.types, f"window-{k}")
         cpu = window_cpu(before, after, plan, units)
+        world = _world(live, plan, before, after, used_before, used_after, units)
+        if world.get("links") and system is not None:
+            from perfros_bag.watch.adapt import world_system
+
+            system = world_system(system, {"links": world["links"]})  # judged against the rates in force
         v = evaluate(stats, plan, system, cpu, tolerance)
         doc = window_document(k, after.t, after.t - before.t, v, plan, after.alive, set(cpu), [], latency)
-        alarms = persistence.update(rate_drifts(doc, tolerance))
+        for c, x in (world.get("foreign") or {}).items():
+            if c in doc["computers"]:
+                doc["computers"][c]["foreign"] = x
+        if world.get("pinned"):
+            doc["pinned"] = world["pinned"]
+        alarms = persistence.update(rate_drifts(doc, tolerance, latency_tolerance))
         doc["alarms"] = [a.to_dict() for a in alarms]
         new = [a.to_dict() for a in alarms if a.new]
         result.alarms += new
         result.windows = k
         if adapt is not None and new:
-            replan = adapt.replan(plan, rows + window_rows(k, doc, plan, observer.types), new, k)
+            replan = adapt.replan(plan, rows + window_rows(k, doc, plan, observer.types), new, k, world)
             if replan is not None:
+                persistence = type(persistence)(persistence.persist)  # the new plan's drifts count afresh
                 result.replans.append(replan)
                 doc["replan"] = replan
                 if replan["applied"].startswith("sent"):  # the deploy runs it now: watch it against that
@@ -282,7 +302,37 @@ def _windows(observer: Observer, plan: Plan, system: System | None, live: Any, u
         if not after.master_up or (live is not None and not _deploy_running(live)):
             result.ended = "the deploy ended" if live is not None else f"the master at {master_uri} went away"
             break
-        before = after
+        before, used_before = after, used_after
+
+
+def _world(live: Any, plan: Plan, before: Reading, after: Reading, used_before: dict[str, dict[int, float] | None],
+           used_after: dict[str, dict[int, float] | None], units: float | None) -> dict[str, Any]:
+    """The world as a deploy in progress has it now (nothing without one): its links' rates
+    in force, each computer's CPU beyond its planned nodes (``foreign``), and the values it
+    runs that differ from the plan watched (``pinned``: an operator's change)."""
+    from perfros_bag.sweep.livestate import read_live
+    from perfros_bag.watch.window import foreign_cpu
+
+    if live is None or live.folder is None:
+        return {}
+    try:
+        now = read_live(live.folder)
+    except PerfrosError:
+        return {}
+    where = {n: pn.computer for n, pn in plan.nodes.items()}
+    pinned = {n: v for n, v in now.values.items()
+              if n in plan.nodes and plan.nodes[n].value is not None and isinstance(v, int | float)
+              and not _runs_as(float(plan.nodes[n].value or 0.0), v)}
+    return {"links": now.links, "foreign": foreign_cpu(before, after, used_before, used_after, where, units or 100.0),
+            "pinned": pinned}
+
+
+def _runs_as(planned: float, running: float) -> bool:
+    """Whether a node running at ``running`` runs its planned value (a whole-number
+    parameter runs the planned value rounded, as deploy's ``plan_run`` does)."""
+    if isinstance(running, int) and not isinstance(running, bool):
+        return int(round(planned)) == running
+    return abs(planned - float(running)) <= 1e-9 * max(1.0, abs(planned))
 
 
 def _deploy_running(live: Any) -> bool:

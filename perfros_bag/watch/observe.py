@@ -198,8 +198,9 @@ class Observer:
                         alive = False
             else:
                 alive = True
-            # its XML-RPC answers: getBusStats did this time, else ask getPid
-            reading.alive[name] = alive and (node.ros_name in answered
+            # a local node: its process runs (an XML-RPC call a loaded machine answers late is no
+            # death); else its XML-RPC answers: getBusStats did this time, else ask getPid
+            reading.alive[name] = alive and (node.local or node.ros_name in answered
                                              or isinstance(node_call(node.uri, "getPid"), int))
         reading.t = time.time()
         return reading

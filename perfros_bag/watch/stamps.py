@@ -62,8 +62,22 @@ class StampListener:
         self.lock = threading.Lock()
         self.closed = threading.Event()
         self.sockets: list[socket.socket] = []
-        self.threads = [threading.Thread(target=self._listen, args=(uri,), daemon=True) for uri in publishers]
-        for t in self.threads:
+        self.threads: list[threading.Thread] = []
+        self.listening: dict[str, threading.Thread] = {}  # publisher URI -> its thread
+        self.follow(publishers)
+
+    def follow(self, publishers: list[str]) -> None:
+        """Listen to each of ``publishers`` not listened to now: a publisher restarted under
+        its name (a new URI), or one whose connection ended, is connected to again."""
+        for uri in publishers:
+            if self.closed.is_set():
+                return
+            t = self.listening.get(uri)
+            if t is not None and t.is_alive():
+                continue
+            t = threading.Thread(target=self._listen, args=(uri,), daemon=True)
+            self.listening[uri] = t
+            self.threads = [x for x in self.threads if x.is_alive()] + [t]
             t.start()
 
     def _connect(self, uri: str) -> socket.socket | None:
@@ -98,13 +112,21 @@ class StampListener:
                 size = _read_exact(sock, 4, self.closed)
                 message = None if size is None else _read_exact(sock, struct.unpack("<I", size)[0], self.closed)
                 if message is None:
-                    return
+                    break
                 stamp = header_stamp(message)
                 if stamp is not None and stamp > 0:
                     with self.lock:
                         self.latencies.append(time.time() - stamp)
         except OSError:
-            return
+            pass
+        finally:  # the publisher went away (or we close): follow() may connect again
+            with self.lock:
+                if sock in self.sockets:
+                    self.sockets.remove(sock)
+            try:
+                sock.close()
+            except OSError:
+                pass
 
     def take(self) -> list[float]:
         """The latencies (seconds) collected since the last call."""

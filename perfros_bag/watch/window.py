@@ -11,6 +11,7 @@ the same seconds, given to eq 10 in the units its computer is planned in.
 
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -93,6 +94,75 @@ def window_cpu(before: Reading, after: Reading, plan: Plan, units_per_core: floa
         if units_per_core is not None and cap:
             percent = percent * n * units_per_core / cap
         out[node] = TracedCpu(percent, n, "live")
+    return out
+
+
+def cgroup_cpu_s(folder: str | Path) -> dict[int, float] | None:
+    """CPU seconds so far of each process in a cgroup (its ``cgroup.procs``, psutil's
+    user + system of each PID: the same on cgroup v1, whose ``cpu`` hierarchy need not
+    account usage, and v2); None when the group cannot be read."""
+    import psutil
+
+    try:
+        pids = [int(x) for x in (Path(folder) / "cgroup.procs").read_text().split()]
+    except (OSError, ValueError):
+        return None
+    out: dict[int, float] = {}
+    for pid in pids:
+        try:
+            ct = psutil.Process(pid).cpu_times()
+        except psutil.Error:
+            continue
+        out[pid] = float(ct.user + ct.system)
+    return out
+
+
+def _group_delta(before: dict[int, float], after: dict[int, float], since: float) -> float:
+    """CPU seconds a group's processes used between two readings: each process present at
+    the second, from its first reading (one started after ``since``: all of its CPU)."""
+    import psutil
+
+    total = 0.0
+    for pid, used in after.items():
+        if pid in before:
+            total += max(0.0, used - before[pid])
+            continue
+        try:
+            born = psutil.Process(pid).create_time()
+        except psutil.Error:
+            continue
+        if born >= since:
+            total += used
+    return total
+
+
+def foreign_cpu(before: Reading, after: Reading, groups_before: dict[str, dict[int, float] | None],
+                groups_after: dict[str, dict[int, float] | None], where: dict[str, str],
+                units_per_core: float) -> dict[str, float]:
+    """Per emulated computer, CPU units its cgroup spent over the window beyond its launched
+    nodes' own (another process inside it: a hog; ``where``: plan node -> computer); a
+    computer with a node restarted in the window, or whose group cannot be read, is left out."""
+    seconds = after.t - before.t
+    out: dict[str, float] = {}
+    if seconds <= 0:
+        return out
+    for computer, b in groups_before.items():
+        a = groups_after.get(computer)
+        if a is None or b is None:
+            continue
+        nodes_s = 0.0
+        for node, at in where.items():
+            if at != computer:
+                continue
+            if node not in before.cpu_s or node not in after.cpu_s \
+                    or before.cpu_pid.get(node) != after.cpu_pid.get(node):
+                nodes_s = math.nan
+                break
+            nodes_s += after.cpu_s[node] - before.cpu_s[node]
+        if math.isnan(nodes_s):
+            continue
+        used = _group_delta(b, a, before.t)
+        out[computer] = round(max(0.0, (used - nodes_s) / seconds * units_per_core), 3)
     return out
 
 
