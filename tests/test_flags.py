@@ -21,7 +21,7 @@ from perfros_bag.cli._lazy import VERBS, load_verb
 #: The flags for which 0 is a valid value (a deviation of 0 %; record-cpu for 0 s): the
 #: policy as the issue states it, independent of the checker's own table.
 ZERO_ALLOWED = {"validate --tolerance", "deploy --tolerance", "tune --tolerance", "watch --tolerance",
-                "record-cpu --duration"}
+                "watch --latency-tolerance", "record-cpu --duration"}
 
 
 def commands() -> Iterator[tuple[str, object]]:
