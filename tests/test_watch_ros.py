@@ -32,6 +32,40 @@ from tests.test_sweep_e2e import APP, BIN, _cli, _require_ros, _space
 pytestmark = [pytest.mark.ros, pytest.mark.net]
 
 
+def start_deploy(plan: Path, space: Path, system: Path, run: Path, **popen: Any) -> subprocess.Popen[str]:
+    """``deploy`` of fixtures/app for 60 s into ``run``, in the background."""
+    return subprocess.Popen([str(BIN), "deploy", str(plan), str(APP), "--space", str(space), "--out", str(run),
+                             "--duration", "60", "--system", str(system)],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, **popen)
+
+
+def await_live(run: Path, deploy: subprocess.Popen[str]) -> dict[str, Any]:
+    """The deploy's live.json, once its nodes run (at most 120 s)."""
+    deadline = time.monotonic() + 120
+    while not (run / "live.json").exists() and deploy.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert (run / "live.json").exists(), deploy.stderr.read() if deploy.stderr else ""
+    live: dict[str, Any] = json.loads((run / "live.json").read_text())
+    return live
+
+
+def stop_all(*procs: subprocess.Popen[str] | None) -> None:
+    """Ctrl-C each process still running (a test that failed half-way)."""
+    for p in procs:
+        if p is not None and p.poll() is None:
+            p.send_signal(signal.SIGINT)
+            p.wait(timeout=60)
+
+
+def nothing_left(run: Path, run_id: str | None) -> None:
+    """The deploy's live.json gone, and no process, namespace or cgroup of its run."""
+    assert not (run / "live.json").exists()
+    assert run_id is not None
+    assert leftover_processes(run_id) == []
+    assert leftover_namespaces(f"d{run_id}") == []
+    assert leftover_groups(run_id=run_id) == []
+
+
 def psutil_alive(pid: int) -> bool:
     import psutil
 
@@ -69,17 +103,11 @@ def test_watch_attaches_to_a_deploy_and_names_a_killed_node(tmp_path: Path) -> N
                          {"node": "detector", "parameter": {"name": "canny_threshold"}, "arg": "canny_threshold",
                           "values": [200]}])
     run = tmp_path / "deployed"
-    deploy = subprocess.Popen([str(BIN), "deploy", str(tmp_path / "plan.json"), str(APP), "--space", str(space),
-                               "--out", str(run), "--duration", "60", "--system", str(system)],
-                              stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    deploy = start_deploy(tmp_path / "plan.json", space, system, run)
     watcher: subprocess.Popen[str] | None = None
     run_id = None
     try:
-        deadline = time.monotonic() + 120
-        while not (run / "live.json").exists() and deploy.poll() is None and time.monotonic() < deadline:
-            time.sleep(0.2)
-        assert (run / "live.json").exists(), deploy.stderr.read() if deploy.stderr else ""
-        live = json.loads((run / "live.json").read_text())
+        live = await_live(run, deploy)
         run_id = live["run_id"]
         assert live["format"] == "perfros-bag/deploy-live@1" and live["pid"] == deploy.pid
         assert live["master_uri"].startswith("http://")
@@ -146,12 +174,5 @@ def test_watch_attaches_to_a_deploy_and_names_a_killed_node(tmp_path: Path) -> N
         assert watcher.returncode == 1, watcher.stderr.read() if watcher.stderr else ""
         deploy.wait(timeout=90)
     finally:
-        for p in (watcher, deploy):
-            if p is not None and p.poll() is None:
-                p.send_signal(signal.SIGINT)
-                p.wait(timeout=60)
-    assert not (run / "live.json").exists()
-    assert run_id is not None
-    assert leftover_processes(run_id) == []
-    assert leftover_namespaces(f"d{run_id}") == []
-    assert leftover_groups(run_id=run_id) == []
+        stop_all(watcher, deploy)
+    nothing_left(run, run_id)

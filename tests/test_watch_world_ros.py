@@ -25,12 +25,10 @@ from typing import Any
 import pytest
 import yaml
 
-from perfros_bag.rosrun.cgroups import leftover_groups
-from perfros_bag.rosrun.network import leftover_namespaces, tbf_rate_bit
-from perfros_bag.rosrun.processes import leftover_processes
+from perfros_bag.rosrun.network import tbf_rate_bit
 from perfros_bag.sweep.control import write_control
-from tests.test_sweep_e2e import APP, BIN, _cli, _require_ros, _space
-from tests.test_watch_ros import SYSTEM
+from tests.test_sweep_e2e import BIN, _cli, _require_ros, _space
+from tests.test_watch_ros import SYSTEM, await_live, nothing_left, start_deploy, stop_all
 
 pytestmark = [pytest.mark.ros, pytest.mark.net]
 
@@ -61,18 +59,12 @@ def test_a_link_dropped_in_place_is_named_within_two_windows(tmp_path: Path) -> 
                          {"node": "detector", "parameter": {"name": "canny_threshold"}, "arg": "canny_threshold",
                           "values": [200]}])
     run = tmp_path / "deployed"
-    deploy = subprocess.Popen([str(BIN), "deploy", str(tmp_path / "plan.json"), str(APP), "--space", str(space),
-                               "--out", str(run), "--duration", "60", "--system", str(system)],
-                              stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
-                              preexec_fn=ctrl_c_on)  # a real Ctrl-C, even when pytest runs in the background
+    # a real Ctrl-C, even when pytest runs in the background
+    deploy = start_deploy(tmp_path / "plan.json", space, system, run, preexec_fn=ctrl_c_on)
     watcher: subprocess.Popen[str] | None = None
     run_id = None
     try:
-        deadline = time.monotonic() + 120
-        while not (run / "live.json").exists() and deploy.poll() is None and time.monotonic() < deadline:
-            time.sleep(0.2)
-        assert (run / "live.json").exists(), deploy.stderr.read() if deploy.stderr else ""
-        live = json.loads((run / "live.json").read_text())
+        live = await_live(run, deploy)
         run_id = live["run_id"]
         assert live["links"] == [{"between": ["robot1", "server"], "bandwidth_kBps": LINK_KBPS}]
         ns = live["namespaces"]["robot1"]
@@ -122,12 +114,5 @@ def test_a_link_dropped_in_place_is_named_within_two_windows(tmp_path: Path) -> 
         assert time.monotonic() - stopped < 30, "the deploy did not stop on Ctrl-C"
         watcher.wait(timeout=60)
     finally:
-        for p in (watcher, deploy):
-            if p is not None and p.poll() is None:
-                p.send_signal(signal.SIGINT)
-                p.wait(timeout=60)
-    assert not (run / "live.json").exists()
-    assert run_id is not None
-    assert leftover_processes(run_id) == []
-    assert leftover_namespaces(f"d{run_id}") == []
-    assert leftover_groups(run_id=run_id) == []
+        stop_all(watcher, deploy)
+    nothing_left(run, run_id)
