@@ -24,10 +24,13 @@ REALBAGS = Path(os.environ.get("PERFROS_REALBAGS", ROOT.parent / "shared" / "rea
 SERIAL_FILES = frozenset({"test_casestudy.py"})
 
 
+@pytest.hookimpl(tryfirst=True)
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     """Under ``pytest -n 2 --dist loadgroup`` (``make test``) the tests that run real ROS nodes,
     cgroups or network namespaces share one worker, one at a time: two of them side by side on
-    a 2-core machine would starve each other's nodes; the rest spread over both workers."""
+    a 2-core machine would starve each other's nodes; the rest spread over both workers.
+    ``tryfirst``: xdist reads the mark in its own hook of this name, which runs first otherwise
+    (tests/test_test_groups.py proves the grouping holds)."""
     for item in items:
         if item.get_closest_marker("ros") or item.get_closest_marker("net") or item.path.name in SERIAL_FILES:
             item.add_marker(pytest.mark.xdist_group("ros"))
