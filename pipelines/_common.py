@@ -5,9 +5,11 @@ from __future__ import annotations
 import csv
 import shlex
 import shutil
+import signal
 import subprocess
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 from rich.console import Console
 
@@ -38,10 +40,44 @@ def run_shown(args: Sequence[object], *, root: Path, program: Path, commands: li
     shown = shown.replace(str(root) + "/", "")
     commands.append(shown)
     console.print(f"[dim]$ {shown}[/]", highlight=False)
-    done = subprocess.run([str(a) for a in args], capture_output=True, text=True)
+    done = run_to_end([str(a) for a in args])
     if done.returncode not in ok:
         raise SystemExit(f"error: `{shown}` failed ({done.returncode}): {done.stderr.strip()[-1500:]}")
     return done
+
+
+#: seconds a step is given to clean up (stop its nodes, remove its cgroups and namespaces) after
+#: the pipeline is interrupted, before it is killed
+CLEANUP_S = 120.0
+
+
+def run_to_end(args: list[str], cleanup_s: float = CLEANUP_S) -> subprocess.CompletedProcess[str]:
+    """Run one pipeline step, its output captured. The step runs in a session of its own, so an
+    interrupt reaches it once, from here: on Ctrl-C (or SIGTERM, see ``interrupt_on_sigterm``) it
+    gets one SIGINT and up to ``cleanup_s`` seconds to clean up, then the interrupt goes on.
+    (``subprocess.run`` would SIGKILL it: a deploy's nodes, cgroups and namespaces would stay.)"""
+    with subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                          start_new_session=True) as proc:
+        try:
+            out, err = proc.communicate()
+        except KeyboardInterrupt:
+            proc.send_signal(signal.SIGINT)
+            try:
+                proc.communicate(timeout=cleanup_s)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.communicate()
+            raise
+    return subprocess.CompletedProcess(args, proc.returncode, out, err)
+
+
+def interrupt_on_sigterm() -> None:
+    """A pipeline stopped from outside (SIGTERM) cleans up as on Ctrl-C."""
+
+    def interrupted(_sig: int, _frame: Any) -> None:
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, interrupted)
 
 
 def write_section(docs: Path, name: str, section: str, out: Path, images: tuple[str, ...], title: str) -> None:

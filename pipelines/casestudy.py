@@ -33,7 +33,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from _common import read_rows, run_shown, write_rows, write_section
+from _common import interrupt_on_sigterm, read_rows, run_shown, write_rows, write_section
 from rich.console import Console
 
 from perfros_bag.casestudy.launcher import RunConfig, run_plan
@@ -399,6 +399,7 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--docs", type=Path, default=ROOT / "docs" / "casestudy.md")
     ap.add_argument("--skip-rq3", action="store_true")
     args = ap.parse_args(argv)
+    interrupt_on_sigterm()
     instances = [int(x) for x in args.instances.split(",") if x.strip()]
     out: Path = args.out.resolve()
     out.mkdir(parents=True, exist_ok=True)

@@ -45,7 +45,7 @@ from pathlib import Path
 from typing import Any
 
 import yaml
-from _common import read_rows, run_shown, write_rows, write_section
+from _common import interrupt_on_sigterm, read_rows, run_shown, write_rows, write_section
 from rich.console import Console
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -1164,6 +1164,7 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--budget-instances", default=",".join(map(str, BUDGET_INSTANCES)),
                     help="the instances whose camera -> people chains carry the budget ('' for none)")
     args = ap.parse_args(argv)
+    interrupt_on_sigterm()
     numbers = [int(x) for x in args.instances.split(",") if x.strip()]
     unknown = [n for n in numbers if n not in INSTANCES]
     if unknown:

@@ -42,7 +42,7 @@ from typing import Any
 
 import casestudy_real as cr
 import yaml
-from _common import write_section
+from _common import interrupt_on_sigterm, write_section
 
 STEADY_S = 300.0
 LEAD_S = 20.0  # seconds of the plan before a change
@@ -397,10 +397,7 @@ def main(argv: list[str]) -> int:
     out: Path = args.out.resolve()
     out.mkdir(parents=True, exist_ok=True)
 
-    def interrupted(_sig: int, _frame: Any) -> None:
-        raise KeyboardInterrupt
-
-    signal.signal(signal.SIGTERM, interrupted)  # stopped from outside: the same cleanup as Ctrl-C
+    interrupt_on_sigterm()
     started, t0 = datetime.now(UTC).strftime("%Y-%m-%d %H:%M"), time.monotonic()
     try:
         results = run(out, args, started)
