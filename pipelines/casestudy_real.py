@@ -1069,7 +1069,7 @@ def markdown(results: list[dict[str, Any]], rq3_rows: list[dict[str, Any]], erro
                          f"{f(r['measured'])} | {f(r['freq_dev_mean_pct'])} |")
         kerr = kept_errors(rq3_rows)
         if kerr:
-            lines += ["", "Kept rates, predicted (CFS's share: small needs met first, busy threads as slices) "
+            lines += ["", "Kept rates, predicted (CFS's share: small needs met first, one slice per node) "
                       "against measured, mean |difference| per node (goal: at most 10 points): "
                       + ", ".join(f"{n} **{e['mean_abs_points']:.1f}** points over {e['n']}" for n, e in kerr.items())
                       + "."]

@@ -5,11 +5,11 @@ rates"):
 - a node's need is its CPU at its current input rate (a driven node: the data-flow rule of
   :func:`perfros_bag.system.types.driven_rates` at its planned setting; any other node: its
   planned CPU), times its calibration (measured / planned CPU where the run showed more);
-- a computer whose nodes need more than its capacity shares it as CFS does
-  (:func:`perfros_bag.system.cpushare.fair_shares`): max-min fair per busy thread, so a node
-  that needs less than its slices keeps all it needs and the others share the rest, a node
-  with k busy threads (system.yaml ``threads``, measured by ``record-cpu``; default 1)
-  counting as k slices; its output rate scales by share / need;
+- a computer whose nodes need more than its capacity shares it as CFS does under a sustained
+  overload (:func:`perfros_bag.system.cpushare.fair_shares`, ``sustained``): max-min fair, one
+  slice per node, so a node that needs less than its slice keeps all it needs and the others
+  share the rest (a node's busy threads, system.yaml ``threads``, do not widen its slice then:
+  measured, see that module); its output rate scales by share / need;
 - a node's lower output rate is the lower input rate of the nodes it drives: their need and
   their output fall too, all the way down the ``input`` chains;
 - repeated to a fixed point (damped: each round moves the input rates half way to what the
@@ -165,7 +165,7 @@ def predict_kept(plan: Plan, system: System | None, capacities: Mapping[str, flo
         factor = {}
         for comp, ds in demands.items():
             cap = capacities.get(comp)
-            shares = {d.name: d.need for d in ds} if cap is None else fair_shares(cap, ds)
+            shares = {d.name: d.need for d in ds} if cap is None else fair_shares(cap, ds, sustained=True)
             for d in ds:
                 factor[d.name] = 1.0 if d.need <= 0 else min(1.0, shares[d.name] / d.need)
         new_in: dict[str, float] = {}
