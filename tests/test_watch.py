@@ -565,3 +565,89 @@ def test_adapt_solves_against_the_world_as_it_is_now(tmp_path: Path) -> None:
     pinned = load_plan(entry["plan"])
     assert pinned.nodes["camera"].value == pytest.approx(20)  # 40 fits, but the operator runs 20
     assert "reserved_cpu" not in pinned.extra
+
+
+# --------------------------------------------------------------------------- --adapt off the window loop
+
+SLOW_REFIT = """#!{python}
+# a refit that first sleeps {delay} s, then runs the real one (argv: -m perfros_bag.watch.refit REQUEST)
+import runpy, sys, time
+time.sleep({delay})
+sys.argv = ["refit", *sys.argv[3:]]
+runpy.run_module("perfros_bag.watch.refit", run_name="__main__")
+"""
+
+
+def _slow_python(tmp_path: Path, delay: float) -> Path:
+    path = tmp_path / "slow-python"
+    path.write_text(SLOW_REFIT.format(python=sys.executable, delay=delay))
+    path.chmod(0o755)
+    return path
+
+
+def test_windows_keep_coming_at_their_cadence_while_a_slow_refit_runs(fake: FakeRos, tmp_path: Path) -> None:
+    _adapt_model(tmp_path)  # the plan expects the camera at 40 Hz; the fake sends 20: an alarm at window 2
+    delay, window = 4.0, 0.5
+    out = tmp_path / "watched"
+    docs: list[dict[str, Any]] = []
+    adapter = Adapter(out, tmp_path / "plan.json", command=(str(_slow_python(tmp_path, delay)), "-m",
+                                                           "perfros_bag.watch.refit"))
+    result = watch(tmp_path / "plan.json", master_uri=fake.master_uri, window_s=window, windows=30, out=out,
+                   adapt=adapter, on_window=lambda d, new: docs.append(d))
+    assert [d["window"] for d in docs] == list(range(1, 31))
+    assert all({"t", "nodes", "alarms"} <= set(d) for d in docs)
+    first = result.replans[0]
+    assert first["window"] == 2 and first["t"] - first["asked_t"] >= delay  # the refit did take its time
+    # meanwhile the loop went on: the windows that ended while the refit ran, one per `window` seconds
+    during = [d for d in docs if first["asked_t"] < d["t"] < first["t"]]
+    assert len(during) >= int(delay / window) - 2, [round(d["t"] - first["asked_t"], 2) for d in docs]
+    gaps = [b["t"] - a["t"] for a, b in itertools.pairwise(docs)]
+    assert max(gaps) < delay / 2, gaps  # no window waited for the refit
+    # the re-plan is taken by the first window after it was applied, whose drifts count afresh
+    [carrier] = [d for d in docs if d.get("replan", {}).get("window") == 2]
+    assert carrier["t"] >= first["t"] and carrier["alarms"] == []
+    assert carrier["window"] == 1 + max(d["window"] for d in docs if d["t"] < first["t"])
+    # one refit at a time: the alarms raised while it ran asked for none
+    asked = sorted(int(p.name.split("-")[1]) for p in out.glob("replan-*"))
+    assert asked[0] == 2 and all(k > carrier["window"] - 1 for k in asked[1:]), asked
+    logged = [json.loads(line) for line in (out / "adapt.jsonl").read_text().splitlines()]
+    assert [e["window"] for e in logged] == [e["window"] for e in result.replans]
+    assert load_plan(first["plan"]).nodes["camera"].value is not None
+
+
+def test_ctrl_c_during_a_refit_ends_the_refit_too_and_applies_nothing(fake: FakeRos, tmp_path: Path) -> None:
+    import signal
+
+    import psutil
+
+    _adapt_model(tmp_path)
+    out = tmp_path / "watched"
+    script = tmp_path / "watch.py"  # the CLI, with a Python that sleeps 120 s before each refit
+    script.write_text("import sys\n"
+                      f"sys.executable = {str(_slow_python(tmp_path, 120.0))!r}\n"
+                      "sys.argv = ['perfros-bag', *sys.argv[1:]]\n"
+                      "from perfros_bag.entry import main\n"
+                      "main()\n")
+    proc = subprocess.Popen([sys.executable, str(script), "watch", str(tmp_path / "plan.json"), "--master",
+                             fake.master_uri, "--window", "0.5", "--json", "--adapt", "--out", str(out)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    assert proc.stdout is not None
+    try:
+        while not (out / "replan-00002" / "request.json").exists():
+            json.loads(proc.stdout.readline())
+        [child] = psutil.Process(proc.pid).children()
+        assert child.is_running() and str(tmp_path / "slow-python") in " ".join(child.cmdline())
+        later = [json.loads(proc.stdout.readline()) for _ in range(3)]  # the windows go on meanwhile
+        assert [d["window"] for d in later] == list(range(later[0]["window"], later[0]["window"] + 3))
+        assert child.is_running()
+        proc.send_signal(signal.SIGINT)
+        _, stderr = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 1, stderr  # the camera's alarm was raised
+    assert "watch ended: interrupted" in stderr and "Traceback" not in stderr
+    assert not child.is_running() or child.status() == psutil.STATUS_ZOMBIE
+    assert not (out / "replan-00002" / "result.json").exists() and not (out / "adapt.jsonl").exists()
+    assert set(fake.servers) == {"/camera", "/detector", "master"}  # every node still answers

@@ -247,62 +247,120 @@ def _windows(observer: Observer, plan: Plan, system: System | None, live: Any, u
     rows: list[Row] = []
     lines: list[str] = []
     groups = dict(live.cgroups) if live is not None else {}
+    replans = _Replans(adapt)
     before = observer.read()
     used_before = {c: cgroup_cpu_s(d) for c, d in groups.items()}
     for listener in listeners.values():
         listener.take()  # what came before the first window's start is not in it
     k = 0
-    while windows is None or k < windows:
-        end = before.t + window_s
-        after = _read_until(observer, end, live, stop)
-        used_after = {c: cgroup_cpu_s(d) for c, d in groups.items()}
-        if stop.is_set():
-            result.ended = "interrupted (Ctrl-C)"
-            break
-        latency = chain_latency(listeners)  # right after the counters, so both cover the same seconds
-        for listener in listeners.values():  # a restarted publisher (a new URI) is listened to again
-            listener.follow([u for p in observer.publishers.get(listener.topic, []) if (u := observer._uri(p))])
-        k += 1
-        stats = window_stats(before, after, observer.types, f"window-{k}")
-        cpu = window_cpu(before, after, plan, units)
-        world = _world(live, plan, before, after, used_before, used_after, units)
-        if world.get("links") and system is not None:
-            from perfros_bag.watch.adapt import world_system
-
-            system = world_system(system, {"links": world["links"]})  # judged against the rates in force
-        v = evaluate(stats, plan, system, cpu, tolerance)
-        doc = window_document(k, after.t, after.t - before.t, v, plan, after.alive, set(cpu), [], latency)
-        for c, x in (world.get("foreign") or {}).items():
-            if c in doc["computers"]:
-                doc["computers"][c]["foreign"] = x
-        if world.get("pinned"):
-            doc["pinned"] = world["pinned"]
-        alarms = persistence.update(rate_drifts(doc, tolerance, latency_tolerance))
-        doc["alarms"] = [a.to_dict() for a in alarms]
-        new = [a.to_dict() for a in alarms if a.new]
-        result.alarms += new
-        result.windows = k
-        if adapt is not None and new:
-            replan = adapt.replan(plan, rows + window_rows(k, doc, plan, observer.types), new, k, world)
+    try:
+        while windows is None or k < windows:
+            end = before.t + window_s
+            after = _read_until(observer, end, live, stop, replans.poll)
+            used_after = {c: cgroup_cpu_s(d) for c, d in groups.items()}
+            if stop.is_set():
+                result.ended = "interrupted (Ctrl-C)"
+                break
+            latency = chain_latency(listeners)  # right after the counters, so both cover the same seconds
+            for listener in listeners.values():  # a restarted publisher (a new URI) is listened to again
+                listener.follow([u for p in observer.publishers.get(listener.topic, []) if (u := observer._uri(p))])
+            k += 1
+            replan = replans.take()  # applied since the last window: this window is judged against it
             if replan is not None:
                 persistence = type(persistence)(persistence.persist)  # the new plan's drifts count afresh
                 result.replans.append(replan)
-                doc["replan"] = replan
                 if replan["applied"].startswith("sent"):  # the deploy runs it now: watch it against that
                     from perfros_bag.system.planfile import load_plan
 
                     plan = load_plan(replan["plan"])
-        if on_window is not None:
-            on_window(doc, new)
-        if outdir is not None:
-            rows += window_rows(k, doc, plan, observer.types)
-            lines.append(json_text(doc, indent=None))
-            atomic_write_text(outdir / "windows.jsonl", "\n".join(lines) + "\n")
-            write_characterisation(outdir / "characterisation.csv", rows)
-        if not after.master_up or (live is not None and not _deploy_running(live)):
-            result.ended = "the deploy ended" if live is not None else f"the master at {master_uri} went away"
-            break
-        before, used_before = after, used_after
+            stats = window_stats(before, after, observer.types, f"window-{k}")
+            cpu = window_cpu(before, after, plan, units)
+            world = _world(live, plan, before, after, used_before, used_after, units)
+            if world.get("links") and system is not None:
+                from perfros_bag.watch.adapt import world_system
+
+                system = world_system(system, {"links": world["links"]})  # judged against the rates in force
+            v = evaluate(stats, plan, system, cpu, tolerance)
+            doc = window_document(k, after.t, after.t - before.t, v, plan, after.alive, set(cpu), [], latency)
+            for c, x in (world.get("foreign") or {}).items():
+                if c in doc["computers"]:
+                    doc["computers"][c]["foreign"] = x
+            if world.get("pinned"):
+                doc["pinned"] = world["pinned"]
+            if replan is not None:
+                doc["replan"] = replan
+            alarms = persistence.update(rate_drifts(doc, tolerance, latency_tolerance))
+            doc["alarms"] = [a.to_dict() for a in alarms]
+            new = [a.to_dict() for a in alarms if a.new]
+            result.alarms += new
+            result.windows = k
+            if new:  # a re-plan still being made takes these alarms' windows in its successor, if they last
+                replans.ask(plan, rows + window_rows(k, doc, plan, observer.types), new, k, world)
+            if on_window is not None:
+                on_window(doc, new)
+            if outdir is not None:
+                rows += window_rows(k, doc, plan, observer.types)
+                lines.append(json_text(doc, indent=None))
+                atomic_write_text(outdir / "windows.jsonl", "\n".join(lines) + "\n")
+                write_characterisation(outdir / "characterisation.csv", rows)
+            if not after.master_up or (live is not None and not _deploy_running(live)):
+                result.ended = "the deploy ended" if live is not None else f"the master at {master_uri} went away"
+                break
+            before, used_before = after, used_after
+        if result.ended is None:  # --windows N reached: the re-plan asked for is finished, logged, applied
+            result.replans += replans.drain()
+    finally:
+        replans.cancel()
+
+
+class _Replans:
+    """``--adapt``'s re-plans as the loop sees them: at most one refit at a time, in a child
+    process (:mod:`perfros_bag.watch.refit`); applied as soon as it is done, taken by the
+    next window."""
+
+    def __init__(self, adapter: Any) -> None:
+        from perfros_bag.watch.refit import Pending
+
+        self.adapter = adapter
+        self.pending: Pending | None = None
+        self.done: list[dict[str, Any]] = []
+
+    def ask(self, plan: Plan, rows: list[Row], alarms: list[dict[str, Any]], k: int, world: dict[str, Any]) -> None:
+        if self.adapter is None or self.pending is not None:
+            return
+        from perfros_bag.watch.refit import start
+
+        try:
+            self.pending = start(self.adapter, plan, rows, alarms, k, world)
+        except (OSError, PerfrosError) as exc:
+            warnings.warn(f"--adapt: window {k}: no re-plan: {exc}", PerfrosWarning, stacklevel=2)
+
+    def poll(self) -> None:
+        """Apply the re-plan whose refit has ended (control.json, adapt.jsonl)."""
+        if self.pending is not None and self.pending.poll():
+            entry = self.pending.finish()
+            self.pending = None
+            if entry is not None:
+                self.done.append(entry)
+
+    def take(self) -> dict[str, Any] | None:
+        """The last re-plan applied since the previous call (earlier ones are in adapt.jsonl)."""
+        self.poll()
+        done, self.done = self.done, []
+        return done[-1] if done else None
+
+    def drain(self) -> list[dict[str, Any]]:
+        """Wait for the refit under way, apply it; every re-plan not taken yet."""
+        if self.pending is not None:
+            self.pending.wait()
+        self.poll()
+        done, self.done = self.done, []
+        return done
+
+    def cancel(self) -> None:
+        if self.pending is not None:
+            self.pending.cancel()
+            self.pending = None
 
 
 def _world(live: Any, plan: Plan, before: Reading, after: Reading, used_before: dict[str, dict[int, float] | None],
@@ -339,10 +397,13 @@ def _deploy_running(live: Any) -> bool:
     return bool(live.running())
 
 
-def _read_until(observer: Observer, end: float, live: Any, stop: threading.Event) -> Reading:
+def _read_until(observer: Observer, end: float, live: Any, stop: threading.Event,
+                tick: Callable[[], None] | None = None) -> Reading:
     """Sleep until ``end`` (seconds since the epoch), in short steps so a deploy that ends is
-    noticed, then read."""
+    noticed (and ``tick()`` called at each: a re-plan applied as soon as it is ready), then read."""
     while True:
+        if tick is not None:
+            tick()
         left = end - time.time()
         if left <= 0:
             break
