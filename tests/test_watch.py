@@ -651,3 +651,72 @@ def test_ctrl_c_during_a_refit_ends_the_refit_too_and_applies_nothing(fake: Fake
     assert not child.is_running() or child.status() == psutil.STATUS_ZOMBIE
     assert not (out / "replan-00002" / "result.json").exists() and not (out / "adapt.jsonl").exists()
     assert set(fake.servers) == {"/camera", "/detector", "master"}  # every node still answers
+
+
+# --------------------------------------------------------------------------- a node a deploy restarts
+
+
+def _fake_deploy(folder: Path, fake: FakeRos, plan: Path, restarting: dict[str, float] | None = None,
+                 timeout: float | None = None) -> None:
+    """A deploy's live.json for the fake (this process stands for the deploy)."""
+    from perfros_bag.sweep.livestate import LiveState, write_live
+
+    folder.mkdir(exist_ok=True)
+    nodes = {n: {"pid": fake.procs[n].pid, "computer": "host"} for n in ("/camera", "/detector")}
+    write_live(folder / "live.json", LiveState("fake", os.getpid(), fake.master_uri, None, str(plan), nodes=nodes,
+                                               restarting=restarting or {}, restart_timeout_s=timeout))
+
+
+def test_a_node_the_deploy_restarts_is_restarting_not_dead_until_its_timeout(fake: FakeRos, tmp_path: Path) -> None:
+    plan = _fake_plan(tmp_path)
+    dep = tmp_path / "deployed"
+    _fake_deploy(dep, fake, plan, timeout=30.0)
+    docs: list[dict[str, Any]] = []
+
+    def on(doc: dict[str, Any], new: list[dict[str, Any]]) -> None:
+        docs.append(doc)
+        k = doc["window"]
+        if k == 2:  # the deploy says it restarts the camera, then stops it (as control.py does)
+            _fake_deploy(dep, fake, plan, {"/camera": time.time()}, 30.0)
+            fake.stop("/camera")
+        elif k == 5:  # the camera is back (a new process, a new XML-RPC address), the restart done
+            fake.procs["/camera"] = subprocess.Popen(["sleep", "600"])
+            fake._serve("/camera", fake._node("/camera"))
+            _fake_deploy(dep, fake, plan, None, 30.0)
+        elif k == 8:  # a restart that began longer ago than the deploy's restart timeout: dead
+            _fake_deploy(dep, fake, plan, {"/camera": time.time() - 31.0}, 30.0)
+            fake.stop("/camera")
+
+    result = watch(plan, deployment=dep, window_s=0.5, windows=10, on_window=on)
+    states = [d["nodes"]["camera"]["state"] for d in docs]
+    # window 3 holds the stop (the reading at its end sees the process gone); windows 6 and 9: see above
+    assert states[:2] == ["running"] * 2 and states[2:5] == ["restarting"] * 3, states
+    assert states[5:8] == ["running"] * 3 and states[8:] == ["dead"] * 2, states
+    assert all(not d["nodes"]["camera"]["alive"] for d in docs[2:5])
+    assert [(d["window"], a["quantity"]) for d in docs for a in d["alarms"] if a["new"]] == [(9, "alive")]
+    assert [(a["node"], a["quantity"]) for a in result.alarms] == [("camera", "alive")]
+
+
+def test_restarting_nodes_by_the_deploy_s_word_or_a_new_pid_it_names() -> None:
+    from types import SimpleNamespace
+
+    from perfros_bag.watch.loop import RESTART_GRACE_S, restarting_nodes
+
+    sleeper = subprocess.Popen(["sleep", "60"])
+    try:
+        observer = SimpleNamespace(nodes={n: SimpleNamespace(ros_name=f"/{n}", pid=1_000_000 + i)
+                                          for i, n in enumerate(("a", "b", "c", "d", "e"))})
+        reading = Reading(1000.0, alive={"a": False, "b": False, "c": False, "d": True, "e": False})
+        now = SimpleNamespace(restart_timeout_s=None,
+                              restarting={"/a": 1000.0 - RESTART_GRACE_S, "/b": 1000.0 - RESTART_GRACE_S - 1,
+                                          "/d": 999.0},
+                              nodes={"/c": {"pid": sleeper.pid}, "/e": {"pid": 1_000_004}})
+        # a: restarting for exactly the grace; b: longer (dead); c: the deploy names a new PID that runs;
+        # d: alive (not away at all); e: the deploy names the PID the watch knows, gone: dead
+        assert restarting_nodes(now, observer, reading) == {"a", "c"}  # type: ignore[arg-type]
+        now.restart_timeout_s = RESTART_GRACE_S + 5
+        assert restarting_nodes(now, observer, reading) == {"a", "b", "c"}  # type: ignore[arg-type]
+        assert restarting_nodes(None, observer, reading) == set()  # type: ignore[arg-type]
+    finally:
+        sleeper.kill()
+        sleeper.wait()

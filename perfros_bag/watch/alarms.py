@@ -7,7 +7,7 @@ messages: 10 Hz over 2 s is 20 +- 1), and on a chain's latency when its measured
 exceeds the plan's predicted p95 by more than ``latency_tolerance`` % (``watch
 --latency-tolerance``, default ``tolerance``). A drift of the same node or
 chain and quantity in ``persist`` windows in a row is an alarm; a node that died is an
-alarm at once. An alarm stays listed while its drift lasts.
+alarm at once, a node a deploy is restarting (``state: restarting``) none. An alarm stays listed while its drift lasts.
 """
 
 from __future__ import annotations
@@ -54,6 +54,8 @@ def rate_drifts(window: dict[str, Any], tolerance: float, latency_tolerance: flo
     slack = 1.0 / seconds if seconds > 0 else 0.0
     out: list[Drift] = []
     for name, n in window["nodes"].items():
+        if n.get("state") == "restarting":  # a deploy restarts it for a new plan: neither dead nor drifting
+            continue
         if not n.get("alive", True):
             out.append(Drift("node", name, "alive", 1.0, 0.0, immediate=True))
             continue

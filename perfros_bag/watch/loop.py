@@ -275,13 +275,16 @@ def _windows(observer: Observer, plan: Plan, system: System | None, live: Any, u
                     plan = load_plan(replan["plan"])
             stats = window_stats(before, after, observer.types, f"window-{k}")
             cpu = window_cpu(before, after, plan, units)
-            world = _world(live, plan, before, after, used_before, used_after, units)
+            now = _live_now(live)
+            world = _world(now, plan, before, after, used_before, used_after, units)
+            restarting = restarting_nodes(now, observer, after)
             if world.get("links") and system is not None:
                 from perfros_bag.watch.adapt import world_system
 
                 system = world_system(system, {"links": world["links"]})  # judged against the rates in force
             v = evaluate(stats, plan, system, cpu, tolerance)
-            doc = window_document(k, after.t, after.t - before.t, v, plan, after.alive, set(cpu), [], latency)
+            doc = window_document(k, after.t, after.t - before.t, v, plan, after.alive, set(cpu), [], latency,
+                                  restarting)
             for c, x in (world.get("foreign") or {}).items():
                 if c in doc["computers"]:
                     doc["computers"][c]["foreign"] = x
@@ -363,19 +366,58 @@ class _Replans:
             self.pending = None
 
 
-def _world(live: Any, plan: Plan, before: Reading, after: Reading, used_before: dict[str, dict[int, float] | None],
-           used_after: dict[str, dict[int, float] | None], units: float | None) -> dict[str, Any]:
-    """The world as a deploy in progress has it now (nothing without one): its links' rates
-    in force, each computer's CPU beyond its planned nodes (``foreign``), and the values it
-    runs that differ from the plan watched (``pinned``: an operator's change)."""
+def _live_now(live: Any) -> Any:
+    """The deploy's live.json as it is now (None without a deploy, or once it is gone)."""
     from perfros_bag.sweep.livestate import read_live
-    from perfros_bag.watch.window import foreign_cpu
 
     if live is None or live.folder is None:
-        return {}
+        return None
     try:
-        now = read_live(live.folder)
+        return read_live(live.folder)
     except PerfrosError:
+        return None
+
+
+#: how long a node the deploy says it is restarting may be away before it is dead, when
+#: live.json does not say (``restart_timeout_s``)
+RESTART_GRACE_S = 90.0
+
+
+def restarting_nodes(now: Any, observer: Observer, reading: Reading) -> set[str]:
+    """The planned nodes not running in ``reading`` that the deploy (live.json ``now``) is
+    restarting for a new plan, since at most its restart timeout, or has just restarted (it
+    names a new PID for them that runs): away for a restart, not dead."""
+    import psutil
+
+    if now is None:
+        return set()
+    grace = now.restart_timeout_s or RESTART_GRACE_S
+    out = set()
+    for name, node in observer.nodes.items():
+        if reading.alive.get(name, True):
+            continue
+        since = now.restarting.get(node.ros_name)
+        pid = (now.nodes.get(node.ros_name) or {}).get("pid")
+        if since is not None and reading.t - since <= grace:
+            out.add(name)
+        elif isinstance(pid, int) and pid != node.pid:
+            try:
+                if psutil.Process(pid).status() != psutil.STATUS_ZOMBIE:
+                    out.add(name)
+            except psutil.Error:
+                pass
+    return out
+
+
+def _world(now: Any, plan: Plan, before: Reading, after: Reading, used_before: dict[str, dict[int, float] | None],
+           used_after: dict[str, dict[int, float] | None], units: float | None) -> dict[str, Any]:
+    """The world as a deploy in progress (its live.json ``now``) has it (nothing without
+    one): its links' rates in force, each computer's CPU beyond its planned nodes
+    (``foreign``), and the values it runs that differ from the plan watched (``pinned``: an
+    operator's change)."""
+    from perfros_bag.watch.window import foreign_cpu
+
+    if now is None:
         return {}
     where = {n: pn.computer for n, pn in plan.nodes.items()}
     pinned = {n: v for n, v in now.values.items()
