@@ -570,11 +570,15 @@ def test_adapt_solves_against_the_world_as_it_is_now(tmp_path: Path) -> None:
 # --------------------------------------------------------------------------- --adapt off the window loop
 
 SLOW_REFIT = """#!{python}
-# a refit that first sleeps {delay} s, then runs the real one (argv: -m perfros_bag.watch.refit REQUEST)
-import runpy, sys, time
-time.sleep({delay})
-sys.argv = ["refit", *sys.argv[3:]]
-runpy.run_module("perfros_bag.watch.refit", run_name="__main__")
+# the refit child (argv: -m perfros_bag.watch.refit ARGS), whose refit first sleeps {delay} s
+import sys, time
+import perfros_bag.watch.refit as refit
+real = refit.run
+def slow(request):
+    time.sleep({delay})
+    return real(request)
+refit.run = slow
+sys.exit(refit.main(sys.argv[3:]))
 """
 
 
@@ -595,6 +599,9 @@ def test_windows_keep_coming_at_their_cadence_while_a_slow_refit_runs(fake: Fake
     result = watch(tmp_path / "plan.json", master_uri=fake.master_uri, window_s=window, windows=30, out=out,
                    adapt=adapter, on_window=lambda d, new: docs.append(d))
     assert [d["window"] for d in docs] == list(range(1, 31))
+    import psutil  # the refit children, the one waiting for a next re-plan included, are gone
+
+    assert [c for c in psutil.Process().children() if c.pid not in {p.pid for p in fake.procs.values()}] == []
     assert all({"t", "nodes", "alarms"} <= set(d) for d in docs)
     first = result.replans[0]
     assert first["window"] == 2 and first["t"] - first["asked_t"] >= delay  # the refit did take its time
@@ -610,6 +617,8 @@ def test_windows_keep_coming_at_their_cadence_while_a_slow_refit_runs(fake: Fake
     # one refit at a time: the alarms raised while it ran asked for none
     asked = sorted(int(p.name.split("-")[1]) for p in out.glob("replan-*"))
     assert asked[0] == 2 and all(k > carrier["window"] - 1 for k in asked[1:]), asked
+    # the refit was made by the child warmed at the start (its output in DIR/refit.log), not one started then
+    assert (out / "refit.log").exists() and not (out / "replan-00002" / "refit.log").exists()
     logged = [json.loads(line) for line in (out / "adapt.jsonl").read_text().splitlines()]
     assert [e["window"] for e in logged] == [e["window"] for e in result.replans]
     assert load_plan(first["plan"]).nodes["camera"].value is not None

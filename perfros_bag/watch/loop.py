@@ -322,19 +322,33 @@ class _Replans:
     next window."""
 
     def __init__(self, adapter: Any) -> None:
+        import subprocess
+
         from perfros_bag.watch.refit import Pending
 
         self.adapter = adapter
         self.pending: Pending | None = None
+        self.standby: subprocess.Popen[bytes] | None = None  # a refit child waiting, its imports done
         self.done: list[dict[str, Any]] = []
+        self._warm()
+
+    def _warm(self) -> None:
+        from perfros_bag.watch.refit import warm
+
+        if self.adapter is not None and self.standby is None and self.pending is None:
+            try:
+                self.standby = warm(self.adapter)
+            except OSError as exc:  # a refit then starts its own child when asked
+                warnings.warn(f"--adapt: no refit process started ahead: {exc}", PerfrosWarning, stacklevel=2)
 
     def ask(self, plan: Plan, rows: list[Row], alarms: list[dict[str, Any]], k: int, world: dict[str, Any]) -> None:
         if self.adapter is None or self.pending is not None:
             return
         from perfros_bag.watch.refit import start
 
+        standby, self.standby = self.standby, None
         try:
-            self.pending = start(self.adapter, plan, rows, alarms, k, world)
+            self.pending = start(self.adapter, plan, rows, alarms, k, world, standby)
         except (OSError, PerfrosError) as exc:
             warnings.warn(f"--adapt: window {k}: no re-plan: {exc}", PerfrosWarning, stacklevel=2)
 
@@ -347,8 +361,10 @@ class _Replans:
                 self.done.append(entry)
 
     def take(self) -> dict[str, Any] | None:
-        """The last re-plan applied since the previous call (earlier ones are in adapt.jsonl)."""
+        """The last re-plan applied since the previous call (earlier ones are in adapt.jsonl);
+        a refit child is warmed again for the next one."""
         self.poll()
+        self._warm()
         done, self.done = self.done, []
         return done[-1] if done else None
 
@@ -361,9 +377,14 @@ class _Replans:
         return done
 
     def cancel(self) -> None:
+        from perfros_bag.watch.refit import end
+
         if self.pending is not None:
             self.pending.cancel()
             self.pending = None
+        if self.standby is not None:
+            end(self.standby)
+            self.standby = None
 
 
 def _live_now(live: Any) -> Any:

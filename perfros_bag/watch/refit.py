@@ -4,15 +4,19 @@ A refit on the case study's characterisation took up to 79 s on a loaded machine
 the loop, no window came meanwhile. So the loop hands it to a child process
 (:func:`start`): the watched plan, the live windows' rows, the alarms and the world go into
 ``replan-<k>/`` (``watched-plan.json``, ``windows.csv``, ``request.json``), and
-``python -m perfros_bag.watch.refit replan-<k>/request.json`` runs
-:meth:`~perfros_bag.watch.adapt.Adapter.prepare` there (its output in ``refit.log``, its
-answer in ``result.json``). The loop goes on making windows; each of its quarter-second
-steps asks :meth:`Pending.poll`, and when the child is done the loop applies the new plan
+a child runs :meth:`~perfros_bag.watch.adapt.Adapter.prepare` on it (its answer in
+``result.json``). The child is started ahead (:func:`warm`: ``python -m
+perfros_bag.watch.refit --standby PID``, its imports done while nothing drifts, its output in
+``DIR/refit.log``) and handed the request's path on its stdin; one is warmed again after
+each re-plan. Without a waiting one, ``python -m perfros_bag.watch.refit
+replan-<k>/request.json`` starts there and then (its output in ``replan-<k>/refit.log``).
+The loop goes on making windows; each of its quarter-second steps asks
+:meth:`Pending.poll`, and when the child is done the loop applies the new plan
 (:meth:`~perfros_bag.watch.adapt.Adapter.apply`: control.json, adapt.jsonl) at once.
 
 The child runs in a session of its own (a terminal's Ctrl-C does not reach it): the watch
-ends it on Ctrl-C, on an error and when the deploy or the master goes away
-(:meth:`Pending.cancel`); should the watch itself be killed outright, the child notices
+ends it (and a waiting one) on Ctrl-C, on an error and when the deploy or the master goes
+away (:meth:`Pending.cancel`, :func:`end`); should the watch itself be killed outright, the child notices
 that its parent changed and exits. A child process rather than a thread: it holds no lock
 the loop needs (Python's GIL, the warnings filters), and it can be ended.
 """
@@ -49,6 +53,7 @@ class Pending:
     folder: Path
     proc: subprocess.Popen[bytes]
     started: float  # time.time() when it was asked for
+    log: Path  # the child's output
 
     def poll(self) -> bool:
         """Whether the child has ended."""
@@ -70,7 +75,7 @@ class Pending:
                 answer = None
         if not isinstance(answer, dict):
             answer = {"error": f"the refit process ended with code {self.proc.returncode} "
-                               f"(its output: {self.folder / LOG})"}
+                               f"(its output: {self.log})"}
         for line in answer.get("warnings") or []:
             warnings.warn(f"--adapt: window {self.window}: {line}", PerfrosWarning, stacklevel=2)
         if answer.get("error") is not None or not isinstance(answer.get("entry"), dict):
@@ -81,18 +86,28 @@ class Pending:
 
     def cancel(self) -> None:
         """End the child if it still runs (and reap it)."""
-        if self.proc.poll() is None:
-            self.proc.terminate()
-            try:
-                self.proc.wait(5)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
+        end(self.proc)
+
+
+def _command(adapter: Adapter) -> list[str]:
+    return list(adapter.command or (sys.executable, "-m", "perfros_bag.watch.refit"))
+
+
+def warm(adapter: Adapter) -> subprocess.Popen[bytes]:
+    """A refit child started ahead of need (``--standby``): it imports what a refit and a
+    re-solve use (numpy, scikit-learn, HiGHS, the fitting and solver modules: seconds on a
+    loaded machine), then waits for one request's path on its stdin. Its output goes to
+    ``DIR/refit.log``."""
+    adapter.out.mkdir(parents=True, exist_ok=True)
+    with (adapter.out / LOG).open("ab") as log:
+        return subprocess.Popen([*_command(adapter), "--standby", str(os.getpid())], stdin=subprocess.PIPE,
+                                stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
 
 
 def start(adapter: Adapter, plan: Plan, rows: list[Row], alarms: list[dict[str, Any]], k: int,
-          world: dict[str, Any]) -> Pending:
-    """Start the refit and re-solve of window ``k``'s re-plan in a child process."""
+          world: dict[str, Any], standby: subprocess.Popen[bytes] | None = None) -> Pending:
+    """Start the refit and re-solve of window ``k``'s re-plan in a child process: ``standby``
+    (:func:`warm`) when it still waits, else a new one."""
     from perfros_bag.characterisation.csvfile import write_characterisation
     from perfros_bag.fileio import atomic_write_json
     from perfros_bag.system.planfile import save_plan
@@ -109,11 +124,33 @@ def start(adapter: Adapter, plan: Plan, rows: list[Row], alarms: list[dict[str, 
                                          "plan": str(folder / "watched-plan.json"),
                                          "rows": str(folder / "windows.csv") if rows else None,
                                          "alarms": alarms, "window": k, "world": world, "parent": os.getpid()})
-    command = list(adapter.command or (sys.executable, "-m", "perfros_bag.watch.refit"))
+    if standby is not None and standby.poll() is None and standby.stdin is not None:
+        try:
+            standby.stdin.write(f"{folder / REQUEST}\n".encode())
+            standby.stdin.close()
+            return Pending(adapter, k, folder, standby, time.time(), adapter.out / LOG)
+        except OSError:  # it ended meanwhile: a new one
+            end(standby)
     with (folder / LOG).open("wb") as log:
-        proc = subprocess.Popen([*command, str(folder / REQUEST)], stdin=subprocess.DEVNULL, stdout=log,
+        proc = subprocess.Popen([*_command(adapter), str(folder / REQUEST)], stdin=subprocess.DEVNULL, stdout=log,
                                 stderr=subprocess.STDOUT, start_new_session=True)
-    return Pending(adapter, k, folder, proc, time.time())
+    return Pending(adapter, k, folder, proc, time.time(), folder / LOG)
+
+
+def end(proc: subprocess.Popen[bytes]) -> None:
+    """Terminate ``proc`` if it still runs (killed after 5 s) and reap it."""
+    if proc.stdin is not None:
+        try:
+            proc.stdin.close()
+        except OSError:
+            pass
+    if proc.poll() is None:
+        proc.terminate()
+        try:
+            proc.wait(5)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
 
 
 def _orphaned(parent: int) -> None:
@@ -151,13 +188,35 @@ def run(request_path: Path) -> dict[str, Any]:
     return answer
 
 
+def _imports() -> None:
+    """What a refit and a re-solve import, imported ahead (a standby child)."""
+    import importlib
+
+    for name in ("numpy", "sklearn.linear_model", "highspy", "perfros_bag.fitting.build", "perfros_bag.solver",
+                 "perfros_bag.tune.loop", "perfros_bag.fitting.modelfile", "perfros_bag.characterisation.csvfile"):
+        try:
+            importlib.import_module(name)
+        except ImportError:  # the refit says what is missing, if it needs it
+            pass
+
+
 def main(argv: list[str]) -> int:
+    """``REQUEST``: make that re-plan; ``--standby PARENT``: import first, then read the
+    request's path from stdin (none: the watch ended first, exit)."""
     from perfros_bag.fileio import atomic_write_json, read_json
 
-    request = Path(argv[0])
-    parent = read_json(request).get("parent")
-    if isinstance(parent, int):
-        threading.Thread(target=_orphaned, args=(parent,), daemon=True).start()
+    if argv[:1] == ["--standby"]:
+        threading.Thread(target=_orphaned, args=(int(argv[1]),), daemon=True).start()
+        _imports()
+        line = sys.stdin.readline().strip()
+        if not line:
+            return 0
+        request = Path(line)
+    else:
+        request = Path(argv[0])
+        parent = read_json(request).get("parent")
+        if isinstance(parent, int):
+            threading.Thread(target=_orphaned, args=(parent,), daemon=True).start()
     atomic_write_json(request.parent / RESULT, run(request))
     return 0
 
