@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import itertools
 import json
+import math
 import os
 import socket
 import subprocess
@@ -729,3 +730,72 @@ def test_restarting_nodes_by_the_deploy_s_word_or_a_new_pid_it_names() -> None:
     finally:
         sleeper.kill()
         sleeper.wait()
+
+
+def test_a_window_ends_where_the_deploy_finished_running_a_re_plan(fake: FakeRos, tmp_path: Path) -> None:
+    """``--adapt`` attached to a (fake) deploy: the new plan goes to control.json; the deploy
+    says it restarts the camera, does, then runs the new plan (live.json). The window in
+    which that ends is cut there, the windows from the sending to the cut raise no alarm and
+    give no characterisation row, and the next window is judged against the new plan."""
+    _adapt_model(tmp_path)
+    dep = tmp_path / "deployed"
+    _fake_deploy(dep, fake, tmp_path / "plan.json", timeout=30.0)
+    window = 2.0
+    ends: list[float] = []
+    ran: list[tuple[float, str]] = []  # (when the fake deploy ran a plan, which)
+    quit_ = threading.Event()
+
+    def deploy() -> None:  # polls control.json as deploy does, restarts the camera, says so in live.json
+        from perfros_bag.sweep.livestate import read_live, write_live
+
+        seq = 0
+        while not quit_.wait(0.1):
+            try:
+                doc = json.loads((dep / "control.json").read_text())
+            except (OSError, ValueError):
+                continue
+            if doc["seq"] <= seq:
+                continue
+            seq = doc["seq"]
+            _fake_deploy(dep, fake, tmp_path / "plan.json", {"/camera": time.time()}, 30.0)
+            fake.stop("/camera")
+            time.sleep(0.3)
+            fake.procs["/camera"] = subprocess.Popen(["sleep", "600"])
+            fake._serve("/camera", fake._node("/camera"))
+            # it finishes 1.3 s into a window (whose start is the last window's end)
+            last = ends[-1]
+            finish = last + 1.3 + window * max(0, math.ceil((time.time() - last - 1.3) / window))
+            time.sleep(max(0.0, finish - time.time()))
+            _fake_deploy(dep, fake, tmp_path / "plan.json", None, 30.0)
+            live = read_live(dep)
+            live.plan_in_force = doc["plan"]
+            write_live(dep / "live.json", live)
+            ran.append((time.time(), doc["plan"]))
+
+    docs: list[dict[str, Any]] = []
+    out = tmp_path / "watched"
+    worker = threading.Thread(target=deploy, daemon=True)
+    worker.start()
+    try:
+        watch(tmp_path / "plan.json", deployment=dep, window_s=window, windows=9, out=out,
+              adapt=Adapter(out, tmp_path / "plan.json", deployment=dep),
+              on_window=lambda d, new: (docs.append(d), ends.append(d["t"])))
+    finally:
+        quit_.set()
+        worker.join(10)
+    first = json.loads((out / "adapt.jsonl").read_text().splitlines()[0])
+    assert first["applied"].startswith("sent") and ran and ran[0][1] == str(Path(first["plan"]).absolute())
+    t_ran = ran[0][0]
+    [cut] = [d for d in docs if t_ran <= d["t"] < t_ran + 0.6]  # ended within a tick or two of it
+    assert cut["seconds"] < window - 0.3, cut["seconds"]  # short: ended there, not at its cadence
+    sent = [d for d in docs if first["t"] < d["t"] <= cut["t"]]  # the transition: sending to the cut
+    assert sent and all(d["alarms"] == [] for d in sent) and sent[0].get("replan", {}).get("window") == 2
+    recorded = {r.recording for r in read_characterisation(out / "characterisation.csv").rows}
+    assert not {f"watch-{d['window']:05d}" for d in sent} & recorded
+    assert f"watch-{cut['window'] + 1:05d}" in recorded
+    nxt = docs[cut["window"]]  # the window after the cut: the new plan's, whole
+    new_hz = load_plan(first["plan"]).nodes["camera"].topics["/camera/image"].frequency_hz
+    old_hz = load_plan(tmp_path / "plan.json").nodes["camera"].topics["/camera/image"].frequency_hz
+    assert new_hz != old_hz and nxt["seconds"] >= window - 0.3
+    assert nxt["nodes"]["camera"]["expected_hz"] == pytest.approx(new_hz)
+    assert not [a for d in docs for a in d["alarms"] if a["quantity"] == "alive"]

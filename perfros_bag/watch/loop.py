@@ -247,7 +247,7 @@ def _windows(observer: Observer, plan: Plan, system: System | None, live: Any, u
     rows: list[Row] = []
     lines: list[str] = []
     groups = dict(live.cgroups) if live is not None else {}
-    replans = _Replans(adapt)
+    replans = _Replans(adapt, live)
     before = observer.read()
     used_before = {c: cgroup_cpu_s(d) for c, d in groups.items()}
     for listener in listeners.values():
@@ -256,7 +256,7 @@ def _windows(observer: Observer, plan: Plan, system: System | None, live: Any, u
     try:
         while windows is None or k < windows:
             end = before.t + window_s
-            after = _read_until(observer, end, live, stop, replans.poll)
+            after = _read_until(observer, end, live, stop, replans.poll, before.t)
             used_after = {c: cgroup_cpu_s(d) for c, d in groups.items()}
             if stop.is_set():
                 result.ended = "interrupted (Ctrl-C)"
@@ -266,6 +266,8 @@ def _windows(observer: Observer, plan: Plan, system: System | None, live: Any, u
                 listener.follow([u for p in observer.publishers.get(listener.topic, []) if (u := observer._uri(p))])
             k += 1
             replan = replans.take()  # applied since the last window: this window is judged against it
+            # a window in which the deploy was restarting nodes for a new plan
+            transition = replans.transition()
             if replan is not None:
                 persistence = type(persistence)(persistence.persist)  # the new plan's drifts count afresh
                 result.replans.append(replan)
@@ -292,7 +294,8 @@ def _windows(observer: Observer, plan: Plan, system: System | None, live: Any, u
                 doc["pinned"] = world["pinned"]
             if replan is not None:
                 doc["replan"] = replan
-            alarms = persistence.update(rate_drifts(doc, tolerance, latency_tolerance))
+            # a transition window, half the old plan and the restarts, is reported but raises no alarm
+            alarms = [] if transition else persistence.update(rate_drifts(doc, tolerance, latency_tolerance))
             doc["alarms"] = [a.to_dict() for a in alarms]
             new = [a.to_dict() for a in alarms if a.new]
             result.alarms += new
@@ -302,7 +305,8 @@ def _windows(observer: Observer, plan: Plan, system: System | None, live: Any, u
             if on_window is not None:
                 on_window(doc, new)
             if outdir is not None:
-                rows += window_rows(k, doc, plan, observer.types)
+                if not transition:  # a mix of two plans is no characterisation of either
+                    rows += window_rows(k, doc, plan, observer.types)
                 lines.append(json_text(doc, indent=None))
                 atomic_write_text(outdir / "windows.jsonl", "\n".join(lines) + "\n")
                 write_characterisation(outdir / "characterisation.csv", rows)
@@ -321,12 +325,16 @@ class _Replans:
     process (:mod:`perfros_bag.watch.refit`); applied as soon as it is done, taken by the
     next window."""
 
-    def __init__(self, adapter: Any) -> None:
+    def __init__(self, adapter: Any, live: Any = None) -> None:
         import subprocess
 
         from perfros_bag.watch.refit import Pending
 
         self.adapter = adapter
+        self.live = live
+        #: a re-plan sent to the deploy: (its plan, until when to wait for the deploy to run it)
+        self.awaiting: tuple[Path, float] | None = None
+        self.ran = False  # the deploy finished running it since the last window
         self.pending: Pending | None = None
         self.standby: subprocess.Popen[bytes] | None = None  # a refit child waiting, its imports done
         self.done: list[dict[str, Any]] = []
@@ -342,7 +350,7 @@ class _Replans:
                 warnings.warn(f"--adapt: no refit process started ahead: {exc}", PerfrosWarning, stacklevel=2)
 
     def ask(self, plan: Plan, rows: list[Row], alarms: list[dict[str, Any]], k: int, world: dict[str, Any]) -> None:
-        if self.adapter is None or self.pending is not None:
+        if self.adapter is None or self.pending is not None or self.awaiting is not None:
             return
         from perfros_bag.watch.refit import start
 
@@ -352,13 +360,35 @@ class _Replans:
         except (OSError, PerfrosError) as exc:
             warnings.warn(f"--adapt: window {k}: no re-plan: {exc}", PerfrosWarning, stacklevel=2)
 
-    def poll(self) -> None:
-        """Apply the re-plan whose refit has ended (control.json, adapt.jsonl)."""
+    def poll(self) -> bool:
+        """Apply the re-plan whose refit has ended (control.json, adapt.jsonl). True when the
+        deploy has just finished running the one sent last (live.json ``plan_in_force`` it,
+        nothing ``restarting``): a window may end there, so the next is wholly the new plan's."""
         if self.pending is not None and self.pending.poll():
             entry = self.pending.finish()
             self.pending = None
             if entry is not None:
                 self.done.append(entry)
+                if entry["applied"].startswith("sent") and self.live is not None:
+                    grace = self.live.restart_timeout_s or RESTART_GRACE_S
+                    self.awaiting = (Path(entry["plan"]).resolve(), time.time() + grace + 5.0)
+        if self.awaiting is None:
+            return False
+        now = _live_now(self.live)
+        if now is None or time.time() > self.awaiting[1]:
+            self.awaiting = None
+            return False
+        if now.plan_in_force and Path(now.plan_in_force).resolve() == self.awaiting[0] and not now.restarting:
+            self.awaiting = None
+            self.ran = True
+            return True
+        return False
+
+    def transition(self) -> bool:
+        """Whether the window just ended saw a new plan sent to the deploy and its restarts
+        (from its sending until the deploy ran it); asked once per window, after :meth:`take`."""
+        ran, self.ran = self.ran, False
+        return ran or self.awaiting is not None
 
     def take(self) -> dict[str, Any] | None:
         """The last re-plan applied since the previous call (earlier ones are in adapt.jsonl);
@@ -460,13 +490,19 @@ def _deploy_running(live: Any) -> bool:
     return bool(live.running())
 
 
+#: a window is ended early where a deploy finished running a new plan, if it has lasted this long
+MIN_CUT_S = 1.0
+
+
 def _read_until(observer: Observer, end: float, live: Any, stop: threading.Event,
-                tick: Callable[[], None] | None = None) -> Reading:
+                tick: Callable[[], bool] | None = None, start: float | None = None) -> Reading:
     """Sleep until ``end`` (seconds since the epoch), in short steps so a deploy that ends is
-    noticed (and ``tick()`` called at each: a re-plan applied as soon as it is ready), then read."""
+    noticed, then read. ``tick()`` is called at each (a re-plan applied as soon as it is
+    ready); when it says the deploy has just finished running a new plan, the window ends
+    there (once it has lasted :data:`MIN_CUT_S` since ``start``), so the next is wholly the new plan's."""
     while True:
-        if tick is not None:
-            tick()
+        if tick is not None and tick() and (start is None or time.time() - start >= MIN_CUT_S):
+            break
         left = end - time.time()
         if left <= 0:
             break
