@@ -78,6 +78,23 @@ def test_an_alarm_is_raised_exactly_when_the_last_n_windows_all_drifted(persist:
                 assert alarms[0].windows == run and alarms[0].new == (run == persist)
 
 
+@pytest.mark.parametrize("persist", [1, 2, 3])
+def test_a_rate_drift_persists_only_while_it_keeps_its_direction(persist: int) -> None:
+    """Brute force over every sequence of windows below (-1), within (0) or above (+1) the
+    plan: an alarm exactly when the last ``persist`` windows all drifted the same way."""
+    for pattern in itertools.product([-1, 0, 1], repeat=6):
+        p = Persistence(persist)
+        for i, way in enumerate(pattern):
+            drifts = [Drift("node", "cam", "rate_hz", 10.0, 10.0 + 4.0 * way)] if way else []
+            alarms = p.update(drifts)
+            tail = pattern[max(0, i + 1 - persist):i + 1]
+            held = len(tail) == persist and way != 0 and all(w == way for w in tail)
+            assert (len(alarms) == 1) == held, (pattern, i)
+            if alarms:  # new when the run of this direction just reached persist
+                run = next((j for j in range(i, -1, -1) if pattern[j] != way), -1)
+                assert alarms[0].new == (i - run == persist) and alarms[0].drift.measured == 10.0 + 4.0 * way
+
+
 def test_a_dead_node_is_an_alarm_at_once_and_drifts_of_others_are_kept_apart() -> None:
     p = Persistence(3)
     dead = Drift("node", "cam", "alive", 1.0, 0.0, immediate=True)
