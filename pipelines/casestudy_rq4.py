@@ -176,7 +176,11 @@ def recovery(ws: list[dict[str, Any]], log: list[dict[str, Any]], detected: floa
     out: dict[str, Any] = {"replanned": True, "applied": first["applied"], "changes": first["changes"],
                            "objective_before": first["objective_before"], "objective_after": first["objective_after"],
                            "world": first.get("world"), "replans": len(log),
-                           "replans_before_change": out_before, "replan_s": round(first["t"] - t_change, 1)}
+                           "replans_before_change": out_before, "replan_s": round(first["t"] - t_change, 1),
+                           # what the re-plan's own making took: its refit and re-solve (in the child), and
+                           # from the alarm asking for it to its sending
+                           "refit_s": first.get("refit_s"),
+                           "apply_s": round(first["t"] - first["asked_t"], 1) if first.get("asked_t") else None}
     later = [w for w in ws if w["t"] - w["seconds"] >= first["t"]]
     held = next((w for w in later if abs(w["overall"]["deviation_pct"]) <= GOAL_DEVIATION), None)
     out["recover_s"] = None if held is None or detected is None else round(held["t"] - detected, 1)
@@ -360,7 +364,8 @@ def table(results: dict[str, Any], started: str) -> list[str]:
             f"| {r['change']} | {fmt(al['detect_s'])} / {fmt(al['windows'])} | {state or '-'} "
             f"| {fmt(ad['detect_s'])} / {fmt(ad['windows'])} | {'; '.join(ad.get('changes') or []) or '-'} "
             f"| {fmt(ad.get('objective_before'), 4)} -> {fmt(ad.get('objective_after'), 4)} "
-            f"| {fmt(r['old_measured_after'], 4)} | {fmt(ad.get('recover_s'))} "
+            f"| {fmt(r['old_measured_after'], 4)} | {fmt(ad.get('recover_s'))} (refit {fmt(ad.get('refit_s'))} s, "
+            f"sent {fmt(ad.get('apply_s'))} s after the alarm) "
             f"| {fmt(ad.get('within_share'), 2)} | {fmt((r.get('adapt_proc') or {}).get('cost_pct'), 2)} % "
             f"| {r['load_start']}, {r['load_end']} |")
     return lines

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import itertools
 import json
+import math
 import os
 import socket
 import subprocess
@@ -75,6 +76,23 @@ def test_an_alarm_is_raised_exactly_when_the_last_n_windows_all_drifted(persist:
             assert (len(alarms) == 1) == (run >= persist), (pattern, i)
             if alarms:
                 assert alarms[0].windows == run and alarms[0].new == (run == persist)
+
+
+@pytest.mark.parametrize("persist", [1, 2, 3])
+def test_a_rate_drift_persists_only_while_it_keeps_its_direction(persist: int) -> None:
+    """Brute force over every sequence of windows below (-1), within (0) or above (+1) the
+    plan: an alarm exactly when the last ``persist`` windows all drifted the same way."""
+    for pattern in itertools.product([-1, 0, 1], repeat=6):
+        p = Persistence(persist)
+        for i, way in enumerate(pattern):
+            drifts = [Drift("node", "cam", "rate_hz", 10.0, 10.0 + 4.0 * way)] if way else []
+            alarms = p.update(drifts)
+            tail = pattern[max(0, i + 1 - persist):i + 1]
+            held = len(tail) == persist and way != 0 and all(w == way for w in tail)
+            assert (len(alarms) == 1) == held, (pattern, i)
+            if alarms:  # new when the run of this direction just reached persist
+                run = next((j for j in range(i, -1, -1) if pattern[j] != way), -1)
+                assert alarms[0].new == (i - run == persist) and alarms[0].drift.measured == 10.0 + 4.0 * way
 
 
 def test_a_dead_node_is_an_alarm_at_once_and_drifts_of_others_are_kept_apart() -> None:
@@ -565,3 +583,236 @@ def test_adapt_solves_against_the_world_as_it_is_now(tmp_path: Path) -> None:
     pinned = load_plan(entry["plan"])
     assert pinned.nodes["camera"].value == pytest.approx(20)  # 40 fits, but the operator runs 20
     assert "reserved_cpu" not in pinned.extra
+
+
+# --------------------------------------------------------------------------- --adapt off the window loop
+
+SLOW_REFIT = """#!{python}
+# the refit child (argv: -m perfros_bag.watch.refit ARGS), whose refit first sleeps {delay} s
+import sys, time
+import perfros_bag.watch.refit as refit
+real = refit.run
+def slow(request):
+    time.sleep({delay})
+    return real(request)
+refit.run = slow
+sys.exit(refit.main(sys.argv[3:]))
+"""
+
+
+def _slow_python(tmp_path: Path, delay: float) -> Path:
+    path = tmp_path / "slow-python"
+    path.write_text(SLOW_REFIT.format(python=sys.executable, delay=delay))
+    path.chmod(0o755)
+    return path
+
+
+def test_windows_keep_coming_at_their_cadence_while_a_slow_refit_runs(fake: FakeRos, tmp_path: Path) -> None:
+    _adapt_model(tmp_path)  # the plan expects the camera at 40 Hz; the fake sends 20: an alarm at window 2
+    delay, window = 4.0, 0.5
+    out = tmp_path / "watched"
+    docs: list[dict[str, Any]] = []
+    adapter = Adapter(out, tmp_path / "plan.json", command=(str(_slow_python(tmp_path, delay)), "-m",
+                                                           "perfros_bag.watch.refit"))
+    result = watch(tmp_path / "plan.json", master_uri=fake.master_uri, window_s=window, windows=30, out=out,
+                   adapt=adapter, on_window=lambda d, new: docs.append(d))
+    assert [d["window"] for d in docs] == list(range(1, 31))
+    import psutil  # the refit children, the one waiting for a next re-plan included, are gone
+
+    assert [c for c in psutil.Process().children() if c.pid not in {p.pid for p in fake.procs.values()}] == []
+    assert all({"t", "nodes", "alarms"} <= set(d) for d in docs)
+    first = result.replans[0]
+    assert first["window"] == 2 and first["t"] - first["asked_t"] >= delay  # the refit did take its time
+    # meanwhile the loop went on: the windows that ended while the refit ran, one per `window` seconds
+    during = [d for d in docs if first["asked_t"] < d["t"] < first["t"]]
+    assert len(during) >= int(delay / window) - 2, [round(d["t"] - first["asked_t"], 2) for d in docs]
+    gaps = [b["t"] - a["t"] for a, b in itertools.pairwise(docs)]
+    assert max(gaps) < delay / 2, gaps  # no window waited for the refit
+    # the re-plan is taken by the first window after it was applied, whose drifts count afresh
+    [carrier] = [d for d in docs if d.get("replan", {}).get("window") == 2]
+    assert carrier["t"] >= first["t"] and carrier["alarms"] == []
+    assert carrier["window"] == 1 + max(d["window"] for d in docs if d["t"] < first["t"])
+    # one refit at a time: the alarms raised while it ran asked for none
+    asked = sorted(int(p.name.split("-")[1]) for p in out.glob("replan-*"))
+    assert asked[0] == 2 and all(k > carrier["window"] - 1 for k in asked[1:]), asked
+    # the refit was made by the child warmed at the start (its output in DIR/refit.log), not one started then
+    assert (out / "refit.log").exists() and not (out / "replan-00002" / "refit.log").exists()
+    logged = [json.loads(line) for line in (out / "adapt.jsonl").read_text().splitlines()]
+    assert [e["window"] for e in logged] == [e["window"] for e in result.replans]
+    assert load_plan(first["plan"]).nodes["camera"].value is not None
+
+
+def test_ctrl_c_during_a_refit_ends_the_refit_too_and_applies_nothing(fake: FakeRos, tmp_path: Path) -> None:
+    import signal
+
+    import psutil
+
+    _adapt_model(tmp_path)
+    out = tmp_path / "watched"
+    script = tmp_path / "watch.py"  # the CLI, with a Python that sleeps 120 s before each refit
+    script.write_text("import sys\n"
+                      f"sys.executable = {str(_slow_python(tmp_path, 120.0))!r}\n"
+                      "sys.argv = ['perfros-bag', *sys.argv[1:]]\n"
+                      "from perfros_bag.entry import main\n"
+                      "main()\n")
+    proc = subprocess.Popen([sys.executable, str(script), "watch", str(tmp_path / "plan.json"), "--master",
+                             fake.master_uri, "--window", "0.5", "--json", "--adapt", "--out", str(out)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    assert proc.stdout is not None
+    try:
+        while not (out / "replan-00002" / "request.json").exists():
+            json.loads(proc.stdout.readline())
+        [child] = psutil.Process(proc.pid).children()
+        assert child.is_running() and str(tmp_path / "slow-python") in " ".join(child.cmdline())
+        later = [json.loads(proc.stdout.readline()) for _ in range(3)]  # the windows go on meanwhile
+        assert [d["window"] for d in later] == list(range(later[0]["window"], later[0]["window"] + 3))
+        assert child.is_running()
+        proc.send_signal(signal.SIGINT)
+        _, stderr = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 1, stderr  # the camera's alarm was raised
+    assert "watch ended: interrupted" in stderr and "Traceback" not in stderr
+    assert not child.is_running() or child.status() == psutil.STATUS_ZOMBIE
+    assert not (out / "replan-00002" / "result.json").exists() and not (out / "adapt.jsonl").exists()
+    assert set(fake.servers) == {"/camera", "/detector", "master"}  # every node still answers
+
+
+# --------------------------------------------------------------------------- a node a deploy restarts
+
+
+def _fake_deploy(folder: Path, fake: FakeRos, plan: Path, restarting: dict[str, float] | None = None,
+                 timeout: float | None = None) -> None:
+    """A deploy's live.json for the fake (this process stands for the deploy)."""
+    from perfros_bag.sweep.livestate import LiveState, write_live
+
+    folder.mkdir(exist_ok=True)
+    nodes = {n: {"pid": fake.procs[n].pid, "computer": "host"} for n in ("/camera", "/detector")}
+    write_live(folder / "live.json", LiveState("fake", os.getpid(), fake.master_uri, None, str(plan), nodes=nodes,
+                                               restarting=restarting or {}, restart_timeout_s=timeout))
+
+
+def test_a_node_the_deploy_restarts_is_restarting_not_dead_until_its_timeout(fake: FakeRos, tmp_path: Path) -> None:
+    plan = _fake_plan(tmp_path)
+    dep = tmp_path / "deployed"
+    _fake_deploy(dep, fake, plan, timeout=30.0)
+    docs: list[dict[str, Any]] = []
+
+    def on(doc: dict[str, Any], new: list[dict[str, Any]]) -> None:
+        docs.append(doc)
+        k = doc["window"]
+        if k == 2:  # the deploy says it restarts the camera, then stops it (as control.py does)
+            _fake_deploy(dep, fake, plan, {"/camera": time.time()}, 30.0)
+            fake.stop("/camera")
+        elif k == 5:  # the camera is back (a new process, a new XML-RPC address), the restart done
+            fake.procs["/camera"] = subprocess.Popen(["sleep", "600"])
+            fake._serve("/camera", fake._node("/camera"))
+            _fake_deploy(dep, fake, plan, None, 30.0)
+        elif k == 8:  # a restart that began longer ago than the deploy's restart timeout: dead
+            _fake_deploy(dep, fake, plan, {"/camera": time.time() - 31.0}, 30.0)
+            fake.stop("/camera")
+
+    result = watch(plan, deployment=dep, window_s=0.5, windows=10, on_window=on)
+    states = [d["nodes"]["camera"]["state"] for d in docs]
+    # window 3 holds the stop (the reading at its end sees the process gone); windows 6 and 9: see above
+    assert states[:2] == ["running"] * 2 and states[2:5] == ["restarting"] * 3, states
+    assert states[5:8] == ["running"] * 3 and states[8:] == ["dead"] * 2, states
+    assert all(not d["nodes"]["camera"]["alive"] for d in docs[2:5])
+    assert [(d["window"], a["quantity"]) for d in docs for a in d["alarms"] if a["new"]] == [(9, "alive")]
+    assert [(a["node"], a["quantity"]) for a in result.alarms] == [("camera", "alive")]
+
+
+def test_restarting_nodes_by_the_deploy_s_word_or_a_new_pid_it_names() -> None:
+    from types import SimpleNamespace
+
+    from perfros_bag.watch.loop import RESTART_GRACE_S, restarting_nodes
+
+    sleeper = subprocess.Popen(["sleep", "60"])
+    try:
+        observer = SimpleNamespace(nodes={n: SimpleNamespace(ros_name=f"/{n}", pid=1_000_000 + i)
+                                          for i, n in enumerate(("a", "b", "c", "d", "e"))})
+        reading = Reading(1000.0, alive={"a": False, "b": False, "c": False, "d": True, "e": False})
+        now = SimpleNamespace(restart_timeout_s=None,
+                              restarting={"/a": 1000.0 - RESTART_GRACE_S, "/b": 1000.0 - RESTART_GRACE_S - 1,
+                                          "/d": 999.0},
+                              nodes={"/c": {"pid": sleeper.pid}, "/e": {"pid": 1_000_004}})
+        # a: restarting for exactly the grace; b: longer (dead); c: the deploy names a new PID that runs;
+        # d: alive (not away at all); e: the deploy names the PID the watch knows, gone: dead
+        assert restarting_nodes(now, observer, reading) == {"a", "c"}  # type: ignore[arg-type]
+        now.restart_timeout_s = RESTART_GRACE_S + 5
+        assert restarting_nodes(now, observer, reading) == {"a", "b", "c"}  # type: ignore[arg-type]
+        assert restarting_nodes(None, observer, reading) == set()  # type: ignore[arg-type]
+    finally:
+        sleeper.kill()
+        sleeper.wait()
+
+
+def test_a_window_ends_where_the_deploy_finished_running_a_re_plan(fake: FakeRos, tmp_path: Path) -> None:
+    """``--adapt`` attached to a (fake) deploy: the new plan goes to control.json; the deploy
+    says it restarts the camera, does, then runs the new plan (live.json). The window in
+    which that ends is cut there, the windows from the sending to the cut raise no alarm and
+    give no characterisation row, and the next window is judged against the new plan."""
+    _adapt_model(tmp_path)
+    dep = tmp_path / "deployed"
+    _fake_deploy(dep, fake, tmp_path / "plan.json", timeout=30.0)
+    window = 2.0
+    ends: list[float] = []
+    ran: list[tuple[float, str]] = []  # (when the fake deploy ran a plan, which)
+    quit_ = threading.Event()
+
+    def deploy() -> None:  # polls control.json as deploy does, restarts the camera, says so in live.json
+        from perfros_bag.sweep.livestate import read_live, write_live
+
+        seq = 0
+        while not quit_.wait(0.1):
+            try:
+                doc = json.loads((dep / "control.json").read_text())
+            except (OSError, ValueError):
+                continue
+            if doc["seq"] <= seq:
+                continue
+            seq = doc["seq"]
+            _fake_deploy(dep, fake, tmp_path / "plan.json", {"/camera": time.time()}, 30.0)
+            fake.stop("/camera")
+            time.sleep(0.3)
+            fake.procs["/camera"] = subprocess.Popen(["sleep", "600"])
+            fake._serve("/camera", fake._node("/camera"))
+            # it finishes 1.3 s into a window (whose start is the last window's end)
+            last = ends[-1]
+            finish = last + 1.3 + window * max(0, math.ceil((time.time() - last - 1.3) / window))
+            time.sleep(max(0.0, finish - time.time()))
+            _fake_deploy(dep, fake, tmp_path / "plan.json", None, 30.0)
+            live = read_live(dep)
+            live.plan_in_force = doc["plan"]
+            write_live(dep / "live.json", live)
+            ran.append((time.time(), doc["plan"]))
+
+    docs: list[dict[str, Any]] = []
+    out = tmp_path / "watched"
+    worker = threading.Thread(target=deploy, daemon=True)
+    worker.start()
+    try:
+        watch(tmp_path / "plan.json", deployment=dep, window_s=window, windows=9, out=out,
+              adapt=Adapter(out, tmp_path / "plan.json", deployment=dep),
+              on_window=lambda d, new: (docs.append(d), ends.append(d["t"])))
+    finally:
+        quit_.set()
+        worker.join(10)
+    first = json.loads((out / "adapt.jsonl").read_text().splitlines()[0])
+    assert first["applied"].startswith("sent") and ran and ran[0][1] == str(Path(first["plan"]).absolute())
+    t_ran = ran[0][0]
+    [cut] = [d for d in docs if t_ran <= d["t"] < t_ran + 0.6]  # ended within a tick or two of it
+    assert cut["seconds"] < window - 0.3, cut["seconds"]  # short: ended there, not at its cadence
+    sent = [d for d in docs if first["t"] < d["t"] <= cut["t"]]  # the transition: sending to the cut
+    assert sent and all(d["alarms"] == [] for d in sent) and sent[0].get("replan", {}).get("window") == 2
+    recorded = {r.recording for r in read_characterisation(out / "characterisation.csv").rows}
+    assert not {f"watch-{d['window']:05d}" for d in sent} & recorded
+    assert f"watch-{cut['window'] + 1:05d}" in recorded
+    nxt = docs[cut["window"]]  # the window after the cut: the new plan's, whole
+    new_hz = load_plan(first["plan"]).nodes["camera"].topics["/camera/image"].frequency_hz
+    old_hz = load_plan(tmp_path / "plan.json").nodes["camera"].topics["/camera/image"].frequency_hz
+    assert new_hz != old_hz and nxt["seconds"] >= window - 0.3
+    assert nxt["nodes"]["camera"]["expected_hz"] == pytest.approx(new_hz)
+    assert not [a for d in docs for a in d["alarms"] if a["quantity"] == "alive"]

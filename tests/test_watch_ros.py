@@ -145,13 +145,17 @@ def test_watch_attaches_to_a_deploy_and_names_a_killed_node(tmp_path: Path) -> N
         (run / "control.tmp").write_text(json.dumps({"format": "perfros-bag/deploy-control@1", "seq": 1,
                                                      "plan": str(tmp_path / "plan5.json"), "why": ["test"]}))
         os.replace(run / "control.tmp", run / "control.json")
-        rates = []
+        rates, restart_docs = [], []
         for _ in range(8):
             doc = json.loads(watcher.stdout.readline())
+            restart_docs.append(doc)
             rates.append(doc["nodes"]["camera"]["measured_hz"])
             if abs(rates[-1] - 5) <= 1.0 / doc["seconds"] + 0.5 and len(rates) > 1:
                 break
         assert abs(rates[-1] - 5) <= 1.0 / doc["seconds"] + 0.5, rates
+        # the deploy said it was restarting the camera (live.json `restarting`): never named dead meanwhile
+        assert not [a for d in restart_docs for a in d["alarms"] if a["quantity"] == "alive"], restart_docs
+        assert {d["nodes"]["camera"]["state"] for d in restart_docs} <= {"running", "restarting"}
         now = json.loads((run / "live.json").read_text())["nodes"]
         assert now["/camera"]["pid"] != live["nodes"]["/camera"]["pid"]
         assert now["/detector"]["pid"] == live["nodes"]["/detector"]["pid"]

@@ -29,7 +29,8 @@ def window_table(doc: dict[str, Any]) -> Table:
         t.add_column(col, justify="left" if col in ("node", "computer", "state") else "right")
     alarmed = {a.get("node") for a in doc["alarms"]}
     for name, n in doc["nodes"].items():
-        state = "[red]dead[/]" if not n["alive"] else "[red]alarm[/]" if name in alarmed else "ok"
+        state = "[yellow]restarting[/]" if n.get("state") == "restarting" else "[red]dead[/]" if not n["alive"] \
+            else "[red]alarm[/]" if name in alarmed else "ok"
         t.add_row(escape(name), escape(n["computer"]), _f(n["expected_hz"]), _f(n["measured_hz"]),
                   _f(n["cpu_expected"]), _f(n.get("cpu")) if "cpu" in n else "[dim]unmeasured[/]",
                   _f(n["deviation_pct"], ".1f"), state)

@@ -86,6 +86,8 @@ class Control:
     on_applied: Callable[[dict[str, int]], None] | None = None  # ROS node -> new PID
     network: Network | None = None  # the emulated links (``links`` entries re-shape them)
     plan_path: str | None = None  # the plan in force (the last applied)
+    #: called with the ROS nodes about to be restarted for a new plan, before the first is stopped
+    on_restarting: Callable[[list[str]], None] | None = None
     seq: int = 0
     applied: list[dict[str, Any]] = field(default_factory=list)
     _mtime: float = 0.0
@@ -162,6 +164,8 @@ class Control:
         changed = changed_nodes(self.run, new_run, self.where, new_where)
         ros = {system_node_name(n): n for n in restarter.watch.pids}
         pids: dict[str, int] = {}
+        if self.on_restarting is not None and any(node in ros for node in changed):
+            self.on_restarting([ros[node] for node in changed if node in ros])
         for node in changed:
             if node not in ros:
                 continue

@@ -40,6 +40,10 @@ if TYPE_CHECKING:
     from perfros_bag.validation.eq10 import Validation
 
 DEPLOY_FORMAT = "perfros-bag/deploy-run@1"
+#: a node's restart for a new plan resolves the launch file's parameters and the node's command
+#: (each within space.yaml's startup_timeout_s), then waits as long for the node to answer:
+#: live.json ``restart_timeout_s`` is this many startup timeouts
+RESTART_BOUND = 3
 
 
 @dataclass
@@ -141,11 +145,22 @@ def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Pat
             units_per_core, dict(network.namespaces), {c: str(d) for c, d in groups.dirs.items()}, dict(cores),
             cap and groups.capped,
             {n.name: {"pid": n.pid, "computer": where.get(system_node_name(n.name))} for n in graph.nodes
-             if n.launched}, links=_links_in_force(network), values=dict(run.values))]
+             if n.launched}, links=_links_in_force(network), values=dict(run.values),
+            restart_timeout_s=RESTART_BOUND * space.startup_timeout_s)]
         write_live(outdir / LIVE_FILE, live[0])
+
+    def restarting(nodes: list[str]) -> None:
+        """A new plan about to restart ``nodes`` (control.json): live.json says so first, so a
+        watch takes their absence for a restart, not a death."""
+        if live:
+            now = time.time()
+            live[0].restarting = {n: now for n in nodes}
+            write_live(outdir / LIVE_FILE, live[0])
 
     def applied(pids: dict[str, int]) -> None:
         """A new plan applied (control.json): the restarted nodes' PIDs and computers in live.json."""
+        if live:
+            live[0].restarting = {}
         for name, pid in pids.items():
             placed[name] = control.where.get(system_node_name(name), placed.get(name, ""))
             if live:
@@ -166,7 +181,7 @@ def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Pat
 
     network = Network(f"d{run_id}", system if system is not None and net else _no_links(plan))
     control = Control(outdir, space, dict(launch.args), run, dict(where), groups, units_per_core, cap, applied,
-                      network if network.emulated or net else None)
+                      network if network.emulated or net else None, on_restarting=restarting)
     groups.create(capped=False, quiet=not cap)
     mode, reason = (groups.mode, groups.reason) if cap else ("uncapped", "capping not asked for")
     try:

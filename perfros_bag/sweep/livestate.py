@@ -39,6 +39,10 @@ class LiveState:
     links: list[dict[str, Any]] = field(default_factory=list)  # {between, bandwidth_kBps} in force now
     values: dict[str, Any] = field(default_factory=dict)  # system node -> the value it runs at now
     plan_in_force: str | None = None  # the last plan control.json applied (None: the deploy's own)
+    #: ROS node -> when (seconds since the epoch) the deploy began restarting it for a new plan;
+    #: empty once every restart of that plan is done
+    restarting: dict[str, float] = field(default_factory=dict)
+    restart_timeout_s: float | None = None  # the longest a restart may take before the deploy fails
     folder: str | None = None  # the deploy's --out (where it was read from; not written)
 
     def running(self) -> bool:
@@ -51,7 +55,8 @@ class LiveState:
                 "units_per_core": self.units_per_core, "namespaces": dict(self.namespaces),
                 "cgroups": dict(self.cgroups), "cores": dict(self.cores), "capped": self.capped,
                 "nodes": dict(self.nodes), "links": list(self.links), "values": dict(self.values),
-                "plan_in_force": self.plan_in_force}
+                "plan_in_force": self.plan_in_force, "restarting": dict(self.restarting),
+                "restart_timeout_s": self.restart_timeout_s}
 
 
 def write_live(path: Path, state: LiveState) -> None:
@@ -80,7 +85,10 @@ def read_live(folder: str | Path) -> LiveState:
             nodes={str(k): dict(v) for k, v in (data.get("nodes") or {}).items()},
             links=[dict(x) for x in (data.get("links") or [])],
             values={str(k): v for k, v in (data.get("values") or {}).items()},
-            plan_in_force=data.get("plan_in_force"), folder=str(folder))
+            plan_in_force=data.get("plan_in_force"),
+            restarting={str(k): float(v) for k, v in (data.get("restarting") or {}).items()},
+            restart_timeout_s=None if data.get("restart_timeout_s") is None else float(data["restart_timeout_s"]),
+            folder=str(folder))
     except (KeyError, TypeError, ValueError) as exc:
         raise InputError(path, f"damaged live state: {exc}") from None
     if not state.running():

@@ -95,6 +95,8 @@ class Adapter:
     space: Path | None = None
     deployment: Path | None = None  # a deploy in progress: the new plan goes to its control.json
     sent: int = 0  # control.json's last sequence number
+    #: the refit child's command, before its request file (None: this Python, ``-m perfros_bag.watch.refit``)
+    command: tuple[str, ...] | None = None
 
     def _model(self, plan: Plan) -> Path:
         if not plan.system:
@@ -107,26 +109,31 @@ class Adapter:
 
     def replan(self, plan: Plan, rows: list[Row], alarms: list[dict[str, Any]], k: int,
                world: dict[str, Any] | None = None) -> dict[str, Any] | None:
-        """Refit, re-solve and write; the log entry (also appended to ``adapt.jsonl``), or
-        None with a warning when it cannot (no model, or the new model has no plan)."""
+        """Refit, re-solve, write and apply, here and now (:meth:`prepare` then :meth:`apply`):
+        the log entry (also appended to ``adapt.jsonl``), or None with a warning when it
+        cannot (no model, or the new model has no plan). The watch loop does not call this:
+        it runs :meth:`prepare` in a child process (:func:`perfros_bag.watch.refit.start`)."""
         try:
-            return self._replan(plan, rows, alarms, k, world or {})
+            return self.apply(self.prepare(plan, rows, alarms, k, world or {}))
         except PerfrosError as exc:
             warnings.warn(f"--adapt: window {k}: no re-plan: {exc}", PerfrosWarning, stacklevel=2)
             return None
 
-    def _replan(self, plan: Plan, rows: list[Row], alarms: list[dict[str, Any]], k: int,
+    def prepare(self, plan: Plan, rows: list[Row], alarms: list[dict[str, Any]], k: int,
                 world: dict[str, Any]) -> dict[str, Any]:
+        """The heavy half: refit, re-solve and write ``replan-<k>/``; the log entry without
+        ``applied`` (nothing is sent, nothing logged yet)."""
         import time
 
         from perfros_bag.characterisation.csvfile import write_characterisation
-        from perfros_bag.fileio import atomic_write_text, json_text
+        from perfros_bag.fileio import atomic_write_text
         from perfros_bag.fitting.build import build_model
         from perfros_bag.fitting.modelfile import read_model, write_model
         from perfros_bag.solver import solve
         from perfros_bag.system.planfile import save_plan
         from perfros_bag.tune.loop import base_rows, load_model
 
+        started = time.monotonic()
         model_path = self._model(plan)
         base = Path(read_model(model_path).characterisation)
         if not base.is_absolute() and not base.is_file():
@@ -161,19 +168,35 @@ class Adapter:
                 warnings.simplefilter("ignore", PerfrosWarning)
                 export_planned(new_plan_path, self.launch, self.space, folder / "planned.launch")
             launch = str(folder / "planned.launch")
-        applied = "written (nothing restarted)"
-        if self.deployment is not None and changed:
-            from perfros_bag.sweep.control import control_seq, write_control
+        return {"window": k, "why": [a["line"] for a in alarms], "plan": str(new_plan_path),
+                "launch": launch, "objective_before": plan.objective, "objective_after": new.objective,
+                "headroom": headroom, "changes": changed, "refit_s": round(time.monotonic() - started, 2),
+                **({"world": world} if world else {})}
 
-            self.sent = max(self.sent, control_seq(self.deployment)) + 1  # after an operator's own entries
-            write_control(self.deployment, self.sent, new_plan_path, [a["line"] for a in alarms])
-            applied = (f"sent to the deploy ({self.deployment / 'control.json'} seq {self.sent}): it restarts the "
-                       "nodes whose value or computer changed")
-        entry = {"window": k, "t": time.time(), "why": [a["line"] for a in alarms], "plan": str(new_plan_path),
-                 "launch": launch, "objective_before": plan.objective, "objective_after": new.objective,
-                 "headroom": headroom, "changes": changed, "applied": applied,
-                 **({"world": world} if world else {})}
+    def apply(self, entry: dict[str, Any]) -> dict[str, Any]:
+        """Send a prepared re-plan to the deploy (when attached to one that still runs and the
+        plan changes something) and append it to ``adapt.jsonl``; the completed entry."""
+        import time
+
+        from perfros_bag.fileio import atomic_write_text, json_text
+
+        applied = "written (nothing restarted)"
+        if self.deployment is not None and entry["changes"]:
+            from perfros_bag.errors import InputError
+            from perfros_bag.sweep.control import control_seq, write_control
+            from perfros_bag.sweep.livestate import read_live
+
+            try:
+                read_live(self.deployment)
+            except InputError:
+                applied = "written (nothing restarted: the deploy had ended)"
+            else:
+                self.sent = max(self.sent, control_seq(self.deployment)) + 1  # after an operator's own entries
+                write_control(self.deployment, self.sent, entry["plan"], list(entry["why"]))
+                applied = (f"sent to the deploy ({self.deployment / 'control.json'} seq {self.sent}): it restarts "
+                           "the nodes whose value or computer changed")
+        done = {**entry, "t": time.time(), "applied": applied}
         log = self.out / ADAPT_LOG
         previous = log.read_text(encoding="utf-8") if log.exists() else ""
-        atomic_write_text(log, previous + json_text(entry, indent=None) + "\n")
-        return entry
+        atomic_write_text(log, previous + json_text(done, indent=None) + "\n")
+        return done

@@ -6,8 +6,9 @@ with an expectation, as the window's ``measured_hz``) is further from the plan's
 messages: 10 Hz over 2 s is 20 +- 1), and on a chain's latency when its measured p95
 exceeds the plan's predicted p95 by more than ``latency_tolerance`` % (``watch
 --latency-tolerance``, default ``tolerance``). A drift of the same node or
-chain and quantity in ``persist`` windows in a row is an alarm; a node that died is an
-alarm at once. An alarm stays listed while its drift lasts.
+chain and quantity, in the same direction for a rate, in ``persist`` windows in a row is an
+alarm; a node that died is an alarm at once, a node a deploy is restarting (``state:
+restarting``) none. An alarm stays listed while its drift lasts.
 """
 
 from __future__ import annotations
@@ -26,8 +27,12 @@ class Drift:
     immediate: bool = False  # an alarm without waiting for persistence (a node that died)
 
     @property
-    def key(self) -> tuple[str, str, str]:
-        return (self.kind, self.name, self.quantity)
+    def key(self) -> tuple[str, str, str, int]:
+        """What persists: the node or chain, the quantity and the drift's direction (a rate
+        above its plan in one window and below in the next is a plan held on average, not a
+        drift that lasts)."""
+        direction = (self.measured > self.planned) - (self.measured < self.planned) if self.quantity == "rate_hz" else 0
+        return (self.kind, self.name, self.quantity, direction)
 
 
 @dataclass(frozen=True)
@@ -54,6 +59,8 @@ def rate_drifts(window: dict[str, Any], tolerance: float, latency_tolerance: flo
     slack = 1.0 / seconds if seconds > 0 else 0.0
     out: list[Drift] = []
     for name, n in window["nodes"].items():
+        if n.get("state") == "restarting":  # a deploy restarts it for a new plan: neither dead nor drifting
+            continue
         if not n.get("alive", True):
             out.append(Drift("node", name, "alive", 1.0, 0.0, immediate=True))
             continue
@@ -75,8 +82,8 @@ class Persistence:
         if persist < 1:
             raise ValueError("persist must be >= 1")
         self.persist = persist
-        self.count: dict[tuple[str, str, str], int] = {}
-        self.raised: set[tuple[str, str, str]] = set()
+        self.count: dict[tuple[str, str, str, int], int] = {}
+        self.raised: set[tuple[str, str, str, int]] = set()
 
     def update(self, drifts: list[Drift]) -> list[Alarm]:
         """The alarms of this window, given its drifts."""

@@ -247,77 +247,228 @@ def _windows(observer: Observer, plan: Plan, system: System | None, live: Any, u
     rows: list[Row] = []
     lines: list[str] = []
     groups = dict(live.cgroups) if live is not None else {}
+    replans = _Replans(adapt, live)
     before = observer.read()
     used_before = {c: cgroup_cpu_s(d) for c, d in groups.items()}
     for listener in listeners.values():
         listener.take()  # what came before the first window's start is not in it
     k = 0
-    while windows is None or k < windows:
-        end = before.t + window_s
-        after = _read_until(observer, end, live, stop)
-        used_after = {c: cgroup_cpu_s(d) for c, d in groups.items()}
-        if stop.is_set():
-            result.ended = "interrupted (Ctrl-C)"
-            break
-        latency = chain_latency(listeners)  # right after the counters, so both cover the same seconds
-        for listener in listeners.values():  # a restarted publisher (a new URI) is listened to again
-            listener.follow([u for p in observer.publishers.get(listener.topic, []) if (u := observer._uri(p))])
-        k += 1
-        stats = window_stats(before, after, observer.types, f"window-{k}")
-        cpu = window_cpu(before, after, plan, units)
-        world = _world(live, plan, before, after, used_before, used_after, units)
-        if world.get("links") and system is not None:
-            from perfros_bag.watch.adapt import world_system
-
-            system = world_system(system, {"links": world["links"]})  # judged against the rates in force
-        v = evaluate(stats, plan, system, cpu, tolerance)
-        doc = window_document(k, after.t, after.t - before.t, v, plan, after.alive, set(cpu), [], latency)
-        for c, x in (world.get("foreign") or {}).items():
-            if c in doc["computers"]:
-                doc["computers"][c]["foreign"] = x
-        if world.get("pinned"):
-            doc["pinned"] = world["pinned"]
-        alarms = persistence.update(rate_drifts(doc, tolerance, latency_tolerance))
-        doc["alarms"] = [a.to_dict() for a in alarms]
-        new = [a.to_dict() for a in alarms if a.new]
-        result.alarms += new
-        result.windows = k
-        if adapt is not None and new:
-            replan = adapt.replan(plan, rows + window_rows(k, doc, plan, observer.types), new, k, world)
+    try:
+        while windows is None or k < windows:
+            end = before.t + window_s
+            after = _read_until(observer, end, live, stop, replans.poll, before.t)
+            used_after = {c: cgroup_cpu_s(d) for c, d in groups.items()}
+            if stop.is_set():
+                result.ended = "interrupted (Ctrl-C)"
+                break
+            latency = chain_latency(listeners)  # right after the counters, so both cover the same seconds
+            for listener in listeners.values():  # a restarted publisher (a new URI) is listened to again
+                listener.follow([u for p in observer.publishers.get(listener.topic, []) if (u := observer._uri(p))])
+            k += 1
+            replan = replans.take()  # applied since the last window: this window is judged against it
+            # a window in which the deploy was restarting nodes for a new plan
+            transition = replans.transition()
             if replan is not None:
                 persistence = type(persistence)(persistence.persist)  # the new plan's drifts count afresh
                 result.replans.append(replan)
-                doc["replan"] = replan
                 if replan["applied"].startswith("sent"):  # the deploy runs it now: watch it against that
                     from perfros_bag.system.planfile import load_plan
 
                     plan = load_plan(replan["plan"])
-        if on_window is not None:
-            on_window(doc, new)
-        if outdir is not None:
-            rows += window_rows(k, doc, plan, observer.types)
-            lines.append(json_text(doc, indent=None))
-            atomic_write_text(outdir / "windows.jsonl", "\n".join(lines) + "\n")
-            write_characterisation(outdir / "characterisation.csv", rows)
-        if not after.master_up or (live is not None and not _deploy_running(live)):
-            result.ended = "the deploy ended" if live is not None else f"the master at {master_uri} went away"
-            break
-        before, used_before = after, used_after
+            stats = window_stats(before, after, observer.types, f"window-{k}")
+            cpu = window_cpu(before, after, plan, units)
+            now = _live_now(live)
+            world = _world(now, plan, before, after, used_before, used_after, units)
+            restarting = restarting_nodes(now, observer, after)
+            if world.get("links") and system is not None:
+                from perfros_bag.watch.adapt import world_system
+
+                system = world_system(system, {"links": world["links"]})  # judged against the rates in force
+            v = evaluate(stats, plan, system, cpu, tolerance)
+            doc = window_document(k, after.t, after.t - before.t, v, plan, after.alive, set(cpu), [], latency,
+                                  restarting)
+            for c, x in (world.get("foreign") or {}).items():
+                if c in doc["computers"]:
+                    doc["computers"][c]["foreign"] = x
+            if world.get("pinned"):
+                doc["pinned"] = world["pinned"]
+            if replan is not None:
+                doc["replan"] = replan
+            # a transition window, half the old plan and the restarts, is reported but raises no alarm
+            alarms = [] if transition else persistence.update(rate_drifts(doc, tolerance, latency_tolerance))
+            doc["alarms"] = [a.to_dict() for a in alarms]
+            new = [a.to_dict() for a in alarms if a.new]
+            result.alarms += new
+            result.windows = k
+            if new:  # a re-plan still being made takes these alarms' windows in its successor, if they last
+                replans.ask(plan, rows + window_rows(k, doc, plan, observer.types), new, k, world)
+            if on_window is not None:
+                on_window(doc, new)
+            if outdir is not None:
+                if not transition:  # a mix of two plans is no characterisation of either
+                    rows += window_rows(k, doc, plan, observer.types)
+                lines.append(json_text(doc, indent=None))
+                atomic_write_text(outdir / "windows.jsonl", "\n".join(lines) + "\n")
+                write_characterisation(outdir / "characterisation.csv", rows)
+            if not after.master_up or (live is not None and not _deploy_running(live)):
+                result.ended = "the deploy ended" if live is not None else f"the master at {master_uri} went away"
+                break
+            before, used_before = after, used_after
+        if result.ended is None:  # --windows N reached: the re-plan asked for is finished, logged, applied
+            result.replans += replans.drain()
+    finally:
+        replans.cancel()
 
 
-def _world(live: Any, plan: Plan, before: Reading, after: Reading, used_before: dict[str, dict[int, float] | None],
-           used_after: dict[str, dict[int, float] | None], units: float | None) -> dict[str, Any]:
-    """The world as a deploy in progress has it now (nothing without one): its links' rates
-    in force, each computer's CPU beyond its planned nodes (``foreign``), and the values it
-    runs that differ from the plan watched (``pinned``: an operator's change)."""
+class _Replans:
+    """``--adapt``'s re-plans as the loop sees them: at most one refit at a time, in a child
+    process (:mod:`perfros_bag.watch.refit`); applied as soon as it is done, taken by the
+    next window."""
+
+    def __init__(self, adapter: Any, live: Any = None) -> None:
+        import subprocess
+
+        from perfros_bag.watch.refit import Pending
+
+        self.adapter = adapter
+        self.live = live
+        #: a re-plan sent to the deploy: (its plan, until when to wait for the deploy to run it)
+        self.awaiting: tuple[Path, float] | None = None
+        self.ran = False  # the deploy finished running it since the last window
+        self.pending: Pending | None = None
+        self.standby: subprocess.Popen[bytes] | None = None  # a refit child waiting, its imports done
+        self.done: list[dict[str, Any]] = []
+        self._warm()
+
+    def _warm(self) -> None:
+        from perfros_bag.watch.refit import warm
+
+        if self.adapter is not None and self.standby is None and self.pending is None:
+            try:
+                self.standby = warm(self.adapter)
+            except OSError as exc:  # a refit then starts its own child when asked
+                warnings.warn(f"--adapt: no refit process started ahead: {exc}", PerfrosWarning, stacklevel=2)
+
+    def ask(self, plan: Plan, rows: list[Row], alarms: list[dict[str, Any]], k: int, world: dict[str, Any]) -> None:
+        if self.adapter is None or self.pending is not None or self.awaiting is not None:
+            return
+        from perfros_bag.watch.refit import start
+
+        standby, self.standby = self.standby, None
+        try:
+            self.pending = start(self.adapter, plan, rows, alarms, k, world, standby)
+        except (OSError, PerfrosError) as exc:
+            warnings.warn(f"--adapt: window {k}: no re-plan: {exc}", PerfrosWarning, stacklevel=2)
+
+    def poll(self) -> bool:
+        """Apply the re-plan whose refit has ended (control.json, adapt.jsonl). True when the
+        deploy has just finished running the one sent last (live.json ``plan_in_force`` it,
+        nothing ``restarting``): a window may end there, so the next is wholly the new plan's."""
+        if self.pending is not None and self.pending.poll():
+            entry = self.pending.finish()
+            self.pending = None
+            if entry is not None:
+                self.done.append(entry)
+                if entry["applied"].startswith("sent") and self.live is not None:
+                    grace = self.live.restart_timeout_s or RESTART_GRACE_S
+                    self.awaiting = (Path(entry["plan"]).resolve(), time.time() + grace + 5.0)
+        if self.awaiting is None:
+            return False
+        now = _live_now(self.live)
+        if now is None or time.time() > self.awaiting[1]:
+            self.awaiting = None
+            return False
+        if now.plan_in_force and Path(now.plan_in_force).resolve() == self.awaiting[0] and not now.restarting:
+            self.awaiting = None
+            self.ran = True
+            return True
+        return False
+
+    def transition(self) -> bool:
+        """Whether the window just ended saw a new plan sent to the deploy and its restarts
+        (from its sending until the deploy ran it); asked once per window, after :meth:`take`."""
+        ran, self.ran = self.ran, False
+        return ran or self.awaiting is not None
+
+    def take(self) -> dict[str, Any] | None:
+        """The last re-plan applied since the previous call (earlier ones are in adapt.jsonl);
+        a refit child is warmed again for the next one."""
+        self.poll()
+        self._warm()
+        done, self.done = self.done, []
+        return done[-1] if done else None
+
+    def drain(self) -> list[dict[str, Any]]:
+        """Wait for the refit under way, apply it; every re-plan not taken yet."""
+        if self.pending is not None:
+            self.pending.wait()
+        self.poll()
+        done, self.done = self.done, []
+        return done
+
+    def cancel(self) -> None:
+        from perfros_bag.watch.refit import end
+
+        if self.pending is not None:
+            self.pending.cancel()
+            self.pending = None
+        if self.standby is not None:
+            end(self.standby)
+            self.standby = None
+
+
+def _live_now(live: Any) -> Any:
+    """The deploy's live.json as it is now (None without a deploy, or once it is gone)."""
     from perfros_bag.sweep.livestate import read_live
-    from perfros_bag.watch.window import foreign_cpu
 
     if live is None or live.folder is None:
-        return {}
+        return None
     try:
-        now = read_live(live.folder)
+        return read_live(live.folder)
     except PerfrosError:
+        return None
+
+
+#: how long a node the deploy says it is restarting may be away before it is dead, when
+#: live.json does not say (``restart_timeout_s``)
+RESTART_GRACE_S = 90.0
+
+
+def restarting_nodes(now: Any, observer: Observer, reading: Reading) -> set[str]:
+    """The planned nodes not running in ``reading`` that the deploy (live.json ``now``) is
+    restarting for a new plan, since at most its restart timeout, or has just restarted (it
+    names a new PID for them that runs): away for a restart, not dead."""
+    import psutil
+
+    if now is None:
+        return set()
+    grace = now.restart_timeout_s or RESTART_GRACE_S
+    out = set()
+    for name, node in observer.nodes.items():
+        if reading.alive.get(name, True):
+            continue
+        since = now.restarting.get(node.ros_name)
+        pid = (now.nodes.get(node.ros_name) or {}).get("pid")
+        if since is not None and reading.t - since <= grace:
+            out.add(name)
+        elif isinstance(pid, int) and pid != node.pid:
+            try:
+                if psutil.Process(pid).status() != psutil.STATUS_ZOMBIE:
+                    out.add(name)
+            except psutil.Error:
+                pass
+    return out
+
+
+def _world(now: Any, plan: Plan, before: Reading, after: Reading, used_before: dict[str, dict[int, float] | None],
+           used_after: dict[str, dict[int, float] | None], units: float | None) -> dict[str, Any]:
+    """The world as a deploy in progress (its live.json ``now``) has it (nothing without
+    one): its links' rates in force, each computer's CPU beyond its planned nodes
+    (``foreign``), and the values it runs that differ from the plan watched (``pinned``: an
+    operator's change)."""
+    from perfros_bag.watch.window import foreign_cpu
+
+    if now is None:
         return {}
     where = {n: pn.computer for n, pn in plan.nodes.items()}
     pinned = {n: v for n, v in now.values.items()
@@ -339,10 +490,19 @@ def _deploy_running(live: Any) -> bool:
     return bool(live.running())
 
 
-def _read_until(observer: Observer, end: float, live: Any, stop: threading.Event) -> Reading:
+#: a window is ended early where a deploy finished running a new plan, if it has lasted this long
+MIN_CUT_S = 1.0
+
+
+def _read_until(observer: Observer, end: float, live: Any, stop: threading.Event,
+                tick: Callable[[], bool] | None = None, start: float | None = None) -> Reading:
     """Sleep until ``end`` (seconds since the epoch), in short steps so a deploy that ends is
-    noticed, then read."""
+    noticed, then read. ``tick()`` is called at each (a re-plan applied as soon as it is
+    ready); when it says the deploy has just finished running a new plan, the window ends
+    there (once it has lasted :data:`MIN_CUT_S` since ``start``), so the next is wholly the new plan's."""
     while True:
+        if tick is not None and tick() and (start is None or time.time() - start >= MIN_CUT_S):
+            break
         left = end - time.time()
         if left <= 0:
             break

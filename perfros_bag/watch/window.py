@@ -185,19 +185,23 @@ def planned_chains(plan: Plan) -> list[dict[str, Any]]:
             and isinstance(c.get("topics"), list) and c["topics"]]
 
 
-def window_document(k: int, t: float, seconds: float, v: Validation, plan: Plan, alive: dict[str, bool],
+def window_document(k: int, t: float, seconds: float, v: Validation, plan: Plan, alive_of: dict[str, bool],
                     measured_cpu: set[str], alarms: list[dict[str, Any]],
-                    latency: dict[str, dict[str, Any] | None] | None = None) -> dict[str, Any]:
-    """The window's JSON object (docs/formats.md "watch --json")."""
+                    latency: dict[str, dict[str, Any] | None] | None = None,
+                    restarting: set[str] | None = None) -> dict[str, Any]:
+    """The window's JSON object (docs/formats.md "watch --json"); a node not alive is
+    ``restarting`` when in ``restarting`` (a deploy restarting it), else ``dead``."""
     nodes: dict[str, Any] = {}
     for n in v.nodes:
+        alive = alive_of.get(n.node, False)
+        state = "running" if alive else "restarting" if n.node in (restarting or ()) else "dead"
         rated = [tc for tc in n.topics if tc.f_expected]
         nodes[n.node] = {
             "expected_hz": _mean([float(tc.f_expected or 0.0) for tc in rated]),
             "measured_hz": _mean([tc.f_measured for tc in rated]) if rated
             else _mean([tc.f_measured for tc in n.topics]),
             **({"cpu": n.cpu_measured} if n.node in measured_cpu and n.cpu_measured is not None else {}),
-            "cpu_expected": n.cpu_expected, "computer": n.computer, "alive": alive.get(n.node, False),
+            "cpu_expected": n.cpu_expected, "computer": n.computer, "alive": alive, "state": state,
             "p_expected": n.p_expected, "p_measured": n.p_measured, "deviation_pct": n.deviation_pct,
             "topics": {tc.topic: {"expected_hz": tc.f_expected, "measured_hz": tc.f_measured,
                                   "kBps": tc.bandwidth_kBps, "messages": tc.messages} for tc in n.topics},
