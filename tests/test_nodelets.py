@@ -11,6 +11,7 @@ from __future__ import annotations
 import itertools
 import json
 import random
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -303,3 +304,101 @@ def test_a_step_the_runs_spread_hides_is_a_warning() -> None:
     assert s is not None
     assert [n.split(":")[0] for n in s.notes] == ["node b"]
     assert "at value 2" in s.notes[0] and "standard error" in s.notes[0]
+
+
+# --------------------------------------------------------------------------- pluginlib's reading
+
+
+def _package(root: Path, name: str, classes: list[tuple[str | None, str]], export: bool = True) -> Path:
+    """A ROS package folder as catkin installs one: package.xml exporting a nodelet plugin
+    description (``${prefix}/plugins.xml``) with ``classes`` (lookup name or None, C++ type)."""
+    folder = root / "src" / name
+    folder.mkdir(parents=True)
+    tag = '<export><nodelet plugin="${prefix}/plugins.xml"/></export>' if export else "<export/>"
+    (folder / "package.xml").write_text(f'<?xml version="1.0"?><package format="2"><name>{name}</name>'
+                                        f'<version>1.0.0</version>{tag}</package>')
+    body = "".join(f'<class {f"name={n!r} " if n else ""}type="{t}" base_class_type="nodelet::Nodelet"/>'
+                   for n, t in classes)
+    (folder / "plugins.xml").write_text(f'<class_libraries><library path="lib{name}">{body}</library>'
+                                        "</class_libraries>")
+    return folder
+
+
+def test_plugin_classes_read_as_pluginlib_reads_them(tmp_path: Path) -> None:
+    from perfros_bag.sweep.plugins import class_problem, exported_classes, package_dir, resolve_class
+
+    folder = _package(tmp_path, "my_pkg", [("my_pkg/blur", "my_pkg::BlurNodelet"), (None, "my_pkg::Edges")])
+    _package(tmp_path, "plain", [("plain/x", "plain::X")], export=False)
+    env = {"ROS_PACKAGE_PATH": str(tmp_path)}
+    assert package_dir("my_pkg", env) == folder
+    got = {(c.name, c.type) for c in exported_classes("my_pkg", env=env) or []}
+    # a class without name= is looked up by its type (pluginlib's rule)
+    assert got == {("my_pkg/blur", "my_pkg::BlurNodelet"), ("my_pkg::Edges", "my_pkg::Edges")}
+    assert exported_classes("plain", env=env) == []  # no <export><nodelet plugin=...>
+    assert exported_classes("not_here", env={"ROS_PACKAGE_PATH": str(tmp_path), "CMAKE_PREFIX_PATH": ""}) is None
+    # a lookup name or the C++ class: the same class
+    a, b = resolve_class("my_pkg", "my_pkg/blur", env), resolve_class("my_pkg", "my_pkg::BlurNodelet", env)
+    assert not isinstance(a, str) and a == b and a.name == "my_pkg/blur"
+    # nodelet load takes only the lookup name
+    assert "C++ class name; nodelet load takes its lookup name my_pkg/blur" in str(
+        class_problem("my_pkg", "my_pkg::BlurNodelet", env, by_type=False))
+    assert "exports no such nodelet (its nodelets: my_pkg/blur)" in str(class_problem("my_pkg", "my_pkg/sharpen", env))
+    assert "exports no nodelet" in str(class_problem("plain", "plain/x", env))
+
+
+def test_plugin_classes_of_the_installed_opencv_apps() -> None:
+    """Against Debian's opencv_apps: the description file is the one rospack lists for it,
+    and every ``<class name= type=>`` of that file, read here with a regular expression, is
+    found both ways."""
+    import re
+
+    from perfros_bag.sweep.plugins import exported_classes, resolve_class
+
+    listed = subprocess.run(["rospack", "plugins", "--attrib=plugin", "nodelet"], capture_output=True, text=True,
+                            check=True).stdout.split("\n")
+    path = next(line.split(None, 1)[1].strip() for line in listed if line.startswith("opencv_apps "))
+    pairs = re.findall(r'<class\s+name="([^"]+)"\s+type="([^"]+)"', Path(path).read_text())
+    classes = exported_classes("opencv_apps")
+    assert classes is not None and {str(c.description) for c in classes} == {path}
+    assert sorted((c.name, c.type) for c in classes) == sorted(pairs) and len(pairs) > 20
+    for name, kind in pairs:
+        if name.startswith("opencv_apps/"):
+            by_name, by_type = resolve_class("opencv_apps", name), resolve_class("opencv_apps", kind)
+            assert not isinstance(by_name, str) and not isinstance(by_type, str)
+            assert by_name.type == kind and by_type.name == name  # the package's own lookup name, not the old alias
+    assert resolve_class("opencv_apps", "opencv_apps::PeopleDetectNodelet").name == "opencv_apps/people_detect"  # type: ignore[union-attr]
+
+
+@pytest.mark.parametrize(("kind", "message"), [
+    ("opencv_apps/no_such", "class opencv_apps/no_such does not exist: package opencv_apps exports no such nodelet"),
+    ("opencv_apps::SmoothingNodelet", "nodelet load takes its lookup name opencv_apps/smoothing"),
+    ("roscpp/x", "package roscpp exports no nodelet"),
+    ("no_pkg_here/x", "package no_pkg_here is not installed here")])
+def test_unexported_nodelet_type_is_one_error(kind: str, message: str) -> None:
+    r = _resolved()
+    nodes = tuple(_node("smooth", f"load {kind} vision_manager") if n.name == "smooth" else n for n in r.nodes)
+    with pytest.raises(InputError, match=re.escape(message)):
+        check_nodelets(Resolved(nodes, {}, {}), "x.launch")
+    assert check_nodelets(r, "x.launch")  # the launch file as it is passes
+
+
+def test_a_plan_splitting_a_launch_files_nodelet_from_its_manager() -> None:
+    from perfros_bag.sweep.nodelets import check_plan_membership
+
+    nodelets = nodelets_of(_resolved())
+    kept = {"camera": "robot", "vision_manager": "server", "people": "server", "smooth": "server"}
+    check_plan_membership(nodelets, kept, "plan.json")
+    with pytest.raises(InputError) as got:
+        check_plan_membership(nodelets, {**kept, "smooth": "robot"}, "plan.json")
+    assert str(got.value).startswith("plan.json: container vision_manager: node smooth on robot but its container "
+                                     "vision_manager on server")
+
+
+def test_residence_that_splits_a_container_names_both_nodes() -> None:
+    doc = _doc()
+    doc["nodes"][2]["residence"] = ["robot"]  # type: ignore[index]
+    doc["nodes"][3]["residence"] = ["server"]  # type: ignore[index]
+    with pytest.raises(InputError) as got:
+        parse_system(doc, "s.yaml")
+    assert str(got.value).startswith("s.yaml: container 'mgr': residence: nodes 'a' (allowed on robot) and 'b' "
+                                     "(allowed on server) share the process of container 'mgr'")

@@ -630,5 +630,14 @@ def _check_groups(ctx: _Ctx, system: System) -> None:
     for group in system.coresidence_groups:
         if not system.allowed_to_all(group):
             who = ", ".join(repr(n) for n in group)
+            host = next((n for n in group if n in system.containers), None)
+            pair = next(((a, b) for i, a in enumerate(group) for b in group[i + 1:]
+                         if not system.allowed_to_all((a, b))), None)
+            if host is not None and pair is not None:  # name the two nodes the membership ties
+                a, b = pair
+                raise ctx.fail(f"container {host!r}: residence",
+                               f"nodes {a!r} (allowed on {', '.join(system.allowed(a))}) and {b!r} (allowed on "
+                               f"{', '.join(system.allowed(b))}) share the process of container {host!r}, so its "
+                               f"computer, and no computer is allowed for both (coresident nodes: {who})")
             raise ctx.fail(f"node {group[0]!r}: residence",
                            f"coresident nodes {who} have no computer allowed for all of them")
