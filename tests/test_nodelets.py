@@ -234,15 +234,25 @@ def test_container_is_coresidence_and_the_checker_refuses_a_split(tmp_path: Path
     assert not (tmp_path / "x.launch").exists()
 
 
-def test_ros2_export_writes_a_container_per_computer(tmp_path: Path) -> None:
+def _opencv_apps_class(lookup: str) -> str:
+    """The C++ class of ``lookup`` in Debian's opencv_apps plugin description, read with a
+    regular expression (not perfros_bag's reader)."""
+    text = Path("/usr/share/opencv_apps/nodelet_plugins.xml").read_text()
+    return dict(re.findall(r'<class\s+name="([^"]+)"\s+type="([^"]+)"', text))[lookup]
+
+
+@pytest.mark.parametrize("kind", ["people_detect", "opencv_apps/people_detect", "opencv_apps::PeopleDetectNodelet"])
+def test_ros2_export_writes_a_container_per_computer(tmp_path: Path, kind: str) -> None:
     """Per computer, a ``<node_container>`` with a ``<composable_node>`` per hosted node, the
-    element and attribute names of ROS 2's "Launching composable nodes" guide (XML)."""
+    element and attribute names of ROS 2's "Launching composable nodes" guide (XML); the
+    plugin the C++ class, whichever form ``launch.type`` names it in. The ROS 1 export loads
+    the same class by its lookup name into its manager."""
     import xml.etree.ElementTree as ET
 
     from perfros_bag.export.writers import ros2_launch_path
 
     doc = _doc()
-    doc["nodes"][2]["launch"] = {"package": "opencv_apps", "type": "people_detect"}  # type: ignore[index]
+    doc["nodes"][2]["launch"] = {"package": "opencv_apps", "type": kind}  # type: ignore[index]
     (tmp_path / "s.yaml").write_text(yaml.safe_dump(doc))
     plan = tmp_path / "plan.json"
     done = subprocess.run([str(BIN), "solve", str(tmp_path / "s.yaml"), "--problem", "1", "--method", "exact",
@@ -274,8 +284,18 @@ def test_ros2_export_writes_a_container_per_computer(tmp_path: Path) -> None:
                     assert set(c.attrib) >= {"pkg", "plugin", "name"}
                     seen[c.get("name") or ""] = computer
                 plugins = {c.get("name"): c.get("plugin") for c in members}
-                assert plugins["a"] == "people_detect"
+                assert plugins["a"] == _opencv_apps_class("opencv_apps/people_detect")
     assert seen == where  # every node once, on its plan computer, the hosted ones inside their container
+    launch = tmp_path / "x.launch"
+    done = subprocess.run([str(BIN), "export", str(plan), "--format", "roslaunch", "--system", str(tmp_path / "s.yaml"),
+                           "--out", str(launch)], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    nodes = {n.get("name"): n for n in ET.parse(launch).getroot().iter("node")}
+    assert (nodes["a"].get("pkg"), nodes["a"].get("type")) == ("nodelet", "nodelet")
+    assert (nodes["a"].get("args") or "").split() == ["load", "opencv_apps/people_detect", "/mgr"]
+    assert (nodes["mgr"].get("pkg"), nodes["mgr"].get("type"), nodes["mgr"].get("args")) == ("nodelet", "nodelet",
+                                                                                           "manager")
+    assert nodes["a"].get("machine") == nodes["mgr"].get("machine") == where["mgr"]
 
 
 def test_a_nodelet_with_only_its_bond_is_a_warning() -> None:
@@ -402,3 +422,34 @@ def test_residence_that_splits_a_container_names_both_nodes() -> None:
         parse_system(doc, "s.yaml")
     assert str(got.value).startswith("s.yaml: container 'mgr': residence: nodes 'a' (allowed on robot) and 'b' "
                                      "(allowed on server) share the process of container 'mgr'")
+
+
+def test_plugin_types_in_launch_type() -> None:
+    """``launch.type`` as a plugin class: only for a hosted node; resolved per ROS version;
+    what cannot be resolved is an error where the other form cannot be guessed."""
+    from perfros_bag.errors import PerfrosWarning
+    from perfros_bag.sweep.plugins import hosted_plugin
+
+    doc = _doc()
+    doc["nodes"][0]["launch"] = {"package": "opencv_apps", "type": "opencv_apps::SmoothingNodelet"}  # type: ignore[index]
+    with pytest.raises(InputError, match=r"node 'cam': launch.type: 'opencv_apps::SmoothingNodelet' names a plugin "
+                                         r"class, which only a node with a container"):
+        parse_system(doc, "s.yaml")
+    doc = _doc()
+    doc["nodes"][2]["launch"] = {"package": "opencv_apps", "type": "opencv_apps::Smoothing::"}  # type: ignore[index]
+    with pytest.raises(InputError, match=r"launch.type: 'opencv_apps::Smoothing::' is not a valid plugin class name"):
+        parse_system(doc, "s.yaml")
+    smooth = _opencv_apps_class("opencv_apps/smoothing")
+    for given in ("smoothing", "opencv_apps/smoothing", smooth, "smoothing/smoothing"):
+        assert hosted_plugin("opencv_apps", given, "a", ros2=False) == (
+            "smoothing/smoothing" if given == "smoothing/smoothing" else "opencv_apps/smoothing")
+        assert hosted_plugin("opencv_apps", given, "a", ros2=True) == _opencv_apps_class(
+            "smoothing/smoothing" if given == "smoothing/smoothing" else "opencv_apps/smoothing")
+    with pytest.raises(InputError, match=r"s.yaml: node 'a': launch.type 'opencv_apps::NoSuch': cannot tell the "
+                                         r"lookup name nodelet load takes: package opencv_apps exports no such"):
+        hosted_plugin("opencv_apps", "opencv_apps::NoSuch", "a", ros2=False, source="s.yaml")
+    assert hosted_plugin("my_ros2_pkg", "my_ros2_pkg::Talker", "a", ros2=True) == "my_ros2_pkg::Talker"
+    with pytest.raises(InputError, match=r"cannot tell the C\+\+ class a ROS 2 composable node names"):
+        hosted_plugin("my_ros2_pkg", "my_ros2_pkg/talker", "a", ros2=True)
+    with pytest.warns(PerfrosWarning, match=r"node a: launch.type 'my_ros2_pkg/talker' is no nodelet class found here"):
+        assert hosted_plugin("my_ros2_pkg", "my_ros2_pkg/talker", "a", ros2=False) == "my_ros2_pkg/talker"

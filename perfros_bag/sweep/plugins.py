@@ -18,16 +18,11 @@ each ``CMAKE_PREFIX_PATH`` entry, else Debian's ``/usr/share/PKG``.
 from __future__ import annotations
 
 import os
-import re
 import xml.etree.ElementTree as ET
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
-#: A C++ class name: identifiers joined by ``::`` (``opencv_apps::PeopleDetectNodelet``)
-CPP_CLASS = re.compile(r"[A-Za-z_][A-Za-z0-9_]*(?:::[A-Za-z_][A-Za-z0-9_]*)+")
-#: A pluginlib lookup name as packages write them (``opencv_apps/people_detect``)
-LOOKUP_NAME = re.compile(r"[A-Za-z][A-Za-z0-9_-]*/[A-Za-z0-9_][A-Za-z0-9_.+-]*")
 SYSTEM_SHARE = Path("/usr/share")
 
 
@@ -39,11 +34,6 @@ class PluginClass:
     type: str  # the C++ class (a ROS 2 composable node's ``plugin``)
     package: str
     description: Path  # the plugin description file it came from
-
-
-def is_plugin_name(text: str) -> bool:
-    """``text`` names a plugin class (``pkg::Class`` or ``pkg/name``), not an executable."""
-    return CPP_CLASS.fullmatch(text) is not None or LOOKUP_NAME.fullmatch(text) is not None
 
 
 def _manifest_name(path: Path) -> str | None:
@@ -170,3 +160,41 @@ def class_problem(package: str, wanted: str, env: Mapping[str, str] | None = Non
     """Why ``wanted`` is not a nodelet class (one sentence), or None."""
     found = resolve_class(package, wanted, env, by_type=by_type)
     return found if isinstance(found, str) else None
+
+
+def hosted_plugin(package: str | None, kind: str | None, node: str, *, ros2: bool,
+                  source: str | Path | None = None) -> str:
+    """What loads a hosted node (system.yaml ``container:``) whose ``launch`` gives
+    ``package`` and ``type`` = ``kind``: the lookup name ``nodelet load`` takes (ROS 1), or
+    the C++ class a ROS 2 ``<composable_node plugin=...>`` names (``ros2``). ``kind`` may be
+    either of those (``opencv_apps/people_detect``, ``opencv_apps::PeopleDetectNodelet``) or an
+    executable's name (``people_detect``: ``PACKAGE/people_detect`` is tried); each is
+    resolved through the package's plugin description (:func:`resolve_class`). What cannot
+    be resolved here is written as given with a warning, except where the other form cannot
+    be guessed: an :class:`~perfros_bag.errors.InputError` naming ``source`` and the node."""
+    import warnings
+
+    from perfros_bag.errors import InputError, PerfrosWarning
+
+    if package is None:
+        return kind or node
+    kind = kind or node
+    plugin_form = "::" in kind or "/" in kind
+    candidates = [kind] if plugin_form else [f"{package}/{kind}", kind]
+    why = ""
+    for c in candidates:
+        found = resolve_class(package, c)
+        if not isinstance(found, str):
+            return found.type if ros2 else found.name
+        why = why or found
+    if ros2 and "::" in kind:
+        return kind  # a ROS 2 class: its package need not be a ROS 1 one installed here
+    if "::" in kind or (ros2 and plugin_form):
+        want = "the C++ class a ROS 2 composable node names" if ros2 else "the lookup name nodelet load takes"
+        other = "PKG::Class" if ros2 else "PKG/NAME"
+        raise InputError(source, f"node {node!r}: launch.type {kind!r}: cannot tell {want}: {why}; give launch.type "
+                                 f"as {other}")
+    written = kind if ros2 or plugin_form else f"{package}/{kind}"
+    warnings.warn(PerfrosWarning(f"node {node}: launch.type {kind!r} is no nodelet class found here ({why}): "
+                                 f"written as {written!r}"), stacklevel=2)
+    return written

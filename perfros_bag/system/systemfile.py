@@ -458,7 +458,13 @@ def _nodes(ctx: _Ctx, raw: Any, computers: set[str]) -> list[Node]:
         launch: dict[str, str] = {}
         if m.get("launch") is not None:
             lm = ctx.mapping(m["launch"], f"{where}: launch", LAUNCH_KEYS)
-            launch = {k: ctx.name(v, f"{where}: launch.{k}", LAUNCH_NAME_KINDS[k]) for k, v in lm.items()}
+            hosted = m.get("container") is not None
+            kind = lm.get("type")
+            if not hosted and isinstance(kind, str) and name_problem(NameKind.PLUGIN, kind) is None:
+                raise ctx.fail(f"{where}: launch.type", f"{kind!r} names a plugin class, which only a node with a "
+                               "container (a nodelet's manager, a component container) loads: add container: or "
+                               "give an executable")
+            launch = {k: ctx.name(v, f"{where}: launch.{k}", _launch_kind(k, v, hosted)) for k, v in lm.items()}
 
         metric = _metric(ctx, m["metric"], f"{where}: metric") if m.get("metric") is not None else None
         between = ctx.opt_number(m.get("cpu_error_between"), f"{where}: cpu_error_between", nonneg=True)
@@ -471,6 +477,14 @@ def _nodes(ctx: _Ctx, raw: Any, computers: set[str]) -> list[Node]:
         out.append(Node(name, weight, settings, curve, residence, coresidence, parameter,
                         topics, process, launch, relations, metric, driven_by, between, container, threads))
     return out
+
+
+def _launch_kind(key: str, value: Any, hosted: bool) -> NameKind:
+    """The rule ``launch.KEY`` follows: a hosted node's (``container:``) ``type`` may name its
+    plugin class (``pkg::Class`` or ``pkg/name``) instead of an executable."""
+    if key == "type" and isinstance(value, str) and ("::" in value or "/" in value):
+        return NameKind.PLUGIN if hosted else NameKind.EXECUTABLE
+    return LAUNCH_NAME_KINDS[key]
 
 
 def _threads(ctx: _Ctx, raw: Any, where: str) -> float | None:
