@@ -453,3 +453,14 @@ def test_plugin_types_in_launch_type() -> None:
         hosted_plugin("my_ros2_pkg", "my_ros2_pkg/talker", "a", ros2=True)
     with pytest.warns(PerfrosWarning, match=r"node a: launch.type 'my_ros2_pkg/talker' is no nodelet class found here"):
         assert hosted_plugin("my_ros2_pkg", "my_ros2_pkg/talker", "a", ros2=False) == "my_ros2_pkg/talker"
+
+
+def test_membership_keep_is_explicit() -> None:
+    assert parse_system(_doc(), "s.yaml").membership == "keep"  # the default
+    system = parse_system(_doc(membership="keep"), "s.yaml")
+    assert system.membership == "keep" and sorted(sorted(g) for g in system.coresidence_groups) == [
+        ["a", "b", "mgr"], ["cam"]]
+    with pytest.raises(InputError, match=r"s.yaml: membership: 'choose' .* is not built yet"):
+        parse_system(_doc(membership="choose"), "s.yaml")
+    with pytest.raises(InputError, match=r"s.yaml: membership: must be one of keep, got 'maybe'"):
+        parse_system(_doc(membership="maybe"), "s.yaml")

@@ -46,7 +46,10 @@ from perfros_bag.system.types import (
     TopicRate,
 )
 
-TOP_KEYS = {"cpu_unit", "computers", "links", "media", "nodes", "edges", "machines", "chains", "latency"}
+TOP_KEYS = {"cpu_unit", "computers", "links", "media", "nodes", "edges", "machines", "chains", "latency",
+            "membership"}
+#: system.yaml ``membership``: what solvers may do with ``container:`` (only "keep" is built)
+MEMBERSHIPS = ("keep",)
 CHAIN_KEYS = {"name", "topics", "budget_ms"}
 BUDGET_KEYS = {"p50", "p95"}
 #: system.yaml ``latency:`` (the latency model's parameters, perfros_bag.system.latency)
@@ -180,6 +183,7 @@ def parse_system(data: Any, source: str = "system.yaml") -> System:
     edges = _edges(ctx, top.get("edges"), node_names)
     machines = _machines(ctx, top.get("machines"), names)
     cpu_unit = ctx.label(top.get("cpu_unit"), "cpu_unit")
+    membership = _membership(ctx, top.get("membership"))
 
     for n in nodes:
         for m in n.coresidence:
@@ -198,11 +202,23 @@ def parse_system(data: Any, source: str = "system.yaml") -> System:
     chains = _chains(ctx, top.get("chains"), nodes, edges)
     latency = _latency(ctx, top.get("latency"), node_names)
     system = System(tuple(computers), tuple(nodes), tuple(links), tuple(media), tuple(edges),
-                    cpu_unit, machines, source, chains, latency)
+                    cpu_unit, machines, source, chains, latency, membership)
     _check_groups(ctx, system)
     _check_flow(ctx, system)
     _check_budgets(ctx, system)
     return system
+
+
+def _membership(ctx: _Ctx, raw: Any) -> str:
+    """``membership``: "keep" (the default): every node stays in its ``container:``."""
+    if raw is None:
+        return "keep"
+    if raw == "choose":
+        raise ctx.fail("membership", "'choose' (solvers moving a node out of its container, paying the copy) is not "
+                       "built yet: use keep, or drop container: from the nodes that may move")
+    if raw not in MEMBERSHIPS:
+        raise ctx.fail("membership", f"must be one of {', '.join(MEMBERSHIPS)}, got {raw!r}")
+    return str(raw)
 
 
 def _check_budgets(ctx: _Ctx, system: System) -> None:

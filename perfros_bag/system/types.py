@@ -521,6 +521,9 @@ class System:
     source: str | None = None  # the file it was loaded from, for messages
     chains: tuple[Chain, ...] = ()  # topics whose end-to-end latency is measured
     latency: LatencyParams = field(default_factory=LatencyParams)  # the latency model's parameters
+    #: system.yaml ``membership``: "keep" (each ``container:`` node stays in its container, so on
+    #: its computer); the only mode the solvers and the checker implement
+    membership: str = "keep"
 
     @cached_property
     def computer(self) -> dict[str, Computer]:
