@@ -464,3 +464,79 @@ def test_membership_keep_is_explicit() -> None:
         parse_system(_doc(membership="choose"), "s.yaml")
     with pytest.raises(InputError, match=r"s.yaml: membership: must be one of keep, got 'maybe'"):
         parse_system(_doc(membership="maybe"), "s.yaml")
+
+
+# --------------------------------------------------------------------------- the copy price
+
+
+def _copy_system(**extra: object) -> object:
+    doc: dict[str, object] = {
+        "computers": [{"name": "c", "kind": "robot", "capacity": 400}],
+        "nodes": [{"name": "cam", "weight": 0.25, "topics": ["/img"], "settings": [{"cpu": 1, "performance": 1}]},
+                  {"name": "mgr", "weight": 0.25, "settings": [{"cpu": 1, "performance": 1}]},
+                  {"name": "a", "weight": 0.25, "container": "mgr", "topics": ["/a/out"],
+                   "settings": [{"cpu": 1, "performance": 1}]},
+                  {"name": "b", "weight": 0.25, "container": "mgr", "settings": [{"cpu": 1, "performance": 1}]}],
+        "edges": [{"from": "cam", "to": "a", "topic": "/img"}, {"from": "cam", "to": "b", "topic": "/img"},
+                  {"from": "a", "to": "b", "topic": "/a/out"}]}
+    doc.update(extra)
+    return parse_system(doc, "s.yaml")
+
+
+def _copy_row(rec: str, node: str, cpu: float, topic: str | None = None, kbps: float | None = None) -> Row:
+    return Row(rec, node, None, None, topic, "t" if topic else None, 10, 10.0, 10.0 if topic else None, kbps, cpu,
+               cpu, 20)
+
+
+def test_copy_price_against_a_hand_computation() -> None:
+    """Inside (two repeats): camera 10 / 11, manager 50 / 52, loaders 0.5 each; standalone:
+    camera 12, a 30, b 35. Split, the container adds one more copy of /img (2000 kB/s: two
+    receivers instead of one process) and one of a -> b (/a/out, 100 kB/s, a pointer
+    inside): 2.1 MB/s. Extra CPU 77 - mean(61, 64) = 14.5: 14.5 / 2.1 units per MB/s."""
+    from perfros_bag.characterisation.containers import split_containers
+
+    system = _copy_system()
+    rows = []
+    for rec, cam, mgr in (("r1", 10.0, 50.0), ("r2", 11.0, 52.0)):
+        rows += [_copy_row(rec, "cam", cam, "/img", 1990.0), _copy_row(rec, "mgr", mgr),
+                 _copy_row(rec, "a", 0.5, "/a/out", 99.0), _copy_row(rec, "b", 0.5)]
+    rows += [_copy_row("s", "cam", 12.0, "/img", 2000.0), _copy_row("s", "a", 30.0, "/a/out", 100.0),
+             _copy_row("s", "b", 35.0)]
+    entries = [RecordingEntry(Path(r), r) for r in ("r1", "r2")] + [RecordingEntry(Path("s"), "s",
+                                                                                  standalone=("a", "b"))]
+    _, splits = split_containers(rows, system, entries)  # type: ignore[arg-type]
+    (s,) = splits
+    assert s.copy_runs == {"r1+r2|s": (pytest.approx(14.5), pytest.approx(2100.0))}
+    assert s.copy_per_MBps == pytest.approx(14.5 / 2.1)
+    # the model carries it on the container, and only there
+    assert _copy_system(nodes=[*_copy_doc_nodes(copy=6.9)]).node["mgr"].copy_cpu_per_MBps == 6.9  # type: ignore[attr-defined]
+    with pytest.raises(InputError, match=r"node 'a': copy_cpu_per_MBps: only a container"):
+        nodes = _copy_doc_nodes()
+        nodes[2]["copy_cpu_per_MBps"] = 1.0
+        _copy_system(nodes=nodes)
+
+
+def _copy_doc_nodes(copy: float | None = None) -> list[dict[str, object]]:
+    nodes: list[dict[str, object]] = [
+        {"name": "cam", "weight": 0.25, "topics": ["/img"], "settings": [{"cpu": 1, "performance": 1}]},
+        {"name": "mgr", "weight": 0.25, "settings": [{"cpu": 1, "performance": 1}]},
+        {"name": "a", "weight": 0.25, "container": "mgr", "topics": ["/a/out"], "settings": [{"cpu": 1,
+                                                                                            "performance": 1}]},
+        {"name": "b", "weight": 0.25, "container": "mgr", "settings": [{"cpu": 1, "performance": 1}]}]
+    if copy is not None:
+        nodes[1]["copy_cpu_per_MBps"] = copy
+    return nodes
+
+
+def test_no_copy_price_without_a_copy_to_price() -> None:
+    """Two nodes that share no topic and pass nothing: splitting adds no copy: a note, no price."""
+    from perfros_bag.characterisation.containers import split_containers
+
+    system = _copy_system(edges=[{"from": "cam", "to": "a", "topic": "/img"}])
+    rows = [_copy_row("r1", "cam", 10.0, "/img", 2000.0), _copy_row("r1", "mgr", 50.0), _copy_row("r1", "a", 0.5),
+            _copy_row("r1", "b", 0.5), _copy_row("s", "cam", 10.0, "/img", 2000.0), _copy_row("s", "a", 30.0),
+            _copy_row("s", "b", 25.0)]
+    entries = [RecordingEntry(Path("r1"), "r1"), RecordingEntry(Path("s"), "s", standalone=("a", "b"))]
+    _, (s,) = split_containers(rows, system, entries)  # type: ignore[arg-type]
+    assert s.copy_per_MBps is None and s.copy_runs == {"r1|s": (pytest.approx(65.0 - 61.0), 0.0)}
+    assert any(n.startswith("container mgr: no copy price: its nodes share no topic") for n in s.notes)

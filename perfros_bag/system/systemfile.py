@@ -61,6 +61,7 @@ MEDIUM_KEYS = {"name", "bandwidth_kBps"}
 NODE_KEYS = {
     "name", "weight", "residence", "coresidence", "parameter", "topics", "process",
     "settings", "curve", "launch", "relations", "metric", "input", "cpu_error_between", "container", "threads",
+    "copy_cpu_per_MBps",
 }
 METRIC_KEYS = {"topic", "field", "aggregate", "better", "range"}
 #: ``cpu_error`` (optional, CPU units >= 0): what the setting may need beyond its ``cpu``
@@ -407,6 +408,11 @@ def _check_containers(ctx: _Ctx, nodes: list[Node]) -> None:
         if host.container is not None:
             raise ctx.fail(f"node {n.name!r}: container", f"{host.name!r} is itself hosted by {host.container!r}: "
                                                           "a container runs in a process of its own")
+    hosts = {n.container for n in nodes}
+    for n in nodes:
+        if n.copy_cpu_per_MBps is not None and n.name not in hosts:
+            raise ctx.fail(f"node {n.name!r}: copy_cpu_per_MBps", "only a container (a node others name as their "
+                                                                  "container:) has a copy price")
 
 
 def _nodes(ctx: _Ctx, raw: Any, computers: set[str]) -> list[Node]:
@@ -490,8 +496,9 @@ def _nodes(ctx: _Ctx, raw: Any, computers: set[str]) -> list[Node]:
         container = None if m.get("container") is None else ctx.name(m["container"], f"{where}: container",
                                                                        NameKind.NODE)
         threads = _threads(ctx, m.get("threads"), f"{where}: threads")
+        copy = ctx.opt_number(m.get("copy_cpu_per_MBps"), f"{where}: copy_cpu_per_MBps", nonneg=True)
         out.append(Node(name, weight, settings, curve, residence, coresidence, parameter,
-                        topics, process, launch, relations, metric, driven_by, between, container, threads))
+                        topics, process, launch, relations, metric, driven_by, between, container, threads, copy))
     return out
 
 
