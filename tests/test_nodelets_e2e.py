@@ -111,6 +111,20 @@ def test_sweep_init_characterise_per_nodelet(tmp_path: Path) -> None:
     # the detector's work moves with its own setting: more scales (1.1) cost more than fewer (1.4)
     cpu = {s.value: s.cpu for s in system.node["people"].settings}
     assert cpu[1.1] > cpu[1.4]
+    # the copy price on the manager, by hand from the unsplit rows of every run: the
+    # standalone run's total CPU over the in-manager run's at the same values (the defaults),
+    # per MB/s of the one more copy of the camera's frames two standalone receivers take
+    every = characterise(manifest.recordings, parse_system(raw_doc, "raw")).rows
+    alone_run = alone[0].name
+    twin = next(e.name for e in manifest.recordings if not e.standalone and e.settings == alone[0].settings)
+
+    def total(rec: str) -> float:
+        return sum(per_node(every, rec).values())
+
+    frames = next(r.bandwidth_kBps for r in every if r.recording == alone_run and r.topic == "/camera/image_raw")
+    assert frames
+    assert system.node["vision_manager"].copy_cpu_per_MBps == pytest.approx(
+        (total(alone_run) - total(twin)) / (frames / 1000), rel=1e-3, abs=1e-4)
 
     # deploy across two emulated computers: the camera on the robot, the manager and its
     # nodelets (membership kept) on the server, each nodelet loaded into its manager there
