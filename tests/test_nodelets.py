@@ -516,6 +516,22 @@ def test_copy_price_against_a_hand_computation() -> None:
         _copy_system(nodes=nodes)
 
 
+def test_a_negative_copy_price_is_zero_with_a_note() -> None:
+    from perfros_bag.characterisation.containers import split_containers
+
+    system = _copy_system()
+    rows = [_copy_row("r1", "cam", 10.0, "/img", 2000.0), _copy_row("r1", "mgr", 70.0),
+            _copy_row("r1", "a", 0.5, "/a/out", 100.0), _copy_row("r1", "b", 0.5),
+            _copy_row("s", "cam", 10.0, "/img", 2000.0), _copy_row("s", "a", 30.0, "/a/out", 100.0),
+            _copy_row("s", "b", 35.0)]
+    entries = [RecordingEntry(Path("r1"), "r1"), RecordingEntry(Path("s"), "s", standalone=("a", "b"))]
+    _, (s,) = split_containers(rows, system, entries)  # type: ignore[arg-type]
+    assert s.copy_runs == {"r1|s": (pytest.approx(75.0 - 81.0), pytest.approx(2100.0))}
+    assert s.copy_per_MBps == 0.0
+    assert any(n.startswith(f"container mgr: its copy price measured {-6.0 / 2.1:.4g} CPU units per MB/s")
+               and n.endswith("drafted as 0") for n in s.notes)
+
+
 def _copy_doc_nodes(copy: float | None = None) -> list[dict[str, object]]:
     nodes: list[dict[str, object]] = [
         {"name": "cam", "weight": 0.25, "topics": ["/img"], "settings": [{"cpu": 1, "performance": 1}]},

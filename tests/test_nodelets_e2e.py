@@ -95,6 +95,7 @@ def test_sweep_init_characterise_per_nodelet(tmp_path: Path) -> None:
     raw_doc = yaml.safe_load((tmp_path / "system.yaml").read_text())
     for n in raw_doc["nodes"]:
         n.pop("container", None)
+        n.pop("copy_cpu_per_MBps", None)
     raw = characterise([e for e in manifest.recordings if not e.standalone], parse_system(raw_doc, "raw"))
 
     def per_node(rows: list, rec: str) -> dict[str, float]:
@@ -114,7 +115,9 @@ def test_sweep_init_characterise_per_nodelet(tmp_path: Path) -> None:
     # the copy price on the manager, by hand from the unsplit rows of every run: the
     # standalone run's total CPU over the in-manager run's at the same values (the defaults),
     # per MB/s of the one more copy of the camera's frames two standalone receivers take
-    every = characterise(manifest.recordings, parse_system(raw_doc, "raw")).rows
+    from dataclasses import replace  # the standalone run's rows as measured (not left out as a split does)
+
+    every = characterise([replace(e, standalone=()) for e in manifest.recordings], parse_system(raw_doc, "raw")).rows
     alone_run = alone[0].name
     twin = next(e.name for e in manifest.recordings if not e.standalone and e.settings == alone[0].settings)
 
@@ -123,8 +126,8 @@ def test_sweep_init_characterise_per_nodelet(tmp_path: Path) -> None:
 
     frames = next(r.bandwidth_kBps for r in every if r.recording == alone_run and r.topic == "/camera/image_raw")
     assert frames
-    assert system.node["vision_manager"].copy_cpu_per_MBps == pytest.approx(
-        (total(alone_run) - total(twin)) / (frames / 1000), rel=1e-3, abs=1e-4)
+    assert system.node["vision_manager"].copy_cpu_per_MBps == pytest.approx(  # < 0 (noise) is drafted as 0
+        max(0.0, (total(alone_run) - total(twin)) / (frames / 1000)), rel=1e-3, abs=1e-4)
 
     # deploy across two emulated computers: the camera on the robot, the manager and its
     # nodelets (membership kept) on the server, each nodelet loaded into its manager there

@@ -38,7 +38,8 @@ process; standalone, one per node), plus ``B_e`` for every edge between two of i
 
     price = (T_s - T_i) / (X / 1000)      CPU units per MB/s of copies
 
-averaged over the pairs. Every edge of the container gets the container's price (one
+averaged over the pairs; a negative mean (the runs' spread larger than the copies) is 0,
+with a note. Every edge of the container gets the container's price (one
 standalone run per setting moves all its nodes at once, so edges are not told apart). No pair,
 or no copy to price (X = 0): no price, with a note.
 
@@ -139,7 +140,12 @@ def copy_price(rows: Sequence[Row], system: System, host: str, members: Sequence
         why = ("no standalone run has an in-container run at the same values" if not pairs
                else "its nodes share no topic and pass nothing to each other: splitting it adds no copy")
         return None, pairs, f"container {host}: no copy price: {why}"
-    return sum(cpu / (x / 1000.0) for cpu, x in priced) / len(priced), pairs, None
+    price = sum(cpu / (x / 1000.0) for cpu, x in priced) / len(priced)
+    if price < 0:  # standalone measured cheaper in all: the runs' spread is larger than the copies
+        return 0.0, pairs, (f"container {host}: its copy price measured {price:.4g} CPU units per MB/s (its nodes "
+                            "standalone cost less in all than inside it): the runs' spread hides the copies; "
+                            "drafted as 0")
+    return price, pairs, None
 
 
 def _cpu(rows: Sequence[Row], recording: str, node: str) -> float | None:
