@@ -556,3 +556,44 @@ def test_no_copy_price_without_a_copy_to_price() -> None:
     _, (s,) = split_containers(rows, system, entries)  # type: ignore[arg-type]
     assert s.copy_per_MBps is None and s.copy_runs == {"r1|s": (pytest.approx(65.0 - 61.0), 0.0)}
     assert any(n.startswith("container mgr: no copy price: its nodes share no topic") for n in s.notes)
+
+
+def test_a_replan_that_splits_a_nodelet_is_not_applied(tmp_path: Path) -> None:
+    """deploy's control file: a new plan that moves a nodelet away from its manager (the
+    launch file's membership) is a warning, and nothing is restarted."""
+    import os
+    from types import SimpleNamespace
+
+    from perfros_bag.errors import PerfrosWarning
+    from perfros_bag.rosrun.cgroups import CpuGroups
+    from perfros_bag.sweep.control import Control, write_control
+    from perfros_bag.sweep.deploy import plan_run
+    from perfros_bag.sweep.space import load_space
+    from perfros_bag.system.plan import Plan, PlannedComputer, PlannedNode
+    from perfros_bag.system.planfile import save_plan
+
+    def plan(smooth_on: str) -> Plan:
+        return Plan(1, "exact", "optimal", computers={"robot": PlannedComputer("robot", 100.0, 10.0),
+                                                      "server": PlannedComputer("server", 100.0, 10.0)},
+                    nodes={n: PlannedNode(smooth_on if n == "smooth" else ("robot" if n == "camera" else "server"),
+                                          5.0, 50.0, 1.0) for n in ("camera", "vision_manager", "people", "smooth")})
+
+    calls: list[str] = []
+    restarter = SimpleNamespace(watch=SimpleNamespace(pids={f"/{n}": (1, 0.0) for n in ("camera", "people", "smooth",
+                                                                                        "vision_manager")}),
+                                restart=lambda node, *_: calls.append(node) or 100)
+    groups = CpuGroups("t", {"robot": 1.0, "server": 1.0}, root=tmp_path)
+    for c in ("robot", "server"):
+        (tmp_path / c).mkdir()
+        groups.dirs[c] = tmp_path / c
+    where = {n: pn.computer for n, pn in plan("server").nodes.items()}
+    space = load_space(Path(__file__).resolve().parents[1] / "fixtures" / "nodelet" / "space.yaml")
+    control = Control(tmp_path, space, {}, plan_run(plan("server"), space, {}), where, groups, 100.0, False,
+                      nodelets=nodelets_of(_resolved()))
+    save_plan(plan("robot"), tmp_path / "split.json")
+    write_control(tmp_path, 1, tmp_path / "split.json", ["why"])
+    os.utime(tmp_path / "control.json", (1, 1))
+    with pytest.warns(PerfrosWarning, match=r"not applied: .*split.json: container vision_manager: node smooth on "
+                                            r"robot but its container vision_manager on server"):
+        control.tick(restarter)  # type: ignore[arg-type]
+    assert calls == [] and control.seq == 0 and control.where == where

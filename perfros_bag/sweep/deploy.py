@@ -101,8 +101,8 @@ def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Pat
     run = plan_run(plan, space, dict(launch.args))
     # the launch file's nodelets: each into a manager it starts, of a class its package
     # exports, on its manager's plan computer (the launch file fixes the membership)
-    check_plan_membership(checked_nodelets(launch, run.args, space.startup_timeout_s),
-                          {name: pn.computer for name, pn in plan.nodes.items()}, plan_path)
+    nodelets = checked_nodelets(launch, run.args, space.startup_timeout_s)
+    check_plan_membership(nodelets, {name: pn.computer for name, pn in plan.nodes.items()}, plan_path)
     cores = computer_cores(plan, units_per_core)
     outdir = Path(out).absolute()
     if outdir.exists() and not outdir.is_dir():
@@ -171,7 +171,7 @@ def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Pat
 
     network = Network(f"d{run_id}", system if system is not None and net else _no_links(plan))
     control = Control(outdir, space, dict(launch.args), run, dict(where), groups, units_per_core, cap, applied,
-                      network if network.emulated or net else None)
+                      network if network.emulated or net else None, nodelets=nodelets)
     groups.create(capped=False, quiet=not cap)
     mode, reason = (groups.mode, groups.reason) if cap else ("uncapped", "capping not asked for")
     try:
