@@ -597,3 +597,28 @@ def test_a_replan_that_splits_a_nodelet_is_not_applied(tmp_path: Path) -> None:
                                             r"robot but its container vision_manager on server"):
         control.tick(restarter)  # type: ignore[arg-type]
     assert calls == [] and control.seq == 0 and control.where == where
+
+
+@pytest.mark.parametrize(("standalone_run", "bandwidth", "note"), [
+    (False, 2000.0, None),  # never standalone: the split says so; no second note
+    (True, None, "container mgr: no copy price: an edge into or inside it has no topic, or its topic no measured"),
+])
+def test_copy_price_notes(standalone_run: bool, bandwidth: float | None, note: str | None) -> None:
+    from perfros_bag.characterisation.containers import split_containers
+
+    system = _copy_system()
+    rows = [_copy_row("r1", "cam", 10.0, "/img", 2000.0), _copy_row("r1", "mgr", 50.0),
+            _copy_row("r1", "a", 0.5, "/a/out", 100.0), _copy_row("r1", "b", 0.5),
+            _copy_row("r2", "cam", 10.0, "/img", 2000.0), _copy_row("r2", "mgr", 52.0),
+            _copy_row("r2", "a", 0.5, "/a/out", 100.0), _copy_row("r2", "b", 0.5)]
+    entries = [RecordingEntry(Path("r1"), "r1"), RecordingEntry(Path("r2"), "r2")]
+    if standalone_run:
+        rows += [_copy_row("s", "cam", 10.0, "/img", bandwidth), _copy_row("s", "a", 30.0, "/a/out", bandwidth),
+                 _copy_row("s", "b", 25.0)]
+        entries.append(RecordingEntry(Path("s"), "s", standalone=("a", "b")))
+    _, (s,) = split_containers(rows, system, entries)  # type: ignore[arg-type]
+    copy_notes = [n for n in s.notes if "copy price" in n]
+    assert s.copy_per_MBps is None
+    assert copy_notes == [] if note is None else (len(copy_notes) == 1 and copy_notes[0].startswith(note))
+    if not standalone_run:
+        assert any("never ran standalone" in n for n in s.notes)

@@ -125,20 +125,24 @@ def copy_price(rows: Sequence[Row], system: System, host: str, members: Sequence
         return {n: repr(v) for n in names if (v := _value(rows, rec, n)) is not None}
 
     pairs: dict[str, tuple[float, float]] = {}
-    for s in recordings:
-        if not set(members) <= set(standalone.get(s, ())):
-            continue
+    alone_runs = [s for s in recordings if set(members) <= set(standalone.get(s, ()))]
+    if not alone_runs:  # the split's own note says the nodes never ran standalone
+        return None, pairs, None
+    why = "no standalone run has an in-container run at the same values"
+    for s in alone_runs:
         twins = [rec for rec in recordings if not standalone.get(rec) and values(rec) == values(s)]
         totals = [t for rec in twins if (t := _total(rows, rec, names)) is not None]
         alone = _total(rows, s, names)
         extra = extra_copies(system, host, members, rows, s)
+        if totals and alone is not None and extra is None:
+            why = "an edge into or inside it has no topic, or its topic no measured bandwidth"
         if not totals or alone is None or extra is None:
             continue
         pairs[f"{'+'.join(twins)}|{s}"] = (alone - sum(totals) / len(totals), extra)
     priced = [(cpu, x) for cpu, x in pairs.values() if x > 0]
     if not priced:
-        why = ("no standalone run has an in-container run at the same values" if not pairs
-               else "its nodes share no topic and pass nothing to each other: splitting it adds no copy")
+        if pairs:
+            why = "its nodes share no topic and pass nothing to each other: splitting it adds no copy"
         return None, pairs, f"container {host}: no copy price: {why}"
     price = sum(cpu / (x / 1000.0) for cpu, x in priced) / len(priced)
     if price < 0:  # standalone measured cheaper in all: the runs' spread is larger than the copies
