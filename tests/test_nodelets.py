@@ -622,3 +622,18 @@ def test_copy_price_notes(standalone_run: bool, bandwidth: float | None, note: s
     assert copy_notes == [] if note is None else (len(copy_notes) == 1 and copy_notes[0].startswith(note))
     if not standalone_run:
         assert any("never ran standalone" in n for n in s.notes)
+
+
+def test_export_only_warns_about_a_package_not_installed_here() -> None:
+    """``export --launch`` writes a file for other machines: a nodelet package missing here
+    is a warning there; sweep and deploy, which run it here, refuse it."""
+    from perfros_bag.errors import PerfrosWarning
+
+    r = _resolved()
+    nodes = tuple(_node("smooth", "load elsewhere_pkg/blur vision_manager") if n.name == "smooth" else n
+                  for n in r.nodes)
+    with pytest.warns(PerfrosWarning, match=r"x.launch: node /smooth: class elsewhere_pkg/blur not checked: package "
+                                            r"elsewhere_pkg is not installed here"):
+        assert sorted(check_nodelets(Resolved(nodes, {}, {}), "x.launch", elsewhere=True)) == ["/people", "/smooth"]
+    with pytest.raises(InputError, match="package elsewhere_pkg is not installed here"):
+        check_nodelets(Resolved(nodes, {}, {}), "x.launch")

@@ -211,8 +211,8 @@ def planned_launch_xml(plan: Plan, system: System | None, launch: LaunchFile, sp
         raise InputError(launch.path, f"roslaunch cannot read it: {real.error}")
     # its nodelets: each into a manager it starts, of a class its package exports, on its
     # manager's plan computer (the launch file fixes the membership)
-    check_plan_membership(check_nodelets(real, launch.path), {n: pn.computer for n, pn in plan.nodes.items()},
-                          plan_path)
+    check_plan_membership(check_nodelets(real, launch.path, elsewhere=True),
+                          {n: pn.computer for n, pn in plan.nodes.items()}, plan_path)
     by_name: dict[str, ResolvedNode] = {}
     for n in real.nodes:
         name = system_node_name(n.full_name)

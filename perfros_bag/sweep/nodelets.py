@@ -22,7 +22,7 @@ from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
 from perfros_bag.errors import InputError
-from perfros_bag.sweep.plugins import class_problem
+from perfros_bag.sweep.plugins import class_problem, package_dir
 
 if TYPE_CHECKING:
     from pathlib import Path
@@ -80,10 +80,12 @@ def managers_of(resolved: Resolved) -> set[str]:
     return {n.full_name for n in resolved.nodes if is_nodelet_tool(n) and _words(n)[:1] == ["manager"]}
 
 
-def check_nodelets(resolved: Resolved, path: Path | str | None) -> dict[str, Nodelet]:
+def check_nodelets(resolved: Resolved, path: Path | str | None, *, elsewhere: bool = False) -> dict[str, Nodelet]:
     """The launch file's nodelets, each loaded into a manager it starts and of a type its
     package exports (its package.xml's nodelet plugin description, read as pluginlib reads
-    it: :mod:`perfros_bag.sweep.plugins`): otherwise one :class:`InputError`."""
+    it: :mod:`perfros_bag.sweep.plugins`): otherwise one :class:`InputError`. ``elsewhere``:
+    the file runs on other machines (``export --launch``), so a package not installed here is
+    a warning, not an error."""
     nodelets = nodelets_of(resolved)
     if not nodelets:
         return nodelets
@@ -95,6 +97,14 @@ def check_nodelets(resolved: Resolved, path: Path | str | None) -> dict[str, Nod
                              f"launch file never starts (its nodelet managers: {started})")
     for n in nodelets.values():
         pkg = re.split(r"/|::", n.type, maxsplit=1)[0]
+        if elsewhere and package_dir(pkg) is None:
+            import warnings
+
+            from perfros_bag.errors import PerfrosWarning
+
+            warnings.warn(PerfrosWarning(f"{path}: node {n.name}: class {n.type} not checked: package {pkg} is not "
+                                         "installed here"), stacklevel=2)
+            continue
         problem = class_problem(pkg, n.type, by_type=False)
         if problem is not None:
             raise InputError(path, f"node {n.name}: class {n.type} does not exist: {problem}")
