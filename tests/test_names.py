@@ -34,9 +34,12 @@ GRAPH_NODE = st.builds(lambda lead, tokens: lead + "/".join(tokens), st.sampled_
 COMPUTER = st.lists(LABEL, min_size=1, max_size=3).map(".".join)
 PACKAGE = st.from_regex(r"[A-Za-z][A-Za-z0-9_-]{0,20}", fullmatch=True)
 EXECUTABLE = st.from_regex(r"[A-Za-z0-9_][A-Za-z0-9_.+-]{0,20}", fullmatch=True)
+IDENT = st.from_regex(r"[A-Za-z_][A-Za-z0-9_]{0,12}", fullmatch=True)
+PLUGIN = st.one_of(st.lists(IDENT, min_size=2, max_size=4).map("::".join),
+                   st.tuples(PACKAGE, EXECUTABLE).map("/".join))
 VALID = {NameKind.NODE: NODE, NameKind.TOPIC: GRAPH, NameKind.PARAMETER: GRAPH, NameKind.NAMESPACE: GRAPH,
          NameKind.GRAPH_NODE: GRAPH_NODE, NameKind.COMPUTER: COMPUTER, NameKind.PACKAGE: PACKAGE,
-         NameKind.EXECUTABLE: EXECUTABLE}
+         NameKind.EXECUTABLE: EXECUTABLE, NameKind.PLUGIN: PLUGIN}
 #: characters no rule allows anywhere (XML specials, spaces, controls, non-ASCII)
 FORBIDDEN = st.sampled_from(list('"<>&\' \t\n\x00\x1b\x7f;:!?*$()[]{}|\\,=@#%^`é→'))
 
@@ -71,6 +74,8 @@ def test_a_forbidden_character_anywhere_is_refused_with_the_rule(kind: NameKind,
     (NameKind.COMPUTER, "-host"), (NameKind.COMPUTER, "host-"), (NameKind.COMPUTER, "a..b"),
     (NameKind.COMPUTER, "a" * 64), (NameKind.COMPUTER, ".host"),
     (NameKind.PACKAGE, "1pkg"), (NameKind.EXECUTABLE, ".hidden"), (NameKind.EXECUTABLE, "a/b"),
+    (NameKind.PLUGIN, "pkg"), (NameKind.PLUGIN, "a:b"), (NameKind.PLUGIN, "a:::b"), (NameKind.PLUGIN, "::a"),
+    (NameKind.PLUGIN, "a::1b"), (NameKind.PLUGIN, "a/b/c"), (NameKind.PLUGIN, "a::b/c"),
 ])
 def test_structural_mutations_are_refused(kind: NameKind, name: str) -> None:
     assert name_problem(kind, name) is not None

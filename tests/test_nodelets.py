@@ -11,6 +11,7 @@ from __future__ import annotations
 import itertools
 import json
 import random
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -233,15 +234,25 @@ def test_container_is_coresidence_and_the_checker_refuses_a_split(tmp_path: Path
     assert not (tmp_path / "x.launch").exists()
 
 
-def test_ros2_export_writes_a_container_per_computer(tmp_path: Path) -> None:
+def _opencv_apps_class(lookup: str) -> str:
+    """The C++ class of ``lookup`` in Debian's opencv_apps plugin description, read with a
+    regular expression (not perfros_bag's reader)."""
+    text = Path("/usr/share/opencv_apps/nodelet_plugins.xml").read_text()
+    return dict(re.findall(r'<class\s+name="([^"]+)"\s+type="([^"]+)"', text))[lookup]
+
+
+@pytest.mark.parametrize("kind", ["people_detect", "opencv_apps/people_detect", "opencv_apps::PeopleDetectNodelet"])
+def test_ros2_export_writes_a_container_per_computer(tmp_path: Path, kind: str) -> None:
     """Per computer, a ``<node_container>`` with a ``<composable_node>`` per hosted node, the
-    element and attribute names of ROS 2's "Launching composable nodes" guide (XML)."""
+    element and attribute names of ROS 2's "Launching composable nodes" guide (XML); the
+    plugin the C++ class, whichever form ``launch.type`` names it in. The ROS 1 export loads
+    the same class by its lookup name into its manager."""
     import xml.etree.ElementTree as ET
 
     from perfros_bag.export.writers import ros2_launch_path
 
     doc = _doc()
-    doc["nodes"][2]["launch"] = {"package": "opencv_apps", "type": "people_detect"}  # type: ignore[index]
+    doc["nodes"][2]["launch"] = {"package": "opencv_apps", "type": kind}  # type: ignore[index]
     (tmp_path / "s.yaml").write_text(yaml.safe_dump(doc))
     plan = tmp_path / "plan.json"
     done = subprocess.run([str(BIN), "solve", str(tmp_path / "s.yaml"), "--problem", "1", "--method", "exact",
@@ -273,8 +284,18 @@ def test_ros2_export_writes_a_container_per_computer(tmp_path: Path) -> None:
                     assert set(c.attrib) >= {"pkg", "plugin", "name"}
                     seen[c.get("name") or ""] = computer
                 plugins = {c.get("name"): c.get("plugin") for c in members}
-                assert plugins["a"] == "people_detect"
+                assert plugins["a"] == _opencv_apps_class("opencv_apps/people_detect")
     assert seen == where  # every node once, on its plan computer, the hosted ones inside their container
+    launch = tmp_path / "x.launch"
+    done = subprocess.run([str(BIN), "export", str(plan), "--format", "roslaunch", "--system", str(tmp_path / "s.yaml"),
+                           "--out", str(launch)], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    nodes = {n.get("name"): n for n in ET.parse(launch).getroot().iter("node")}
+    assert (nodes["a"].get("pkg"), nodes["a"].get("type")) == ("nodelet", "nodelet")
+    assert (nodes["a"].get("args") or "").split() == ["load", "opencv_apps/people_detect", "/mgr"]
+    assert (nodes["mgr"].get("pkg"), nodes["mgr"].get("type"), nodes["mgr"].get("args")) == ("nodelet", "nodelet",
+                                                                                           "manager")
+    assert nodes["a"].get("machine") == nodes["mgr"].get("machine") == where["mgr"]
 
 
 def test_a_nodelet_with_only_its_bond_is_a_warning() -> None:
@@ -303,3 +324,316 @@ def test_a_step_the_runs_spread_hides_is_a_warning() -> None:
     assert s is not None
     assert [n.split(":")[0] for n in s.notes] == ["node b"]
     assert "at value 2" in s.notes[0] and "standard error" in s.notes[0]
+
+
+# --------------------------------------------------------------------------- pluginlib's reading
+
+
+def _package(root: Path, name: str, classes: list[tuple[str | None, str]], export: bool = True) -> Path:
+    """A ROS package folder as catkin installs one: package.xml exporting a nodelet plugin
+    description (``${prefix}/plugins.xml``) with ``classes`` (lookup name or None, C++ type)."""
+    folder = root / "src" / name
+    folder.mkdir(parents=True)
+    tag = '<export><nodelet plugin="${prefix}/plugins.xml"/></export>' if export else "<export/>"
+    (folder / "package.xml").write_text(f'<?xml version="1.0"?><package format="2"><name>{name}</name>'
+                                        f'<version>1.0.0</version>{tag}</package>')
+    body = "".join(f'<class {f"name={n!r} " if n else ""}type="{t}" base_class_type="nodelet::Nodelet"/>'
+                   for n, t in classes)
+    (folder / "plugins.xml").write_text(f'<class_libraries><library path="lib{name}">{body}</library>'
+                                        "</class_libraries>")
+    return folder
+
+
+def test_plugin_classes_read_as_pluginlib_reads_them(tmp_path: Path) -> None:
+    from perfros_bag.sweep.plugins import class_problem, exported_classes, package_dir, resolve_class
+
+    folder = _package(tmp_path, "my_pkg", [("my_pkg/blur", "my_pkg::BlurNodelet"), (None, "my_pkg::Edges")])
+    _package(tmp_path, "plain", [("plain/x", "plain::X")], export=False)
+    env = {"ROS_PACKAGE_PATH": str(tmp_path)}
+    assert package_dir("my_pkg", env) == folder
+    got = {(c.name, c.type) for c in exported_classes("my_pkg", env=env) or []}
+    # a class without name= is looked up by its type (pluginlib's rule)
+    assert got == {("my_pkg/blur", "my_pkg::BlurNodelet"), ("my_pkg::Edges", "my_pkg::Edges")}
+    assert exported_classes("plain", env=env) == []  # no <export><nodelet plugin=...>
+    assert exported_classes("not_here", env={"ROS_PACKAGE_PATH": str(tmp_path), "CMAKE_PREFIX_PATH": ""}) is None
+    # a lookup name or the C++ class: the same class
+    a, b = resolve_class("my_pkg", "my_pkg/blur", env), resolve_class("my_pkg", "my_pkg::BlurNodelet", env)
+    assert not isinstance(a, str) and a == b and a.name == "my_pkg/blur"
+    # nodelet load takes only the lookup name
+    assert "C++ class name; nodelet load takes its lookup name my_pkg/blur" in str(
+        class_problem("my_pkg", "my_pkg::BlurNodelet", env, by_type=False))
+    assert "exports no such nodelet (its nodelets: my_pkg/blur)" in str(class_problem("my_pkg", "my_pkg/sharpen", env))
+    assert "exports no nodelet" in str(class_problem("plain", "plain/x", env))
+
+
+def test_plugin_classes_of_the_installed_opencv_apps() -> None:
+    """Against Debian's opencv_apps: the description file is the one rospack lists for it,
+    and every ``<class name= type=>`` of that file, read here with a regular expression, is
+    found both ways."""
+    import re
+
+    from perfros_bag.sweep.plugins import exported_classes, resolve_class
+
+    listed = subprocess.run(["rospack", "plugins", "--attrib=plugin", "nodelet"], capture_output=True, text=True,
+                            check=True).stdout.split("\n")
+    path = next(line.split(None, 1)[1].strip() for line in listed if line.startswith("opencv_apps "))
+    pairs = re.findall(r'<class\s+name="([^"]+)"\s+type="([^"]+)"', Path(path).read_text())
+    classes = exported_classes("opencv_apps")
+    assert classes is not None and {str(c.description) for c in classes} == {path}
+    assert sorted((c.name, c.type) for c in classes) == sorted(pairs) and len(pairs) > 20
+    for name, kind in pairs:
+        if name.startswith("opencv_apps/"):
+            by_name, by_type = resolve_class("opencv_apps", name), resolve_class("opencv_apps", kind)
+            assert not isinstance(by_name, str) and not isinstance(by_type, str)
+            assert by_name.type == kind and by_type.name == name  # the package's own lookup name, not the old alias
+    assert resolve_class("opencv_apps", "opencv_apps::PeopleDetectNodelet").name == "opencv_apps/people_detect"  # type: ignore[union-attr]
+
+
+@pytest.mark.parametrize(("kind", "message"), [
+    ("opencv_apps/no_such", "class opencv_apps/no_such does not exist: package opencv_apps exports no such nodelet"),
+    ("opencv_apps::SmoothingNodelet", "nodelet load takes its lookup name opencv_apps/smoothing"),
+    ("roscpp/x", "package roscpp exports no nodelet"),
+    ("no_pkg_here/x", "package no_pkg_here is not installed here")])
+def test_unexported_nodelet_type_is_one_error(kind: str, message: str) -> None:
+    r = _resolved()
+    nodes = tuple(_node("smooth", f"load {kind} vision_manager") if n.name == "smooth" else n for n in r.nodes)
+    with pytest.raises(InputError, match=re.escape(message)):
+        check_nodelets(Resolved(nodes, {}, {}), "x.launch")
+    assert check_nodelets(r, "x.launch")  # the launch file as it is passes
+
+
+def test_a_plan_splitting_a_launch_files_nodelet_from_its_manager() -> None:
+    from perfros_bag.sweep.nodelets import check_plan_membership
+
+    nodelets = nodelets_of(_resolved())
+    kept = {"camera": "robot", "vision_manager": "server", "people": "server", "smooth": "server"}
+    check_plan_membership(nodelets, kept, "plan.json")
+    with pytest.raises(InputError) as got:
+        check_plan_membership(nodelets, {**kept, "smooth": "robot"}, "plan.json")
+    assert str(got.value).startswith("plan.json: container vision_manager: node smooth on robot but its container "
+                                     "vision_manager on server")
+
+
+def test_residence_that_splits_a_container_names_both_nodes() -> None:
+    doc = _doc()
+    doc["nodes"][2]["residence"] = ["robot"]  # type: ignore[index]
+    doc["nodes"][3]["residence"] = ["server"]  # type: ignore[index]
+    with pytest.raises(InputError) as got:
+        parse_system(doc, "s.yaml")
+    assert str(got.value).startswith("s.yaml: container 'mgr': residence: nodes 'a' (allowed on robot) and 'b' "
+                                     "(allowed on server) share the process of container 'mgr'")
+
+
+def test_plugin_types_in_launch_type() -> None:
+    """``launch.type`` as a plugin class: only for a hosted node; resolved per ROS version;
+    what cannot be resolved is an error where the other form cannot be guessed."""
+    from perfros_bag.errors import PerfrosWarning
+    from perfros_bag.sweep.plugins import hosted_plugin
+
+    doc = _doc()
+    doc["nodes"][0]["launch"] = {"package": "opencv_apps", "type": "opencv_apps::SmoothingNodelet"}  # type: ignore[index]
+    with pytest.raises(InputError, match=r"node 'cam': launch.type: 'opencv_apps::SmoothingNodelet' names a plugin "
+                                         r"class, which only a node with a container"):
+        parse_system(doc, "s.yaml")
+    doc = _doc()
+    doc["nodes"][2]["launch"] = {"package": "opencv_apps", "type": "opencv_apps::Smoothing::"}  # type: ignore[index]
+    with pytest.raises(InputError, match=r"launch.type: 'opencv_apps::Smoothing::' is not a valid plugin class name"):
+        parse_system(doc, "s.yaml")
+    smooth = _opencv_apps_class("opencv_apps/smoothing")
+    for given in ("smoothing", "opencv_apps/smoothing", smooth, "smoothing/smoothing"):
+        assert hosted_plugin("opencv_apps", given, "a", ros2=False) == (
+            "smoothing/smoothing" if given == "smoothing/smoothing" else "opencv_apps/smoothing")
+        assert hosted_plugin("opencv_apps", given, "a", ros2=True) == _opencv_apps_class(
+            "smoothing/smoothing" if given == "smoothing/smoothing" else "opencv_apps/smoothing")
+    with pytest.raises(InputError, match=r"s.yaml: node 'a': launch.type 'opencv_apps::NoSuch': cannot tell the "
+                                         r"lookup name nodelet load takes: package opencv_apps exports no such"):
+        hosted_plugin("opencv_apps", "opencv_apps::NoSuch", "a", ros2=False, source="s.yaml")
+    assert hosted_plugin("my_ros2_pkg", "my_ros2_pkg::Talker", "a", ros2=True) == "my_ros2_pkg::Talker"
+    with pytest.raises(InputError, match=r"cannot tell the C\+\+ class a ROS 2 composable node names"):
+        hosted_plugin("my_ros2_pkg", "my_ros2_pkg/talker", "a", ros2=True)
+    with pytest.warns(PerfrosWarning, match=r"node a: launch.type 'my_ros2_pkg/talker' is no nodelet class found here"):
+        assert hosted_plugin("my_ros2_pkg", "my_ros2_pkg/talker", "a", ros2=False) == "my_ros2_pkg/talker"
+
+
+def test_membership_keep_is_explicit() -> None:
+    assert parse_system(_doc(), "s.yaml").membership == "keep"  # the default
+    system = parse_system(_doc(membership="keep"), "s.yaml")
+    assert system.membership == "keep" and sorted(sorted(g) for g in system.coresidence_groups) == [
+        ["a", "b", "mgr"], ["cam"]]
+    with pytest.raises(InputError, match=r"s.yaml: membership: 'choose' .* is not built yet"):
+        parse_system(_doc(membership="choose"), "s.yaml")
+    with pytest.raises(InputError, match=r"s.yaml: membership: must be one of keep, got 'maybe'"):
+        parse_system(_doc(membership="maybe"), "s.yaml")
+
+
+# --------------------------------------------------------------------------- the copy price
+
+
+def _copy_system(**extra: object) -> object:
+    doc: dict[str, object] = {
+        "computers": [{"name": "c", "kind": "robot", "capacity": 400}],
+        "nodes": [{"name": "cam", "weight": 0.25, "topics": ["/img"], "settings": [{"cpu": 1, "performance": 1}]},
+                  {"name": "mgr", "weight": 0.25, "settings": [{"cpu": 1, "performance": 1}]},
+                  {"name": "a", "weight": 0.25, "container": "mgr", "topics": ["/a/out"],
+                   "settings": [{"cpu": 1, "performance": 1}]},
+                  {"name": "b", "weight": 0.25, "container": "mgr", "settings": [{"cpu": 1, "performance": 1}]}],
+        "edges": [{"from": "cam", "to": "a", "topic": "/img"}, {"from": "cam", "to": "b", "topic": "/img"},
+                  {"from": "a", "to": "b", "topic": "/a/out"}]}
+    doc.update(extra)
+    return parse_system(doc, "s.yaml")
+
+
+def _copy_row(rec: str, node: str, cpu: float, topic: str | None = None, kbps: float | None = None) -> Row:
+    return Row(rec, node, None, None, topic, "t" if topic else None, 10, 10.0, 10.0 if topic else None, kbps, cpu,
+               cpu, 20)
+
+
+def test_copy_price_against_a_hand_computation() -> None:
+    """Inside (two repeats): camera 10 / 11, manager 50 / 52, loaders 0.5 each; standalone:
+    camera 12, a 30, b 35. Split, the container adds one more copy of /img (2000 kB/s: two
+    receivers instead of one process) and one of a -> b (/a/out, 100 kB/s, a pointer
+    inside): 2.1 MB/s. Extra CPU 77 - mean(61, 64) = 14.5: 14.5 / 2.1 units per MB/s."""
+    from perfros_bag.characterisation.containers import split_containers
+
+    system = _copy_system()
+    rows = []
+    for rec, cam, mgr in (("r1", 10.0, 50.0), ("r2", 11.0, 52.0)):
+        rows += [_copy_row(rec, "cam", cam, "/img", 1990.0), _copy_row(rec, "mgr", mgr),
+                 _copy_row(rec, "a", 0.5, "/a/out", 99.0), _copy_row(rec, "b", 0.5)]
+    rows += [_copy_row("s", "cam", 12.0, "/img", 2000.0), _copy_row("s", "a", 30.0, "/a/out", 100.0),
+             _copy_row("s", "b", 35.0)]
+    entries = [RecordingEntry(Path(r), r) for r in ("r1", "r2")] + [RecordingEntry(Path("s"), "s",
+                                                                                  standalone=("a", "b"))]
+    _, splits = split_containers(rows, system, entries)  # type: ignore[arg-type]
+    (s,) = splits
+    assert s.copy_runs == {"r1+r2|s": (pytest.approx(14.5), pytest.approx(2100.0))}
+    assert s.copy_per_MBps == pytest.approx(14.5 / 2.1)
+    # the model carries it on the container, and only there
+    assert _copy_system(nodes=[*_copy_doc_nodes(copy=6.9)]).node["mgr"].copy_cpu_per_MBps == 6.9  # type: ignore[attr-defined]
+    with pytest.raises(InputError, match=r"node 'a': copy_cpu_per_MBps: only a container"):
+        nodes = _copy_doc_nodes()
+        nodes[2]["copy_cpu_per_MBps"] = 1.0
+        _copy_system(nodes=nodes)
+
+
+def test_a_negative_copy_price_is_zero_with_a_note() -> None:
+    from perfros_bag.characterisation.containers import split_containers
+
+    system = _copy_system()
+    rows = [_copy_row("r1", "cam", 10.0, "/img", 2000.0), _copy_row("r1", "mgr", 70.0),
+            _copy_row("r1", "a", 0.5, "/a/out", 100.0), _copy_row("r1", "b", 0.5),
+            _copy_row("s", "cam", 10.0, "/img", 2000.0), _copy_row("s", "a", 30.0, "/a/out", 100.0),
+            _copy_row("s", "b", 35.0)]
+    entries = [RecordingEntry(Path("r1"), "r1"), RecordingEntry(Path("s"), "s", standalone=("a", "b"))]
+    _, (s,) = split_containers(rows, system, entries)  # type: ignore[arg-type]
+    assert s.copy_runs == {"r1|s": (pytest.approx(75.0 - 81.0), pytest.approx(2100.0))}
+    assert s.copy_per_MBps == 0.0
+    assert any(n.startswith(f"container mgr: its copy price measured {-6.0 / 2.1:.4g} CPU units per MB/s")
+               and n.endswith("drafted as 0") for n in s.notes)
+
+
+def _copy_doc_nodes(copy: float | None = None) -> list[dict[str, object]]:
+    nodes: list[dict[str, object]] = [
+        {"name": "cam", "weight": 0.25, "topics": ["/img"], "settings": [{"cpu": 1, "performance": 1}]},
+        {"name": "mgr", "weight": 0.25, "settings": [{"cpu": 1, "performance": 1}]},
+        {"name": "a", "weight": 0.25, "container": "mgr", "topics": ["/a/out"], "settings": [{"cpu": 1,
+                                                                                            "performance": 1}]},
+        {"name": "b", "weight": 0.25, "container": "mgr", "settings": [{"cpu": 1, "performance": 1}]}]
+    if copy is not None:
+        nodes[1]["copy_cpu_per_MBps"] = copy
+    return nodes
+
+
+def test_no_copy_price_without_a_copy_to_price() -> None:
+    """Two nodes that share no topic and pass nothing: splitting adds no copy: a note, no price."""
+    from perfros_bag.characterisation.containers import split_containers
+
+    system = _copy_system(edges=[{"from": "cam", "to": "a", "topic": "/img"}])
+    rows = [_copy_row("r1", "cam", 10.0, "/img", 2000.0), _copy_row("r1", "mgr", 50.0), _copy_row("r1", "a", 0.5),
+            _copy_row("r1", "b", 0.5), _copy_row("s", "cam", 10.0, "/img", 2000.0), _copy_row("s", "a", 30.0),
+            _copy_row("s", "b", 25.0)]
+    entries = [RecordingEntry(Path("r1"), "r1"), RecordingEntry(Path("s"), "s", standalone=("a", "b"))]
+    _, (s,) = split_containers(rows, system, entries)  # type: ignore[arg-type]
+    assert s.copy_per_MBps is None and s.copy_runs == {"r1|s": (pytest.approx(65.0 - 61.0), 0.0)}
+    assert any(n.startswith("container mgr: no copy price: its nodes share no topic") for n in s.notes)
+
+
+def test_a_replan_that_splits_a_nodelet_is_not_applied(tmp_path: Path) -> None:
+    """deploy's control file: a new plan that moves a nodelet away from its manager (the
+    launch file's membership) is a warning, and nothing is restarted."""
+    import os
+    from types import SimpleNamespace
+
+    from perfros_bag.errors import PerfrosWarning
+    from perfros_bag.rosrun.cgroups import CpuGroups
+    from perfros_bag.sweep.control import Control, write_control
+    from perfros_bag.sweep.deploy import plan_run
+    from perfros_bag.sweep.space import load_space
+    from perfros_bag.system.plan import Plan, PlannedComputer, PlannedNode
+    from perfros_bag.system.planfile import save_plan
+
+    def plan(smooth_on: str) -> Plan:
+        return Plan(1, "exact", "optimal", computers={"robot": PlannedComputer("robot", 100.0, 10.0),
+                                                      "server": PlannedComputer("server", 100.0, 10.0)},
+                    nodes={n: PlannedNode(smooth_on if n == "smooth" else ("robot" if n == "camera" else "server"),
+                                          5.0, 50.0, 1.0) for n in ("camera", "vision_manager", "people", "smooth")})
+
+    calls: list[str] = []
+    restarter = SimpleNamespace(watch=SimpleNamespace(pids={f"/{n}": (1, 0.0) for n in ("camera", "people", "smooth",
+                                                                                        "vision_manager")}),
+                                restart=lambda node, *_: calls.append(node) or 100)
+    groups = CpuGroups("t", {"robot": 1.0, "server": 1.0}, root=tmp_path)
+    for c in ("robot", "server"):
+        (tmp_path / c).mkdir()
+        groups.dirs[c] = tmp_path / c
+    where = {n: pn.computer for n, pn in plan("server").nodes.items()}
+    space = load_space(Path(__file__).resolve().parents[1] / "fixtures" / "nodelet" / "space.yaml")
+    control = Control(tmp_path, space, {}, plan_run(plan("server"), space, {}), where, groups, 100.0, False,
+                      nodelets=nodelets_of(_resolved()))
+    save_plan(plan("robot"), tmp_path / "split.json")
+    write_control(tmp_path, 1, tmp_path / "split.json", ["why"])
+    os.utime(tmp_path / "control.json", (1, 1))
+    with pytest.warns(PerfrosWarning, match=r"not applied: .*split.json: container vision_manager: node smooth on "
+                                            r"robot but its container vision_manager on server"):
+        control.tick(restarter)  # type: ignore[arg-type]
+    assert calls == [] and control.seq == 0 and control.where == where
+
+
+@pytest.mark.parametrize(("standalone_run", "bandwidth", "note"), [
+    (False, 2000.0, None),  # never standalone: the split says so; no second note
+    (True, None, "container mgr: no copy price: an edge into or inside it has no topic, or its topic no measured"),
+])
+def test_copy_price_notes(standalone_run: bool, bandwidth: float | None, note: str | None) -> None:
+    from perfros_bag.characterisation.containers import split_containers
+
+    system = _copy_system()
+    rows = [_copy_row("r1", "cam", 10.0, "/img", 2000.0), _copy_row("r1", "mgr", 50.0),
+            _copy_row("r1", "a", 0.5, "/a/out", 100.0), _copy_row("r1", "b", 0.5),
+            _copy_row("r2", "cam", 10.0, "/img", 2000.0), _copy_row("r2", "mgr", 52.0),
+            _copy_row("r2", "a", 0.5, "/a/out", 100.0), _copy_row("r2", "b", 0.5)]
+    entries = [RecordingEntry(Path("r1"), "r1"), RecordingEntry(Path("r2"), "r2")]
+    if standalone_run:
+        rows += [_copy_row("s", "cam", 10.0, "/img", bandwidth), _copy_row("s", "a", 30.0, "/a/out", bandwidth),
+                 _copy_row("s", "b", 25.0)]
+        entries.append(RecordingEntry(Path("s"), "s", standalone=("a", "b")))
+    _, (s,) = split_containers(rows, system, entries)  # type: ignore[arg-type]
+    copy_notes = [n for n in s.notes if "copy price" in n]
+    assert s.copy_per_MBps is None
+    assert copy_notes == [] if note is None else (len(copy_notes) == 1 and copy_notes[0].startswith(note))
+    if not standalone_run:
+        assert any("never ran standalone" in n for n in s.notes)
+
+
+def test_export_only_warns_about_a_package_not_installed_here() -> None:
+    """``export --launch`` writes a file for other machines: a nodelet package missing here
+    is a warning there; sweep and deploy, which run it here, refuse it."""
+    from perfros_bag.errors import PerfrosWarning
+
+    r = _resolved()
+    nodes = tuple(_node("smooth", "load elsewhere_pkg/blur vision_manager") if n.name == "smooth" else n
+                  for n in r.nodes)
+    with pytest.warns(PerfrosWarning, match=r"x.launch: node /smooth: class elsewhere_pkg/blur not checked: package "
+                                            r"elsewhere_pkg is not installed here"):
+        assert sorted(check_nodelets(Resolved(nodes, {}, {}), "x.launch", elsewhere=True)) == ["/people", "/smooth"]
+    with pytest.raises(InputError, match="package elsewhere_pkg is not installed here"):
+        check_nodelets(Resolved(nodes, {}, {}), "x.launch")

@@ -95,6 +95,7 @@ def test_sweep_init_characterise_per_nodelet(tmp_path: Path) -> None:
     raw_doc = yaml.safe_load((tmp_path / "system.yaml").read_text())
     for n in raw_doc["nodes"]:
         n.pop("container", None)
+        n.pop("copy_cpu_per_MBps", None)
     raw = characterise([e for e in manifest.recordings if not e.standalone], parse_system(raw_doc, "raw"))
 
     def per_node(rows: list, rec: str) -> dict[str, float]:
@@ -111,6 +112,22 @@ def test_sweep_init_characterise_per_nodelet(tmp_path: Path) -> None:
     # the detector's work moves with its own setting: more scales (1.1) cost more than fewer (1.4)
     cpu = {s.value: s.cpu for s in system.node["people"].settings}
     assert cpu[1.1] > cpu[1.4]
+    # the copy price on the manager, by hand from the unsplit rows of every run: the
+    # standalone run's total CPU over the in-manager run's at the same values (the defaults),
+    # per MB/s of the one more copy of the camera's frames two standalone receivers take
+    from dataclasses import replace  # the standalone run's rows as measured (not left out as a split does)
+
+    every = characterise([replace(e, standalone=()) for e in manifest.recordings], parse_system(raw_doc, "raw")).rows
+    alone_run = alone[0].name
+    twin = next(e.name for e in manifest.recordings if not e.standalone and e.settings == alone[0].settings)
+
+    def total(rec: str) -> float:
+        return sum(per_node(every, rec).values())
+
+    frames = next(r.bandwidth_kBps for r in every if r.recording == alone_run and r.topic == "/camera/image_raw")
+    assert frames
+    assert system.node["vision_manager"].copy_cpu_per_MBps == pytest.approx(  # < 0 (noise) is drafted as 0
+        max(0.0, (total(alone_run) - total(twin)) / (frames / 1000)), rel=1e-3, abs=1e-4)
 
     # deploy across two emulated computers: the camera on the robot, the manager and its
     # nodelets (membership kept) on the server, each nodelet loaded into its manager there
@@ -162,3 +179,60 @@ def test_bad_nodelets_refused_before_anything_starts(tmp_path: Path, edit: tuple
     lines = [x for x in done.stderr.splitlines() if x.strip()]
     assert len(lines) == 1 and message in lines[0] and str(launch) in lines[0], done.stderr
     assert not out.exists()  # nothing started, nothing written
+
+
+def _two_computer_system(path: Path, residence: dict[str, str], container: bool) -> Path:
+    """The fixture's nodes on a robot and a server, each where ``residence`` puts it."""
+    nodes = []
+    for name in ("camera", "vision_manager", "people", "smooth"):
+        node: dict[str, object] = {"name": name, "weight": 0.25, "residence": [residence[name]],
+                                   "settings": [{"cpu": 5, "performance": 1}]}
+        if container and name in ("people", "smooth"):
+            node["container"] = "vision_manager"
+        nodes.append(node)
+    path.write_text(yaml.safe_dump({"computers": [{"name": "robot", "kind": "robot", "capacity": 100},
+                                                  {"name": "server", "kind": "server", "capacity": 100}],
+                                    "nodes": nodes}, sort_keys=False))
+    return path
+
+
+@pytest.mark.parametrize("edit", [None, ("args=\"manager\"", "args=\"manager\" if=\"false\""),
+                                  ("opencv_apps/smoothing", "opencv_apps/no_such_nodelet")])
+def test_deploy_refuses_bad_nodelets_and_a_split_before_anything_starts(tmp_path: Path,
+                                                                        edit: tuple[str, str] | None) -> None:
+    """A plan that puts smooth on the robot and its manager on the server. Its system.yaml has
+    no ``container:`` (so nothing but the launch file says they share a process): deploy
+    refuses it from the launch file's own membership; a launch file whose manager never
+    starts or whose nodelet class no package exports is refused first."""
+    _require_ros()
+    launch = tmp_path / "nodelet.launch"
+    text = LAUNCH.read_text().replace("$(dirname)/../app", str(FIXTURES / "app"))
+    launch.write_text(text.replace(*edit) if edit is not None else text)
+    where = {"camera": "robot", "vision_manager": "server", "people": "server", "smooth": "robot"}
+    system = _two_computer_system(tmp_path / "s.yaml", where, container=False)
+    done = _cli("solve", str(system), "--problem", "1", "--method", "exact", "--out", str(tmp_path / "plan.json"))
+    assert done.returncode == 0, done.stderr
+    out = tmp_path / "dep"
+    done = _cli("deploy", str(tmp_path / "plan.json"), str(launch), "--space", str(FIXTURES / "nodelet" / "space.yaml"),
+                "--out", str(out), "--duration", "2", "--system", str(system), timeout=120)
+    assert done.returncode == 2
+    lines = [x for x in done.stderr.splitlines() if x.strip() and not x.startswith("warning:")]
+    assert len(lines) == 1, done.stderr
+    if edit is None:
+        assert lines[0].startswith(f"error: {tmp_path / 'plan.json'}: container vision_manager: node smooth on robot "
+                                   "but its container vision_manager on server"), lines[0]
+    else:
+        assert str(launch) in lines[0] and ("never starts" in lines[0] or "no_such_nodelet does not exist" in lines[0])
+    assert not out.exists()  # nothing started, nothing written
+    # export --launch refuses the same plan with the same line, writing nothing
+    done = _cli("export", str(tmp_path / "plan.json"), "--format", "roslaunch", "--launch", str(launch), "--space",
+                str(FIXTURES / "nodelet" / "space.yaml"), "--system", str(system), "--out", str(tmp_path / "x.launch"))
+    assert done.returncode == 2
+    assert [x for x in done.stderr.splitlines() if x.strip() and not x.startswith("warning:")] == lines
+    assert not (tmp_path / "x.launch").exists()
+    # with the membership in system.yaml the solvers cannot split it: residence names both and the container
+    system = _two_computer_system(tmp_path / "c.yaml", where, container=True)
+    done = _cli("solve", str(system), "--problem", "1", "--method", "greedy", "--out", str(tmp_path / "p2.json"))
+    assert done.returncode == 2 and not (tmp_path / "p2.json").exists()
+    assert "container 'vision_manager': residence: nodes 'vision_manager' (allowed on server) and 'smooth' " \
+           "(allowed on robot)" in done.stderr, done.stderr

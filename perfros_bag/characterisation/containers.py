@@ -27,6 +27,22 @@ which nodelet used the CPU. The split is fitted over the runs:
   reference level split evenly) and a warning says so; a nodelet the runs cannot separate
   (the system's design matrix has a rank below its unknowns) is a warning too.
 
+The copy price, apart from lambda (:func:`copy_price`): what the same configuration costs in
+all when the container's nodes run standalone rather than inside it. For each standalone run
+s and the in-container runs i at the same values (repeats averaged), with T the sum of every
+system node's process CPU in a run (camera, loaders, manager, standalone nodelets alike) and X
+the copies that splitting the container adds (kB/s): per topic t that n_t >= 1 of its nodes
+receive from outside it, ``(n_t - 1) * B_t`` (inside, one connection carries t to the whole
+process; standalone, one per node), plus ``B_e`` for every edge between two of its nodes
+(inside, a pointer), B the topic's bandwidth measured in s::
+
+    price = (T_s - T_i) / (X / 1000)      CPU units per MB/s of copies
+
+averaged over the pairs; a negative mean (the runs' spread larger than the copies) is 0,
+with a note. Every edge of the container gets the container's price (one
+standalone run per setting moves all its nodes at once, so edges are not told apart). No pair,
+or no copy to price (X = 0): no price, with a note.
+
 The standalone runs' own rows are left out of the characterisation: a standalone nodelet is
 not the configuration the system describes.
 """
@@ -54,6 +70,86 @@ class Split:
     factor: float  # lambda
     runs: dict[str, tuple[float, float]]  # recording -> (measured container CPU, sum of the estimates)
     notes: tuple[str, ...]
+    #: the copy price (:func:`copy_price`): CPU units per MB/s of copies that running the
+    #: container's nodes standalone adds; None: not measured
+    copy_per_MBps: float | None = None
+    #: per (in-container runs, standalone run): (extra CPU units, extra copies kB/s)
+    copy_runs: dict[str, tuple[float, float]] | None = None
+
+
+def _total(rows: Sequence[Row], recording: str, nodes: Sequence[str]) -> float | None:
+    """The sum of ``nodes``' process CPU in ``recording`` (None: no node measured)."""
+    cpus = [c for n in nodes if (c := _cpu(rows, recording, n)) is not None]
+    return sum(cpus) if cpus else None
+
+
+def _bandwidth(rows: Sequence[Row], recording: str, topic: str) -> float | None:
+    return next((r.bandwidth_kBps for r in rows if r.recording == recording and r.topic == topic
+                 and r.bandwidth_kBps is not None), None)
+
+
+def extra_copies(system: System, host: str, members: Sequence[str], rows: Sequence[Row],
+                 recording: str) -> float | None:
+    """The copies (kB/s) that running ``members`` standalone adds over running them inside
+    ``host``, at the topic bandwidths of ``recording`` (see the module's doc); None: an edge
+    into or inside the container has no topic or no measured bandwidth."""
+    inside = set(members) | {host}
+    receivers: dict[str, set[str]] = {}
+    extra = 0.0
+    for e in system.edges:
+        if e.dst not in members:
+            continue
+        if e.topic is None:
+            return None
+        b = e.bandwidth_kBps if e.bandwidth_kBps is not None else _bandwidth(rows, recording, e.topic)
+        if b is None:
+            return None
+        if e.src in inside:
+            extra += b  # inside: a pointer; standalone: a copy
+        else:
+            receivers.setdefault(e.topic, set()).add(e.dst)
+    for topic, who in receivers.items():
+        extra += (len(who) - 1) * (_bandwidth(rows, recording, topic) or 0.0)
+    return extra
+
+
+def copy_price(rows: Sequence[Row], system: System, host: str, members: Sequence[str],
+               standalone: Mapping[str, Sequence[str]]
+               ) -> tuple[float | None, dict[str, tuple[float, float]], str | None]:
+    """The container's copy price (see the module's doc): (CPU units per MB/s or None, per
+    pair ``"INSIDE+...|STANDALONE"`` -> (extra CPU, extra copies kB/s), a note or None)."""
+    names = [n.name for n in system.nodes]
+    recordings = list(dict.fromkeys(r.recording for r in rows))
+
+    def values(rec: str) -> dict[str, str]:
+        return {n: repr(v) for n in names if (v := _value(rows, rec, n)) is not None}
+
+    pairs: dict[str, tuple[float, float]] = {}
+    alone_runs = [s for s in recordings if set(members) <= set(standalone.get(s, ()))]
+    if not alone_runs:  # the split's own note says the nodes never ran standalone
+        return None, pairs, None
+    why = "no standalone run has an in-container run at the same values"
+    for s in alone_runs:
+        twins = [rec for rec in recordings if not standalone.get(rec) and values(rec) == values(s)]
+        totals = [t for rec in twins if (t := _total(rows, rec, names)) is not None]
+        alone = _total(rows, s, names)
+        extra = extra_copies(system, host, members, rows, s)
+        if totals and alone is not None and extra is None:
+            why = "an edge into or inside it has no topic, or its topic no measured bandwidth"
+        if not totals or alone is None or extra is None:
+            continue
+        pairs[f"{'+'.join(twins)}|{s}"] = (alone - sum(totals) / len(totals), extra)
+    priced = [(cpu, x) for cpu, x in pairs.values() if x > 0]
+    if not priced:
+        if pairs:
+            why = "its nodes share no topic and pass nothing to each other: splitting it adds no copy"
+        return None, pairs, f"container {host}: no copy price: {why}"
+    price = sum(cpu / (x / 1000.0) for cpu, x in priced) / len(priced)
+    if price < 0:  # standalone measured cheaper in all: the runs' spread is larger than the copies
+        return 0.0, pairs, (f"container {host}: its copy price measured {price:.4g} CPU units per MB/s (its nodes "
+                            "standalone cost less in all than inside it): the runs' spread hides the copies; "
+                            "drafted as 0")
+    return price, pairs, None
 
 
 def _cpu(rows: Sequence[Row], recording: str, node: str) -> float | None:
@@ -134,6 +230,8 @@ def split_containers(rows: Sequence[Row], system: System, entries: Sequence[Reco
     for host, members in system.containers.items():
         s = fit_split(rows, host, members, standalone)
         if s is not None:
+            price, pairs, note = copy_price(rows, system, host, members, standalone)
+            s = replace(s, copy_per_MBps=price, copy_runs=pairs, notes=s.notes + ((note,) if note else ()))
             splits.append(s)
     if not splits:
         return [r for r in rows if r.recording not in standalone], splits

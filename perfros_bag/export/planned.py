@@ -199,6 +199,7 @@ def planned_launch_xml(plan: Plan, system: System | None, launch: LaunchFile, sp
                        plan_path: str | None = None, env: Mapping[str, str] | None = None) -> str:
     """The user's launch file with the plan applied (see the module's doc)."""
     from perfros_bag.sweep.deploy import plan_run
+    from perfros_bag.sweep.nodelets import check_nodelets, check_plan_membership
 
     plan.require_feasible(plan_path, "export")
     check_plan_names(plan, plan_path)
@@ -208,6 +209,10 @@ def planned_launch_xml(plan: Plan, system: System | None, launch: LaunchFile, sp
     real, marked = resolve_launch(launch, [run.args, markers], os.environ if env is None else env, RESOLVE_TIMEOUT_S)
     if real.error is not None:
         raise InputError(launch.path, f"roslaunch cannot read it: {real.error}")
+    # its nodelets: each into a manager it starts, of a class its package exports, on its
+    # manager's plan computer (the launch file fixes the membership)
+    check_plan_membership(check_nodelets(real, launch.path, elsewhere=True),
+                          {n: pn.computer for n, pn in plan.nodes.items()}, plan_path)
     by_name: dict[str, ResolvedNode] = {}
     for n in real.nodes:
         name = system_node_name(n.full_name)

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import time
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -32,6 +32,7 @@ from perfros_bag.fileio import atomic_write_json, read_json
 if TYPE_CHECKING:
     from perfros_bag.rosrun.cgroups import CpuGroups
     from perfros_bag.rosrun.network import Network
+    from perfros_bag.sweep.nodelets import Nodelet
     from perfros_bag.sweep.runner import Restarter
     from perfros_bag.sweep.space import Run, Space
     from perfros_bag.system.plan import Plan
@@ -88,6 +89,8 @@ class Control:
     plan_path: str | None = None  # the plan in force (the last applied)
     #: called with the ROS nodes about to be restarted for a new plan, before the first is stopped
     on_restarting: Callable[[list[str]], None] | None = None
+    #: the launch file's nodelets (full name -> Nodelet): a new plan keeps each on its manager's computer
+    nodelets: Mapping[str, Nodelet] = field(default_factory=dict)
     seq: int = 0
     applied: list[dict[str, Any]] = field(default_factory=list)
     _mtime: float = 0.0
@@ -151,6 +154,7 @@ class Control:
     def _plan(self, restarter: Restarter, plan_path: str, entry: dict[str, Any]) -> dict[str, int]:
         from perfros_bag.rosrun.cgroups import computer_cores
         from perfros_bag.sweep.deploy import plan_run
+        from perfros_bag.sweep.nodelets import check_plan_membership
         from perfros_bag.system.names import system_node_name
         from perfros_bag.system.planfile import load_plan
 
@@ -158,6 +162,7 @@ class Control:
         plan.require_feasible(plan_path, "apply")
         new_run = plan_run(plan, self.space, self.arg_defaults)
         new_where = {name: pn.computer for name, pn in plan.nodes.items()}
+        check_plan_membership(self.nodelets, {**self.where, **new_where}, plan_path)
         unknown = sorted({c for c in new_where.values() if c not in self.groups.dirs})
         if unknown:
             raise PerfrosError(f"computer(s) {', '.join(unknown)} are not emulated in this run")

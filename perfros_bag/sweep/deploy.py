@@ -81,7 +81,8 @@ def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Pat
     from perfros_bag.rosrun.cgroups import CpuGroups, computer_cores, emulated_trace
     from perfros_bag.rosrun.network import Network
     from perfros_bag.rosrun.recorders import require_free_space
-    from perfros_bag.sweep.runner import record_run, require_ros_tools
+    from perfros_bag.sweep.nodelets import check_plan_membership
+    from perfros_bag.sweep.runner import checked_nodelets, record_run, require_ros_tools
     from perfros_bag.system.names import system_node_name
     from perfros_bag.system.planfile import is_forced, load_plan, plan_system
     from perfros_bag.validation.eq10 import DEFAULT_TOLERANCE, validate_files
@@ -102,6 +103,10 @@ def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Pat
     system = plan_system(plan, plan_path, system_path)
     require_ros_tools()
     run = plan_run(plan, space, dict(launch.args))
+    # the launch file's nodelets: each into a manager it starts, of a class its package
+    # exports, on its manager's plan computer (the launch file fixes the membership)
+    nodelets = checked_nodelets(launch, run.args, space.startup_timeout_s)
+    check_plan_membership(nodelets, {name: pn.computer for name, pn in plan.nodes.items()}, plan_path)
     cores = computer_cores(plan, units_per_core)
     outdir = Path(out).absolute()
     if outdir.exists() and not outdir.is_dir():
@@ -181,7 +186,8 @@ def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Pat
 
     network = Network(f"d{run_id}", system if system is not None and net else _no_links(plan))
     control = Control(outdir, space, dict(launch.args), run, dict(where), groups, units_per_core, cap, applied,
-                      network if network.emulated or net else None, on_restarting=restarting)
+                      network if network.emulated or net else None, on_restarting=restarting,
+                      nodelets=nodelets)
     groups.create(capped=False, quiet=not cap)
     mode, reason = (groups.mode, groups.reason) if cap else ("uncapped", "capping not asked for")
     try:

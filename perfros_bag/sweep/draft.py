@@ -112,7 +112,8 @@ def draft_system(directory: str | Path, out: str | Path) -> Draft:
     _warn_members(skeleton, result.splits)
     by_run = per_run(result.rows)
     follows = find_inputs(skeleton.nodes, graph, by_run, {node_name(n.name): n.name for n in app})
-    text = _render(d, graph, skeleton, result.rows, values, machine, graph_path.exists(), follows, by_run)
+    prices = {s.container: s.copy_per_MBps for s in result.splits if s.copy_per_MBps is not None}
+    text = _render(d, graph, skeleton, result.rows, values, machine, graph_path.exists(), follows, by_run, prices)
     _check_loads(text, Path(out))
     atomic_write_text(out, text)
     return Draft(text, tuple(n.name for n in skeleton.nodes))
@@ -234,9 +235,14 @@ def _skeleton(app: Sequence[GraphNode], graph: Graph, values: Mapping[str, list[
             pname, unit = parameters.get(name, ("value", None))
             entry["parameter"] = {"name": pname} if unit is None else {"name": pname, "unit": unit}
         nodes.append(entry)
-    doc = {"computers": [{"name": machine.name, "kind": "robot", "capacity": machine.capacity}], "nodes": nodes}
+    doc: dict[str, Any] = {"computers": [{"name": machine.name, "kind": "robot", "capacity": machine.capacity}],
+                           "nodes": nodes}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", PerfrosWarning)
+        system = parse_system(doc, "<skeleton>")
+        if not system.containers:
+            return system
+        doc["edges"] = _edges(graph, system.nodes)  # what a container's copy price is measured on
         return parse_system(doc, "<skeleton>")
 
 
@@ -260,7 +266,7 @@ def _r(x: float, digits: int = 4) -> float:
 
 def _render(d: Path, graph: Graph, skeleton: Any, rows: Sequence[Row], values: Mapping[str, list[float]],
             machine: _Machine, from_graph: bool, follows: Mapping[str, Follow],
-            by_run: Mapping[str, Mapping[str, RunMeasure]]) -> str:
+            by_run: Mapping[str, Mapping[str, RunMeasure]], prices: Mapping[str, float] | None = None) -> str:
     import yaml
 
     def flow(obj: Any) -> str:  # one line of YAML, names quoted where YAML needs it
@@ -306,7 +312,7 @@ def _render(d: Path, graph: Graph, skeleton: Any, rows: Sequence[Row], values: M
         lines.append(f"  # /{node.name} ({exe})")
         lines.append(f"  - name: {flow(node.name)}")
         lines.append(f"    weight: {weight!r}  # REPLACE: every node weighs the same (a stated default)")
-        lines += _process_lines(node, ros, flow)
+        lines += _process_lines(node, ros, flow, prices)
         if top:
             lines.append(f"    # performance: REPLACE. A stated default: 100 x the measured output frequency / "
                          f"its highest ({_r(top)} Hz)")
@@ -324,9 +330,14 @@ def _render(d: Path, graph: Graph, skeleton: Any, rows: Sequence[Row], values: M
     return "\n".join(lines) + "\n"
 
 
-def _process_lines(node: Any, ros: GraphNode | None, flow: Callable[[Any], str]) -> list[str]:
-    """A node's parameter, topics, container and process lines (every drafted node has them)."""
+def _process_lines(node: Any, ros: GraphNode | None, flow: Callable[[Any], str],
+                   prices: Mapping[str, float] | None = None) -> list[str]:
+    """A node's parameter, topics, container and process lines (every drafted node has them);
+    a container's measured copy price (``prices``: container -> CPU units per MB/s)."""
     lines = []
+    if prices and node.name in prices:
+        lines.append(f"    copy_cpu_per_MBps: {_r(prices[node.name])}  # CPU units per MB/s of copies its nodes "
+                     "would add run standalone (its standalone run against its runs at the same values)")
     if node.parameter is not None:
         lines.append(f"    parameter: {flow(_parameter(node.parameter))}")
     if node.topics:

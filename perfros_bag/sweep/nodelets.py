@@ -15,12 +15,14 @@ it: those under the nodelet's own name (``/people/found``) and those its ``<rema
 
 from __future__ import annotations
 
+import re
 import shlex
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
 from perfros_bag.errors import InputError
+from perfros_bag.sweep.plugins import class_problem, package_dir
 
 if TYPE_CHECKING:
     from pathlib import Path
@@ -78,9 +80,12 @@ def managers_of(resolved: Resolved) -> set[str]:
     return {n.full_name for n in resolved.nodes if is_nodelet_tool(n) and _words(n)[:1] == ["manager"]}
 
 
-def check_nodelets(resolved: Resolved, path: Path | str | None) -> dict[str, Nodelet]:
+def check_nodelets(resolved: Resolved, path: Path | str | None, *, elsewhere: bool = False) -> dict[str, Nodelet]:
     """The launch file's nodelets, each loaded into a manager it starts and of a type its
-    package exports (``rospack plugins``): otherwise one :class:`InputError`."""
+    package exports (its package.xml's nodelet plugin description, read as pluginlib reads
+    it: :mod:`perfros_bag.sweep.plugins`): otherwise one :class:`InputError`. ``elsewhere``:
+    the file runs on other machines (``export --launch``), so a package not installed here is
+    a warning, not an error."""
     nodelets = nodelets_of(resolved)
     if not nodelets:
         return nodelets
@@ -90,49 +95,36 @@ def check_nodelets(resolved: Resolved, path: Path | str | None) -> dict[str, Nod
             started = ", ".join(sorted(managers)) or "none"
             raise InputError(path, f"node {n.name}: nodelet load {n.type} into manager {n.manager}, which the "
                              f"launch file never starts (its nodelet managers: {started})")
-    exported = exported_types()
-    if exported is not None:
-        for n in nodelets.values():
-            pkg = n.type.split("/", 1)[0]
-            if n.type not in exported:
-                known = sorted(t for t in exported if t.startswith(pkg + "/"))
-                raise InputError(path, f"node {n.name}: class {n.type} does not exist: package {pkg} exports "
-                                 + (f"no such nodelet (its nodelets: {', '.join(known)})" if known
-                                    else "no nodelet"))
+    for n in nodelets.values():
+        pkg = re.split(r"/|::", n.type, maxsplit=1)[0]
+        if elsewhere and package_dir(pkg) is None:
+            import warnings
+
+            from perfros_bag.errors import PerfrosWarning
+
+            warnings.warn(PerfrosWarning(f"{path}: node {n.name}: class {n.type} not checked: package {pkg} is not "
+                                         "installed here"), stacklevel=2)
+            continue
+        problem = class_problem(pkg, n.type, by_type=False)
+        if problem is not None:
+            raise InputError(path, f"node {n.name}: class {n.type} does not exist: {problem}")
     return nodelets
 
 
-def exported_types() -> set[str] | None:
-    """Every nodelet class the installed packages export (``rospack plugins --attrib=plugin
-    nodelet``, then each plugin description's ``<class name=...>``); None: rospack is missing."""
-    import shutil
-    import subprocess
-    import xml.etree.ElementTree as ET
+def check_plan_membership(nodelets: Mapping[str, Nodelet], where: Mapping[str, str],
+                          plan_path: Path | str | None) -> None:
+    """Each nodelet the launch file loads on the computer the plan gives its manager
+    (``where``: system.yaml node name -> computer): the launch file fixes the membership, so
+    a plan that splits them is one :class:`InputError` naming the plan, both nodes and the
+    manager."""
+    from perfros_bag.system.names import system_node_name
 
-    rospack = shutil.which("rospack")
-    if rospack is None:
-        return None
-    try:
-        done = subprocess.run([rospack, "plugins", "--attrib=plugin", "nodelet"], capture_output=True, text=True,
-                              timeout=30, check=False)
-    except (OSError, subprocess.TimeoutExpired):
-        return None
-    if done.returncode != 0:
-        return None
-    out: set[str] = set()
-    for line in done.stdout.splitlines():
-        words = line.split(None, 1)
-        if len(words) != 2:
-            continue
-        try:
-            root = ET.parse(words[1].strip()).getroot()  # noqa: S314 - an installed package's file
-        except (ET.ParseError, OSError):
-            continue
-        for el in root.iter("class"):
-            name = el.get("name") or el.get("type")
-            if name:
-                out.add(name)
-    return out
+    for n in nodelets.values():
+        mine, host = system_node_name(n.name), system_node_name(n.manager)
+        if mine in where and host in where and where[mine] != where[host]:
+            raise InputError(plan_path, f"container {host}: node {mine} on {where[mine]} but its container {host} on "
+                                        f"{where[host]}; the launch file loads {mine} into {n.manager} "
+                                        f"(nodelet load {n.type}), so they share a computer")
 
 
 def with_membership(graph: Graph, nodelets: Mapping[str, Nodelet]) -> Graph:

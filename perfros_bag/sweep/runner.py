@@ -221,28 +221,38 @@ def _standalone_runs(launch: LaunchFile, space: Space, runs: list[Run]) -> list[
     it starts, of a type its package exports: :func:`~perfros_bag.sweep.nodelets.check_nodelets`)
     and, when it loads any, one more run with every nodelet standalone at the defaults: what
     splits the managers' CPU among their nodelets (:mod:`perfros_bag.characterisation.containers`)."""
-    import tempfile
     from dataclasses import replace
 
-    from perfros_bag.rosrun.processes import ros_env
-    from perfros_bag.sweep.launchfile import resolve_launch
-    from perfros_bag.sweep.nodelets import check_nodelets
     from perfros_bag.sweep.space import arg_text, default_value
 
     values = {v.system_name: default_value(v, launch.args) for v in space.vary}
     args = {v.arg: arg_text(values[v.system_name]) for v in space.vary if v.arg is not None}
-    with tempfile.TemporaryDirectory(prefix="perfros-nodelets-") as home:
-        env = ros_env("nodelets-" + uuid.uuid4().hex[:10], Path(home))
-        resolved = resolve_launch(launch, [{**runs[0].args, **args}], env, space.startup_timeout_s)[0]
-    if resolved.error is not None:
-        raise InputError(launch.path, f"roslaunch cannot load it: {resolved.error}")
-    nodelets = check_nodelets(resolved, launch.path)
+    nodelets = checked_nodelets(launch, {**runs[0].args, **args}, space.startup_timeout_s)
     if not nodelets or space.replay is not None:
         return []
     base = next((r for r in runs if dict(r.values) == values), None)
     return [replace(runs[0], name=f"{base.name if base is not None else 'defaults'}__standalone", values=values,
                     args=args, params={v.param: values[v.system_name] for v in space.vary if v.param is not None},
                     repeat=1, standalone=tuple(sorted(nodelets)))]
+
+
+def checked_nodelets(launch: LaunchFile, args: Mapping[str, str], timeout: float) -> dict[str, Nodelet]:
+    """The launch file's nodelets with ``args``, as roslaunch resolves it, each loaded into a
+    manager the file starts and of a class its package exports
+    (:func:`~perfros_bag.sweep.nodelets.check_nodelets`): one :class:`InputError` otherwise.
+    Starts nothing (roslaunch's loader only, in a throwaway ROS home)."""
+    import tempfile
+
+    from perfros_bag.rosrun.processes import ros_env
+    from perfros_bag.sweep.launchfile import resolve_launch
+    from perfros_bag.sweep.nodelets import check_nodelets
+
+    with tempfile.TemporaryDirectory(prefix="perfros-nodelets-") as home:
+        env = ros_env("nodelets-" + uuid.uuid4().hex[:10], Path(home))
+        resolved = resolve_launch(launch, [dict(args)], env, timeout)[0]
+    if resolved.error is not None:
+        raise InputError(launch.path, f"roslaunch cannot load it: {resolved.error}")
+    return check_nodelets(resolved, launch.path)
 
 
 def _warn_unsubscribed(graph: Graph, inspected: Inspected) -> None:

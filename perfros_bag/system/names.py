@@ -48,6 +48,7 @@ class NameKind(StrEnum):
     COMPUTER = "computer name"
     PACKAGE = "package name"
     EXECUTABLE = "executable name"
+    PLUGIN = "plugin class name"  # a nodelet's / composable node's: pkg::Class or pkg/name
 
 
 #: the longest name accepted (ROS 2 node names; host names are shorter, see the rule)
@@ -58,6 +59,8 @@ _GRAPH = re.compile(r"[~/A-Za-z][A-Za-z0-9_/]*")
 _LABEL = re.compile(r"[A-Za-z0-9](?:[A-Za-z0-9_-]{0,61}[A-Za-z0-9])?")
 _PACKAGE = re.compile(r"[A-Za-z][A-Za-z0-9_-]*")
 _EXECUTABLE = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.+-]*")
+_PLUGIN = re.compile(r"[A-Za-z_][A-Za-z0-9_]*(?:::[A-Za-z_][A-Za-z0-9_]*)+"  # a C++ class
+                     r"|[A-Za-z][A-Za-z0-9_-]*/[A-Za-z0-9_][A-Za-z0-9_.+-]*")  # a pluginlib lookup name
 _SUBSTITUTION = re.compile(r"\$\((?:arg|env|optenv) [A-Za-z_][A-Za-z0-9_]*\)")
 _RULES: dict[NameKind, str] = {
     NameKind.NODE: "a letter, then letters, digits and '_' (a ROS 1 base name, a ROS 2 node name)",
@@ -70,6 +73,8 @@ _RULES: dict[NameKind, str] = {
                        "each starting and ending with a letter or digit, at most 63 characters",
     NameKind.PACKAGE: "a letter, then letters, digits, '_' and '-'",
     NameKind.EXECUTABLE: "letters, digits, '_', '.', '+' and '-', not starting with '.'",
+    NameKind.PLUGIN: "a C++ class name (identifiers joined by '::', e.g. opencv_apps::PeopleDetectNodelet) or a "
+                     "pluginlib lookup name (PACKAGE/NAME, e.g. opencv_apps/people_detect)",
 }
 
 
@@ -105,6 +110,8 @@ def name_problem(kind: NameKind, name: object) -> str | None:
         ok = _PACKAGE.fullmatch(name) is not None
     elif kind == NameKind.EXECUTABLE:
         ok = _EXECUTABLE.fullmatch(name) is not None
+    elif kind == NameKind.PLUGIN:
+        ok = _PLUGIN.fullmatch(name) is not None
     else:
         ok = _GRAPH.fullmatch(name) is not None and "//" not in name
         if kind == NameKind.GRAPH_NODE:
@@ -122,7 +129,7 @@ def system_node_name(ros_name: str) -> str:
 
 
 def _first_bad(kind: NameKind, name: str) -> str:
-    allowed = {NameKind.NODE: "_", NameKind.PACKAGE: "_-", NameKind.EXECUTABLE: "_.+-",
+    allowed = {NameKind.NODE: "_", NameKind.PACKAGE: "_-", NameKind.EXECUTABLE: "_.+-", NameKind.PLUGIN: "_.+-:/",
                NameKind.COMPUTER: "_-."}.get(kind, "_/~")
     for i, ch in enumerate(name):
         if not (ch.isascii() and (ch.isalnum() or ch in allowed)):

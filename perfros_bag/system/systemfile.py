@@ -46,7 +46,10 @@ from perfros_bag.system.types import (
     TopicRate,
 )
 
-TOP_KEYS = {"cpu_unit", "computers", "links", "media", "nodes", "edges", "machines", "chains", "latency"}
+TOP_KEYS = {"cpu_unit", "computers", "links", "media", "nodes", "edges", "machines", "chains", "latency",
+            "membership"}
+#: system.yaml ``membership``: what solvers may do with ``container:`` (only "keep" is built)
+MEMBERSHIPS = ("keep",)
 CHAIN_KEYS = {"name", "topics", "budget_ms"}
 BUDGET_KEYS = {"p50", "p95"}
 #: system.yaml ``latency:`` (the latency model's parameters, perfros_bag.system.latency)
@@ -58,6 +61,7 @@ MEDIUM_KEYS = {"name", "bandwidth_kBps"}
 NODE_KEYS = {
     "name", "weight", "residence", "coresidence", "parameter", "topics", "process",
     "settings", "curve", "launch", "relations", "metric", "input", "cpu_error_between", "container", "threads",
+    "copy_cpu_per_MBps",
 }
 METRIC_KEYS = {"topic", "field", "aggregate", "better", "range"}
 #: ``cpu_error`` (optional, CPU units >= 0): what the setting may need beyond its ``cpu``
@@ -180,6 +184,7 @@ def parse_system(data: Any, source: str = "system.yaml") -> System:
     edges = _edges(ctx, top.get("edges"), node_names)
     machines = _machines(ctx, top.get("machines"), names)
     cpu_unit = ctx.label(top.get("cpu_unit"), "cpu_unit")
+    membership = _membership(ctx, top.get("membership"))
 
     for n in nodes:
         for m in n.coresidence:
@@ -198,11 +203,23 @@ def parse_system(data: Any, source: str = "system.yaml") -> System:
     chains = _chains(ctx, top.get("chains"), nodes, edges)
     latency = _latency(ctx, top.get("latency"), node_names)
     system = System(tuple(computers), tuple(nodes), tuple(links), tuple(media), tuple(edges),
-                    cpu_unit, machines, source, chains, latency)
+                    cpu_unit, machines, source, chains, latency, membership)
     _check_groups(ctx, system)
     _check_flow(ctx, system)
     _check_budgets(ctx, system)
     return system
+
+
+def _membership(ctx: _Ctx, raw: Any) -> str:
+    """``membership``: "keep" (the default): every node stays in its ``container:``."""
+    if raw is None:
+        return "keep"
+    if raw == "choose":
+        raise ctx.fail("membership", "'choose' (solvers moving a node out of its container, paying the copy) is not "
+                       "built yet: use keep, or drop container: from the nodes that may move")
+    if raw not in MEMBERSHIPS:
+        raise ctx.fail("membership", f"must be one of {', '.join(MEMBERSHIPS)}, got {raw!r}")
+    return str(raw)
 
 
 def _check_budgets(ctx: _Ctx, system: System) -> None:
@@ -391,6 +408,11 @@ def _check_containers(ctx: _Ctx, nodes: list[Node]) -> None:
         if host.container is not None:
             raise ctx.fail(f"node {n.name!r}: container", f"{host.name!r} is itself hosted by {host.container!r}: "
                                                           "a container runs in a process of its own")
+    hosts = {n.container for n in nodes}
+    for n in nodes:
+        if n.copy_cpu_per_MBps is not None and n.name not in hosts:
+            raise ctx.fail(f"node {n.name!r}: copy_cpu_per_MBps", "only a container (a node others name as their "
+                                                                  "container:) has a copy price")
 
 
 def _nodes(ctx: _Ctx, raw: Any, computers: set[str]) -> list[Node]:
@@ -458,7 +480,13 @@ def _nodes(ctx: _Ctx, raw: Any, computers: set[str]) -> list[Node]:
         launch: dict[str, str] = {}
         if m.get("launch") is not None:
             lm = ctx.mapping(m["launch"], f"{where}: launch", LAUNCH_KEYS)
-            launch = {k: ctx.name(v, f"{where}: launch.{k}", LAUNCH_NAME_KINDS[k]) for k, v in lm.items()}
+            hosted = m.get("container") is not None
+            kind = lm.get("type")
+            if not hosted and isinstance(kind, str) and name_problem(NameKind.PLUGIN, kind) is None:
+                raise ctx.fail(f"{where}: launch.type", f"{kind!r} names a plugin class, which only a node with a "
+                               "container (a nodelet's manager, a component container) loads: add container: or "
+                               "give an executable")
+            launch = {k: ctx.name(v, f"{where}: launch.{k}", _launch_kind(k, v, hosted)) for k, v in lm.items()}
 
         metric = _metric(ctx, m["metric"], f"{where}: metric") if m.get("metric") is not None else None
         between = ctx.opt_number(m.get("cpu_error_between"), f"{where}: cpu_error_between", nonneg=True)
@@ -468,9 +496,18 @@ def _nodes(ctx: _Ctx, raw: Any, computers: set[str]) -> list[Node]:
         container = None if m.get("container") is None else ctx.name(m["container"], f"{where}: container",
                                                                        NameKind.NODE)
         threads = _threads(ctx, m.get("threads"), f"{where}: threads")
+        copy = ctx.opt_number(m.get("copy_cpu_per_MBps"), f"{where}: copy_cpu_per_MBps", nonneg=True)
         out.append(Node(name, weight, settings, curve, residence, coresidence, parameter,
-                        topics, process, launch, relations, metric, driven_by, between, container, threads))
+                        topics, process, launch, relations, metric, driven_by, between, container, threads, copy))
     return out
+
+
+def _launch_kind(key: str, value: Any, hosted: bool) -> NameKind:
+    """The rule ``launch.KEY`` follows: a hosted node's (``container:``) ``type`` may name its
+    plugin class (``pkg::Class`` or ``pkg/name``) instead of an executable."""
+    if key == "type" and isinstance(value, str) and ("::" in value or "/" in value):
+        return NameKind.PLUGIN if hosted else NameKind.EXECUTABLE
+    return LAUNCH_NAME_KINDS[key]
 
 
 def _threads(ctx: _Ctx, raw: Any, where: str) -> float | None:
@@ -630,5 +667,14 @@ def _check_groups(ctx: _Ctx, system: System) -> None:
     for group in system.coresidence_groups:
         if not system.allowed_to_all(group):
             who = ", ".join(repr(n) for n in group)
+            host = next((n for n in group if n in system.containers), None)
+            pair = next(((a, b) for i, a in enumerate(group) for b in group[i + 1:]
+                         if not system.allowed_to_all((a, b))), None)
+            if host is not None and pair is not None:  # name the two nodes the membership ties
+                a, b = pair
+                raise ctx.fail(f"container {host!r}: residence",
+                               f"nodes {a!r} (allowed on {', '.join(system.allowed(a))}) and {b!r} (allowed on "
+                               f"{', '.join(system.allowed(b))}) share the process of container {host!r}, so its "
+                               f"computer, and no computer is allowed for both (coresident nodes: {who})")
             raise ctx.fail(f"node {group[0]!r}: residence",
                            f"coresident nodes {who} have no computer allowed for all of them")

@@ -413,6 +413,10 @@ class Node:
     #: its busy threads (system.yaml ``threads``; ``fit`` measures them): its weight in the CFS
     #: share of an overloaded computer (perfros_bag.system.cpushare); None: one
     threads: float | None = None
+    #: a container's copy price (system.yaml ``copy_cpu_per_MBps``): CPU units that one MB/s
+    #: of copies costs when its nodes run standalone instead of inside it (measured by
+    #: perfros_bag.characterisation.containers.copy_price); None: not measured
+    copy_cpu_per_MBps: float | None = None
 
     def threads_at(self, value: float | None) -> float:
         """Busy threads at the setting of ``value`` (that setting's, else the node's, else 1)."""
@@ -521,6 +525,9 @@ class System:
     source: str | None = None  # the file it was loaded from, for messages
     chains: tuple[Chain, ...] = ()  # topics whose end-to-end latency is measured
     latency: LatencyParams = field(default_factory=LatencyParams)  # the latency model's parameters
+    #: system.yaml ``membership``: "keep" (each ``container:`` node stays in its container, so on
+    #: its computer); the only mode the solvers and the checker implement
+    membership: str = "keep"
 
     @cached_property
     def computer(self) -> dict[str, Computer]:

@@ -10,8 +10,10 @@ people_detect and smoothing), two sweeps of the same space (one nodelet's settin
   own: each one's CPU measured on its own, at every setting.
 
 Printed: each nodelet's estimate at each value against its standalone CPU at that value
-(goal: within 15 %), and per in-manager run the sum of the estimates against the manager's
-measured CPU (goal: within 5 %).
+(goal: within 15 %), per in-manager run the sum of the estimates against the manager's
+measured CPU (goal: within 5 %), and the copy price (characterisation/containers.copy_price):
+the whole-run CPU the standalone run adds over the in-manager runs at the same values, per
+MB/s of the copies it adds.
 
     .venv/bin/python tests/bench/bench_nodelets.py [--repeats 2] [--duration 8] [--keep DIR]
 """
@@ -91,6 +93,59 @@ def main() -> None:
             print(f"| {rec} | {meas:.2f} | {fit:.2f} | {100 * (fit - meas) / meas:+.1f} % |")
     if sums:
         print(f"\nlargest |error| of a run's sum: {max(sums):.1f} %; mean {statistics.mean(sums):.1f} %")
+    print("\n| container | in-manager runs | standalone run | extra CPU (units) | extra copies (kB/s) |")
+    print("|---|---|---|---:|---:|")
+    for s in split.splits:
+        for pair, (cpu, copies) in (s.copy_runs or {}).items():
+            ins, alone_run = pair.split("|")
+            print(f"| {s.container} | {ins} | {alone_run} | {cpu:+.3f} | {copies:.0f} |")
+        price = "not measured" if s.copy_per_MBps is None else f"{s.copy_per_MBps:.4f} CPU units per MB/s"
+        print(f"copy price of {s.container} (apart from lambda = {s.factor:.3f}): {price}")
+    copy_at_every_setting(work, m_in.recordings, m_alone.recordings, measured.rows)
+
+
+def copy_at_every_setting(work: Path, inside: list, alone: list, alone_rows: list) -> None:
+    """The same price at every setting the two sweeps share: standalone.launch's runs against
+    nodelet.launch's at the same values (repeats averaged), whole-run CPU of every node."""
+    import yaml
+
+    from perfros_bag.characterisation.containers import extra_copies
+    from perfros_bag.characterisation.table import characterise
+    from perfros_bag.system.systemfile import load_system, parse_system
+
+    system = load_system(work / "inside.yaml")
+    doc = yaml.safe_load((work / "inside.yaml").read_text())
+    for n in doc["nodes"]:
+        n.pop("container", None)
+        n.pop("copy_cpu_per_MBps", None)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        rows = characterise([e for e in inside if not e.standalone], parse_system(doc, "unsplit")).rows
+    names = [n.name for n in system.nodes]
+
+    def totals(rs: list, recs: list) -> dict[tuple, list[float]]:
+        out: dict[tuple, list[float]] = {}
+        for e in recs:
+            cpu = {r.node: r.cpu_units_mean for r in rs if r.recording == e.name and r.cpu_units_mean is not None}
+            key = tuple(sorted((k, repr(v)) for k, v in e.settings.items()))
+            out.setdefault(key, []).append(sum(cpu.get(n, 0.0) for n in names))
+        return out
+
+    t_in, t_alone = totals(rows, [e for e in inside if not e.standalone]), totals(alone_rows, alone)
+    print("\n| setting | in-manager total | standalone total (standalone.launch) | extra copies (kB/s) | price |")
+    print("|---|---:|---:|---:|---:|")
+    prices = []
+    for host, members in system.containers.items():
+        for key in sorted(set(t_in) & set(t_alone)):
+            rec = next(e.name for e in alone if tuple(sorted((k, repr(v)) for k, v in e.settings.items())) == key)
+            x = extra_copies(system, host, members, alone_rows, rec)
+            a, b = statistics.mean(t_in[key]), statistics.mean(t_alone[key])
+            price = (b - a) / (x / 1000) if x else float("nan")
+            prices.append(price)
+            print(f"| {dict(key)} | {a:.2f} | {b:.2f} | {x or 0:.0f} | {price:+.3f} |")
+    if prices:
+        print(f"copy price over the settings: mean {statistics.mean(prices):+.3f}, "
+              f"from {min(prices):+.3f} to {max(prices):+.3f} CPU units per MB/s")
 
 
 if __name__ == "__main__":
