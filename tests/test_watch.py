@@ -62,6 +62,17 @@ def test_a_window_counts_the_largest_connection_difference_new_connections_and_w
     assert rospy == (8, 160)
 
 
+def test_a_counter_that_went_down_a_little_was_counted_afresh_not_wrapped() -> None:
+    """RQ4's link drop: a connection re-made under its id counted from 0 again; taken for a
+    wrap it gave 8e8 Hz in one window. A wrap is a counter past half the 32-bit range coming
+    round; signed XML-RPC integers (roscpp) wrap from +2^31 to -2^31 the same way."""
+    before = TopicCounters({1: (500, 50_000)})
+    assert window_counts(before, TopicCounters({1: (30, 3_000)})) == (30, 3_000)
+    assert window_counts(before, TopicCounters({1: (0, 0)})) == (0, 0)
+    signed = TopicCounters({1: (2**31 - 5, 2**31 - 50)})
+    assert window_counts(signed, TopicCounters({1: (-(2**31) + 15, -(2**31) + 150)})) == (20, 200)
+
+
 # --------------------------------------------------------------------------- persistence
 
 

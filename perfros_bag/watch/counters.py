@@ -6,7 +6,10 @@ message_bytes, [[id, bytes with headers, messages, connected], ...]]``). Every c
 of a topic receives every message, so a window's messages on a topic are the largest
 difference of one connection's counter between two readings (a connection that appeared
 meanwhile counts from 0); its payload bytes likewise (rospy: the topic's own total). roscpp
-sends its counters as 32-bit XML-RPC integers: a counter that went down wrapped once.
+sends its counters as 32-bit XML-RPC integers: a counter that went down by more than half
+their range wrapped once; one that went down by less was counted afresh (a connection re-made
+under the same id: RQ4 saw one after a link drop), and counts from 0, never as a wrap (that
+would be ~4e9 messages in one window).
 Reading them subscribes to nothing, so no message is copied for the watcher.
 """
 
@@ -21,7 +24,11 @@ WRAP = 2 ** 32
 
 def _diff(now: int, before: int) -> int:
     d = now - before
-    return d + WRAP if d < 0 else d
+    if d >= 0:
+        return d
+    if d <= -(WRAP // 2):
+        return d + WRAP  # wrapped once
+    return max(0, now)  # counted afresh
 
 
 def window_counts(before: TopicCounters | None, after: TopicCounters) -> tuple[int, int]:
