@@ -827,3 +827,52 @@ def test_a_window_ends_where_the_deploy_finished_running_a_re_plan(fake: FakeRos
     assert new_hz != old_hz and nxt["seconds"] >= window - 0.3
     assert nxt["nodes"]["camera"]["expected_hz"] == pytest.approx(new_hz)
     assert not [a for d in docs for a in d["alarms"] if a["quantity"] == "alive"]
+
+
+def test_a_re_plan_refitted_from_a_plan_no_longer_in_force_is_not_sent(fake: FakeRos, tmp_path: Path,
+                                                                        monkeypatch: pytest.MonkeyPatch) -> None:
+    """RQ4: an alarm standing before an operator raised a camera's rate started a refit from
+    the old plan; sent after the operator's change, it undid it. A re-plan whose refit began
+    under another plan in force (live.json ``plan_in_force``) is logged as not sent, is not
+    taken by the windows, and writes no control.json; one that did not is sent."""
+    import perfros_bag.watch.refit as refit
+    from perfros_bag.sweep.livestate import read_live, write_live
+    from perfros_bag.watch.loop import _Replans
+
+    plan_path = _fake_plan(tmp_path)
+    dep = tmp_path / "deployed"
+    _fake_deploy(dep, fake, plan_path)
+    out = tmp_path / "watched"
+    out.mkdir()
+    adapter = Adapter(out, plan_path, deployment=dep)
+
+    class Done:  # a refit child that has ended with its re-plan
+        def __init__(self, k: int) -> None:
+            self.k = k
+
+        def poll(self) -> bool:
+            return True
+
+        def finish(self, stale: str | None = None) -> dict[str, Any] | None:
+            entry = {"window": self.k, "why": ["alarm"], "plan": str(tmp_path / f"new-{self.k}.json"),
+                     "changes": ["camera: rate 20 -> 10"]}
+            return adapter.apply(entry, stale=stale)
+
+    monkeypatch.setattr(refit, "warm", lambda _a: None)
+    monkeypatch.setattr(refit, "start", lambda _ad, _p, _r, _al, k, _w, _s=None: Done(k))
+    replans = _Replans(adapter, read_live(dep))
+    replans.ask(load_plan(plan_path), [], [{"line": "alarm"}], 2, {})
+    live = read_live(dep)  # meanwhile an operator's control.json is run by the deploy
+    live.plan_in_force = str(tmp_path / "operator.json")
+    write_live(dep / "live.json", live)
+    with pytest.warns(PerfrosWarning, match="not sent: the plan in force changed"):
+        replans.poll()
+    assert replans.take() is None and not (dep / "control.json").exists()
+    [logged] = [json.loads(line) for line in (out / "adapt.jsonl").read_text().splitlines()]
+    assert logged["applied"].startswith("not sent") and "operator.json" in logged["applied"]
+    # the next one starts under the operator's plan, and nothing changes meanwhile: it goes
+    replans.ask(load_plan(plan_path), [], [{"line": "alarm"}], 3, {})
+    replans.poll()
+    taken = replans.take()
+    assert taken is not None and taken["window"] == 3 and taken["applied"].startswith("sent")
+    assert json.loads((dep / "control.json").read_text())["plan"] == str(tmp_path / "new-3.json")

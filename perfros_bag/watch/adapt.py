@@ -173,15 +173,16 @@ class Adapter:
                 "headroom": headroom, "changes": changed, "refit_s": round(time.monotonic() - started, 2),
                 **({"world": world} if world else {})}
 
-    def apply(self, entry: dict[str, Any]) -> dict[str, Any]:
+    def apply(self, entry: dict[str, Any], stale: str | None = None) -> dict[str, Any]:
         """Send a prepared re-plan to the deploy (when attached to one that still runs and the
-        plan changes something) and append it to ``adapt.jsonl``; the completed entry."""
+        plan changes something; never when ``stale`` says why not) and append it to
+        ``adapt.jsonl``; the completed entry."""
         import time
 
         from perfros_bag.fileio import atomic_write_text, json_text
 
-        applied = "written (nothing restarted)"
-        if self.deployment is not None and entry["changes"]:
+        applied = "written (nothing restarted)" if stale is None else f"not sent: {stale}"
+        if self.deployment is not None and entry["changes"] and stale is None:
             from perfros_bag.errors import InputError
             from perfros_bag.sweep.control import control_seq, write_control
             from perfros_bag.sweep.livestate import read_live

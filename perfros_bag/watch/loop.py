@@ -338,6 +338,8 @@ class _Replans:
         self.pending: Pending | None = None
         self.standby: subprocess.Popen[bytes] | None = None  # a refit child waiting, its imports done
         self.done: list[dict[str, Any]] = []
+        #: live.json's ``plan_in_force`` when the refit under way was asked for
+        self.asked_in_force: str | None = None
         self._warm()
 
     def _warm(self) -> None:
@@ -355,6 +357,8 @@ class _Replans:
         from perfros_bag.watch.refit import start
 
         standby, self.standby = self.standby, None
+        now = _live_now(self.live)
+        self.asked_in_force = None if now is None else now.plan_in_force
         try:
             self.pending = start(self.adapter, plan, rows, alarms, k, world, standby)
         except (OSError, PerfrosError) as exc:
@@ -365,9 +369,13 @@ class _Replans:
         deploy has just finished running the one sent last (live.json ``plan_in_force`` it,
         nothing ``restarting``): a window may end there, so the next is wholly the new plan's."""
         if self.pending is not None and self.pending.poll():
-            entry = self.pending.finish()
+            stale = self._stale()
+            entry = self.pending.finish(stale)
             self.pending = None
-            if entry is not None:
+            if entry is not None and stale is not None:
+                warnings.warn(f"--adapt: window {entry['window']}: re-plan not sent: {stale}", PerfrosWarning,
+                              stacklevel=2)
+            elif entry is not None:
                 self.done.append(entry)
                 if entry["applied"].startswith("sent") and self.live is not None:
                     grace = self.live.restart_timeout_s or RESTART_GRACE_S
@@ -383,6 +391,17 @@ class _Replans:
             self.ran = True
             return True
         return False
+
+    def _stale(self) -> str | None:
+        """Why the re-plan just made must not be sent: someone else (an operator's
+        control.json) changed the plan in force while it was refitted from the one before,
+        which it would undo. None when it may go (or without a deploy)."""
+        now = _live_now(self.live)
+        if now is None or now.plan_in_force == self.asked_in_force:
+            return None
+        before = self.asked_in_force or "the deploy's own"
+        return (f"the plan in force changed while it was refitted ({before} -> "
+                f"{now.plan_in_force}); the windows judge the change, a new re-plan starts from it")
 
     def transition(self) -> bool:
         """Whether the window just ended saw a new plan sent to the deploy and its restarts

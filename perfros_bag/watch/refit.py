@@ -62,9 +62,10 @@ class Pending:
     def wait(self, timeout: float | None = None) -> None:
         self.proc.wait(timeout)
 
-    def finish(self) -> dict[str, Any] | None:
+    def finish(self, stale: str | None = None) -> dict[str, Any] | None:
         """The ended child's re-plan, applied (control.json when attached to a deploy, and
-        adapt.jsonl); None with a warning when there is none."""
+        adapt.jsonl; only logged, as not sent, when ``stale`` says why); None with a warning
+        when there is none."""
         from perfros_bag.fileio import read_json
 
         answer: Any = None
@@ -82,7 +83,7 @@ class Pending:
             warnings.warn(f"--adapt: window {self.window}: no re-plan: {answer.get('error')}", PerfrosWarning,
                           stacklevel=2)
             return None
-        return self.adapter.apply({**answer["entry"], "asked_t": self.started})
+        return self.adapter.apply({**answer["entry"], "asked_t": self.started}, stale=stale)
 
     def cancel(self) -> None:
         """End the child if it still runs (and reap it)."""
