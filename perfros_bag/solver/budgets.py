@@ -284,7 +284,9 @@ def within_budgets(system: System, problem: Problem, choices: Mapping[str, Seque
     if violation(system, problem, assignment) is None:
         if method != Method.GREEDY_PLUS:
             return plan
-        better = _improve(system, problem, assignment, choices, fits, time.monotonic() + SEARCH_S)
+        deadline = time.monotonic() + SEARCH_S
+        better = _kicks(system, problem, _improve(system, problem, assignment, choices, fits, deadline), choices,
+                        fits, deadline)
         if _objective(system, problem, better) <= _objective(system, problem, assignment) + 1e-9:
             return plan
         return build_plan(system, better, problem=problem, method=method, status=Status.FEASIBLE)
@@ -511,6 +513,8 @@ def search(system: System, problem: Problem, assignment: Assignment, choices: Ma
     3. Improvement: moves of any node that keep every constraint and budget and better the
        objective, best first, up to :data:`IMPROVE_STEPS` (a repair gives up objective that
        another node can win back: a setting raised, a server emptied).
+    4. Kicks (:func:`_kicks`): each move of a node the chains depend on, then 2 and 3 again,
+       kept when it ends better.
 
     The best plan found within ``time_s`` seconds."""
     assert callable(fits)
@@ -527,6 +531,32 @@ def search(system: System, problem: Problem, assignment: Assignment, choices: Ma
         found = _improve(system, problem, found, choices, fits, deadline)
         if best is None or _objective(system, problem, found) > _objective(system, problem, best) + 1e-9:
             best = found
+    return best if best is None else _kicks(system, problem, best, choices, fits, deadline)
+
+
+def _kicks(system: System, problem: Problem, best: Assignment, choices: Mapping[str, Sequence[Choice]],
+           fits: Callable[[Assignment], bool], deadline: float) -> Assignment:
+    """Iterated local search: from ``best``, each move of a node a budgeted chain depends on
+    (:func:`influencers`), whether it keeps the budgets or not (a detector sent to the
+    server to make room beside another robot's), followed by the descent and the
+    improvement; the first that ends better is kept and its kicks tried in turn, until none
+    does or the deadline."""
+    value = _objective(system, problem, best)
+    improved = True
+    while improved and time.monotonic() < deadline:
+        improved = False
+        movers = influencers(system, problem, best, budgeted(system))
+        for kick in _neighbours(system, problem, best, movers, choices, fits):
+            if time.monotonic() > deadline:
+                break
+            found = _descend_wide(system, problem, kick, choices, fits, deadline)
+            if found is None:
+                continue
+            found = _improve(system, problem, found, choices, fits, deadline)
+            got = _objective(system, problem, found)
+            if got > value + 1e-9 and violation(system, problem, found) is None:
+                best, value, improved = found, got, True
+                break
     return best
 
 
