@@ -296,8 +296,9 @@ def within_budgets(system: System, problem: Problem, choices: Mapping[str, Seque
         fixed = repair(system, problem, assignment, fits) or descend(system, problem, assignment, choices, fits)
     if fixed is None:
         why = violation(system, problem, assignment)
+        tried = "the chain's nodes" if method != Method.GREEDY_PLUS else "the nodes its latency depends on"
         return Plan.infeasible(problem, method, f"{method}'s plan breaks a latency budget ({why}) and no change of "
-                               "the chain's nodes it tried keeps it: --method exact searches every plan",
+                               f"{tried} it tried keeps it: --method exact searches every plan",
                                system=system.source)
     return build_plan(system, fixed, problem=problem, method=method, status=Status.FEASIBLE)
 
@@ -583,12 +584,14 @@ def _descend_wide(system: System, problem: Problem, current: Assignment, choices
 def _best_pair(system: System, problem: Problem, current: Assignment, movers: Sequence[str],
                choices: Mapping[str, Sequence[Choice]], fits: Callable[[Assignment], bool], now: float,
                deadline: float) -> tuple[float, float, Assignment] | None:
-    """The best two moves of ``movers`` that lower the excess below ``now`` together (the
-    first may not: it makes room), at most :data:`PAIR_LIMIT` pairs."""
+    """The best two moves, the first of ``movers``, the second of any node, that lower the
+    excess below ``now`` together (the first may not, nor fit alone: it is half of a swap, or
+    the second makes room for it), at most :data:`PAIR_LIMIT` pairs."""
     best: tuple[float, float, Assignment] | None = None
     tried = 0
-    for first in _neighbours(system, problem, current, movers, choices, fits):
-        for cand in _neighbours(system, problem, first, movers, choices, fits):
+    everyone = [n.name for n in system.nodes]
+    for first in _neighbours(system, problem, current, movers, choices, lambda _: True):
+        for cand in _neighbours(system, problem, first, everyone, choices, fits):
             tried += 1
             key = (excess(system, problem, cand), -_objective(system, problem, cand))
             if key[0] < now - 1e-9 and (best is None or key < best[:2]):
