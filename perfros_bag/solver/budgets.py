@@ -433,8 +433,9 @@ def influencers(system: System, problem: Problem, assignment: Assignment, chains
     """The nodes whose choice or computer the ``chains``' predicted latency depends on in
     ``assignment``: the nodes of their no-good cuts (:func:`cut_of`: the hop nodes, their
     inputs' publishers, every node on a hop computer, the ends of every edge crossing a hop's
-    route), in node order."""
-    named = {t.node for c in chains for t in cut_of(system, problem, assignment, c) if not t.negate}
+    route; in Problem 2 also every node that may join a hop's server, which, sized to its
+    new load, can speed the hop up), in node order."""
+    named = {t.node for c in chains for t in cut_of(system, problem, assignment, c)}
     return [n.name for n in system.nodes if n.name in named]
 
 
