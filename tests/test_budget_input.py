@@ -61,3 +61,15 @@ def test_a_budget_on_a_chain_that_cannot_be_followed(tmp_path: Path) -> None:
     assert res.exit_code == 0, res.output
     assert (tmp_path / "plan.json").exists()
     assert "chain 'vision'" in res.stderr and "cannot be predicted" in res.stderr
+
+
+def test_pareto_budget_on_a_chain_that_cannot_be_followed(tmp_path: Path) -> None:
+    """A chain without a budget may stamp afresh (only warned about); --pareto-budget on it
+    would give it one: refused the same way."""
+    text = SYSTEM.replace("topics: [/camera/image_raw, /detector/found]", "topics: [/camera/image_raw, /log]")
+    for extra in ((), ("--pareto", "50:100:3")):
+        code, lines = _solve(tmp_path, text, "--pareto-budget", "vision", *extra)
+        assert code == 2
+        assert len(lines) == 1 and "system.yaml" in lines[0], lines
+        assert "--pareto-budget: chain 'vision': its latency cannot be predicted" in lines[0]
+        assert "stamped afresh" in lines[0]

@@ -30,7 +30,7 @@ from perfros_bag.errors import InputError
 from perfros_bag.fileio import atomic_write_text
 from perfros_bag.solver.candidates import fixed_choices
 from perfros_bag.solver.dispatch import solve
-from perfros_bag.system.latency import fastest_bound
+from perfros_bag.system.latency import chain_hops, fastest_bound
 from perfros_bag.system.plan import Plan, Status
 from perfros_bag.system.types import Budget, Chain, Problem, System
 
@@ -54,6 +54,10 @@ def parse_target(system: System, text: str) -> tuple[Chain, str]:
     if chain is None:
         have = ", ".join(repr(c.name) for c in system.chains) or "none"
         raise InputError(system.source, f"--pareto-budget: no chain {name.strip()!r} (the system's chains: {have})")
+    hops = chain_hops(system, chain)
+    if isinstance(hops, str):  # a chain without a budget may be one the model cannot follow
+        raise InputError(system.source, f"--pareto-budget: chain {chain.name!r}: its latency cannot be predicted, "
+                                        f"so it cannot have a budget: {hops}")
     return chain, quantile
 
 
@@ -102,7 +106,7 @@ def budget_range(system: System, chain: Chain, quantile: str, *, resolution: flo
     gets twice the bound as its top."""
     free = with_budget(system, chain.name, quantile, None)
     bound = fastest_bound(free, chain, fixed_choices(free, Problem.PERFORMANCE, None, resolution))
-    if bound is None:  # pragma: no cover - a chain whose hops cannot be followed has no budget (systemfile)
+    if bound is None:  # pragma: no cover - parse_target refuses a chain whose hops cannot be followed
         raise InputError(system.source, f"--pareto-budget: chain {chain.name!r} cannot be followed hop by hop")
     low = bound[QUANTILES.index(quantile)]
     plan = solve(free, Problem.PERFORMANCE, "exact", resolution=resolution, time_limit=time_limit,
