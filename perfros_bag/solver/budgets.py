@@ -25,7 +25,7 @@ from __future__ import annotations
 import itertools
 import math
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 
 from perfros_bag.system.latency import (
@@ -446,12 +446,11 @@ def _group_of(system: System) -> dict[str, tuple[tuple[str, ...], tuple[str, ...
 
 
 def _neighbours(system: System, problem: Problem, current: Assignment, nodes: Sequence[str],
-                choices: Mapping[str, Sequence[Choice]], fits: Callable[[Assignment], bool]) -> list[Assignment]:
+                choices: Mapping[str, Sequence[Choice]], fits: Callable[[Assignment], bool]) -> Iterator[Assignment]:
     """Every assignment one move away that fits: one of ``nodes`` at another (choice,
     computer), its coresidence group moving with it, the nodes it drives following its new
     rate (:func:`_with_children`)."""
     groups = _group_of(system)
-    out: list[Assignment] = []
     for n in nodes:
         group, comps = groups[n]
         for ch in choices[n]:
@@ -465,8 +464,7 @@ def _neighbours(system: System, problem: Problem, current: Assignment, nodes: Se
                     caps = server_sizes(system, placement, chosen) if problem == Problem.SERVER_CAPACITY else {}
                     cand = Assignment(placement, chosen, caps)
                     if fits(cand):
-                        out.append(cand)
-    return out
+                        yield cand
 
 
 #: a move of a publisher's choice re-picks the settings of the nodes it drives, at most this many combinations
@@ -574,6 +572,8 @@ def _descend_wide(system: System, problem: Problem, current: Assignment, choices
             key = (excess(system, problem, cand), -_objective(system, problem, cand))
             if key[0] < now - 1e-9 and (best is None or key < best[:2]):
                 best = (key[0], key[1], cand)
+            if time.monotonic() > deadline:
+                return None
         if best is None:
             best = _best_pair(system, problem, current, movers, choices, fits, now, deadline)
         if best is None:
