@@ -141,3 +141,29 @@ def test_points_are_evenly_spaced_between_the_given_ends() -> None:
     points = budget_frontier(system, chain, quantile, low=low, high=high, points=4, method="greedy")
     assert [p.budget_ms for p in points] == pytest.approx([low + (high - low) * i / 3 for i in range(4)])
     assert all(math.isfinite(p.solve_s) for p in points)
+
+
+def test_report_shows_a_budget_frontier_and_refuses_a_broken_one(tmp_path: Path) -> None:
+    path = tmp_path / "system.yaml"
+    path.write_text(yaml.safe_dump(_instance(3)))
+    front = tmp_path / "front.json"
+    res = runner.invoke(app, ["solve", str(path), "--method", "exact", "--pareto", "::4", "--pareto-budget", "vision",
+                              "-o", str(front)])
+    assert res.exit_code == 0, res.output
+    out = tmp_path / "report"
+    res = runner.invoke(app, ["report", "--frontier", str(front), "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    page = (out / "index.html").read_text()
+    assert "What latency costs: chain vision" in page and 'id="budget-frontier"' in page
+    doc = json.loads(front.read_text())
+    rows = page.split('id="budget-frontier-points"')[1].split("</table>")[0]
+    assert rows.count("<tr>") == 1 + len(doc["points"])  # the header and one row a point
+    assert rows.count(">optimal<") + rows.count(">infeasible<") == len(doc["points"])
+    assert matplotlib.image.imread(out / "budget_frontier.png").shape[0] > 100
+    doc["points"][1]["budget_ms"] = "fast"
+    front.write_text(json.dumps(doc))
+    res = runner.invoke(app, ["report", "--frontier", str(front), "--out", str(tmp_path / "r2")])
+    assert res.exit_code == 2
+    [line] = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    assert "points[1].budget_ms: not a finite number" in line and "front.json" in line
+    assert not (tmp_path / "r2").exists()

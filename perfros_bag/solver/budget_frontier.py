@@ -35,7 +35,8 @@ from perfros_bag.system.plan import Plan, Status
 from perfros_bag.system.types import Budget, Chain, Problem, System
 
 __all__ = ["CSV_COLUMNS", "FORMAT", "BudgetPoint", "budget_frontier", "budget_frontier_csv",
-           "budget_frontier_document", "budget_range", "parse_target", "with_budget", "write_budget_frontier"]
+           "budget_frontier_document", "budget_range", "parse_target", "read_budget_frontier", "with_budget",
+           "write_budget_frontier"]
 
 FORMAT = "perfros-bag budget frontier 1"
 QUANTILES = ("p50", "p95")
@@ -196,3 +197,36 @@ def write_budget_frontier(path: str | Path, doc: dict[str, Any]) -> None:
     """The document as JSON at ``path`` and as CSV beside it (``.csv``), each written atomically."""
     atomic_write_text(Path(path).with_suffix(".csv"), budget_frontier_csv(doc))
     atomic_write_text(path, json.dumps(doc, indent=2) + "\n")
+
+
+def read_budget_frontier(path: str | Path) -> dict[str, Any]:
+    """A budget frontier document, checked field by field (the one reader): an
+    :class:`InputError` naming the broken place otherwise."""
+    from perfros_bag.fileio import read_json
+
+    doc = read_json(path)
+    if not isinstance(doc, dict) or doc.get("format") != FORMAT:
+        raise InputError(path, f"not a budget frontier (expected a JSON object with format {FORMAT!r})")
+    if not isinstance(doc.get("chain"), str) or doc.get("quantile") not in QUANTILES:
+        raise InputError(path, "budget frontier: 'chain' must be a name and 'quantile' p50 or p95")
+    points = doc.get("points")
+    if not isinstance(points, list) or not points:
+        raise InputError(path, "budget frontier: 'points' must be a non-empty list")
+    for i, p in enumerate(points):
+        where = f"budget frontier: points[{i}]"
+        if not isinstance(p, dict):
+            raise InputError(path, f"{where}: not an object")
+        if p.get("status") not in tuple(Status):
+            raise InputError(path, f"{where}.status: one of {', '.join(Status)}")
+        for key in ("budget_ms", "objective", "bound", "solve_s", "carried_from"):
+            v = p.get(key)
+            if (v is None and key != "budget_ms") or (not isinstance(v, bool) and isinstance(v, int | float)
+                                                      and math.isfinite(v)):
+                continue
+            raise InputError(path, f"{where}.{key}: not a finite number" + ("" if key == "budget_ms" else " or null"))
+        pred = p.get("predicted_ms")
+        if pred is not None and not (isinstance(pred, dict) and all(
+                q in QUANTILES and not isinstance(v, bool) and isinstance(v, int | float) and math.isfinite(v)
+                for q, v in pred.items())):
+            raise InputError(path, f"{where}.predicted_ms: an object of finite p50/p95 or null")
+    return doc
