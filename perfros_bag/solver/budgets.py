@@ -513,8 +513,8 @@ def search(system: System, problem: Problem, assignment: Assignment, choices: Ma
     3. Improvement: moves of any node that keep every constraint and budget and better the
        objective, best first, up to :data:`IMPROVE_STEPS` (a repair gives up objective that
        another node can win back: a setting raised, a server emptied).
-    4. Kicks (:func:`_kicks`): each move of a node the chains depend on, then 2 and 3 again,
-       kept when it ends better.
+    4. Kicks (:func:`_kicks`): each move of any node, then 2 and 3 again, kept when it
+       ends better.
 
     The best plan found within ``time_s`` seconds."""
     assert callable(fits)
@@ -536,16 +536,17 @@ def search(system: System, problem: Problem, assignment: Assignment, choices: Ma
 
 def _kicks(system: System, problem: Problem, best: Assignment, choices: Mapping[str, Sequence[Choice]],
            fits: Callable[[Assignment], bool], deadline: float) -> Assignment:
-    """Iterated local search: from ``best``, each move of a node a budgeted chain depends on
-    (:func:`influencers`), whether it keeps the budgets or not (a detector sent to the
-    server to make room beside another robot's), followed by the descent and the
-    improvement; the first that ends better is kept and its kicks tried in turn, until none
-    does or the deadline."""
+    """Iterated local search: from ``best``, each move of any node, whether it keeps the
+    budgets or not (a detector sent to the server, or another robot's brought home to make
+    room there), followed by the descent and the improvement; the first that ends better is
+    kept and its kicks tried in turn, until none does or the deadline. (Kicks of only the
+    nodes the budgeted chains depend on: 25 of 40 vision Problem 1 instances optimal, mean
+    ratio 0.979; of every node: 28, 0.989, 1.1 s instead of 0.7 s on average.)"""
     value = _objective(system, problem, best)
     improved = True
     while improved and time.monotonic() < deadline:
         improved = False
-        movers = influencers(system, problem, best, budgeted(system))
+        movers = [n.name for n in system.nodes]
         for kick in _neighbours(system, problem, best, movers, choices, fits):
             if time.monotonic() > deadline:
                 break
