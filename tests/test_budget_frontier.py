@@ -87,13 +87,19 @@ def test_a_p50_frontier_bounds_the_p50(tmp_path: Path) -> None:
             assert p.predicted_ms["p50"] <= p.budget_ms * (1 + 1e-6)
 
 
-def test_cli_writes_json_csv_and_png(tmp_path: Path) -> None:
+def _front(tmp_path: Path, spec: str) -> tuple[Path, Path]:
+    """system.yaml (instance 3) and the front.json of ``solve --pareto SPEC --pareto-budget vision``."""
     path = tmp_path / "system.yaml"
     path.write_text(yaml.safe_dump(_instance(3)))
     out = tmp_path / "front.json"
-    res = runner.invoke(app, ["solve", str(path), "--method", "exact", "--pareto", "::5", "--pareto-budget", "vision",
+    res = runner.invoke(app, ["solve", str(path), "--method", "exact", "--pareto", spec, "--pareto-budget", "vision",
                               "-o", str(out)])
     assert res.exit_code == 0, res.output
+    return path, out
+
+
+def test_cli_writes_json_csv_and_png(tmp_path: Path) -> None:
+    path, out = _front(tmp_path, "::5")
     doc = json.loads(out.read_text())
     assert doc["format"] == "perfros-bag budget frontier 1" and doc["chain"] == "vision" and doc["quantile"] == "p95"
     assert len(doc["points"]) == 5
@@ -144,12 +150,7 @@ def test_points_are_evenly_spaced_between_the_given_ends() -> None:
 
 
 def test_report_shows_a_budget_frontier_and_refuses_a_broken_one(tmp_path: Path) -> None:
-    path = tmp_path / "system.yaml"
-    path.write_text(yaml.safe_dump(_instance(3)))
-    front = tmp_path / "front.json"
-    res = runner.invoke(app, ["solve", str(path), "--method", "exact", "--pareto", "::4", "--pareto-budget", "vision",
-                              "-o", str(front)])
-    assert res.exit_code == 0, res.output
+    _, front = _front(tmp_path, "::4")
     out = tmp_path / "report"
     res = runner.invoke(app, ["report", "--frontier", str(front), "--out", str(out)])
     assert res.exit_code == 0, res.output

@@ -202,20 +202,12 @@ def write_budget_frontier(path: str | Path, doc: dict[str, Any]) -> None:
 def read_budget_frontier(path: str | Path) -> dict[str, Any]:
     """A budget frontier document, checked field by field (the one reader): an
     :class:`InputError` naming the broken place otherwise."""
-    from perfros_bag.fileio import read_json
+    from perfros_bag.solver.frontier import document_points
 
-    doc = read_json(path)
-    if not isinstance(doc, dict) or doc.get("format") != FORMAT:
-        raise InputError(path, f"not a budget frontier (expected a JSON object with format {FORMAT!r})")
+    doc, points = document_points(path, FORMAT, "budget frontier")
     if not isinstance(doc.get("chain"), str) or doc.get("quantile") not in QUANTILES:
         raise InputError(path, "budget frontier: 'chain' must be a name and 'quantile' p50 or p95")
-    points = doc.get("points")
-    if not isinstance(points, list) or not points:
-        raise InputError(path, "budget frontier: 'points' must be a non-empty list")
-    for i, p in enumerate(points):
-        where = f"budget frontier: points[{i}]"
-        if not isinstance(p, dict):
-            raise InputError(path, f"{where}: not an object")
+    for where, p in points:
         if p.get("status") not in tuple(Status):
             raise InputError(path, f"{where}.status: one of {', '.join(Status)}")
         for key in ("budget_ms", "objective", "bound", "solve_s", "carried_from"):
