@@ -20,7 +20,8 @@ def report(
     plan: Annotated[Path | None, typer.Option("--plan", help="plan.json from solve.")] = None,
     validation: Annotated[Path | None, typer.Option(
         "--validation", help="The JSON of validate --json.")] = None,
-    frontier: Annotated[Path | None, typer.Option("--frontier", help="frontier.json from solve --pareto.")] = None,
+    frontier: Annotated[Path | None, typer.Option(
+        "--frontier", help="frontier.json from solve --pareto (or the JSON of --pareto-budget).")] = None,
     tune: Annotated[Path | None, typer.Option("--tune", help="tune.json from tune (the loop's rounds).")] = None,
     watch: Annotated[Path | None, typer.Option(
         "--watch", help="The --out folder of watch (windows, alarms, re-plans).")] = None,

@@ -214,6 +214,11 @@ def solve(
     pareto: Annotated[str | None, typer.Option(
         "--pareto", metavar="RANGE", help="Problem 1 per total server capacity: auto, LO:HI or LO:HI:POINTS "
                                           "(-o writes frontier.json and a PNG beside it)")] = None,
+    pareto_budget: Annotated[str | None, typer.Option(
+        "--pareto-budget", metavar="CHAIN[:p50|p95]",
+        help="with --pareto: Problem 1 per latency budget of this chain (p95 by default) instead; RANGE in ms "
+             "(auto: from the least latency any plan has to the unbudgeted optimum's); -o writes the JSON, "
+             "a CSV and a PNG beside it")] = None,
 ) -> None:
     """Choose a setting and a computer for every node (the paper's Problems 1 and 2)."""
     began = time.monotonic()
@@ -244,9 +249,15 @@ def solve(
         if problem != 2:
             raise InputError(None, "--settings applies to Problem 2 (Problem 1 chooses the settings)")
         fixed = parse_settings(system, settings, resolution)
+    if pareto_budget is not None and pareto is None:
+        pareto = "auto"
     if pareto is not None:
         if problem != 1 or fixed is not None:
-            raise InputError(None, "--pareto solves Problem 1 at each server capacity (no --problem 2, no --settings)")
+            raise InputError(None, "--pareto solves Problem 1 at each server capacity or budget "
+                                   "(no --problem 2, no --settings)")
+        if pareto_budget is not None:
+            _budget_frontier(system, pareto_budget, pareto, method, resolution, time_limit, out_path, as_json, kept)
+            return
         _frontier(system, pareto, method, resolution, time_limit, out_path, as_json, kept)
         return
     try:
@@ -336,3 +347,48 @@ def _frontier(system: System, spec: str, method: str, resolution: float, time_li
     console.print(table)
     if out_path is not None and not as_json:
         out.print(f"frontier written to {out_path} and {out_path.with_suffix('.png')}", highlight=False)
+
+
+def _budget_frontier(system: System, target: str, spec: str, method: str, resolution: float,
+                     time_limit: float | None, out_path: Path | None, as_json: bool,
+                     headroom: float | str = 0.0) -> None:
+    """``--pareto RANGE --pareto-budget CHAIN[:q]``: Problem 1 at each budget of the chain;
+    a table, the document (``--json`` / ``-o``) and, with ``-o``, a CSV and a PNG beside it."""
+    from perfros_bag.fileio import atomic_open
+    from perfros_bag.report.frontier_plots import plot_budget_frontier
+    from perfros_bag.solver.budget_frontier import (
+        budget_frontier,
+        budget_frontier_document,
+        parse_target,
+        write_budget_frontier,
+    )
+    from perfros_bag.solver.frontier import parse_range
+
+    chain, quantile = parse_target(system, target)
+    low, high, points = parse_range(spec)
+    found = budget_frontier(system, chain, quantile, low=low, high=high, points=points, resolution=resolution,
+                            method=method, time_limit=time_limit, headroom=headroom)
+    doc = budget_frontier_document(system, chain, quantile, found, method, headroom)
+    if out_path is not None:
+        png = plot_budget_frontier(doc)
+        write_budget_frontier(out_path, doc)
+        with atomic_open(out_path.with_suffix(".png"), "wb", encoding=None) as fh:
+            fh.write(png)
+    if as_json:
+        from perfros_bag.fileio import json_text  # strict: no NaN/Infinity
+
+        print(json_text(doc, indent=2))
+    table = Table(title=f"Problem 1 per {quantile} budget of chain {escape(chain.name)} · {method}",
+                  title_justify="left")
+    for col in (f"{quantile} budget ms", "Σ w·P", "bound", "predicted p50", "predicted p95", "status", "s"):
+        table.add_column(col, justify="left" if col == "status" else "right")
+    for p in found:
+        pred = p.predicted_ms or {}
+        status = str(p.status) if p.carried_from is None else f"{p.status} (plan of {_num(p.carried_from, 1)} ms)"
+        table.add_row(_num(p.budget_ms, 1), _num(p.objective, 4), _num(p.bound, 4), _num(pred.get("p50"), 1),
+                      _num(pred.get("p95"), 1), status, f"{p.solve_s:.2f}")
+    console = err if as_json else out
+    console.print(table)
+    if out_path is not None and not as_json:
+        out.print(f"frontier written to {out_path}, {out_path.with_suffix('.csv')} and "
+                  f"{out_path.with_suffix('.png')}", highlight=False)

@@ -29,7 +29,7 @@ from perfros_bag.fileio import (
 from perfros_bag.fitting.modelfile import FittedRelation, read_model
 from perfros_bag.limits import tree_problem
 from perfros_bag.report.fit_plots import plot_relations
-from perfros_bag.report.frontier_plots import plot_frontier
+from perfros_bag.report.frontier_plots import plot_budget_frontier, plot_frontier
 from perfros_bag.report.plan_plots import plot_plan_loads
 from perfros_bag.report.validation_plots import number, plot_validation
 from perfros_bag.system.latency import budget_text
@@ -376,6 +376,39 @@ def section_frontier(doc: dict[str, Any], images: list[Image]) -> str:
             f"{gains}{_img(img)}{tab}")
 
 
+#: solve --pareto-budget's document format (perfros_bag.solver.budget_frontier.FORMAT)
+BUDGET_FORMAT = "perfros-bag budget frontier 1"
+
+
+def read_any_frontier(path: str | Path) -> dict[str, Any]:
+    """``--frontier``: a frontier.json of ``solve --pareto`` or a budget frontier of
+    ``--pareto-budget``, by its ``format``, each checked by its own reader."""
+    from perfros_bag.fileio import read_json
+    from perfros_bag.solver.budget_frontier import read_budget_frontier
+    from perfros_bag.solver.frontier import read_frontier
+
+    doc = read_json(path)
+    if isinstance(doc, dict) and doc.get("format") == BUDGET_FORMAT:
+        return read_budget_frontier(path)
+    return read_frontier(path)
+
+
+def section_budget_frontier(doc: dict[str, Any], images: list[Image]) -> str:
+    """Performance per latency budget of a chain (``solve --pareto-budget``): the plot and the points."""
+    q = doc["quantile"]
+    rows = []
+    for p in doc["points"]:
+        pred = p.get("predicted_ms") or {}
+        rows.append((p["budget_ms"], p["objective"], p["bound"], pred.get("p50"), pred.get("p95"), p["status"]))
+    img = Image("budget_frontier.png", plot_budget_frontier(doc), f"Σ w·P per {q} budget of chain {doc['chain']}")
+    images.append(img)
+    tab = table((f"{q} budget ms", "Σ w·P", "bound", "predicted p50 ms", "predicted p95 ms", "status"), rows,
+                text_cols=(5,), table_id="budget-frontier-points")
+    return (f'<h2 id="budget-frontier">What latency costs: chain {esc(doc["chain"])}</h2>'
+            f'<p class="muted">{esc(" -> ".join(map(str, doc.get("topics", []))))}; {esc(q)} budget; '
+            f'method {esc(doc.get("method"))}</p>{_img(img)}{tab}')
+
+
 def section_tune(doc: dict[str, Any], images: list[Image]) -> str:
     """The tuning loop (``tune``, tune.json): per round the values deployed, expected vs
     measured Σ w·P, and per node planned vs measured CPU with the fit before and after."""
@@ -437,7 +470,6 @@ def build_report(out_dir: str | Path, *, characterisation: str | Path | None = N
                  title: str = "perfros-bag report") -> Path:
     """Write ``out_dir/index.html`` and its PNGs; returns the page's path. Inputs are read
     (and checked) before anything is written."""
-    from perfros_bag.solver.frontier import read_frontier
     from perfros_bag.system.planfile import load_plan
     from perfros_bag.tune.tunefile import read_tune
 
@@ -445,7 +477,7 @@ def build_report(out_dir: str | Path, *, characterisation: str | Path | None = N
     fits = read_model(model).fits if model is not None else None
     the_plan = load_plan(plan) if plan is not None else None
     val = read_validation(validation) if validation is not None else None
-    front = read_frontier(frontier) if frontier is not None else None
+    front = read_any_frontier(frontier) if frontier is not None else None
     tuned = read_tune(tune) if tune is not None else None
     watched = None
     if watch is not None:
@@ -460,7 +492,8 @@ def build_report(out_dir: str | Path, *, characterisation: str | Path | None = N
     if val is not None:
         sections.append(section_validation(val, images))
     if front is not None:
-        sections.append(section_frontier(front, images))
+        budget = front.get("format") == BUDGET_FORMAT
+        sections.append(section_budget_frontier(front, images) if budget else section_frontier(front, images))
     if tuned is not None and tuned["rounds"]:
         sections.append(section_tune(tuned, images))
     if watched is not None and watched["windows"]:

@@ -24,7 +24,8 @@ from __future__ import annotations
 
 import itertools
 import math
-from collections.abc import Callable, Mapping, Sequence
+import time
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 
 from perfros_bag.system.latency import (
@@ -227,7 +228,7 @@ def repair(system: System, problem: Problem, assignment: Assignment, fits: objec
     return None if best is None else best[1]
 
 
-def fits_model(system: System, problem: Problem, capacities: Mapping[str, float]) -> object:
+def fits_model(system: System, problem: Problem, capacities: Mapping[str, float]) -> Callable[[Assignment], bool]:
     """``fits(assignment)``: CPU (eq 3), residence, coresidence and network (eq 4) hold."""
     def fits(a: Assignment) -> bool:
         load = computer_loads(system, a.placement, a.choice)
@@ -269,22 +270,35 @@ def _same(a: float | None, b: float | None) -> bool:
 
 def within_budgets(system: System, problem: Problem, choices: Mapping[str, Sequence[Choice]],
                    plan: Plan, method: str) -> Plan:
-    """A heuristic's plan when it keeps every budget; else the best re-placement of the
-    broken chains' nodes (:func:`repair`), else a descent over their settings and computers
-    (:func:`descend`), rebuilt as a plan; else an infeasible plan naming the chain."""
+    """A heuristic's plan when it keeps every budget; else, for greedy, the best
+    re-placement of the broken chains' nodes (:func:`repair`), else a descent over their
+    settings and computers (:func:`descend`); for greedy+, :func:`search` (both of those
+    widened to every node the broken chains' latency depends on, then improved); rebuilt as a
+    plan; else an infeasible plan naming the chain."""
     if plan.status == Status.INFEASIBLE or not budgeted(system):
         return plan
     assignment = assignment_of(plan, choices)
     if assignment is None:  # pragma: no cover - every solver plans one of the choices it was given
         raise AssertionError("the plan's choices are not the solver's")
-    if violation(system, problem, assignment) is None:
-        return plan
     fits = fits_model(system, problem, system.capacities(problem))
-    fixed = repair(system, problem, assignment, fits) or descend(system, problem, assignment, choices, fits)
+    if violation(system, problem, assignment) is None:
+        if method != Method.GREEDY_PLUS:
+            return plan
+        deadline = time.monotonic() + SEARCH_S
+        better = _kicks(system, problem, _improve(system, problem, assignment, choices, fits, deadline), choices,
+                        fits, deadline)
+        if _objective(system, problem, better) <= _objective(system, problem, assignment) + 1e-9:
+            return plan
+        return build_plan(system, better, problem=problem, method=method, status=Status.FEASIBLE)
+    if method == Method.GREEDY_PLUS:
+        fixed = search(system, problem, assignment, choices, fits)
+    else:
+        fixed = repair(system, problem, assignment, fits) or descend(system, problem, assignment, choices, fits)
     if fixed is None:
         why = violation(system, problem, assignment)
+        tried = "the chain's nodes" if method != Method.GREEDY_PLUS else "the nodes its latency depends on"
         return Plan.infeasible(problem, method, f"{method}'s plan breaks a latency budget ({why}) and no change of "
-                               "the chain's nodes it tried keeps it: --method exact searches every plan",
+                               f"{tried} it tried keeps it: --method exact searches every plan",
                                system=system.source)
     return build_plan(system, fixed, problem=problem, method=method, status=Status.FEASIBLE)
 
@@ -405,3 +419,205 @@ def restate_chains(system: System, plan: Plan) -> None:
     node needs less or a computer holds more, so a plan that kept its budgets keeps them."""
     if system.chains and plan.status != Status.INFEASIBLE:
         plan.chains = [p.to_dict() for p in plan_predictions(system, plan, warn=False)]
+
+
+#: greedy+'s budget search (:func:`search`): seconds it may take in all
+SEARCH_S = 5.0
+#: ... pairs of moves it tries in one step when no single move lowers the excess
+PAIR_LIMIT = 20_000
+#: ... improving moves it makes once every budget holds
+IMPROVE_STEPS = 200
+
+
+def influencers(system: System, problem: Problem, assignment: Assignment, chains: Sequence[Chain]) -> list[str]:
+    """The nodes whose choice or computer the ``chains``' predicted latency depends on in
+    ``assignment``: the nodes of their no-good cuts (:func:`cut_of`: the hop nodes, their
+    inputs' publishers, every node on a hop computer, the ends of every edge crossing a hop's
+    route; in Problem 2 also every node that may join a hop's server, which, sized to its
+    new load, can speed the hop up), in node order."""
+    named = {t.node for c in chains for t in cut_of(system, problem, assignment, c)}
+    return [n.name for n in system.nodes if n.name in named]
+
+
+def _group_of(system: System) -> dict[str, tuple[tuple[str, ...], tuple[str, ...]]]:
+    """node -> (its coresidence group, the computers all of it may use)."""
+    return {n: (g, comps) for g, comps in zip(system.coresidence_groups, system.group_computers, strict=True)
+            for n in g}
+
+
+def _neighbours(system: System, problem: Problem, current: Assignment, nodes: Sequence[str],
+                choices: Mapping[str, Sequence[Choice]], fits: Callable[[Assignment], bool]) -> Iterator[Assignment]:
+    """Every assignment one move away that fits: one of ``nodes`` at another (choice,
+    computer), its coresidence group moving with it, the nodes it drives following its new
+    rate (:func:`_with_children`)."""
+    groups = _group_of(system)
+    for n in nodes:
+        group, comps = groups[n]
+        for ch in choices[n]:
+            if system.node[n].driven and ch.input_hz != current.choice[n].input_hz:
+                continue  # its rate follows its input
+            for chosen in _with_children(system, current.choice, n, ch, choices):
+                for comp in comps:
+                    if comp == current.placement[n] and chosen == current.choice:
+                        continue
+                    placement = {**current.placement, **dict.fromkeys(group, comp)}
+                    caps = server_sizes(system, placement, chosen) if problem == Problem.SERVER_CAPACITY else {}
+                    cand = Assignment(placement, chosen, caps)
+                    if fits(cand):
+                        yield cand
+
+
+#: a move of a publisher's choice re-picks the settings of the nodes it drives, at most this many combinations
+CHILD_COMBOS = 64
+
+
+def _with_children(system: System, choice: Mapping[str, Choice], node: str, ch: Choice,
+                   choices: Mapping[str, Sequence[Choice]]) -> list[dict[str, Choice]]:
+    """``choice`` with ``node`` at ``ch`` and the rates downstream following it: the nodes it
+    drives at their own settings, and, when its rate changes, also at each other combination
+    of their settings (at most :data:`CHILD_COMBOS`: a faster camera fits only with a
+    cheaper detector)."""
+    if ch == choice[node]:
+        return [dict(choice)]
+    base = with_flow(system, {**choice, node: ch}, choices)
+    out = [] if base is None else [base]
+    children = [m for m in system.flow_order if system.flow_parent.get(m) == node]
+    if not children or base is None or all(base[m] == choice[m] for m in children):
+        return out
+    own = [sorted({c.setting for c in choices[m] if c.setting is not None}) for m in children]
+    if math.prod(len(o) for o in own) > CHILD_COMBOS:
+        return out
+    for combo in itertools.product(*own):
+        if all(base[m].setting == k for m, k in zip(children, combo, strict=True)):
+            continue
+        start = dict(base)
+        for m, k in zip(children, combo, strict=True):
+            start[m] = next(c for c in choices[m] if c.setting == k)
+        got = with_flow(system, start, choices)
+        if got is not None:
+            out.append(got)
+    return out
+
+
+def search(system: System, problem: Problem, assignment: Assignment, choices: Mapping[str, Sequence[Choice]],
+           fits: object, time_s: float = SEARCH_S) -> Assignment | None:
+    """greedy+ under budgets: a plan within every budget near ``assignment``, or None.
+
+    1. Start points: ``assignment`` and :func:`repair`'s re-placement of the broken chains'
+       nodes (when it finds one).
+    2. Descent on the budgets' excess: each step takes the move (:func:`_neighbours`) of a
+       node the broken chains depend on (:func:`influencers`: not only their hop nodes but
+       the nodes beside them, whose CPU slows them, and the traffic on their routes) that
+       leaves the least excess (ties: the best objective); when no single move lowers it,
+       the best pair of such moves (at most :data:`PAIR_LIMIT`).
+    3. Improvement: moves of any node that keep every constraint and budget and better the
+       objective, best first, up to :data:`IMPROVE_STEPS` (a repair gives up objective that
+       another node can win back: a setting raised, a server emptied).
+    4. Kicks (:func:`_kicks`): each move of any node, then 2 and 3 again, kept when it
+       ends better.
+
+    The best plan found within ``time_s`` seconds."""
+    assert callable(fits)
+    deadline = time.monotonic() + time_s
+    starts = [assignment]
+    fixed = repair(system, problem, assignment, fits)
+    if fixed is not None:
+        starts.insert(0, fixed)
+    best: Assignment | None = None
+    for start in starts:
+        found = _descend_wide(system, problem, start, choices, fits, deadline)
+        if found is None:
+            continue
+        found = _improve(system, problem, found, choices, fits, deadline)
+        if best is None or _objective(system, problem, found) > _objective(system, problem, best) + 1e-9:
+            best = found
+    return best if best is None else _kicks(system, problem, best, choices, fits, deadline)
+
+
+def _kicks(system: System, problem: Problem, best: Assignment, choices: Mapping[str, Sequence[Choice]],
+           fits: Callable[[Assignment], bool], deadline: float) -> Assignment:
+    """Iterated local search: from ``best``, each move of any node, whether it keeps the
+    budgets or not (a detector sent to the server, or another robot's brought home to make
+    room there), followed by the descent and the improvement; the first that ends better is
+    kept and its kicks tried in turn, until none does or the deadline. (Kicks of only the
+    nodes the budgeted chains depend on: 25 of 40 vision Problem 1 instances optimal, mean
+    ratio 0.979; of every node: 28, 0.989, 1.1 s instead of 0.7 s on average.)"""
+    value = _objective(system, problem, best)
+    improved = True
+    while improved and time.monotonic() < deadline:
+        improved = False
+        movers = [n.name for n in system.nodes]
+        for kick in _neighbours(system, problem, best, movers, choices, fits):
+            if time.monotonic() > deadline:
+                break
+            found = _descend_wide(system, problem, kick, choices, fits, deadline)
+            if found is None:
+                continue
+            found = _improve(system, problem, found, choices, fits, deadline)
+            got = _objective(system, problem, found)
+            if got > value + 1e-9 and violation(system, problem, found) is None:
+                best, value, improved = found, got, True
+                break
+    return best
+
+
+def _descend_wide(system: System, problem: Problem, current: Assignment, choices: Mapping[str, Sequence[Choice]],
+                  fits: Callable[[Assignment], bool], deadline: float) -> Assignment | None:
+    now = excess(system, problem, current)
+    while now > 0:
+        if time.monotonic() > deadline:
+            return None
+        movers = influencers(system, problem, current, broken_chains(system, problem, current))
+        best: tuple[float, float, Assignment] | None = None
+        for cand in _neighbours(system, problem, current, movers, choices, fits):
+            key = (excess(system, problem, cand), -_objective(system, problem, cand))
+            if key[0] < now - 1e-9 and (best is None or key < best[:2]):
+                best = (key[0], key[1], cand)
+            if time.monotonic() > deadline:
+                return None
+        if best is None:
+            best = _best_pair(system, problem, current, movers, choices, fits, now, deadline)
+        if best is None:
+            return None
+        now, current = best[0], best[2]
+    return current
+
+
+def _best_pair(system: System, problem: Problem, current: Assignment, movers: Sequence[str],
+               choices: Mapping[str, Sequence[Choice]], fits: Callable[[Assignment], bool], now: float,
+               deadline: float) -> tuple[float, float, Assignment] | None:
+    """The best two moves, the first of ``movers``, the second of any node, that lower the
+    excess below ``now`` together (the first may not, nor fit alone: it is half of a swap, or
+    the second makes room for it), at most :data:`PAIR_LIMIT` pairs."""
+    best: tuple[float, float, Assignment] | None = None
+    tried = 0
+    everyone = [n.name for n in system.nodes]
+    for first in _neighbours(system, problem, current, movers, choices, lambda _: True):
+        for cand in _neighbours(system, problem, first, everyone, choices, fits):
+            tried += 1
+            key = (excess(system, problem, cand), -_objective(system, problem, cand))
+            if key[0] < now - 1e-9 and (best is None or key < best[:2]):
+                best = (key[0], key[1], cand)
+            if tried >= PAIR_LIMIT or time.monotonic() > deadline:
+                return best
+    return best
+
+
+def _improve(system: System, problem: Problem, current: Assignment, choices: Mapping[str, Sequence[Choice]],
+             fits: Callable[[Assignment], bool], deadline: float) -> Assignment:
+    value = _objective(system, problem, current)
+    nodes = [n.name for n in system.nodes]
+    for _ in range(IMPROVE_STEPS):
+        best: tuple[float, Assignment] | None = None
+        for cand in _neighbours(system, problem, current, nodes, choices, fits):
+            got = _objective(system, problem, cand)
+            if got > (value if best is None else best[0]) + 1e-9 and violation(system, problem, cand) is None:
+                best = (got, cand)
+            if time.monotonic() > deadline:
+                break
+        if best is None:
+            return current
+        value, current = best
+        if time.monotonic() > deadline:
+            break
+    return current

@@ -340,11 +340,12 @@ def _chain_ms(system: System, plan: Plan, chain_topics: tuple[str, ...], where: 
             return f"hop {a} -> {b}: {node} gets no CPU"
         rho = lam * busy
         service = lat.service_scale.get(node, 1.0) * busy
-        # periodic input: a message finds the node idle below rho 1; above, the drop-oldest queue
-        # is full when the node takes its oldest: it waited queue_size - 1 periods and part of one
-        # (and the backlog_msgs the socket buffers hold ahead of that queue)
+        # periodic input: a message finds the node idle up to rho 1 (at 1 within rounding: a node
+        # getting exactly its planned CPU, a sized server); above, the drop-oldest queue is full
+        # when the node takes its oldest: it waited queue_size - 1 periods and part of one (and
+        # the backlog_msgs the socket buffers hold ahead of that queue)
         w50 = w95 = 0.0
-        if rho >= 1:
+        if rho > 1 + 1e-9:
             full = lat.queue_size + lat.backlog_msgs
             w50 = min((full - 0.5) / lam, full * service)
             w95 = min((full - 0.05) / lam, full * service)

@@ -52,8 +52,9 @@ from perfros_bag.solver.local import combine_tables
 from perfros_bag.system.plan import Status
 from perfros_bag.system.types import Problem, System
 
-__all__ = ["DEFAULT_POINTS", "FORMAT", "FrontierPoint", "capacity_range", "frontier", "frontier_document",
-           "frontier_values", "monotone", "parse_range", "read_frontier", "with_server_capacity", "write_frontier"]
+__all__ = ["DEFAULT_POINTS", "FORMAT", "FrontierPoint", "capacity_range", "document_points", "frontier",
+           "frontier_document", "frontier_values", "monotone", "parse_range", "read_frontier", "with_server_capacity",
+           "write_frontier"]
 
 FORMAT = "perfros-bag frontier 1"
 
@@ -336,19 +337,30 @@ def write_frontier(path: str | Path, doc: dict[str, Any]) -> None:
     atomic_write_text(path, json.dumps(doc, indent=2) + "\n")
 
 
+def document_points(path: str | Path, fmt: str, what: str) -> tuple[dict[str, Any], list[tuple[str, dict[str, Any]]]]:
+    """A frontier-like document (``format`` ``fmt``, a non-empty list of ``points``, each an
+    object) and its points, each with its place for messages (``<what>: points[i]``); an
+    :class:`InputError` otherwise. Each reader checks its points' own fields."""
+    doc = read_json(path)
+    if not isinstance(doc, dict) or doc.get("format") != fmt:
+        raise InputError(path, f"not a {what} (expected a JSON object with format {fmt!r})")
+    points = doc.get("points")
+    if not isinstance(points, list) or not points:
+        raise InputError(path, f"{what}: 'points' must be a non-empty list")
+    out = []
+    for i, p in enumerate(points):
+        where = f"{what}: points[{i}]"
+        if not isinstance(p, dict):
+            raise InputError(path, f"{where}: not an object")
+        out.append((where, p))
+    return doc, out
+
+
 def read_frontier(path: str | Path) -> dict[str, Any]:
     """frontier.json, checked field by field (the one reader): an :class:`InputError` naming
     the broken place otherwise."""
-    doc = read_json(path)
-    if not isinstance(doc, dict) or doc.get("format") != FORMAT:
-        raise InputError(path, f"not a frontier (expected a JSON object with format {FORMAT!r})")
-    points = doc.get("points")
-    if not isinstance(points, list) or not points:
-        raise InputError(path, "frontier: 'points' must be a non-empty list")
-    for i, p in enumerate(points):
-        where = f"frontier: points[{i}]"
-        if not isinstance(p, dict):
-            raise InputError(path, f"{where}: not an object")
+    doc, points = document_points(path, FORMAT, "frontier")
+    for where, p in points:
         cap = p.get("server_capacity")
         if isinstance(cap, bool) or not isinstance(cap, int | float) or not math.isfinite(cap):
             raise InputError(path, f"{where}.server_capacity: not a finite number")

@@ -18,9 +18,10 @@ per second from its input's publisher ``m`` on computer ``c_m`` (docs/solvers.md
   shares its CPU). ``scale_n`` (fitted; 1 by default) turns CPU time into wall time.
 * **wait** in its queue. The hop's input arrives periodically (every ``T = 1 / lam``: a
   chain starts at a timer-driven source, and each hop passes its input's period on), so the
-  queue is D/D/1, not M/D/1: at utilisation ``rho = lam x w / v < 1`` a message finds the node
-  idle and waits 0. At ``rho >= 1`` the node is always busy and ROS's drop-oldest queue of
-  ``queue_size`` messages is full whenever it takes one, and so are the socket buffers ahead
+  queue is D/D/1, not M/D/1: at utilisation ``rho = lam x w / v <= 1`` a message finds the node
+  idle (at exactly 1, just freed: a node that gets exactly its planned CPU, as on a Problem 2
+  server sized to its load, within rounding) and waits 0. Above 1 the node is always busy and
+  ROS's drop-oldest queue of ``queue_size`` messages is full whenever it takes one, and so are the socket buffers ahead
   of it, which hold ``backlog_msgs`` more (first in, first out: the throttled node's own
   receive thread drains them; measured ~2 of 230 kB frames). The node takes the oldest of the
   ``H = queue_size + backlog_msgs`` newest arrivals, so a delivered message waits
@@ -63,6 +64,9 @@ if TYPE_CHECKING:
 
 #: a link or medium's utilisation is taken as at most this (a forced plan may overload one)
 MAX_UTILISATION = 0.99
+#: a node's utilisation up to this is not over 1: a node that gets exactly its planned CPU (a
+#: Problem 2 server sized to its load) computes to 1 within rounding, either side of it
+SATURATED = 1 + 1e-9
 
 
 @dataclass(frozen=True)
@@ -174,12 +178,13 @@ def wait_quantile(mean_wait: float, rho: float, q: float) -> float:
 
 def queue_wait(service_s: float, rho: float, params: LatencyParams, q: float, period_s: float) -> float:
     """Seconds a message waits for the node (quantile ``q``) when its input arrives every
-    ``period_s``: 0 below ``rho`` 1 (D/D/1: a periodic message finds the node idle); at ``rho
-    >= 1`` ROS's drop-oldest queue and the ``backlog_msgs`` ahead of it are full when the node
+    ``period_s``: 0 up to ``rho`` 1 (D/D/1: a periodic message finds the node idle, or just
+    freed at exactly 1, as on a Problem 2 server sized to its load; :data:`SATURATED`); above
+    ROS's drop-oldest queue and the ``backlog_msgs`` ahead of it are full when the node
     takes its oldest message, so it waited ``queue_size + backlog_msgs - 1`` periods and the
     rest of one (uniform: quantile ``q``); never more than ``(queue_size + backlog_msgs) x
     service_s``."""
-    if rho < 1:
+    if rho <= SATURATED:
         return 0.0
     held = params.queue_size + params.backlog_msgs
     return min((held - 1 + q) * period_s, held * service_s)
