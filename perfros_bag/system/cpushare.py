@@ -45,6 +45,11 @@ class Demand:
     max_units: float = math.inf  # the most its threads can run (threads x units per core)
 
 
+def _slices(d: Demand, sustained: bool) -> float:
+    """A demand's weight in the share: its busy threads in a burst, one when sustained."""
+    return 1.0 if sustained else max(1.0, d.threads)
+
+
 def fair_shares(capacity: float, demands: Sequence[Demand], *, sustained: bool = False) -> dict[str, float]:
     """Each demand's CPU share on a computer of ``capacity`` (the module's rule): threads
     as slices, or one slice per node when ``sustained``."""
@@ -53,7 +58,7 @@ def fair_shares(capacity: float, demands: Sequence[Demand], *, sustained: bool =
         raise ValueError("fair_shares: demand names must be unique")
     if sum(want.values()) <= capacity:
         return want
-    weight = {d.name: 1.0 if sustained else max(1.0, d.threads) for d in demands}
+    weight = {d.name: _slices(d, sustained) for d in demands}
     # satisfy the demands in the order of their need per slice; the rest share the level
     order = sorted(want, key=lambda n: want[n] / weight[n])
     left, w_left = max(0.0, capacity), sum(weight.values())
@@ -74,6 +79,6 @@ def fair_shares(capacity: float, demands: Sequence[Demand], *, sustained: bool =
 def share_level(capacity: float, demands: Sequence[Demand], *, sustained: bool = False) -> float:
     """The per-slice level L of the rule (``inf`` when every need fits)."""
     shares = fair_shares(capacity, demands, sustained=sustained)
-    capped = [shares[d.name] / (1.0 if sustained else max(1.0, d.threads)) for d in demands
+    capped = [shares[d.name] / _slices(d, sustained) for d in demands
               if shares[d.name] < max(0.0, min(d.need, d.max_units))]
     return max(capped) if capped else math.inf

@@ -110,14 +110,6 @@ def planned_settings(plan: Plan, system: System | None) -> tuple[dict[str, Setti
     return out, notes
 
 
-def node_threads(plan: Plan, system: System | None) -> dict[str, float]:
-    """Each plan node's busy threads at its planned value (system.yaml ``threads`` of its
-    setting, else of the node; 1 without)."""
-    if system is None:
-        return {}
-    return {name: system.node[name].threads_at(pn.value) for name, pn in plan.nodes.items() if name in system.node}
-
-
 def overloaded_capacities(plan: Plan, system: System | None) -> dict[str, float]:
     """The capacity each planned computer has: the system's (the robot it runs on) when it
     gives one, else the plan's."""
@@ -139,7 +131,6 @@ def predict_kept(plan: Plan, system: System | None, capacities: Mapping[str, flo
     parent = {n: system.flow_parent[n] for n in settings} if system is not None else {}
     parent = {n: p for n, p in parent.items() if p in plan.nodes}
     inputs = {n: float(plan.nodes[n].input_hz or 0.0) for n in settings}
-    threads = node_threads(plan, system)
 
     def topic_rates(name: str) -> dict[str, float]:
         return {t: r.frequency_hz for t, r in plan.nodes[name].topics.items() if r.frequency_hz is not None}
@@ -161,7 +152,7 @@ def predict_kept(plan: Plan, system: System | None, capacities: Mapping[str, flo
         demands: dict[str, list[Demand]] = {}
         for name, pn in plan.nodes.items():
             load[pn.computer] = load.get(pn.computer, 0.0) + need[name]
-            demands.setdefault(pn.computer, []).append(Demand(name, need[name], threads.get(name, 1.0)))
+            demands.setdefault(pn.computer, []).append(Demand(name, need[name]))  # one slice each: sustained
         factor = {}
         for comp, ds in demands.items():
             cap = capacities.get(comp)
