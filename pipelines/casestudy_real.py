@@ -256,7 +256,17 @@ def instance_system(inst: Instance, draft: dict[str, Any], budget: dict[str, flo
                       for k, b in enumerate(inst.link_kBps, 1)],
             **({"media": [{"name": "wifi", "bandwidth_kBps": inst.wifi_kBps}]} if inst.wifi_kBps else {}),
             "nodes": nodes, "edges": edges,
-            "chains": instance_chains(robots, draft, inst.number in budgeted, budget)}
+            "chains": instance_chains(robots, draft, inst.number in budgeted, budget),
+            # deploy's computers are CFS-capped cgroups of this period: the latency model's
+            # head start of a node that finds its cgroup idle (docs/solvers.md, "Latency")
+            "latency": {"cfs_period_ms": cfs_period_ms()}}
+
+
+def cfs_period_ms() -> float:
+    """The CFS bandwidth period deploy's cgroups use here (PERFROS_CFS_PERIOD_US or 10 ms), in ms."""
+    from perfros_bag.rosrun.cgroups import default_period_us
+
+    return default_period_us() / 1000.0
 
 
 def instance_csv(rows: list[dict[str, str]], robots: int) -> list[dict[str, str]]:

@@ -63,14 +63,16 @@ def quantile(xs: list[float], q: float) -> float:
     return xs[lo] + (xs[hi] - xs[lo]) * (k - lo)
 
 
-def _system(rate: float, work_units: float, capacity: float, queue_size: int, backlog: float) -> System:
+def _system(rate: float, work_units: float, capacity: float, queue_size: int, backlog: float,
+            cfs_period_ms: float = 0) -> System:
     return parse_system(yaml.safe_load(f"""
 computers:
   - {{name: source, kind: robot, capacity: 100}}
   - {{name: box, kind: server, capacity: {capacity}}}
 links:
   - {{between: [source, box], bandwidth_kBps: 1.0e+12}}
-latency: {{overhead_ms: 0, p95_ratio: 1.0, queue_size: {queue_size}, backlog_msgs: {backlog}}}
+latency: {{overhead_ms: 0, p95_ratio: 1.0, queue_size: {queue_size}, backlog_msgs: {backlog},
+          cfs_period_ms: {cfs_period_ms}}}
 nodes:
   - name: camera
     weight: 0.5
@@ -134,3 +136,40 @@ def test_the_old_m_d_1_wait_is_what_the_simulation_refutes() -> None:
     md1_p95 = mean / rho * math.log(rho / 0.05)
     lat = simulate(1 / rate, work / 100, capacity / 100 * CFS_PERIOD, CFS_PERIOD, 1)
     assert quantile(lat, 0.95) <= s + CFS_PERIOD < s + md1_p95 - 10 * CFS_PERIOD
+
+
+def _node_p50(rate: float, work: float, capacity: float, queue_size: int, backlog: int, cfs_period_ms: float) -> float:
+    system = _system(rate, work, capacity, queue_size, backlog, cfs_period_ms)
+    choice = {"camera": system.node["camera"].choices()[0],
+              "node": system.driven_choice(system.node["node"], 0, rate)}
+    hop = predict_chain(system, system.chains[0], {"camera": "source", "node": "box"}, choice,
+                        {"source": 100, "box": capacity}).hops[0]
+    return hop.service_ms + hop.wait_ms
+
+
+# below utilisation 1 (the CASES above, and the case study's smoothing: 1.42 units x s per
+# frame at 5.7 Hz on a 15-unit robot; a light node; a 45-unit server at 3 Hz)
+IDLE_CASES = [c for c in CASES if c[0] * c[1] < c[2]] + [(5.7, 1.42, 15, 1, 2), (5.7, 0.6, 15, 1, 2),
+                                                         (3.0, 3.0, 45, 1, 2)]
+
+
+@pytest.mark.parametrize(("rate", "work", "capacity", "queue_size", "backlog"), IDLE_CASES)
+def test_a_capped_node_that_finds_its_cgroup_idle_ends_one_period_sooner(
+        rate: float, work: float, capacity: float, queue_size: int, backlog: int) -> None:
+    """With ``cfs_period_ms`` (the computers are CFS-capped cgroups) the model's p50 is within
+    half a CFS period of the simulation below utilisation 1, and closer than the fluid rule
+    (``cfs_period_ms`` 0), which runs the node at its share all along and so ends later."""
+    lat = simulate(1 / rate, work / 100, capacity / 100 * CFS_PERIOD, CFS_PERIOD, queue_size + backlog)
+    sim = 1000 * quantile(lat, 0.5)
+    quick = _node_p50(rate, work, capacity, queue_size, backlog, 1000 * CFS_PERIOD)
+    fluid = _node_p50(rate, work, capacity, queue_size, backlog, 0)
+    assert quick == pytest.approx(sim, abs=0.5 * 1000 * CFS_PERIOD)
+    assert abs(quick - sim) < abs(fluid - sim)
+    assert fluid - quick == pytest.approx(1000 * CFS_PERIOD)  # one period, as the rule says
+
+
+def test_a_node_that_runs_uncapped_or_saturated_gets_no_head_start() -> None:
+    """Where the node runs at its threads' speed (the cap is above it) or above utilisation 1
+    (no quota left at any period's start), the period changes nothing."""
+    for rate, work, capacity in ((5.0, 1.5, 150), (9.963, 3.0, 20)):
+        assert _node_p50(rate, work, capacity, 1, 2, 10) == _node_p50(rate, work, capacity, 1, 2, 0)

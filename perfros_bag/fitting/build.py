@@ -17,6 +17,7 @@ from __future__ import annotations
 import copy
 import math
 import warnings
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Protocol, TypeVar
@@ -751,12 +752,31 @@ def _grid_settings(node: Node, fits: dict[str, FittedRelation], means: dict[str,
         fit = fits.get(rel)
         if fit is None:
             return means.get(rel)
-        return max(0.0, fit.curve(min(max(v, fit.domain[0]), fit.domain[1])))
+        lo_y, hi_y = bracket(fit.points, v)
+        return max(0.0, min(max(fit.curve(min(max(v, fit.domain[0]), fit.domain[1])), lo_y), hi_y))
 
     return [DrivenSetting(v, "grid", at("parameter->cpu_base", v) or 0.0, at("parameter->cpu_per_hz", v) or 0.0,
                           min(at("parameter->performance", v) or 0.0, max_perf),
                           at("parameter->out_per_in", v), at("parameter->bytes_per_msg", v))
             for v in values]
+
+
+def bracket(points: Sequence[tuple[float, float]], v: float) -> tuple[float, float]:
+    """The range a curve's value at ``v`` is held to: between the (mean) measured numbers at
+    the nearest measured values either side of ``v`` (both at ``v`` itself when measured
+    there; unbounded on a side with none). A value never measured costs no less than the
+    cheaper of its measured neighbours and no more than the dearer: a curve that dips between
+    two measurements (a fit through a steep drop) is not taken at its word where the solver
+    would favour it most (docs/solvers.md, "Values never measured")."""
+    at: dict[float, list[float]] = {}
+    for x, y in points:
+        at.setdefault(float(x), []).append(float(y))
+    below = [x for x in at if x <= v]
+    above = [x for x in at if x >= v]
+    if not below or not above:
+        return -math.inf, math.inf
+    ys = [sum(at[x]) / len(at[x]) for x in (max(below), min(above))]
+    return min(ys), max(ys)
 
 
 def _setting_json(d: DrivenSetting, cap: float | None, step: str | None = None) -> dict[str, Any]:

@@ -339,7 +339,15 @@ def _chain_ms(system: System, plan: Plan, chain_topics: tuple[str, ...], where: 
         if busy is None:
             return f"hop {a} -> {b}: {node} gets no CPU"
         rho = lam * busy
-        service = lat.service_scale.get(node, 1.0) * busy
+        # a CFS-capped computer: an idle cgroup's first quota runs at once and the last ends
+        # part-way into its period, one period sooner on average; never below the node's
+        # time at its threads' speed, and not when saturated (no quota left over)
+        quick = pn.cpu / lam / (_threads(system.node[node], pn.value) * lat.units_per_core)
+        if lat.cfs_period_ms > 0 and rho <= 1 + 1e-9 and busy > quick:
+            busy_burst = max(busy - lat.cfs_period_ms / 1000.0, quick)
+        else:
+            busy_burst = busy
+        service = lat.service_scale.get(node, 1.0) * busy_burst
         # periodic input: a message finds the node idle up to rho 1 (at 1 within rounding: a node
         # getting exactly its planned CPU, a sized server); above, the drop-oldest queue is full
         # when the node takes its oldest: it waited queue_size - 1 periods and part of one (and

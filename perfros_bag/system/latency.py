@@ -15,7 +15,9 @@ per second from its input's publisher ``m`` on computer ``c_m`` (docs/solvers.md
   threads can run (``threads x units_per_core``; system.yaml ``threads``, 1 by default) and
   the others ask for their planned CPU, each weighted by its threads
   (:func:`perfros_bag.system.cpushare.fair_shares`, the one model of how a capped computer
-  shares its CPU). ``scale_n`` (fitted; 1 by default) turns CPU time into wall time.
+  shares its CPU). ``scale_n`` (fitted; 1 by default) turns CPU time into wall time. On
+  computers that are CFS-capped cgroups (``cfs_period_ms`` > 0, as ``deploy``'s are) a node
+  that finds its cgroup idle ends one period sooner (:func:`burst_time`).
 * **wait** in its queue. The hop's input arrives periodically (every ``T = 1 / lam``: a
   chain starts at a timer-driven source, and each hop passes its input's period on), so the
   queue is D/D/1, not M/D/1: at utilisation ``rho = lam x w / v <= 1`` a message finds the node
@@ -234,6 +236,22 @@ def service_time(system: System, node: str, computer: str, placement: Mapping[st
     return t
 
 
+def burst_time(busy: float, alone: float, rho: float, params: LatencyParams) -> float:
+    """Seconds a message's burst takes on a CFS-capped computer (``params.cfs_period_ms`` >
+    0), from the fluid ``busy`` (:func:`service_time`): a node that finds its cgroup idle
+    (``rho`` <= 1) runs its period's quota at once, at its threads' speed, and its last
+    quota ends part-way into a period, so the burst ends on average one period before the
+    fluid time (measured on this machine, 15-unit cgroup, 10 ms period: 13 ms of CPU per
+    burst took 75.5 ms against 86.7 fluid, 6 ms took 28.5 against 40); never below
+    ``alone``, its time at its threads' speed. A saturated node (``rho`` > 1) finds no quota
+    left: ``busy``. Non-decreasing in ``busy`` and ``rho``, so the prediction stays monotone
+    in the load beside the node."""
+    period = params.cfs_period_ms / 1000.0
+    if period <= 0 or rho > SATURATED or busy <= alone:
+        return busy
+    return max(busy - period, alone)
+
+
 def _link_terms(system: System, route: Sequence[int], link_loads: Sequence[float], size_kB: float,
                 own_kBps: float, params: LatencyParams) -> tuple[float, float, float]:
     """(base seconds, wait p50, wait p95) of a message of ``size_kB`` across ``route``; the
@@ -279,7 +297,8 @@ def predict_hop(system: System, hop: Hop, placement: Mapping[str, str], choice: 
     if not math.isfinite(busy):
         return f"hop {hop.src} -> {hop.dst}: {node.name!r} gets no CPU on {comp}"
     rho = lam * busy
-    service = params.service_scale.get(hop.node, 1.0) * busy
+    alone = ch.cpu / lam / (threads_of(system, hop.node, ch) * params.units_per_core)
+    service = params.service_scale.get(hop.node, 1.0) * burst_time(busy, alone, rho, params)
     wait50, wait95 = queue_wait(service, rho, params, 0.5, 1 / lam), queue_wait(service, rho, params, 0.95, 1 / lam)
     transfer50 = transfer95 = 0.0
     src_comp = placement[parent]
@@ -374,7 +393,8 @@ def hop_floor(system: System, node: str, choice: Choice, capacity: float) -> tup
         return None
     w = choice.cpu / lam
     rho = lam * w / v
-    s = params.service_scale.get(node, 1.0) * w / v
+    alone = w / (threads_of(system, node, choice) * params.units_per_core)
+    s = params.service_scale.get(node, 1.0) * burst_time(w / v, alone, rho, params)
     ratio = params.node_p95_ratio.get(node, params.p95_ratio)
     over = params.overhead_ms / 1000.0
     return (1000 * (over + s + queue_wait(s, rho, params, 0.5, 1 / lam)),

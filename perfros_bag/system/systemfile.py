@@ -53,8 +53,10 @@ MEMBERSHIPS = ("keep",)
 CHAIN_KEYS = {"name", "topics", "budget_ms"}
 BUDGET_KEYS = {"p50", "p95"}
 #: system.yaml ``latency:`` (the latency model's parameters, perfros_bag.system.latency)
+#: the kernel's longest CFS bandwidth period, in ms (latency.cfs_period_ms)
+MAX_CFS_PERIOD_MS = 1000.0
 LATENCY_KEYS = {"units_per_core", "overhead_ms", "queue_factor", "p95_ratio", "queue_size", "link_efficiency",
-                "backlog_msgs", "service_scale", "node_p95_ratio", "source"}
+                "backlog_msgs", "cfs_period_ms", "service_scale", "node_p95_ratio", "source"}
 COMPUTER_KEYS = {"name", "kind", "capacity", "max_capacity"}
 LINK_KEYS = {"between", "bandwidth_kBps", "medium"}
 MEDIUM_KEYS = {"name", "bandwidth_kBps"}
@@ -236,7 +238,7 @@ def _check_budgets(ctx: _Ctx, system: System) -> None:
 
 def _latency(ctx: _Ctx, raw: Any, nodes: set[str]) -> LatencyParams:
     """``latency: {units_per_core, overhead_ms, queue_factor, p95_ratio, queue_size,
-    link_efficiency, backlog_msgs, service_scale: {node: x}, node_p95_ratio: {node: x}, source}``, every
+    link_efficiency, backlog_msgs, cfs_period_ms, service_scale: {node: x}, node_p95_ratio: {node: x}, source}``, every
     field optional (the defaults of :class:`LatencyParams`)."""
     if raw is None:
         return LatencyParams()
@@ -246,11 +248,14 @@ def _latency(ctx: _Ctx, raw: Any, nodes: set[str]) -> LatencyParams:
     for key in ("units_per_core", "p95_ratio", "link_efficiency"):
         if m.get(key) is not None:
             kw[key] = ctx.number(m[key], f"latency.{key}", positive=True)
-    for key in ("overhead_ms", "queue_factor", "backlog_msgs"):
+    for key in ("overhead_ms", "queue_factor", "backlog_msgs", "cfs_period_ms"):
         if m.get(key) is not None:
             kw[key] = ctx.number(m[key], f"latency.{key}", nonneg=True)
     if kw.get("p95_ratio", base.p95_ratio) < 1:
         raise ctx.fail("latency.p95_ratio", f"must be at least 1, got {kw['p95_ratio']:g}")
+    if kw.get("cfs_period_ms", base.cfs_period_ms) > MAX_CFS_PERIOD_MS:
+        raise ctx.fail("latency.cfs_period_ms", f"must be at most {MAX_CFS_PERIOD_MS:g} (the kernel's longest CFS "
+                                                f"period), got {kw['cfs_period_ms']:g}")
     if kw.get("link_efficiency", base.link_efficiency) > 1:
         raise ctx.fail("latency.link_efficiency", f"must be at most 1, got {kw['link_efficiency']:g}")
     if m.get("queue_size") is not None:

@@ -378,6 +378,10 @@ class LatencyParams:
     #: messages a saturated node's input holds ahead of its subscriber queue (the socket
     #: buffers: first in, first out, nothing dropped there); measured ~2 for 230 kB frames
     backlog_msgs: float = 2.0
+    #: the CFS bandwidth period (ms) of the computers the plan runs on when each is a
+    #: CPU-capped cgroup (``deploy``'s are: 10 ms, rosrun/cgroups.py); 0 for computers that
+    #: are not capped by a quota (a robot's own CPU): no head start (system/latency.burst_time)
+    cfs_period_ms: float = 0.0
     #: per node: measured hop time over its CPU time per message (wall / CPU: 1 for a node
     #: that only computes), and its own p95 ratio
     service_scale: dict[str, float] = field(default_factory=dict)
