@@ -190,6 +190,9 @@ class FakeRos:
     def __init__(self, rate: float = 20.0) -> None:
         self.t0 = time.time()
         self.rates = {"/camera": rate, "/detector": 5.0}
+        #: node -> (from, until, seconds): its getBusStats answers that late between those times
+        #: (a node behind a throttled link)
+        self.slow: dict[str, tuple[float, float, float]] = {}
         self.servers: dict[str, SimpleXMLRPCServer] = {}
         self.uris: dict[str, str] = {}
         self.procs = {name: subprocess.Popen(["sleep", "600"]) for name in ("/camera", "/detector")}
@@ -214,6 +217,9 @@ class FakeRos:
         topic = {"/camera": "/camera/image", "/detector": "/detector/found"}[name]
 
         def stats(caller: str) -> Any:
+            start, until, delay = self.slow.get(name, (0.0, 0.0, 0.0))
+            if start <= time.time() < until:
+                time.sleep(delay)
             n = self.count(name)
             return [1, "", [[[topic, [[1, n * 1010, n * 1000, n, 0]]]], [], []]]
 
@@ -340,6 +346,72 @@ def test_a_slow_node_raises_its_alarm_after_persist_windows_and_a_dead_one_at_on
     assert {(a["node"], a["quantity"]) for a in result.alarms} == {("camera", "rate_hz"), ("detector", "alive")}
     for a in docs[1]["alarms"]:
         assert "camera" in a["line"] and "40" in a["line"]
+
+
+def test_a_publisher_that_answers_late_is_unreadable_and_the_windows_keep_their_cadence(fake: FakeRos,
+                                                                                      tmp_path: Path) -> None:
+    """RQ4's link drop: getBusStats calls crossing a throttled link took seconds each, made
+    one after the other, so windows of 5 s lasted 20-25 s and the nodes read 0 Hz."""
+    fake.slow["/detector"] = (0.0, math.inf, 3.0)
+    docs: list[dict[str, Any]] = []
+    result = watch(_fake_plan(tmp_path), master_uri=fake.master_uri, window_s=0.6, windows=3, persist=1,
+                   out=tmp_path / "w", on_window=lambda d, new: docs.append(d))
+    assert len(docs) == 3 and result.alarms == []  # persist 1: a 0 Hz reading would be an alarm at once
+    for d in docs:
+        assert d["seconds"] < 0.6 + 0.4 * 0.6 + 0.5  # a reading waits 40 % of a window, not the 3 s of the answer
+        det = d["nodes"]["detector"]
+        assert det["state"] == "unreadable" and det["alive"] and det["measured_hz"] is None
+        assert det["topics"]["/detector/found"]["measured_hz"] is None
+        assert abs(d["nodes"]["camera"]["measured_hz"] * d["seconds"] - 20.0 * d["seconds"]) <= 1.0 + 1e-9
+    rows = read_characterisation(tmp_path / "w" / "characterisation.csv").rows
+    assert {r.node for r in rows} == {"camera"}  # an unreadable topic is no row of 0 Hz
+
+
+def test_a_publisher_that_answers_again_counts_from_its_last_answer(fake: FakeRos, tmp_path: Path) -> None:
+    docs: list[dict[str, Any]] = []
+
+    def on(doc: dict[str, Any], new: list[dict[str, Any]]) -> None:
+        docs.append(doc)
+        if doc["window"] == 1:  # late for the next second
+            fake.slow["/detector"] = (0.0, time.time() + 1.0, 0.8)
+
+    watch(_fake_plan(tmp_path), master_uri=fake.master_uri, window_s=0.5, windows=7, on_window=on)
+    states = [d["nodes"]["detector"]["state"] for d in docs]
+    assert states[0] == "running" and "unreadable" in states and states[-1] == "running"
+    back = states.index("running", states.index("unreadable"))
+    for d in docs[back:]:  # 5 Hz over the seconds since its last answer (>= one window): 5 +- 1 message
+        assert d["nodes"]["detector"]["measured_hz"] == pytest.approx(5.0, abs=1.0 / 0.5 + 1e-9)
+    assert all(d["seconds"] < 0.5 + 0.2 + 0.5 for d in docs)
+
+
+def test_unreadable_counters_carry_their_last_answer_and_have_no_rate() -> None:
+    plan = _plan()
+    cam, found, debug = ("/camera/image", "/camera"), ("/detector/found", "/detector"), ("/detector/debug", "/detector")
+    # the detector answered last at t = 1000 (its counters carried, unread at 1004); the camera
+    # did not answer at the start (never before: no counters)
+    before = Reading(1004.0, {found: TopicCounters({4: (50, 500)}), debug: TopicCounters({5: (50, 500)})},
+                     stamps={found: 1000.0, debug: 1000.0}, unread={found, debug, cam})
+    after = Reading(1008.0, {cam: TopicCounters({1: (500, 50_000)}), found: TopicCounters({4: (90, 900)}),
+                             debug: TopicCounters({5: (70, 700)})},
+                    stamps={cam: 1008.0, found: 1008.0, debug: 1008.0})
+    from perfros_bag.watch.window import unreadable_topics
+
+    assert unreadable_topics(before, after) == {"/camera/image"}  # no counters to count the camera from
+    stats = window_stats(before, after, {})
+    assert set(stats.topics) == {"/detector/found", "/detector/debug"}
+    # counted from the last answer: 40 and 20 messages over 8 s, not over the window's 4
+    assert stats.topics["/detector/found"].frequency_hz == pytest.approx(40 / 8)
+    assert stats.topics["/detector/debug"].frequency_hz == pytest.approx(20 / 8)
+    v = evaluate(stats, plan, None, {}, 5.0)
+    doc = window_document(2, after.t, 4.0, v, plan, {"camera": True, "detector": True}, set(), [],
+                          unreadable=unreadable_topics(before, after))
+    c = doc["nodes"]["camera"]
+    assert c["state"] == "unreadable" and c["measured_hz"] is None and c["topics"]["/camera/image"] == {
+        "expected_hz": 10.0, "measured_hz": None, "kBps": None, "messages": None}
+    assert doc["nodes"]["detector"]["state"] == "running"
+    assert doc["nodes"]["detector"]["measured_hz"] == pytest.approx((40 / 8 + 20 / 8) / 2)
+    assert [d.name for d in rate_drifts(doc, 5.0)] == ["detector"]  # 3.75 Hz against 5; the camera: no rate
+    json.dumps(doc, allow_nan=False)
 
 
 def test_bad_input_no_master_missing_nodes_and_windows(fake: FakeRos, tmp_path: Path) -> None:
