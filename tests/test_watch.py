@@ -774,14 +774,40 @@ def test_ctrl_c_during_a_refit_ends_the_refit_too_and_applies_nothing(fake: Fake
 
 
 def _fake_deploy(folder: Path, fake: FakeRos, plan: Path, restarting: dict[str, float] | None = None,
-                 timeout: float | None = None) -> None:
+                 timeout: float | None = None, values: dict[str, Any] | None = None) -> None:
     """A deploy's live.json for the fake (this process stands for the deploy)."""
     from perfros_bag.sweep.livestate import LiveState, write_live
 
     folder.mkdir(exist_ok=True)
     nodes = {n: {"pid": fake.procs[n].pid, "computer": "host"} for n in ("/camera", "/detector")}
     write_live(folder / "live.json", LiveState("fake", os.getpid(), fake.master_uri, None, str(plan), nodes=nodes,
-                                               restarting=restarting or {}, restart_timeout_s=timeout))
+                                               restarting=restarting or {}, restart_timeout_s=timeout,
+                                               values=values or {}))
+
+
+def test_an_operator_s_value_is_an_alarm_in_the_window_it_is_seen(fake: FakeRos, tmp_path: Path) -> None:
+    """RQ4's camera change: the window straddling the operator's restart read the camera at
+    0 Hz (below its plan), the next at 7.5 Hz (above), so its rate drift started afresh and
+    the alarm came in the third window after the change. The deploy says what runs at once."""
+    plan = _fake_plan(tmp_path)  # the camera planned at rate 20, and so it runs (the fake counts 20 Hz)
+    dep = tmp_path / "deployed"
+    _fake_deploy(dep, fake, plan, values={"camera": 20.0})
+    docs: list[dict[str, Any]] = []
+
+    def on(doc: dict[str, Any], new: list[dict[str, Any]]) -> None:
+        docs.append(doc)
+        if doc["window"] == 2:  # the operator sets 30 (the node not restarted: its rate stays the plan's)
+            _fake_deploy(dep, fake, plan, values={"camera": 30.0})
+        elif doc["window"] == 4:  # and back to the plan's
+            _fake_deploy(dep, fake, plan, values={"camera": 20})
+
+    result = watch(plan, deployment=dep, window_s=0.5, windows=6, persist=3, on_window=on)
+    per_window = [[(a["node"], a["quantity"], a["planned"], a["measured"], a["new"]) for a in d["alarms"]]
+                  for d in docs]
+    assert per_window == [[], [], [("camera", "value", 20.0, 30.0, True)], [("camera", "value", 20.0, 30.0, False)],
+                          [], []], per_window
+    assert [(a["node"], a["quantity"]) for a in result.alarms] == [("camera", "value")]
+    assert docs[2]["pinned"] == {"camera": 30.0} and "pinned" not in docs[4]
 
 
 def test_a_node_the_deploy_restarts_is_restarting_not_dead_until_its_timeout(fake: FakeRos, tmp_path: Path) -> None:
