@@ -384,6 +384,34 @@ def test_a_publisher_that_answers_again_counts_from_its_last_answer(fake: FakeRo
     assert all(d["seconds"] < 0.5 + 0.2 + 0.5 for d in docs)
 
 
+def test_a_restarted_node_behind_a_slow_link_is_followed_without_stalling_a_reading(fake: FakeRos) -> None:
+    from perfros_bag.watch.observe import Observer
+
+    obs = Observer(fake.master_uri, {"camera": ["/camera/image"], "detector": ["/detector/found"]},
+                   call_budget_s=0.3)
+    try:
+        assert obs.attach() == []
+        old = obs.nodes["camera"].pid
+        fake.stop("/camera")  # restarted: a new process and address, whose getPid answers 2 s late
+        fake.procs["/camera"] = subprocess.Popen(["sleep", "600"])
+        funcs = fake._node("/camera")
+
+        def slow_pid(caller: str) -> Any:
+            time.sleep(2.0)
+            return [1, "", fake.procs["/camera"].pid]
+
+        fake._serve("/camera", {**funcs, "getPid": slow_pid})
+        t0 = time.monotonic()
+        obs.read()
+        assert time.monotonic() - t0 < 2 * 0.3 + 0.7  # its budgets, not the 2 s of the late answer
+        assert obs.nodes["camera"].pid == old  # not known yet
+        time.sleep(2.3)
+        reading = obs.read()
+        assert obs.nodes["camera"].pid == fake.procs["/camera"].pid != old and reading.alive["camera"]
+    finally:
+        obs.close()
+
+
 def test_unreadable_counters_carry_their_last_answer_and_have_no_rate() -> None:
     plan = _plan()
     cam, found, debug = ("/camera/image", "/camera"), ("/detector/found", "/detector"), ("/detector/debug", "/detector")

@@ -110,6 +110,10 @@ def _running(node: WatchedNode) -> bool:
         return False
 
 
+def _pid_at(uri: str) -> tuple[str, Any]:
+    return uri, node_call(uri, "getPid")
+
+
 class Observer:
     """Reads the running plan's nodes through the master at ``master_uri``."""
 
@@ -118,7 +122,8 @@ class Observer:
         self.master_uri = master_uri
         self.call_budget_s = call_budget_s  # seconds a reading waits for the publishers' answers
         self._pool: ThreadPoolExecutor | None = None
-        self._under_way: dict[str, Future[tuple[Any, float]]] = {}  # ROS node -> its call not answered yet
+        #: ROS node (``getPid <node>`` for :meth:`_again`) -> its call not answered yet
+        self._under_way: dict[str, Future[Any]] = {}
         self._last: Reading | None = None
         self.planned_topics = {n: list(ts) for n, ts in planned_topics.items()}  # plan node -> its topics
         self.all_local = all_local
@@ -172,11 +177,23 @@ class Observer:
         return missing
 
     def _again(self, node: WatchedNode) -> None:
-        """Follow a node that was restarted under the same name: its new URI and PID."""
-        self.uris.pop(node.ros_name, None)
-        uri = self._uri(node.ros_name)
-        pid = None if uri is None else node_call(uri, "getPid")
-        if uri is not None and isinstance(pid, int) and pid != node.pid:
+        """Follow a node that was restarted under the same name: its new URI and PID. Its
+        ``getPid`` is waited for at most the reading's budget (a node behind a slow link
+        answers a later reading: the call is not made again meanwhile)."""
+        key = f"getPid {node.ros_name}"
+        fut = self._under_way.pop(key, None)
+        if fut is None:
+            self.uris.pop(node.ros_name, None)
+            uri = self._uri(node.ros_name)
+            if uri is None:
+                return
+            fut = self._pool_of().submit(_pid_at, uri)
+            wait_for([fut], timeout=self.call_budget_s)
+        if not fut.done():
+            self._under_way[key] = fut
+            return
+        uri, pid = fut.result()
+        if isinstance(pid, int) and pid != node.pid:
             node.uri, node.pid, node.created = uri, pid, _create_time(pid)
 
     def _publishers(self, state: tuple[list[Any], list[Any], list[Any]]) -> None:
@@ -271,10 +288,13 @@ class Observer:
             asked = again
         return replies, late
 
-    def _submit(self, uri: str) -> Future[tuple[Any, float]]:
+    def _pool_of(self) -> ThreadPoolExecutor:
         if self._pool is None:  # made by the reading thread: its threads share its network namespace
             self._pool = ThreadPoolExecutor(CALL_THREADS, thread_name_prefix="perfros-watch-call")
-        return self._pool.submit(_ask, uri)
+        return self._pool
+
+    def _submit(self, uri: str) -> Future[tuple[Any, float]]:
+        return self._pool_of().submit(_ask, uri)
 
     def close(self) -> None:
         """Let the calls under way end by their own timeout, without waiting for them."""
