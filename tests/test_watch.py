@@ -365,6 +365,10 @@ def test_a_publisher_that_answers_late_is_unreadable_and_the_windows_keep_their_
         assert abs(d["nodes"]["camera"]["measured_hz"] * d["seconds"] - 20.0 * d["seconds"]) <= 1.0 + 1e-9
     rows = read_characterisation(tmp_path / "w" / "characterisation.csv").rows
     assert {r.node for r in rows} == {"camera"}  # an unreadable topic is no row of 0 Hz
+    for d in docs:  # Σ w·P over the camera alone (weight 1, performance 50), not the detector at 0
+        cam = d["nodes"]["camera"]
+        assert d["overall"]["unreadable"] == ["detector"] and d["overall"]["expected"] == pytest.approx(50.0)
+        assert d["overall"]["measured"] == pytest.approx(cam["p_measured"])
 
 
 def test_a_publisher_that_answers_again_counts_from_its_last_answer(fake: FakeRos, tmp_path: Path) -> None:

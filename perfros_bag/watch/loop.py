@@ -319,8 +319,14 @@ def _windows(observer: Observer, plan: Plan, system: System | None, live: Any, u
 
                 system = world_system(system, {"links": world["links"]})  # judged against the rates in force
             v = evaluate(stats, plan, system, cpu, tolerance)
+            unread = unreadable_topics(before, after)
             doc = window_document(k, after.t, after.t - before.t, v, plan, after.alive, set(cpu), [], latency,
-                                  restarting, unreadable_topics(before, after))
+                                  restarting, unread)
+            blind = sorted(n for n, pn in plan.nodes.items() if any(t in unread for t in pn.topics))
+            if blind and len(blind) < len(plan.nodes):  # Σ w·P over the nodes that could be read
+                seen = evaluate(stats, _only(plan, [n for n in plan.nodes if n not in blind]), system, cpu, tolerance)
+                doc["overall"] = {"expected": seen.overall_expected, "measured": seen.overall_measured,
+                                  "deviation_pct": seen.deviation_pct, "unreadable": blind}
             for c, x in (world.get("foreign") or {}).items():
                 if c in doc["computers"]:
                     doc["computers"][c]["foreign"] = x
