@@ -182,11 +182,14 @@ def recovery(ws: list[dict[str, Any]], log: list[dict[str, Any]], detected: floa
                            "refit_s": first.get("refit_s"),
                            "apply_s": round(first["t"] - first["asked_t"], 1) if first.get("asked_t") else None}
     later = [w for w in ws if w["t"] - w["seconds"] >= first["t"]]
-    held = next((w for w in later if abs(w["overall"]["deviation_pct"]) <= GOAL_DEVIATION), None)
+    # a window that could not read some node (watch's overall `unreadable`) judges only the
+    # others: it shows no recovery
+    within = [abs(w["overall"]["deviation_pct"]) <= GOAL_DEVIATION and not w["overall"].get("unreadable")
+              for w in later]
+    held = next((w for w, ok in zip(later, within, strict=True) if ok), None)
     out["recover_s"] = None if held is None or detected is None else round(held["t"] - detected, 1)
     out["deviation_after"] = [round(w["overall"]["deviation_pct"], 2) for w in later]
-    out["within_share"] = (round(sum(abs(d) <= GOAL_DEVIATION for d in out["deviation_after"])
-                                 / len(later), 2) if later else None)
+    out["within_share"] = round(sum(within) / len(later), 2) if later else None
     return out
 
 
@@ -312,7 +315,8 @@ def analyse(res: dict[str, Any], d: Path, plan: dict[str, Any]) -> dict[str, Any
     t_change = res["t_change"]
     alone_ws = [w for w in windows_of(d / "alone") if w["t"] <= res["t_until"]]
     res["alone"] = detection(alone_ws, t_change, res["t_until"])
-    after = [w for w in alone_ws if res["alone"]["t"] is not None and w["t"] >= res["alone"]["t"]]
+    after = [w for w in alone_ws if res["alone"]["t"] is not None and w["t"] >= res["alone"]["t"]
+             and not w["overall"].get("unreadable")]  # a Σ w·P over some nodes only is not the plan's
     res["old_measured_after"] = (round(sum(w["overall"]["measured"] for w in after) / len(after), 4)
                                  if after else None)
     res["old_expected"] = plan.get("objective")

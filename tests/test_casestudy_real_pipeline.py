@@ -311,3 +311,22 @@ def test_the_budget_is_chosen_on_the_fitted_model_to_bind_and_be_kept(tmp_path: 
     assert set(calls) == {"solve"}  # no fit per budget
     cs.with_budget(model, tmp_path / "b.json", chosen)
     assert json.loads((tmp_path / "b.json").read_text())["system"]["chains"][0]["budget_ms"] == {"p95": 270.0}
+
+
+def test_rq4_recovery_is_never_a_window_that_could_not_read_some_node() -> None:
+    """watch's overall over the readable nodes only (`unreadable` listed) judges part of the
+    plan: it is neither the recovery nor a window within the goal."""
+    import casestudy_rq4 as rq4
+
+    log = [{"t": 100.0, "applied": "sent", "changes": [], "objective_before": 80.0, "objective_after": 85.0}]
+
+    def w(t: float, dev: float, unreadable: list[str] | None = None) -> dict[str, Any]:
+        overall: dict[str, Any] = {"expected": 85.0, "measured": 85.0 * (1 - dev / 100), "deviation_pct": dev}
+        if unreadable:
+            overall["unreadable"] = unreadable
+        return {"t": t, "seconds": 5.0, "overall": overall, "alarms": []}
+
+    ws = [w(110.0, 0.5, ["robot2_camera"]), w(115.0, 1.0), w(120.0, 9.0)]
+    out = rq4.recovery(ws, log, 90.0, 80.0)
+    assert out["recover_s"] == 115.0 - 90.0 and out["within_share"] == round(1 / 3, 2)
+    assert rq4.recovery(ws[:1], log, 90.0, 80.0)["recover_s"] is None

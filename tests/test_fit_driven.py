@@ -276,3 +276,27 @@ def test_a_grid_value_costs_no_less_than_its_cheaper_measured_neighbour(tmp_path
         dipped += raw < ys[0] - 1e-6
         assert got[v]["cpu_per_hz"] == pytest.approx(min(max(raw, ys[0]), ys[1]), rel=1e-8, abs=1e-9)
     assert dipped, "the fitted curve dips below a measured neighbour somewhere on the grid (what is held)"
+
+
+def test_input_rates_close_together_are_one_rate_not_a_line() -> None:
+    """RQ4 (2026-11-28): three live windows of one setting at 4.94-5.11 Hz (the camera at
+    5 Hz, counted over 5 s) gave a line whose slope fell below 0 and was clipped to 0, so the
+    re-plan gave the node at 9.85 Hz the CPU it had at 5. Rates within ONE_RATE_SPREAD of
+    their mean are one rate: the setting then takes a reference line scaled, as a setting
+    measured at one rate does."""
+    from perfros_bag.fitting.build import cpu_line, scaled_line
+
+    live = [(5.11, 10.7), (4.94, 12.2), (5.02, 12.4)]  # 3.4 % apart
+    base, slope, r2, notes = cpu_line(live)
+    mean_f, mean_cpu = np.mean([p[0] for p in live]), np.mean([p[1] for p in live])
+    assert (base, r2) == (0.0, None) and slope == pytest.approx(mean_cpu / mean_f, rel=1e-12)
+    assert any("one input rate only" in n for n in notes)
+    # the reference setting's line over 5-10 Hz, scaled by the CPU ratio at the live rate
+    ref = cpu_line([(5.0, 20.1), (7.49, 29.5), (10.01, 42.2), (9.99, 35.4), (4.61, 20.6)])
+    assert ref[2] is not None and ref[1] > 0  # a line: rates 5 to 10 Hz
+    b, k = scaled_line((ref[0], ref[1]), mean_f, mean_cpu)
+    ratio = mean_cpu / (ref[0] + ref[1] * mean_f)
+    assert b + k * 9.85 == pytest.approx(ratio * (ref[0] + ref[1] * 9.85), rel=1e-12)
+    assert b + k * 9.85 > 1.5 * mean_cpu  # the CPU grows with the input rate, not kept at 5 Hz's
+    # rates far enough apart are still a line
+    assert cpu_line([(5.0, 10.0), (6.5, 13.0)])[2] is not None

@@ -190,6 +190,9 @@ class FakeRos:
     def __init__(self, rate: float = 20.0) -> None:
         self.t0 = time.time()
         self.rates = {"/camera": rate, "/detector": 5.0}
+        #: node -> (from, until, seconds): its getBusStats answers that late between those times
+        #: (a node behind a throttled link)
+        self.slow: dict[str, tuple[float, float, float]] = {}
         self.servers: dict[str, SimpleXMLRPCServer] = {}
         self.uris: dict[str, str] = {}
         self.procs = {name: subprocess.Popen(["sleep", "600"]) for name in ("/camera", "/detector")}
@@ -214,6 +217,9 @@ class FakeRos:
         topic = {"/camera": "/camera/image", "/detector": "/detector/found"}[name]
 
         def stats(caller: str) -> Any:
+            start, until, delay = self.slow.get(name, (0.0, 0.0, 0.0))
+            if start <= time.time() < until:
+                time.sleep(delay)
             n = self.count(name)
             return [1, "", [[[topic, [[1, n * 1010, n * 1000, n, 0]]]], [], []]]
 
@@ -340,6 +346,104 @@ def test_a_slow_node_raises_its_alarm_after_persist_windows_and_a_dead_one_at_on
     assert {(a["node"], a["quantity"]) for a in result.alarms} == {("camera", "rate_hz"), ("detector", "alive")}
     for a in docs[1]["alarms"]:
         assert "camera" in a["line"] and "40" in a["line"]
+
+
+def test_a_publisher_that_answers_late_is_unreadable_and_the_windows_keep_their_cadence(fake: FakeRos,
+                                                                                      tmp_path: Path) -> None:
+    """RQ4's link drop: getBusStats calls crossing a throttled link took seconds each, made
+    one after the other, so windows of 5 s lasted 20-25 s and the nodes read 0 Hz."""
+    fake.slow["/detector"] = (0.0, math.inf, 3.0)
+    docs: list[dict[str, Any]] = []
+    result = watch(_fake_plan(tmp_path), master_uri=fake.master_uri, window_s=0.6, windows=3, persist=1,
+                   out=tmp_path / "w", on_window=lambda d, new: docs.append(d))
+    assert len(docs) == 3 and result.alarms == []  # persist 1: a 0 Hz reading would be an alarm at once
+    for d in docs:
+        assert d["seconds"] < 0.6 + 0.4 * 0.6 + 0.5  # a reading waits 40 % of a window, not the 3 s of the answer
+        det = d["nodes"]["detector"]
+        assert det["state"] == "unreadable" and det["alive"] and det["measured_hz"] is None
+        assert det["topics"]["/detector/found"]["measured_hz"] is None
+        assert abs(d["nodes"]["camera"]["measured_hz"] * d["seconds"] - 20.0 * d["seconds"]) <= 1.0 + 1e-9
+    rows = read_characterisation(tmp_path / "w" / "characterisation.csv").rows
+    assert {r.node for r in rows} == {"camera"}  # an unreadable topic is no row of 0 Hz
+    for d in docs:  # Σ w·P over the camera alone (weight 1, performance 50), not the detector at 0
+        cam = d["nodes"]["camera"]
+        assert d["overall"]["unreadable"] == ["detector"] and d["overall"]["expected"] == pytest.approx(50.0)
+        assert d["overall"]["measured"] == pytest.approx(cam["p_measured"])
+
+
+def test_a_publisher_that_answers_again_counts_from_its_last_answer(fake: FakeRos, tmp_path: Path) -> None:
+    docs: list[dict[str, Any]] = []
+
+    def on(doc: dict[str, Any], new: list[dict[str, Any]]) -> None:
+        docs.append(doc)
+        if doc["window"] == 1:  # late for the next second
+            fake.slow["/detector"] = (0.0, time.time() + 1.0, 0.8)
+
+    watch(_fake_plan(tmp_path), master_uri=fake.master_uri, window_s=0.5, windows=7, on_window=on)
+    states = [d["nodes"]["detector"]["state"] for d in docs]
+    assert states[0] == "running" and "unreadable" in states and states[-1] == "running"
+    back = states.index("running", states.index("unreadable"))
+    for d in docs[back:]:  # 5 Hz over the seconds since its last answer (>= one window): 5 +- 1 message
+        assert d["nodes"]["detector"]["measured_hz"] == pytest.approx(5.0, abs=1.0 / 0.5 + 1e-9)
+    assert all(d["seconds"] < 0.5 + 0.2 + 0.5 for d in docs)
+
+
+def test_a_restarted_node_behind_a_slow_link_is_followed_without_stalling_a_reading(fake: FakeRos) -> None:
+    from perfros_bag.watch.observe import Observer
+
+    obs = Observer(fake.master_uri, {"camera": ["/camera/image"], "detector": ["/detector/found"]},
+                   call_budget_s=0.3)
+    try:
+        assert obs.attach() == []
+        old = obs.nodes["camera"].pid
+        fake.stop("/camera")  # restarted: a new process and address, whose getPid answers 2 s late
+        fake.procs["/camera"] = subprocess.Popen(["sleep", "600"])
+        funcs = fake._node("/camera")
+
+        def slow_pid(caller: str) -> Any:
+            time.sleep(2.0)
+            return [1, "", fake.procs["/camera"].pid]
+
+        fake._serve("/camera", {**funcs, "getPid": slow_pid})
+        t0 = time.monotonic()
+        obs.read()
+        assert time.monotonic() - t0 < 2 * 0.3 + 0.7  # its budgets, not the 2 s of the late answer
+        assert obs.nodes["camera"].pid == old  # not known yet
+        time.sleep(2.3)
+        reading = obs.read()
+        assert obs.nodes["camera"].pid == fake.procs["/camera"].pid != old and reading.alive["camera"]
+    finally:
+        obs.close()
+
+
+def test_unreadable_counters_carry_their_last_answer_and_have_no_rate() -> None:
+    plan = _plan()
+    cam, found, debug = ("/camera/image", "/camera"), ("/detector/found", "/detector"), ("/detector/debug", "/detector")
+    # the detector answered last at t = 1000 (its counters carried, unread at 1004); the camera
+    # did not answer at the start (never before: no counters)
+    before = Reading(1004.0, {found: TopicCounters({4: (50, 500)}), debug: TopicCounters({5: (50, 500)})},
+                     stamps={found: 1000.0, debug: 1000.0}, unread={found, debug, cam})
+    after = Reading(1008.0, {cam: TopicCounters({1: (500, 50_000)}), found: TopicCounters({4: (90, 900)}),
+                             debug: TopicCounters({5: (70, 700)})},
+                    stamps={cam: 1008.0, found: 1008.0, debug: 1008.0})
+    from perfros_bag.watch.window import unreadable_topics
+
+    assert unreadable_topics(before, after) == {"/camera/image"}  # no counters to count the camera from
+    stats = window_stats(before, after, {})
+    assert set(stats.topics) == {"/detector/found", "/detector/debug"}
+    # counted from the last answer: 40 and 20 messages over 8 s, not over the window's 4
+    assert stats.topics["/detector/found"].frequency_hz == pytest.approx(40 / 8)
+    assert stats.topics["/detector/debug"].frequency_hz == pytest.approx(20 / 8)
+    v = evaluate(stats, plan, None, {}, 5.0)
+    doc = window_document(2, after.t, 4.0, v, plan, {"camera": True, "detector": True}, set(), [],
+                          unreadable=unreadable_topics(before, after))
+    c = doc["nodes"]["camera"]
+    assert c["state"] == "unreadable" and c["measured_hz"] is None and c["topics"]["/camera/image"] == {
+        "expected_hz": 10.0, "measured_hz": None, "kBps": None, "messages": None}
+    assert doc["nodes"]["detector"]["state"] == "running"
+    assert doc["nodes"]["detector"]["measured_hz"] == pytest.approx((40 / 8 + 20 / 8) / 2)
+    assert [d.name for d in rate_drifts(doc, 5.0)] == ["detector"]  # 3.75 Hz against 5; the camera: no rate
+    json.dumps(doc, allow_nan=False)
 
 
 def test_bad_input_no_master_missing_nodes_and_windows(fake: FakeRos, tmp_path: Path) -> None:
@@ -534,9 +638,12 @@ def test_a_deploy_restarts_only_the_nodes_a_new_plan_changes(tmp_path: Path) -> 
                            "detector": PlannedNode(detector_on, 5.0, 50.0, 1.0, "canny_threshold", threshold)})
 
     calls: list[tuple[str, dict[str, str], str]] = []
+    def restart(node: str, args: Any, params: Any, computer: str) -> int:
+        calls.append((node, dict(args), computer))
+        return 100 + len(calls)
+
     restarter = SimpleNamespace(watch=SimpleNamespace(pids={"/camera": (11, 0.0), "/detector": (12, 0.0)}),
-                                restart=lambda node, args, params, computer: calls.append((node, dict(args), computer))
-                                or 100 + len(calls))
+                                restart_many=lambda batch: {b[0]: restart(*b) for b in batch})
     groups = CpuGroups("t", {"robot1": 1.0, "server": 1.0}, root=tmp_path)
     for c in ("robot1", "server"):
         (tmp_path / c).mkdir()
@@ -561,6 +668,59 @@ def test_a_deploy_restarts_only_the_nodes_a_new_plan_changes(tmp_path: Path) -> 
             assert (tmp_path / computer / "cgroup.procs").read_text() == str(applied[-1][node])
     control.tick(restarter)  # type: ignore[arg-type]  # the same file again: nothing
     assert len(control.applied) == 3 and json.loads((tmp_path / "control.json").read_text())["format"] == CONTROL_FORMAT
+
+
+def test_a_re_plan_s_nodes_are_restarted_together_not_one_after_the_other(monkeypatch: pytest.MonkeyPatch,
+                                                                           tmp_path: Path) -> None:
+    """RQ4 (2026-11-28): a re-plan changing four nodes took 12 s, six 18 s, in the deploy
+    restarting them one at a time (two roslaunch runs, a stop, a start and a wait each).
+    Checked by the order of what the restarter does: every roslaunch query before the one
+    stop of all, every start before the first wait, the launch file's parameters asked once."""
+    from types import SimpleNamespace
+
+    from perfros_bag.rosrun import master
+    from perfros_bag.sweep import runner
+
+    events: list[str] = []
+    monkeypatch.setattr(runner, "launch_params", lambda launch, args, env, timeout: events.append("dump")
+                        or {"/rate": int(args["camera_rate"])})
+    monkeypatch.setattr(runner, "node_command", lambda launch, node, args, env, timeout: events.append(f"args {node}")
+                        or node)
+    monkeypatch.setattr(runner, "_node_argv", lambda cmd, spread, uri: [cmd])
+    monkeypatch.setattr(runner, "_create_time", lambda pid: 1.0)
+    params: dict[str, Any] = {}
+    new_pid = {"/a": 201, "/b": 202, "/c": 203}
+
+    def call(uri: str, method: str, *args: Any) -> Any:
+        if method == "setParam":
+            params[args[0]] = args[1]
+            return 0
+        if method == "lookupNode":
+            events.append(f"wait {args[0]}")
+            return f"uri{args[0]}"
+        raise AssertionError(method)
+
+    monkeypatch.setattr(runner, "master_call", call)
+    monkeypatch.setattr(master, "node_call", lambda uri, method: new_pid[uri[3:]] if f"start {uri[3:]}" in events
+                        else None)
+    procs = SimpleNamespace(env={"ROS_HOME": str(tmp_path)}, remember=lambda: None,
+                            stop=lambda names: events.append(f"stop {','.join(names)}"),
+                            start=lambda node, argv, log, cwd: events.append(f"start {node}")
+                            or SimpleNamespace(name=node))
+    watch_ = SimpleNamespace(pids={"/a": (101, 0.0), "/b": (102, 0.0), "/c": (103, 0.0)}, others=[],
+                             failure=lambda: None)
+    spread = SimpleNamespace(where={})
+    r = runner.Restarter(None, spread, "http://master", tmp_path, procs, watch_, 5.0)  # type: ignore[arg-type]
+    args = {"camera_rate": "7"}
+    pids = r.restart_many([("/a", args, {"/x": 1}, "robot1"), ("/b", args, {}, "server"), ("/c", args, {}, "server")])
+    assert pids == new_pid and {n: watch_.pids[n][0] for n in new_pid} == new_pid
+    assert events.count("dump") == 1 and events.count("stop /a,/b,/c") == 1
+    stop = events.index("stop /a,/b,/c")
+    assert sorted(events[:stop]) == ["args /a", "args /b", "args /c", "dump"]
+    assert events[stop + 1:stop + 4] == ["start /a", "start /b", "start /c"]
+    assert params == {"/rate": 7, "/x": 1} and spread.where == {"a": "robot1", "b": "server", "c": "server"}
+    new_pid["/a"] = 301  # one node alone, as before
+    assert r.restart("/a", args, {}, "robot1") == 301 and events[-1] == "wait /a" and watch_.pids["/a"][0] == 301
 
 
 def test_adapt_solves_against_the_world_as_it_is_now(tmp_path: Path) -> None:
@@ -702,14 +862,40 @@ def test_ctrl_c_during_a_refit_ends_the_refit_too_and_applies_nothing(fake: Fake
 
 
 def _fake_deploy(folder: Path, fake: FakeRos, plan: Path, restarting: dict[str, float] | None = None,
-                 timeout: float | None = None) -> None:
+                 timeout: float | None = None, values: dict[str, Any] | None = None) -> None:
     """A deploy's live.json for the fake (this process stands for the deploy)."""
     from perfros_bag.sweep.livestate import LiveState, write_live
 
     folder.mkdir(exist_ok=True)
     nodes = {n: {"pid": fake.procs[n].pid, "computer": "host"} for n in ("/camera", "/detector")}
     write_live(folder / "live.json", LiveState("fake", os.getpid(), fake.master_uri, None, str(plan), nodes=nodes,
-                                               restarting=restarting or {}, restart_timeout_s=timeout))
+                                               restarting=restarting or {}, restart_timeout_s=timeout,
+                                               values=values or {}))
+
+
+def test_an_operator_s_value_is_an_alarm_in_the_window_it_is_seen(fake: FakeRos, tmp_path: Path) -> None:
+    """RQ4's camera change: the window straddling the operator's restart read the camera at
+    0 Hz (below its plan), the next at 7.5 Hz (above), so its rate drift started afresh and
+    the alarm came in the third window after the change. The deploy says what runs at once."""
+    plan = _fake_plan(tmp_path)  # the camera planned at rate 20, and so it runs (the fake counts 20 Hz)
+    dep = tmp_path / "deployed"
+    _fake_deploy(dep, fake, plan, values={"camera": 20.0})
+    docs: list[dict[str, Any]] = []
+
+    def on(doc: dict[str, Any], new: list[dict[str, Any]]) -> None:
+        docs.append(doc)
+        if doc["window"] == 2:  # the operator sets 30 (the node not restarted: its rate stays the plan's)
+            _fake_deploy(dep, fake, plan, values={"camera": 30.0})
+        elif doc["window"] == 4:  # and back to the plan's
+            _fake_deploy(dep, fake, plan, values={"camera": 20})
+
+    result = watch(plan, deployment=dep, window_s=0.5, windows=6, persist=3, on_window=on)
+    per_window = [[(a["node"], a["quantity"], a["planned"], a["measured"], a["new"]) for a in d["alarms"]]
+                  for d in docs]
+    assert per_window == [[], [], [("camera", "value", 20.0, 30.0, True)], [("camera", "value", 20.0, 30.0, False)],
+                          [], []], per_window
+    assert [(a["node"], a["quantity"]) for a in result.alarms] == [("camera", "value")]
+    assert docs[2]["pinned"] == {"camera": 30.0} and "pinned" not in docs[4]
 
 
 def test_a_node_the_deploy_restarts_is_restarting_not_dead_until_its_timeout(fake: FakeRos, tmp_path: Path) -> None:

@@ -30,7 +30,8 @@ def window_table(doc: dict[str, Any]) -> Table:
     alarmed = {a.get("node") for a in doc["alarms"]}
     for name, n in doc["nodes"].items():
         state = "[yellow]restarting[/]" if n.get("state") == "restarting" else "[red]dead[/]" if not n["alive"] \
-            else "[red]alarm[/]" if name in alarmed else "ok"
+            else "[red]alarm[/]" if name in alarmed else "[yellow]unreadable[/]" if n.get("state") == "unreadable" \
+            else "ok"
         t.add_row(escape(name), escape(n["computer"]), _f(n["expected_hz"]), _f(n["measured_hz"]),
                   _f(n["cpu_expected"]), _f(n.get("cpu")) if "cpu" in n else "[dim]unmeasured[/]",
                   _f(n["deviation_pct"], ".1f"), state)

@@ -478,6 +478,11 @@ GRID_POINTS = 9
 #: a recording whose output runs within this fraction of its setting's ``max_frequency_hz``
 #: is throttled: its output rate says nothing about ``out_per_in``
 THROTTLED = 0.98
+#: input rates of one setting spread by less than this share of their mean are one rate: a
+#: line through them is fixed by the noise of the counts, not by the node (RQ4, 2026-11-28:
+#: three live windows at 4.94-5.11 Hz gave a slope below 0, clipped to 0, and the re-plan
+#: then ran the node at 9.85 Hz for the CPU of 5)
+ONE_RATE_SPREAD = 0.2
 
 
 @dataclass(frozen=True)
@@ -511,8 +516,9 @@ def driven_samples(table: CharacterisationFile, system: System,
 def cpu_line(points: list[tuple[float, float]]) -> tuple[float, float, float | None, list[str]]:
     """``(cpu, cpu_per_hz, r2, notes)`` of CPU = cpu + cpu_per_hz x F_in through the
     (F_in, CPU) ``points`` of one setting (least squares; the base clipped at 0, refitted
-    through the origin; a slope below 0 clipped to 0). With one input rate only: the base
-    is 0 and cpu_per_hz the mean CPU over that rate (``r2`` None; a note says so)."""
+    through the origin; a slope below 0 clipped to 0). With one input rate only (rates
+    within :data:`ONE_RATE_SPREAD` of their mean count as one): the base is 0 and
+    cpu_per_hz the mean CPU over the mean rate (``r2`` None; a note says so)."""
     import numpy as np
 
     from perfros_bag.fitting.regression import fit_form, r_squared
@@ -520,8 +526,8 @@ def cpu_line(points: list[tuple[float, float]]) -> tuple[float, float, float | N
     fin = np.array([p[0] for p in points], dtype=float)
     cpu = np.array([p[1] for p in points], dtype=float)
     notes: list[str] = []
-    if len(np.unique(fin)) < 2:
-        f = float(fin[0])
+    if len(np.unique(fin)) < 2 or float(fin.max() - fin.min()) < ONE_RATE_SPREAD * float(fin.mean()):
+        f = float(fin.mean())
         if f <= 0:
             raise FitError(f"measured at input rate {f:g} Hz only: no CPU per Hz can be told")
         notes.append(f"one input rate only ({f:g} Hz): cpu_per_hz = mean CPU / input rate, base cpu 0")

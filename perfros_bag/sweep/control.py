@@ -171,10 +171,11 @@ class Control:
         pids: dict[str, int] = {}
         if self.on_restarting is not None and any(node in ros for node in changed):
             self.on_restarting([ros[node] for node in changed if node in ros])
-        for node in changed:
-            if node not in ros:
-                continue
-            pid = restarter.restart(ros[node], new_run.args, new_run.params, new_where[node])
+        moved = [node for node in changed if node in ros]  # restarted together, waited for together
+        new_pids = restarter.restart_many([(ros[node], new_run.args, new_run.params, new_where[node])
+                                           for node in moved])
+        for node in moved:
+            pid = new_pids[ros[node]]
             procs = self.groups.procs_file(new_where[node])
             if procs is not None:
                 procs.write_text(str(pid))

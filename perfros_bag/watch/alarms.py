@@ -8,7 +8,10 @@ exceeds the plan's predicted p95 by more than ``latency_tolerance`` % (``watch
 --latency-tolerance``, default ``tolerance``). A drift of the same node or
 chain and quantity, in the same direction for a rate, in ``persist`` windows in a row is an
 alarm; a node that died is an alarm at once, a node a deploy is restarting (``state:
-restarting``) none. An alarm stays listed while its drift lasts.
+restarting``) none. A node the deploy watched runs at a value other than the plan's (an
+operator's change, the window's ``pinned``) is an alarm at once too (``quantity: value``):
+the deploy says so, no count is needed to tell it from noise. An alarm stays listed while its
+drift lasts.
 """
 
 from __future__ import annotations
@@ -21,7 +24,7 @@ from typing import Any
 class Drift:
     kind: str  # "node" | "chain"
     name: str
-    quantity: str  # "rate_hz" | "alive" | "latency_p95_ms"
+    quantity: str  # "rate_hz" | "alive" | "latency_p95_ms" | "value"
     planned: float
     measured: float
     immediate: bool = False  # an alarm without waiting for persistence (a node that died)
@@ -73,6 +76,13 @@ def rate_drifts(window: dict[str, Any], tolerance: float, latency_tolerance: flo
         if pred and meas is not None and meas > pred * (1.0 + lat_tol / 100.0):
             out.append(Drift("chain", str(c["chain"]), "latency_p95_ms", float(pred), float(meas)))
     return out
+
+
+def value_drifts(pinned: dict[str, float] | None, planned: dict[str, float | None]) -> list[Drift]:
+    """A drift at once per node the deploy runs at a value other than its plan's: ``pinned``
+    (the window's, node -> value running) against ``planned`` (node -> the plan's value)."""
+    return [Drift("node", n, "value", float(planned[n] or 0.0), float(v), immediate=True)
+            for n, v in sorted((pinned or {}).items()) if planned.get(n) is not None]
 
 
 class Persistence:

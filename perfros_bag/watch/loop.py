@@ -32,6 +32,8 @@ if TYPE_CHECKING:
 #: Windows a watch waits for a master that does not answer: none (bad input at once).
 MASTER_TIMEOUT_S = 3.0
 PERSIST_DEFAULT = 2
+#: share of a window a reading waits for the publishers' answers
+READ_SHARE = 0.4
 
 
 @dataclass
@@ -83,6 +85,8 @@ def window_rows(k: int, doc: dict[str, Any], plan: Plan, stats_types: dict[str, 
             src = next((m for m in doc["nodes"].values() if pn.input in m["topics"]), None)
             input_hz = None if src is None else src["topics"][pn.input]["measured_hz"]
         for topic, tc in (n["topics"].items() or [(None, None)]):
+            if tc is not None and tc["measured_hz"] is None:  # unreadable this window: no row
+                continue
             rows.append(Row(f"watch-{k:05d}", name, pn.parameter, pn.value, topic,
                             stats_types.get(topic or "") or None,
                             None if tc is None else int(tc["messages"]), float(doc["seconds"]),
@@ -178,12 +182,35 @@ def _watch(plan: Plan, plan_path: str | Path, system: System | None, master_uri:
            out: str | Path | None, adapt: Any,
            on_window: Callable[[dict[str, Any], list[dict[str, Any]]], None] | None,
            stop: threading.Event) -> WatchResult:
-    from perfros_bag.watch.alarms import Persistence
     from perfros_bag.watch.observe import Observer
 
     if not _master_up(master_uri):
         raise InputError(None, f"no ROS master reachable at {master_uri} (waited {MASTER_TIMEOUT_S:g} s)")
-    observer = Observer(master_uri, {n: list(pn.topics) for n, pn in plan.nodes.items()}, all_local=attached)
+    observer = Observer(master_uri, {n: list(pn.topics) for n, pn in plan.nodes.items()}, all_local=attached,
+                        call_budget_s=call_budget(window_s))
+    try:
+        return _watch_attached(observer, plan, plan_path, system, live, window_s, tolerance, persist, partial,
+                               windows, out, adapt, on_window, stop, master_uri)
+    finally:
+        observer.close()
+
+
+def call_budget(window_s: float) -> float:
+    """Seconds one reading waits for the publishers' ``getBusStats``: :data:`READ_SHARE` of
+    the window, at most the XML-RPC timeout (a publisher that answers later is unreadable in
+    that reading, and the window keeps its cadence)."""
+    from perfros_bag.rosrun.master import CALL_TIMEOUT_S
+
+    return min(CALL_TIMEOUT_S, READ_SHARE * window_s)
+
+
+def _watch_attached(observer: Observer, plan: Plan, plan_path: str | Path, system: System | None, live: Any,
+                    window_s: float, tolerance: tuple[float, float], persist: int, partial: bool,
+                    windows: int | None, out: str | Path | None, adapt: Any,
+                    on_window: Callable[[dict[str, Any], list[dict[str, Any]]], None] | None,
+                    stop: threading.Event, master_uri: str) -> WatchResult:
+    from perfros_bag.watch.alarms import Persistence
+
     missing = observer.attach()
     if missing:
         if not partial or len(missing) == len(plan.nodes):
@@ -240,8 +267,15 @@ def _windows(observer: Observer, plan: Plan, system: System | None, live: Any, u
              master_uri: str, listeners: dict[str, StampListener], stop: threading.Event) -> None:
     from perfros_bag.characterisation.csvfile import write_characterisation
     from perfros_bag.fileio import atomic_write_text, json_text
-    from perfros_bag.watch.alarms import rate_drifts
-    from perfros_bag.watch.window import cgroup_cpu_s, evaluate, window_cpu, window_document, window_stats
+    from perfros_bag.watch.alarms import rate_drifts, value_drifts
+    from perfros_bag.watch.window import (
+        cgroup_cpu_s,
+        evaluate,
+        unreadable_topics,
+        window_cpu,
+        window_document,
+        window_stats,
+    )
 
     tolerance, latency_tolerance = tolerances
     rows: list[Row] = []
@@ -285,8 +319,14 @@ def _windows(observer: Observer, plan: Plan, system: System | None, live: Any, u
 
                 system = world_system(system, {"links": world["links"]})  # judged against the rates in force
             v = evaluate(stats, plan, system, cpu, tolerance)
+            unread = unreadable_topics(before, after)
             doc = window_document(k, after.t, after.t - before.t, v, plan, after.alive, set(cpu), [], latency,
-                                  restarting)
+                                  restarting, unread)
+            blind = sorted(n for n, pn in plan.nodes.items() if any(t in unread for t in pn.topics))
+            if blind and len(blind) < len(plan.nodes):  # Σ w·P over the nodes that could be read
+                seen = evaluate(stats, _only(plan, [n for n in plan.nodes if n not in blind]), system, cpu, tolerance)
+                doc["overall"] = {"expected": seen.overall_expected, "measured": seen.overall_measured,
+                                  "deviation_pct": seen.deviation_pct, "unreadable": blind}
             for c, x in (world.get("foreign") or {}).items():
                 if c in doc["computers"]:
                     doc["computers"][c]["foreign"] = x
@@ -295,7 +335,9 @@ def _windows(observer: Observer, plan: Plan, system: System | None, live: Any, u
             if replan is not None:
                 doc["replan"] = replan
             # a transition window, half the old plan and the restarts, is reported but raises no alarm
-            alarms = [] if transition else persistence.update(rate_drifts(doc, tolerance, latency_tolerance))
+            alarms = [] if transition else persistence.update(
+                rate_drifts(doc, tolerance, latency_tolerance)
+                + value_drifts(doc.get("pinned"), {n: pn.value for n, pn in plan.nodes.items()}))
             doc["alarms"] = [a.to_dict() for a in alarms]
             new = [a.to_dict() for a in alarms if a.new]
             result.alarms += new

@@ -2,8 +2,14 @@
 
 One :meth:`Observer.read` asks the master who publishes each planned topic
 (``getSystemState``, one call), every such publisher for its ``getBusStats`` (one call per
-node) and psutil for each local node's CPU time, by the PID the node's own XML-RPC
-``getPid`` gave when the watch attached. No topic is subscribed to. A node is local when
+node, all at once on a small pool of threads) and psutil for each local node's CPU time, by
+the PID the node's own XML-RPC ``getPid`` gave when the watch attached. No topic is
+subscribed to. A reading waits at most ``call_budget_s`` for the publishers' answers (the
+loop gives it a share of the window): a publisher that has not answered by then (a node
+behind a throttled link, RQ4 saw 46 s windows of calls made one after the other) is
+*unreadable* in this reading: its topics keep the counters and times of its last answer,
+listed in :attr:`Reading.unread`, and it is not asked again while its call is under way, so a
+window keeps its cadence and the next answer counts from the last one. A node is local when
 its XML-RPC address is one of this machine's (loopback, its host names and interfaces) or
 when the watch attached to a deploy (every emulated computer is a namespace here); other
 nodes are unmeasured (their ``cpu`` is absent). A node is dead when its process is gone
@@ -15,11 +21,13 @@ from __future__ import annotations
 import socket
 import time
 from collections.abc import Mapping
+from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import wait as wait_for
 from dataclasses import dataclass, field
 from typing import Any
 from urllib.parse import urlsplit
 
-from perfros_bag.rosrun.master import bus_stats, master_call, node_call
+from perfros_bag.rosrun.master import CALL_TIMEOUT_S, bus_stats, master_call, node_call
 from perfros_bag.system.names import system_node_name
 from perfros_bag.watch.counters import TopicCounters, parse_bus_stats
 
@@ -50,6 +58,21 @@ class Reading:
     cpu_pid: dict[str, int] = field(default_factory=dict)  # plan node -> the PID it was read of
     alive: dict[str, bool] = field(default_factory=dict)  # plan node -> alive
     master_up: bool = True
+    #: (topic, publisher) whose publisher did not answer within the reading's budget: its
+    #: counters and stamp in ``topics``/``stamps`` are those of its last answer (absent
+    #: when it never answered)
+    unread: set[tuple[str, str]] = field(default_factory=set)
+
+
+#: threads a reading asks publishers on at most
+CALL_THREADS = 8
+
+
+def _ask(uri: str) -> tuple[Any, float]:
+    """One ``getBusStats`` and when it was answered (the middle of the call)."""
+    t0 = time.time()
+    reply = bus_stats(uri)
+    return reply, (t0 + time.time()) / 2
 
 
 def local_hosts() -> set[str]:
@@ -87,11 +110,21 @@ def _running(node: WatchedNode) -> bool:
         return False
 
 
+def _pid_at(uri: str) -> tuple[str, Any]:
+    return uri, node_call(uri, "getPid")
+
+
 class Observer:
     """Reads the running plan's nodes through the master at ``master_uri``."""
 
-    def __init__(self, master_uri: str, planned_topics: Mapping[str, list[str]], *, all_local: bool = False) -> None:
+    def __init__(self, master_uri: str, planned_topics: Mapping[str, list[str]], *, all_local: bool = False,
+                 call_budget_s: float = CALL_TIMEOUT_S) -> None:
         self.master_uri = master_uri
+        self.call_budget_s = call_budget_s  # seconds a reading waits for the publishers' answers
+        self._pool: ThreadPoolExecutor | None = None
+        #: ROS node (``getPid <node>`` for :meth:`_again`) -> its call not answered yet
+        self._under_way: dict[str, Future[Any]] = {}
+        self._last: Reading | None = None
         self.planned_topics = {n: list(ts) for n, ts in planned_topics.items()}  # plan node -> its topics
         self.all_local = all_local
         self.nodes: dict[str, WatchedNode] = {}  # plan node -> found
@@ -144,11 +177,23 @@ class Observer:
         return missing
 
     def _again(self, node: WatchedNode) -> None:
-        """Follow a node that was restarted under the same name: its new URI and PID."""
-        self.uris.pop(node.ros_name, None)
-        uri = self._uri(node.ros_name)
-        pid = None if uri is None else node_call(uri, "getPid")
-        if uri is not None and isinstance(pid, int) and pid != node.pid:
+        """Follow a node that was restarted under the same name: its new URI and PID. Its
+        ``getPid`` is waited for at most the reading's budget (a node behind a slow link
+        answers a later reading: the call is not made again meanwhile)."""
+        key = f"getPid {node.ros_name}"
+        fut = self._under_way.pop(key, None)
+        if fut is None:
+            self.uris.pop(node.ros_name, None)
+            uri = self._uri(node.ros_name)
+            if uri is None:
+                return
+            fut = self._pool_of().submit(_pid_at, uri)
+            wait_for([fut], timeout=self.call_budget_s)
+        if not fut.done():
+            self._under_way[key] = fut
+            return
+        uri, pid = fut.result()
+        if isinstance(pid, int) and pid != node.pid:
             node.uri, node.pid, node.created = uri, pid, _create_time(pid)
 
     def _publishers(self, state: tuple[list[Any], list[Any], list[Any]]) -> None:
@@ -164,25 +209,22 @@ class Observer:
         if state is not None:
             self._publishers(state)
         wanted = {t for n in self.nodes for t in self.planned_topics[n]}
-        stats: dict[str, dict[str, TopicCounters]] = {}
-        answered: dict[str, float] = {}  # ROS node -> when it answered getBusStats
+        pubs = list(dict.fromkeys(p for t in sorted(wanted) for p in self.publishers.get(t, [])))
+        replies, late = self._ask_all(pubs, state is not None)
+        stats = {pub: parse_bus_stats(reply) for pub, (reply, _t) in replies.items()}
+        answered = {pub: t for pub, (reply, t) in replies.items() if reply is not None}
+        last = self._last
         for topic in sorted(wanted):
             for pub in self.publishers.get(topic, []):
-                if pub not in stats:
-                    uri = self.uris.get(pub) or (self._uri(pub) if state is not None else None)
-                    t0 = time.time()
-                    reply = bus_stats(uri) if uri else None
-                    if reply is None and state is not None and pub in self.uris:  # restarted: a new address
-                        del self.uris[pub]
-                        uri = self._uri(pub)
-                        t0 = time.time()
-                        reply = bus_stats(uri) if uri else None
-                    stats[pub] = parse_bus_stats(reply)
-                    if reply is not None:
-                        answered[pub] = (t0 + time.time()) / 2
-                if topic in stats[pub]:
-                    reading.topics[(topic, pub)] = stats[pub][topic]
-                    reading.stamps[(topic, pub)] = answered[pub]
+                key = (topic, pub)
+                if pub in late:  # no answer in time: its last answer (if any) stands, marked unread
+                    reading.unread.add(key)
+                    if last is not None and key in last.topics:
+                        reading.topics[key] = last.topics[key]
+                        reading.stamps[key] = last.stamps[key]
+                elif topic in stats.get(pub, {}):
+                    reading.topics[key] = stats[pub][topic]
+                    reading.stamps[key] = answered[pub]
         for name, node in self.nodes.items():
             if node.local and node.pid is not None and state is not None and not _running(node):
                 self._again(node)  # a node restarted under its name (a deploy applying a new plan) goes on
@@ -200,7 +242,63 @@ class Observer:
                 alive = True
             # a local node: its process runs (an XML-RPC call a loaded machine answers late is no
             # death); else its XML-RPC answers: getBusStats did this time, else ask getPid
-            reading.alive[name] = alive and (node.local or node.ros_name in answered
+            # (a remote node whose call is still under way is no death either: its link is slow)
+            reading.alive[name] = alive and (node.local or node.ros_name in answered or node.ros_name in late
                                              or isinstance(node_call(node.uri, "getPid"), int))
         reading.t = time.time()
+        self._last = reading
         return reading
+
+    def _ask_all(self, pubs: list[str], master_up: bool) -> tuple[dict[str, tuple[Any, float]], set[str]]:
+        """Every publisher's ``getBusStats`` at once, waited for until the reading's budget:
+        (publisher -> (its reply, when it answered), the publishers that did not answer in
+        time). A reply of None that comes in time (refused: the node restarted under a new
+        address, or is gone) is asked once more at the address the master gives now."""
+        deadline = time.time() + self.call_budget_s
+        replies: dict[str, tuple[Any, float]] = {}
+        late: set[str] = set()
+        asked: dict[str, Future[tuple[Any, float]]] = {}
+        for pub in pubs:
+            if pub in self._under_way:
+                if not self._under_way[pub].done():  # still waiting from an earlier reading
+                    late.add(pub)
+                    continue
+                del self._under_way[pub]
+            uri = self.uris.get(pub) or (self._uri(pub) if master_up else None)
+            if uri is None:
+                replies[pub] = (None, time.time())
+                continue
+            asked[pub] = self._submit(uri)
+        for attempt in (1, 2):
+            wait_for(list(asked.values()), timeout=max(0.0, deadline - time.time()))
+            again: dict[str, Future[tuple[Any, float]]] = {}
+            for pub, fut in asked.items():
+                if not fut.done():
+                    late.add(pub)
+                    self._under_way[pub] = fut
+                    continue
+                reply, t = fut.result()
+                if reply is None and attempt == 1 and master_up and pub in self.uris:  # restarted: a new address?
+                    old = self.uris.pop(pub)
+                    uri = self._uri(pub)
+                    if uri is not None and uri != old:
+                        again[pub] = self._submit(uri)
+                        continue
+                replies[pub] = (reply, t)
+            asked = again
+        return replies, late
+
+    def _pool_of(self) -> ThreadPoolExecutor:
+        if self._pool is None:  # made by the reading thread: its threads share its network namespace
+            self._pool = ThreadPoolExecutor(CALL_THREADS, thread_name_prefix="perfros-watch-call")
+        return self._pool
+
+    def _submit(self, uri: str) -> Future[tuple[Any, float]]:
+        return self._pool_of().submit(_ask, uri)
+
+    def close(self) -> None:
+        """Let the calls under way end by their own timeout, without waiting for them."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=False, cancel_futures=True)
+            self._pool = None
+        self._under_way.clear()

@@ -54,11 +54,15 @@ class WindowTopic(TopicStats):
 
 
 def window_stats(before: Reading, after: Reading, types: dict[str, str], name: str = "window") -> RecordingStats:
-    """The topics counted between two readings (topics whose publishers counted nothing are
-    absent). A topic's seconds are those between its publisher's two answers (the mean over
-    its publishers): a reading asks the nodes one after the other."""
+    """The topics counted between two readings (topics whose publishers counted nothing, and
+    :func:`unreadable_topics`, are absent). A topic's seconds are those between its
+    publisher's two answers (the mean over its publishers): each publisher answers at its own
+    moment, and one unread at the window's start counts from its last answer."""
     sums: dict[str, list[float]] = {}
+    unread = unreadable_topics(before, after)
     for key, counters in after.topics.items():
+        if key[0] in unread:
+            continue
         m, b = window_counts(before.topics.get(key), counters)
         seconds = after.stamps.get(key, after.t) - before.stamps.get(key, before.t)
         s = sums.setdefault(key[0], [0, 0, 0.0, 0])
@@ -70,6 +74,15 @@ def window_stats(before: Reading, after: Reading, types: dict[str, str], name: s
         t: WindowTopic(t, types.get(t, ""), int(m), int(b), window_s=secs / n)
         for t, (m, b, secs, n) in sums.items() if m > 0}
     return RecordingStats(Path(name), "ros1-live", topics, "getBusStats")
+
+
+def unreadable_topics(before: Reading, after: Reading) -> set[str]:
+    """Topics a window cannot count: a publisher of theirs did not answer in time at its end
+    (:attr:`Reading.unread`), or had never answered at its start (no counters to count from).
+    A publisher that answers again counts from its last answer, over the seconds since."""
+    out = {topic for topic, _pub in after.unread}
+    out.update(topic for key in before.unread if key not in before.topics for topic in [key[0]])
+    return out
 
 
 def window_cpu(before: Reading, after: Reading, plan: Plan, units_per_core: float | None) -> dict[str, TracedCpu]:
@@ -188,23 +201,31 @@ def planned_chains(plan: Plan) -> list[dict[str, Any]]:
 def window_document(k: int, t: float, seconds: float, v: Validation, plan: Plan, alive_of: dict[str, bool],
                     measured_cpu: set[str], alarms: list[dict[str, Any]],
                     latency: dict[str, dict[str, Any] | None] | None = None,
-                    restarting: set[str] | None = None) -> dict[str, Any]:
+                    restarting: set[str] | None = None, unreadable: set[str] | None = None) -> dict[str, Any]:
     """The window's JSON object (docs/formats.md "watch --json"); a node not alive is
-    ``restarting`` when in ``restarting`` (a deploy restarting it), else ``dead``."""
+    ``restarting`` when in ``restarting`` (a deploy restarting it), else ``dead``. A topic in
+    ``unreadable`` (:func:`unreadable_topics`) has no measured rate (None, never 0 Hz); a
+    running node none of whose topics could be read is ``unreadable``, its ``measured_hz`` None."""
+    unread = unreadable or set()
     nodes: dict[str, Any] = {}
     for n in v.nodes:
         alive = alive_of.get(n.node, False)
-        state = "running" if alive else "restarting" if n.node in (restarting or ()) else "dead"
+        readable = [tc for tc in n.topics if tc.topic not in unread]
+        state = ("running" if readable or not n.topics else "unreadable") if alive \
+            else "restarting" if n.node in (restarting or ()) else "dead"
         rated = [tc for tc in n.topics if tc.f_expected]
+        rated_read = [tc for tc in readable if tc.f_expected]
         nodes[n.node] = {
             "expected_hz": _mean([float(tc.f_expected or 0.0) for tc in rated]),
-            "measured_hz": _mean([tc.f_measured for tc in rated]) if rated
-            else _mean([tc.f_measured for tc in n.topics]),
+            "measured_hz": _mean([tc.f_measured for tc in rated_read]) if rated
+            else _mean([tc.f_measured for tc in readable]),
             **({"cpu": n.cpu_measured} if n.node in measured_cpu and n.cpu_measured is not None else {}),
             "cpu_expected": n.cpu_expected, "computer": n.computer, "alive": alive, "state": state,
             "p_expected": n.p_expected, "p_measured": n.p_measured, "deviation_pct": n.deviation_pct,
-            "topics": {tc.topic: {"expected_hz": tc.f_expected, "measured_hz": tc.f_measured,
-                                  "kBps": tc.bandwidth_kBps, "messages": tc.messages} for tc in n.topics},
+            "topics": {tc.topic: {"expected_hz": tc.f_expected,
+                                  "measured_hz": None if tc.topic in unread else tc.f_measured,
+                                  "kBps": None if tc.topic in unread else tc.bandwidth_kBps,
+                                  "messages": None if tc.topic in unread else tc.messages} for tc in n.topics},
         }
     chains = [{"chain": c.get("name"), "topic": c["topics"][-1], "predicted_ms": c.get("predicted_ms"),
                "measured_ms": (latency or {}).get(str(c.get("name")))} for c in planned_chains(plan)]
