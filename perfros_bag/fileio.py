@@ -126,6 +126,23 @@ def atomic_write_text(path: str | Path, text: str) -> None:
         handle.write(text)
 
 
+def append_lines(path: str | Path, text: str) -> None:
+    """Append whole lines (``text`` ends with a newline) to ``path`` in one ``write`` and
+    sync it: a file that grows by a record at a time (watch's windows) costs each record,
+    not the whole file again. Lines already there are never touched, so a run stopped at
+    any moment keeps every record it finished."""
+    if text and not text.endswith("\n"):
+        raise ValueError("append_lines: the text must end with a newline")
+    fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o666)
+    try:
+        data = text.encode("utf-8")
+        while data:
+            data = data[os.write(fd, data):]
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
 def json_text(data: Any, indent: int | None = 2) -> str:
     """``data`` as strict JSON (no NaN or Infinity, which JSON parsers refuse): a
     non-finite number is a :class:`NonFiniteOutputError`, and nothing is written."""

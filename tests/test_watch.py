@@ -328,6 +328,35 @@ def test_a_steady_plan_raises_no_alarm_and_its_rates_are_the_counters(fake: Fake
     assert len((tmp_path / "w" / "windows.jsonl").read_text().splitlines()) == 4
 
 
+def test_each_window_is_appended_to_the_out_files_not_the_whole_file_rewritten(fake: FakeRos, tmp_path: Path) -> None:
+    """A long watch writes each window once: after the first window, windows.jsonl and
+    characterisation.csv grow in place (the same file, the earlier bytes a prefix of the
+    later), instead of being rewritten whole each window (O(windows^2) bytes over a day of
+    5 s windows). The files read back are every window's JSON and rows."""
+    out = tmp_path / "w"
+    seen: list[tuple[int, bytes, int, bytes]] = []
+    docs: list[dict[str, Any]] = []
+
+    def snap(d: dict[str, Any], new: list[dict[str, Any]]) -> None:  # called before window d is written
+        docs.append(d)
+        if (out / "windows.jsonl").exists():
+            seen.append(((out / "windows.jsonl").stat().st_ino, (out / "windows.jsonl").read_bytes(),
+                         (out / "characterisation.csv").stat().st_ino, (out / "characterisation.csv").read_bytes()))
+
+    watch(_fake_plan(tmp_path), master_uri=fake.master_uri, window_s=0.5, windows=5, out=out, on_window=snap)
+    final = ((out / "windows.jsonl").stat().st_ino, (out / "windows.jsonl").read_bytes(),
+             (out / "characterisation.csv").stat().st_ino, (out / "characterisation.csv").read_bytes())
+    assert len(seen) == 4  # windows 2-5 found the files of the ones before
+    for before, after in zip(seen, [*seen[1:], final], strict=True):
+        assert after[0] == before[0] and after[2] == before[2]  # the same files, not replaced
+        assert after[1].startswith(before[1]) and len(after[1]) > len(before[1])
+        assert after[3].startswith(before[3]) and len(after[3]) > len(before[3])
+    lines = final[1].decode().splitlines()
+    assert [json.loads(x) for x in lines] == [json.loads(json.dumps(d)) for d in docs]
+    rows = read_characterisation(out / "characterisation.csv").rows
+    assert len(rows) == 5 * 2 and sorted({r.recording for r in rows}) == [f"watch-{k:05d}" for k in range(1, 6)]
+
+
 def test_a_slow_node_raises_its_alarm_after_persist_windows_and_a_dead_one_at_once(fake: FakeRos,
                                                                                   tmp_path: Path) -> None:
     docs: list[dict[str, Any]] = []

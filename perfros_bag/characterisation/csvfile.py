@@ -84,13 +84,15 @@ def columns_for(rows: Iterable[Row]) -> tuple[str, ...]:
     return COLUMNS + tuple(c for c in OPTIONAL_COLUMNS if any(getattr(r, c) is not None for r in rows))
 
 
-def rows_csv(rows: Iterable[Row]) -> str:
-    """The file's text: the header, then one line per row."""
+def rows_csv(rows: Iterable[Row], columns: tuple[str, ...] | None = None, *, header: bool = True) -> str:
+    """The file's text: the header (unless ``header`` is false), then one line per row, in
+    ``columns`` (default :func:`columns_for` the rows)."""
     rows = list(rows)
-    columns = columns_for(rows)
+    columns = columns_for(rows) if columns is None else columns
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
-    w.writerow(columns)
+    if header:
+        w.writerow(columns)
     for r in rows:
         w.writerow([_cell(getattr(r, c)) for c in columns])
     return buf.getvalue()

@@ -265,8 +265,8 @@ def _windows(observer: Observer, plan: Plan, system: System | None, live: Any, u
              tolerances: tuple[float, float], persistence: Any, windows: int | None, outdir: Path | None, adapt: Any,
              on_window: Callable[[dict[str, Any], list[dict[str, Any]]], None] | None, result: WatchResult,
              master_uri: str, listeners: dict[str, StampListener], stop: threading.Event) -> None:
-    from perfros_bag.characterisation.csvfile import write_characterisation
-    from perfros_bag.fileio import atomic_write_text, json_text
+    from perfros_bag.characterisation.csvfile import columns_for, rows_csv, write_characterisation
+    from perfros_bag.fileio import append_lines, atomic_write_text, json_text
     from perfros_bag.watch.alarms import rate_drifts, value_drifts
     from perfros_bag.watch.window import (
         cgroup_cpu_s,
@@ -279,7 +279,7 @@ def _windows(observer: Observer, plan: Plan, system: System | None, live: Any, u
 
     tolerance, latency_tolerance = tolerances
     rows: list[Row] = []
-    lines: list[str] = []
+    written: tuple[str, ...] | None = None  # characterisation.csv's columns once it is started
     groups = dict(live.cgroups) if live is not None else {}
     replans = _Replans(adapt, live)
     before = observer.read()
@@ -346,12 +346,19 @@ def _windows(observer: Observer, plan: Plan, system: System | None, live: Any, u
                 replans.ask(plan, rows + window_rows(k, doc, plan, observer.types), new, k, world)
             if on_window is not None:
                 on_window(doc, new)
-            if outdir is not None:
-                if not transition:  # a mix of two plans is no characterisation of either
-                    rows += window_rows(k, doc, plan, observer.types)
-                lines.append(json_text(doc, indent=None))
-                atomic_write_text(outdir / "windows.jsonl", "\n".join(lines) + "\n")
-                write_characterisation(outdir / "characterisation.csv", rows)
+            if outdir is not None:  # each window appended: a long watch writes each once
+                added = [] if transition else window_rows(k, doc, plan, observer.types)
+                rows += added  # (a transition window, a mix of two plans, characterises neither)
+                line = json_text(doc, indent=None) + "\n"
+                if written is None:
+                    atomic_write_text(outdir / "windows.jsonl", line)
+                else:
+                    append_lines(outdir / "windows.jsonl", line)
+                if written is None or columns_for(rows) != written:  # started, or a column came
+                    write_characterisation(outdir / "characterisation.csv", rows)
+                    written = columns_for(rows)
+                elif added:
+                    append_lines(outdir / "characterisation.csv", rows_csv(added, written, header=False))
             if not after.master_up or (live is not None and not _deploy_running(live)):
                 result.ended = "the deploy ended" if live is not None else f"the master at {master_uri} went away"
                 break
