@@ -342,19 +342,22 @@ def _windows(observer: Observer, plan: Plan, system: System | None, live: Any, u
             new = [a.to_dict() for a in alarms if a.new]
             result.alarms += new
             result.windows = k
+            # the window as characterisation rows, made once for the re-plan and --out (a
+            # transition window, a mix of two plans, characterises neither and raises nothing)
+            added = [] if transition or (outdir is None and not new) else window_rows(k, doc, plan, observer.types)
             if new:  # a re-plan still being made takes these alarms' windows in its successor, if they last
-                replans.ask(plan, rows + window_rows(k, doc, plan, observer.types), new, k, world)
+                replans.ask(plan, rows + added, new, k, world)
             if on_window is not None:
                 on_window(doc, new)
             if outdir is not None:  # each window appended: a long watch writes each once
-                added = [] if transition else window_rows(k, doc, plan, observer.types)
-                rows += added  # (a transition window, a mix of two plans, characterises neither)
+                rows += added
                 line = json_text(doc, indent=None) + "\n"
                 if written is None:
                     atomic_write_text(outdir / "windows.jsonl", line)
                 else:
                     append_lines(outdir / "windows.jsonl", line)
-                if written is None or columns_for(rows) != written:  # started, or a column came
+                # started, or the new rows fill a column the file lacks: the whole file once
+                if written is None or not set(columns_for(added)) <= set(written):
                     write_characterisation(outdir / "characterisation.csv", rows)
                     written = columns_for(rows)
                 elif added:
