@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import shutil
 import subprocess
 import sys
@@ -419,6 +420,84 @@ def signature(plan: dict[str, Any]) -> str:
     return json.dumps([nodes, caps])
 
 
+# ---------------------------------------------------------------- the host's speed, before each deployment
+
+#: The host's speed moves under a run (docs/casestudy-real.md, the 01:32-04:45 runs): record-cpu's
+#: speed reference (perfros_bag/cpu/speed.py) is bimodal here, ~0.75 or ~0.40-0.55, switching
+#: within minutes, and a deployment run in the slow state needs 1.4-1.6x the CPU per message the
+#: sweep measured, so every prediction made from the sweep (CPU, latency) is off by that much.
+#: Before each deployment (and each instance's tune) the pipeline measures the speed and, while
+#: it is not within SPEED_SHARE of the sweep's median (either way), waits (SPEED_STEP_S at a time) up to
+#: SPEED_WAIT_S, and at most SPEED_BUDGET_S over the whole run; then it deploys whatever the
+#: speed. Every wait is stated (results.json ``speed_gate``, results.md). Environment:
+#: CASESTUDY_SPEED_WAIT_S (0: no waiting), CASESTUDY_SPEED_BUDGET_S.
+SPEED_SHARE = 0.85
+SPEED_STEP_S = 5.0
+SPEED_WAIT_S = float(os.environ.get("CASESTUDY_SPEED_WAIT_S", "120"))
+SPEED_BUDGET_S = float(os.environ.get("CASESTUDY_SPEED_BUDGET_S", "900"))
+SPEED_GATE: dict[str, Any] = {"reference": None, "waits": []}
+
+
+def sweep_speed(manifest: Path) -> float | None:
+    """The median ``speed_factor`` of the sweep's runs (its manifest.yaml), None without one."""
+    from perfros_bag.characterisation.manifest import load_manifest
+
+    found = sorted(e.speed_factor for e in load_manifest(manifest).recordings if e.speed_factor)
+    if not found:
+        return None
+    mid = len(found) // 2
+    return found[mid] if len(found) % 2 else (found[mid - 1] + found[mid]) / 2
+
+
+def speed_gate(reference: float | None, measure: Any, sleep: Any, clock: Any, *, wait_s: float,
+               budget_s: float, share: float = SPEED_SHARE, step_s: float = SPEED_STEP_S) -> dict[str, Any]:
+    """Wait while the host's speed (``measure()``: a speed factor) is not within ``share`` of
+    ``reference`` (below ``share`` x it, or above it / ``share``: the two states this host
+    switches between are 1.6x apart, and a deployment faster than its sweep is mispredicted
+    as much as a slower one), up to ``wait_s`` and ``budget_s``: {speed, waited_s, held}
+    (``held``: the last speed is within; True without a reference, nothing to hold to)."""
+    if reference is None or reference <= 0:
+        return {"speed": None, "waited_s": 0.0, "held": True}
+
+    def within(x: float) -> bool:
+        return share * reference <= x <= reference / share
+
+    start = clock()
+    speed = measure()
+    limit = max(0.0, min(wait_s, budget_s))
+    while not within(speed) and clock() - start + step_s <= limit:
+        sleep(step_s)
+        speed = measure()
+    return {"speed": speed, "waited_s": clock() - start, "held": within(speed)}
+
+
+def wait_for_speed(label: str) -> None:
+    """:func:`speed_gate` before ``label``'s deployment, against the sweep's median speed
+    (SPEED_GATE["reference"], set once the sweep ran); the wait goes into SPEED_GATE."""
+    ref = SPEED_GATE["reference"]
+    if ref is None or SPEED_WAIT_S <= 0:
+        return
+    from perfros_bag.cpu.speed import measure_speed
+
+    spent = sum(w["waited_s"] for w in SPEED_GATE["waits"])
+    got = speed_gate(ref, lambda: measure_speed().factor, time.sleep, time.monotonic, wait_s=SPEED_WAIT_S,
+                     budget_s=SPEED_BUDGET_S - spent)
+    SPEED_GATE["waits"].append({"deployment": label, **got})
+    if got["waited_s"] >= SPEED_STEP_S or not got["held"]:
+        err.print(f"{label}: waited {got['waited_s']:.0f} s for the host's speed "
+                  f"({got['speed']:.2f}, the sweep's {ref:.2f}){'' if got['held'] else ': still slow, deploying'}")
+
+
+def speed_gate_summary() -> dict[str, Any]:
+    """The gate over the run: the reference, how many deployments waited, for how long, how
+    many ran below the threshold anyway."""
+    waits = SPEED_GATE["waits"]
+    return {"reference": SPEED_GATE["reference"], "share": SPEED_SHARE, "checked": len(waits),
+            "waited": sum(1 for w in waits if w["waited_s"] >= SPEED_STEP_S),
+            "waited_s": sum(w["waited_s"] for w in waits), "slow": sum(1 for w in waits if not w["held"]),
+            "waits": waits}
+
+
 def deploy(plan: Path, robots: int, system: Path, run_dir: Path, app: Path, args: argparse.Namespace,
            label: str) -> dict[str, Any]:
     sig = signature(json.loads(plan.read_text()))
@@ -430,6 +509,7 @@ def deploy(plan: Path, robots: int, system: Path, run_dir: Path, app: Path, args
         COMMANDS.append(f"perfros-bag deploy {rel(plan)} {rel(app / f'app{robots}.launch')} --space "
                         f"{rel(app / f'space{robots}.yaml')} --out {rel(run_dir)} --system {rel(system)}   # reused")
     else:
+        wait_for_speed(label)
         err.print(f"[bold]{label}[/]: deploying -> {rel(run_dir)}")
         if run_dir.exists():
             shutil.rmtree(run_dir)
@@ -468,7 +548,7 @@ def summarise(res: dict[str, Any], plan: dict[str, Any] | None = None) -> dict[s
     ratios = [abs(t["ratio"] - 1) * 100 for n in val["nodes"] for t in n["topics"] if t.get("ratio") is not None]
     links = rec["network"].get("links_measured", [])
     return {"expected": val["overall"]["expected"], "measured": val["overall"]["measured"],
-            "deviation_pct": val["overall"]["deviation_pct"],
+            "deviation_pct": val["overall"]["deviation_pct"], "speed_factor": rec.get("speed_factor"),
             "freq_dev_mean_pct": sum(ratios) / len(ratios) if ratios else None,
             "cpu_cap": rec["cpu_cap"]["mode"], "net": rec["network"]["mode"],
             "computers": {c["computer"]: {"capacity": c["capacity"], "expected": c["cpu_expected"],
@@ -580,6 +660,8 @@ def tune_all(out: Path, app: Path, numbers: list[int], args: argparse.Namespace,
                              "--system", d / "system.yaml", "--base", d / "characterisation.csv", "--out", d / "tune",
                              "--rounds", TUNE_ROUNDS, "--tolerance", TUNE_TOLERANCE, "--headroom", "auto",
                              "--duration", f"{args.duration:g}", "--units-per-core", f"{UNITS_PER_CORE:g}"]
+        if not (d / "tune" / "tune.json").exists():
+            wait_for_speed(f"instance {i} tune")
         err.print(f"[bold]instance {i}[/]: tune (up to {TUNE_ROUNDS} rounds) -> {rel(d / 'tune')}")
         # 1: stopped without a round that holds (plan unchanged, or the last round); 2: a round's
         # refit has no plan (e.g. a budget its model can no longer keep): its finished rounds count
@@ -818,8 +900,40 @@ def latency_rows(results: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """RQ2-L: per distinct deployment of the RQ2 plans (as :func:`rq2_distinct` counts them)
     and chain, measured and predicted p50/p95 and the budget."""
     plans = [r for r in results if not r["plan"].endswith(NO_MARGIN)]
-    return [{"instance": r["instance"], "plan": r["plan"], "run": r["run"], **c}
+    return [{"instance": r["instance"], "plan": r["plan"], "run": r["run"], "speed_factor": r.get("speed_factor"), **c}
             for r in distinct_deployments(plans) for c in r.get("chains") or []]
+
+
+def latency_by_speed(rows: list[dict[str, Any]], reference: float | None) -> dict[str, Any] | None:
+    """:func:`latency_summary` apart for the chain-deployments that ran at the sweep's speed
+    (their deployment's ``speed_factor`` within SPEED_SHARE of ``reference``, as
+    :func:`speed_gate` holds it) and the others (or with no speed known); None without a
+    reference."""
+    if reference is None:
+        return None
+    floor, ceiling = SPEED_SHARE * reference, reference / SPEED_SHARE
+
+    def at(r: dict[str, Any]) -> bool:
+        return r.get("speed_factor") is not None and floor <= r["speed_factor"] <= ceiling
+
+    return {"reference": reference, "floor": floor, "ceiling": ceiling,
+            "at_speed": latency_summary([r for r in rows if at(r)]),
+            "off_speed": latency_summary([r for r in rows if not at(r)])}
+
+
+def speed_split_line(split: dict[str, Any] | None) -> str | None:
+    """One line: the latency error of the chain-deployments at the sweep's speed and off it."""
+    if split is None:
+        return None
+
+    def part(s: dict[str, Any]) -> str:
+        x50, x95 = s["p50"]["error_pct"], s["p95"]["error_pct"]
+        return (f"p50 {'-' if x50 is None else f'{x50:.1f}'} %, p95 {'-' if x95 is None else f'{x95:.1f}'} % "
+                f"over {s['chain_deployments']}")
+
+    return (f"By the host's speed (record-cpu's speed reference at each deployment against the sweep's median "
+            f"{split['reference']:.2f}; at speed: {split['floor']:.2f}-{split['ceiling']:.2f}): at speed "
+            f"{part(split['at_speed'])}; off speed {part(split['off_speed'])}.")
 
 
 def latency_summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
@@ -992,16 +1106,25 @@ def rq2l_lines(results: list[dict[str, Any]], started: str) -> list[str]:
              "can keep): " + ("; ".join(f"instance {i}: " + ("none could bind" if b is None else f"p95 {b['p95']:g} ms")
                                        for i, b in sorted(BUDGETS.items())) or "none") + ".", "",
              "| instance | plan | chain | predicted p50 ms | measured p50 ms | predicted p95 ms | measured p95 ms "
-             "| budget p95 ms | held | run |", "|---|---|---|---|---|---|---|---|---|---|"]
+             "| budget p95 ms | held | host speed | run |", "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         budget = r.get("budget_p95_ms")
         held = "-" if budget is None or r.get("p95_ms") is None else (
             "yes" if r["p95_ms"] <= BUDGET_SLACK * budget else "**no**")
         lines.append(f"| {r['instance']} | {r['plan']} | {r['chain']} | {f(r.get('pred_p50_ms'), 1)} | "
                      f"{f(r.get('p50_ms'), 1)} | {f(r.get('pred_p95_ms'), 1)} | {f(r.get('p95_ms'), 1)} | "
-                     f"{f(budget, 0)} | {held} | {r['run'].rsplit('/', 1)[-1]} |")
+                     f"{f(budget, 0)} | {held} | {f(r.get('speed_factor'), 2)} | {r['run'].rsplit('/', 1)[-1]} |")
     lines += ["", latency_line(f"{started} UTC", latency_summary(rows)).replace("full run", "This run", 1)
               + f" (goals: p50 <= 15 %, p95 <= 25 %, under {SMALL_MS:g} ms within 5 ms; budgets held in >= 95 %).", ""]
+    split = speed_split_line(latency_by_speed(rows, SPEED_GATE["reference"]))
+    gate = speed_gate_summary()
+    if split is not None:
+        lines += [split, ""]
+    if gate["checked"]:
+        lines += [f"The host's speed before each deployment (pipelines/casestudy_real.py, SPEED_SHARE "
+                  f"{SPEED_SHARE:g} of the sweep's, waits of up to {SPEED_WAIT_S:g} s, {SPEED_BUDGET_S:g} s in all): "
+                  f"checked {gate['checked']}, waited {gate['waited']} times ({gate['waited_s']:.0f} s in all), "
+                  f"deployed still off speed {gate['slow']} times.", ""]
     return lines
 
 
@@ -1201,6 +1324,7 @@ def run(out: Path, numbers: list[int], args: argparse.Namespace, argv: list[str]
     app = application(out, args)
     fair = None if args.skip_fairness else fairness(out)
     char_csv, draft = characterise(out, app)
+    SPEED_GATE["reference"] = sweep_speed(out / "sweep" / "manifest.yaml")
     rates = cpu_against_rate(char_csv, draft)
     plans = fit_and_solve(out, char_csv, draft, numbers, {"p95": args.people_budget_p95},
                           tuple(int(x) for x in args.budget_instances.split(",") if x.strip()))
@@ -1223,11 +1347,14 @@ def run(out: Path, numbers: list[int], args: argparse.Namespace, argv: list[str]
     chains = latency_rows(results)
     latency = latency_summary(chains)
     lat_line = latency_line(f"{started} UTC", latency)
+    by_speed = latency_by_speed(chains, SPEED_GATE["reference"])
     (out / "results.json").write_text(json.dumps({"rq2": results, "rq2_distinct": distinct, "rq3": rq3_rows,
                                                   "model_errors": errors,
                                                   "computer_errors": computers, "cpu_against_rate": rates,
                                                   "fairness": fair, "rq2_latency": chains,
                                                   "rq2_latency_summary": latency, "latency_line": lat_line,
+                                                  "rq2_latency_by_speed": by_speed,
+                                                  "speed_gate": speed_gate_summary(),
                                                   "rq3_kept_errors": kept_errors(rq3_rows),
                                                   "no_plan": FAILED, "full_run": full, "full_run_line": line,
                                                   "seconds": seconds}, indent=1, default=str))

@@ -330,3 +330,67 @@ def test_rq4_recovery_is_never_a_window_that_could_not_read_some_node() -> None:
     out = rq4.recovery(ws, log, 90.0, 80.0)
     assert out["recover_s"] == 115.0 - 90.0 and out["within_share"] == round(1 / 3, 2)
     assert rq4.recovery(ws[:1], log, 90.0, 80.0)["recover_s"] is None
+
+
+class _FakeHost:
+    """A host whose speed follows a list, one reading per measure(); time moves only by sleep()."""
+
+    def __init__(self, speeds: list[float]) -> None:
+        self.speeds, self.now, self.reads = list(speeds), 0.0, 0
+
+    def measure(self) -> float:
+        self.reads += 1
+        return self.speeds.pop(0)
+
+    def sleep(self, s: float) -> None:
+        self.now += s
+
+    def clock(self) -> float:
+        return self.now
+
+
+def test_speed_gate_waits_while_the_host_is_slow_and_stops_at_its_limits() -> None:
+    # the sweep ran at 0.76: the floor is 0.85 x 0.76 = 0.646
+    host = _FakeHost([0.45, 0.50, 0.74, 0.2])
+    got = cs.speed_gate(0.76, host.measure, host.sleep, host.clock, wait_s=120, budget_s=900, step_s=5)
+    assert got == {"speed": 0.74, "waited_s": 10.0, "held": True} and host.reads == 3
+    host = _FakeHost([1.2, 0.80])  # faster than 0.76 / 0.85 = 0.894 is off speed too
+    assert cs.speed_gate(0.76, host.measure, host.sleep, host.clock, wait_s=120, budget_s=900, step_s=5) == {
+        "speed": 0.80, "waited_s": 5.0, "held": True}
+    host = _FakeHost([0.75])  # at speed: measured once, no wait
+    assert cs.speed_gate(0.76, host.measure, host.sleep, host.clock, wait_s=120, budget_s=900, step_s=5) == {
+        "speed": 0.75, "waited_s": 0.0, "held": True}
+    host = _FakeHost([0.4] * 100)  # slow throughout: gives up at the per-deployment limit
+    got = cs.speed_gate(0.76, host.measure, host.sleep, host.clock, wait_s=12, budget_s=900, step_s=5)
+    assert got == {"speed": 0.4, "waited_s": 10.0, "held": False}
+    host = _FakeHost([0.4] * 100)  # ... or at what is left of the run's budget
+    got = cs.speed_gate(0.76, host.measure, host.sleep, host.clock, wait_s=120, budget_s=4, step_s=5)
+    assert got == {"speed": 0.4, "waited_s": 0.0, "held": False} and host.reads == 1
+    assert cs.speed_gate(None, host.measure, host.sleep, host.clock, wait_s=120, budget_s=900)["held"]
+
+
+def test_sweep_speed_is_the_median_of_the_manifests_factors(tmp_path: Path) -> None:
+    from perfros_bag.characterisation.manifest import write_manifest
+
+    entries = [{"path": f"r{k}.bag", "cpu": f"r{k}.cpu.csv", "computer": "vm", "settings": {"a": k}, "speed_factor": f}
+               for k, f in enumerate([0.77, 0.41, 0.75, 0.78])]
+    write_manifest(tmp_path / "manifest.yaml", entries)
+    assert cs.sweep_speed(tmp_path / "manifest.yaml") == pytest.approx((0.75 + 0.77) / 2)
+    write_manifest(tmp_path / "none.yaml", [{k: v for k, v in e.items() if k != "speed_factor"} for e in entries])
+    assert cs.sweep_speed(tmp_path / "none.yaml") is None
+
+
+def test_latency_split_by_the_hosts_speed_against_a_hand_count() -> None:
+    def row(speed: float | None, meas: float, pred: float) -> dict[str, Any]:
+        return {"speed_factor": speed, "p50_ms": meas, "pred_p50_ms": pred, "p95_ms": meas, "pred_p95_ms": pred}
+
+    rows = [row(0.76, 100.0, 110.0), row(0.70, 200.0, 180.0), row(0.45, 300.0, 150.0), row(None, 100.0, 100.0),
+            row(0.95, 100.0, 130.0)]
+    split = cs.latency_by_speed(rows, 0.8)  # at speed: 0.68-0.941
+    assert split is not None and split["floor"] == pytest.approx(0.68) and split["ceiling"] == pytest.approx(0.8 / 0.85)
+    assert split["at_speed"]["p50"]["error_pct"] == pytest.approx((10.0 + 10.0) / 2)
+    assert split["off_speed"]["p50"]["error_pct"] == pytest.approx((50.0 + 0.0 + 30.0) / 3)
+    assert split["at_speed"]["chain_deployments"] == 2 and split["off_speed"]["chain_deployments"] == 3
+    line = cs.speed_split_line(split)
+    assert line is not None and "at speed p50 10.0 %" in line and "off speed p50 26.7 %" in line
+    assert cs.latency_by_speed(rows, None) is None
