@@ -147,7 +147,9 @@ def application(out: Path, args: argparse.Namespace) -> Path:
 
 def characterise(out: Path, app: Path) -> tuple[Path, dict[str, Any]]:
     rec = out / "sweep"
-    sh([BIN, "sweep", app / "app1.launch", "--space", app / "space-sweep.yaml", "--out", rec])
+    # runs made while the host ran at another speed than the rest are recorded again (up to twice)
+    sh([BIN, "sweep", app / "app1.launch", "--space", app / "space-sweep.yaml", "--out", rec,
+        "--repeat-off-speed", "2"])
     draft = out / "draft.yaml"
     sh([BIN, "init", rec, "--out", draft])
     csv_path = out / "characterisation.csv"

@@ -30,6 +30,8 @@ node its replayed rate as its setting.
 from __future__ import annotations
 
 import contextlib
+import math
+import os
 import re
 import shutil
 import socket
@@ -112,6 +114,7 @@ class SweepResult:
     runs: list[str]  # every run of the space, in order
     recorded: list[str] = field(default_factory=list)
     skipped: list[str] = field(default_factory=list)
+    repeated: list[str] = field(default_factory=list)  # recorded again nearer the median speed
 
 
 def computer_name() -> str:
@@ -126,9 +129,34 @@ def require_ros_tools() -> None:
                                "(apt-get install ros-core python3-rospy python3-rosbag)")
 
 
+#: a run whose machine speed reference (perfros_bag.cpu.speed) is not within this share of the
+#: sweep's median (either way) ran on a machine of another speed: ``repeat_off_speed`` repeats it
+SPEED_SHARE = 0.85
+
+
+def median_speed(entries: Mapping[str, Mapping[str, Any]]) -> float | None:
+    """The median ``speed_factor`` of manifest entries (None when none has one)."""
+    found = sorted(float(e["speed_factor"]) for e in entries.values() if e.get("speed_factor"))
+    if not found:
+        return None
+    mid = len(found) // 2
+    return found[mid] if len(found) % 2 else (found[mid - 1] + found[mid]) / 2
+
+
+def off_speed(entries: Mapping[str, Mapping[str, Any]], median: float | None, share: float = SPEED_SHARE) -> list[str]:
+    """The entries (keys) whose ``speed_factor`` is outside ``share`` x ``median`` .. ``median``
+    / ``share``: recorded while the machine ran at another speed than the sweep's other runs."""
+    if median is None:
+        return []
+    return [k for k, e in entries.items()
+            if e.get("speed_factor") and not share * median <= float(e["speed_factor"]) <= median / share]
+
+
 def sweep(launch_path: str | Path, space_path: str | Path, out: str | Path, *, duration: float | None = None,
-          interval: float = 0.5, progress: Progress | None = None) -> SweepResult:
-    """Record every run of ``space_path`` not yet recorded in ``out``."""
+          interval: float = 0.5, progress: Progress | None = None, repeat_off_speed: int = 0) -> SweepResult:
+    """Record every run of ``space_path`` not yet recorded in ``out``. ``repeat_off_speed``:
+    then record again, up to that many times each, every run whose machine speed reference
+    is off the sweep's median (:func:`off_speed`), keeping the recording nearer the median."""
     from perfros_bag.cpu.trace import trace_speed
 
     space = load_space(space_path).with_duration(duration)
@@ -190,9 +218,54 @@ def sweep(launch_path: str | Path, space_path: str | Path, out: str | Path, *, d
             write_graph(outdir / "graph.yaml", graph)
         result.recorded.append(run.name)
         note(i, len(runs), run.name, "done", 1.0)
+    if repeat_off_speed > 0:
+        _repeat_off_speed(launch, space, runs, outdir, entries, system_ref, repeat_off_speed, interval, prepared,
+                          inspected, result, note)
     with contextlib.suppress(OSError):
         (outdir / WORK).rmdir()  # only when empty: a failed run's logs stay
     return result
+
+
+def _repeat_off_speed(launch: LaunchFile, space: Space, runs: list[Run], outdir: Path,
+                      entries: dict[str, dict[str, Any]], system_ref: str | None, times: int, interval: float,
+                      prepared: Prepared | None, inspected: Inspected | None, result: SweepResult,
+                      note: Progress) -> None:
+    """Record each off-speed run again (up to ``times``) into ``DIR/.respeed``; a repeat nearer
+    the median replaces the run's bag and trace (each moved in whole, then the manifest
+    rewritten), a farther one is deleted. Ctrl-C or an error keeps the recordings so far."""
+    from perfros_bag.cpu.trace import trace_speed
+
+    by_name = {f"{r.name}.bag": r for r in runs}
+    median = median_speed(entries)
+    spare = outdir / ".respeed"
+    for _ in range(times):
+        todo = [k for k in off_speed(entries, median) if k in by_name]
+        if not todo:
+            break
+        for k in todo:
+            run = by_name[k]
+            i = runs.index(run)
+            note(i, len(runs), run.name, f"again: speed {entries[k]['speed_factor']:g} vs the sweep's {median:g}", 0.0)
+            spare.mkdir(exist_ok=True)
+            if inspected is not None and run.factor is not None and prepared is None:
+                from perfros_bag.sweep.replay import prepare
+
+                prepared = prepare(inspected, outdir)
+            record_run(launch, space, run, spare, interval=interval, replay=prepared)
+            speed = trace_speed(spare / f"{run.name}.cpu.csv")
+            old = float(entries[k]["speed_factor"])
+            if speed is not None and median is not None and abs(math.log(speed / median)) < abs(math.log(old / median)):
+                for suffix in (".bag", ".cpu.csv"):
+                    os.replace(spare / f"{run.name}{suffix}", outdir / f"{run.name}{suffix}")
+                entries[k]["speed_factor"] = round(speed, 4)
+                write_manifest(outdir / "manifest.yaml", list(entries.values()), system_ref)
+                result.repeated.append(run.name)
+            for suffix in (".bag", ".cpu.csv"):
+                (spare / f"{run.name}{suffix}").unlink(missing_ok=True)
+            note(i, len(runs), run.name, "done", 1.0)
+    for empty in (spare / WORK, spare):  # only when empty: a failed run's logs stay
+        with contextlib.suppress(OSError):
+            empty.rmdir()
 
 
 def _inspect_replay(launch: LaunchFile, space: Space, run: Run) -> Inspected | None:
