@@ -261,8 +261,10 @@ def instance_system(inst: Instance, draft: dict[str, Any], budget: dict[str, flo
             "nodes": nodes, "edges": edges,
             "chains": instance_chains(robots, draft, inst.number in budgeted, budget),
             # deploy's computers are CFS-capped cgroups of this period: the latency model's
-            # head start of a node that finds its cgroup idle (docs/solvers.md, "Latency")
-            "latency": {"cfs_period_ms": cfs_period_ms()}}
+            # head start of a node that finds its cgroup idle (docs/solvers.md, "Latency");
+            # its links are tc tbf shapers whose bucket lets a message's first part at once
+            "latency": {"cfs_period_ms": cfs_period_ms(),
+                        "link_burst_ms": link_burst_ms([*inst.link_kBps, *filter(None, [inst.wifi_kBps])])}}
 
 
 def cfs_period_ms() -> float:
@@ -270,6 +272,15 @@ def cfs_period_ms() -> float:
     from perfros_bag.rosrun.cgroups import default_period_us
 
     return default_period_us() / 1000.0
+
+
+def link_burst_ms(bandwidths_kBps: list[float]) -> float:
+    """What deploy's ``tbf`` bucket lets through at once, in ms at the link's rate
+    (rosrun/network.py: 10 ms at the rate, at least four full frames), the least over the
+    instance's links and medium (one figure for the model)."""
+    from perfros_bag.rosrun.network import tbf_burst_bytes, tbf_rate_bit
+
+    return min(1000.0 * tbf_burst_bytes(tbf_rate_bit(bw)) * 8 / tbf_rate_bit(bw) for bw in bandwidths_kBps)
 
 
 def instance_csv(rows: list[dict[str, str]], robots: int) -> list[dict[str, str]]:

@@ -51,7 +51,9 @@ def _instance(seed: int, budget: dict[str, float] | None = None) -> dict[str, ob
                     **({"budget_ms": budget} if budget else {})}],
         # odd seeds: the computers are CFS-capped cgroups of a 10 ms period (deploy's), so an
         # idle node's burst ends a period sooner (system/latency.burst_time, check.py's copy)
-        **({"latency": {"cfs_period_ms": 10}} if seed % 2 else {}),
+        # ... and their links shaped by a tc bucket of 10 ms (deploy's tbf): a message below
+        # the link's rate crosses 10 ms sooner
+        **({"latency": {"cfs_period_ms": 10, "link_burst_ms": 10}} if seed % 2 else {}),
     }
 
 

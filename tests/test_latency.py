@@ -119,6 +119,46 @@ def test_a_shared_capped_computer_slows_the_hop_by_its_fair_share() -> None:
     assert (roomy.p50_ms, roomy.p95_ms) == pytest.approx(_hop(52 / 10, 10, 100), rel=1e-9)
 
 
+@pytest.mark.parametrize("burst_ms", [10.0, 100.0])
+def test_a_shaped_links_bucket_lets_a_message_start_sooner_below_its_rate(burst_ms: float) -> None:
+    """``latency.link_burst_ms``: a link below its rate has its bucket full when a periodic
+    message comes, so the message crosses ``burst_ms`` sooner (never below 0); a link at or
+    above its rate has no bucket left; the wait behind other traffic is unchanged. The
+    checker's own copy agrees on the plan."""
+    from perfros_bag.solver.check import check_plan
+    from perfros_bag.system.plan import Assignment, Status
+    from perfros_bag.system.rules import build_plan
+    from perfros_bag.system.types import Problem
+
+    data = yaml.safe_load(SYSTEM)
+    data["latency"] = {"link_burst_ms": burst_ms}
+    system = parse_system(data)
+    choice = _choices(system, 10, 0)
+    placement = {"camera": "robot", "detector": "server", "logger": "robot"}
+    got = predict_chain(system, system.chains[0], placement, choice, {"robot": 100, "server": 200})
+    t = 230 / (0.96 * 3000)  # 79.9 ms at the link's rate; the stream, 2300 kB/s, is below 3000
+    want = _hop(52 / 10, 10, 100)
+    sooner = max(0.0, t - burst_ms / 1000)
+    assert got.hops[0].transfer_ms == pytest.approx(1000 * sooner)
+    assert (got.p50_ms, got.p95_ms) == pytest.approx((want[0] + 1000 * sooner, want[1] + 1000 * sooner), rel=1e-9)
+    plan = build_plan(system, Assignment(placement, choice), problem=Problem.PERFORMANCE, method="test",
+                      status=Status.FEASIBLE)
+    assert plan.chains[0]["predicted_ms"]["p50"] == pytest.approx(got.p50_ms)
+    assert not [m for m in check_plan(system, plan) if "the model gives" in m]
+    # a link at its rate: 2300 kB/s of images and 700 of another stream fill 3000 kB/s
+    full = yaml.safe_load(SYSTEM.replace("  - {from: camera, to: detector, topic: /camera/image_raw}",
+                                         "  - {from: camera, to: detector, topic: /camera/image_raw}\n"
+                                         "  - {from: logger, to: detector, bandwidth_kBps: 700}"))
+    full["latency"] = {"link_burst_ms": burst_ms}
+    busy = parse_system(full)
+    got = predict_chain(busy, busy.chains[0], placement, choice, {"robot": 100, "server": 200})
+    # the whole transfer (the other stream's p50 wait is 0 at its utilisation 0.23; its p95 is not)
+    assert got.hops[0].transfer_ms == pytest.approx(1000 * t) and got.hops[0].transfer_p95_ms > 1000 * t
+    no_burst = parse_system({**full, "latency": {}})
+    again = predict_chain(no_burst, no_burst.chains[0], placement, choice, {"robot": 100, "server": 200})
+    assert got.p50_ms == pytest.approx(again.p50_ms) and got.p95_ms == pytest.approx(again.p95_ms)
+
+
 def test_another_stream_on_the_link_adds_its_wait() -> None:
     text = SYSTEM.replace("  - {from: camera, to: detector, topic: /camera/image_raw}",
                           "  - {from: camera, to: detector, topic: /camera/image_raw}\n"

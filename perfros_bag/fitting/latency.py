@@ -207,6 +207,7 @@ def params_json(params: LatencyParams) -> dict[str, Any]:
             "queue_factor": params.queue_factor, "p95_ratio": round(params.p95_ratio, 6),
             "queue_size": params.queue_size, "link_efficiency": params.link_efficiency,
             "backlog_msgs": params.backlog_msgs, "cfs_period_ms": params.cfs_period_ms,
+            "link_burst_ms": params.link_burst_ms,
             "service_scale": {n: round(v, 6) for n, v in sorted(params.service_scale.items())},
             "node_p95_ratio": {n: round(v, 6) for n, v in sorted(params.node_p95_ratio.items())},
             "source": params.source}

@@ -374,7 +374,8 @@ def _chain_ms(system: System, plan: Plan, chain_topics: tuple[str, ...], where: 
             slowest = 0.0
             for bw, load in parts:
                 t = size / (lat.link_efficiency * bw)
-                slowest = max(slowest, t)
+                burst = lat.link_burst_ms / 1000.0 if load < bw else 0.0  # a shaper's bucket, refilled
+                slowest = max(slowest, t - burst, 0.0)
                 u = min(max(load - stream, 0.0) / bw, 0.99)
                 mean = lat.queue_factor * u * t / (2 * (1 - u))
                 t50 += _waited(mean, u, 0.5)

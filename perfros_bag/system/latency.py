@@ -32,7 +32,9 @@ per second from its input's publisher ``m`` on computer ``c_m`` (docs/solvers.md
   (``T <= S`` there).
 * **transfer** of the input's message (``B`` kB: its bandwidth over its frequency at ``m``'s
   choice) across every link and shared medium of ``System.route(c_m, c)``: the slowest
-  element's ``B / (efficiency x bandwidth)`` (a message streams across the route), plus at each
+  element's ``B / (efficiency x bandwidth)`` (a message streams across the route), less
+  ``link_burst_ms`` (at least 0) on an element whose load is below its bandwidth (a shaper's
+  bucket, full again when the message comes: deploy's ``tbf`` lets 10 ms pass at once), plus at each
   element a wait behind the *other* traffic: their streams' phases are unrelated to the
   hop's, so it is M/D/1, mean ``k x u x t / (2 (1 - u))`` (``k`` = ``queue_factor``) for
   its transfer time ``t``, 0 with probability ``1 - u`` and else exponential, at the
@@ -271,7 +273,8 @@ def _link_terms(system: System, route: Sequence[int], link_loads: Sequence[float
         if bw <= 0:
             return math.inf, math.inf, math.inf
         t = size_kB / (params.link_efficiency * bw)
-        base = max(base, t)
+        # below its rate its bucket refilled since the last message: the first part crosses at once
+        base = max(base, max(0.0, t - params.link_burst_ms / 1000.0) if load < bw else t)
         u = min(max(0.0, load - own_kBps) / bw, MAX_UTILISATION)
         mean = params.queue_factor * u * t / (2 * (1 - u))
         w50 += wait_quantile(mean, u, 0.5)

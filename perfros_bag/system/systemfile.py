@@ -56,7 +56,7 @@ BUDGET_KEYS = {"p50", "p95"}
 #: the kernel's longest CFS bandwidth period, in ms (latency.cfs_period_ms)
 MAX_CFS_PERIOD_MS = 1000.0
 LATENCY_KEYS = {"units_per_core", "overhead_ms", "queue_factor", "p95_ratio", "queue_size", "link_efficiency",
-                "backlog_msgs", "cfs_period_ms", "service_scale", "node_p95_ratio", "source"}
+                "backlog_msgs", "cfs_period_ms", "link_burst_ms", "service_scale", "node_p95_ratio", "source"}
 COMPUTER_KEYS = {"name", "kind", "capacity", "max_capacity"}
 LINK_KEYS = {"between", "bandwidth_kBps", "medium"}
 MEDIUM_KEYS = {"name", "bandwidth_kBps"}
@@ -238,8 +238,8 @@ def _check_budgets(ctx: _Ctx, system: System) -> None:
 
 def _latency(ctx: _Ctx, raw: Any, nodes: set[str]) -> LatencyParams:
     """``latency: {units_per_core, overhead_ms, queue_factor, p95_ratio, queue_size,
-    link_efficiency, backlog_msgs, cfs_period_ms, service_scale: {node: x}, node_p95_ratio: {node: x}, source}``, every
-    field optional (the defaults of :class:`LatencyParams`)."""
+    link_efficiency, backlog_msgs, cfs_period_ms, link_burst_ms, service_scale: {node: x},
+    node_p95_ratio: {node: x}, source}``, every field optional (the defaults of :class:`LatencyParams`)."""
     if raw is None:
         return LatencyParams()
     m = ctx.mapping(raw, "latency", LATENCY_KEYS)
@@ -248,7 +248,7 @@ def _latency(ctx: _Ctx, raw: Any, nodes: set[str]) -> LatencyParams:
     for key in ("units_per_core", "p95_ratio", "link_efficiency"):
         if m.get(key) is not None:
             kw[key] = ctx.number(m[key], f"latency.{key}", positive=True)
-    for key in ("overhead_ms", "queue_factor", "backlog_msgs", "cfs_period_ms"):
+    for key in ("overhead_ms", "queue_factor", "backlog_msgs", "cfs_period_ms", "link_burst_ms"):
         if m.get(key) is not None:
             kw[key] = ctx.number(m[key], f"latency.{key}", nonneg=True)
     if kw.get("p95_ratio", base.p95_ratio) < 1:

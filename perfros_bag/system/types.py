@@ -382,6 +382,10 @@ class LatencyParams:
     #: CPU-capped cgroup (``deploy``'s are: 10 ms, rosrun/cgroups.py); 0 for computers that
     #: are not capped by a quota (a robot's own CPU): no head start (system/latency.burst_time)
     cfs_period_ms: float = 0.0
+    #: what a link lets through at once after an idle spell, in ms at its rate (``deploy``'s
+    #: tc ``tbf`` bucket: 10 ms, rosrun/network.py): a periodic message that finds the link
+    #: below its rate crosses that much sooner; 0 for a link without such a bucket
+    link_burst_ms: float = 0.0
     #: per node: measured hop time over its CPU time per message (wall / CPU: 1 for a node
     #: that only computes), and its own p95 ratio
     service_scale: dict[str, float] = field(default_factory=dict)
