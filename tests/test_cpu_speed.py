@@ -226,3 +226,47 @@ def test_characterise_records_the_factor_in_an_appended_column(tmp_path: Path) -
     assert list(rows[0]) == [*COLUMNS, "speed_factor"]
     res = CliRunner().invoke(app, ["characterise", str(FIX), "--json"])
     assert "speed_factor" not in json.loads(res.stdout)[0]
+
+
+def test_the_model_keeps_its_recordings_median_speed_and_validate_notes_another(tmp_path: Path) -> None:
+    """fit writes the median ``speed_factor`` of the rows it fitted into model.json (recorded,
+    not applied); validate notes a run whose traces say the machine ran more than 15 % off it."""
+    import statistics
+
+    from perfros_bag.fitting.modelfile import read_model
+    from perfros_bag.validation.eq10 import speed_note
+
+    d = tmp_path / "recs"
+    shutil.copytree(FIX, d)
+    data = yaml.safe_load((d / "manifest.yaml").read_text())
+    for i, entry in enumerate(data["recordings"]):
+        entry["speed_factor"] = [0.8, 0.5, 0.75, 0.77, 0.79, 0.76][i % 6]
+    (d / "manifest.yaml").write_text(yaml.safe_dump(data))
+    csv_path, model_path = tmp_path / "char.csv", tmp_path / "model.json"
+    assert CliRunner().invoke(app, ["characterise", str(d), "--out", str(csv_path)]).exit_code == 0
+    res = CliRunner().invoke(app, ["fit", str(d / "system.yaml"), str(csv_path), "--out", str(model_path)])
+    assert res.exit_code == 0, res.stderr
+    rows = [r.speed_factor for r in read_characterisation(csv_path).rows]
+    assert None not in rows
+    model = read_model(model_path).speed_factor
+    assert model == pytest.approx(statistics.median(rows))  # type: ignore[type-var]
+    assert json.loads(model_path.read_text())["speed_factor"] == pytest.approx(model)
+    assert model is not None
+
+    def trace(name: str, speed: float | None) -> Path:
+        p = tmp_path / name
+        p.write_text(("" if speed is None else f"# speed_factor={speed}\n") + HEADER + COLS)
+        return p
+
+    slow = speed_note(str(model_path), [trace("slow.cpu.csv", model * 0.6)])
+    assert slow is not None and f"{1 / 0.6:.2f}x" in slow and str(model_path) in slow
+    fast = speed_note(str(model_path), [trace("fast.cpu.csv", model * 1.3)])
+    assert fast is not None and f"{1 / 1.3:.2f}x" in fast
+    assert speed_note(str(model_path), [trace("same.cpu.csv", model * 0.9)]) is None  # within 15 %
+    assert speed_note(str(model_path), [trace("none.cpu.csv", None)]) is None  # the run's speed unknown
+    assert speed_note(str(d / "system.yaml"), [trace("slow2.cpu.csv", 0.1)]) is None  # not a model
+    bad = tmp_path / "bad.json"
+    bad.write_text(model_path.read_text().replace(f'"speed_factor": {json.loads(model_path.read_text())["speed_factor"]}',
+                                                  '"speed_factor": -1'))
+    with pytest.raises(InputError, match="speed_factor"):
+        read_model(bad)

@@ -334,6 +334,9 @@ class ModelDocument:
     #: per fitted node, the values its recordings measured and the leave-one-out errors a value
     #: never measured carries (:func:`unmeasured_entry`, :func:`value_errors`)
     unmeasured: dict[str, Unmeasured] = field(default_factory=dict)
+    #: the median machine speed (perfros_bag.cpu.speed) of the recordings fitted (characterisation.csv's
+    #: ``speed_factor`` column); None when none was recorded. Recorded, never applied to a fit
+    speed_factor: float | None = None
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -347,6 +350,7 @@ class ModelDocument:
             **({"driven": {n: [d.to_json() for d in ds] for n, ds in self.driven.items()}} if self.driven else {}),
             **({"latency_fit": self.latency_fit} if self.latency_fit is not None else {}),
             **({"unmeasured": {n: u.to_json() for n, u in self.unmeasured.items()}} if self.unmeasured else {}),
+            **({"speed_factor": self.speed_factor} if self.speed_factor is not None else {}),
             "warnings": list(self.warnings),
         }
 
@@ -494,11 +498,16 @@ def parse_model(data: Any, path: str | Path) -> ModelDocument:
     latency_fit = data.get("latency_fit")
     if latency_fit is not None:
         doc.mapping(latency_fit, "latency_fit")
+    speed = data.get("speed_factor")
+    if speed is not None and (isinstance(speed, bool) or not isinstance(speed, int | float)
+                              or not math.isfinite(speed) or speed <= 0):
+        raise InputError(p, f"speed_factor: must be a finite number > 0, got {speed!r}")
     return ModelDocument(doc.string(data.get("system_file", ""), "system_file"),
                          doc.string(data.get("characterisation", ""), "characterisation"),
                          data["system"], fits, measured, warnings, fmt, statistic, driven,
                          None if latency_fit is None else dict(latency_fit),
-                         _unmeasured(doc, data.get("unmeasured", {})))
+                         _unmeasured(doc, data.get("unmeasured", {})),
+                         None if speed is None else float(speed))
 
 
 def read_model(path: str | Path) -> ModelDocument:
