@@ -36,6 +36,7 @@ import argparse
 import json
 import os
 import shutil
+import statistics
 import subprocess
 import sys
 import time
@@ -455,11 +456,8 @@ def sweep_speed(manifest: Path) -> float | None:
     """The median ``speed_factor`` of the sweep's runs (its manifest.yaml), None without one."""
     from perfros_bag.characterisation.manifest import load_manifest
 
-    found = sorted(e.speed_factor for e in load_manifest(manifest).recordings if e.speed_factor)
-    if not found:
-        return None
-    mid = len(found) // 2
-    return found[mid] if len(found) % 2 else (found[mid - 1] + found[mid]) / 2
+    found = [e.speed_factor for e in load_manifest(manifest).recordings if e.speed_factor]
+    return statistics.median(found) if found else None
 
 
 def speed_gate(reference: float | None, measure: Any, sleep: Any, clock: Any, *, wait_s: float,

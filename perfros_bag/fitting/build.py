@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import copy
 import math
+import statistics
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
@@ -240,13 +241,12 @@ def build_model(system_path: str | Path, characterisation_path: str | Path, *, c
     for name, threads in node_threads(table, system).items():
         raw_nodes[name]["threads"] = threads
     latency_fit = _fit_latency(table, system, doc_system, warn)
-    speeds = sorted(r.speed_factor for r in table.rows if r.speed_factor is not None)
+    speeds = [r.speed_factor for r in table.rows if r.speed_factor is not None]
     document = ModelDocument(sys_path, csv_path, doc_system,
                              {n: dict(fs) for n, fs in fits.items()},
                              measured, warn.messages, cpu_statistic=cpu, driven=driven, latency_fit=latency_fit,
                              unmeasured=unmeasured_at,
-                             speed_factor=(speeds[len(speeds) // 2] + speeds[(len(speeds) - 1) // 2]) / 2 if speeds
-                             else None)
+                             speed_factor=statistics.median(speeds) if speeds else None)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", PerfrosWarning)
         final = parse_system(doc_system, sys_path)  # what solve will read: must load

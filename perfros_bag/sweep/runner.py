@@ -35,6 +35,7 @@ import os
 import re
 import shutil
 import socket
+import statistics
 import time
 import uuid
 from collections.abc import Callable, Mapping
@@ -136,11 +137,8 @@ SPEED_SHARE = 0.85
 
 def median_speed(entries: Mapping[str, Mapping[str, Any]]) -> float | None:
     """The median ``speed_factor`` of manifest entries (None when none has one)."""
-    found = sorted(float(e["speed_factor"]) for e in entries.values() if e.get("speed_factor"))
-    if not found:
-        return None
-    mid = len(found) // 2
-    return found[mid] if len(found) % 2 else (found[mid - 1] + found[mid]) / 2
+    found = [float(e["speed_factor"]) for e in entries.values() if e.get("speed_factor")]
+    return statistics.median(found) if found else None
 
 
 def off_speed(entries: Mapping[str, Mapping[str, Any]], median: float | None, share: float = SPEED_SHARE) -> list[str]:
