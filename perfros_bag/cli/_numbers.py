@@ -57,6 +57,7 @@ RANGES: Mapping[str, Range] = {
     "record-cpu --duration": Range(0.0, low_open=False),
     "record-cpu --interval": Range(0.01, low_open=False),
     "sweep --interval": Range(0.05, low_open=False),
+    "sweep --repeat-off-speed": Range(1, low_open=False, high=5),
     "casestudy run --duration": Range(1.0, low_open=False),
     "casestudy run --units-per-core": Range(1.0, low_open=False),
     "casestudy run --headroom": Range(0.05, low_open=False, high=2.0),

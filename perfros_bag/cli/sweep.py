@@ -18,10 +18,10 @@ def sweep_cmd(
     duration: float | None = typer.Option(
         None, "--duration", "-d", help="Seconds recorded per run (default: space.yaml's duration_s)."),
     interval: float = typer.Option(0.5, "--interval", "-i", help="Seconds between CPU samples (>= 0.05)."),
-    repeat_off_speed: int = typer.Option(
-        0, "--repeat-off-speed", min=0, max=5,
-        help="Then record again, up to N times, each run made while the machine's speed reference (record-cpu) "
-             "was more than 15 % off the sweep's median; the recording nearer the median is kept."),
+    repeat_off_speed: int | None = typer.Option(
+        None, "--repeat-off-speed",
+        help="Then record again, up to N (1-5) times, each run made while the machine's speed reference "
+             "(record-cpu) was more than 15 % off the sweep's median; the recording nearer the median is kept."),
 ) -> None:
     """Run APP.launch once per setting of space.yaml; record every topic and the nodes' CPU."""
     from rich.progress import (
@@ -44,7 +44,7 @@ def sweep_cmd(
             progress.update(task, total=runs, completed=i + frac, description=f"{name}: {stage}")
 
         result = sweep(launch, space, out_dir, duration=duration, interval=interval, progress=show,
-                       repeat_off_speed=repeat_off_speed)
+                       repeat_off_speed=repeat_off_speed or 0)
     done = len(result.recorded)
     again = f", {len(result.repeated)} recorded again nearer the sweep's speed" if repeat_off_speed else ""
     err.print(f"{done} run(s) recorded, {len(result.skipped)} already there{again} -> {out_dir}/manifest.yaml, "
