@@ -106,6 +106,52 @@ def test_a_rate_drift_persists_only_while_it_keeps_its_direction(persist: int) -
                 assert alarms[0].new == (i - run == persist) and alarms[0].drift.measured == 10.0 + 4.0 * way
 
 
+@pytest.mark.parametrize("persist", [1, 2, 3])
+def test_a_drift_moving_between_the_nodes_of_one_computer_is_an_alarm_after_persist_windows(persist: int) -> None:
+    """Brute force over every sequence of 6 windows in which none, a1, a2 or both (robot2's
+    nodes) run below plan: a node alarm when that node drifted in the last ``persist``
+    windows; else a computer alarm when robot2 had some drifting node in each of them,
+    naming the node further from its plan (a2, 40 % below against a1's 20 %)."""
+    a1 = Drift("node", "a1", "rate_hz", 5.0, 4.0, computer="robot2")
+    a2 = Drift("node", "a2", "rate_hz", 5.0, 3.0, computer="robot2")
+    states: list[tuple[Drift, ...]] = [(), (a1,), (a2,), (a1, a2)]
+    for pattern in itertools.product(range(4), repeat=6):
+        p = Persistence(persist)
+        runs = {"a1": 0, "a2": 0}
+        comp_run, comp_raised = 0, False
+        for i, s in enumerate(pattern):
+            drifts = states[s]
+            alarms = p.update(list(drifts))
+            for n in runs:
+                runs[n] = runs[n] + 1 if any(d.name == n for d in drifts) else 0
+            comp_run = comp_run + 1 if drifts else 0
+            comp_raised = comp_raised and comp_run > 0
+            node_alarms = sorted(n for n, r in runs.items() if r >= persist)
+            assert sorted(a.drift.name for a in alarms if a.computer is None) == node_alarms, (pattern, i)
+            by_computer = [a for a in alarms if a.computer is not None]
+            if comp_run >= persist and not node_alarms:
+                [a] = by_computer
+                assert a.computer == "robot2" and a.windows == comp_run, (pattern, i)
+                assert a.drift.name == ("a2" if a2 in drifts else "a1")
+                assert a.new == (not comp_raised) and a.to_dict()["computer"] == "robot2"
+                comp_raised = True
+            else:
+                assert by_computer == [], (pattern, i)
+
+
+def test_drifts_on_two_computers_or_in_two_directions_do_not_add_up() -> None:
+    below = Drift("node", "a1", "rate_hz", 5.0, 4.0, computer="robot2")
+    above = Drift("node", "a2", "rate_hz", 5.0, 6.0, computer="robot2")
+    elsewhere = Drift("node", "b", "rate_hz", 5.0, 4.0, computer="server")
+    for first, second in ((below, above), (below, elsewhere)):
+        p = Persistence(2)
+        assert [p.update([d]) for d in (first, second, first, second)] == [[], [], [], []]
+    # a rate drift without a computer (a plan node not placed) counts for itself only
+    p = Persistence(2)
+    assert p.update([Drift("node", "x", "rate_hz", 5.0, 4.0)]) == []
+    assert p.update([Drift("node", "y", "rate_hz", 5.0, 4.0)]) == []
+
+
 def test_a_dead_node_is_an_alarm_at_once_and_drifts_of_others_are_kept_apart() -> None:
     p = Persistence(3)
     dead = Drift("node", "cam", "alive", 1.0, 0.0, immediate=True)
