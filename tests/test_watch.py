@@ -106,6 +106,52 @@ def test_a_rate_drift_persists_only_while_it_keeps_its_direction(persist: int) -
                 assert alarms[0].new == (i - run == persist) and alarms[0].drift.measured == 10.0 + 4.0 * way
 
 
+@pytest.mark.parametrize("persist", [1, 2, 3])
+def test_a_drift_moving_between_the_nodes_of_one_computer_is_an_alarm_after_persist_windows(persist: int) -> None:
+    """Brute force over every sequence of 6 windows in which none, a1, a2 or both (robot2's
+    nodes) run below plan: a node alarm when that node drifted in the last ``persist``
+    windows; else a computer alarm when robot2 had some drifting node in each of them,
+    naming the node further from its plan (a2, 40 % below against a1's 20 %)."""
+    a1 = Drift("node", "a1", "rate_hz", 5.0, 4.0, computer="robot2")
+    a2 = Drift("node", "a2", "rate_hz", 5.0, 3.0, computer="robot2")
+    states: list[tuple[Drift, ...]] = [(), (a1,), (a2,), (a1, a2)]
+    for pattern in itertools.product(range(4), repeat=6):
+        p = Persistence(persist)
+        runs = {"a1": 0, "a2": 0}
+        comp_run, comp_raised = 0, False
+        for i, s in enumerate(pattern):
+            drifts = states[s]
+            alarms = p.update(list(drifts))
+            for n in runs:
+                runs[n] = runs[n] + 1 if any(d.name == n for d in drifts) else 0
+            comp_run = comp_run + 1 if drifts else 0
+            comp_raised = comp_raised and comp_run > 0
+            node_alarms = sorted(n for n, r in runs.items() if r >= persist)
+            assert sorted(a.drift.name for a in alarms if a.computer is None) == node_alarms, (pattern, i)
+            by_computer = [a for a in alarms if a.computer is not None]
+            if comp_run >= persist and not node_alarms:
+                [a] = by_computer
+                assert a.computer == "robot2" and a.windows == comp_run, (pattern, i)
+                assert a.drift.name == ("a2" if a2 in drifts else "a1")
+                assert a.new == (not comp_raised) and a.to_dict()["computer"] == "robot2"
+                comp_raised = True
+            else:
+                assert by_computer == [], (pattern, i)
+
+
+def test_drifts_on_two_computers_or_in_two_directions_do_not_add_up() -> None:
+    below = Drift("node", "a1", "rate_hz", 5.0, 4.0, computer="robot2")
+    above = Drift("node", "a2", "rate_hz", 5.0, 6.0, computer="robot2")
+    elsewhere = Drift("node", "b", "rate_hz", 5.0, 4.0, computer="server")
+    for first, second in ((below, above), (below, elsewhere)):
+        p = Persistence(2)
+        assert [p.update([d]) for d in (first, second, first, second)] == [[], [], [], []]
+    # a rate drift without a computer (a plan node not placed) counts for itself only
+    p = Persistence(2)
+    assert p.update([Drift("node", "x", "rate_hz", 5.0, 4.0)]) == []
+    assert p.update([Drift("node", "y", "rate_hz", 5.0, 4.0)]) == []
+
+
 def test_a_dead_node_is_an_alarm_at_once_and_drifts_of_others_are_kept_apart() -> None:
     p = Persistence(3)
     dead = Drift("node", "cam", "alive", 1.0, 0.0, immediate=True)
@@ -1098,3 +1144,57 @@ def test_a_re_plan_refitted_from_a_plan_no_longer_in_force_is_not_sent(fake: Fak
     taken = replans.take()
     assert taken is not None and taken["window"] == 3 and taken["applied"].startswith("sent")
     assert json.loads((dep / "control.json").read_text())["plan"] == str(tmp_path / "new-3.json")
+
+
+def test_a_chain_s_last_topic_is_subscribed_to_only_while_its_messages_are_small() -> None:
+    from types import SimpleNamespace
+
+    from perfros_bag.watch import stamps
+    from perfros_bag.watch.loop import listen_to_chains
+
+    image, found, quiet = "/robot1/smooth/image", "/robot1/people/found", "/robot2/people/found"
+    # roscpp counters per connection: two subscribers of the image (230,400 B a frame), one of found
+    first = Reading(1.0, {(image, "/robot1/smooth"): TopicCounters({1: (10, 2_304_000), 2: (4, 921_600)}),
+                          (found, "/robot1/people"): TopicCounters({3: (12, 1_200)})})
+    assert stamps.mean_message_bytes(first.topics, image) == pytest.approx(230_400)
+    assert stamps.mean_message_bytes(first.topics, found) == pytest.approx(100)
+    assert stamps.mean_message_bytes(first.topics, quiet) is None  # nothing counted yet
+    # rospy: the topic's payload as one total, messages per connection
+    rospy = {(quiet, "/p"): TopicCounters({1: (3, 999), 2: (5, 999)}, total_bytes=4_000)}
+    assert stamps.mean_message_bytes(rospy, quiet) == pytest.approx(4_000 / 8)
+
+    observer = SimpleNamespace(publishers={}, types={}, _uri=lambda name: None)
+    plan = SimpleNamespace(chains=[{"name": n, "topics": ["/cam", t], "predicted_ms": {"p50": 1.0, "p95": 2.0}}
+                                   for n, t in (("smooth", image), ("people", found), ("people2", quiet))])
+    listeners: dict[str, Any] = {}
+    unlistened: dict[str, str] = {}
+    listen_to_chains(observer, plan, first, listeners, unlistened)  # type: ignore[arg-type]
+    assert set(listeners) == {"people", "people2"} and set(unlistened) == {"smooth"}
+    assert unlistened["smooth"].startswith(f"{image}: messages of 230.4 kB")
+    # people2's messages turn out large at the next reading: its listener is closed and dropped
+    later = Reading(2.0, {**first.topics, (quiet, "/robot2/people"): TopicCounters({5: (2, 40_000)})})
+    people2 = listeners["people2"]
+    listen_to_chains(observer, plan, later, listeners, unlistened)  # type: ignore[arg-type]
+    assert set(listeners) == {"people"} and set(unlistened) == {"smooth", "people2"}
+    assert people2.closed.is_set() and not listeners["people"].closed.is_set()
+    for listener in listeners.values():
+        listener.close()
+
+
+def test_a_chain_ending_on_a_large_topic_is_reported_not_listened_to(fake: FakeRos, tmp_path: Path,
+                                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    from perfros_bag.watch import stamps
+
+    monkeypatch.setattr(stamps, "STAMP_MAX_BYTES", 500)  # the fake's messages count 1000 bytes each
+    path = _fake_plan(tmp_path)
+    doc = json.loads(path.read_text())
+    doc["chains"] = [{"name": "vision", "topics": ["/camera/image", "/detector/found"],
+                      "predicted_ms": {"p50": 30.0, "p95": 100.0}}]
+    path.write_text(json.dumps(doc))
+    docs: list[dict[str, Any]] = []
+    watch(path, master_uri=fake.master_uri, window_s=0.5, windows=2, tolerance=5.0,
+          on_window=lambda d, new: docs.append(d))
+    assert len(docs) == 2
+    for d in docs:
+        [vision] = d["chains"]
+        assert vision["measured_ms"] is None and vision["not_listened"].startswith("/detector/found: messages of 1")

@@ -213,6 +213,14 @@ def tbf_burst_bytes(rate_bit: int) -> int:
     return max(4 * 1514, rate_bit // 8 // 100)
 
 
+def link_burst(rate_bit: int, running_burst: int) -> int:
+    """The bucket for a ``tbf`` changed in place to ``rate_bit``: the rate's own
+    (:func:`tbf_burst_bytes`), but never smaller than ``running_burst``, the bucket of the
+    qdisc being changed, whose queued packets can be that large (see
+    :meth:`Network.set_link_rate`)."""
+    return max(tbf_burst_bytes(rate_bit), running_burst)
+
+
 @dataclass
 class Network:
     """The namespaces and links of run ``run_id`` for ``system`` (see the module's text)."""
@@ -230,6 +238,7 @@ class Network:
     media: list[MediumPlan] = field(default_factory=list)
     media_filter: str = ""  # the classifier redirecting to the IFBs: "matchall" or "u32"
     killed: list[int] = field(default_factory=list)  # PIDs remove() found still inside
+    bursts: dict[int, int] = field(default_factory=dict)  # link index -> bucket bytes of its running tbf
 
     def __post_init__(self) -> None:
         if not _RUN_ID.fullmatch(self.run_id):
@@ -375,8 +384,9 @@ class Network:
             for end in self.ends:
                 if end.computer == comp:
                     rate = tbf_rate_bit(self.system.links[end.link].bandwidth_kBps)
+                    self.bursts[end.link] = tbf_burst_bytes(rate)
                     lines.append(f"qdisc replace dev {end.ifname} root tbf rate {rate}bit "
-                                 f"burst {tbf_burst_bytes(rate)} latency {LATENCY_MS}ms\n")
+                                 f"burst {self.bursts[end.link]} latency {LATENCY_MS}ms\n")
             if lines:
                 _run([self.tc, "-n", ns, "-batch", "-"], "".join(lines))
         for k, m in enumerate(self.media):
@@ -398,7 +408,14 @@ class Network:
         """Link ``link`` (its index in the system's links) shaped to ``bandwidth_kBps``, both
         directions, in place: ``tc qdisc change`` on the running ``tbf`` of each veth end
         (its queue, counters and the connections across it stay). ``self.system`` then
-        names the new bandwidth, so what is measured afterwards is judged against it."""
+        names the new bandwidth, so what is measured afterwards is judged against it.
+
+        The bucket is never made smaller than the one running (:func:`link_burst`): the
+        queue keeps the packets the old bucket let in, up to its size (TCP's GSO packets of
+        tens of kB), and a ``tbf`` whose bucket is smaller than the packet at its head never
+        sends it, nor anything behind it. Lowering a busy 3,000 kB/s link to 1,000 kB/s with
+        the new rate's own 10 kB bucket stopped the link for good (RQ4 2026-11-28 04:30: no
+        byte crossed it again, and the re-plan's restarted nodes never reached the master)."""
         import math
 
         if not (isinstance(bandwidth_kBps, int | float) and math.isfinite(bandwidth_kBps) and bandwidth_kBps > 0):
@@ -407,11 +424,13 @@ class Network:
             raise PerfrosError(f"no link {link} in this run (it has {len(self.system.links)})")
         if self.emulated and self.shaped:
             rate = tbf_rate_bit(bandwidth_kBps)
+            burst = link_burst(rate, self.bursts.get(link, 0))
             for end in self.ends:
                 if end.link == link:
                     _run([self.tc, "-n", self.namespaces[end.computer], "qdisc", "change", "dev", end.ifname,
-                          "root", "tbf", "rate", f"{rate}bit", "burst", str(tbf_burst_bytes(rate)),
+                          "root", "tbf", "rate", f"{rate}bit", "burst", str(burst),
                           "latency", f"{LATENCY_MS}ms"])
+            self.bursts[link] = burst
         links = list(self.system.links)
         links[link] = dataclasses.replace(links[link], bandwidth_kBps=float(bandwidth_kBps))
         self.system = dataclasses.replace(self.system, links=tuple(links))

@@ -12,6 +12,12 @@ restarting``) none. A node the deploy watched runs at a value other than the pla
 operator's change, the window's ``pinned``) is an alarm at once too (``quantity: value``):
 the deploy says so, no count is needed to tell it from noise. An alarm stays listed while its
 drift lasts.
+
+A rate drift can also move between the nodes of one computer (a CPU hog there slows one
+node in one window, another in the next): per computer, the windows in a row in which any of
+its nodes drifts in the same direction are counted too, and at ``persist`` such windows,
+with no node alarm of that computer and direction standing, the alarm names the node that
+drifts most in that window (``computer`` in its object says which computer's count raised it).
 """
 
 from __future__ import annotations
@@ -28,6 +34,7 @@ class Drift:
     planned: float
     measured: float
     immediate: bool = False  # an alarm without waiting for persistence (a node that died)
+    computer: str | None = None  # where the node runs (a rate drift's), for the per-computer count
 
     @property
     def key(self) -> tuple[str, str, str, int]:
@@ -41,8 +48,9 @@ class Drift:
 @dataclass(frozen=True)
 class Alarm:
     drift: Drift
-    windows: int  # windows in a row it has drifted
+    windows: int  # windows in a row it has drifted (its computer's, for a per-computer alarm)
     new: bool  # raised in this window
+    computer: str | None = None  # raised by this computer's count of drifting windows
 
     def line(self) -> str:
         d = self.drift
@@ -50,8 +58,11 @@ class Alarm:
 
     def to_dict(self) -> dict[str, Any]:
         d = self.drift
-        return {d.kind: d.name, "quantity": d.quantity, "planned": d.planned, "measured": d.measured,
-                "windows": self.windows, "new": self.new, "line": self.line()}
+        out = {d.kind: d.name, "quantity": d.quantity, "planned": d.planned, "measured": d.measured,
+               "windows": self.windows, "new": self.new, "line": self.line()}
+        if self.computer is not None:
+            out["computer"] = self.computer
+        return out
 
 
 def rate_drifts(window: dict[str, Any], tolerance: float, latency_tolerance: float | None = None) -> list[Drift]:
@@ -69,7 +80,9 @@ def rate_drifts(window: dict[str, Any], tolerance: float, latency_tolerance: flo
             continue
         exp, meas = n.get("expected_hz"), n.get("measured_hz")
         if exp and meas is not None and abs(meas - exp) > tolerance / 100.0 * exp + slack:
-            out.append(Drift("node", name, "rate_hz", float(exp), float(meas)))
+            where = n.get("computer")
+            out.append(Drift("node", name, "rate_hz", float(exp), float(meas),
+                             computer=str(where) if where is not None else None))
     for c in window.get("chains", []):
         pred = (c.get("predicted_ms") or {}).get("p95")
         meas = (c.get("measured_ms") or {}).get("p95") if c.get("measured_ms") else None
@@ -86,7 +99,8 @@ def value_drifts(pinned: dict[str, float] | None, planned: dict[str, float | Non
 
 
 class Persistence:
-    """Counts each drift's windows in a row; a drift missing from a window starts again at 0."""
+    """Counts each drift's windows in a row, and each computer's windows in a row with a rate
+    drift of one direction on any of its nodes; a drift missing from a window starts again at 0."""
 
     def __init__(self, persist: int) -> None:
         if persist < 1:
@@ -94,6 +108,8 @@ class Persistence:
         self.persist = persist
         self.count: dict[tuple[str, str, str, int], int] = {}
         self.raised: set[tuple[str, str, str, int]] = set()
+        self.computer_count: dict[tuple[str, int], int] = {}  # (computer, direction) -> windows in a row
+        self.computer_raised: set[tuple[str, int]] = set()
 
     def update(self, drifts: list[Drift]) -> list[Alarm]:
         """The alarms of this window, given its drifts."""
@@ -105,4 +121,17 @@ class Persistence:
             if d.immediate or self.count[k] >= self.persist:
                 alarms.append(Alarm(d, self.count[k], k not in self.raised))
                 self.raised.add(k)
+        # per computer: the rate drifts of its nodes, whichever node drifts in each window
+        where: dict[tuple[str, int], list[Drift]] = {}
+        for k, d in now.items():
+            if d.quantity == "rate_hz" and d.computer is not None:
+                where.setdefault((d.computer, k[3]), []).append(d)
+        self.computer_count = {g: self.computer_count.get(g, 0) + 1 for g in where}
+        self.computer_raised &= set(where)
+        for g, ds in sorted(where.items()):
+            if self.computer_count[g] < self.persist or any(a.drift in ds for a in alarms):
+                continue  # not yet, or a node alarm of this computer and direction says it already
+            worst = max(ds, key=lambda d: (abs(d.measured - d.planned) / d.planned if d.planned else 0.0, d.name))
+            alarms.append(Alarm(worst, self.computer_count[g], g not in self.computer_raised, computer=g[0]))
+            self.computer_raised.add(g)
         return alarms

@@ -224,7 +224,7 @@ def _watch_attached(observer: Observer, plan: Plan, plan_path: str | Path, syste
         outdir.mkdir(parents=True, exist_ok=True)
     persistence = Persistence(persist)
     result = WatchResult()
-    listeners = _listen_to_chains(observer, plan)
+    listeners: dict[str, StampListener] = {}  # made by _windows once it has read the topics' sizes
     try:
         _windows(observer, plan, system, live, units, window_s, tolerance, persistence, windows, outdir, adapt,
                  on_window, result, master_uri, listeners, stop)
@@ -236,17 +236,30 @@ def _watch_attached(observer: Observer, plan: Plan, plan_path: str | Path, syste
     return result
 
 
-def _listen_to_chains(observer: Observer, plan: Plan) -> dict[str, StampListener]:
-    """Per chain with a prediction, a subscriber to its last topic (its header stamps)."""
-    from perfros_bag.watch.stamps import StampListener
+def listen_to_chains(observer: Observer, plan: Plan, reading: Reading, listeners: dict[str, StampListener],
+                     unlistened: dict[str, str]) -> None:
+    """Per chain with a prediction, a subscriber to its last topic (its header stamps), kept
+    in ``listeners``, unless the topic's messages are large (:data:`~perfros_bag.watch.stamps.
+    STAMP_MAX_BYTES`, by ``reading``'s counters): such a chain goes into ``unlistened`` with
+    the reason, and a listener made before its size was known (no message counted yet) is
+    closed. Called at every reading; a chain decided stays so."""
+    from perfros_bag.watch.stamps import STAMP_MAX_BYTES, StampListener, mean_message_bytes
     from perfros_bag.watch.window import planned_chains
 
-    out = {}
     for c in planned_chains(plan):
-        topic = str(c["topics"][-1])
-        uris = [u for p in observer.publishers.get(topic, []) if (u := observer._uri(p)) is not None]
-        out[str(c["name"])] = StampListener(topic, observer.types.get(topic, "*"), uris)
-    return out
+        name, topic = str(c["name"]), str(c["topics"][-1])
+        if name in unlistened:
+            continue
+        size = mean_message_bytes(reading.topics, topic)
+        if size is not None and size > STAMP_MAX_BYTES:
+            unlistened[name] = (f"{topic}: messages of {size / 1000:.1f} kB (over {STAMP_MAX_BYTES / 1000:g}); "
+                                "subscribing would copy each one to the watcher, across a link")
+            listener = listeners.pop(name, None)
+            if listener is not None:
+                listener.close()
+        elif name not in listeners:
+            uris = [u for p in observer.publishers.get(topic, []) if (u := observer._uri(p)) is not None]
+            listeners[name] = StampListener(topic, observer.types.get(topic, "*"), uris)
 
 
 def chain_latency(listeners: dict[str, StampListener]) -> dict[str, dict[str, Any] | None]:
@@ -284,6 +297,8 @@ def _windows(observer: Observer, plan: Plan, system: System | None, live: Any, u
     replans = _Replans(adapt, live)
     before = observer.read()
     used_before = {c: cgroup_cpu_s(d) for c, d in groups.items()}
+    unlistened: dict[str, str] = {}  # chain -> why its last topic is not subscribed to
+    listen_to_chains(observer, plan, before, listeners, unlistened)
     for listener in listeners.values():
         listener.take()  # what came before the first window's start is not in it
     k = 0
@@ -295,6 +310,7 @@ def _windows(observer: Observer, plan: Plan, system: System | None, live: Any, u
             if stop.is_set():
                 result.ended = "interrupted (Ctrl-C)"
                 break
+            listen_to_chains(observer, plan, after, listeners, unlistened)  # a topic found large: not listened
             latency = chain_latency(listeners)  # right after the counters, so both cover the same seconds
             for listener in listeners.values():  # a restarted publisher (a new URI) is listened to again
                 listener.follow([u for p in observer.publishers.get(listener.topic, []) if (u := observer._uri(p))])
@@ -321,7 +337,7 @@ def _windows(observer: Observer, plan: Plan, system: System | None, live: Any, u
             v = evaluate(stats, plan, system, cpu, tolerance)
             unread = unreadable_topics(before, after)
             doc = window_document(k, after.t, after.t - before.t, v, plan, after.alive, set(cpu), [], latency,
-                                  restarting, unread)
+                                  restarting, unread, unlistened)
             blind = sorted(n for n, pn in plan.nodes.items() if any(t in unread for t in pn.topics))
             if blind and len(blind) < len(plan.nodes):  # Σ w·P over the nodes that could be read
                 seen = evaluate(stats, _only(plan, [n for n in plan.nodes if n not in blind]), system, cpu, tolerance)

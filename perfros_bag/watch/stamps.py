@@ -1,7 +1,13 @@
 """A chain's latency, live: the receipt time minus ``header.stamp`` of its last topic's messages.
 
-The chain's last topic is small (detections, not images), so the watcher subscribes to it,
-and only to it, the way any ROS 1 subscriber does, without a ROS client library: it asks
+The watcher subscribes to a chain's last topic only while its messages are small
+(:data:`STAMP_MAX_BYTES`: detections, not images): every message subscribed to is copied to
+the watcher, across the link between its publisher's computer and the watcher's, and a
+watcher subscribed to an image topic loads that link as one more consumer of the images
+(RQ4 2026-11-28 04:30: two watchers of one deploy, each on ``/robotN/smooth/image``, 230 kB
+at 5 Hz, offered 2 x 1,150 kB/s to 3,000 kB/s links that carried the plan's 1,170: the
+people detector fed across such a link ran at 3.9-4.4 Hz of 5 after the re-plan, 12-20 %
+below the plan). It subscribes the way any ROS 1 subscriber does, without a ROS client library: it asks
 each publisher's XML-RPC ``requestTopic`` for a TCPROS endpoint, sends a connection header
 (``md5sum: *``, the wildcard publishers accept from generic subscribers such as
 ``rostopic``) and reads the length-prefixed messages, decoding only the Header every
@@ -17,7 +23,22 @@ import threading
 import time
 from urllib.parse import urlsplit
 
-from perfros_bag.rosrun.master import CALLER_ID, node_call
+from perfros_bag.rosrun.master import CALLER_ID, TopicCounters, node_call
+
+#: a chain's last topic whose messages average more bytes than this is not subscribed to
+STAMP_MAX_BYTES = 16_384
+
+
+def mean_message_bytes(topics: dict[tuple[str, str], TopicCounters], topic: str) -> float | None:
+    """The mean payload bytes of ``topic``'s messages over every publisher's counters so far
+    (a reading's ``topics``); None before any message was counted."""
+    messages = payload = 0
+    for (t, _publisher), c in topics.items():
+        if t != topic:
+            continue
+        messages += sum(m for m, _ in c.connections.values())
+        payload += c.total_bytes if c.total_bytes is not None else sum(b for _, b in c.connections.values())
+    return payload / messages if messages else None
 
 
 def connection_header(fields: dict[str, str]) -> bytes:

@@ -201,11 +201,13 @@ def planned_chains(plan: Plan) -> list[dict[str, Any]]:
 def window_document(k: int, t: float, seconds: float, v: Validation, plan: Plan, alive_of: dict[str, bool],
                     measured_cpu: set[str], alarms: list[dict[str, Any]],
                     latency: dict[str, dict[str, Any] | None] | None = None,
-                    restarting: set[str] | None = None, unreadable: set[str] | None = None) -> dict[str, Any]:
+                    restarting: set[str] | None = None, unreadable: set[str] | None = None,
+                    unlistened: dict[str, str] | None = None) -> dict[str, Any]:
     """The window's JSON object (docs/formats.md "watch --json"); a node not alive is
     ``restarting`` when in ``restarting`` (a deploy restarting it), else ``dead``. A topic in
     ``unreadable`` (:func:`unreadable_topics`) has no measured rate (None, never 0 Hz); a
-    running node none of whose topics could be read is ``unreadable``, its ``measured_hz`` None."""
+    running node none of whose topics could be read is ``unreadable``, its ``measured_hz`` None.
+    A chain in ``unlistened`` (its last topic not subscribed to) says why in ``not_listened``."""
     unread = unreadable or set()
     nodes: dict[str, Any] = {}
     for n in v.nodes:
@@ -229,6 +231,9 @@ def window_document(k: int, t: float, seconds: float, v: Validation, plan: Plan,
         }
     chains = [{"chain": c.get("name"), "topic": c["topics"][-1], "predicted_ms": c.get("predicted_ms"),
                "measured_ms": (latency or {}).get(str(c.get("name")))} for c in planned_chains(plan)]
+    for chain in chains:
+        if str(chain["chain"]) in (unlistened or {}):
+            chain["not_listened"] = (unlistened or {})[str(chain["chain"])]
     return {
         "format": WINDOW_FORMAT, "window": k, "t": t, "seconds": seconds,
         "overall": {"expected": v.overall_expected, "measured": v.overall_measured, "deviation_pct": v.deviation_pct},
