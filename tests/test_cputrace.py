@@ -53,11 +53,28 @@ def test_parse_and_normalise_by_hand(tmp_path: Path) -> None:
 
 
 def test_window_alignment_keeps_samples_inside_start_end() -> None:
-    rows = "".join(f"{t},1,a,a,{v},0\n" for t, v in [(9.9, 1000), (10.0, 10), (10.5, 20), (11.0, 30), (11.1, 1000)])
+    rows = "".join(f"{t},1,a,a,{v},0\n" for t, v in [(9.5, 1000), (10.0, 10), (10.5, 20), (11.0, 30), (11.5, 1000)])
     tr = parse_cpu_trace(HEADER + rows)
     res = node_cpu(tr, 200.0, start_ns=10_000_000_000, end_ns=11_000_000_000)
     assert res["a"].samples == 3 and res["a"].mean == pytest.approx(20.0)  # capacity 200 on 2 cores: % = units
     assert node_cpu(tr, 200.0, start_ns=50_000_000_000, end_ns=60_000_000_000) == {}
+
+
+def test_mean_is_cpu_seconds_over_seconds_with_a_short_last_round() -> None:
+    """record-cpu's last round, taken when it is stopped, measures only part of an interval.
+    A process using known CPU seconds per round (psutil reports seconds / round length x 100):
+    the mean is its CPU seconds over the seconds measured, computed here from those seconds,
+    not from the trace's percentages; a round after one that wrote no row counts one interval."""
+    rounds = [(10.0, 0.5, 0.20), (10.5, 0.5, 0.30), (11.0, 0.5, 0.10), (11.5, 0.5, 0.25),
+              (11.6, 0.1, 0.0)]  # (time, seconds it measures, CPU seconds used): the last one 0.1 s, no tick
+    rows = "".join(f"{t},1,a,a,{100 * used / secs},0\n" for t, secs, used in rounds)
+    rows += "13.0,1,a,a,40,0\n"  # after a round with no row (1.5 s gap): one interval, 0.2 CPU s
+    tr = parse_cpu_trace(HEADER + rows)  # 2 cores, capacity 200: units = % of one core
+    used = sum(u for _, _, u in rounds) + 0.2
+    seconds = sum(s for _, s, _ in rounds) + 0.5
+    res = node_cpu(tr, 200.0)["a"]
+    assert res.mean == pytest.approx(100 * used / seconds) and res.samples == 6
+    assert res.mean != pytest.approx(np.mean([40, 60, 20, 50, 0, 40]))  # not the samples' plain mean
 
 
 def test_assign_nodes_by_name_then_regex() -> None:

@@ -637,3 +637,34 @@ def test_export_only_warns_about_a_package_not_installed_here() -> None:
         assert sorted(check_nodelets(Resolved(nodes, {}, {}), "x.launch", elsewhere=True)) == ["/people", "/smooth"]
     with pytest.raises(InputError, match="package elsewhere_pkg is not installed here"):
         check_nodelets(Resolved(nodes, {}, {}), "x.launch")
+
+
+def test_fixture_standalone_launch_mirrors_the_managers_nodelets() -> None:
+    """bench_nodelets compares each nodelet inside the manager with itself in
+    fixtures/nodelet/standalone.launch: the two files must give every node the same
+    arguments, parameters and remappings (but `load TYPE MANAGER` for `standalone TYPE`), and
+    declare the same args with the same defaults, read from the XML itself."""
+    import xml.etree.ElementTree as ET
+
+    fix = Path(__file__).resolve().parents[1] / "fixtures" / "nodelet"
+
+    def read(name: str) -> tuple[dict[str, str | None], dict[str, tuple]]:
+        root = ET.parse(fix / name).getroot()
+        args = {a.get("name") or "": a.get("default") for a in root.iter("arg")}
+        nodes = {}
+        for n in root.iter("node"):
+            words = (n.get("args") or "").split()
+            if words[:1] == ["load"]:
+                words = ["standalone", words[1]]
+            nodes[n.get("name") or ""] = (n.get("pkg"), n.get("type"), words,
+                                          sorted((p.get("name"), p.get("value")) for p in n.iter("param")),
+                                          sorted((r.get("from"), r.get("to")) for r in n.iter("remap")))
+        return args, nodes
+
+    args_in, inside = read("nodelet.launch")
+    args_alone, alone = read("standalone.launch")
+    assert args_in == args_alone and "filter_type" in args_in
+    assert set(inside) - set(alone) == {"vision_manager"}  # the manager only inside
+    assert {k: v for k, v in inside.items() if k != "vision_manager"} == alone
+    space = yaml.safe_load((fix / "space.yaml").read_text())
+    assert {v["arg"] for v in space["vary"]} <= set(args_in)

@@ -76,7 +76,8 @@ class CpuRecorder:
     its name or its command line, or when it descends from ``root_pid`` (COMMAND and its
     children). New processes are picked up at every round; a process's first round only
     primes psutil's counter (psutil's first ``cpu_percent`` is meaningless), so every
-    written row measures one full interval.
+    written row measures one full interval, but the last: the round taken when recording
+    stops measures the time since the one before (trace.node_cpu weighs it by those seconds).
     """
 
     def __init__(self, patterns: Sequence[str], interval: float, *, root_pid: int | None = None,

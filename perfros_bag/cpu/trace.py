@@ -323,12 +323,30 @@ def in_window(trace: CpuTrace, start_ns: int | None, end_ns: int | None) -> npt.
     return (trace.time >= start_ns / 1e9) & (trace.time <= end_ns / 1e9)
 
 
+def sample_seconds(trace: CpuTrace) -> dict[float, float]:
+    """Per sample time of the trace, the seconds its rows measure (the weights of
+    :func:`node_cpu`'s mean): the time since the trace's previous sample time, at most
+    ``interval_s`` (a longer gap follows a round that wrote no row, e.g. one that only primed
+    a new process; it is not a longer measurement); the first sample time one interval.
+    Without ``interval_s`` every sample weighs the same."""
+    times = np.unique(trace.time)
+    if times.size == 0:
+        return {}
+    full = trace.interval_s or 1.0
+    seconds = np.minimum(np.concatenate(([full], np.diff(times))), full) if trace.interval_s else np.ones(times.size)
+    return dict(zip(times.tolist(), seconds.tolist(), strict=True))
+
+
 def node_cpu(trace: CpuTrace, capacity: float, *, start_ns: int | None = None,
              end_ns: int | None = None, nodes: Mapping[str, str | None] | None = None) -> dict[str, NodeCpu]:
     """Mean and p95 CPU units per node inside [start_ns, end_ns].
 
     A node's value at a sample time is the sum over its processes; samples are the sample
     times at which the node had at least one process. Units: ``cpu_percent / (100 N) * R``.
+    The mean weighs each sample by the seconds it measures (:func:`sample_seconds`): the
+    round ``record-cpu`` takes when it is stopped covers only part of an interval, and
+    counted as a whole one its few scheduler ticks move a short run's mean by several per
+    cent. The p95 is over the samples, unweighted.
     """
     import pandas as pd
 
@@ -339,6 +357,7 @@ def node_cpu(trace: CpuTrace, capacity: float, *, start_ns: int | None = None,
     if not keep.any():
         return result
     has_threads = trace.threads.size == trace.time.size and bool(np.isfinite(trace.threads[keep]).any())
+    seconds = sample_seconds(trace)
     df = pd.DataFrame({"node": owner[keep], "time": trace.time[keep], "units": trace.cpu_percent[keep] * scale,
                        "threads": trace.threads[keep] if has_threads else np.full(int(keep.sum()), np.nan)})
     grouped = df.groupby(["node", "time"], sort=False)  # a node's processes, per sample
@@ -347,9 +366,11 @@ def node_cpu(trace: CpuTrace, capacity: float, *, start_ns: int | None = None,
     order = list(dict.fromkeys(df["node"].tolist()))
     for name, per_time in sums.groupby(level=0, sort=False):
         values = per_time.to_numpy(dtype=np.float64)
+        weights = np.array([seconds[t] for t in per_time.index.get_level_values(1)], dtype=np.float64)
+        mean = float(np.average(values, weights=weights)) if weights.sum() > 0 else float(values.mean())
         counts = busy.loc[name].to_numpy(dtype=np.float64)
         counts = counts[np.isfinite(counts) & (counts > 0)]  # samples where it ran
-        result[str(name)] = NodeCpu(str(name), float(values.mean()), float(np.percentile(values, 95)), int(values.size),
+        result[str(name)] = NodeCpu(str(name), mean, float(np.percentile(values, 95)), int(values.size),
                                     float(counts.mean()) if counts.size else None)
     return {n: result[n] for n in order}
 

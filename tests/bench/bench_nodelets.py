@@ -15,16 +15,19 @@ measured CPU (goal: within 5 %), and the copy price (characterisation/containers
 the whole-run CPU the standalone run adds over the in-manager runs at the same values, per
 MB/s of the copies it adds.
 
-    .venv/bin/python tests/bench/bench_nodelets.py [--repeats 2] [--duration 8] [--keep DIR]
+    .venv/bin/python tests/bench/bench_nodelets.py [--repeats 2] [--duration 30] [--keep DIR]
 """
 
 from __future__ import annotations
 
 import argparse
+import os
+import re
 import statistics
 import subprocess
 import sys
 import tempfile
+import time
 import warnings
 from pathlib import Path
 
@@ -43,7 +46,7 @@ def sweep(launch: Path, space: Path, out: Path, duration: float) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--repeats", type=int, default=2)
-    ap.add_argument("--duration", type=float, default=8.0)
+    ap.add_argument("--duration", type=float, default=30.0)
     ap.add_argument("--keep", type=Path, default=None, help="folder for the two sweeps (reused when there)")
     a = ap.parse_args()
     import yaml
@@ -53,14 +56,18 @@ def main() -> None:
     from perfros_bag.sweep.draft import draft_system
     from perfros_bag.system.systemfile import load_system
 
+    load0, t0 = os.getloadavg(), time.monotonic()
     work = a.keep or Path(tempfile.mkdtemp(prefix="bench-nodelets-"))
     work.mkdir(parents=True, exist_ok=True)
-    space = yaml.safe_load((FIX / "space.yaml").read_text())
-    space["repeats"] = a.repeats
-    (work / "space.yaml").write_text(yaml.safe_dump(space))
     inside, alone = work / "inside", work / "alone"
-    sweep(FIX / "nodelet.launch", work / "space.yaml", inside, a.duration)
-    sweep(FIX / "standalone.launch", work / "space.yaml", alone, a.duration)
+    if (work / "space.yaml").exists() and (inside / "manifest.yaml").exists():  # --keep: the kept runs' space
+        space = yaml.safe_load((work / "space.yaml").read_text())
+    else:
+        space = yaml.safe_load((FIX / "space.yaml").read_text())
+        space.update(repeats=a.repeats, duration_s=a.duration)
+        (work / "space.yaml").write_text(yaml.safe_dump(space))
+    sweep(FIX / "nodelet.launch", work / "space.yaml", inside, space["duration_s"])
+    sweep(FIX / "standalone.launch", work / "space.yaml", alone, space["duration_s"])
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         draft_system(inside, work / "inside.yaml")
@@ -69,7 +76,8 @@ def main() -> None:
         split = characterise(m_in.recordings, load_system(work / "inside.yaml"))
         measured = characterise(m_alone.recordings, load_system(work / "alone.yaml"))
     truth = {(t.node, repr(t.value)): t.cpu for t in table_one(measured.rows)}
-    print(f"runs: {work}  (repeats {a.repeats}, {a.duration:g} s each)")
+    print(f"runs: {work}  (repeats {space['repeats']}, {space['duration_s']:g} s each; sweeps done in "
+          f"{time.monotonic() - t0:.0f} s, load average before {load0[0]:.2f}, after {os.getloadavg()[0]:.2f})")
     print("| nodelet | value | estimate inside the manager | standalone, measured | error |")
     print("|---|---|---:|---:|---:|")
     errors = []
@@ -93,6 +101,7 @@ def main() -> None:
             print(f"| {rec} | {meas:.2f} | {fit:.2f} | {100 * (fit - meas) / meas:+.1f} % |")
     if sums:
         print(f"\nlargest |error| of a run's sum: {max(sums):.1f} %; mean {statistics.mean(sums):.1f} %")
+    repeats_of_a_setting(split.splits)
     print("\n| container | in-manager runs | standalone run | extra CPU (units) | extra copies (kB/s) |")
     print("|---|---|---|---:|---:|")
     for s in split.splits:
@@ -102,6 +111,28 @@ def main() -> None:
         price = "not measured" if s.copy_per_MBps is None else f"{s.copy_per_MBps:.4f} CPU units per MB/s"
         print(f"copy price of {s.container} (apart from lambda = {s.factor:.3f}): {price}")
     copy_at_every_setting(work, m_in.recordings, m_alone.recordings, measured.rows)
+
+
+def setting_of(recording: str) -> str:
+    """A run's setting: its recording's name without the repeat (``_r2``) and the extension."""
+    return re.sub(r"_r\d+$", "", recording.removesuffix(".bag"))
+
+
+def repeats_of_a_setting(splits: list) -> None:
+    """Per setting, its repeats' manager CPU and their spread, (max - min) / mean: one
+    estimate per setting cannot be nearer to every repeat than half that spread, so half of it
+    is the floor of the largest per-run error of the sum. (Against the repeats' mean the sum
+    says nothing here: one setting moving at a time has as many settings as unknowns, so the
+    fit matches every setting's mean by construction.)"""
+    print("\n| setting | manager measured, per repeat | spread of the repeats | half of it |")
+    print("|---|---|---:|---:|")
+    for s in splits:
+        by: dict[str, list[float]] = {}
+        for rec, (meas, _fit) in s.runs.items():
+            by.setdefault(setting_of(rec), []).append(meas)
+        for name, meas in by.items():
+            spread = 100 * (max(meas) - min(meas)) / statistics.mean(meas)
+            print(f"| {name} | {' / '.join(f'{m:.2f}' for m in meas)} | {spread:.1f} % | {spread / 2:.1f} % |")
 
 
 def copy_at_every_setting(work: Path, inside: list, alone: list, alone_rows: list) -> None:
