@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import shutil
 import statistics
@@ -450,6 +451,28 @@ SPEED_STEP_S = 5.0
 SPEED_WAIT_S = float(os.environ.get("CASESTUDY_SPEED_WAIT_S", "120"))
 SPEED_BUDGET_S = float(os.environ.get("CASESTUDY_SPEED_BUDGET_S", "900"))
 SPEED_GATE: dict[str, Any] = {"reference": None, "waits": []}
+#: ... and a deployment whose own speed reference (deploy.json, measured as its recording
+#: began) is still off the sweep's is deployed again, up to SPEED_REPEATS times; the attempt
+#: nearest the sweep's speed is kept as the run, the others stay beside it as
+#: ``run-*.off-speed-K`` and every attempt's speed is stated (results.json ``redeployed``).
+#: Environment: CASESTUDY_SPEED_REPEATS (0: never again). tune's own rounds are not repeated.
+SPEED_REPEATS = int(os.environ.get("CASESTUDY_SPEED_REPEATS", "2"))
+REDEPLOYS: list[dict[str, Any]] = []
+
+
+def at_speed(speed: float | None, reference: float | None, share: float = SPEED_SHARE) -> bool:
+    """``speed`` within ``share`` of ``reference`` either way (True without either: nothing to hold)."""
+    if speed is None or reference is None or reference <= 0:
+        return True
+    return share * reference <= speed <= reference / share
+
+
+def nearest_speed(attempts: Sequence[tuple[float | None, Path]], reference: float | None) -> Path:
+    """The attempt whose speed is nearest ``reference`` (by ratio); the last one when none
+    can be compared."""
+    known = [(abs(math.log(s / reference)), k) for k, (s, _) in enumerate(attempts)
+             if s is not None and s > 0 and reference is not None and reference > 0]
+    return attempts[min(known)[1]][1] if known else attempts[-1][1]
 
 
 def sweep_speed(manifest: Path) -> float | None:
@@ -471,7 +494,7 @@ def speed_gate(reference: float | None, measure: Any, sleep: Any, clock: Any, *,
         return {"speed": None, "waited_s": 0.0, "held": True}
 
     def within(x: float) -> bool:
-        return share * reference <= x <= reference / share
+        return at_speed(x, reference, share)
 
     start = clock()
     speed = measure()
@@ -520,14 +543,35 @@ def deploy(plan: Path, robots: int, system: Path, run_dir: Path, app: Path, args
         COMMANDS.append(f"perfros-bag deploy {rel(plan)} {rel(app / f'app{robots}.launch')} --space "
                         f"{rel(app / f'space{robots}.yaml')} --out {rel(run_dir)} --system {rel(system)}   # reused")
     else:
-        wait_for_speed(label)
-        err.print(f"[bold]{label}[/]: deploying -> {rel(run_dir)}")
-        if run_dir.exists():
-            shutil.rmtree(run_dir)
-        sh([BIN, "deploy", plan, app / f"app{robots}.launch", "--space", app / f"space{robots}.yaml", "--out", run_dir,
-            "--system", system, "--units-per-core", f"{UNITS_PER_CORE:g}"], ok=(0, 1))
+        attempts: list[tuple[float | None, Path]] = []  # (deploy.json's speed, where that attempt is now)
+        for attempt in range(1 + SPEED_REPEATS):
+            wait_for_speed(label)
+            err.print(f"[bold]{label}[/]: deploying -> {rel(run_dir)}")
+            if run_dir.exists():
+                shutil.rmtree(run_dir)
+            sh([BIN, "deploy", plan, app / f"app{robots}.launch", "--space", app / f"space{robots}.yaml", "--out",
+                run_dir, "--system", system, "--units-per-core", f"{UNITS_PER_CORE:g}"], ok=(0, 1))
+            DEPLOYS["ran"] += 1
+            speed = json.loads((run_dir / "deploy.json").read_text()).get("speed_factor")
+            if at_speed(speed, SPEED_GATE["reference"]) or attempt == SPEED_REPEATS:
+                attempts.append((speed, run_dir))
+                break
+            aside = run_dir.with_name(f"{run_dir.name}.off-speed-{attempt + 1}")  # kept, and stated
+            if aside.exists():
+                shutil.rmtree(aside)
+            run_dir.rename(aside)
+            attempts.append((speed, aside))
+            err.print(f"{label}: the host ran at speed {speed} (the sweep's {SPEED_GATE['reference']:.2f}): "
+                      f"deploying again ({rel(aside)} kept)")
+        keep = nearest_speed(attempts, SPEED_GATE["reference"])
+        if keep != run_dir:
+            if run_dir.exists():
+                run_dir.rename(run_dir.with_name(f"{run_dir.name}.off-speed-{len(attempts)}"))
+            keep.rename(run_dir)
+        if len(attempts) > 1:
+            REDEPLOYS.append({"deployment": label, "speeds": [s for s, _ in attempts],
+                              "kept": [d for _, d in attempts].index(keep)})
         stamp.write_text(sig)
-        DEPLOYS["ran"] += 1
     record = json.loads((run_dir / "deploy.json").read_text())
     validation = json.loads((run_dir / "validation.json").read_text())
     return {"record": record, "validation": validation}
@@ -925,7 +969,7 @@ def latency_by_speed(rows: list[dict[str, Any]], reference: float | None) -> dic
     floor, ceiling = SPEED_SHARE * reference, reference / SPEED_SHARE
 
     def at(r: dict[str, Any]) -> bool:
-        return r.get("speed_factor") is not None and floor <= r["speed_factor"] <= ceiling
+        return r.get("speed_factor") is not None and at_speed(r["speed_factor"], reference)
 
     return {"reference": reference, "floor": floor, "ceiling": ceiling,
             "at_speed": latency_summary([r for r in rows if at(r)]),
@@ -1135,7 +1179,12 @@ def rq2l_lines(results: list[dict[str, Any]], started: str) -> list[str]:
         lines += [f"The host's speed before each deployment (pipelines/casestudy_real.py, SPEED_SHARE "
                   f"{SPEED_SHARE:g} of the sweep's, waits of up to {SPEED_WAIT_S:g} s, {SPEED_BUDGET_S:g} s in all): "
                   f"checked {gate['checked']}, waited {gate['waited']} times ({gate['waited_s']:.0f} s in all), "
-                  f"deployed still off speed {gate['slow']} times.", ""]
+                  f"deployed still off speed {gate['slow']} times. Deployed again because the deployment's own "
+                  f"reading was off speed: {len(REDEPLOYS)} deployment(s)"
+                  + (": " + "; ".join(f"{r['deployment']} at " + ", ".join("-" if s is None else f"{s:.2f}"
+                                                                         for s in r["speeds"])
+                                      + f" (kept attempt {r['kept'] + 1})" for r in REDEPLOYS) if REDEPLOYS else "")
+                  + ".", ""]
     return lines
 
 
@@ -1365,7 +1414,7 @@ def run(out: Path, numbers: list[int], args: argparse.Namespace, argv: list[str]
                                                   "fairness": fair, "rq2_latency": chains,
                                                   "rq2_latency_summary": latency, "latency_line": lat_line,
                                                   "rq2_latency_by_speed": by_speed,
-                                                  "speed_gate": speed_gate_summary(),
+                                                  "speed_gate": speed_gate_summary(), "redeployed": REDEPLOYS,
                                                   "rq3_kept_errors": kept_errors(rq3_rows),
                                                   "no_plan": FAILED, "full_run": full, "full_run_line": line,
                                                   "seconds": seconds}, indent=1, default=str))

@@ -394,3 +394,45 @@ def test_latency_split_by_the_hosts_speed_against_a_hand_count() -> None:
     line = cs.speed_split_line(split)
     assert line is not None and "at speed p50 10.0 %" in line and "off speed p50 26.7 %" in line
     assert cs.latency_by_speed(rows, None) is None
+
+
+def test_at_speed_and_the_nearest_attempt() -> None:
+    assert cs.at_speed(0.70, 0.76) and not cs.at_speed(0.60, 0.76) and not cs.at_speed(0.95, 0.76)
+    assert cs.at_speed(None, 0.76) and cs.at_speed(0.1, None)  # nothing to hold to
+    a, b, c = Path("a"), Path("b"), Path("c")
+    assert cs.nearest_speed([(0.45, a), (0.95, b), (0.60, c)], 0.76) == b  # log ratio 0.221 < 0.237 < 0.524
+    assert cs.nearest_speed([(None, a), (None, b)], 0.76) == b and cs.nearest_speed([(0.5, a)], None) == a
+
+
+def test_an_off_speed_deployment_is_deployed_again_and_the_nearest_kept(tmp_path: Path,
+                                                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    speeds = [0.41, 0.74]  # the first attempt ran on the slow host, the second at the sweep's speed
+
+    def fake_sh(args: list[object], *, ok: tuple[int, ...] = (0,)) -> Any:
+        out = Path(str(args[args.index("--out") + 1]))
+        out.mkdir(parents=True)
+        (out / "deploy.json").write_text(json.dumps({"speed_factor": speeds.pop(0)}))
+        (out / "validation.json").write_text(json.dumps({"attempt": 2 - len(speeds)}))
+        return None
+
+    monkeypatch.setattr(cs, "sh", fake_sh)
+    monkeypatch.setattr(cs, "wait_for_speed", lambda label: None)
+    monkeypatch.setitem(cs.SPEED_GATE, "reference", 0.76)
+    monkeypatch.setattr(cs, "SPEED_REPEATS", 2)
+    monkeypatch.setattr(cs, "REDEPLOYS", [])
+    plan = tmp_path / "plan.json"
+    plan.write_text(json.dumps({"nodes": {}, "computers": {}}))
+    run_dir = tmp_path / "run-p1"
+    got = cs.deploy(plan, 1, tmp_path / "model.json", run_dir, tmp_path, None, "instance 1 p1")  # type: ignore[arg-type]
+    assert got["record"]["speed_factor"] == 0.74 and got["validation"] == {"attempt": 2}
+    assert json.loads((tmp_path / "run-p1.off-speed-1" / "deploy.json").read_text())["speed_factor"] == 0.41
+    assert cs.REDEPLOYS == [{"deployment": "instance 1 p1", "speeds": [0.41, 0.74], "kept": 1}]
+    # off speed every time: the nearest attempt is the run, the others stay beside it
+    speeds[:] = [0.45, 0.95, 0.60]
+    cs.REDEPLOYS.clear()
+    run2 = tmp_path / "run-p2"
+    got = cs.deploy(plan, 1, tmp_path / "model.json", run2, tmp_path, None, "instance 1 p2")  # type: ignore[arg-type]
+    assert got["record"]["speed_factor"] == 0.95
+    assert sorted(json.loads((tmp_path / f"run-p2.off-speed-{k}" / "deploy.json").read_text())["speed_factor"]
+                  for k in (1, 3)) == [0.45, 0.60]
+    assert cs.REDEPLOYS == [{"deployment": "instance 1 p2", "speeds": [0.45, 0.95, 0.60], "kept": 1}]
