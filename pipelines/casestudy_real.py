@@ -569,8 +569,14 @@ def deploy(plan: Path, robots: int, system: Path, run_dir: Path, app: Path, args
                 run_dir.rename(run_dir.with_name(f"{run_dir.name}.off-speed-{len(attempts)}"))
             keep.rename(run_dir)
         if len(attempts) > 1:
+            planned = json.loads(plan.read_text())
+            aside_now = sorted(run_dir.parent.glob(f"{run_dir.name}.off-speed-*"))
             REDEPLOYS.append({"deployment": label, "speeds": [s for s, _ in attempts],
-                              "kept": [d for _, d in attempts].index(keep)})
+                              "kept": [d for _, d in attempts].index(keep),
+                              # the attempts set aside, measured against the same plan: stated, not dropped
+                              "set_aside_chains": [c for d in aside_now if (d / "validation.json").exists()
+                                                   for c in chain_rows(json.loads((d / "validation.json").read_text()),
+                                                                       planned)]})
         stamp.write_text(sig)
     record = json.loads((run_dir / "deploy.json").read_text())
     validation = json.loads((run_dir / "validation.json").read_text())
@@ -1185,6 +1191,11 @@ def rq2l_lines(results: list[dict[str, Any]], started: str) -> list[str]:
                                                                          for s in r["speeds"])
                                       + f" (kept attempt {r['kept'] + 1})" for r in REDEPLOYS) if REDEPLOYS else "")
                   + ".", ""]
+        aside = latency_summary([c for r in REDEPLOYS for c in r.get("set_aside_chains", [])])
+        if aside["chain_deployments"]:
+            lines += [f"The attempts set aside, against their plans: latency p50 |error| "
+                      f"{f(aside['p50']['error_pct'], 1)} %, p95 {f(aside['p95']['error_pct'], 1)} % over "
+                      f"{aside['chain_deployments']} chain-deployments (not in the line above).", ""]
     return lines
 
 

@@ -412,7 +412,7 @@ def test_an_off_speed_deployment_is_deployed_again_and_the_nearest_kept(tmp_path
         out = Path(str(args[args.index("--out") + 1]))
         out.mkdir(parents=True)
         (out / "deploy.json").write_text(json.dumps({"speed_factor": speeds.pop(0)}))
-        (out / "validation.json").write_text(json.dumps({"attempt": 2 - len(speeds)}))
+        (out / "validation.json").write_text(json.dumps({"attempt": 2 - len(speeds), "chains": []}))
         return None
 
     monkeypatch.setattr(cs, "sh", fake_sh)
@@ -424,9 +424,10 @@ def test_an_off_speed_deployment_is_deployed_again_and_the_nearest_kept(tmp_path
     plan.write_text(json.dumps({"nodes": {}, "computers": {}}))
     run_dir = tmp_path / "run-p1"
     got = cs.deploy(plan, 1, tmp_path / "model.json", run_dir, tmp_path, None, "instance 1 p1")  # type: ignore[arg-type]
-    assert got["record"]["speed_factor"] == 0.74 and got["validation"] == {"attempt": 2}
+    assert got["record"]["speed_factor"] == 0.74 and got["validation"] == {"attempt": 2, "chains": []}
     assert json.loads((tmp_path / "run-p1.off-speed-1" / "deploy.json").read_text())["speed_factor"] == 0.41
-    assert cs.REDEPLOYS == [{"deployment": "instance 1 p1", "speeds": [0.41, 0.74], "kept": 1}]
+    assert cs.REDEPLOYS == [{"deployment": "instance 1 p1", "speeds": [0.41, 0.74], "kept": 1,
+                             "set_aside_chains": []}]
     # off speed every time: the nearest attempt is the run, the others stay beside it
     speeds[:] = [0.45, 0.95, 0.60]
     cs.REDEPLOYS.clear()
@@ -435,4 +436,5 @@ def test_an_off_speed_deployment_is_deployed_again_and_the_nearest_kept(tmp_path
     assert got["record"]["speed_factor"] == 0.95
     assert sorted(json.loads((tmp_path / f"run-p2.off-speed-{k}" / "deploy.json").read_text())["speed_factor"]
                   for k in (1, 3)) == [0.45, 0.60]
-    assert cs.REDEPLOYS == [{"deployment": "instance 1 p2", "speeds": [0.45, 0.95, 0.60], "kept": 1}]
+    assert cs.REDEPLOYS == [{"deployment": "instance 1 p2", "speeds": [0.45, 0.95, 0.60], "kept": 1,
+                             "set_aside_chains": []}]
