@@ -467,6 +467,18 @@ def at_speed(speed: float | None, reference: float | None, share: float = SPEED_
     return share * reference <= speed <= reference / share
 
 
+def run_speed(record: dict[str, Any], reference: float | None) -> float | None:
+    """A deployment's speed as this pipeline judges it: of its two readings (deploy.json
+    ``speed_factor`` as the recording began, ``speed_factor_end`` as it ended), the one
+    farther from ``reference`` (the machine may slow down mid-run); either alone when the
+    other is unknown."""
+    got = [s for s in (record.get("speed_factor"), record.get("speed_factor_end"))
+           if isinstance(s, int | float) and s > 0]
+    if not got or reference is None or reference <= 0:
+        return got[0] if got else None
+    return max(got, key=lambda s: abs(math.log(s / reference)))
+
+
 def nearest_speed(attempts: Sequence[tuple[float | None, Path]], reference: float | None) -> Path:
     """The attempt whose speed is nearest ``reference`` (by ratio); the last one when none
     can be compared."""
@@ -552,7 +564,7 @@ def deploy(plan: Path, robots: int, system: Path, run_dir: Path, app: Path, args
             sh([BIN, "deploy", plan, app / f"app{robots}.launch", "--space", app / f"space{robots}.yaml", "--out",
                 run_dir, "--system", system, "--units-per-core", f"{UNITS_PER_CORE:g}"], ok=(0, 1))
             DEPLOYS["ran"] += 1
-            speed = json.loads((run_dir / "deploy.json").read_text()).get("speed_factor")
+            speed = run_speed(json.loads((run_dir / "deploy.json").read_text()), SPEED_GATE["reference"])
             if at_speed(speed, SPEED_GATE["reference"]) or attempt == SPEED_REPEATS:
                 attempts.append((speed, run_dir))
                 break
@@ -609,7 +621,9 @@ def summarise(res: dict[str, Any], plan: dict[str, Any] | None = None) -> dict[s
     ratios = [abs(t["ratio"] - 1) * 100 for n in val["nodes"] for t in n["topics"] if t.get("ratio") is not None]
     links = rec["network"].get("links_measured", [])
     return {"expected": val["overall"]["expected"], "measured": val["overall"]["measured"],
-            "deviation_pct": val["overall"]["deviation_pct"], "speed_factor": rec.get("speed_factor"),
+            "deviation_pct": val["overall"]["deviation_pct"],
+            "speed_factor": run_speed(rec, SPEED_GATE["reference"]), "speed_factor_start": rec.get("speed_factor"),
+            "speed_factor_end": rec.get("speed_factor_end"),
             "freq_dev_mean_pct": sum(ratios) / len(ratios) if ratios else None,
             "cpu_cap": rec["cpu_cap"]["mode"], "net": rec["network"]["mode"],
             "computers": {c["computer"]: {"capacity": c["capacity"], "expected": c["cpu_expected"],

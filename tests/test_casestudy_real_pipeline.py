@@ -438,3 +438,10 @@ def test_an_off_speed_deployment_is_deployed_again_and_the_nearest_kept(tmp_path
                   for k in (1, 3)) == [0.45, 0.60]
     assert cs.REDEPLOYS == [{"deployment": "instance 1 p2", "speeds": [0.45, 0.95, 0.60], "kept": 1,
                              "set_aside_chains": []}]
+
+
+def test_a_deployments_speed_is_its_reading_farther_from_the_sweeps() -> None:
+    assert cs.run_speed({"speed_factor": 0.75, "speed_factor_end": 0.45}, 0.76) == 0.45  # slowed mid-run
+    assert cs.run_speed({"speed_factor": 0.74, "speed_factor_end": 0.78}, 0.76) == 0.74
+    assert cs.run_speed({"speed_factor": 0.60, "speed_factor_end": None}, 0.76) == 0.60
+    assert cs.run_speed({"speed_factor": None}, 0.76) is None and cs.run_speed({"speed_factor": 0.5}, None) == 0.5

@@ -124,6 +124,7 @@ def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Pat
     links_before: list[dict[str, Any]] = []
     links_after: list[dict[str, Any]] = []
     throttle: dict[str, dict[str, dict[str, float]]] = {}  # "start"/"end" -> computer -> CFS counters
+    end_speed: list[float] = []  # the machine's speed as the recording ended (perfros_bag.cpu.speed)
     media_before: list[dict[str, Any]] = []
     media_after: list[dict[str, Any]] = []
     master: list[str] = []  # the run's master URI, once roscore answers
@@ -177,12 +178,17 @@ def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Pat
             write_live(outdir / LIVE_FILE, live[0])
 
     def window(edge: str) -> None:
-        """The links', the shared media's and the groups' counters as the recording starts and ends."""
+        """The links', the shared media's and the groups' counters as the recording starts and
+        ends; as it ends, the machine's speed again (record-cpu measured it as the run began)."""
         stats = [{**s, "t": time.monotonic()} for s in network.link_stats()]
         media = [{**s, "t": time.monotonic()} for s in network.media_stats()]
         (links_before if edge == "start" else links_after)[:] = stats
         (media_before if edge == "start" else media_after)[:] = media
         throttle[edge] = {c: groups.throttled(c) for c in cores}
+        if edge == "end":
+            from perfros_bag.cpu.speed import measure_speed
+
+            end_speed.append(measure_speed().factor)
 
     network = Network(f"d{run_id}", system if system is not None and net else _no_links(plan))
     control = Control(outdir, space, dict(launch.args), run, dict(where), groups, units_per_core, cap, applied,
@@ -226,6 +232,7 @@ def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Pat
     record: dict[str, Any] = {
         "format": DEPLOY_FORMAT, "run_id": run_id, "plan": str(plan_path), "forced": is_forced(plan),
         "launch": str(launch.path), "speed_factor": None if speed is None else round(speed, 4),
+        "speed_factor_end": round(end_speed[-1], 4) if end_speed else None,
         "duration_s": space.duration_s, "values": dict(run.values), "args": dict(run.args),
         "params": dict(run.params),
         "cpu_cap": {"mode": mode, "reason": reason, "cgroups": groups.mode, "cores": cores,
