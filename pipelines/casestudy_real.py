@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import shutil
 import statistics
@@ -50,6 +49,9 @@ from typing import Any
 import yaml
 from _common import interrupt_on_sigterm, read_rows, run_shown, write_rows, write_section
 from rich.console import Console
+
+from perfros_bag.cpu.speed import SPEED_SHARE as SAME_SPEED_SHARE
+from perfros_bag.cpu.speed import same_speed, speed_distance
 
 ROOT = Path(__file__).resolve().parent.parent
 BIN = Path(sys.executable).with_name("perfros-bag")
@@ -446,7 +448,7 @@ def signature(plan: dict[str, Any]) -> str:
 #: SPEED_WAIT_S, and at most SPEED_BUDGET_S over the whole run; then it deploys whatever the
 #: speed. Every wait is stated (results.json ``speed_gate``, results.md). Environment:
 #: CASESTUDY_SPEED_WAIT_S (0: no waiting), CASESTUDY_SPEED_BUDGET_S.
-SPEED_SHARE = 0.85
+SPEED_SHARE = SAME_SPEED_SHARE
 SPEED_STEP_S = 5.0
 #: Off by default since the two runs made with it (2026-11-28 06:19, 07:02) did not gain from
 #: it (docs/casestudy-real.md): CASESTUDY_SPEED_WAIT_S=120 CASESTUDY_SPEED_REPEATS=2 turn it on.
@@ -466,7 +468,7 @@ def at_speed(speed: float | None, reference: float | None, share: float = SPEED_
     """``speed`` within ``share`` of ``reference`` either way (True without either: nothing to hold)."""
     if speed is None or reference is None or reference <= 0:
         return True
-    return share * reference <= speed <= reference / share
+    return same_speed(speed, reference, share)
 
 
 def run_speed(record: dict[str, Any], reference: float | None) -> float | None:
@@ -478,13 +480,13 @@ def run_speed(record: dict[str, Any], reference: float | None) -> float | None:
            if isinstance(s, int | float) and s > 0]
     if not got or reference is None or reference <= 0:
         return got[0] if got else None
-    return max(got, key=lambda s: abs(math.log(s / reference)))
+    return max(got, key=lambda s: speed_distance(s, reference))
 
 
 def nearest_speed(attempts: Sequence[tuple[float | None, Path]], reference: float | None) -> Path:
     """The attempt whose speed is nearest ``reference`` (by ratio); the last one when none
     can be compared."""
-    known = [(abs(math.log(s / reference)), k) for k, (s, _) in enumerate(attempts)
+    known = [(speed_distance(s, reference), k) for k, (s, _) in enumerate(attempts)
              if s is not None and s > 0 and reference is not None and reference > 0]
     return attempts[min(known)[1]][1] if known else attempts[-1][1]
 

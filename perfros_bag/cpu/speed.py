@@ -31,6 +31,21 @@ from dataclasses import dataclass
 REFERENCE_S = 0.055
 #: Repetitions of the workload; the fastest counts (the least disturbed).
 REPEATS = 3
+#: Two speed factors within this share of each other (either way) are the same machine speed
+#: (``sweep --repeat-off-speed``, validate's note, the case study's split at and off speed).
+SPEED_SHARE = 0.85
+
+
+def same_speed(speed: float, reference: float, share: float = SPEED_SHARE) -> bool:
+    """``speed`` within ``share`` of ``reference``, either way (``share x reference`` ..
+    ``reference / share``)."""
+    return share * reference <= speed <= reference / share
+
+
+def speed_distance(speed: float, reference: float) -> float:
+    """How far ``speed`` is from ``reference``, as the size of their log ratio (two factors 2x
+    apart either way are equally far)."""
+    return abs(math.log(speed / reference))
 
 _PY_STEPS = 150_000
 _ZLIB_BYTES = 600_000

@@ -30,7 +30,6 @@ node its replayed rate as its setting.
 from __future__ import annotations
 
 import contextlib
-import math
 import os
 import re
 import shutil
@@ -130,24 +129,21 @@ def require_ros_tools() -> None:
                                "(apt-get install ros-core python3-rospy python3-rosbag)")
 
 
-#: a run whose machine speed reference (perfros_bag.cpu.speed) is not within this share of the
-#: sweep's median (either way) ran on a machine of another speed: ``repeat_off_speed`` repeats it
-SPEED_SHARE = 0.85
-
-
 def median_speed(entries: Mapping[str, Mapping[str, Any]]) -> float | None:
     """The median ``speed_factor`` of manifest entries (None when none has one)."""
     found = [float(e["speed_factor"]) for e in entries.values() if e.get("speed_factor")]
     return statistics.median(found) if found else None
 
 
-def off_speed(entries: Mapping[str, Mapping[str, Any]], median: float | None, share: float = SPEED_SHARE) -> list[str]:
-    """The entries (keys) whose ``speed_factor`` is outside ``share`` x ``median`` .. ``median``
-    / ``share``: recorded while the machine ran at another speed than the sweep's other runs."""
+def off_speed(entries: Mapping[str, Mapping[str, Any]], median: float | None) -> list[str]:
+    """The entries (keys) whose ``speed_factor`` is not the ``median``'s speed
+    (:func:`perfros_bag.cpu.speed.same_speed`): recorded while the machine ran at another speed
+    than the sweep's other runs."""
+    from perfros_bag.cpu.speed import same_speed
+
     if median is None:
         return []
-    return [k for k, e in entries.items()
-            if e.get("speed_factor") and not share * median <= float(e["speed_factor"]) <= median / share]
+    return [k for k, e in entries.items() if e.get("speed_factor") and not same_speed(float(e["speed_factor"]), median)]
 
 
 def sweep(launch_path: str | Path, space_path: str | Path, out: str | Path, *, duration: float | None = None,
@@ -231,6 +227,7 @@ def _repeat_off_speed(launch: LaunchFile, space: Space, runs: list[Run], outdir:
     """Record each off-speed run again (up to ``times``) into ``DIR/.respeed``; a repeat nearer
     the median replaces the run's bag and trace (each moved in whole, then the manifest
     rewritten), a farther one is deleted. Ctrl-C or an error keeps the recordings so far."""
+    from perfros_bag.cpu.speed import speed_distance
     from perfros_bag.cpu.trace import trace_speed
 
     by_name = {f"{r.name}.bag": r for r in runs}
@@ -252,7 +249,7 @@ def _repeat_off_speed(launch: LaunchFile, space: Space, runs: list[Run], outdir:
             record_run(launch, space, run, spare, interval=interval, replay=prepared)
             speed = trace_speed(spare / f"{run.name}.cpu.csv")
             old = float(entries[k]["speed_factor"])
-            if speed is not None and median is not None and abs(math.log(speed / median)) < abs(math.log(old / median)):
+            if speed is not None and median is not None and speed_distance(speed, median) < speed_distance(old, median):
                 for suffix in (".bag", ".cpu.csv"):
                     os.replace(spare / f"{run.name}{suffix}", outdir / f"{run.name}{suffix}")
                 entries[k]["speed_factor"] = round(speed, 4)

@@ -758,15 +758,12 @@ def validate_files(run: str | Path, plan_path: str | Path, *, cpu: Sequence[str 
     return validation
 
 
-#: a run's machine speed within this share of its model's (either way) is the same machine
-SPEED_SHARE = 0.85
-
-
 def speed_note(model_path: str | None, traces: Sequence[Path]) -> str | None:
     """A note when the run's machine speed (its CPU traces' ``# speed_factor=``, their mean)
-    is not within :data:`SPEED_SHARE` of the speed its model's recordings were made at
+    is not the speed its model's recordings were made at (:func:`perfros_bag.cpu.speed.same_speed`)
     (model.json ``speed_factor``): the model's CPU per message, and the latency that follows
     from it, were measured on a machine of another speed. None when either is unknown."""
+    from perfros_bag.cpu.speed import same_speed
     from perfros_bag.cpu.trace import trace_speed
 
     run = [s for t in traces if (s := trace_speed(t)) is not None]
@@ -779,7 +776,7 @@ def speed_note(model_path: str | None, traces: Sequence[Path]) -> str | None:
     except InputError:
         return None  # a system.yaml saved as .json, or no model: nothing to compare
     here = sum(run) / len(run)
-    if model is None or SPEED_SHARE * model <= here <= model / SPEED_SHARE:
+    if model is None or same_speed(here, model):
         return None
     return (f"the machine ran at speed {here:.2f} in this run and at {model:.2f} in the recordings {model_path} "
             f"was fitted on (record-cpu's reference workload, perfros_bag/cpu/speed.py): a node's CPU per message "
