@@ -446,7 +446,7 @@ def test_an_exception_removes_everything_and_kills_what_runs_inside() -> None:
 
 
 CHILD = r"""
-import subprocess, sys, time, warnings
+import os, subprocess, sys, time, warnings
 from perfros_bag.rosrun.network import Network
 from perfros_bag.system.types import Computer, Link, Medium, System
 system = System((Computer("robot1", "robot", 100.0), Computer("server", "server", 400.0),
@@ -459,6 +459,16 @@ with warnings.catch_warnings(record=True) as caught:
         net.create()
         sleeper = subprocess.Popen(net.wrap("robot2", ["sleep", "60"]), stdout=subprocess.DEVNULL,
                                    stderr=subprocess.DEVNULL)
+        if net.emulated:  # "ready" once the sleeper has entered robot2 (ip netns exec joins it after fork)
+            inode = os.stat("/run/netns/" + net.namespaces["robot2"]).st_ino
+            deadline = time.monotonic() + 10
+            while time.monotonic() < deadline:
+                try:
+                    if os.stat(f"/proc/{sleeper.pid}/ns/net").st_ino == inode:
+                        break
+                except OSError:
+                    pass
+                time.sleep(0.02)
         media = net.describe()["media"]
         hub = "hub" if media and media[0]["emulated"] else "nohub"
         print(("ready " if net.emulated else "unshaped ") + str(sleeper.pid) + " " + hub, flush=True)
