@@ -41,13 +41,14 @@ def _node_choice(node: Node, cpu: float, performance: float, tol: float, value: 
 
 
 def _driven_choice(node: Node, input_hz: float, cpu: float, performance: float, tol: float,
-                   value: float | None = None) -> Choice | None:
+                   value: float | None = None, copy_per_hz: float = 0.0) -> Choice | None:
     """A driven node's setting the plan claims at input rate ``input_hz``: its CPU is
     ``cpu + cpu_per_hz·F_in``, its output ``min(out_per_in·F_in, max_frequency_hz)`` (``step:
     period``: one per k messages of ``out_per_in·F_in``, k the fewest with k x cap >= it), its
     bandwidth ``bytes_per_msg`` per output message (docs/formats.md; this checker's own
     copy of the rule). Two settings with the same CPU and performance (their outputs may
-    differ) are told apart by the plan's ``value``."""
+    differ) are told apart by the plan's ``value``. A standalone node's CPU carries
+    ``copy_per_hz`` more per input message (:func:`_copy_per_hz`)."""
     def named(j: int) -> bool:
         own = node.settings[j].value
         return value is not None and own is not None and _close(float(own), float(value), tol)
@@ -55,7 +56,7 @@ def _driven_choice(node: Node, input_hz: float, cpu: float, performance: float, 
     order = sorted(range(len(node.settings)), key=lambda j: not named(j))
     for j in order:
         s = node.settings[j]
-        need = s.cpu + (s.cpu_per_hz or 0.0) * input_hz
+        need = s.cpu + ((s.cpu_per_hz or 0.0) + copy_per_hz) * input_hz
         if not (_close(need, cpu, tol) and _close(s.performance, performance, tol)):
             continue
         out = (1.0 if s.out_per_in is None else s.out_per_in) * input_hz
@@ -79,6 +80,29 @@ def _driven_choice(node: Node, input_hz: float, cpu: float, performance: float, 
                     if s.frequency_hz and s.bandwidth_kBps is not None else 0.0)
         return Choice(j, need, s.performance, s.value, out, size * out / 1000.0, {}, input_hz=input_hz, setting=j)
     return None
+
+
+def _copy_per_hz(system: System, node: Node, publisher: str) -> float | None:
+    """CPU units per input message a hosted node run standalone pays for its own copy of its
+    input: its container's ``copy_cpu_per_MBps`` x the largest bytes per message of the input
+    topic over its publisher's settings (docs/formats.md, "membership"; this checker's own
+    copy of the rule). None: it cannot run standalone."""
+    host = system.node.get(node.container or "")
+    if host is None or host.copy_cpu_per_MBps is None or node.input is None:
+        return None
+    largest = 0.0
+    for s in system.node[publisher].settings:
+        rate = s.topics.get(node.input)
+        if rate is not None and rate.bandwidth_kBps is not None and rate.frequency_hz:
+            size = 1000.0 * rate.bandwidth_kBps / rate.frequency_hz
+        elif s.bytes_per_msg is not None:
+            size = s.bytes_per_msg
+        elif s.bandwidth_kBps is not None and s.frequency_hz:
+            size = 1000.0 * s.bandwidth_kBps / s.frequency_hz
+        else:
+            continue
+        largest = max(largest, size)
+    return host.copy_cpu_per_MBps * largest / 1e6
 
 
 def _topic_rate(choice: Choice, topic: str) -> float | None:
@@ -112,7 +136,11 @@ def _flow(system: System, plan: Plan, chosen: dict[str, Choice], tol: float) -> 
             if f_in is None:
                 bad.append(f"node {node.name}: its input {node.input} has no rate at {pubs[0]}'s setting")
                 continue
-            ch = _driven_choice(node, f_in, pn.cpu, pn.performance, tol, pn.value)
+            copy = _copy_per_hz(system, node, pubs[0]) if pn.standalone else 0.0
+            if copy is None:
+                bad.append(f"node {node.name}: standalone, but it has no container with a copy price to leave")
+                continue
+            ch = _driven_choice(node, f_in, pn.cpu, pn.performance, tol, pn.value, copy)
             if ch is None:
                 bad.append(f"node {node.name}: cpu {pn.cpu:g} / performance {pn.performance:g} is none of its "
                            f"settings at its input's rate {f_in:g} Hz")
@@ -185,9 +213,17 @@ def check_plan(system: System, plan: Plan, *, tol: float = 1e-6) -> list[str]:
         for other in node.coresidence:
             if node.name in where and other in where and where[node.name] != where[other]:
                 bad.append(f"coresidence: {node.name} on {where[node.name]} but {other} on {where[other]}")
-    # membership kept: a node hosted by a container (nodelet manager) sits on its computer
+    # membership: a node hosted by a container (nodelet manager) sits on its computer, unless
+    # the plan runs it standalone, which only membership "choose" allows
     for node in system.nodes:
         host = node.container
+        alone = node.name in plan.nodes and plan.nodes[node.name].standalone
+        if alone and system.membership != "choose":
+            bad.append(f"membership: {node.name} standalone, but the system's membership is {system.membership}")
+        if alone and (host is None or node.input is None):
+            bad.append(f"membership: {node.name} standalone, but it has no container or no input (its copy unknown)")
+        if alone:
+            continue
         if host is not None and node.name in where and host in where and where[node.name] != where[host]:
             bad.append(f"container: {node.name} on {where[node.name]} but its container {host} on {where[host]}")
 

@@ -84,6 +84,16 @@ def solve(system: System, problem: int, method: str, *, resolution: float = 1.0,
         plan = solve(with_headroom(system, headroom), problem, method, resolution=resolution, settings=settings,
                      time_limit=time_limit, progress=progress)
         return _give_back(system, plan, headroom)
+    if system.membership == "choose":  # each freed variant solved as it is, the best kept
+        from perfros_bag.solver.membership import solve_membership
+
+        def one(variant: System, seconds: float | None) -> Plan:
+            return solve(variant, problem, method, resolution=resolution, settings=settings, time_limit=seconds,
+                         progress=progress, headroom=headroom)
+
+        plan = solve_membership(system, the_problem, one, time_limit)
+        plan.method = the_method
+        return plan
     start = time.perf_counter()  # --time-limit counts from here: the choices, the set-up and the solve
     deadline = None if time_limit is None else start + time_limit
     choices = fixed_choices(system, the_problem, settings, resolution)

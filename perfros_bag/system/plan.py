@@ -67,6 +67,10 @@ class PlannedNode:
     #: a value never measured: per quantity (cpu, frequency_hz, bandwidth_kBps) the fit's
     #: leave-one-out error at it, in its units (None inside: the fit has none)
     loo_error: dict[str, float | None] | None = None
+    #: a node hosted by a container (system.yaml ``container``) that the plan runs in a process
+    #: of its own (``membership: choose``): ROS 1 ``nodelet standalone``; its ``cpu`` includes
+    #: the copy of its input it then receives (:meth:`perfros_bag.system.types.System.copy_cpu_per_hz`)
+    standalone: bool = False
 
 
 @dataclass

@@ -54,6 +54,7 @@ def plan_document(plan: Plan) -> dict[str, Any]:
                if n.input is not None else {}),
             **({} if n.measured is None else {"measured": n.measured}),
             **({} if n.loo_error is None else {"loo_error": n.loo_error}),
+            **({"standalone": True} if n.standalone else {}),
         }
         for name, n in plan.nodes.items()
     }
@@ -246,6 +247,7 @@ def _parse_node(n: Any, where: str, path: str) -> PlannedNode:
         input=_topic(n, "input", where, path), input_hz=_num(n, "input_hz", where, path, nonneg=True),
         bandwidth_kBps=_num(n, "bandwidth_kBps", where, path, nonneg=True),
         measured=_flag(n, "measured", where, path), loo_error=_errors(n, "loo_error", where, path),
+        standalone=bool(_flag(n, "standalone", where, path)),
     )
 
 
@@ -284,7 +286,8 @@ def check_against_system(plan: Plan, system: System, plan_path: str | Path | Non
         if pn.input != wanted:
             raise InputError(system.source, f"plan node {name!r} follows input {pn.input or 'none'}, the system's "
                                             f"follows {wanted or 'none'}: the plan was made from another system")
-    split = system.container_problem({n: p.computer for n, p in plan.nodes.items()})
+    split = system.container_problem({n: p.computer for n, p in plan.nodes.items()},
+                                     [n for n, p in plan.nodes.items() if p.standalone])
     if split is not None:
         raise InputError(plan_path, split)
 

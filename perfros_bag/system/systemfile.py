@@ -48,8 +48,9 @@ from perfros_bag.system.types import (
 
 TOP_KEYS = {"cpu_unit", "computers", "links", "media", "nodes", "edges", "machines", "chains", "latency",
             "membership"}
-#: system.yaml ``membership``: what solvers may do with ``container:`` (only "keep" is built)
-MEMBERSHIPS = ("keep",)
+#: system.yaml ``membership``: what solvers may do with ``container:``: "keep" every hosted
+#: node in its container, or "choose" (a plan may run a hosted node standalone, paying the copy)
+MEMBERSHIPS = ("keep", "choose")
 CHAIN_KEYS = {"name", "topics", "budget_ms"}
 BUDGET_KEYS = {"p50", "p95"}
 #: system.yaml ``latency:`` (the latency model's parameters, perfros_bag.system.latency)
@@ -213,12 +214,10 @@ def parse_system(data: Any, source: str = "system.yaml") -> System:
 
 
 def _membership(ctx: _Ctx, raw: Any) -> str:
-    """``membership``: "keep" (the default): every node stays in its ``container:``."""
+    """``membership``: "keep" (the default): every node stays in its ``container:``;
+    "choose": a plan may run a hosted node standalone (:meth:`System.freed`)."""
     if raw is None:
         return "keep"
-    if raw == "choose":
-        raise ctx.fail("membership", "'choose' (solvers moving a node out of its container, paying the copy) is not "
-                       "built yet: use keep, or drop container: from the nodes that may move")
     if raw not in MEMBERSHIPS:
         raise ctx.fail("membership", f"must be one of {', '.join(MEMBERSHIPS)}, got {raw!r}")
     return str(raw)

@@ -534,7 +534,8 @@ class System:
     chains: tuple[Chain, ...] = ()  # topics whose end-to-end latency is measured
     latency: LatencyParams = field(default_factory=LatencyParams)  # the latency model's parameters
     #: system.yaml ``membership``: "keep" (each ``container:`` node stays in its container, so on
-    #: its computer); the only mode the solvers and the checker implement
+    #: its computer) or "choose" (a plan may run a hosted node standalone: the solvers solve
+    #: each :meth:`freed` variant and keep the best, perfros_bag.solver.membership)
     membership: str = "keep"
 
     @cached_property
@@ -575,16 +576,61 @@ class System:
                 out.setdefault(n.container, []).append(n.name)
         return {k: tuple(v) for k, v in out.items()}
 
-    def container_problem(self, where: Mapping[str, str]) -> str | None:
+    def container_problem(self, where: Mapping[str, str], standalone: Iterable[str] = ()) -> str | None:
         """The first container whose nodes ``where`` (node -> computer) puts on different
-        computers: the membership is kept, so a container's nodes share its computer."""
+        computers: a container's nodes share its process, so its computer. Under
+        ``membership: choose`` a hosted node in ``standalone`` (run in a process of its own)
+        may sit anywhere; under ``keep`` a standalone node is itself the problem."""
+        alone = set(standalone)
+        if self.membership != "choose" and alone:
+            who = sorted(alone)[0]
+            return (f"node {who}: standalone, but the system's membership is {self.membership}: each node stays in "
+                    "its container (membership: choose lets a plan run it standalone)")
+        for name in sorted(alone):
+            if name in self.node and self.node[name].container is None:
+                return f"node {name}: standalone, but it has no container to leave"
         for host, members in self.containers.items():
-            split = {m: where[m] for m in (host, *members) if m in where}
+            split = {m: where[m] for m in (host, *members) if m in where and m not in alone}
             if len(set(split.values())) > 1:
                 return (f"container {host}: its nodes are on different computers "
                         f"({', '.join(f'{m} on {c}' for m, c in split.items())}); a container's nodes share its "
                         "process, so its computer")
         return None
+
+    def copy_cpu_per_hz(self, name: str) -> float | None:
+        """CPU units per input message per second that hosted node ``name`` pays when it runs
+        standalone (``membership: choose``): the copy of its input it then receives in a
+        process of its own, at its container's ``copy_cpu_per_MBps``. The input's bytes per
+        message are the largest over its publisher's settings (an upper bound where they
+        vary). None when the node is not hosted, not driven (its input is not known) or its
+        container has no measured copy price: such a node stays in its container."""
+        node = self.node[name]
+        if node.container is None or node.input is None:
+            return None
+        price = self.node[node.container].copy_cpu_per_MBps
+        publisher = self.flow_parent.get(name)
+        if price is None or publisher is None:
+            return None
+        sizes = [b for s in self.node[publisher].settings if (b := _bytes_per_msg(s, node.input)) is not None]
+        return price * max(sizes, default=0.0) / 1e6
+
+    def freed(self, names: Iterable[str]) -> System:
+        """This system with hosted nodes ``names`` run standalone (``membership: choose``):
+        out of their container (so out of its coresidence group), each setting's CPU per
+        input message raised by :meth:`copy_cpu_per_hz`; membership ``keep`` for the rest.
+        Every solver solves such a system as it is."""
+        out = set(names)
+        charge = {n: self.copy_cpu_per_hz(n) for n in out}
+        missing = sorted(n for n, c in charge.items() if c is None)
+        if missing:
+            raise ValueError(f"nodes {missing} cannot run standalone (no container, no input or no copy price)")
+        def leave(n: Node) -> Node:
+            extra = charge[n.name] or 0.0
+            return replace(n, container=None,
+                           settings=tuple(replace(s, cpu_per_hz=(s.cpu_per_hz or 0.0) + extra) for s in n.settings))
+
+        nodes = tuple(leave(n) if n.name in out else n for n in self.nodes)
+        return replace(self, nodes=nodes, membership="keep")
 
     @cached_property
     def coresidence_groups(self) -> list[tuple[str, ...]]:
@@ -915,6 +961,20 @@ class System:
                 a, b = placement[edge.src], placement[edge.dst]
                 return f"no network path between {a} and {b} (edge {edge.src}->{edge.dst})"
         return self.overloaded(self._loads(routed, choice), tol)
+
+
+def _bytes_per_msg(setting: Setting, topic: str) -> float | None:
+    """Bytes per message of ``topic`` at a publisher's ``setting``: the topic's own measured
+    bandwidth over its frequency, else a driven setting's ``bytes_per_msg``, else the
+    setting's bandwidth over its frequency; None when none is known."""
+    rate = setting.topics.get(topic)
+    if rate is not None and rate.bandwidth_kBps is not None and rate.frequency_hz:
+        return rate.bandwidth_kBps * 1000.0 / rate.frequency_hz
+    if setting.bytes_per_msg is not None:
+        return setting.bytes_per_msg
+    if setting.bandwidth_kBps is not None and setting.frequency_hz:
+        return setting.bandwidth_kBps * 1000.0 / setting.frequency_hz
+    return None
 
 
 def _exceeds(load: float, limit: float, tol: float) -> bool:

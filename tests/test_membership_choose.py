@@ -1,0 +1,158 @@
+"""``membership: choose``: a plan may run a container's hosted nodes standalone, paying the
+copy of its input (issue 34). Checked against the independent checker's own copy of the
+copy rule, a price computed by hand, and the best over every subset of freed nodes that
+brute force finds on its own."""
+
+from __future__ import annotations
+
+import copy
+import itertools
+import random
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from perfros_bag.errors import InputError
+from perfros_bag.solver import solve
+from perfros_bag.solver.check import check_plan
+from perfros_bag.system.plan import Status
+from perfros_bag.system.planfile import check_against_system, load_plan, save_plan
+from perfros_bag.system.systemfile import parse_system
+
+pytestmark = pytest.mark.filterwarnings("ignore:.*weights sum to")
+
+FRAME = 230_400  # bytes per camera frame
+PRICE = 2.0  # CPU units per MB/s of copies
+
+
+def _doc(robot: float = 20.0, server: float = 45.0, **extra: Any) -> dict[str, Any]:
+    """A camera on its robot and a nodelet manager hosting two driven nodelets on its frames:
+    the nodelet fixture's shape (fixtures/nodelet)."""
+    cam_topic = "/camera/image_raw"
+    doc: dict[str, Any] = {
+        "computers": [{"name": "robot", "kind": "robot", "capacity": robot},
+                      {"name": "server", "kind": "server", "capacity": server}],
+        "links": [{"between": ["robot", "server"], "bandwidth_kBps": 20000}],
+        "membership": "choose",
+        "nodes": [
+            {"name": "camera", "weight": 0.2, "residence": ["robot"], "topics": [cam_topic],
+             "parameter": {"name": "publish_rate", "unit": "Hz"},
+             "settings": [{"value": 5, "cpu": 1.0, "performance": 50, "frequency_hz": 5,
+                           "bandwidth_kBps": 5 * FRAME / 1000},
+                          {"value": 10, "cpu": 2.0, "performance": 100, "frequency_hz": 10,
+                           "bandwidth_kBps": 10 * FRAME / 1000}]},
+            {"name": "manager", "weight": 0.1, "settings": [{"cpu": 0.5, "performance": 100}],
+             "copy_cpu_per_MBps": PRICE},
+            {"name": "people", "weight": 0.4, "container": "manager", "input": cam_topic,
+             "parameter": {"name": "scale0"}, "topics": ["/people/found"],
+             "settings": [{"value": 1.1, "cpu": 0.2, "cpu_per_hz": 4.0, "performance": 100, "bytes_per_msg": 300},
+                          {"value": 1.4, "cpu": 0.2, "cpu_per_hz": 1.5, "performance": 40, "bytes_per_msg": 300}]},
+            {"name": "smooth", "weight": 0.3, "container": "manager", "input": cam_topic,
+             "parameter": {"name": "kernel_size"}, "topics": ["/smooth/image"],
+             "settings": [{"value": 13, "cpu": 0.2, "cpu_per_hz": 1.2, "performance": 100,
+                           "bytes_per_msg": FRAME},
+                          {"value": 7, "cpu": 0.2, "cpu_per_hz": 0.4, "performance": 60, "bytes_per_msg": FRAME}]},
+        ],
+        "edges": [{"from": "camera", "to": "people"}, {"from": "camera", "to": "smooth"}],
+    }
+    doc.update(extra)
+    return doc
+
+
+def test_the_copy_price_per_input_message_by_hand() -> None:
+    system = parse_system(_doc(), "s.yaml")
+    # one more copy of a 230.4 kB frame per input message, at 2 units per MB/s
+    assert system.copy_cpu_per_hz("people") == pytest.approx(PRICE * FRAME / 1e6)
+    assert system.copy_cpu_per_hz("camera") is None and system.copy_cpu_per_hz("manager") is None
+    freed = system.freed(["people"])
+    assert freed.membership == "keep" and freed.node["people"].container is None
+    assert [s.cpu_per_hz for s in freed.node["people"].settings] == pytest.approx(
+        [4.0 + PRICE * FRAME / 1e6, 1.5 + PRICE * FRAME / 1e6])
+    assert sorted(sorted(g) for g in freed.coresidence_groups) == [["camera"], ["manager", "smooth"], ["people"]]
+    no_price = copy.deepcopy(_doc())
+    del no_price["nodes"][1]["copy_cpu_per_MBps"]
+    assert parse_system(no_price, "s.yaml").copy_cpu_per_hz("people") is None
+
+
+def test_a_split_plan_beats_the_kept_membership_and_passes_the_checker(tmp_path: Path) -> None:
+    """Neither computer holds the camera, the manager and both nodelets at their best; run
+    apart they do: the detector standalone on the server (or the smoother), paying the copy."""
+    choose = parse_system(_doc(), "s.yaml")
+    keep = parse_system(_doc(membership="keep"), "s.yaml")
+    kept, split = solve(keep, 1, "exact"), solve(choose, 1, "exact")
+    assert check_plan(keep, kept) == [] and check_plan(choose, split) == []
+    assert split.status == Status.OPTIMAL and split.objective is not None and kept.objective is not None
+    assert split.objective > kept.objective + 1e-6
+    alone = [n for n, pn in split.nodes.items() if pn.standalone]
+    assert alone and all(split.nodes[n].computer != split.nodes["manager"].computer for n in alone)
+    assert split.extra["membership"]["standalone"] == alone
+    for n in alone:  # its CPU: its setting at its input rate plus the copy, by hand
+        pn = split.nodes[n]
+        s = next(s for s in choose.node[n].settings if s.value == pn.value)
+        assert pn.input_hz is not None
+        assert pn.cpu == pytest.approx(s.cpu + (s.cpu_per_hz or 0) * pn.input_hz + PRICE * FRAME / 1e6 * pn.input_hz)
+    # plan.json keeps the flag; the checks that read a plan with its system accept it
+    save_plan(split, tmp_path / "plan.json")
+    again = load_plan(tmp_path / "plan.json")
+    assert [n for n, pn in again.nodes.items() if pn.standalone] == alone
+    check_against_system(again, choose, tmp_path / "plan.json")
+    with pytest.raises(InputError, match=r"standalone, but the system's membership is keep"):
+        check_against_system(again, keep, tmp_path / "plan.json")
+    assert any("membership" in p for p in check_plan(keep, again))
+    # the checker's own copy of the charge: the same plan without the copy is refused
+    cheap = load_plan(tmp_path / "plan.json")
+    cheap.nodes[alone[0]].cpu -= PRICE * FRAME / 1e6 * (cheap.nodes[alone[0]].input_hz or 0)
+    assert any(alone[0] in p for p in check_plan(choose, cheap))
+    # a hosted node away from its container without the flag is still a split
+    unflagged = load_plan(tmp_path / "plan.json")
+    unflagged.nodes[alone[0]].standalone = False
+    assert any(p.startswith("container:") for p in check_plan(choose, unflagged))
+    with pytest.raises(InputError, match=r"container manager: its nodes are on different computers"):
+        check_against_system(unflagged, choose, tmp_path / "plan.json")
+
+
+@pytest.mark.parametrize("seed", range(6))
+@pytest.mark.parametrize("problem", [1, 2])
+def test_exact_is_the_best_brute_force_over_every_freed_subset(seed: int, problem: int) -> None:
+    rng = random.Random(seed)
+    doc = _doc(robot=rng.uniform(12, 35), server=rng.uniform(15, 50))
+    doc["nodes"][1]["copy_cpu_per_MBps"] = rng.choice([0.0, 1.0, 4.0])
+    for n in doc["nodes"][2:]:
+        for s in n["settings"]:
+            s["cpu_per_hz"] = round(rng.uniform(0.3, 5.0), 2)
+    if problem == 2:  # every node at one setting: the server sized to the plan
+        for n in doc["nodes"]:
+            n["settings"] = n["settings"][:1]
+            n.pop("parameter", None)
+    choose = parse_system(doc, "s.yaml")
+    exact = solve(choose, problem, "exact")
+    best = None  # the test's own loop over the subsets, each solved by brute force
+    for k in range(3):
+        for subset in itertools.combinations(("people", "smooth"), k):
+            plan = solve(choose.freed(subset), problem, "bruteforce")
+            if plan.status == Status.INFEASIBLE or plan.objective is None:
+                continue
+            if best is None or (plan.objective > best if problem == 1 else plan.objective < best):
+                best = plan.objective
+    if best is None:
+        assert exact.status == Status.INFEASIBLE
+        return
+    assert exact.status == Status.OPTIMAL and exact.objective == pytest.approx(best, abs=1e-6)
+    assert check_plan(choose, exact) == []
+    for method in ("greedy", "greedy+", "bruteforce"):
+        plan = solve(choose, problem, method)
+        assert plan.status == Status.INFEASIBLE or check_plan(choose, plan) == [], method
+
+
+def test_nodes_that_cannot_leave_stay_with_a_warning_and_too_many_are_refused() -> None:
+    doc = _doc()
+    del doc["nodes"][1]["copy_cpu_per_MBps"]
+    with pytest.warns(match=r"people, smooth stay in their container"):
+        plan = solve(parse_system(doc, "s.yaml"), 1, "exact")
+    assert not any(pn.standalone for pn in plan.nodes.values())
+    many = _doc()
+    for i in range(7):
+        many["nodes"].append({**copy.deepcopy(many["nodes"][3]), "name": f"extra{i}", "topics": [f"/extra{i}/out"]})
+    with pytest.raises(InputError, match=r"membership: choose: 9 hosted nodes may leave .* at most 6"):
+        solve(parse_system(many, "s.yaml"), 1, "exact")
