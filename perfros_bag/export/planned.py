@@ -172,9 +172,26 @@ def _owner(param: str, nodes: list[str]) -> str | None:
     return max(owners, key=len) if owners else None
 
 
+def _standalone_args(args: str) -> str:
+    """A loader's ``args`` (``load PKG/TYPE MANAGER ...``) as ``standalone PKG/TYPE ...``
+    (:func:`~perfros_bag.sweep.nodelets.standalone_argv`), split and joined as roslaunch
+    splits them (shell words)."""
+    import shlex
+
+    from perfros_bag.sweep.nodelets import standalone_argv
+
+    return shlex.join(standalone_argv(shlex.split(args)))
+
+
 def _node(root: ET.Element, real: ResolvedNode, machine: str | None, params: Mapping[str, object],
-          marks: _Marks) -> None:
+          marks: _Marks, *, standalone: bool = False) -> None:
+    """``real`` as a ``<node>`` on ``machine``; ``standalone``: a nodelet loader written as
+    ``nodelet standalone`` (its name, remaps, ``<env>`` and parameters as they are)."""
     marked = marks.node(real.full_name)
+    if standalone:
+        real = replace(real, args=_standalone_args(real.args))
+        if marked is not None:
+            marked = replace(marked, args=_standalone_args(marked.args))
     attrs = {"name": real.name, "pkg": real.package, "type": real.type}
     if real.namespace.strip("/"):
         attrs["ns"] = real.namespace.rstrip("/")
@@ -198,8 +215,8 @@ def _node(root: ET.Element, real: ResolvedNode, machine: str | None, params: Map
 def planned_launch_xml(plan: Plan, system: System | None, launch: LaunchFile, space: Space, *,
                        plan_path: str | None = None, env: Mapping[str, str] | None = None) -> str:
     """The user's launch file with the plan applied (see the module's doc)."""
-    from perfros_bag.sweep.deploy import plan_run
-    from perfros_bag.sweep.nodelets import check_nodelets, check_plan_membership
+    from perfros_bag.sweep.deploy import plan_run, plan_standalone
+    from perfros_bag.sweep.nodelets import check_nodelets, check_plan_membership, standalone_nodelets
 
     plan.require_feasible(plan_path, "export")
     check_plan_names(plan, plan_path)
@@ -210,9 +227,12 @@ def planned_launch_xml(plan: Plan, system: System | None, launch: LaunchFile, sp
     if real.error is not None:
         raise InputError(launch.path, f"roslaunch cannot read it: {real.error}")
     # its nodelets: each into a manager it starts, of a class its package exports, on its
-    # manager's plan computer (the launch file fixes the membership)
-    check_plan_membership(check_nodelets(real, launch.path, elsewhere=True),
-                          {n: pn.computer for n, pn in plan.nodes.items()}, plan_path)
+    # manager's plan computer (the launch file fixes the membership) unless the plan runs it
+    # standalone (membership: choose): then written as `nodelet standalone PKG/TYPE`
+    alone = plan_standalone(plan)
+    nodelets = check_nodelets(real, launch.path, elsewhere=True)
+    check_plan_membership(nodelets, {n: pn.computer for n, pn in plan.nodes.items()}, plan_path, alone)
+    standalone = set(standalone_nodelets(nodelets, alone))
     by_name: dict[str, ResolvedNode] = {}
     for n in real.nodes:
         name = system_node_name(n.full_name)
@@ -262,7 +282,8 @@ def planned_launch_xml(plan: Plan, system: System | None, launch: LaunchFile, sp
     unknown = [n for n in real.nodes if system_node_name(n.full_name) not in plan.nodes]
     for n in real.nodes:
         planned = plan.nodes.get(system_node_name(n.full_name))
-        _node(root, n, planned.computer if planned else n.machine, owned.get(n.full_name, {}), marks)
+        _node(root, n, planned.computer if planned else n.machine, owned.get(n.full_name, {}), marks,
+              standalone=n.full_name in standalone)
     if unknown:
         root.append(comment("nodes the plan does not know, at their launch defaults (and machine): "
                             + ", ".join(n.full_name for n in unknown)))

@@ -135,7 +135,7 @@ def roslaunch_xml(plan: Plan, system: System | None = None, *, plan_path: str | 
             "type": launch.get("type", name),
             "machine": pn.computer,
         }
-        attrs.update(_nodelet_attrs(system, name, launch))
+        attrs.update(_nodelet_attrs(system, name, launch, standalone=pn.standalone))
         if "namespace" in launch:
             attrs["ns"] = launch["namespace"]
         el = ET.SubElement(root, "node", attrs)
@@ -153,10 +153,12 @@ def _ros_name(system: System | None, node: str) -> str:
     return "/" + "/".join(p for p in (launch.get("namespace", "").strip("/"), launch.get("name", node)) if p)
 
 
-def _nodelet_attrs(system: System | None, name: str, launch: dict[str, str]) -> dict[str, str]:
+def _nodelet_attrs(system: System | None, name: str, launch: dict[str, str], *,
+                   standalone: bool = False) -> dict[str, str]:
     """ROS 1: a hosted node (``container:``) is its manager's nodelet, ``<node pkg="nodelet"
-    type="nodelet" args="load LOOKUP /MANAGER">`` (LOOKUP: :func:`~perfros_bag.sweep.plugins.hosted_plugin`);
-    a container whose ``launch.package`` is unset or ``nodelet`` is a ``nodelet manager``."""
+    type="nodelet" args="load LOOKUP /MANAGER">`` (LOOKUP: :func:`~perfros_bag.sweep.plugins.hosted_plugin`),
+    or ``args="standalone LOOKUP"`` when the plan runs it ``standalone``; a container whose
+    ``launch.package`` is unset or ``nodelet`` is a ``nodelet manager``."""
     if system is None or name not in system.node:
         return {}
     host = system.node[name].container
@@ -165,7 +167,8 @@ def _nodelet_attrs(system: System | None, name: str, launch: dict[str, str]) -> 
 
         lookup = (hosted_plugin(launch["package"], launch.get("type"), name, ros2=False, source=system.source)
                   if "package" in launch else f"{PLACEHOLDER_PACKAGE}/{launch.get('type', name)}")
-        return {"pkg": "nodelet", "type": "nodelet", "args": f"load {lookup} {_ros_name(system, host)}"}
+        args = f"standalone {lookup}" if standalone else f"load {lookup} {_ros_name(system, host)}"
+        return {"pkg": "nodelet", "type": "nodelet", "args": args}
     if name in system.containers and launch.get("package", "nodelet") == "nodelet":
         return {"pkg": "nodelet", "type": "nodelet", "args": "manager"}
     return {}
@@ -230,7 +233,8 @@ def ros2_launch_xml(plan: Plan, system: System | None, computer: str) -> str:
     (default ``rclcpp_components``/``component_container``) holding a ``<composable_node pkg=
     plugin= name=>`` per hosted node (its C++ class: :func:`~perfros_bag.sweep.plugins.hosted_plugin`), as ROS 2's
     "Launching composable nodes" guide writes them; the plan keeps a container's nodes on its
-    computer."""
+    computer, but for one it runs ``standalone``: that one gets a ``component_container`` of its
+    own (``NAME_container``) on its own computer."""
     from perfros_bag.sweep.plugins import hosted_plugin
 
     root = ET.Element("launch")
@@ -239,25 +243,35 @@ def ros2_launch_xml(plan: Plan, system: System | None, computer: str) -> str:
                         + PLACEHOLDER_PACKAGE + "\" and exec = its name"))
     containers = system.containers if system is not None else {}
     hosted = {m for members in containers.values() for m in members}
+
+    def composable(el: ET.Element, member: str) -> None:
+        mine = _launch(system, member)
+        part = {"pkg": mine.get("package", PLACEHOLDER_PACKAGE),
+                "plugin": hosted_plugin(mine.get("package"), mine.get("type"), member, ros2=True,
+                                        source=system.source if system is not None else None),
+                "name": mine.get("name", member)}
+        if mine.get("namespace"):
+            part["namespace"] = mine["namespace"]
+        _ros2_param(ET.SubElement(el, "composable_node", part), plan, system, member)
+
     for name, pn in plan.nodes.items():
-        if pn.computer != computer or name in hosted:
+        if pn.computer != computer or name in hosted and not pn.standalone:
             continue
         launch = _launch(system, name)
+        if name in hosted:  # run standalone: a container of its own holding it alone
+            own = ET.SubElement(root, "node_container", {
+                "pkg": "rclcpp_components", "exec": "component_container",
+                "name": f"{launch.get('name', name)}_container", "namespace": launch.get("namespace", "")})
+            composable(own, name)
+            continue
         if name in containers:
             attrs = {"pkg": launch.get("package", "rclcpp_components"),
                      "exec": launch.get("type", "component_container"),
                      "name": launch.get("name", name), "namespace": launch.get("namespace", "")}
             el = ET.SubElement(root, "node_container", attrs)
             for member in containers[name]:
-                if member in plan.nodes:
-                    mine = _launch(system, member)
-                    part = {"pkg": mine.get("package", PLACEHOLDER_PACKAGE),
-                            "plugin": hosted_plugin(mine.get("package"), mine.get("type"), member, ros2=True,
-                                                    source=system.source if system is not None else None),
-                            "name": mine.get("name", member)}
-                    if mine.get("namespace"):
-                        part["namespace"] = mine["namespace"]
-                    _ros2_param(ET.SubElement(el, "composable_node", part), plan, system, member)
+                if member in plan.nodes and not plan.nodes[member].standalone:
+                    composable(el, member)
             _ros2_param(el, plan, system, name)
             continue
         attrs = {"pkg": launch.get("package", PLACEHOLDER_PACKAGE), "exec": launch.get("type", name),

@@ -22,6 +22,7 @@ from __future__ import annotations
 import time
 import warnings
 from collections.abc import Callable, Mapping
+from collections.abc import Set as AbstractSet
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -66,10 +67,14 @@ def control_seq(folder: str | Path) -> int:
     return seq if isinstance(seq, int) and not isinstance(seq, bool) else 0
 
 
-def changed_nodes(old: Run, new: Run, old_where: dict[str, str], new_where: dict[str, str]) -> list[str]:
-    """The system nodes whose value or computer differs between two runs of a plan."""
-    names = sorted(set(old.values) | set(new.values) | set(old_where) | set(new_where))
-    return [n for n in names if old.values.get(n) != new.values.get(n) or old_where.get(n) != new_where.get(n)]
+def changed_nodes(old: Run, new: Run, old_where: dict[str, str], new_where: dict[str, str],
+                  old_alone: AbstractSet[str] = frozenset(), new_alone: AbstractSet[str] = frozenset()) -> list[str]:
+    """The system nodes whose value or computer differs between two runs of a plan, or that
+    one plan runs standalone and the other does not (``*_alone``: plan.json ``standalone``)."""
+    names = sorted(set(old.values) | set(new.values) | set(old_where) | set(new_where) | set(old_alone)
+                   | set(new_alone))
+    return [n for n in names if old.values.get(n) != new.values.get(n) or old_where.get(n) != new_where.get(n)
+            or (n in old_alone) != (n in new_alone)]
 
 
 @dataclass
@@ -91,6 +96,8 @@ class Control:
     on_restarting: Callable[[list[str]], None] | None = None
     #: the launch file's nodelets (full name -> Nodelet): a new plan keeps each on its manager's computer
     nodelets: Mapping[str, Nodelet] = field(default_factory=dict)
+    #: the nodes the plan in force runs standalone (system.yaml names; plan.json ``standalone``)
+    standalone: set[str] = field(default_factory=set)
     seq: int = 0
     applied: list[dict[str, Any]] = field(default_factory=list)
     _mtime: float = 0.0
@@ -153,8 +160,8 @@ class Control:
 
     def _plan(self, restarter: Restarter, plan_path: str, entry: dict[str, Any]) -> dict[str, int]:
         from perfros_bag.rosrun.cgroups import computer_cores
-        from perfros_bag.sweep.deploy import plan_run
-        from perfros_bag.sweep.nodelets import check_plan_membership
+        from perfros_bag.sweep.deploy import plan_run, plan_standalone
+        from perfros_bag.sweep.nodelets import check_plan_membership, standalone_nodelets
         from perfros_bag.system.names import system_node_name
         from perfros_bag.system.planfile import load_plan
 
@@ -162,18 +169,20 @@ class Control:
         plan.require_feasible(plan_path, "apply")
         new_run = plan_run(plan, self.space, self.arg_defaults)
         new_where = {name: pn.computer for name, pn in plan.nodes.items()}
-        check_plan_membership(self.nodelets, {**self.where, **new_where}, plan_path)
+        alone = plan_standalone(plan)
+        check_plan_membership(self.nodelets, {**self.where, **new_where}, plan_path, alone)
         unknown = sorted({c for c in new_where.values() if c not in self.groups.dirs})
         if unknown:
             raise PerfrosError(f"computer(s) {', '.join(unknown)} are not emulated in this run")
-        changed = changed_nodes(self.run, new_run, self.where, new_where)
+        changed = changed_nodes(self.run, new_run, self.where, new_where, self.standalone, alone)
         ros = {system_node_name(n): n for n in restarter.watch.pids}
         pids: dict[str, int] = {}
         if self.on_restarting is not None and any(node in ros for node in changed):
             self.on_restarting([ros[node] for node in changed if node in ros])
         moved = [node for node in changed if node in ros]  # restarted together, waited for together
         new_pids = restarter.restart_many([(ros[node], new_run.args, new_run.params, new_where[node])
-                                           for node in moved])
+                                           for node in moved],
+                                          frozenset(standalone_nodelets(self.nodelets, alone)))
         for node in moved:
             pid = new_pids[ros[node]]
             procs = self.groups.procs_file(new_where[node])
@@ -184,7 +193,7 @@ class Control:
         self.groups.cores.update(cores)
         if self.cap and self.groups.capped:
             self.groups.apply()
-        self.run, self.where = new_run, {**self.where, **new_where}
+        self.run, self.where, self.standalone = new_run, {**self.where, **new_where}, alone
         self.plan_path = plan_path
         entry.update({"plan": plan_path, "restarted": sorted(pids), "values": dict(new_run.values), "cores": cores})
         return pids

@@ -21,7 +21,7 @@ import time
 import uuid
 import warnings
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -71,6 +71,11 @@ def plan_run(plan: Plan, space: Space, arg_defaults: dict[str, str | None]) -> R
                {v.param: values[v.node] for v in space.vary if v.param is not None}, 1)
 
 
+def plan_standalone(plan: Plan) -> set[str]:
+    """The plan's nodes it runs in a process of their own (plan.json ``standalone: true``)."""
+    return {name for name, pn in plan.nodes.items() if pn.standalone}
+
+
 def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Path, out: str | Path, *,
            duration: float | None = None, units_per_core: float = 100.0, cap: bool = True,
            tolerance: float | None = None, interval: float = 0.5, net: bool = True,
@@ -81,7 +86,7 @@ def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Pat
     from perfros_bag.rosrun.cgroups import CpuGroups, computer_cores, emulated_trace
     from perfros_bag.rosrun.network import Network
     from perfros_bag.rosrun.recorders import require_free_space
-    from perfros_bag.sweep.nodelets import check_plan_membership
+    from perfros_bag.sweep.nodelets import check_plan_membership, standalone_nodelets
     from perfros_bag.sweep.runner import checked_nodelets, record_run, require_ros_tools
     from perfros_bag.system.names import system_node_name
     from perfros_bag.system.planfile import is_forced, load_plan, plan_system
@@ -104,9 +109,12 @@ def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Pat
     require_ros_tools()
     run = plan_run(plan, space, dict(launch.args))
     # the launch file's nodelets: each into a manager it starts, of a class its package
-    # exports, on its manager's plan computer (the launch file fixes the membership)
+    # exports, on its manager's plan computer (the launch file fixes the membership) unless
+    # the plan runs it standalone (membership: choose): then as `nodelet standalone` on its own
     nodelets = checked_nodelets(launch, run.args, space.startup_timeout_s)
-    check_plan_membership(nodelets, {name: pn.computer for name, pn in plan.nodes.items()}, plan_path)
+    alone = plan_standalone(plan)
+    check_plan_membership(nodelets, {name: pn.computer for name, pn in plan.nodes.items()}, plan_path, alone)
+    run = replace(run, standalone=standalone_nodelets(nodelets, alone), keep_managers=True)
     cores = computer_cores(plan, units_per_core)
     outdir = Path(out).absolute()
     if outdir.exists() and not outdir.is_dir():
@@ -193,7 +201,7 @@ def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Pat
     network = Network(f"d{run_id}", system if system is not None and net else _no_links(plan))
     control = Control(outdir, space, dict(launch.args), run, dict(where), groups, units_per_core, cap, applied,
                       network if network.emulated or net else None, on_restarting=restarting,
-                      nodelets=nodelets)
+                      nodelets=nodelets, standalone=set(alone))
     groups.create(capped=False, quiet=not cap)
     mode, reason = (groups.mode, groups.reason) if cap else ("uncapped", "capping not asked for")
     try:
@@ -241,7 +249,8 @@ def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Pat
                        for c, end in throttle.get("end", {}).items()},
         "network": {**described, "links_measured": _link_use(links_before, links_after, network),
                     "media_measured": _medium_use(media_before, media_after, network)},
-        "nodes": {n.name: {"pid": n.pid, "computer": placed.get(n.name, where.get(system_node_name(n.name)))}
+        "nodes": {n.name: {"pid": n.pid, "computer": placed.get(n.name, where.get(system_node_name(n.name))),
+                           **({"standalone": True} if system_node_name(n.name) in control.standalone else {})}
                   for n in graph.nodes if n.launched},
         "replans": control.applied,
         "validated_against": str(in_force or plan_path),

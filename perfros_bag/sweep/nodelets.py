@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import re
 import shlex
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
@@ -112,19 +112,35 @@ def check_nodelets(resolved: Resolved, path: Path | str | None, *, elsewhere: bo
 
 
 def check_plan_membership(nodelets: Mapping[str, Nodelet], where: Mapping[str, str],
-                          plan_path: Path | str | None) -> None:
+                          plan_path: Path | str | None, standalone: Iterable[str] = ()) -> None:
     """Each nodelet the launch file loads on the computer the plan gives its manager
     (``where``: system.yaml node name -> computer): the launch file fixes the membership, so
     a plan that splits them is one :class:`InputError` naming the plan, both nodes and the
-    manager."""
+    manager. A nodelet the plan runs in a process of its own (``standalone``: system.yaml
+    names, plan.json ``standalone: true``) may sit anywhere: it is not loaded."""
     from perfros_bag.system.names import system_node_name
 
+    alone = set(standalone)
     for n in nodelets.values():
         mine, host = system_node_name(n.name), system_node_name(n.manager)
+        if mine in alone:
+            continue
         if mine in where and host in where and where[mine] != where[host]:
             raise InputError(plan_path, f"container {host}: node {mine} on {where[mine]} but its container {host} on "
                                         f"{where[host]}; the launch file loads {mine} into {n.manager} "
-                                        f"(nodelet load {n.type}), so they share a computer")
+                                        f"(nodelet load {n.type}), so they share a computer unless the plan runs "
+                                        f"{mine} standalone (system.yaml membership: choose)")
+
+
+def standalone_nodelets(nodelets: Mapping[str, Nodelet], standalone: Iterable[str]) -> tuple[str, ...]:
+    """The full ROS names of the launch file's nodelets whose system.yaml names are in
+    ``standalone`` (a plan's nodes with ``standalone: true``), sorted: what runs as
+    ``nodelet standalone`` (:func:`standalone_argv`). A plan node that the launch file does
+    not load as a nodelet already runs in a process of its own."""
+    from perfros_bag.system.names import system_node_name
+
+    alone = set(standalone)
+    return tuple(sorted(n for n in nodelets if system_node_name(n) in alone))
 
 
 def with_membership(graph: Graph, nodelets: Mapping[str, Nodelet]) -> Graph:

@@ -608,8 +608,11 @@ class Restarter:
         once it answers. The run's failure check follows the new process."""
         return self.restart_many([(node, args, params, computer)])[node]
 
-    def restart_many(self, batch: list[tuple[str, Mapping[str, str], Mapping[str, Any], str]]) -> dict[str, int]:
-        """:meth:`restart` of several nodes ``(node, args, params, computer)`` together: what
+    def restart_many(self, batch: list[tuple[str, Mapping[str, str], Mapping[str, Any], str]],
+                     standalone: frozenset[str] = frozenset()) -> dict[str, int]:
+        """:meth:`restart` of several nodes ``(node, args, params, computer)`` together (a
+        nodelet named in ``standalone`` as ``nodelet standalone``, the others as the launch
+        file starts them: a loader loads its nodelet into its manager again): what
         roslaunch says of each is asked at once before any stops (two ``roslaunch`` runs a
         node, a second or more each on a loaded machine), then every node is stopped, started
         again and only then waited for. A re-plan that moves four nodes took 12 to 18 s one
@@ -643,7 +646,7 @@ class Restarter:
         for (node, _a, _p, computer), cmd in zip(batch, cmds, strict=True):
             self.spread.where[system_node_name(node)] = computer
             self.restarts += 1
-            st = self.procs.start(node, _node_argv(cmd, self.spread, self.uri),
+            st = self.procs.start(node, _node_argv(cmd, self.spread, self.uri, standalone),
                                   self.work / f"restart{self.restarts}.log", cwd=Path(self.procs.env["ROS_HOME"]))
             self.watch.others.append(st)
         pids: dict[str, int] = {}
@@ -684,14 +687,17 @@ def _record(launch: LaunchFile, space: Space, run: Run, work: Path, procs: Proce
         uri = start_roscore(procs, work, timeout, host=procs.env["ROS_IP"])
         nodes = listing.result()
         nodelets, managers = members.result()
+    if run.keep_managers:  # deploy: a standalone nodelet is in no container (the sweep's graph keeps them)
+        nodelets = {k: v for k, v in nodelets.items() if k not in run.standalone}
     if on_master is not None:
         on_master(uri)
     for name, value in run.params.items():
         if master_call(uri, "setParam", name, value) is None:
             raise PerfrosError(f"the master did not take the parameter {name}={value!r}")
     log = work / "roslaunch.log"
-    if run.standalone:  # every nodelet in a process of its own; no manager
-        nodes = [n for n in nodes if n not in managers]
+    if run.standalone:  # those nodelets in a process of their own; the sweep's run starts no manager
+        if not run.keep_managers:
+            nodes = [n for n in nodes if n not in managers]
         watch = _Watch(None, log, _start_nodes(launch, run, nodes, spread, uri, work, procs, timeout,
                                                frozenset(run.standalone)))
     elif replay is not None and run.factor is not None:  # the replaced nodes: a player each, under their names

@@ -166,8 +166,12 @@ class Run:
     repeat: int
     factor: float | None = None  # replay: the recording's play-rate factor in this run
     #: nodelets run standalone (``nodelet standalone``) instead of in their manager (full ROS
-    #: names); their managers are not started (perfros_bag.sweep.nodelets)
+    #: names); their managers are not started (perfros_bag.sweep.nodelets) unless ``keep_managers``
     standalone: tuple[str, ...] = ()
+    #: with ``standalone``: the managers start all the same, and the nodelets not in
+    #: ``standalone`` load into them (deploy: a plan's ``standalone: true`` nodes; the sweep's
+    #: standalone run starts none)
+    keep_managers: bool = False
 
 
 def load_space(path: str | Path) -> Space:
