@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import subprocess
 import sys
 import time
@@ -52,8 +51,8 @@ def _system(path: Path) -> Path:
             {"name": "camera", "weight": 0.2, "residence": ["robot"], "topics": [cam],
              "launch": {"package": "image_publisher", "type": "image_publisher"},
              "settings": [{"cpu": 3.0, "performance": 100, "frequency_hz": 5, "bandwidth_kBps": 5 * FRAME / 1000}]},
-            {"name": "vision_manager", "weight": 0.1, "residence": ["server"], "settings": [{"cpu": 1.0, "performance": 100}],
-             "copy_cpu_per_MBps": 2.0},
+            {"name": "vision_manager", "weight": 0.1, "residence": ["server"],
+             "settings": [{"cpu": 1.0, "performance": 100}], "copy_cpu_per_MBps": 2.0},
             {"name": "people", "weight": 0.4, "container": "vision_manager", "input": cam,
              "launch": {"package": "opencv_apps", "type": "people_detect"},
              "parameter": {"name": "scale0"}, "topics": ["/people/found"],
@@ -174,3 +173,124 @@ def test_deploy_runs_a_standalone_nodelet_on_its_own_computer(tmp_path: Path) ->
     graph = yaml.safe_load((out / "graph.yaml").read_text())
     containers = {n["name"]: n.get("container") for n in graph["nodes"]}
     assert containers["/smooth"] is None and containers["/people"] == "/vision_manager"
+
+
+def _launch_nodes(path: Path) -> dict[str, ET.Element]:
+    return {n.get("name") or "": n for n in ET.parse(path).getroot().iter("node")}
+
+
+@pytest.mark.ros
+def test_export_writes_the_standalone_nodelet_on_its_machine(tmp_path: Path) -> None:
+    """export --launch: the smoother as `nodelet standalone` with the robot's machine, its
+    remaps and parameters as the user's file gives them (that file's own XML), and Debian's
+    roslaunch reading the written file into that command line; the detector still loaded
+    into its manager on the server. --format roslaunch without --launch and ROS 2's
+    per-computer files likewise (the class from opencv_apps' own plugin description)."""
+    _require_ros()
+    system, plan = _solved(tmp_path)
+    space = _space(tmp_path / "space.yaml")
+    done = _cli("export", str(plan), "--format", "roslaunch", "--launch", str(LAUNCH), "--space", str(space),
+                "--system", str(system), "--out", str(tmp_path / "planned.launch"))
+    assert done.returncode == 0, done.stderr
+    planned, user = _launch_nodes(tmp_path / "planned.launch"), _launch_nodes(LAUNCH)
+    smooth, people = planned["smooth"], planned["people"]
+    loader = (user["smooth"].get("args") or "").split()
+    assert loader[0] == "load"
+    assert (smooth.get("args") or "").split() == ["standalone", loader[1]]
+    assert smooth.get("pkg") == "nodelet" and smooth.get("type") == "nodelet" and smooth.get("machine") == "robot"
+    assert [(r.get("from"), r.get("to")) for r in smooth.iter("remap")] == \
+        [(r.get("from"), r.get("to")) for r in user["smooth"].iter("remap")]
+    assert [p.get("name") for p in smooth.iter("param")] == [p.get("name") for p in user["smooth"].iter("param")]
+    args = {a.get("name"): a.get("default") for a in ET.parse(tmp_path / "planned.launch").getroot().iter("arg")}
+    kernel = next(p for p in smooth.iter("param") if p.get("name") == "kernel_size")
+    assert kernel.get("value") == "$(arg kernel_size)" and args["kernel_size"] == "13"
+    assert (people.get("args") or "").split() == (user["people"].get("args") or "").split()
+    assert people.get("machine") == planned["vision_manager"].get("machine") == "server"
+    # Debian's roslaunch reads the written file into the standalone command line
+    shown = subprocess.run(["roslaunch", "--args", "/smooth", str(tmp_path / "planned.launch")], capture_output=True,
+                           text=True, timeout=120, env={**os.environ, "ROS_HOME": str(tmp_path / "ros")})
+    assert shown.returncode == 0, shown.stderr
+    words = shown.stdout.split()
+    at = words.index("/usr/lib/nodelet/nodelet")
+    assert words[at + 1:at + 3] == ["standalone", "opencv_apps/smoothing"]
+    assert "image:=camera/image_raw" in words and "__name:=smooth" in words and "load" not in words
+
+    done = _cli("export", str(plan), "--format", "roslaunch", "--system", str(system), "--out",
+                str(tmp_path / "plain.launch"))
+    assert done.returncode == 0, done.stderr
+    plain = _launch_nodes(tmp_path / "plain.launch")
+    assert (plain["smooth"].get("args") or "").split() == ["standalone", "opencv_apps/smoothing"]
+    assert plain["smooth"].get("machine") == "robot"
+    assert (plain["people"].get("args") or "").split() == ["load", "opencv_apps/people_detect", "/vision_manager"]
+
+    done = _cli("export", str(plan), "--format", "ros2-params", "--system", str(system), "--out",
+                str(tmp_path / "p.yaml"))
+    assert done.returncode == 0, done.stderr
+    plugins = ET.parse("/usr/share/opencv_apps/nodelet_plugins.xml").getroot()
+    cls = {c.get("name"): c.get("type") for c in plugins.iter("class")}
+    robot, server = (ET.parse(tmp_path / f"p.{c}.launch.xml").getroot() for c in ("robot", "server"))
+    own = list(robot.iter("node_container"))
+    assert len(own) == 1 and [(n.get("name"), n.get("plugin")) for n in own[0].iter("composable_node")] == [
+        ("smooth", cls["opencv_apps/smoothing"])]
+    (host,) = server.iter("node_container")
+    assert host.get("name") == "vision_manager"
+    assert [(n.get("name"), n.get("plugin")) for n in host.iter("composable_node")] == [
+        ("people", cls["opencv_apps/people_detect"])]
+
+
+def test_a_replan_restarts_a_node_whose_standalone_flag_changes(tmp_path: Path) -> None:
+    """deploy's control file: a new plan that runs smooth standalone on the robot is applied
+    (not refused as a split) and restarts smooth alone, as `nodelet standalone`; one that puts
+    it back into its manager restarts it as its loader; one that only flags it standalone on
+    its manager's computer restarts it too. An unmarked split is still not applied."""
+    from perfros_bag.errors import PerfrosWarning
+    from perfros_bag.rosrun.cgroups import CpuGroups
+    from perfros_bag.sweep.control import Control, write_control
+    from perfros_bag.sweep.deploy import plan_run
+    from perfros_bag.sweep.nodelets import Nodelet
+    from perfros_bag.sweep.space import load_space
+    from perfros_bag.system.plan import Plan, PlannedComputer, PlannedNode
+    from perfros_bag.system.planfile import save_plan
+
+    def plan(smooth_on: str, alone: bool) -> Plan:
+        nodes = {n: PlannedNode("robot" if n == "camera" else "server", 5.0, 50.0, 1.0)
+                 for n in ("camera", "vision_manager", "people", "smooth")}
+        nodes["smooth"] = PlannedNode(smooth_on, 5.0, 50.0, 1.0, standalone=alone)
+        return Plan(1, "exact", "optimal", computers={"robot": PlannedComputer("robot", 100.0, 10.0),
+                                                      "server": PlannedComputer("server", 100.0, 10.0)}, nodes=nodes)
+
+    calls: list[tuple[list[tuple[str, str]], frozenset[str]]] = []
+
+    def restart_many(batch: list[tuple[str, Any, Any, str]], standalone: frozenset[str] = frozenset()) -> dict:
+        calls.append(([(b[0], b[3]) for b in batch], standalone))
+        return {b[0]: 100 + len(calls) for b in batch}
+
+    restarter = SimpleNamespace(watch=SimpleNamespace(pids={f"/{n}": (1, 0.0) for n in ("camera", "people", "smooth",
+                                                                                        "vision_manager")}),
+                                restart_many=restart_many)
+    groups = CpuGroups("t", {"robot": 1.0, "server": 1.0}, root=tmp_path)
+    for c in ("robot", "server"):
+        (tmp_path / c).mkdir()
+        groups.dirs[c] = tmp_path / c
+    first = plan("server", False)
+    space = load_space(FIXTURES / "nodelet" / "space.yaml")
+    nodelets = {f"/{n}": Nodelet(f"/{n}", f"opencv_apps/{t}", "/vision_manager", ("/camera/image_raw",))
+                for n, t in (("people", "people_detect"), ("smooth", "smoothing"))}
+    control = Control(tmp_path, space, {}, plan_run(first, space, {}),
+                      {n: pn.computer for n, pn in first.nodes.items()}, groups, 100.0, False, nodelets=nodelets)
+    for seq, (where, alone) in enumerate([("robot", True), ("server", False), ("server", True)], start=1):
+        save_plan(plan(where, alone), tmp_path / f"p{seq}.json")
+        write_control(tmp_path, seq, tmp_path / f"p{seq}.json", ["why"])
+        os.utime(tmp_path / "control.json", (seq, seq))
+        control.tick(restarter)  # type: ignore[arg-type]
+        assert control.seq == seq
+        assert calls[-1] == ([("/smooth", where)], frozenset({"/smooth"}) if alone else frozenset())
+        assert control.standalone == ({"smooth"} if alone else set())
+    assert len(calls) == 3
+    save_plan(plan("robot", False), tmp_path / "split.json")
+    write_control(tmp_path, 4, tmp_path / "split.json", ["why"])
+    os.utime(tmp_path / "control.json", (4, 4))
+    with pytest.warns(PerfrosWarning, match=r"not applied: .*split.json: container vision_manager: node smooth on "
+                                            r"robot but its container vision_manager on server"):
+        control.tick(restarter)  # type: ignore[arg-type]
+    assert len(calls) == 3 and control.seq == 3
