@@ -580,7 +580,8 @@ def test_a_replan_that_splits_a_nodelet_is_not_applied(tmp_path: Path) -> None:
     calls: list[str] = []
     restarter = SimpleNamespace(watch=SimpleNamespace(pids={f"/{n}": (1, 0.0) for n in ("camera", "people", "smooth",
                                                                                         "vision_manager")}),
-                                restart_many=lambda batch: {b[0]: calls.append(b[0]) or 100 for b in batch})
+                                restart_many=lambda batch, standalone=frozenset(): {b[0]: calls.append(b[0]) or 100
+                                                                          for b in batch})
     groups = CpuGroups("t", {"robot": 1.0, "server": 1.0}, root=tmp_path)
     for c in ("robot", "server"):
         (tmp_path / c).mkdir()

@@ -718,7 +718,7 @@ def test_a_deploy_restarts_only_the_nodes_a_new_plan_changes(tmp_path: Path) -> 
         return 100 + len(calls)
 
     restarter = SimpleNamespace(watch=SimpleNamespace(pids={"/camera": (11, 0.0), "/detector": (12, 0.0)}),
-                                restart_many=lambda batch: {b[0]: restart(*b) for b in batch})
+                                restart_many=lambda batch, standalone=frozenset(): {b[0]: restart(*b) for b in batch})
     groups = CpuGroups("t", {"robot1": 1.0, "server": 1.0}, root=tmp_path)
     for c in ("robot1", "server"):
         (tmp_path / c).mkdir()
@@ -761,7 +761,7 @@ def test_a_re_plan_s_nodes_are_restarted_together_not_one_after_the_other(monkey
                         or {"/rate": int(args["camera_rate"])})
     monkeypatch.setattr(runner, "node_command", lambda launch, node, args, env, timeout: events.append(f"args {node}")
                         or node)
-    monkeypatch.setattr(runner, "_node_argv", lambda cmd, spread, uri: [cmd])
+    monkeypatch.setattr(runner, "_node_argv", lambda cmd, spread, uri, standalone=frozenset(): [cmd])
     monkeypatch.setattr(runner, "_create_time", lambda pid: 1.0)
     params: dict[str, Any] = {}
     new_pid = {"/a": 201, "/b": 202, "/c": 203}

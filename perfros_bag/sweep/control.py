@@ -182,7 +182,7 @@ class Control:
         moved = [node for node in changed if node in ros]  # restarted together, waited for together
         new_pids = restarter.restart_many([(ros[node], new_run.args, new_run.params, new_where[node])
                                            for node in moved],
-                                          frozenset(standalone_nodelets(self.nodelets, alone)))
+                                          standalone=frozenset(standalone_nodelets(self.nodelets, alone)))
         for node in moved:
             pid = new_pids[ros[node]]
             procs = self.groups.procs_file(new_where[node])
