@@ -2,7 +2,7 @@
 fixture (fixtures/nodelet: a camera, one manager hosting opencv_apps' people_detect and
 smoothing) standalone on the camera's computer while its manager and the other nodelet run on
 the server. ``deploy`` runs it as ``nodelet standalone`` in its own computer's cgroup and
-network namespace; ``export`` writes it so.
+network namespace, and restarts it so for a new plan (control.json); ``export`` writes it so.
 
 Checked against independent sources: the kernel's own view of the running processes
 (``/proc/PID/cmdline``, the cgroup's ``cgroup.procs``, ``ip netns identify``), the recorded
@@ -103,15 +103,20 @@ def _netns(pid: int) -> str:
                           check=True).stdout.strip()
 
 
-def _seen_while_running(live_path: Path, proc: subprocess.Popen[str]) -> dict[str, Any]:
+def _seen_while_running(live_path: Path, proc: subprocess.Popen[str],
+                        restarted: tuple[str, int] | None = None) -> dict[str, Any]:
     """What the kernel says of each deployed node while the deploy records: its command line,
     whether its computer's cgroup lists it, its network namespace (live.json names the
-    processes, the groups and the namespaces)."""
+    processes, the groups and the namespaces). ``restarted``: (node, old PID): once that node
+    runs again under another PID and no restart is under way."""
     deadline = time.monotonic() + 240
     while time.monotonic() < deadline and proc.poll() is None:
         try:
             live = json.loads(live_path.read_text())
         except (OSError, ValueError):
+            time.sleep(0.1)
+            continue
+        if restarted is not None and (live["restarting"] or live["nodes"][restarted[0]]["pid"] == restarted[1]):
             time.sleep(0.1)
             continue
         seen = {}
@@ -121,7 +126,7 @@ def _seen_while_running(live_path: Path, proc: subprocess.Popen[str]) -> dict[st
             seen[name] = {"argv": _cmdline(pid), "computer": computer, "in_group": str(pid) in procs,
                           "netns": _netns(pid), "computer_netns": live["namespaces"][computer], "pid": pid}
         return seen
-    raise AssertionError(f"live.json never appeared (deploy exit code {proc.poll()})")
+    raise AssertionError(f"live.json never said so (deploy exit code {proc.poll()})")
 
 
 @pytest.mark.ros
@@ -129,10 +134,19 @@ def test_deploy_runs_a_standalone_nodelet_on_its_own_computer(tmp_path: Path) ->
     _require_ros()
     system, plan = _solved(tmp_path)
     out = tmp_path / "dep"
+    # a re-plan (control.json, as watch --adapt writes it): smooth at another value, still standalone
+    from perfros_bag.sweep.control import write_control
+    from perfros_bag.system.planfile import save_plan
+
+    smaller = load_plan(plan)
+    smaller.nodes["smooth"].value = 7.0
+    save_plan(smaller, tmp_path / "smaller.json")
     with subprocess.Popen([str(BIN), "deploy", str(plan), str(LAUNCH), "--space", str(_space(tmp_path / "space.yaml")),
-                           "--out", str(out), "--duration", "4", "--system", str(system)],
+                           "--out", str(out), "--duration", "8", "--system", str(system)],
                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) as proc:
         seen = _seen_while_running(out / "live.json", proc)
+        write_control(out, None, tmp_path / "smaller.json", ["test"])
+        again = _seen_while_running(out / "live.json", proc, restarted=("/smooth", seen["/smooth"]["pid"]))
         _, stderr = proc.communicate(timeout=300)
     assert proc.returncode in (0, 1), stderr  # 1: the validation did not hold (judged below, not here)
     assert not [x for x in stderr.splitlines() if x.startswith("error")], stderr
@@ -149,11 +163,18 @@ def test_deploy_runs_a_standalone_nodelet_on_its_own_computer(tmp_path: Path) ->
         assert node["in_group"] and node["netns"] == node["computer_netns"]
     assert people["computer"] == manager["computer"] == "server" and seen["/camera"]["computer"] == "robot"
     assert smooth["computer_netns"] != manager["computer_netns"]
+    # restarted in place for the new plan: standalone again, at its new value, on the robot
+    moved = again["/smooth"]
+    assert moved["argv"][1:3] == ["standalone", "opencv_apps/smoothing"] and "load" not in moved["argv"]
+    assert moved["computer"] == "robot" and moved["in_group"] and moved["netns"] == moved["computer_netns"]
+    assert again["/vision_manager"]["pid"] == manager["pid"] and again["/people"]["pid"] == people["pid"]
 
     deployed = json.loads((out / "deploy.json").read_text())
     assert {n: (x["computer"], x.get("standalone", False)) for n, x in deployed["nodes"].items()} == {
         "/camera": ("robot", False), "/vision_manager": ("server", False), "/people": ("server", False),
         "/smooth": ("robot", True)}
+    assert deployed["nodes"]["/smooth"]["pid"] == moved["pid"]
+    assert [r["restarted"] for r in deployed["replans"]] == [["/smooth"]]
     assert deployed["leftover_cgroups"] == [] and deployed["leftover_namespaces"] == []
     for x in seen.values():  # every node stopped: no process of its PID runs its command line any more
         try:

@@ -129,6 +129,7 @@ def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Pat
     groups = CpuGroups(run_id, cores)
     where = {name: pn.computer for name, pn in plan.nodes.items()}  # system.yaml's node names
     placed: dict[str, str] = {}
+    restarted: dict[str, int] = {}  # ROS node -> its PID since a new plan restarted it (control.json)
     links_before: list[dict[str, Any]] = []
     links_after: list[dict[str, Any]] = []
     throttle: dict[str, dict[str, dict[str, float]]] = {}  # "start"/"end" -> computer -> CFS counters
@@ -177,6 +178,7 @@ def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Pat
             live[0].restarting = {}
         for name, pid in pids.items():
             placed[name] = control.where.get(system_node_name(name), placed.get(name, ""))
+            restarted[name] = pid
             if live:
                 live[0].nodes[name] = {"pid": pid, "computer": placed[name]}
         if live:
@@ -249,7 +251,8 @@ def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Pat
                        for c, end in throttle.get("end", {}).items()},
         "network": {**described, "links_measured": _link_use(links_before, links_after, network),
                     "media_measured": _medium_use(media_before, media_after, network)},
-        "nodes": {n.name: {"pid": n.pid, "computer": placed.get(n.name, where.get(system_node_name(n.name))),
+        "nodes": {n.name: {"pid": restarted.get(n.name, n.pid),
+                           "computer": placed.get(n.name, where.get(system_node_name(n.name))),
                            **({"standalone": True} if system_node_name(n.name) in control.standalone else {})}
                   for n in graph.nodes if n.launched},
         "replans": control.applied,
