@@ -315,3 +315,20 @@ def test_a_replan_restarts_a_node_whose_standalone_flag_changes(tmp_path: Path) 
                                             r"robot but its container vision_manager on server"):
         control.tick(restarter)  # type: ignore[arg-type]
     assert len(calls) == 3 and control.seq == 3
+
+
+def test_watch_adapt_lists_a_changed_standalone_mark(tmp_path: Path) -> None:
+    """watch --adapt sends a re-plan to the deploy only when changes.txt lists something: a
+    plan that only runs a node standalone (same computer, same value) is a change."""
+    from perfros_bag.system.plan import Plan, PlannedComputer, PlannedNode
+    from perfros_bag.watch.adapt import changes
+
+    def plan(alone: bool, computer: str = "server") -> Plan:
+        return Plan(1, "exact", "optimal", computers={"server": PlannedComputer("server", 100.0, 10.0)},  # type: ignore
+                    nodes={"mgr": PlannedNode("server", 1.0, 100.0, 0.5),
+                           "smooth": PlannedNode(computer, 5.0, 100.0, 0.5, "kernel_size", 7.0, standalone=alone)})
+
+    assert changes(plan(False), plan(False)) == []
+    assert changes(plan(False), plan(True)) == ["smooth: in its container -> standalone"]
+    assert changes(plan(True, "robot"), plan(False)) == [
+        "smooth: computer robot -> server, standalone -> in its container"]

@@ -7,8 +7,8 @@ deployment, on the characterisation it was fitted on (read as ``tune --base`` re
 problem, method and headroom (the plan's ``headroom: auto``, else the largest share of a
 computer its ``margin`` kept) and the plan's budgets (they are in the model). Applying is
 writing, never restarting: ``DIR/replan-<k>/`` gets ``characterisation.csv``,
-``model.json``, ``plan.json``, ``changes.txt`` (one line per node whose value or computer
-changed) and, with the launch file and space.yaml, ``planned.launch`` (``export --launch
+``model.json``, ``plan.json``, ``changes.txt`` (one line per node whose value, computer or
+``standalone`` mark changed) and, with the launch file and space.yaml, ``planned.launch`` (``export --launch
 --space``). Every re-plan, its reason (the alarms' lines) and what changed is one line of
 ``DIR/adapt.jsonl``.
 
@@ -49,7 +49,8 @@ def plan_headroom(plan: Plan) -> float | str:
 
 
 def changes(old: Plan, new: Plan) -> list[str]:
-    """One line per node whose value or computer differs between two plans."""
+    """One line per node whose value, computer or ``standalone`` mark (plan.json) differs
+    between two plans."""
     lines = []
     for name in sorted(set(old.nodes) | set(new.nodes)):
         a, b = old.nodes.get(name), new.nodes.get(name)
@@ -61,6 +62,8 @@ def changes(old: Plan, new: Plan) -> list[str]:
             what.append(f"{a.parameter or 'value'} {a.value} -> {b.value}")
         if a.computer != b.computer:
             what.append(f"computer {a.computer} -> {b.computer}")
+        if a.standalone != b.standalone:  # the deploy restarts it in or out of its container
+            what.append("in its container -> standalone" if b.standalone else "standalone -> in its container")
         if what:
             lines.append(f"{name}: {', '.join(what)}")
     return lines
@@ -195,7 +198,7 @@ class Adapter:
                 self.sent = max(self.sent, control_seq(self.deployment)) + 1  # after an operator's own entries
                 write_control(self.deployment, self.sent, entry["plan"], list(entry["why"]))
                 applied = (f"sent to the deploy ({self.deployment / 'control.json'} seq {self.sent}): it restarts "
-                           "the nodes whose value or computer changed")
+                           "the nodes whose value, computer or standalone mark changed")
         done = {**entry, "t": time.time(), "applied": applied}
         log = self.out / ADAPT_LOG
         previous = log.read_text(encoding="utf-8") if log.exists() else ""
