@@ -332,3 +332,23 @@ def test_watch_adapt_lists_a_changed_standalone_mark(tmp_path: Path) -> None:
     assert changes(plan(False), plan(True)) == ["smooth: in its container -> standalone"]
     assert changes(plan(True, "robot"), plan(False)) == [
         "smooth: computer robot -> server, standalone -> in its container"]
+
+
+def test_deploy_and_export_refuse_a_standalone_plan_under_keep(tmp_path: Path) -> None:
+    """The same plan read with its system saying ``membership: keep``: one line, exit 2,
+    nothing started or written."""
+    system, plan = _solved(tmp_path)
+    keep = yaml.safe_load(system.read_text())
+    keep["membership"] = "keep"
+    (tmp_path / "keep.yaml").write_text(yaml.safe_dump(keep, sort_keys=False))
+    out = tmp_path / "dep"
+    for args in (("deploy", str(plan), str(LAUNCH), "--space", str(_space(tmp_path / "space.yaml")), "--out", str(out),
+                  "--duration", "2"),
+                 ("export", str(plan), "--format", "roslaunch", "--launch", str(LAUNCH), "--space",
+                  str(tmp_path / "space.yaml"), "--out", str(out / "x.launch"))):
+        done = _cli(*args, "--system", str(tmp_path / "keep.yaml"), timeout=120)
+        lines = [x for x in done.stderr.splitlines() if x.strip()]
+        assert done.returncode == 2 and len(lines) == 1, done.stderr
+        assert lines[0].startswith(f"error: {plan}: ") and "node smooth: standalone, but the system's membership " \
+            "is keep" in lines[0], lines[0]
+        assert not out.exists()
