@@ -60,11 +60,27 @@ def _doc(robot: float = 20.0, server: float = 45.0, **extra: Any) -> dict[str, A
     return doc
 
 
-def test_the_copy_price_per_input_message_by_hand() -> None:
+def _not_driven(doc: dict[str, Any]) -> dict[str, Any]:
+    """The nodelets as `init` drafts them when the camera's rate is not swept (the nodelet
+    fixture): settings of fixed CPU at the camera's highest rate, no ``input``."""
+    doc = copy.deepcopy(doc)
+    for n in doc["nodes"][2:]:
+        n.pop("input")
+        for s in n["settings"]:
+            s["cpu"] = round(s["cpu"] + s.pop("cpu_per_hz") * 10, 6)
+            s["frequency_hz"] = 10
+            s["bandwidth_kBps"] = s.pop("bytes_per_msg") * 10 / 1000
+    return doc
+
+
+def test_the_copy_price_by_hand() -> None:
     system = parse_system(_doc(), "s.yaml")
-    # one more copy of a 230.4 kB frame per input message, at 2 units per MB/s
-    assert system.copy_cpu_per_hz("people") == pytest.approx(PRICE * FRAME / 1e6)
-    assert system.copy_cpu_per_hz("camera") is None and system.copy_cpu_per_hz("manager") is None
+    # a driven node: one more copy of a 230.4 kB frame per input message, at 2 units per MB/s
+    assert system.copy_charge("people") == pytest.approx((PRICE * FRAME / 1e6, 0.0))
+    assert system.copy_charge("camera") is None and system.copy_charge("manager") is None
+    # not driven: the MB/s of its edge in, at the camera's fastest setting (10 Hz)
+    assert parse_system(_not_driven(_doc()), "s.yaml").copy_charge("smooth") == pytest.approx(
+        (0.0, PRICE * 10 * FRAME / 1e6))
     freed = system.freed(["people"])
     assert freed.membership == "keep" and freed.node["people"].container is None
     assert [s.cpu_per_hz for s in freed.node["people"].settings] == pytest.approx(
@@ -72,7 +88,10 @@ def test_the_copy_price_per_input_message_by_hand() -> None:
     assert sorted(sorted(g) for g in freed.coresidence_groups) == [["camera"], ["manager", "smooth"], ["people"]]
     no_price = copy.deepcopy(_doc())
     del no_price["nodes"][1]["copy_cpu_per_MBps"]
-    assert parse_system(no_price, "s.yaml").copy_cpu_per_hz("people") is None
+    assert parse_system(no_price, "s.yaml").copy_charge("people") is None
+    still = parse_system(_not_driven(_doc()), "s.yaml").freed(["smooth"])
+    assert still.node["smooth"].copy_cpu == pytest.approx(PRICE * 10 * FRAME / 1e6)
+    assert still.node["smooth"].settings == parse_system(_not_driven(_doc()), "s.yaml").node["smooth"].settings
 
 
 def test_a_split_plan_beats_the_kept_membership_and_passes_the_checker(tmp_path: Path) -> None:
@@ -87,6 +106,14 @@ def test_a_split_plan_beats_the_kept_membership_and_passes_the_checker(tmp_path:
     alone = [n for n, pn in split.nodes.items() if pn.standalone]
     assert alone and all(split.nodes[n].computer != split.nodes["manager"].computer for n in alone)
     assert split.extra["membership"]["standalone"] == alone
+    # not driven (as init drafts the nodelet fixture): the copy a fixed charge, the same split
+    fixed = solve(parse_system(_not_driven(_doc()), "s.yaml"), 1, "exact")
+    assert fixed.objective is not None and fixed.objective > kept.objective + 1e-6
+    lone = [n for n, pn in fixed.nodes.items() if pn.standalone]
+    assert lone and check_plan(parse_system(_not_driven(_doc()), "s.yaml"), fixed) == []
+    s0 = next(s for s in _not_driven(_doc())["nodes"] if s["name"] == lone[0])
+    own = next(x["cpu"] for x in s0["settings"] if x["value"] == fixed.nodes[lone[0]].value)
+    assert fixed.nodes[lone[0]].cpu == pytest.approx(own + PRICE * 10 * FRAME / 1e6)
     for n in alone:  # its CPU: its setting at its input rate plus the copy, by hand
         pn = split.nodes[n]
         s = next(s for s in choose.node[n].settings if s.value == pn.value)
@@ -114,13 +141,16 @@ def test_a_split_plan_beats_the_kept_membership_and_passes_the_checker(tmp_path:
 
 @pytest.mark.parametrize("seed", range(6))
 @pytest.mark.parametrize("problem", [1, 2])
-def test_exact_is_the_best_brute_force_over_every_freed_subset(seed: int, problem: int) -> None:
+@pytest.mark.parametrize("driven", [True, False], ids=["driven", "not_driven"])
+def test_exact_is_the_best_brute_force_over_every_freed_subset(seed: int, problem: int, driven: bool) -> None:
     rng = random.Random(seed)
     doc = _doc(robot=rng.uniform(12, 35), server=rng.uniform(15, 50))
     doc["nodes"][1]["copy_cpu_per_MBps"] = rng.choice([0.0, 1.0, 4.0])
     for n in doc["nodes"][2:]:
         for s in n["settings"]:
             s["cpu_per_hz"] = round(rng.uniform(0.3, 5.0), 2)
+    if not driven:
+        doc = _not_driven(doc)
     if problem == 2:  # every node at one setting: the server sized to the plan
         for n in doc["nodes"]:
             n["settings"] = n["settings"][:1]

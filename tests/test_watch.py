@@ -178,6 +178,38 @@ def test_rate_drift_allows_one_message_per_window_and_the_tolerance() -> None:
     assert dead.quantity == "alive" and dead.immediate
 
 
+def test_other_processes_taking_more_than_the_plan_left_free_drift_and_persist() -> None:
+    """The hog of RQ4 (07:42): robot2 35 units, its nodes planned 26.9, the hog's cgroup share
+    8-17.7 units while the nodes' rates held: an alarm at the second window, naming the
+    computer and its heaviest node; a steady cgroup (0-0.2) and a hog within the room the
+    plan left raise nothing."""
+    def window(foreign: float | None, cap: float = 35.0, planned: float = 26.9) -> dict[str, Any]:
+        return {"seconds": 5.0,
+                "nodes": {"cam": {"expected_hz": 5.0, "measured_hz": 5.0, "computer": "robot2", "cpu_expected": 0.6},
+                          "people": {"expected_hz": 5.0, "measured_hz": 5.0, "computer": "robot2",
+                                     "cpu_expected": 16.2},
+                          "far": {"expected_hz": 5.0, "measured_hz": 5.0, "computer": "server",
+                                  "cpu_expected": 30.0}},
+                "computers": {"robot2": {"capacity": cap, "cpu_expected": planned, "foreign": foreign},
+                              "server": {"capacity": 45.0, "cpu_expected": 30.0, "foreign": 0.2}}}
+
+    assert rate_drifts(window(0.2), 5.0) == [] and rate_drifts(window(None), 5.0) == []
+    assert rate_drifts(window(8.0), 5.0) == []  # within the 8.1 units the plan left free
+    [d] = rate_drifts(window(14.3), 5.0)
+    assert (d.name, d.quantity, d.computer, d.measured) == ("people", "foreign_cpu", "robot2", 14.3)
+    assert d.planned == pytest.approx(35.0 - 26.9)
+    assert [d.name for d in rate_drifts(window(1.5, cap=30.0, planned=30.0), 5.0)] == ["people"]  # full: the floor
+    assert rate_drifts(window(0.9, cap=30.0, planned=30.0), 5.0) == []
+    p = Persistence(2)
+    assert p.update(rate_drifts(window(8.0), 5.0)) == []
+    assert p.update(rate_drifts(window(14.3), 5.0)) == []
+    [alarm] = p.update(rate_drifts(window(17.7), 5.0))
+    out = alarm.to_dict()
+    assert (out["node"], out["computer"], out["quantity"], out["measured"], out["windows"]) == (
+        "people", "robot2", "foreign_cpu", 17.7, 2)
+    assert out["line"].startswith("alarm: computer robot2: other processes take 17.7 CPU units")
+
+
 # --------------------------------------------------------------------------- eq 10 per window
 
 

@@ -6,6 +6,7 @@ CPU level) from parameter values (:func:`settings_from_values`), from a plan
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import warnings
 from collections.abc import Mapping
@@ -109,6 +110,8 @@ def fixed_choices(system: System, problem: Problem, settings: Mapping[str, float
             out[node.name] = [_match_cpu(system, node, float(settings[node.name]), resolution)]
         else:
             out[node.name] = [node.choices(resolution)[-1]]
+        if node.copy_cpu and not node.driven:  # run standalone: its copies on top (System.freed)
+            out[node.name] = [dataclasses.replace(c, cpu=c.cpu + node.copy_cpu) for c in out[node.name]]
     if not system.has_flow:
         return out
 

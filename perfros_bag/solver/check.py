@@ -105,6 +105,31 @@ def _copy_per_hz(system: System, node: Node, publisher: str) -> float | None:
     return host.copy_cpu_per_MBps * largest / 1e6
 
 
+def _copy_cpu(system: System, node: Node) -> float | None:
+    """CPU units a hosted node that is not driven pays run standalone, for its own copies of
+    what it receives: its container's ``copy_cpu_per_MBps`` x the MB/s of every edge into it,
+    each at its publisher's setting that sends the most (this checker's own copy of the
+    rule). None: it cannot run standalone."""
+    host = system.node.get(node.container or "")
+    if host is None or host.copy_cpu_per_MBps is None:
+        return None
+    into = 0.0
+    for e in system.edges:
+        if e.dst != node.name or e.src not in system.node:
+            continue
+        most = 0.0
+        for s in system.node[e.src].settings:
+            if e.bandwidth_kBps is not None:
+                kbps = e.bandwidth_kBps
+            elif e.topic is not None and e.topic in s.topics and s.topics[e.topic].bandwidth_kBps is not None:
+                kbps = s.topics[e.topic].bandwidth_kBps or 0.0
+            else:
+                kbps = s.bandwidth_kBps or 0.0
+            most = max(most, kbps)
+        into += most
+    return host.copy_cpu_per_MBps * into / 1000.0
+
+
 def _topic_rate(choice: Choice, topic: str) -> float | None:
     rate = choice.topics.get(topic)
     if rate is not None and rate.frequency_hz is not None:
@@ -197,10 +222,15 @@ def check_plan(system: System, plan: Plan, *, tol: float = 1e-6) -> list[str]:
         # eq 8: residence
         if node.residence is not None and pn.computer not in node.residence:
             bad.append(f"node {node.name}: residence: on {pn.computer}, allowed {', '.join(node.residence)}")
+        copy = _copy_cpu(system, node) if pn.standalone and node.input is None else 0.0
         if node.input is not None:
             pass  # matched at its input's rate, once its publisher's setting is known (_flow)
-        elif (ch := _node_choice(node, pn.cpu, pn.performance, tol, pn.value)) is None:
-            bad.append(f"node {node.name}: cpu {pn.cpu:g} / performance {pn.performance:g} is none of its settings")
+        elif copy is None:
+            bad.append(f"node {node.name}: standalone, but it has no container with a copy price to leave")
+        elif (ch := _node_choice(node, pn.cpu - copy, pn.performance, tol, pn.value)) is None:
+            more = f" (with the copy of its inputs, {copy:g}, on top)" if copy else ""
+            bad.append(f"node {node.name}: cpu {pn.cpu:g} / performance {pn.performance:g} is none of its "
+                       f"settings{more}")
         else:
             chosen[node.name] = ch
         if not _close(pn.weight, node.weight, 1e-6):
@@ -220,8 +250,8 @@ def check_plan(system: System, plan: Plan, *, tol: float = 1e-6) -> list[str]:
         alone = node.name in plan.nodes and plan.nodes[node.name].standalone
         if alone and system.membership != "choose":
             bad.append(f"membership: {node.name} standalone, but the system's membership is {system.membership}")
-        if alone and (host is None or node.input is None):
-            bad.append(f"membership: {node.name} standalone, but it has no container or no input (its copy unknown)")
+        if alone and host is None:
+            bad.append(f"membership: {node.name} standalone, but it has no container")
         if alone:
             continue
         if host is not None and node.name in where and host in where and where[node.name] != where[host]:

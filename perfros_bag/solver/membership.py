@@ -3,7 +3,7 @@
 A hosted node (system.yaml ``container:``, a nodelet in its manager) either stays in its
 container, so on its computer, or runs in a process of its own (ROS 1 ``nodelet
 standalone``) anywhere its residence allows, paying the copy of its input it then receives
-(:meth:`~perfros_bag.system.types.System.copy_cpu_per_hz`). Which nodes leave is a decision
+(:meth:`~perfros_bag.system.types.System.copy_charge`). Which nodes leave is a decision
 on a handful of nodes, so it is taken by enumeration: every subset of the nodes that may
 leave gives one system (:meth:`~perfros_bag.system.types.System.freed`), each is solved as
 it is by the method asked, and the best plan wins.
@@ -33,19 +33,18 @@ MAX_FREEABLE = 6
 
 
 def freeable(system: System) -> tuple[str, ...]:
-    """The hosted nodes a plan may run standalone: driven (their input is known) and in a
-    container with a measured copy price. The others stay in their container, with a
-    warning naming them."""
+    """The hosted nodes a plan may run standalone: those of a container with a measured copy
+    price. The others stay in their container, with a warning naming them."""
     out: list[str] = []
     kept: list[str] = []
     for n in system.nodes:
         if n.container is None:
             continue
-        (out if system.copy_cpu_per_hz(n.name) is not None else kept).append(n.name)
+        (out if system.copy_charge(n.name) is not None else kept).append(n.name)
     if kept:
         warnings.warn(PerfrosWarning(
             f"{system.source}: membership: choose: node(s) {', '.join(kept)} stay in their container: a node runs "
-            "standalone only when it is driven (input:) and its container has a measured copy_cpu_per_MBps"),
+            "standalone only when its container has a measured copy_cpu_per_MBps"),
             stacklevel=3)
     if len(out) > MAX_FREEABLE:
         raise InputError(system.source, f"membership: choose: {len(out)} hosted nodes may leave their containers "
@@ -54,7 +53,7 @@ def freeable(system: System) -> tuple[str, ...]:
     return tuple(out)
 
 
-def restate(system: System, variant: System, freed: Sequence[str], plan: Plan) -> Plan:
+def restate(system: System, freed: Sequence[str], plan: Plan) -> Plan:
     """``variant``'s plan stated on ``system``: each freed node away from its container's
     computer marked ``standalone``; one on that computer loaded into the container after
     all, its copy taken off its CPU and its computer's."""
@@ -69,8 +68,8 @@ def restate(system: System, variant: System, freed: Sequence[str], plan: Plan) -
         if pn.computer != plan.nodes[host].computer:
             pn.standalone = True
             continue
-        copy = (variant.node[name].settings[0].cpu_per_hz or 0.0) - (system.node[name].settings[0].cpu_per_hz or 0.0)
-        taken = copy * (pn.input_hz or 0.0)
+        per_hz, fixed = system.copy_charge(name) or (0.0, 0.0)
+        taken = per_hz * (pn.input_hz or 0.0) + fixed
         pn.cpu -= taken
         pc = plan.computers.get(pn.computer)
         if pc is not None:
@@ -105,7 +104,7 @@ def solve_membership(system: System, problem: Problem, solve_one: Callable[[Syst
     for i, subset in enumerate(subsets):
         left = None if time_limit is None else max(time_limit - (time.perf_counter() - start), 0.0) / (len(subsets) - i)
         variant = system.freed(subset)
-        plan = restate(system, variant, subset, solve_one(variant, left))
+        plan = restate(system, subset, solve_one(variant, left))
         first = first or plan
         if plan.status == Status.INFEASIBLE:
             continue

@@ -69,7 +69,7 @@ class PlannedNode:
     loo_error: dict[str, float | None] | None = None
     #: a node hosted by a container (system.yaml ``container``) that the plan runs in a process
     #: of its own (``membership: choose``): ROS 1 ``nodelet standalone``; its ``cpu`` includes
-    #: the copy of its input it then receives (:meth:`perfros_bag.system.types.System.copy_cpu_per_hz`)
+    #: the copy of its input it then receives (:meth:`perfros_bag.system.types.System.copy_charge`)
     standalone: bool = False
 
 

@@ -425,6 +425,11 @@ class Node:
     #: of copies costs when its nodes run standalone instead of inside it (measured by
     #: perfros_bag.characterisation.containers.copy_price); None: not measured
     copy_cpu_per_MBps: float | None = None
+    #: CPU units per second a node run standalone spends on the copies of its inputs, beyond
+    #: its settings (set by :meth:`System.freed` on a node that is not driven; a driven node's
+    #: copy is per input message, in its settings' ``cpu_per_hz``); every candidate choice
+    #: carries it (perfros_bag.solver.candidates)
+    copy_cpu: float = 0.0
 
     def threads_at(self, value: float | None) -> float:
         """Busy threads at the setting of ``value`` (that setting's, else the node's, else 1)."""
@@ -597,37 +602,51 @@ class System:
                         "process, so its computer")
         return None
 
-    def copy_cpu_per_hz(self, name: str) -> float | None:
-        """CPU units per input message per second that hosted node ``name`` pays when it runs
-        standalone (``membership: choose``): the copy of its input it then receives in a
-        process of its own, at its container's ``copy_cpu_per_MBps``. The input's bytes per
-        message are the largest over its publisher's settings (an upper bound where they
-        vary). None when the node is not hosted, not driven (its input is not known) or its
+    def copy_charge(self, name: str) -> tuple[float, float] | None:
+        """What hosted node ``name`` pays when it runs standalone (``membership: choose``):
+        the copy of its inputs it then receives in a process of its own, at its container's
+        ``copy_cpu_per_MBps``, as (CPU units per input message per second, CPU units).
+
+        A driven node pays per input message: the price x the largest bytes per message of
+        its input topic over its publisher's settings. Another node pays the price x the
+        largest MB/s of every edge into it (over each publisher's settings). Both are upper
+        bounds where the size or rate varies. None when the node is not hosted or its
         container has no measured copy price: such a node stays in its container."""
         node = self.node[name]
-        if node.container is None or node.input is None:
+        if node.container is None:
             return None
         price = self.node[node.container].copy_cpu_per_MBps
-        publisher = self.flow_parent.get(name)
-        if price is None or publisher is None:
+        if price is None:
             return None
-        sizes = [b for s in self.node[publisher].settings if (b := _bytes_per_msg(s, node.input)) is not None]
-        return price * max(sizes, default=0.0) / 1e6
+        if node.input is not None:
+            publisher = self.flow_parent[name]
+            sizes = [b for s in self.node[publisher].settings if (b := _bytes_per_msg(s, node.input)) is not None]
+            return price * max(sizes, default=0.0) / 1e6, 0.0
+        into = 0.0
+        for e in self.edges:
+            if e.dst == name:
+                rates = [_edge_kBps(e, s) for s in self.node[e.src].settings] if e.src in self.node else []
+                into += max(rates, default=0.0)
+        return 0.0, price * into / 1000.0
 
     def freed(self, names: Iterable[str]) -> System:
         """This system with hosted nodes ``names`` run standalone (``membership: choose``):
-        out of their container (so out of its coresidence group), each setting's CPU per
-        input message raised by :meth:`copy_cpu_per_hz`; membership ``keep`` for the rest.
-        Every solver solves such a system as it is."""
+        out of their container (so out of its coresidence group), paying
+        :meth:`copy_charge`: a driven node in each setting's CPU per input message, another
+        in its ``copy_cpu``. Membership ``keep`` for the rest: every solver solves such a
+        system as it is."""
         out = set(names)
-        charge = {n: self.copy_cpu_per_hz(n) for n in out}
+        charge = {n: self.copy_charge(n) for n in out}
         missing = sorted(n for n, c in charge.items() if c is None)
         if missing:
-            raise ValueError(f"nodes {missing} cannot run standalone (no container, no input or no copy price)")
+            raise ValueError(f"nodes {missing} cannot run standalone (no container or no copy price)")
+
         def leave(n: Node) -> Node:
-            extra = charge[n.name] or 0.0
+            per_hz, fixed = charge[n.name] or (0.0, 0.0)
+            if n.input is None:
+                return replace(n, container=None, copy_cpu=fixed)
             return replace(n, container=None,
-                           settings=tuple(replace(s, cpu_per_hz=(s.cpu_per_hz or 0.0) + extra) for s in n.settings))
+                           settings=tuple(replace(s, cpu_per_hz=(s.cpu_per_hz or 0.0) + per_hz) for s in n.settings))
 
         nodes = tuple(leave(n) if n.name in out else n for n in self.nodes)
         return replace(self, nodes=nodes, membership="keep")
@@ -975,6 +994,16 @@ def _bytes_per_msg(setting: Setting, topic: str) -> float | None:
     if setting.bandwidth_kBps is not None and setting.frequency_hz:
         return setting.bandwidth_kBps * 1000.0 / setting.frequency_hz
     return None
+
+
+def _edge_kBps(edge: Edge, setting: Setting) -> float:
+    """kB/s ``edge`` carries at its publisher's ``setting`` (as :meth:`System.edge_bandwidth`)."""
+    if edge.bandwidth_kBps is not None:
+        return edge.bandwidth_kBps
+    rate = setting.topics.get(edge.topic) if edge.topic is not None else None
+    if rate is not None and rate.bandwidth_kBps is not None:
+        return rate.bandwidth_kBps
+    return setting.bandwidth_kBps or 0.0
 
 
 def _exceeds(load: float, limit: float, tol: float) -> bool:

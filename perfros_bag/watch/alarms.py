@@ -18,6 +18,13 @@ node in one window, another in the next): per computer, the windows in a row in 
 its nodes drifts in the same direction are counted too, and at ``persist`` such windows,
 with no node alarm of that computer and direction standing, the alarm names the node that
 drifts most in that window (``computer`` in its object says which computer's count raised it).
+
+Other processes in an emulated computer's cgroup (a CPU hog: the window's ``foreign`` CPU,
+with ``watch --deployment``) drift when they take more than the CPU the plan left free there
+(capacity less the planned nodes' CPU, at least :data:`FOREIGN_FLOOR` units): the plan's
+nodes no longer have their CPU, whether or not their rates have fallen yet. Its alarm
+(``quantity: foreign_cpu``, ``planned`` the CPU left free, ``measured`` the other processes')
+names the computer's node with the most planned CPU and carries ``computer``.
 """
 
 from __future__ import annotations
@@ -54,15 +61,45 @@ class Alarm:
 
     def line(self) -> str:
         d = self.drift
+        if d.quantity == FOREIGN:
+            return (f"alarm: computer {d.computer}: other processes take {d.measured:.4g} CPU units, the plan left "
+                    f"{d.planned:.4g} free (its node {d.name} the heaviest)")
         return f"alarm: {d.kind} {d.name}: {d.quantity} planned {d.planned:.4g}, measured {d.measured:.4g}"
 
     def to_dict(self) -> dict[str, Any]:
         d = self.drift
         out = {d.kind: d.name, "quantity": d.quantity, "planned": d.planned, "measured": d.measured,
                "windows": self.windows, "new": self.new, "line": self.line()}
-        if self.computer is not None:
-            out["computer"] = self.computer
+        where = self.computer if self.computer is not None else (d.computer if d.quantity == FOREIGN else None)
+        if where is not None:
+            out["computer"] = where
         return out
+
+
+#: a quantity: CPU of other processes in a computer's cgroup beyond what the plan left free
+FOREIGN = "foreign_cpu"
+#: the least foreign CPU (units) that drifts, whatever the plan left free: the watcher's own
+#: reading of an idle cgroup moves by a few tenths (measured: 0-0.2 over a steady 5 minutes)
+FOREIGN_FLOOR = 1.0
+
+
+def foreign_drifts(window: dict[str, Any]) -> list[Drift]:
+    """Per computer of one window's JSON object (its ``computers`` with ``foreign``,
+    ``capacity`` and ``cpu_expected``, and its ``nodes``), a drift when other processes take
+    more CPU than the plan left free there (and more than :data:`FOREIGN_FLOOR`)."""
+    out: list[Drift] = []
+    for computer, c in (window.get("computers") or {}).items():
+        foreign, cap, planned = c.get("foreign"), c.get("capacity"), c.get("cpu_expected")
+        if foreign is None or cap is None or planned is None:
+            continue
+        free = max(0.0, float(cap) - float(planned))
+        if float(foreign) <= max(free, FOREIGN_FLOOR):
+            continue
+        mine = [(float(n.get("cpu_expected") or 0.0), name) for name, n in window["nodes"].items()
+                if n.get("computer") == computer]
+        if mine:
+            out.append(Drift("node", max(mine)[1], FOREIGN, round(free, 3), float(foreign), computer=str(computer)))
+    return out
 
 
 def rate_drifts(window: dict[str, Any], tolerance: float, latency_tolerance: float | None = None) -> list[Drift]:
@@ -83,6 +120,7 @@ def rate_drifts(window: dict[str, Any], tolerance: float, latency_tolerance: flo
             where = n.get("computer")
             out.append(Drift("node", name, "rate_hz", float(exp), float(meas),
                              computer=str(where) if where is not None else None))
+    out += foreign_drifts(window)
     for c in window.get("chains", []):
         pred = (c.get("predicted_ms") or {}).get("p95")
         meas = (c.get("measured_ms") or {}).get("p95") if c.get("measured_ms") else None

@@ -553,11 +553,16 @@ def _world(now: Any, plan: Plan, before: Reading, after: Reading, used_before: d
     one): its links' rates in force, each computer's CPU beyond its planned nodes
     (``foreign``), and the values it runs that differ from the plan watched (``pinned``: an
     operator's change)."""
+    from perfros_bag.system.names import system_node_name
     from perfros_bag.watch.window import foreign_cpu
 
     if now is None:
         return {}
-    where = {n: pn.computer for n, pn in plan.nodes.items()}
+    # each node where the deploy runs it now (a re-plan another watcher applied moves it),
+    # else where the plan watched puts it
+    running = {system_node_name(ros): str(x["computer"]) for ros, x in now.nodes.items()
+               if isinstance(x, dict) and isinstance(x.get("computer"), str)}
+    where = {n: running.get(n, pn.computer) for n, pn in plan.nodes.items()}
     pinned = {n: v for n, v in now.values.items()
               if n in plan.nodes and plan.nodes[n].value is not None and isinstance(v, int | float)
               and not _runs_as(float(plan.nodes[n].value or 0.0), v)}
