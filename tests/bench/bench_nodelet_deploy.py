@@ -63,7 +63,7 @@ def system_doc(drafted: dict[str, Any], robot: float, server: float, membership:
 
 
 def most(model: dict[str, Any], name: str) -> float:
-    node = next(n for n in model["nodes"] if n["name"] == name)
+    node = next(n for n in model["system"]["nodes"] if n["name"] == name)
     return max(float(s["cpu"]) for s in node["settings"])
 
 
@@ -95,9 +95,10 @@ def main() -> None:
     cli("fit", str(work / "roomy.yaml"), str(work / "roomy.csv"), "--out", str(work / "roomy.json"))
     model = json.loads((work / "roomy.json").read_text())
     cam, mgr, people, smooth = (most(model, n) for n in ("camera", "vision_manager", "people", "smooth"))
-    frames = next(float(s["bandwidth_kBps"]) for n in model["nodes"] if n["name"] == "camera"
+    frames = next(float(s["bandwidth_kBps"]) for n in model["system"]["nodes"] if n["name"] == "camera"
                   for s in n["settings"])
-    price = next(float(n.get("copy_cpu_per_MBps") or 0.0) for n in model["nodes"] if n["name"] == "vision_manager")
+    price = next(float(n.get("copy_cpu_per_MBps") or 0.0) for n in model["system"]["nodes"]
+                 if n["name"] == "vision_manager")
     copy_cpu = price * frames / 1000
     print(f"fitted CPU at most: camera {cam:.2f}, manager {mgr:.2f}, people {people:.2f}, smooth {smooth:.2f}; "
           f"copy price {price:.3f} units per MB/s x {frames / 1000:.2f} MB/s = {copy_cpu:.2f}")
