@@ -3,8 +3,8 @@ splits the manager across two computers, deployed.
 
 One sweep of fixtures/nodelet (``nodelet.launch``, its space.yaml, ``--duration`` s a run),
 ``init``, then two systems of two emulated computers (``robot`` holding the camera, a
-``server``, one link), each through ``characterise``, ``fit``, ``solve --measured-only
---headroom auto``, ``deploy`` (``--deploy-s`` s, ``--deploys`` times) and its validation:
+``server``, one link), each through ``characterise``, ``fit``, ``solve --measured-only`` (the
+README's steps, at values the sweep ran), ``deploy`` (``--deploy-s`` s, ``--deploys`` times) and its validation:
 
 * ``kept``: ``membership: keep``, room for the manager and both nodelets at their best on
   either computer (the README's steps as they stand);
@@ -118,7 +118,7 @@ def main() -> None:
         cli("fit", str(sys_path), str(work / f"{name}.csv"), "--out", str(work / f"{name}.json"))
         plan = work / f"{name}-plan.json"
         cli("solve", str(work / f"{name}.json"), "--problem", "1", "--method", "exact", "--measured-only",
-            "--headroom", "auto", "--out", str(plan))
+            "--out", str(plan))
         planned = json.loads(plan.read_text())
         alone = sorted(n for n, pn in planned["nodes"].items() if pn.get("standalone"))
         where = ", ".join(f"{n}@{pn['computer']}" for n, pn in planned["nodes"].items())
