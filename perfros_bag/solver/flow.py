@@ -31,7 +31,7 @@ from typing import TYPE_CHECKING
 
 from perfros_bag.solver.greedy import greedy_plan, run_greedy, solve_greedy
 from perfros_bag.solver.state import State
-from perfros_bag.system.plan import Method, Plan, Status
+from perfros_bag.system.plan import Method, Plan, better_plan
 from perfros_bag.system.types import Choice, Problem, System
 
 if TYPE_CHECKING:
@@ -134,7 +134,7 @@ def solve_heuristic(system: System, problem: Problem, choices: dict[str, list[Ch
             for move in moves:
                 trial.update(move[k])
             plan = run(trial, Method.GREEDY)
-            if _better(plan, best, problem):
+            if better_plan(plan, best, problem):
                 best, current = plan, trial
     passes_until = time.monotonic() if rates else deadline
     for _ in range(PASSES):
@@ -145,7 +145,7 @@ def solve_heuristic(system: System, problem: Problem, choices: dict[str, list[Ch
                     break
                 trial = {**current, **change}
                 plan = run(trial, Method.GREEDY)
-                if _better(plan, best, problem):
+                if better_plan(plan, best, problem):
                     best, current, changed = plan, trial, True
         if not changed:
             break
@@ -345,21 +345,11 @@ def _restricted(system: System, choices: Mapping[str, list[Choice]],
     return {name: out[name] for name in choices}
 
 
-def _better(plan: Plan | None, than: Plan | None, problem: Problem) -> bool:
-    if plan is None or plan.status == Status.INFEASIBLE or plan.objective is None:
-        return False
-    if than is None or than.status == Status.INFEASIBLE or than.objective is None:
-        return True
-    if problem == Problem.PERFORMANCE:
-        return plan.objective > than.objective + 1e-9
-    return plan.objective < than.objective - 1e-9
-
-
 def _best(plans: Iterable[Plan | None], problem: Problem, method: Method, system: System) -> Plan:
     found = list(plans)
     best: Plan | None = None
     for plan in found:
-        if _better(plan, best, problem):
+        if better_plan(plan, best, problem):
             best = plan
     if best is not None:
         best.method = method

@@ -23,7 +23,7 @@ import warnings
 from collections.abc import Callable, Sequence
 
 from perfros_bag.errors import InputError, PerfrosWarning
-from perfros_bag.system.plan import Plan, Status
+from perfros_bag.system.plan import Plan, Status, better_plan
 from perfros_bag.system.types import Problem, System
 
 __all__ = ["MAX_FREEABLE", "freeable", "restate", "solve_membership"]
@@ -77,17 +77,6 @@ def restate(system: System, freed: Sequence[str], plan: Plan) -> Plan:
     return plan
 
 
-def _better(problem: Problem, a: Plan, b: Plan | None) -> bool:
-    """Is ``a`` a better plan than ``b`` (None: no plan yet)?"""
-    if a.status == Status.INFEASIBLE or a.objective is None:
-        return False
-    if b is None or b.status == Status.INFEASIBLE or b.objective is None:
-        return True
-    if problem == Problem.PERFORMANCE:
-        return a.objective > b.objective + 1e-9
-    return a.objective < b.objective - 1e-9
-
-
 def solve_membership(system: System, problem: Problem, solve_one: Callable[[System, float | None], Plan],
                      time_limit: float | None = None) -> Plan:
     """The best of ``solve_one(variant, seconds)`` over every subset of :func:`freeable`
@@ -113,7 +102,7 @@ def solve_membership(system: System, problem: Problem, solve_one: Callable[[Syst
             bounds_known = False
         else:
             bounds.append(plan.bound)
-        if _better(problem, plan, best):
+        if better_plan(plan, best, problem):
             best = plan
     if best is None:
         assert first is not None

@@ -137,3 +137,16 @@ def method_of(label: str) -> Method | str:
         return Method(label)
     except ValueError:
         return label
+
+
+def better_plan(plan: Plan | None, than: Plan | None, problem: Problem) -> bool:
+    """Is ``plan`` better than ``than`` for ``problem`` (a higher Σ w·P for Problem 1, a lower
+    server capacity for Problem 2; an infeasible plan or None is never better, and anything
+    feasible beats it)?"""
+    if plan is None or plan.status == Status.INFEASIBLE or plan.objective is None:
+        return False
+    if than is None or than.status == Status.INFEASIBLE or than.objective is None:
+        return True
+    if problem == Problem.PERFORMANCE:
+        return plan.objective > than.objective + 1e-9
+    return plan.objective < than.objective - 1e-9
