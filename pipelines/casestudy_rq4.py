@@ -13,13 +13,16 @@ links) is deployed, and ``perfros-bag watch --deployment`` attached to it:
 - **camera**: the operator raises one camera's rate (``control.json`` with a plan that
   differs only there: the deploy restarts that camera).
 
-Each change runs in a deployment of its own, with two watchers at once: ``watch`` alone
-(detection: the first alarm after the change, in seconds and in windows that end after
-it; the state it reports) and ``watch --adapt`` (its detection, the new plan, and recovery:
-the first window wholly after the re-plan whose Σ w·P is within 2.5 % of the new plan's
-own prediction, in seconds after the detection). "Never worse": the new plan's prediction
-against the mean Σ w·P the old plan measured after the change (the alone watcher's
-windows from its detection on).
+Each change runs twice, each time in a deployment of its own with one watcher: ``watch``
+alone (detection: the first alarm after the change, in seconds and in windows that end
+after it; the state it reports; and what the old plan measures after the change, nothing
+adapting it), then ``watch --adapt`` (its detection, the new plan, and recovery: the first
+window wholly after the re-plan whose Σ w·P is within 2.5 % of the new plan's own
+prediction, in seconds after the detection). "Never worse": the new plan's prediction
+against the mean Σ w·P the old plan measured after the change (the alone watcher's windows
+from its detection on). Until 2026-11-28 both watchers shared one deployment, so the alone
+watcher's later windows measured the re-planned nodes against the old plan; ``analyse``
+still reads such a folder, keeping only the windows that began before the re-plan was sent.
 
 Run on its own: ``make casestudy-rq4`` (or ``pipelines/casestudy_rq4.py --out DIR``); the
 sweep, characterisation and fit of ``make casestudy-real`` in the same ``--out`` are reused
@@ -177,6 +180,7 @@ def recovery(ws: list[dict[str, Any]], log: list[dict[str, Any]], detected: floa
                            "objective_before": first["objective_before"], "objective_after": first["objective_after"],
                            "world": first.get("world"), "replans": len(log),
                            "replans_before_change": out_before, "replan_s": round(first["t"] - t_change, 1),
+                           "replan_t": first["t"],
                            # what the re-plan's own making took: its refit and re-solve (in the child), and
                            # from the alarm asking for it to its sending
                            "refit_s": first.get("refit_s"),
@@ -216,8 +220,10 @@ def raised_camera(plan: dict[str, Any]) -> tuple[str, float]:
 
 def scenario(what: str, out: Path, app: Path, plan_path: Path, system_path: Path, robots: int,
              steady_s: float = STEADY_S) -> dict[str, Any]:
-    from perfros_bag.sweep.control import write_control
-
+    """One scenario. A change runs twice, each in a deployment of its own: first with ``watch``
+    alone (detection, and what the old plan measures after the change, with nothing adapting
+    it), then with ``watch --adapt`` (its detection, the re-plan and the recovery). The steady
+    plan runs once, with ``watch`` alone."""
     plan = json.loads(plan_path.read_text())
     d = out / what
     if d.exists():
@@ -225,25 +231,56 @@ def scenario(what: str, out: Path, app: Path, plan_path: Path, system_path: Path
 
         shutil.rmtree(d)
     d.mkdir(parents=True)
-    dep = d / "deploy"
+    res: dict[str, Any] = {"scenario": what, "load_start": load()}
+    if what == "steady":
+        one = deploy_pass(what, d, "deploy", "alone", plan, plan_path, system_path, app, robots, steady_s)
+        res.update(one)
+        res["alone_proc"] = one["watch_proc"]
+        res["load_end"] = load()
+        alone_ws = [w for w in windows_of(d / "alone") if w["t"] <= res["t_until"]]
+        res["windows"] = len(alone_ws)
+        res["false_alarms"] = sorted({f"{a.get('node') or a.get('chain')} {a['quantity']}"
+                                      for w in alone_ws for a in w["alarms"]})  # what alarmed, each once
+        res["alarm_windows"] = sum(1 for w in alone_ws if w["alarms"])
+        res["steady_s"] = round(sum(w["seconds"] for w in alone_ws), 1)
+        return res
+    first = deploy_pass(what, d, "deploy-alone", "alone", plan, plan_path, system_path, app, robots, steady_s)
+    second = deploy_pass(what, d, "deploy", "adapt", plan, plan_path, system_path, app, robots, steady_s)
+    res["change"] = second["change"]
+    res["alone_t_change"], res["alone_t_until"] = first["t_change"], first["t_until"]
+    res["t_change"], res["t_until"] = second["t_change"], second["t_until"]
+    res["alone_proc"], res["adapt_proc"] = first["watch_proc"], second["watch_proc"]
+    res["deploy_exit"] = {"alone": first["deploy_exit"], "adapt": second["deploy_exit"]}
+    res["leftovers"] = {"alone": first["leftovers"], "adapt": second["leftovers"]}
+    res["deploy_replans"] = second["deploy_replans"]
+    res["load_end"] = load()
+    analyse(res, d, plan)
+    return res
+
+
+def deploy_pass(what: str, d: Path, dep_name: str, watcher: str, plan: dict[str, Any], plan_path: Path,
+                system_path: Path, app: Path, robots: int, steady_s: float) -> dict[str, Any]:
+    """One deployment of the plan with one watcher (``alone`` or ``adapt``, into ``d/NAME``),
+    the scenario's change made ``LEAD_S`` after the watcher starts."""
+    from perfros_bag.sweep.control import write_control
+
+    dep = d / dep_name
     seconds = (steady_s if what == "steady" else LEAD_S + AFTER_S) + 10.0
     space_path = rq4_space(app, robots, seconds)
     args = [str(cr.BIN), "deploy", str(plan_path), str(app / f"app{robots}.launch"), "--space", str(space_path),
             "--out", str(dep), "--system", str(system_path), "--units-per-core", f"{cr.UNITS_PER_CORE:g}"]
     cr.COMMANDS.append(" ".join(cr.rel(a) for a in args))
-    cr.err.print(f"[bold]RQ4 {what}[/]: deploying -> {cr.rel(dep)} ({seconds:g} s; load {load()})")
-    deploy_log = (d / "deploy.stderr").open("w")
+    cr.err.print(f"[bold]RQ4 {what}[/] ({watcher}): deploying -> {cr.rel(dep)} ({seconds:g} s; load {load()})")
+    deploy_log = (d / f"{dep_name}.stderr").open("w")
     deploy = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=deploy_log, text=True)
     hog: subprocess.Popen[str] | None = None
-    res: dict[str, Any] = {"scenario": what, "load_start": load()}
-    alone: subprocess.Popen[str] | None = None
-    adapt: subprocess.Popen[str] | None = None
+    res: dict[str, Any] = {}
+    watch: subprocess.Popen[str] | None = None
     try:
         live = wait_live(dep, deploy)
         t_up = time.monotonic()
         res["t_until"] = time.time() + seconds - 10.0
-        alone = start_watch(plan_path, dep, d / "alone", False, app, robots)
-        adapt = None if what == "steady" else start_watch(plan_path, dep, d / "adapt", True, app, robots)
+        watch = start_watch(plan_path, dep, d / watcher, watcher == "adapt", app, robots)
         if what != "steady":
             time.sleep(LEAD_S)
             res["t_change"] = time.time()
@@ -268,7 +305,7 @@ def scenario(what: str, out: Path, app: Path, plan_path: Path, system_path: Path
                 forced = dict(plan)
                 forced["nodes"] = {**plan["nodes"], cam: {**plan["nodes"][cam], "value": rate}}
                 forced["forced"] = True
-                op_plan = d / "operator-plan.json"
+                op_plan = d / f"operator-plan-{watcher}.json"
                 op_plan.write_text(json.dumps(forced, indent=1))
                 write_control(dep, None, op_plan, [f"rq4: the operator raises {cam} to {rate:g} Hz"])
                 res["change"] = f"the operator raises {cam} from {plan['nodes'][cam].get('value'):g} to {rate:g} Hz"
@@ -279,50 +316,48 @@ def scenario(what: str, out: Path, app: Path, plan_path: Path, system_path: Path
                 hog.wait(10)
                 hog = None
         left = seconds + 60.0 - (time.monotonic() - t_up)
-        res["alone_proc"] = reap(alone, t_up, max(5.0, left))
-        if adapt is not None:
-            res["adapt_proc"] = reap(adapt, t_up, 30.0)
+        res["watch_proc"] = reap(watch, t_up, max(5.0, left))
         deploy.wait(120)
     finally:
         if hog is not None and hog.poll() is None:
             hog.kill()
             hog.wait(10)
-        for p in (alone, adapt, deploy):  # SIGTERM: perfros-bag takes it as Ctrl-C (SIGINT may be ignored)
+        for p in (watch, deploy):  # SIGTERM: perfros-bag takes it as Ctrl-C (SIGINT may be ignored)
             if p is not None and p.poll() is None:
                 p.send_signal(signal.SIGTERM)
                 p.wait(60)
         deploy_log.close()
-    res["load_end"] = load()
     res["deploy_exit"] = deploy.returncode
     record = json.loads((dep / "deploy.json").read_text()) if (dep / "deploy.json").exists() else {}
     res["leftovers"] = {"cgroups": record.get("leftover_cgroups"), "namespaces": record.get("leftover_namespaces")}
     res["deploy_replans"] = len(record.get("replans") or [])
-    # the windows while the plan ran (not those of the deploy stopping its nodes at its end)
-    alone_ws = [w for w in windows_of(d / "alone") if w["t"] <= res["t_until"]]
-    if what == "steady":
-        res["windows"] = len(alone_ws)
-        res["false_alarms"] = sorted({f"{a.get('node') or a.get('chain')} {a['quantity']}"
-                                      for w in alone_ws for a in w["alarms"]})  # what alarmed, each once
-        res["alarm_windows"] = sum(1 for w in alone_ws if w["alarms"])
-        res["steady_s"] = round(sum(w["seconds"] for w in alone_ws), 1)
-        return res
-    analyse(res, d, plan)
     return res
 
 
 def analyse(res: dict[str, Any], d: Path, plan: dict[str, Any]) -> dict[str, Any]:
     """The scenario's numbers from its watchers' windows (also for a finished folder again)."""
     t_change = res["t_change"]
-    alone_ws = [w for w in windows_of(d / "alone") if w["t"] <= res["t_until"]]
-    res["alone"] = detection(alone_ws, t_change, res["t_until"])
-    after = [w for w in alone_ws if res["alone"]["t"] is not None and w["t"] >= res["alone"]["t"]
-             and not w["overall"].get("unreadable")]  # a Σ w·P over some nodes only is not the plan's
-    res["old_measured_after"] = (round(sum(w["overall"]["measured"] for w in after) / len(after), 4)
-                                 if after else None)
-    res["old_expected"] = plan.get("objective")
+    # the alone watcher's own deployment (two passes); a folder of the one-deploy design
+    # (both watchers on one deploy) has the adapt pass's times only
+    two_pass = "alone_t_change" in res
+    alone_change, alone_until = (res["alone_t_change"], res["alone_t_until"]) if two_pass else (t_change,
+                                                                                               res["t_until"])
+    alone_ws = [w for w in windows_of(d / "alone") if w["t"] <= alone_until]
+    res["alone"] = detection(alone_ws, alone_change, alone_until)
     adapt_ws = [w for w in windows_of(d / "adapt") if w["t"] <= res["t_until"]]
     res["adapt"] = detection(adapt_ws, t_change, res["t_until"])
     res["adapt"].update(recovery(adapt_ws, adapt_log(d / "adapt"), res["adapt"]["t"], t_change))
+    # the old plan after the change: the alone watcher's windows from its detection on. In the
+    # one-deploy design only those that began before the adapt watcher's re-plan was sent:
+    # later windows measure the re-planned nodes against the old plan's rates.
+    sent = None if two_pass else res["adapt"].get("replan_t")
+    after = [w for w in alone_ws if res["alone"]["t"] is not None and w["t"] >= res["alone"]["t"]
+             and (sent is None or w["t"] - w["seconds"] < sent)
+             and not w["overall"].get("unreadable")]  # a Σ w·P over some nodes only is not the plan's
+    res["old_measured_after"] = (round(sum(w["overall"]["measured"] for w in after) / len(after), 4)
+                                 if after else None)
+    res["old_windows"] = len(after)
+    res["old_expected"] = plan.get("objective")
     return res
 
 

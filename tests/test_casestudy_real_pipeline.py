@@ -332,6 +332,45 @@ def test_rq4_recovery_is_never_a_window_that_could_not_read_some_node() -> None:
     assert rq4.recovery(ws[:1], log, 90.0, 80.0)["recover_s"] is None
 
 
+def test_rq4_old_plan_after_the_change_stops_where_the_re_plan_was_sent(tmp_path: Path) -> None:
+    """Both watchers watch one deploy: once the adapt watcher's re-plan is sent, the alone
+    watcher's windows measure the re-planned nodes against the old plan, so "the old plan
+    measured after the change" takes only the windows that began before it."""
+    import casestudy_rq4 as rq4
+
+    def w(t: float, measured: float, alarm: bool) -> dict[str, Any]:
+        return {"t": t, "seconds": 5.0, "overall": {"expected": 80.0, "measured": measured, "deviation_pct": 1.0},
+                "alarms": [{"node": "cam", "quantity": "rate_hz", "line": "alarm: node cam"}] if alarm else []}
+
+    (tmp_path / "alone").mkdir()
+    (tmp_path / "adapt").mkdir()
+    alone = [w(95.0, 80.0, False), w(100.0, 70.0, False), w(105.0, 60.0, True), w(110.0, 62.0, True),
+             w(115.0, 90.0, True), w(120.0, 95.0, True)]
+    (tmp_path / "alone" / "windows.jsonl").write_text("".join(json.dumps(x) + "\n" for x in alone))
+    (tmp_path / "adapt" / "windows.jsonl").write_text("".join(json.dumps(x) + "\n" for x in alone))
+    log = {"t": 109.0, "asked_t": 105.5, "applied": "sent", "changes": ["cam: moved"], "objective_before": 80.0,
+           "objective_after": 66.0}
+    (tmp_path / "adapt" / "adapt.jsonl").write_text(json.dumps(log) + "\n")
+    res = rq4.analyse({"t_change": 98.0, "t_until": 200.0}, tmp_path, {"objective": 80.0})
+    assert res["alone"]["t"] == 105.0 and res["adapt"]["replan_t"] == 109.0
+    # 105 and 110 (began at 105 < 109) measured the old plan; 115 and 120 the re-planned one
+    assert res["old_windows"] == 2 and res["old_measured_after"] == (60.0 + 62.0) / 2
+    assert rq4.goals(res)["not_worse"] is True  # 66 predicted >= 61 measured
+    (tmp_path / "adapt" / "adapt.jsonl").write_text("")  # no re-plan: every window from the detection on
+    res = rq4.analyse({"t_change": 98.0, "t_until": 200.0}, tmp_path, {"objective": 80.0})
+    assert res["old_windows"] == 4 and res["old_measured_after"] == (60.0 + 62.0 + 90.0 + 95.0) / 4
+    # two passes (the alone watcher in a deployment of its own, nothing re-planning it): every
+    # window from its own detection on, on its own clock, whatever the adapt pass did
+    (tmp_path / "adapt" / "adapt.jsonl").write_text(json.dumps(log) + "\n")
+    alone2 = [w(1000.0 + x["t"], x["overall"]["measured"], bool(x["alarms"])) for x in alone]
+    (tmp_path / "alone" / "windows.jsonl").write_text("".join(json.dumps(x) + "\n" for x in alone2))
+    res = rq4.analyse({"t_change": 98.0, "t_until": 200.0, "alone_t_change": 1098.0, "alone_t_until": 1200.0},
+                      tmp_path, {"objective": 80.0})
+    assert res["alone"]["t"] == 1105.0 and res["alone"]["windows"] == 2
+    assert res["old_windows"] == 4 and res["old_measured_after"] == (60.0 + 62.0 + 90.0 + 95.0) / 4
+    assert res["adapt"]["replan_t"] == 109.0 and rq4.goals(res)["not_worse"] is False  # 66 < 76.75
+
+
 class _FakeHost:
     """A host whose speed follows a list, one reading per measure(); time moves only by sleep()."""
 
