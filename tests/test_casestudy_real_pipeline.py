@@ -371,6 +371,26 @@ def test_rq4_old_plan_after_the_change_stops_where_the_re_plan_was_sent(tmp_path
     assert res["adapt"]["replan_t"] == 109.0 and rq4.goals(res)["not_worse"] is False  # 66 < 76.75
 
 
+def test_rq4_the_old_plan_under_the_operator_s_rate_is_judged_against_the_rates_it_then_runs() -> None:
+    """Eq 10 against the operator plan (the camera at its new rate and the rates it gives the
+    nodes it drives), not against the old plan's: a detector kept up at 7.5 Hz is its setting's
+    performance, not 1.5 times it."""
+    import casestudy_rq4 as rq4
+
+    def node(w: float, p: float, hz: float) -> dict[str, Any]:
+        return {"weight": w, "performance": p, "topics": {"/x": {"frequency_hz": hz}, "/y": {"frequency_hz": None}}}
+
+    old = {"nodes": {"cam": node(0.25, 60.0, 5.0), "det": node(0.5, 80.0, 5.0), "lone": {"weight": 0.25,
+                                                                                        "performance": 100.0}}}
+    op = {"nodes": {"cam": node(0.25, 90.0, 7.5), "det": node(0.5, 80.0, 7.5), "lone": old["nodes"]["lone"]}}
+    window = {"nodes": {"cam": {"measured_hz": 7.5}, "det": {"measured_hz": 6.0}}}
+    # against the old plan: the camera 60 x 1.5, the detector 80 x 1.2 (credited for frames
+    # it was never planned to get); against the operator plan: 90 x 1, 80 x 0.8
+    assert rq4.against(old, window) == 0.25 * 90.0 + 0.5 * 96.0 + 25.0
+    assert rq4.against(op, window) == 0.25 * 90.0 + 0.5 * 64.0 + 25.0
+    assert rq4.against(op, {"nodes": {"cam": {"measured_hz": 7.5}}}) is None  # the detector unread
+
+
 class _FakeHost:
     """A host whose speed follows a list, one reading per measure(); time moves only by sleep()."""
 
