@@ -507,6 +507,9 @@ def test_sigint_to_the_process_that_made_them_removes_everything() -> None:
         if proc.poll() is None:
             proc.kill()
             proc.wait()
+            # the child cannot clean up after SIGKILL: a failed assertion above must not leave
+            # its namespaces to the next run (CI's failure on 2026-11-28 left three)
+            remove_leftover_namespaces(run_id)
     deadline = time.monotonic() + 5
     while psutil.pid_exists(int(pid)) and time.monotonic() < deadline:
         time.sleep(0.05)
