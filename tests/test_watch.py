@@ -210,6 +210,34 @@ def test_other_processes_taking_more_than_the_plan_left_free_drift_and_persist()
     assert out["line"].startswith("alarm: computer robot2: other processes take 17.7 CPU units")
 
 
+def test_a_window_that_mixes_two_settings_characterises_neither_and_rows_carry_the_running_value() -> None:
+    """RQ4's camera (10:08): the window in which the operator's camera restarted gave the
+    detector 7.5 Hz out over an input read at 0.67 Hz, a refit out_per_in of 11, and the re-plan
+    planned it at 83.9 Hz. Such a window is left out of the refit; a row records the value a
+    node runs at (the operator's), not the plan's."""
+    from perfros_bag.watch.loop import unsettled_window, window_rows
+
+    def doc(state: str = "running", alive: bool = True, pinned: dict[str, float] | None = None) -> dict[str, Any]:
+        d: dict[str, Any] = {"seconds": 5.0, "nodes": {
+            "camera": {"alive": alive, "state": state, "cpu": 3.0, "topics": {
+                "/camera/image": {"measured_hz": 7.5, "kBps": 750.0, "messages": 37}}},
+            "detector": {"alive": True, "state": "running", "cpu": 20.0, "topics": {
+                "/detector/found": {"measured_hz": 7.4, "kBps": 1.0, "messages": 37},
+                "/detector/debug": {"measured_hz": 7.4, "kBps": 1.0, "messages": 37}}}}}
+        if pinned:
+            d["pinned"] = pinned
+        return d
+
+    assert not unsettled_window(doc(), {}, {})
+    assert unsettled_window(doc(state="restarting"), {}, {})
+    assert unsettled_window(doc(alive=False), {}, {})
+    assert unsettled_window(doc(pinned={"camera": 7.5}), {"camera": 7.5}, {})  # the value changed in it
+    assert not unsettled_window(doc(pinned={"camera": 7.5}), {"camera": 7.5}, {"camera": 7.5})  # held since
+    rows = window_rows(3, doc(pinned={"camera": 7.5}), _plan(), {})
+    assert {r.node: r.value for r in rows} == {"camera": 7.5, "detector": 100.0}  # the plan says camera 10
+    assert {r.node: r.value for r in window_rows(3, doc(), _plan(), {})}["camera"] == 10.0
+
+
 # --------------------------------------------------------------------------- eq 10 per window
 
 

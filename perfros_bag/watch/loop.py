@@ -70,14 +70,25 @@ def _only(plan: Plan, nodes: list[str]) -> Plan:
     return replace(plan, nodes={n: pn for n, pn in plan.nodes.items() if n in nodes})
 
 
+def unsettled_window(doc: dict[str, Any], pinned: dict[str, Any], last_pinned: dict[str, Any]) -> bool:
+    """Does a window mix two settings, so that it characterises neither: a node in it was
+    restarting or dead, or a value running changed since the last window (``pinned``, the
+    operator's values, against ``last_pinned``)? Its rows are then left out of the refit."""
+    return (any(n.get("state") == "restarting" or not n.get("alive", True) for n in doc["nodes"].values())
+            or pinned != last_pinned)
+
+
 def window_rows(k: int, doc: dict[str, Any], plan: Plan, stats_types: dict[str, str]) -> list[Row]:
     """The window as characterisation rows (one per node and topic, recording ``watch-<k>``):
-    what ``fit`` and ``tune --base`` take, with the node's planned value as its setting."""
+    what ``fit`` and ``tune --base`` take, with the node's planned value as its setting, or
+    the value it runs at when an operator changed it (the window's ``pinned``)."""
     from perfros_bag.characterisation.csvfile import Row
 
     rows = []
+    running = doc.get("pinned") or {}
     for name, n in doc["nodes"].items():
         pn = plan.nodes[name]
+        value = running.get(name, pn.value)
         if not n.get("alive", True):
             continue
         input_hz = None
@@ -87,7 +98,7 @@ def window_rows(k: int, doc: dict[str, Any], plan: Plan, stats_types: dict[str, 
         for topic, tc in (n["topics"].items() or [(None, None)]):
             if tc is not None and tc["measured_hz"] is None:  # unreadable this window: no row
                 continue
-            rows.append(Row(f"watch-{k:05d}", name, pn.parameter, pn.value, topic,
+            rows.append(Row(f"watch-{k:05d}", name, pn.parameter, value, topic,
                             stats_types.get(topic or "") or None,
                             None if tc is None else int(tc["messages"]), float(doc["seconds"]),
                             None if tc is None else float(tc["measured_hz"]), None if tc is None else float(tc["kBps"]),
@@ -302,6 +313,10 @@ def _windows(observer: Observer, plan: Plan, system: System | None, live: Any, u
     for listener in listeners.values():
         listener.take()  # what came before the first window's start is not in it
     k = 0
+    # the values an operator set (a running value that differed from the plan watched when it was
+    # seen): every later re-plan keeps them, also once a re-plan's plan holds them itself
+    pins: dict[str, Any] = {}
+    last_pinned: dict[str, Any] = {}
     try:
         while windows is None or k < windows:
             end = before.t + window_s
@@ -359,10 +374,17 @@ def _windows(observer: Observer, plan: Plan, system: System | None, live: Any, u
             result.alarms += new
             result.windows = k
             # the window as characterisation rows, made once for the re-plan and --out (a
-            # transition window, a mix of two plans, characterises neither and raises nothing)
-            added = [] if transition or (outdir is None and not new) else window_rows(k, doc, plan, observer.types)
+            # transition window, a mix of two plans, characterises neither and raises nothing;
+            # nor does a window in which a node was restarting or dead, or a running value
+            # changed: its rates mix two settings, and a driven node's output over an input
+            # read while its publisher restarted is no ratio of its own)
+            unsettled = unsettled_window(doc, world.get("pinned") or {}, last_pinned)
+            last_pinned = dict(world.get("pinned") or {})
+            pins.update(last_pinned)  # an operator's value stays the operator's until changed again
+            added = [] if transition or unsettled or (outdir is None and not new) else window_rows(
+                k, doc, plan, observer.types)
             if new:  # a re-plan still being made takes these alarms' windows in its successor, if they last
-                replans.ask(plan, rows + added, new, k, world)
+                replans.ask(plan, rows + added, new, k, {**world, "pinned": dict(pins)} if pins else world)
             if on_window is not None:
                 on_window(doc, new)
             if outdir is not None:  # each window appended: a long watch writes each once
