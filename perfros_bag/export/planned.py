@@ -215,7 +215,7 @@ def _node(root: ET.Element, real: ResolvedNode, machine: str | None, params: Map
 def planned_launch_xml(plan: Plan, system: System | None, launch: LaunchFile, space: Space, *,
                        plan_path: str | None = None, env: Mapping[str, str] | None = None) -> str:
     """The user's launch file with the plan applied (see the module's doc)."""
-    from perfros_bag.sweep.deploy import plan_run, plan_standalone
+    from perfros_bag.sweep.deploy import plan_run
     from perfros_bag.sweep.nodelets import check_nodelets, check_plan_membership, standalone_nodelets
 
     plan.require_feasible(plan_path, "export")
@@ -229,7 +229,7 @@ def planned_launch_xml(plan: Plan, system: System | None, launch: LaunchFile, sp
     # its nodelets: each into a manager it starts, of a class its package exports, on its
     # manager's plan computer (the launch file fixes the membership) unless the plan runs it
     # standalone (membership: choose): then written as `nodelet standalone PKG/TYPE`
-    alone = plan_standalone(plan)
+    alone = plan.standalone
     nodelets = check_nodelets(real, launch.path, elsewhere=True)
     check_plan_membership(nodelets, {n: pn.computer for n, pn in plan.nodes.items()}, plan_path, alone)
     standalone = set(standalone_nodelets(nodelets, alone))

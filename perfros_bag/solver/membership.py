@@ -113,5 +113,5 @@ def solve_membership(system: System, problem: Problem, solve_one: Callable[[Syst
     elif bounds:
         best.bound = max(bounds) if problem == Problem.PERFORMANCE else min(bounds)
     best.extra["membership"] = {"freeable": list(names), "plans_solved": len(subsets),
-                                "standalone": sorted(n for n, pn in best.nodes.items() if pn.standalone)}
+                                "standalone": sorted(best.standalone)}
     return best

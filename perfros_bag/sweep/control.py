@@ -160,7 +160,7 @@ class Control:
 
     def _plan(self, restarter: Restarter, plan_path: str, entry: dict[str, Any]) -> dict[str, int]:
         from perfros_bag.rosrun.cgroups import computer_cores
-        from perfros_bag.sweep.deploy import plan_run, plan_standalone
+        from perfros_bag.sweep.deploy import plan_run
         from perfros_bag.sweep.nodelets import check_plan_membership, standalone_nodelets
         from perfros_bag.system.names import system_node_name
         from perfros_bag.system.planfile import load_plan
@@ -169,7 +169,7 @@ class Control:
         plan.require_feasible(plan_path, "apply")
         new_run = plan_run(plan, self.space, self.arg_defaults)
         new_where = {name: pn.computer for name, pn in plan.nodes.items()}
-        alone = plan_standalone(plan)
+        alone = plan.standalone
         check_plan_membership(self.nodelets, {**self.where, **new_where}, plan_path, alone)
         unknown = sorted({c for c in new_where.values() if c not in self.groups.dirs})
         if unknown:

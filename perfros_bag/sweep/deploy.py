@@ -71,11 +71,6 @@ def plan_run(plan: Plan, space: Space, arg_defaults: dict[str, str | None]) -> R
                {v.param: values[v.node] for v in space.vary if v.param is not None}, 1)
 
 
-def plan_standalone(plan: Plan) -> set[str]:
-    """The plan's nodes it runs in a process of their own (plan.json ``standalone: true``)."""
-    return {name for name, pn in plan.nodes.items() if pn.standalone}
-
-
 def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Path, out: str | Path, *,
            duration: float | None = None, units_per_core: float = 100.0, cap: bool = True,
            tolerance: float | None = None, interval: float = 0.5, net: bool = True,
@@ -112,7 +107,7 @@ def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Pat
     # exports, on its manager's plan computer (the launch file fixes the membership) unless
     # the plan runs it standalone (membership: choose): then as `nodelet standalone` on its own
     nodelets = checked_nodelets(launch, run.args, space.startup_timeout_s)
-    alone = plan_standalone(plan)
+    alone = plan.standalone
     check_plan_membership(nodelets, {name: pn.computer for name, pn in plan.nodes.items()}, plan_path, alone)
     run = replace(run, standalone=standalone_nodelets(nodelets, alone), keep_managers=True)
     cores = computer_cores(plan, units_per_core)

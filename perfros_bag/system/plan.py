@@ -123,6 +123,11 @@ class Plan:
         """The plan of an instance with no solution: no nodes, and why."""
         return cls(problem, method, Status.INFEASIBLE, None, None, solve_s, reason=reason, system=system)
 
+    @property
+    def standalone(self) -> set[str]:
+        """The nodes the plan runs in a process of their own (plan.json ``standalone: true``)."""
+        return {name for name, pn in self.nodes.items() if pn.standalone}
+
     def require_feasible(self, path: str | Path | None, purpose: str | None = None) -> None:
         """Raise :class:`~perfros_bag.errors.InfeasibleError` (naming ``path``, the reason
         and, e.g. "nothing to validate", ``purpose``) when the plan is infeasible."""

@@ -286,8 +286,7 @@ def check_against_system(plan: Plan, system: System, plan_path: str | Path | Non
         if pn.input != wanted:
             raise InputError(system.source, f"plan node {name!r} follows input {pn.input or 'none'}, the system's "
                                             f"follows {wanted or 'none'}: the plan was made from another system")
-    split = system.container_problem({n: p.computer for n, p in plan.nodes.items()},
-                                     [n for n, p in plan.nodes.items() if p.standalone])
+    split = system.container_problem({n: p.computer for n, p in plan.nodes.items()}, plan.standalone)
     if split is not None:
         raise InputError(plan_path, split)
 
