@@ -501,8 +501,9 @@ class _Replans:
 
     def take(self) -> dict[str, Any] | None:
         """The last re-plan applied since the previous call (earlier ones are in adapt.jsonl);
-        a refit child is warmed again for the next one."""
-        self.poll()
+        a refit child is warmed again for the next one. It does not poll: a refit that ends
+        after the window's counters were read is applied at the next :meth:`poll` and taken by
+        the next window, never by one that ended before it."""
         self._warm()
         done, self.done = self.done, []
         return done[-1] if done else None
