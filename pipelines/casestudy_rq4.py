@@ -426,14 +426,23 @@ def analyse(res: dict[str, Any], d: Path, plan: dict[str, Any]) -> dict[str, Any
     return res
 
 
+def kept_running(adapt: dict[str, Any]) -> bool:
+    """Whether --adapt's first re-plan after the change was not sent because it predicted
+    less than the running plan measured (watch/adapt.worse_than_running): the old plan ran on."""
+    return str(adapt.get("applied", "")).startswith("not sent") and "the running plan is kept" in adapt["applied"]
+
+
 def goals(r: dict[str, Any]) -> dict[str, bool | None]:
+    """Each goal of issue 30, per scenario. ``not_worse``: the plan --adapt leaves running
+    predicts at least what the old plan measured after the change; when --adapt kept the
+    old plan (its re-plan predicted less), nothing was made worse."""
     a = r.get("adapt") or {}
     new = a.get("objective_after")
     old = r.get("old_measured_after")
     return {"detect_alone": r["alone"]["windows"] is not None and r["alone"]["windows"] <= GOAL_DETECT_WINDOWS,
             "detect_adapt": a.get("windows") is not None and a["windows"] <= GOAL_DETECT_WINDOWS,
             "recover": a.get("recover_s") is not None and a["recover_s"] <= GOAL_RECOVER_S,
-            "not_worse": None if new is None or old is None else new >= old - 1e-9}
+            "not_worse": True if kept_running(a) else None if new is None or old is None else new >= old - 1e-9}
 
 
 def fmt(x: Any, nd: int = 1) -> str:
@@ -463,10 +472,13 @@ def table(results: dict[str, Any], started: str) -> list[str]:
         if r is None:
             continue
         al, ad = r["alone"], r["adapt"]
+        new_plan = (f"kept the running plan ({ad['applied']})" if kept_running(ad)
+                    else "; ".join(ad.get("changes") or []) or "-")
         state = "; ".join(al["state"][:3]) + (f" (+{len(al['state']) - 3})" if len(al["state"]) > 3 else "")
         lines.append(
             f"| {r['change']} | {fmt(al['detect_s'])} / {fmt(al['windows'])} | {state or '-'} "
-            f"| {fmt(ad['detect_s'])} / {fmt(ad['windows'])} | {'; '.join(ad.get('changes') or []) or '-'} "
+            f"| {fmt(ad['detect_s'])} / {fmt(ad['windows'])} "
+            f"| {new_plan} "
             f"| {fmt(ad.get('objective_before'), 4)} -> {fmt(ad.get('objective_after'), 4)} "
             f"| {fmt(r['old_measured_after'], 4)}"
             + (f" (judged against the operator's rates; that plan predicts {fmt(r['old_expected_operator'], 4)})"

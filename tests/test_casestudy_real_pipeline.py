@@ -369,6 +369,16 @@ def test_rq4_old_plan_after_the_change_stops_where_the_re_plan_was_sent(tmp_path
     assert res["alone"]["t"] == 1105.0 and res["alone"]["windows"] == 2
     assert res["old_windows"] == 4 and res["old_measured_after"] == (60.0 + 62.0 + 90.0 + 95.0) / 4
     assert res["adapt"]["replan_t"] == 109.0 and rq4.goals(res)["not_worse"] is False  # 66 < 76.75
+    # the same re-plan, held back by --adapt's guard (it predicted less than the running plan
+    # measured): the old plan ran on, nothing was made worse, and the table says it was kept
+    kept = {**log, "applied": "not sent: it predicts Σ w·P 66, below the 76 the running plan measured in "
+                              "window(s) 2-3: the running plan is kept"}
+    (tmp_path / "adapt" / "adapt.jsonl").write_text(json.dumps(kept) + "\n")
+    res = rq4.analyse({"t_change": 98.0, "t_until": 200.0, "alone_t_change": 1098.0, "alone_t_until": 1200.0},
+                      tmp_path, {"objective": 80.0})
+    assert rq4.kept_running(res["adapt"]) and rq4.goals(res)["not_worse"] is True
+    stale = {**log, "applied": "not sent: the plan in force changed while it was refitted (a -> b)"}
+    assert not rq4.kept_running({**res["adapt"], "applied": stale["applied"]})
 
 
 def test_rq4_the_old_plan_under_the_operator_s_rate_is_judged_against_the_rates_it_then_runs() -> None:

@@ -936,6 +936,10 @@ def test_windows_keep_coming_at_their_cadence_while_a_slow_refit_runs(fake: Fake
     assert all({"t", "nodes", "alarms"} <= set(d) for d in docs)
     first = result.replans[0]
     assert first["window"] == 2 and first["t"] - first["asked_t"] >= delay  # the refit did take its time
+    # the running plan's measure it was held against: windows 1 and 2, which raised the alarm
+    measured = [d["overall"]["measured"] for d in docs[:2]]
+    assert first["running"] == {"measured": pytest.approx(sum(measured) / 2), "windows": [1, 2]}
+    assert first["predicted_after"] >= first["running"]["measured"] and first["applied"].startswith("written")
     # meanwhile the loop went on: the windows that ended while the refit ran, one per `window` seconds
     during = [d for d in docs if first["asked_t"] < d["t"] < first["t"]]
     assert len(during) >= int(delay / window) - 2, [round(d["t"] - first["asked_t"], 2) for d in docs]
@@ -1204,6 +1208,65 @@ def test_a_re_plan_refitted_from_a_plan_no_longer_in_force_is_not_sent(fake: Fak
     taken = replans.take()
     assert taken is not None and taken["window"] == 3 and taken["applied"].startswith("sent")
     assert json.loads((dep / "control.json").read_text())["plan"] == str(tmp_path / "new-3.json")
+
+
+def test_a_re_plan_predicting_less_than_the_running_plan_measured_is_not_sent(fake: FakeRos, tmp_path: Path,
+                                                                           monkeypatch: pytest.MonkeyPatch) -> None:
+    """Issue 30: adapting never makes things worse. A finished refit (a real Pending, its
+    child ended, its result.json written) whose plan predicts a lower Σ w·P than the running
+    plan measured in the windows that raised the alarm is logged as not sent, warned of, not
+    taken by the windows, and writes no control.json; one predicting as much is sent."""
+    import perfros_bag.watch.refit as refit
+    from perfros_bag.fileio import atomic_write_json
+    from perfros_bag.sweep.livestate import read_live
+    from perfros_bag.watch.loop import _Replans
+
+    plan_path = _fake_plan(tmp_path)
+    dep = tmp_path / "deployed"
+    _fake_deploy(dep, fake, plan_path)
+    out = tmp_path / "watched"
+    out.mkdir()
+    adapter = Adapter(out, plan_path, deployment=dep)
+    predicted = {2: 79.0, 3: 80.0}
+
+    def start(_ad: Any, _p: Any, _r: Any, _al: Any, k: int, _w: Any, _s: Any = None) -> refit.Pending:
+        folder = out / f"replan-{k:05d}"
+        folder.mkdir()
+        atomic_write_json(folder / refit.RESULT, {"entry": {
+            "window": k, "why": ["alarm"], "plan": str(tmp_path / f"new-{k}.json"), "changes": ["camera: moved"],
+            "objective_before": 90.0, "objective_after": predicted[k], "predicted_after": predicted[k]}})
+        proc = subprocess.Popen([sys.executable, "-c", "pass"])
+        proc.wait()
+        return refit.Pending(adapter, k, folder, proc, time.time(), folder / refit.LOG)
+
+    monkeypatch.setattr(refit, "warm", lambda _a: None)
+    monkeypatch.setattr(refit, "start", start)
+    replans = _Replans(adapter, read_live(dep))
+    replans.ask(load_plan(plan_path), [], [{"line": "alarm"}], 2, {}, {"measured": 80.0, "windows": [1, 2]})
+    with pytest.warns(PerfrosWarning, match=r"window 2: re-plan not sent: it predicts Σ w·P 79, below the 80 "
+                                            r"the running plan measured in window\(s\) 1-2: the running plan is kept"):
+        replans.poll()
+    assert replans.take() is None and not (dep / "control.json").exists()
+    [logged] = [json.loads(line) for line in (out / "adapt.jsonl").read_text().splitlines()]
+    assert logged["applied"].startswith("not sent") and logged["running"] == {"measured": 80.0, "windows": [1, 2]}
+    replans.ask(load_plan(plan_path), [], [{"line": "alarm"}], 3, {}, {"measured": 80.0, "windows": [2, 3]})
+    replans.poll()
+    taken = replans.take()
+    assert taken is not None and taken["window"] == 3 and taken["applied"].startswith("sent")
+    assert json.loads((dep / "control.json").read_text())["plan"] == str(tmp_path / "new-3.json")
+
+
+def test_the_running_measure_is_the_mean_of_the_alarm_s_windows_or_nothing() -> None:
+    from perfros_bag.watch.adapt import worse_than_running
+    from perfros_bag.watch.loop import running_measure
+
+    assert running_measure([(4, 70.0), (5, 74.0)]) == {"measured": 72.0, "windows": [4, 5]}
+    assert running_measure([None, (5, 74.0)]) is None  # a window that could not say it (blind, pinned)
+    assert running_measure([]) is None
+    assert worse_than_running({"predicted_after": 71.9, "running": {"measured": 72.0, "windows": [4, 5]}})
+    assert worse_than_running({"predicted_after": 72.0, "running": {"measured": 72.0, "windows": [4, 5]}}) is None
+    assert worse_than_running({"predicted_after": 10.0}) is None  # nothing measured to compare with
+    assert worse_than_running({"running": {"measured": 72.0, "windows": [5]}}) is None  # an older refit's entry
 
 
 def test_a_chain_s_last_topic_is_subscribed_to_only_while_its_messages_are_small() -> None:

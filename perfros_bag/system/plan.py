@@ -124,6 +124,12 @@ class Plan:
         return cls(problem, method, Status.INFEASIBLE, None, None, solve_s, reason=reason, system=system)
 
     @property
+    def predicted_performance(self) -> float:
+        """Σ w·P over the plan's nodes at their planned values (what eq 10 expects of a run
+        of it; Problem 1's objective)."""
+        return sum(pn.weight * pn.performance for pn in self.nodes.values())
+
+    @property
     def standalone(self) -> set[str]:
         """The nodes the plan runs in a process of their own (plan.json ``standalone: true``)."""
         return {name for name, pn in self.nodes.items() if pn.standalone}

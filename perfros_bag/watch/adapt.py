@@ -90,6 +90,25 @@ def world_system(system: System, world: dict[str, Any]) -> System:
     return replace(system, links=new_links, computers=computers, nodes=tuple(nodes))
 
 
+def worse_than_running(entry: dict[str, Any]) -> str | None:
+    """Why a re-plan must not replace the running plan: it predicts a lower Σ w·P
+    (``predicted_after``) than the running plan measured in the windows that raised its
+    alarms (``running``: ``measured``, ``windows``). Adapting never makes things worse
+    (issue 30): the running plan is kept, the windows go on judging it. None when the
+    re-plan may go, or when there is nothing to compare (no measure: a window blind on a
+    node, or running an operator's values, which the watched plan does not predict)."""
+    running, after = entry.get("running"), entry.get("predicted_after")
+    if not isinstance(running, dict) or running.get("measured") is None or after is None:
+        return None
+    measured = float(running["measured"])
+    if after >= measured:
+        return None
+    ks = running.get("windows") or []
+    where = f"window(s) {ks[0]}-{ks[-1]}" if len(ks) > 1 else f"window {ks[0]}" if ks else "its last windows"
+    return (f"it predicts Σ w·P {after:.4g}, below the {measured:.4g} the running plan measured in {where}: "
+            "the running plan is kept")
+
+
 @dataclass
 class Adapter:
     out: Path
@@ -173,6 +192,7 @@ class Adapter:
             launch = str(folder / "planned.launch")
         return {"window": k, "why": [a["line"] for a in alarms], "plan": str(new_plan_path),
                 "launch": launch, "objective_before": plan.objective, "objective_after": new.objective,
+                "predicted_after": new.predicted_performance,
                 "headroom": headroom, "changes": changed, "refit_s": round(time.monotonic() - started, 2),
                 **({"world": world} if world else {})}
 
@@ -184,6 +204,8 @@ class Adapter:
 
         from perfros_bag.fileio import atomic_write_text, json_text
 
+        if stale is None:
+            stale = worse_than_running(entry)
         applied = "written (nothing restarted)" if stale is None else f"not sent: {stale}"
         if self.deployment is not None and entry["changes"] and stale is None:
             from perfros_bag.errors import InputError

@@ -14,7 +14,8 @@ import math
 import threading
 import time
 import warnings
-from collections.abc import Callable
+from collections import deque
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -317,6 +318,8 @@ def _windows(observer: Observer, plan: Plan, system: System | None, live: Any, u
     # seen): every later re-plan keeps them, also once a re-plan's plan holds them itself
     pins: dict[str, Any] = {}
     last_pinned: dict[str, Any] = {}
+    # (window, measured Σ w·P) of the last windows, as many as an alarm takes to be raised
+    measured: deque[tuple[int, float] | None] = deque(maxlen=persistence.persist)
     try:
         while windows is None or k < windows:
             end = before.t + window_s
@@ -335,6 +338,7 @@ def _windows(observer: Observer, plan: Plan, system: System | None, live: Any, u
             transition = replans.transition()
             if replan is not None:
                 persistence = type(persistence)(persistence.persist)  # the new plan's drifts count afresh
+                measured.clear()
                 result.replans.append(replan)
                 if replan["applied"].startswith("sent"):  # the deploy runs it now: watch it against that
                     from perfros_bag.system.planfile import load_plan
@@ -383,8 +387,12 @@ def _windows(observer: Observer, plan: Plan, system: System | None, live: Any, u
             pins.update(last_pinned)  # an operator's value stays the operator's until changed again
             added = [] if transition or unsettled or (outdir is None and not new) else window_rows(
                 k, doc, plan, observer.types)
+            # the running plan's Σ w·P as measured (None where a window cannot say it: blind on a
+            # node, or running an operator's values, which the watched plan does not predict)
+            measured.append(None if transition or blind or world.get("pinned") else (k, doc["overall"]["measured"]))
             if new:  # a re-plan still being made takes these alarms' windows in its successor, if they last
-                replans.ask(plan, rows + added, new, k, {**world, "pinned": dict(pins)} if pins else world)
+                replans.ask(plan, rows + added, new, k, {**world, "pinned": dict(pins)} if pins else world,
+                            running_measure(measured))
             if on_window is not None:
                 on_window(doc, new)
             if outdir is not None:  # each window appended: a long watch writes each once
@@ -441,7 +449,11 @@ class _Replans:
             except OSError as exc:  # a refit then starts its own child when asked
                 warnings.warn(f"--adapt: no refit process started ahead: {exc}", PerfrosWarning, stacklevel=2)
 
-    def ask(self, plan: Plan, rows: list[Row], alarms: list[dict[str, Any]], k: int, world: dict[str, Any]) -> None:
+    def ask(self, plan: Plan, rows: list[Row], alarms: list[dict[str, Any]], k: int, world: dict[str, Any],
+            running: dict[str, Any] | None = None) -> None:
+        """Start window ``k``'s re-plan (unless one is under way or awaited). ``running``: the
+        running plan's measured Σ w·P in the windows that raised ``alarms``; a re-plan
+        predicting less is logged, not sent."""
         if self.adapter is None or self.pending is not None or self.awaiting is not None:
             return
         from perfros_bag.watch.refit import start
@@ -451,6 +463,7 @@ class _Replans:
         self.asked_in_force = None if now is None else now.plan_in_force
         try:
             self.pending = start(self.adapter, plan, rows, alarms, k, world, standby)
+            self.pending.running = running
         except (OSError, PerfrosError) as exc:
             warnings.warn(f"--adapt: window {k}: no re-plan: {exc}", PerfrosWarning, stacklevel=2)
 
@@ -462,8 +475,8 @@ class _Replans:
             stale = self._stale()
             entry = self.pending.finish(stale)
             self.pending = None
-            if entry is not None and stale is not None:
-                warnings.warn(f"--adapt: window {entry['window']}: re-plan not sent: {stale}", PerfrosWarning,
+            if entry is not None and entry["applied"].startswith("not sent"):  # stale, or worse than running
+                warnings.warn(f"--adapt: window {entry['window']}: re-plan {entry['applied']}", PerfrosWarning,
                               stacklevel=2)
             elif entry is not None:
                 self.done.append(entry)
@@ -525,6 +538,16 @@ class _Replans:
         if self.standby is not None:
             end(self.standby)
             self.standby = None
+
+
+def running_measure(measured: Iterable[tuple[int, float] | None]) -> dict[str, Any] | None:
+    """The running plan's measured Σ w·P over the windows that raised an alarm (the last
+    ``persist`` windows): their mean, and which windows; None when one of them cannot say it."""
+    got = list(measured)
+    if not got or any(m is None for m in got):
+        return None
+    pairs = [m for m in got if m is not None]
+    return {"measured": sum(x for _, x in pairs) / len(pairs), "windows": [k for k, _ in pairs]}
 
 
 def _live_now(live: Any) -> Any:

@@ -54,6 +54,9 @@ class Pending:
     proc: subprocess.Popen[bytes]
     started: float  # time.time() when it was asked for
     log: Path  # the child's output
+    #: the running plan's measured Σ w·P in the windows that asked for it (``measured``,
+    #: ``windows``), which the re-plan must not predict below (:func:`~perfros_bag.watch.adapt.worse_than_running`)
+    running: dict[str, Any] | None = None
 
     def poll(self) -> bool:
         """Whether the child has ended."""
@@ -83,7 +86,8 @@ class Pending:
             warnings.warn(f"--adapt: window {self.window}: no re-plan: {answer.get('error')}", PerfrosWarning,
                           stacklevel=2)
             return None
-        return self.adapter.apply({**answer["entry"], "asked_t": self.started}, stale=stale)
+        running = {"running": self.running} if self.running is not None else {}
+        return self.adapter.apply({**answer["entry"], "asked_t": self.started, **running}, stale=stale)
 
     def cancel(self) -> None:
         """End the child if it still runs (and reap it)."""
