@@ -4,7 +4,10 @@ from __future__ import annotations
 
 import os
 import signal
+import subprocess
+import time
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -59,3 +62,18 @@ def assert_same_stats(a: object, b: object) -> None:
         assert x.times_ns.dtype == y.times_ns.dtype and np.array_equal(x.times_ns, y.times_ns), name
         assert (x.frequency_hz, x.median_rate_hz, x.p95_gap_s) == \
                (y.frequency_hz, y.median_rate_hz, y.p95_gap_s)
+
+
+def communicate_or_stacks(proc: subprocess.Popen[Any], timeout: float) -> tuple[Any, Any]:
+    """``proc.communicate(timeout)``; when ``proc`` (a ``perfros-bag`` process) has not ended by
+    then, fail with where it waits: SIGUSR1 makes it print every thread's stack
+    (perfros_bag/entry.py), then it is killed and the test fails with that stderr's end."""
+    try:
+        return proc.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        proc.send_signal(signal.SIGUSR1)
+        time.sleep(1.0)
+        proc.kill()
+        _, err = proc.communicate()
+        text = err.decode(errors="replace") if isinstance(err, bytes) else str(err or "")
+        pytest.fail(f"{proc.args!r} did not end within {timeout:g} s; its stderr ends:\n{text[-8000:]}")

@@ -21,6 +21,7 @@ from pathlib import Path
 
 import psutil
 import pytest
+from conftest import communicate_or_stacks
 
 from perfros_bag.rosrun.cgroups import CpuGroups, leftover_groups
 from perfros_bag.rosrun.processes import leftover_processes
@@ -163,7 +164,7 @@ def test_ctrl_c_stops_everything(instance1: tuple[Path, Path], tmp_path: Path) -
     # the run made its cgroups exactly when this machine lets a process join a capped group
     assert bool(leftover_groups(run_id=run_id)) == _cgroups_work()
     proc.send_signal(signal.SIGINT)
-    _, stderr = proc.communicate(timeout=40)
+    _, stderr = communicate_or_stacks(proc, 40)
     assert proc.returncode == 130, stderr
     assert "Traceback" not in stderr
     _nothing_left(run_id, port)

@@ -207,6 +207,29 @@ def _wait_for_recording(out: Path, rec: subprocess.Popen[bytes], timeout: float 
         time.sleep(0.05)
 
 
+def test_sigusr1_prints_where_a_running_verb_waits_and_the_run_goes_on(tmp_path: Path) -> None:
+    """``kill -USR1`` on a perfros-bag process (the Ctrl-C tests send it to a run that does not
+    end in time, tests/conftest.py ``communicate_or_stacks``): every thread's stack on stderr,
+    record-cpu's sampling loop among them, and the run goes on and still ends on Ctrl-C."""
+    out = tmp_path / "idle.cpu.csv"
+    rec = subprocess.Popen([str(BIN), "record-cpu", "--match", f"nothing-{uuid.uuid4().hex}", "--interval", "0.2",
+                            "--out", str(out), "--quiet"], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        _wait_for_recording(out, rec)
+        rec.send_signal(signal.SIGUSR1)
+        time.sleep(1.0)
+        assert rec.poll() is None  # a stack dump, not an end
+        rec.send_signal(signal.SIGINT)
+        _, stderr = rec.communicate(timeout=60)
+    finally:
+        if rec.poll() is None:
+            rec.kill()
+    text = stderr.decode(errors="replace")
+    assert rec.returncode == 0, text
+    assert "most recent call first" in text and "perfros_bag" in text and "record" in text, text
+    assert out.is_file()
+
+
 def test_record_cpu_measures_a_half_busy_process(tmp_path: Path) -> None:
     """A 50 % duty-cycle process started after the recorder: the recorder picks it up, and
     its mean CPU % equals psutil's own cpu_times over the same window (the reference)."""

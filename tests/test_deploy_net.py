@@ -24,6 +24,7 @@ from typing import Any
 import psutil
 import pytest
 import yaml
+from conftest import communicate_or_stacks
 
 from perfros_bag.rosrun.cgroups import leftover_groups
 from perfros_bag.rosrun.network import leftover_namespaces
@@ -209,7 +210,7 @@ def test_ctrl_c_during_a_networked_deploy_leaves_nothing(deployed: dict[str, Any
                 if "PERFROS_CASESTUDY_RUN" in env and env.get("ROS_HOME", "").startswith(str(run))}
         assert len(tags) == 1
         proc.send_signal(signal.SIGINT)
-        _, stderr = proc.communicate(timeout=60)
+        _, stderr = communicate_or_stacks(proc, 60)
     finally:
         if proc.poll() is None:
             proc.kill()

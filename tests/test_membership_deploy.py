@@ -22,6 +22,7 @@ from typing import Any
 
 import pytest
 import yaml
+from conftest import communicate_or_stacks
 
 from perfros_bag.system.planfile import load_plan
 from tests.conftest import FIXTURES
@@ -147,7 +148,7 @@ def test_deploy_runs_a_standalone_nodelet_on_its_own_computer(tmp_path: Path) ->
         seen = _seen_while_running(out / "live.json", proc)
         write_control(out, None, tmp_path / "smaller.json", ["test"])
         again = _seen_while_running(out / "live.json", proc, restarted=("/smooth", seen["/smooth"]["pid"]))
-        _, stderr = proc.communicate(timeout=300)
+        _, stderr = communicate_or_stacks(proc, 300)
     assert proc.returncode in (0, 1), stderr  # 1: the validation did not hold (judged below, not here)
     assert not [x for x in stderr.splitlines() if x.startswith("error")], stderr
     # the smoother: `nodelet standalone` in the robot's cgroup and namespace, no manager named

@@ -27,6 +27,7 @@ from typing import Any
 import psutil
 import pytest
 import yaml
+from conftest import communicate_or_stacks
 
 from perfros_bag.characterisation.manifest import load_manifest
 from perfros_bag.cpu.trace import read_cpu_trace
@@ -154,7 +155,7 @@ def kill_mid_recording(proc: subprocess.Popen[str], out: Path, program: str,
         victims = _running(out, program)
         assert len(victims) == 1
         victims[0].kill()
-        _, stderr = proc.communicate(timeout=60)
+        _, stderr = communicate_or_stacks(proc, 60)
     finally:
         if proc.poll() is None:
             proc.kill()
@@ -167,7 +168,7 @@ def kill_mid_recording(proc: subprocess.Popen[str], out: Path, program: str,
 def interrupt(proc: subprocess.Popen[str]) -> str:
     """Ctrl-C a running ``sweep``: it ends with 130 and says so, no traceback; its stderr."""
     proc.send_signal(signal.SIGINT)
-    _, stderr = proc.communicate(timeout=60)
+    _, stderr = communicate_or_stacks(proc, 60)
     assert proc.returncode == 130, stderr
     assert "Traceback" not in stderr and "interrupted" in stderr
     return stderr

@@ -25,6 +25,7 @@ from typing import Any
 
 import pytest
 import yaml
+from conftest import communicate_or_stacks
 
 from perfros_bag.rosrun.cgroups import leftover_groups
 from perfros_bag.rosrun.network import leftover_namespaces
@@ -237,7 +238,7 @@ def _disturb_round_2(tuned: dict[str, Any], tmp_path: Path, ready: str, what: st
         tags, ports = _tags_and_ports(out)
         assert len(tags) == 1
         act(proc)
-        _, stderr = proc.communicate(timeout=60)
+        _, stderr = communicate_or_stacks(proc, 60)
     finally:
         if proc.poll() is None:
             proc.kill()

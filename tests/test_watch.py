@@ -27,6 +27,7 @@ from xmlrpc.server import SimpleXMLRPCServer
 
 import pytest
 import yaml
+from conftest import communicate_or_stacks
 
 from perfros_bag.characterisation.csvfile import Row, read_characterisation, write_characterisation
 from perfros_bag.errors import InputError, PerfrosWarning
@@ -745,7 +746,7 @@ def test_ctrl_c_ends_the_watch_with_its_alarm_status_and_stops_nothing(fake: Fak
     assert proc.stdout is not None
     json.loads(proc.stdout.readline())  # one window, then Ctrl-C
     proc.send_signal(signal.SIGINT)
-    _, stderr = proc.communicate(timeout=30)
+    _, stderr = communicate_or_stacks(proc, 30)
     assert proc.returncode == 0, stderr
     assert "watch ended: interrupted" in stderr and "Traceback" not in stderr
     assert set(fake.servers) == {"/camera", "/detector", "master"}  # every node still answers
@@ -985,7 +986,7 @@ def test_ctrl_c_during_a_refit_ends_the_refit_too_and_applies_nothing(fake: Fake
         assert [d["window"] for d in later] == list(range(later[0]["window"], later[0]["window"] + 3))
         assert child.is_running()
         proc.send_signal(signal.SIGINT)
-        _, stderr = proc.communicate(timeout=30)
+        _, stderr = communicate_or_stacks(proc, 30)
     finally:
         if proc.poll() is None:
             proc.kill()
