@@ -169,6 +169,10 @@ class Control:
         plan.require_feasible(plan_path, "apply")
         new_run = plan_run(plan, self.space, self.arg_defaults)
         new_where = {name: pn.computer for name, pn in plan.nodes.items()}
+        dropped = sorted(set(self.where) - set(new_where))
+        if dropped:  # each running node needs the new plan's computer (and value): refused, the old plan runs on
+            raise PerfrosError(f"{plan_path}: node(s) {', '.join(dropped)} of the plan in force are not in it: "
+                               "a new plan must place every node the deploy runs")
         alone = plan.standalone
         check_plan_membership(self.nodelets, {**self.where, **new_where}, plan_path, alone)
         unknown = sorted({c for c in new_where.values() if c not in self.groups.dirs})
