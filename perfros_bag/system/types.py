@@ -229,11 +229,17 @@ def driven_rates(setting: Setting, input_hz: float) -> tuple[float, float, float
         out = out / period_steps(out, cap) if cap > 0 else 0.0
     elif cap is not None:
         out = min(out, cap)
-    size = setting.bytes_per_msg
-    if size is None:
-        f, bw = setting.frequency_hz, setting.bandwidth_kBps
-        size = bw * 1000.0 / f if f and bw is not None else 0.0
-    return cpu, out, size * out / 1000.0
+    size = _setting_bytes_per_msg(setting)
+    return cpu, out, (0.0 if size is None else size) * out / 1000.0
+
+
+def _setting_bytes_per_msg(setting: Setting) -> float | None:
+    """Bytes per output message of ``setting`` (all its topics): its ``bytes_per_msg``, else
+    its measured ``bandwidth_kBps`` over its ``frequency_hz``; None when neither is known."""
+    if setting.bytes_per_msg is not None:
+        return setting.bytes_per_msg
+    f, bw = setting.frequency_hz, setting.bandwidth_kBps
+    return bw * 1000.0 / f if f and bw is not None else None
 
 
 @dataclass(frozen=True)
@@ -883,13 +889,7 @@ class System:
 
     def edge_bandwidth(self, edge: Edge, publisher_choice: Choice) -> float:
         """kB/s an edge carries when its publisher runs at ``publisher_choice``."""
-        if edge.bandwidth_kBps is not None:
-            return edge.bandwidth_kBps
-        if edge.topic is not None and edge.topic in publisher_choice.topics:
-            bw = publisher_choice.topics[edge.topic].bandwidth_kBps
-            if bw is not None:
-                return bw
-        return publisher_choice.bandwidth_kBps or 0.0
+        return _edge_kBps(edge, publisher_choice)
 
     # ---- the model's rules on a placement (every solver, the plan and the validation use
     # these; solver/check.py keeps its own independent copy) ------------------------------
@@ -989,21 +989,18 @@ def _bytes_per_msg(setting: Setting, topic: str) -> float | None:
     rate = setting.topics.get(topic)
     if rate is not None and rate.bandwidth_kBps is not None and rate.frequency_hz:
         return rate.bandwidth_kBps * 1000.0 / rate.frequency_hz
-    if setting.bytes_per_msg is not None:
-        return setting.bytes_per_msg
-    if setting.bandwidth_kBps is not None and setting.frequency_hz:
-        return setting.bandwidth_kBps * 1000.0 / setting.frequency_hz
-    return None
+    return _setting_bytes_per_msg(setting)
 
 
-def _edge_kBps(edge: Edge, setting: Setting) -> float:
-    """kB/s ``edge`` carries at its publisher's ``setting`` (as :meth:`System.edge_bandwidth`)."""
+def _edge_kBps(edge: Edge, publisher: Setting | Choice) -> float:
+    """kB/s ``edge`` carries when its publisher runs at ``publisher`` (a setting or a
+    solver's choice): the edge's own bandwidth, else its topic's, else the publisher's."""
     if edge.bandwidth_kBps is not None:
         return edge.bandwidth_kBps
-    rate = setting.topics.get(edge.topic) if edge.topic is not None else None
+    rate = publisher.topics.get(edge.topic) if edge.topic is not None else None
     if rate is not None and rate.bandwidth_kBps is not None:
         return rate.bandwidth_kBps
-    return setting.bandwidth_kBps or 0.0
+    return publisher.bandwidth_kBps or 0.0
 
 
 def _exceeds(load: float, limit: float, tol: float) -> bool:
