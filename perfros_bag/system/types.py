@@ -548,6 +548,9 @@ class System:
     #: its computer) or "choose" (a plan may run a hosted node standalone: the solvers solve
     #: each :meth:`freed` variant and keep the best, perfros_bag.solver.membership)
     membership: str = "keep"
+    #: set by :meth:`freed`: each node it ran standalone -> the copy charge it put on it
+    #: (:meth:`copy_charge`: CPU units per input message per second, CPU units)
+    charged: dict[str, tuple[float, float]] = field(default_factory=dict)
 
     @cached_property
     def computer(self) -> dict[str, Computer]:
@@ -640,22 +643,22 @@ class System:
         out of their container (so out of its coresidence group), paying
         :meth:`copy_charge`: a driven node in each setting's CPU per input message, another
         in its ``copy_cpu``. Membership ``keep`` for the rest: every solver solves such a
-        system as it is."""
-        out = set(names)
-        charge = {n: self.copy_charge(n) for n in out}
-        missing = sorted(n for n, c in charge.items() if c is None)
+        system as it is; its :attr:`charged` holds each freed node's charge."""
+        charge = {n: self.copy_charge(n) for n in set(names)}
+        charged = {n: c for n, c in charge.items() if c is not None}
+        missing = sorted(set(charge) - set(charged))
         if missing:
             raise ValueError(f"nodes {missing} cannot run standalone (no container or no copy price)")
 
         def leave(n: Node) -> Node:
-            per_hz, fixed = charge[n.name] or (0.0, 0.0)
+            per_hz, fixed = charged[n.name]
             if n.input is None:
                 return replace(n, container=None, copy_cpu=fixed)
             return replace(n, container=None,
                            settings=tuple(replace(s, cpu_per_hz=(s.cpu_per_hz or 0.0) + per_hz) for s in n.settings))
 
-        nodes = tuple(leave(n) if n.name in out else n for n in self.nodes)
-        return replace(self, nodes=nodes, membership="keep")
+        nodes = tuple(leave(n) if n.name in charged else n for n in self.nodes)
+        return replace(self, nodes=nodes, membership="keep", charged={**self.charged, **charged})
 
     @cached_property
     def coresidence_groups(self) -> list[tuple[str, ...]]:
