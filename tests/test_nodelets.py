@@ -88,6 +88,28 @@ def test_standalone_argv() -> None:
         standalone_argv(["/usr/lib/nodelet/nodelet", "manager"])
 
 
+def test_a_standalone_mark_on_a_node_the_launch_file_runs_plainly_is_a_warning() -> None:
+    """plan.json ``standalone: true`` on the camera, which the launch file starts as a node of
+    its own (no ``nodelet load``): run as the file says, with one warning naming it; the marked
+    nodelet still runs standalone, and no mark or only nodelets marked is no warning."""
+    import warnings
+
+    from perfros_bag.errors import PerfrosWarning
+    from perfros_bag.sweep.nodelets import standalone_nodelets
+
+    nodelets = nodelets_of(_resolved())
+    loads = [n.name for n in _resolved().nodes if n.args.startswith("load ")]  # read off the launch file here
+    with pytest.warns(PerfrosWarning) as caught:
+        assert standalone_nodelets(nodelets, {"camera", "smooth"}, "x.launch") == ("/smooth",)
+    (message,) = [str(w.message) for w in caught]
+    assert message.startswith("x.launch: node(s) camera: the plan runs them standalone, but the launch file does "
+                              "not load them as nodelets") and "smooth" not in message and "camera" not in loads
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert standalone_nodelets(nodelets, set(loads), "x.launch") == ("/people", "/smooth")
+        assert standalone_nodelets(nodelets, set(), "x.launch") == ()
+
+
 # --------------------------------------------------------------------------- the split
 
 
