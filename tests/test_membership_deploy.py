@@ -379,3 +379,30 @@ def test_export_warns_of_a_standalone_mark_on_a_node_the_launch_file_runs_plainl
     assert (camera.get("pkg"), camera.get("type")) == (user["camera"].get("pkg"), user["camera"].get("type"))
     assert camera.get("machine") == "robot" and "standalone" not in (camera.get("args") or "")
     assert (planned["smooth"].get("args") or "").split()[0] == "standalone"
+
+
+@pytest.mark.ros
+def test_plain_export_types_an_int_setting_as_roslaunch_types_the_users_file(tmp_path: Path) -> None:
+    """The plan holds the smoother's kernel_size as 13.0 and system.yaml gives its parameter
+    no type. Debian's roslaunch, reading the user's own file at that value, makes it an int;
+    it must read the plain export (--format roslaunch, no --launch) and the planned one
+    (--launch) into that same int, not the double 13.0 a node reading an int cannot take."""
+    _require_ros()
+    system, plan = _solved(tmp_path)
+    value = load_plan(plan).nodes["smooth"].value
+    assert value is not None and float(value).is_integer()
+    own = yaml.safe_load(subprocess.run(["roslaunch", "--dump-params", str(LAUNCH), f"kernel_size:={value:g}"],
+                                        capture_output=True, text=True, timeout=120, check=True).stdout)
+    assert type(own["/smooth/kernel_size"]) is int
+    done = _cli("export", str(plan), "--format", "roslaunch", "--system", str(system), "--out",
+                str(tmp_path / "plain.launch"))
+    assert done.returncode == 0, done.stderr
+    done = _cli("export", str(plan), "--format", "roslaunch", "--launch", str(LAUNCH), "--space",
+                str(_space(tmp_path / "space.yaml")), "--system", str(system), "--out",
+                str(tmp_path / "planned.launch"))
+    assert done.returncode == 0, done.stderr
+    for out in ("plain.launch", "planned.launch"):
+        params = yaml.safe_load(subprocess.run(["roslaunch", "--dump-params", str(tmp_path / out)], capture_output=True,
+                                               text=True, timeout=120, check=True).stdout)
+        got = params["/smooth/kernel_size"]
+        assert type(got) is int and got == own["/smooth/kernel_size"], (out, got)

@@ -264,7 +264,9 @@ class Choice:
 class Parameter:
     name: str
     unit: str | None = None
-    type: Literal["int", "float"] = "float"
+    #: system.yaml ``parameter.type``; None when it does not say (the model treats that as
+    #: ``float``; export writes such a value as an int when it is integral, as without a system)
+    type: Literal["int", "float"] | None = None
 
 
 class Aggregate(StrEnum):
