@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import signal
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -59,3 +60,22 @@ def assert_same_stats(a: object, b: object) -> None:
         assert x.times_ns.dtype == y.times_ns.dtype and np.array_equal(x.times_ns, y.times_ns), name
         assert (x.frequency_hz, x.median_rate_hz, x.p95_gap_s) == \
                (y.frequency_hz, y.median_rate_hz, y.p95_gap_s)
+
+
+def fake_control_run(tmp_path: Path, computers: tuple[str, ...], nodes: tuple[str, ...]) -> tuple[Any, Any, list[str]]:
+    """What a deploy's :class:`~perfros_bag.sweep.control.Control` acts on, without ROS: a
+    restarter whose ``restart_many`` records the ROS nodes it is asked to restart (in the
+    returned list), and the computers' CPU groups as folders under ``tmp_path``."""
+    from types import SimpleNamespace
+
+    from perfros_bag.rosrun.cgroups import CpuGroups
+
+    calls: list[str] = []
+    restarter = SimpleNamespace(watch=SimpleNamespace(pids={f"/{n}": (1, 0.0) for n in nodes}),
+                                restart_many=lambda batch, standalone=frozenset(): {b[0]: calls.append(b[0]) or 100
+                                                                                    for b in batch})
+    groups = CpuGroups("t", dict.fromkeys(computers, 1.0), root=tmp_path)
+    for c in computers:
+        (tmp_path / c).mkdir()
+        groups.dirs[c] = tmp_path / c
+    return restarter, groups, calls

@@ -809,12 +809,10 @@ def test_a_re_plan_without_a_running_node_is_refused_and_the_old_plan_runs_on(tm
     """A new plan (control.json) that leaves out a node of the plan in force cannot say where
     or at what value that node runs: one warning naming the plan file and the node(s), nothing
     restarted, the caps untouched, the old plan still the one in force."""
-    from types import SimpleNamespace
-
-    from perfros_bag.rosrun.cgroups import CpuGroups
     from perfros_bag.sweep.control import Control, write_control
     from perfros_bag.sweep.deploy import plan_run
     from perfros_bag.sweep.space import load_space
+    from tests.conftest import fake_control_run
 
     root = Path(__file__).resolve().parents[1]
     space = load_space(root / "fixtures" / "app" / "space.yaml")
@@ -823,14 +821,7 @@ def test_a_re_plan_without_a_running_node_is_refused_and_the_old_plan_runs_on(tm
     nodes = {"camera": PlannedNode("robot1", 5.0, 50.0, 1.0, "publish_rate", 10),
              "detector": PlannedNode("server", 5.0, 50.0, 1.0, "canny_threshold", 200)}
     first = Plan(1, "exact", "optimal", computers=computers, nodes=nodes)
-    calls: list[str] = []
-    restarter = SimpleNamespace(watch=SimpleNamespace(pids={"/camera": (11, 0.0), "/detector": (12, 0.0)}),
-                                restart_many=lambda batch, standalone=frozenset(): {b[0]: calls.append(b[0]) or 100
-                                                                                    for b in batch})
-    groups = CpuGroups("t", {"robot1": 1.0, "server": 1.0}, root=tmp_path)
-    for c in ("robot1", "server"):
-        (tmp_path / c).mkdir()
-        groups.dirs[c] = tmp_path / c
+    restarter, groups, calls = fake_control_run(tmp_path, ("robot1", "server"), ("camera", "detector"))
     where = {n: pn.computer for n, pn in nodes.items()}
     control = Control(tmp_path, space, defaults, plan_run(first, space, defaults), dict(where), groups, 100.0, False,
                       plan_path="first.json")
