@@ -77,3 +77,22 @@ def communicate_or_stacks(proc: subprocess.Popen[Any], timeout: float) -> tuple[
         _, err = proc.communicate()
         text = err.decode(errors="replace") if isinstance(err, bytes) else str(err or "")
         pytest.fail(f"{proc.args!r} did not end within {timeout:g} s; its stderr ends:\n{text[-8000:]}")
+
+
+def fake_control_run(tmp_path: Path, computers: tuple[str, ...], nodes: tuple[str, ...]) -> tuple[Any, Any, list[str]]:
+    """What a deploy's :class:`~perfros_bag.sweep.control.Control` acts on, without ROS: a
+    restarter whose ``restart_many`` records the ROS nodes it is asked to restart (in the
+    returned list), and the computers' CPU groups as folders under ``tmp_path``."""
+    from types import SimpleNamespace
+
+    from perfros_bag.rosrun.cgroups import CpuGroups
+
+    calls: list[str] = []
+    restarter = SimpleNamespace(watch=SimpleNamespace(pids={f"/{n}": (1, 0.0) for n in nodes}),
+                                restart_many=lambda batch, standalone=frozenset(): {b[0]: calls.append(b[0]) or 100
+                                                                                    for b in batch})
+    groups = CpuGroups("t", dict.fromkeys(computers, 1.0), root=tmp_path)
+    for c in computers:
+        (tmp_path / c).mkdir()
+        groups.dirs[c] = tmp_path / c
+    return restarter, groups, calls

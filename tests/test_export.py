@@ -55,7 +55,7 @@ SYSTEM: dict[str, Any] = {
         {"name": "nav", "weight": 0.3, "parameter": {"name": "controller_frequency"},
          "launch": {"package": "move_base", "type": "move_base", "name": "move_base"},
          "settings": [{"value": 2, "cpu": 25, "performance": 10}, {"value": 20, "cpu": 50, "performance": 100}]},
-        {"name": TRACKER, "weight": 0.2, "parameter": {"name": "out_freq"},
+        {"name": TRACKER, "weight": 0.2, "parameter": {"name": "out_freq", "type": "float"},
          "launch": {"package": "pk-g", "type": "track.py"},
          "settings": [{"value": 10, "cpu": 80, "performance": 40}, {"value": 25, "cpu": 200, "performance": 100}]},
         {"name": "core", "weight": 0.1, "settings": [{"cpu": 16, "performance": 100}]},
@@ -110,6 +110,28 @@ def test_launch_with_system_fields_and_escaping(tmp_path: Path) -> None:
     # the system says float: 22.0 stays a double
     assert [(p.get("name"), p.get("value"), p.get("type")) for p in tracker.iter("param")] == [
         ("out_freq", "22.0", "double")]
+
+
+@pytest.mark.parametrize(("ptype", "value", "written"), [
+    (None, 13.0, 13), (None, 13.000000001, 13), (None, 12.5, 12.5),  # no type: as without a system
+    ("int", 12.6, 13), ("float", 13.0, 13.0),  # a stated type is kept
+])
+def test_a_parameter_without_a_type_is_written_as_without_a_system(ptype: str | None, value: float,
+                                                                   written: float) -> None:
+    """A kernel size the plan holds as 13.0, its system.yaml parameter without ``type``: the
+    launch file gets the int 13 (roslaunch's ``type="int"``), the ROS 2 file the YAML int; a
+    stated ``type`` decides. Read back with ElementTree and yaml.safe_load."""
+    data = json.loads(json.dumps(PLAN))
+    data["nodes"][TRACKER]["value"] = value
+    sys_data = json.loads(json.dumps(SYSTEM))
+    sys_data["nodes"][2]["parameter"] = {"name": "out_freq"} if ptype is None else {"name": "out_freq", "type": ptype}
+    p, s = parse_plan(data, "plan.json"), parse_system(sys_data, "system.yaml")
+    nodes = {n.get("name"): n for n in ET.fromstring(roslaunch_xml(p, s)).iter("node")}
+    (param,) = nodes[TRACKER].iter("param")
+    assert param.get("type") == ("int" if isinstance(written, int) else "double")
+    assert param.get("value") == str(written) and float(param.get("value") or "nan") == written
+    got = yaml.safe_load(ros2_params_yaml(p, s))[TRACKER]["ros__parameters"]["out_freq"]
+    assert got == written and type(got) is type(written)
 
 
 @pytest.mark.parametrize(("field", "value"), [

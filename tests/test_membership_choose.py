@@ -94,6 +94,33 @@ def test_the_copy_price_by_hand() -> None:
     assert still.node["smooth"].settings == parse_system(_not_driven(_doc()), "s.yaml").node["smooth"].settings
 
 
+def test_a_freed_system_carries_the_charges_it_put_on_its_nodes_and_restate_takes_them_back() -> None:
+    """``freed`` says what it charged each node it freed (the hand-computed copy price), and
+    ``restate`` takes exactly that off a freed node the plan leaves on its container's computer."""
+    from perfros_bag.solver.membership import restate
+    from perfros_bag.system.plan import Plan, PlannedComputer, PlannedNode
+
+    system = parse_system(_doc(), "s.yaml")
+    assert system.charged == {}
+    freed = system.freed(["people"])
+    assert freed.charged == {"people": pytest.approx((PRICE * FRAME / 1e6, 0.0))}
+    fixed = parse_system(_not_driven(_doc()), "s.yaml")
+    assert fixed.freed(["smooth"]).charged == {"smooth": pytest.approx((0.0, PRICE * 10 * FRAME / 1e6))}
+    with pytest.raises(ValueError, match=r"\['camera'\] cannot run standalone"):
+        system.freed(["people", "camera"])
+
+    def plan() -> Plan:  # people at 10 Hz of input with the manager on the robot
+        return Plan(1, "exact", "optimal", computers={"robot": PlannedComputer("robot", 100.0, 50.0)},
+                    nodes={"manager": PlannedNode("robot", 5.0, 50.0, 0.0), "people": PlannedNode(
+                        "robot", 20.0, 50.0, 1.0, input_hz=10.0)})
+
+    back = restate(system, freed, plan())
+    taken = PRICE * FRAME / 1e6 * 10.0
+    assert back.nodes["people"].cpu == pytest.approx(20.0 - taken) and not back.nodes["people"].standalone
+    assert back.computers["robot"].cpu == pytest.approx(50.0 - taken)
+    assert restate(system, system.freed([]), plan()).nodes["people"].cpu == 20.0
+
+
 def test_a_split_plan_beats_the_kept_membership_and_passes_the_checker(tmp_path: Path) -> None:
     """Neither computer holds the camera, the manager and both nodelets at their best; run
     apart they do: the detector standalone on the server (or the smoother), paying the copy."""

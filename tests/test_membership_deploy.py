@@ -353,3 +353,57 @@ def test_deploy_and_export_refuse_a_standalone_plan_under_keep(tmp_path: Path) -
         assert lines[0].startswith(f"error: {plan}: ") and "node smooth: standalone, but the system's membership " \
             "is keep" in lines[0], lines[0]
         assert not out.exists()
+
+
+@pytest.mark.ros
+def test_export_warns_of_a_standalone_mark_on_a_node_the_launch_file_runs_plainly(tmp_path: Path) -> None:
+    """export --launch of a plan marking the camera ``standalone``: the user's file starts the
+    camera as a node of its own (image_publisher, no ``nodelet load``), so it is written as that
+    file says, with a warning naming it; the smoother's mark still makes it `nodelet standalone`."""
+    from perfros_bag.system.plan import Plan, PlannedComputer, PlannedNode
+    from perfros_bag.system.planfile import save_plan
+
+    _require_ros()
+    where = {"camera": "robot", "vision_manager": "server", "people": "server", "smooth": "robot"}
+    nodes = {n: PlannedNode(c, 1.0, 100.0, 0.25) for n, c in where.items()}
+    nodes["camera"].standalone = nodes["smooth"].standalone = True
+    save_plan(Plan(1, "exact", "optimal", computers={c: PlannedComputer(c, 100.0, 2.0) for c in ("robot", "server")},
+                   nodes=nodes), tmp_path / "plan.json")
+    done = _cli("export", str(tmp_path / "plan.json"), "--format", "roslaunch", "--launch", str(LAUNCH), "--space",
+                str(_space(tmp_path / "space.yaml")), "--out", str(tmp_path / "planned.launch"))
+    assert done.returncode == 0, done.stderr
+    warned = [line for line in done.stderr.splitlines() if "standalone" in line]
+    assert len(warned) == 1 and "node(s) camera: the plan runs them standalone" in warned[0], done.stderr
+    assert "smooth" not in warned[0]
+    planned, user = _launch_nodes(tmp_path / "planned.launch"), _launch_nodes(LAUNCH)
+    camera = planned["camera"]
+    assert (camera.get("pkg"), camera.get("type")) == (user["camera"].get("pkg"), user["camera"].get("type"))
+    assert camera.get("machine") == "robot" and "standalone" not in (camera.get("args") or "")
+    assert (planned["smooth"].get("args") or "").split()[0] == "standalone"
+
+
+@pytest.mark.ros
+def test_plain_export_types_an_int_setting_as_roslaunch_types_the_users_file(tmp_path: Path) -> None:
+    """The plan holds the smoother's kernel_size as 13.0 and system.yaml gives its parameter
+    no type. Debian's roslaunch, reading the user's own file at that value, makes it an int;
+    it must read the plain export (--format roslaunch, no --launch) and the planned one
+    (--launch) into that same int, not the double 13.0 a node reading an int cannot take."""
+    _require_ros()
+    system, plan = _solved(tmp_path)
+    value = load_plan(plan).nodes["smooth"].value
+    assert value is not None and float(value).is_integer()
+    own = yaml.safe_load(subprocess.run(["roslaunch", "--dump-params", str(LAUNCH), f"kernel_size:={value:g}"],
+                                        capture_output=True, text=True, timeout=120, check=True).stdout)
+    assert type(own["/smooth/kernel_size"]) is int
+    done = _cli("export", str(plan), "--format", "roslaunch", "--system", str(system), "--out",
+                str(tmp_path / "plain.launch"))
+    assert done.returncode == 0, done.stderr
+    done = _cli("export", str(plan), "--format", "roslaunch", "--launch", str(LAUNCH), "--space",
+                str(_space(tmp_path / "space.yaml")), "--system", str(system), "--out",
+                str(tmp_path / "planned.launch"))
+    assert done.returncode == 0, done.stderr
+    for out in ("plain.launch", "planned.launch"):
+        params = yaml.safe_load(subprocess.run(["roslaunch", "--dump-params", str(tmp_path / out)], capture_output=True,
+                                               text=True, timeout=120, check=True).stdout)
+        got = params["/smooth/kernel_size"]
+        assert type(got) is int and got == own["/smooth/kernel_size"], (out, got)

@@ -88,6 +88,28 @@ def test_standalone_argv() -> None:
         standalone_argv(["/usr/lib/nodelet/nodelet", "manager"])
 
 
+def test_a_standalone_mark_on_a_node_the_launch_file_runs_plainly_is_a_warning() -> None:
+    """plan.json ``standalone: true`` on the camera, which the launch file starts as a node of
+    its own (no ``nodelet load``): run as the file says, with one warning naming it; the marked
+    nodelet still runs standalone, and no mark or only nodelets marked is no warning."""
+    import warnings
+
+    from perfros_bag.errors import PerfrosWarning
+    from perfros_bag.sweep.nodelets import standalone_nodelets
+
+    nodelets = nodelets_of(_resolved())
+    loads = [n.name for n in _resolved().nodes if n.args.startswith("load ")]  # read off the launch file here
+    with pytest.warns(PerfrosWarning) as caught:
+        assert standalone_nodelets(nodelets, {"camera", "smooth"}, "x.launch") == ("/smooth",)
+    (message,) = [str(w.message) for w in caught]
+    assert message.startswith("x.launch: node(s) camera: the plan runs them standalone, but the launch file does "
+                              "not load them as nodelets") and "smooth" not in message and "camera" not in loads
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert standalone_nodelets(nodelets, set(loads), "x.launch") == ("/people", "/smooth")
+        assert standalone_nodelets(nodelets, set(), "x.launch") == ()
+
+
 # --------------------------------------------------------------------------- the split
 
 
@@ -561,15 +583,14 @@ def test_a_replan_that_splits_a_nodelet_is_not_applied(tmp_path: Path) -> None:
     """deploy's control file: a new plan that moves a nodelet away from its manager (the
     launch file's membership) is a warning, and nothing is restarted."""
     import os
-    from types import SimpleNamespace
 
     from perfros_bag.errors import PerfrosWarning
-    from perfros_bag.rosrun.cgroups import CpuGroups
     from perfros_bag.sweep.control import Control, write_control
     from perfros_bag.sweep.deploy import plan_run
     from perfros_bag.sweep.space import load_space
     from perfros_bag.system.plan import Plan, PlannedComputer, PlannedNode
     from perfros_bag.system.planfile import save_plan
+    from tests.conftest import fake_control_run
 
     def plan(smooth_on: str) -> Plan:
         return Plan(1, "exact", "optimal", computers={"robot": PlannedComputer("robot", 100.0, 10.0),
@@ -577,15 +598,8 @@ def test_a_replan_that_splits_a_nodelet_is_not_applied(tmp_path: Path) -> None:
                     nodes={n: PlannedNode(smooth_on if n == "smooth" else ("robot" if n == "camera" else "server"),
                                           5.0, 50.0, 1.0) for n in ("camera", "vision_manager", "people", "smooth")})
 
-    calls: list[str] = []
-    restarter = SimpleNamespace(watch=SimpleNamespace(pids={f"/{n}": (1, 0.0) for n in ("camera", "people", "smooth",
-                                                                                        "vision_manager")}),
-                                restart_many=lambda batch, standalone=frozenset(): {b[0]: calls.append(b[0]) or 100
-                                                                          for b in batch})
-    groups = CpuGroups("t", {"robot": 1.0, "server": 1.0}, root=tmp_path)
-    for c in ("robot", "server"):
-        (tmp_path / c).mkdir()
-        groups.dirs[c] = tmp_path / c
+    restarter, groups, calls = fake_control_run(tmp_path, ("robot", "server"),
+                                                ("camera", "people", "smooth", "vision_manager"))
     where = {n: pn.computer for n, pn in plan("server").nodes.items()}
     space = load_space(Path(__file__).resolve().parents[1] / "fixtures" / "nodelet" / "space.yaml")
     control = Control(tmp_path, space, {}, plan_run(plan("server"), space, {}), where, groups, 100.0, False,

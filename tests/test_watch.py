@@ -806,6 +806,41 @@ def test_a_deploy_restarts_only_the_nodes_a_new_plan_changes(tmp_path: Path) -> 
     assert len(control.applied) == 3 and json.loads((tmp_path / "control.json").read_text())["format"] == CONTROL_FORMAT
 
 
+def test_a_re_plan_without_a_running_node_is_refused_and_the_old_plan_runs_on(tmp_path: Path) -> None:
+    """A new plan (control.json) that leaves out a node of the plan in force cannot say where
+    or at what value that node runs: one warning naming the plan file and the node(s), nothing
+    restarted, the caps untouched, the old plan still the one in force."""
+    from perfros_bag.sweep.control import Control, write_control
+    from perfros_bag.sweep.deploy import plan_run
+    from perfros_bag.sweep.space import load_space
+    from tests.conftest import fake_control_run
+
+    root = Path(__file__).resolve().parents[1]
+    space = load_space(root / "fixtures" / "app" / "space.yaml")
+    defaults: dict[str, str | None] = {"camera_rate": "10", "canny_threshold": "200"}
+    computers = {"robot1": PlannedComputer("robot", 100.0, 10.0), "server": PlannedComputer("server", 100.0, 10.0)}
+    nodes = {"camera": PlannedNode("robot1", 5.0, 50.0, 1.0, "publish_rate", 10),
+             "detector": PlannedNode("server", 5.0, 50.0, 1.0, "canny_threshold", 200)}
+    first = Plan(1, "exact", "optimal", computers=computers, nodes=nodes)
+    restarter, groups, calls = fake_control_run(tmp_path, ("robot1", "server"), ("camera", "detector"))
+    where = {n: pn.computer for n, pn in nodes.items()}
+    control = Control(tmp_path, space, defaults, plan_run(first, space, defaults), dict(where), groups, 100.0, False,
+                      plan_path="first.json")
+    # the camera moves and changes its rate, the detector is left out
+    save_plan(Plan(1, "exact", "optimal", computers=computers,
+                   nodes={"camera": PlannedNode("server", 5.0, 50.0, 1.0, "publish_rate", 5)}), tmp_path / "short.json")
+    write_control(tmp_path, 1, tmp_path / "short.json", ["why"])
+    os.utime(tmp_path / "control.json", (1, 1))
+    with pytest.warns(PerfrosWarning) as caught:
+        control.tick(restarter)  # type: ignore[arg-type]
+    (message,) = [str(w.message) for w in caught]
+    assert "\n" not in message and f"{tmp_path / 'short.json'}: node(s) detector of the plan in force" in message
+    assert "not applied" in message and "camera" not in message
+    assert calls == [] and control.seq == 0 and control.applied == [] and control.where == where
+    assert control.run.values == plan_run(first, space, defaults).values and control.plan_path == "first.json"
+    assert groups.cores == {"robot1": 1.0, "server": 1.0}
+
+
 def test_a_re_plan_s_nodes_are_restarted_together_not_one_after_the_other(monkeypatch: pytest.MonkeyPatch,
                                                                            tmp_path: Path) -> None:
     """RQ4 (2026-11-28): a re-plan changing four nodes took 12 s, six 18 s, in the deploy

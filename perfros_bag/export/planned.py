@@ -232,7 +232,7 @@ def planned_launch_xml(plan: Plan, system: System | None, launch: LaunchFile, sp
     alone = plan.standalone
     nodelets = check_nodelets(real, launch.path, elsewhere=True)
     check_plan_membership(nodelets, {n: pn.computer for n, pn in plan.nodes.items()}, plan_path, alone)
-    standalone = set(standalone_nodelets(nodelets, alone))
+    standalone = set(standalone_nodelets(nodelets, alone, launch.path))
     by_name: dict[str, ResolvedNode] = {}
     for n in real.nodes:
         name = system_node_name(n.full_name)

@@ -47,14 +47,17 @@ MACHINE_ATTRS = {"address": "address", "user": "user", "env_loader": "env-loader
 
 
 def rounded_value(plan: Plan, system: System | None, node: str) -> int | float | None:
-    """The node's planned parameter value (9 significant digits), typed: int when
-    system.yaml says ``type: int`` (or, without a system, when the value is integral)."""
+    """The node's planned parameter value (9 significant digits), typed: as system.yaml's
+    ``parameter.type`` says (``int`` rounded), else (no system, or its parameter says no type)
+    an int when the value is integral: a plan holds 13.0 for a kernel size swept at 7 and 13,
+    which a node reading an int parameter must get as 13. Both exports type values so
+    (``export --launch`` then by space.yaml's values too, :func:`~perfros_bag.sweep.deploy.plan_run`)."""
     v = plan.nodes[node].value
     if v is None or not math.isfinite(v):
         return None
     v = float(f"{v:.9g}")  # a curve's inverse leaves bisection noise: 24.99999999301508 -> 25.0
     sn = system.node.get(node) if system is not None else None
-    if sn is not None and sn.parameter is not None:
+    if sn is not None and sn.parameter is not None and sn.parameter.type is not None:
         return int(round(v)) if sn.parameter.type == "int" else float(v)
     return int(v) if float(v).is_integer() else float(v)
 

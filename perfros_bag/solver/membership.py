@@ -20,7 +20,7 @@ from __future__ import annotations
 import itertools
 import time
 import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 
 from perfros_bag.errors import InputError, PerfrosWarning
 from perfros_bag.system.plan import Plan, Status, better_plan
@@ -53,14 +53,15 @@ def freeable(system: System) -> tuple[str, ...]:
     return tuple(out)
 
 
-def restate(system: System, freed: Sequence[str], plan: Plan) -> Plan:
-    """``variant``'s plan stated on ``system``: each freed node away from its container's
-    computer marked ``standalone``; one on that computer loaded into the container after
-    all, its copy taken off its CPU and its computer's."""
+def restate(system: System, variant: System, plan: Plan) -> Plan:
+    """``variant``'s plan (``variant``: ``system.freed(...)``) stated on ``system``: each freed
+    node away from its container's computer marked ``standalone``; one on that computer loaded
+    into the container after all, its copy (the charge ``freed`` put on it) taken off its CPU
+    and its computer's."""
     plan.system = system.source
     if plan.status == Status.INFEASIBLE:
         return plan
-    for name in freed:
+    for name, (per_hz, fixed) in variant.charged.items():
         pn = plan.nodes.get(name)
         host = system.node[name].container
         if pn is None or host is None or host not in plan.nodes:
@@ -68,7 +69,6 @@ def restate(system: System, freed: Sequence[str], plan: Plan) -> Plan:
         if pn.computer != plan.nodes[host].computer:
             pn.standalone = True
             continue
-        per_hz, fixed = system.copy_charge(name) or (0.0, 0.0)
         taken = per_hz * (pn.input_hz or 0.0) + fixed
         pn.cpu -= taken
         pc = plan.computers.get(pn.computer)
@@ -93,7 +93,7 @@ def solve_membership(system: System, problem: Problem, solve_one: Callable[[Syst
     for i, subset in enumerate(subsets):
         left = None if time_limit is None else max(time_limit - (time.perf_counter() - start), 0.0) / (len(subsets) - i)
         variant = system.freed(subset)
-        plan = restate(system, subset, solve_one(variant, left))
+        plan = restate(system, variant, solve_one(variant, left))
         first = first or plan
         if plan.status == Status.INFEASIBLE:
             continue

@@ -169,8 +169,13 @@ class Control:
         plan.require_feasible(plan_path, "apply")
         new_run = plan_run(plan, self.space, self.arg_defaults)
         new_where = {name: pn.computer for name, pn in plan.nodes.items()}
+        dropped = sorted(set(self.where) - set(new_where))
+        if dropped:  # each running node needs the new plan's computer (and value): refused, the old plan runs on
+            raise PerfrosError(f"{plan_path}: node(s) {', '.join(dropped)} of the plan in force are not in it: "
+                               "a new plan must place every node the deploy runs")
         alone = plan.standalone
         check_plan_membership(self.nodelets, {**self.where, **new_where}, plan_path, alone)
+        alone_nodelets = frozenset(standalone_nodelets(self.nodelets, alone, plan_path))
         unknown = sorted({c for c in new_where.values() if c not in self.groups.dirs})
         if unknown:
             raise PerfrosError(f"computer(s) {', '.join(unknown)} are not emulated in this run")
@@ -182,7 +187,7 @@ class Control:
         moved = [node for node in changed if node in ros]  # restarted together, waited for together
         new_pids = restarter.restart_many([(ros[node], new_run.args, new_run.params, new_where[node])
                                            for node in moved],
-                                          standalone=frozenset(standalone_nodelets(self.nodelets, alone)))
+                                          standalone=alone_nodelets)
         for node in moved:
             pid = new_pids[ros[node]]
             procs = self.groups.procs_file(new_where[node])

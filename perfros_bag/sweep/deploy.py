@@ -109,7 +109,7 @@ def deploy(plan_path: str | Path, launch_path: str | Path, space_path: str | Pat
     nodelets = checked_nodelets(launch, run.args, space.startup_timeout_s)
     alone = plan.standalone
     check_plan_membership(nodelets, {name: pn.computer for name, pn in plan.nodes.items()}, plan_path, alone)
-    run = replace(run, standalone=standalone_nodelets(nodelets, alone), keep_managers=True)
+    run = replace(run, standalone=standalone_nodelets(nodelets, alone, launch.path), keep_managers=True)
     cores = computer_cores(plan, units_per_core)
     outdir = Path(out).absolute()
     if outdir.exists() and not outdir.is_dir():

@@ -132,14 +132,27 @@ def check_plan_membership(nodelets: Mapping[str, Nodelet], where: Mapping[str, s
                                         f"{mine} standalone (system.yaml membership: choose)")
 
 
-def standalone_nodelets(nodelets: Mapping[str, Nodelet], standalone: Iterable[str]) -> tuple[str, ...]:
+def standalone_nodelets(nodelets: Mapping[str, Nodelet], standalone: Iterable[str],
+                        source: Path | str | None = None) -> tuple[str, ...]:
     """The full ROS names of the launch file's nodelets whose system.yaml names are in
     ``standalone`` (a plan's nodes with ``standalone: true``), sorted: what runs as
     ``nodelet standalone`` (:func:`standalone_argv`). A plan node that the launch file does
-    not load as a nodelet already runs in a process of its own."""
+    not load as a nodelet is run as the file starts it (a process of its own already, or not
+    started at all): a warning names it, prefixed with ``source``, since the plan meant to
+    take it out of a container the launch file does not put it in (check_plan_membership
+    likewise lets a standalone node sit anywhere rather than refuse it)."""
     from perfros_bag.system.names import system_node_name
 
     alone = set(standalone)
+    plain = sorted(alone - {system_node_name(n) for n in nodelets})
+    if plain:
+        import warnings
+
+        from perfros_bag.errors import PerfrosWarning
+
+        warnings.warn(PerfrosWarning(
+            f"{source or 'the plan'}: node(s) {', '.join(plain)}: the plan runs them standalone, but the launch file "
+            "does not load them as nodelets (nodelet load): run as the launch file starts them"), stacklevel=2)
     return tuple(sorted(n for n in nodelets if system_node_name(n) in alone))
 
 

@@ -437,8 +437,8 @@ def _nodes(ctx: _Ctx, raw: Any, computers: set[str]) -> list[Node]:
         parameter = None
         if m.get("parameter") is not None:
             pm = ctx.mapping(m["parameter"], f"{where}: parameter", PARAMETER_KEYS, {"name"})
-            ptype = pm.get("type", "float")
-            if ptype not in ("int", "float"):
+            ptype = pm.get("type")
+            if ptype is not None and ptype not in ("int", "float"):
                 raise ctx.fail(f"{where}: parameter.type", f"must be 'int' or 'float', got {ptype!r}")
             unit = pm.get("unit")
             parameter = Parameter(ctx.name(pm["name"], f"{where}: parameter.name", NameKind.PARAMETER),

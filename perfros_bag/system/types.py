@@ -229,11 +229,17 @@ def driven_rates(setting: Setting, input_hz: float) -> tuple[float, float, float
         out = out / period_steps(out, cap) if cap > 0 else 0.0
     elif cap is not None:
         out = min(out, cap)
-    size = setting.bytes_per_msg
-    if size is None:
-        f, bw = setting.frequency_hz, setting.bandwidth_kBps
-        size = bw * 1000.0 / f if f and bw is not None else 0.0
-    return cpu, out, size * out / 1000.0
+    size = _setting_bytes_per_msg(setting)
+    return cpu, out, (0.0 if size is None else size) * out / 1000.0
+
+
+def _setting_bytes_per_msg(setting: Setting) -> float | None:
+    """Bytes per output message of ``setting`` (all its topics): its ``bytes_per_msg``, else
+    its measured ``bandwidth_kBps`` over its ``frequency_hz``; None when neither is known."""
+    if setting.bytes_per_msg is not None:
+        return setting.bytes_per_msg
+    f, bw = setting.frequency_hz, setting.bandwidth_kBps
+    return bw * 1000.0 / f if f and bw is not None else None
 
 
 @dataclass(frozen=True)
@@ -258,7 +264,9 @@ class Choice:
 class Parameter:
     name: str
     unit: str | None = None
-    type: Literal["int", "float"] = "float"
+    #: system.yaml ``parameter.type``; None when it does not say (the model treats that as
+    #: ``float``; export writes such a value as an int when it is integral, as without a system)
+    type: Literal["int", "float"] | None = None
 
 
 class Aggregate(StrEnum):
@@ -542,6 +550,9 @@ class System:
     #: its computer) or "choose" (a plan may run a hosted node standalone: the solvers solve
     #: each :meth:`freed` variant and keep the best, perfros_bag.solver.membership)
     membership: str = "keep"
+    #: set by :meth:`freed`: each node it ran standalone -> the copy charge it put on it
+    #: (:meth:`copy_charge`: CPU units per input message per second, CPU units)
+    charged: dict[str, tuple[float, float]] = field(default_factory=dict)
 
     @cached_property
     def computer(self) -> dict[str, Computer]:
@@ -634,22 +645,22 @@ class System:
         out of their container (so out of its coresidence group), paying
         :meth:`copy_charge`: a driven node in each setting's CPU per input message, another
         in its ``copy_cpu``. Membership ``keep`` for the rest: every solver solves such a
-        system as it is."""
-        out = set(names)
-        charge = {n: self.copy_charge(n) for n in out}
-        missing = sorted(n for n, c in charge.items() if c is None)
+        system as it is; its :attr:`charged` holds each freed node's charge."""
+        charge = {n: self.copy_charge(n) for n in set(names)}
+        charged = {n: c for n, c in charge.items() if c is not None}
+        missing = sorted(set(charge) - set(charged))
         if missing:
             raise ValueError(f"nodes {missing} cannot run standalone (no container or no copy price)")
 
         def leave(n: Node) -> Node:
-            per_hz, fixed = charge[n.name] or (0.0, 0.0)
+            per_hz, fixed = charged[n.name]
             if n.input is None:
                 return replace(n, container=None, copy_cpu=fixed)
             return replace(n, container=None,
                            settings=tuple(replace(s, cpu_per_hz=(s.cpu_per_hz or 0.0) + per_hz) for s in n.settings))
 
-        nodes = tuple(leave(n) if n.name in out else n for n in self.nodes)
-        return replace(self, nodes=nodes, membership="keep")
+        nodes = tuple(leave(n) if n.name in charged else n for n in self.nodes)
+        return replace(self, nodes=nodes, membership="keep", charged={**self.charged, **charged})
 
     @cached_property
     def coresidence_groups(self) -> list[tuple[str, ...]]:
@@ -883,13 +894,7 @@ class System:
 
     def edge_bandwidth(self, edge: Edge, publisher_choice: Choice) -> float:
         """kB/s an edge carries when its publisher runs at ``publisher_choice``."""
-        if edge.bandwidth_kBps is not None:
-            return edge.bandwidth_kBps
-        if edge.topic is not None and edge.topic in publisher_choice.topics:
-            bw = publisher_choice.topics[edge.topic].bandwidth_kBps
-            if bw is not None:
-                return bw
-        return publisher_choice.bandwidth_kBps or 0.0
+        return _edge_kBps(edge, publisher_choice)
 
     # ---- the model's rules on a placement (every solver, the plan and the validation use
     # these; solver/check.py keeps its own independent copy) ------------------------------
@@ -989,21 +994,18 @@ def _bytes_per_msg(setting: Setting, topic: str) -> float | None:
     rate = setting.topics.get(topic)
     if rate is not None and rate.bandwidth_kBps is not None and rate.frequency_hz:
         return rate.bandwidth_kBps * 1000.0 / rate.frequency_hz
-    if setting.bytes_per_msg is not None:
-        return setting.bytes_per_msg
-    if setting.bandwidth_kBps is not None and setting.frequency_hz:
-        return setting.bandwidth_kBps * 1000.0 / setting.frequency_hz
-    return None
+    return _setting_bytes_per_msg(setting)
 
 
-def _edge_kBps(edge: Edge, setting: Setting) -> float:
-    """kB/s ``edge`` carries at its publisher's ``setting`` (as :meth:`System.edge_bandwidth`)."""
+def _edge_kBps(edge: Edge, publisher: Setting | Choice) -> float:
+    """kB/s ``edge`` carries when its publisher runs at ``publisher`` (a setting or a
+    solver's choice): the edge's own bandwidth, else its topic's, else the publisher's."""
     if edge.bandwidth_kBps is not None:
         return edge.bandwidth_kBps
-    rate = setting.topics.get(edge.topic) if edge.topic is not None else None
+    rate = publisher.topics.get(edge.topic) if edge.topic is not None else None
     if rate is not None and rate.bandwidth_kBps is not None:
         return rate.bandwidth_kBps
-    return setting.bandwidth_kBps or 0.0
+    return publisher.bandwidth_kBps or 0.0
 
 
 def _exceeds(load: float, limit: float, tol: float) -> bool:
