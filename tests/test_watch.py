@@ -1197,6 +1197,17 @@ def test_a_window_ends_where_the_deploy_finished_running_a_re_plan(fake: FakeRos
     assert not [a for d in docs for a in d["alarms"] if a["quantity"] == "alive"]
 
 
+def _adapter_on_a_deploy(fake: FakeRos, tmp_path: Path) -> tuple[Path, Path, Path, Adapter]:
+    """A plan, a deploy of it on the fake master (its live.json), a watch's --out folder and
+    an Adapter attached to that deploy."""
+    plan_path = _fake_plan(tmp_path)
+    dep = tmp_path / "deployed"
+    _fake_deploy(dep, fake, plan_path)
+    out = tmp_path / "watched"
+    out.mkdir()
+    return plan_path, dep, out, Adapter(out, plan_path, deployment=dep)
+
+
 def test_a_re_plan_refitted_from_a_plan_no_longer_in_force_is_not_sent(fake: FakeRos, tmp_path: Path,
                                                                         monkeypatch: pytest.MonkeyPatch) -> None:
     """RQ4: an alarm standing before an operator raised a camera's rate started a refit from
@@ -1207,12 +1218,7 @@ def test_a_re_plan_refitted_from_a_plan_no_longer_in_force_is_not_sent(fake: Fak
     from perfros_bag.sweep.livestate import read_live, write_live
     from perfros_bag.watch.loop import _Replans
 
-    plan_path = _fake_plan(tmp_path)
-    dep = tmp_path / "deployed"
-    _fake_deploy(dep, fake, plan_path)
-    out = tmp_path / "watched"
-    out.mkdir()
-    adapter = Adapter(out, plan_path, deployment=dep)
+    plan_path, dep, out, adapter = _adapter_on_a_deploy(fake, tmp_path)
 
     class Done:  # a refit child that has ended with its re-plan
         def __init__(self, k: int) -> None:
@@ -1257,12 +1263,7 @@ def test_a_re_plan_predicting_less_than_the_running_plan_measured_is_not_sent(fa
     from perfros_bag.sweep.livestate import read_live
     from perfros_bag.watch.loop import _Replans
 
-    plan_path = _fake_plan(tmp_path)
-    dep = tmp_path / "deployed"
-    _fake_deploy(dep, fake, plan_path)
-    out = tmp_path / "watched"
-    out.mkdir()
-    adapter = Adapter(out, plan_path, deployment=dep)
+    plan_path, dep, out, adapter = _adapter_on_a_deploy(fake, tmp_path)
     predicted = {2: 79.0, 3: 80.0}
 
     def start(_ad: Any, _p: Any, _r: Any, _al: Any, k: int, _w: Any, _s: Any = None) -> refit.Pending:
