@@ -236,6 +236,17 @@ def test_a_window_that_mixes_two_settings_characterises_neither_and_rows_carry_t
     assert not unsettled_window(doc(pinned={"camera": 7.5}), {"camera": 7.5}, {"camera": 7.5})  # held since
     rows = window_rows(3, doc(pinned={"camera": 7.5}), _plan(), {})
     assert {r.node: r.value for r in rows} == {"camera": 7.5, "detector": 100.0}  # the plan says camera 10
+    # the loop's pins over windows: the operator sets 7.5 (that window unsettled), it holds,
+    # a re-plan's plan then holds 7.5 itself (nothing differs: pinned empty), the operator sets 5
+    from perfros_bag.watch.loop import OperatorPins
+
+    pins, seen = OperatorPins(), []
+    for pinned in ({}, {"camera": 7.5}, {"camera": 7.5}, {}, {}, {"camera": 5.0}):
+        seen.append((pins.see(doc(pinned=pinned), pinned), pins.world({"links": []})))
+    assert [u for u, _ in seen] == [False, True, False, True, False, True]
+    assert [w.get("pinned") for _, w in seen] == [None, {"camera": 7.5}, {"camera": 7.5}, {"camera": 7.5},
+                                                  {"camera": 7.5}, {"camera": 5.0}]
+    assert all(w["links"] == [] for _, w in seen)
     assert {r.node: r.value for r in window_rows(3, doc(), _plan(), {})}["camera"] == 10.0
 
 

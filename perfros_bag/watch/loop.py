@@ -79,6 +79,28 @@ def unsettled_window(doc: dict[str, Any], pinned: dict[str, Any], last_pinned: d
             or pinned != last_pinned)
 
 
+@dataclass
+class OperatorPins:
+    """The values an operator set while the watch runs (a running value that differed from
+    the plan watched when a window saw it): every later re-plan keeps them, also once a
+    re-plan's own plan holds them (so a second re-plan cannot move the operator's camera rate
+    again), until the operator changes them again."""
+
+    kept: dict[str, Any] = field(default_factory=dict)  # every node's latest value pinned
+    last: dict[str, Any] = field(default_factory=dict)  # the last window's ``pinned``
+
+    def see(self, doc: dict[str, Any], pinned: dict[str, Any]) -> bool:
+        """Take a window's ``pinned``; whether the window is unsettled (:func:`unsettled_window`)."""
+        unsettled = unsettled_window(doc, pinned, self.last)
+        self.last = dict(pinned)
+        self.kept.update(pinned)
+        return unsettled
+
+    def world(self, world: dict[str, Any]) -> dict[str, Any]:
+        """``world`` for a re-plan: its ``pinned`` every value kept."""
+        return {**world, "pinned": dict(self.kept)} if self.kept else world
+
+
 def window_rows(k: int, doc: dict[str, Any], plan: Plan, stats_types: dict[str, str]) -> list[Row]:
     """The window as characterisation rows (one per node and topic, recording ``watch-<k>``):
     what ``fit`` and ``tune --base`` take, with the node's planned value as its setting, or
@@ -314,10 +336,7 @@ def _windows(observer: Observer, plan: Plan, system: System | None, live: Any, u
     for listener in listeners.values():
         listener.take()  # what came before the first window's start is not in it
     k = 0
-    # the values an operator set (a running value that differed from the plan watched when it was
-    # seen): every later re-plan keeps them, also once a re-plan's plan holds them itself
-    pins: dict[str, Any] = {}
-    last_pinned: dict[str, Any] = {}
+    pins = OperatorPins()
     # (window, measured Σ w·P) of the last windows, as many as an alarm takes to be raised
     measured: deque[tuple[int, float] | None] = deque(maxlen=persistence.persist)
     try:
@@ -382,16 +401,14 @@ def _windows(observer: Observer, plan: Plan, system: System | None, live: Any, u
             # nor does a window in which a node was restarting or dead, or a running value
             # changed: its rates mix two settings, and a driven node's output over an input
             # read while its publisher restarted is no ratio of its own)
-            unsettled = unsettled_window(doc, world.get("pinned") or {}, last_pinned)
-            last_pinned = dict(world.get("pinned") or {})
-            pins.update(last_pinned)  # an operator's value stays the operator's until changed again
+            unsettled = pins.see(doc, world.get("pinned") or {})
             added = [] if transition or unsettled or (outdir is None and not new) else window_rows(
                 k, doc, plan, observer.types)
             # the running plan's Σ w·P as measured (None where a window cannot say it: blind on a
             # node, or running an operator's values, which the watched plan does not predict)
             measured.append(None if transition or blind or world.get("pinned") else (k, doc["overall"]["measured"]))
             if new:  # a re-plan still being made takes these alarms' windows in its successor, if they last
-                replans.ask(plan, rows + added, new, k, {**world, "pinned": dict(pins)} if pins else world,
+                replans.ask(plan, rows + added, new, k, pins.world(world),
                             running_measure(measured))
             if on_window is not None:
                 on_window(doc, new)
