@@ -213,3 +213,22 @@ def test_nodes_that_cannot_leave_stay_with_a_warning_and_too_many_are_refused() 
         many["nodes"].append({**copy.deepcopy(many["nodes"][3]), "name": f"extra{i}", "topics": [f"/extra{i}/out"]})
     with pytest.raises(InputError, match=r"membership: choose: 9 hosted nodes may leave .* at most 6"):
         solve(parse_system(many, "s.yaml"), 1, "exact")
+
+
+def test_problem_2_takes_its_settings_from_a_plan_that_split_the_container() -> None:
+    """``solve --problem 2 --settings plan.json`` after a Problem 1 plan that ran a nodelet
+    standalone: that node's CPU in the plan holds its copy (a fixed charge when not driven),
+    which is not a setting of the model; the settings are read without it, and Problem 2
+    keeps every node's value, whichever membership it then chooses."""
+    from perfros_bag.solver import settings_from_plan
+
+    system = parse_system(_not_driven(_doc()), "s.yaml")
+    first = solve(system, 1, "exact")
+    alone = sorted(first.standalone)
+    assert alone, "the instance is built so that Problem 1 splits the manager"
+    levels = settings_from_plan(first, system)
+    for n in alone:  # the setting's own CPU, by hand: the plan's less the copy of 10 frames a second
+        assert levels[n] == pytest.approx(first.nodes[n].cpu - PRICE * 10 * FRAME / 1e6)
+    second = solve(system, 2, "exact", settings=levels)
+    assert second.status == Status.OPTIMAL and check_plan(system, second) == []
+    assert {n: pn.value for n, pn in second.nodes.items()} == {n: pn.value for n, pn in first.nodes.items()}

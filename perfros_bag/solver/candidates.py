@@ -240,17 +240,20 @@ def _clamp(system: System, node: Node, value: float, cpu: float) -> float:
 
 def settings_from_plan(plan: Plan, system: System | None = None, resolution: float = 1.0) -> dict[str, float]:
     """node -> CPU level from a plan (e.g. Problem 1's answer fed to Problem 2): the plan's
-    own CPU levels when ``system`` is the one the plan was solved from (or not given); for
+    own CPU levels when ``system`` is the one the plan was solved from (or not given), less
+    the fixed copy a node the plan runs standalone pays (:meth:`System.copy_charge`); for
     another model of the same nodes (e.g. one fitted with ``fit --cpu p95``), each node's
     parameter value in ``system`` (:func:`settings_from_values`), and a node without a value
     at its one choice there."""
     if system is None or _same_source(plan.system, system.source):
         levels: dict[str, float] = {name: n.cpu for name, n in plan.nodes.items()}
-        if system is not None:  # a driven node: its own setting too (by its value)
+        if system is not None:
             for name, n in plan.nodes.items():
                 node = system.node.get(name)
-                if node is not None and node.driven and n.value is not None:
+                if node is not None and node.driven and n.value is not None:  # its own setting too (by its value)
                     levels[name] = DrivenLevel(n.cpu, _setting_with_value(system, node, n.value))
+                elif node is not None and n.standalone and (charge := system.copy_charge(name)) is not None:
+                    levels[name] = n.cpu - charge[1]  # run standalone: its copy is on top of its setting's CPU
         return levels
     out = settings_from_values(system, {name: n.value for name, n in plan.nodes.items()
                                         if n.value is not None and name in system.node}, resolution)
