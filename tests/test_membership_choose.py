@@ -232,3 +232,29 @@ def test_problem_2_takes_its_settings_from_a_plan_that_split_the_container() -> 
     second = solve(system, 2, "exact", settings=levels)
     assert second.status == Status.OPTIMAL and check_plan(system, second) == []
     assert {n: pn.value for n, pn in second.nodes.items()} == {n: pn.value for n, pn in first.nodes.items()}
+
+
+def test_residences_that_only_a_split_can_meet_are_planned_under_choose_and_refused_under_keep() -> None:
+    """The detector may run only on the server and the smoother only on the robot, both
+    nodelets of one manager: under ``keep`` no computer can host that process (refused, one
+    line naming both); under ``choose`` one of them leaves, and every method finds that plan
+    (the kept membership's own variant has no plan, and the exact one is brute force's best)."""
+    def doc(membership: str) -> dict[str, Any]:
+        d = _not_driven(_doc(robot=30.0, server=45.0, membership=membership))
+        d["nodes"][2]["residence"] = ["server"]
+        d["nodes"][3]["residence"] = ["robot"]
+        return d
+
+    with pytest.raises(InputError, match=r"'people' \(allowed on server\) and 'smooth' \(allowed on robot\)"):
+        parse_system(doc("keep"), "s.yaml")
+    choose = parse_system(doc("choose"), "s.yaml")
+    assert solve(choose.freed(()), 1, "bruteforce").status == Status.INFEASIBLE
+    best = max((p.objective for k in range(1, 3) for sub in itertools.combinations(("people", "smooth"), k)
+                if (p := solve(choose.freed(sub), 1, "bruteforce")).objective is not None), default=None)
+    assert best is not None
+    for method in ("exact", "greedy", "greedy+", "bruteforce"):
+        plan = solve(choose, 1, method)
+        assert plan.status != Status.INFEASIBLE and check_plan(choose, plan) == [], method
+        assert plan.standalone and plan.nodes["people"].computer == "server" and plan.nodes["smooth"].computer == "robot"
+        if method in ("exact", "bruteforce"):
+            assert plan.objective == pytest.approx(best, abs=1e-6)

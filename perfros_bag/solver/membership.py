@@ -35,12 +35,8 @@ MAX_FREEABLE = 6
 def freeable(system: System) -> tuple[str, ...]:
     """The hosted nodes a plan may run standalone: those of a container with a measured copy
     price. The others stay in their container, with a warning naming them."""
-    out: list[str] = []
-    kept: list[str] = []
-    for n in system.nodes:
-        if n.container is None:
-            continue
-        (out if system.copy_charge(n.name) is not None else kept).append(n.name)
+    out = list(system.may_leave)
+    kept = [n.name for n in system.nodes if n.container is not None and n.name not in out]
     if kept:
         warnings.warn(PerfrosWarning(
             f"{system.source}: membership: choose: node(s) {', '.join(kept)} stay in their container: a node runs "

@@ -667,7 +667,12 @@ def _machine_attr(ctx: _Ctx, where: str, key: str, raw: Any) -> str:
 
 
 def _check_groups(ctx: _Ctx, system: System) -> None:
-    """Every coresidence group must have a computer allowed for all its members."""
+    """Every coresidence group must have a computer allowed for all its members; under
+    ``membership: choose``, once every node that may leave its container has left (a plan
+    that keeps such a node in then needs a computer for the whole container, which the
+    solvers find or not)."""
+    if system.membership == "choose" and system.may_leave:
+        system = system.freed(system.may_leave)
     for group in system.coresidence_groups:
         if not system.allowed_to_all(group):
             who = ", ".join(repr(n) for n in group)

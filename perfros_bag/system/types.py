@@ -640,6 +640,12 @@ class System:
                 into += max(rates, default=0.0)
         return 0.0, price * into / 1000.0
 
+    @property
+    def may_leave(self) -> tuple[str, ...]:
+        """The hosted nodes a plan may run standalone under ``membership: choose``: those whose
+        container has a measured copy price (:meth:`copy_charge` is not None)."""
+        return tuple(n.name for n in self.nodes if n.container is not None and self.copy_charge(n.name) is not None)
+
     def freed(self, names: Iterable[str]) -> System:
         """This system with hosted nodes ``names`` run standalone (``membership: choose``):
         out of their container (so out of its coresidence group), paying
