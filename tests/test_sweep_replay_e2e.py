@@ -122,9 +122,17 @@ def test_a_loop_restart_is_neither_a_gap_nor_a_burst(replayed: tuple[Path, Path,
     period = (recorded[-1] - recorded[0]) / (len(recorded) - 1) / 2.0
     gaps = [b - a for a, b in zip(times, times[1:], strict=False)]
     # without the loop bag each restart follows the last message within ~1 ms (a burst), and the
-    # rate over this run is ~1/(n-1) = 2.9 % high; with it no gap is a fraction of a period
-    assert min(gaps) > 0.25 * period, sorted(gaps)[:5]
-    assert max(gaps) < 1.75 * period, sorted(gaps)[-5:]
+    # rate over this run is ~1/(n-1) = 2.9 % high; with it no gap is a fraction of a period.
+    # One message the player sent late under load (CI, 12:58: 48 ms late) makes a long gap and
+    # then a short one that together make two periods: jitter, not a restart, so such pairs
+    # are told apart (a burst follows a gap of one period; a restart's gap is not made up)
+    late = {i for i in range(len(gaps) - 1) if gaps[i] > 1.25 * period and gaps[i + 1] < 0.75 * period
+            and abs(gaps[i] + gaps[i + 1] - 2 * period) < 0.25 * period}
+    bursts = [i for i, g in enumerate(gaps) if g <= 0.25 * period and i - 1 not in late]
+    holes = [i for i, g in enumerate(gaps) if g >= 1.75 * period and i not in late]
+    assert not bursts, [(round(gaps[i - 1], 4), round(gaps[i], 4)) for i in bursts]
+    assert not holes, [(round(gaps[i], 4), round(gaps[i + 1], 4) if i + 1 < len(gaps) else None) for i in holes]
+    assert len(late) <= 3, sorted(late)  # a few late messages at most, not a pattern
     rate = (len(times) - 1) / (times[-1] - times[0])
     assert abs(rate * period - 1) < 0.015, rate
 
