@@ -640,7 +640,7 @@ class System:
                 into += max(rates, default=0.0)
         return 0.0, price * into / 1000.0
 
-    @property
+    @cached_property
     def may_leave(self) -> tuple[str, ...]:
         """The hosted nodes a plan may run standalone under ``membership: choose``: those whose
         container has a measured copy price (:meth:`copy_charge` is not None)."""
