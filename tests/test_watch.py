@@ -1244,7 +1244,7 @@ def test_a_re_plan_refitted_from_a_plan_no_longer_in_force_is_not_sent(fake: Fak
             return adapter.apply(entry, stale=stale)
 
     monkeypatch.setattr(refit, "warm", lambda _a: None)
-    monkeypatch.setattr(refit, "start", lambda _ad, _p, _r, _al, k, _w, _s=None: Done(k))
+    monkeypatch.setattr(refit, "start", lambda _ad, _p, _r, _al, k, _w, _s=None, _run=None: Done(k))
     replans = _Replans(adapter, read_live(dep))
     replans.ask(load_plan(plan_path), [], [{"line": "alarm"}], 2, {})
     live = read_live(dep)  # meanwhile an operator's control.json is run by the deploy
@@ -1277,7 +1277,8 @@ def test_a_re_plan_predicting_less_than_the_running_plan_measured_is_not_sent(fa
     plan_path, dep, out, adapter = _adapter_on_a_deploy(fake, tmp_path)
     predicted = {2: 79.0, 3: 80.0}
 
-    def start(_ad: Any, _p: Any, _r: Any, _al: Any, k: int, _w: Any, _s: Any = None) -> refit.Pending:
+    def start(_ad: Any, _p: Any, _r: Any, _al: Any, k: int, _w: Any, _s: Any = None,
+              running: Any = None) -> refit.Pending:
         folder = out / f"replan-{k:05d}"
         folder.mkdir()
         atomic_write_json(folder / refit.RESULT, {"entry": {
@@ -1285,7 +1286,7 @@ def test_a_re_plan_predicting_less_than_the_running_plan_measured_is_not_sent(fa
             "objective_before": 90.0, "objective_after": predicted[k], "predicted_after": predicted[k]}})
         proc = subprocess.Popen([sys.executable, "-c", "pass"])
         proc.wait()
-        return refit.Pending(adapter, k, folder, proc, time.time(), folder / refit.LOG)
+        return refit.Pending(adapter, k, folder, proc, time.time(), folder / refit.LOG, running)
 
     monkeypatch.setattr(refit, "warm", lambda _a: None)
     monkeypatch.setattr(refit, "start", start)

@@ -479,8 +479,7 @@ class _Replans:
         now = _live_now(self.live)
         self.asked_in_force = None if now is None else now.plan_in_force
         try:
-            self.pending = start(self.adapter, plan, rows, alarms, k, world, standby)
-            self.pending.running = running
+            self.pending = start(self.adapter, plan, rows, alarms, k, world, standby, running)
         except (OSError, PerfrosError) as exc:
             warnings.warn(f"--adapt: window {k}: no re-plan: {exc}", PerfrosWarning, stacklevel=2)
 

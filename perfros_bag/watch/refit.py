@@ -110,9 +110,11 @@ def warm(adapter: Adapter) -> subprocess.Popen[bytes]:
 
 
 def start(adapter: Adapter, plan: Plan, rows: list[Row], alarms: list[dict[str, Any]], k: int,
-          world: dict[str, Any], standby: subprocess.Popen[bytes] | None = None) -> Pending:
+          world: dict[str, Any], standby: subprocess.Popen[bytes] | None = None,
+          running: dict[str, Any] | None = None) -> Pending:
     """Start the refit and re-solve of window ``k``'s re-plan in a child process: ``standby``
-    (:func:`warm`) when it still waits, else a new one."""
+    (:func:`warm`) when it still waits, else a new one. ``running``: the running plan's
+    measure the re-plan is held against (:attr:`Pending.running`)."""
     from perfros_bag.characterisation.csvfile import write_characterisation
     from perfros_bag.fileio import atomic_write_json
     from perfros_bag.system.planfile import save_plan
@@ -133,13 +135,13 @@ def start(adapter: Adapter, plan: Plan, rows: list[Row], alarms: list[dict[str, 
         try:
             standby.stdin.write(f"{folder / REQUEST}\n".encode())
             standby.stdin.close()
-            return Pending(adapter, k, folder, standby, time.time(), adapter.out / LOG)
+            return Pending(adapter, k, folder, standby, time.time(), adapter.out / LOG, running)
         except OSError:  # it ended meanwhile: a new one
             end(standby)
     with (folder / LOG).open("wb") as log:
         proc = subprocess.Popen([*_command(adapter), str(folder / REQUEST)], stdin=subprocess.DEVNULL, stdout=log,
                                 stderr=subprocess.STDOUT, start_new_session=True)
-    return Pending(adapter, k, folder, proc, time.time(), folder / LOG)
+    return Pending(adapter, k, folder, proc, time.time(), folder / LOG, running)
 
 
 def end(proc: subprocess.Popen[bytes]) -> None:
