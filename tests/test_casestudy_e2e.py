@@ -21,14 +21,13 @@ from pathlib import Path
 
 import psutil
 import pytest
-from conftest import communicate_or_stacks
 
 from perfros_bag.rosrun.cgroups import CpuGroups, leftover_groups
 from perfros_bag.rosrun.processes import leftover_processes
 from perfros_bag.solver import solve
 from perfros_bag.system.planfile import save_plan
 from perfros_bag.system.systemfile import load_system
-from tests.conftest import FIXTURES
+from tests.conftest import FIXTURES, communicate_or_stacks
 
 pytestmark = pytest.mark.ros
 

@@ -24,11 +24,11 @@ from typing import Any
 import psutil
 import pytest
 import yaml
-from conftest import communicate_or_stacks
 
 from perfros_bag.rosrun.cgroups import leftover_groups
 from perfros_bag.rosrun.network import leftover_namespaces
 from perfros_bag.rosrun.processes import leftover_processes
+from tests.conftest import communicate_or_stacks
 from tests.test_casestudy_e2e import ROS_PY, _cgroups_work
 from tests.test_sweep_e2e import APP, BIN, _cli, _require_ros, _space
 

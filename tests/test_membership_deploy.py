@@ -22,10 +22,9 @@ from typing import Any
 
 import pytest
 import yaml
-from conftest import communicate_or_stacks
 
 from perfros_bag.system.planfile import load_plan
-from tests.conftest import FIXTURES
+from tests.conftest import FIXTURES, communicate_or_stacks
 
 BIN = Path(sys.executable).with_name("perfros-bag")
 LAUNCH = FIXTURES / "nodelet" / "nodelet.launch"

@@ -27,13 +27,12 @@ from typing import Any
 import psutil
 import pytest
 import yaml
-from conftest import communicate_or_stacks
 
 from perfros_bag.characterisation.manifest import load_manifest
 from perfros_bag.cpu.trace import read_cpu_trace
 from perfros_bag.rosrun.cgroups import leftover_groups
 from perfros_bag.rosrun.processes import RUN_ENV, leftover_processes
-from tests.conftest import FIXTURES
+from tests.conftest import FIXTURES, communicate_or_stacks
 from tests.test_casestudy_e2e import (
     BAG_RATES,
     ROS_PY,

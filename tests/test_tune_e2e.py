@@ -25,13 +25,13 @@ from typing import Any
 
 import pytest
 import yaml
-from conftest import communicate_or_stacks
 
 from perfros_bag.rosrun.cgroups import leftover_groups
 from perfros_bag.rosrun.network import leftover_namespaces
 from perfros_bag.rosrun.processes import leftover_processes
 from perfros_bag.tune.loop import load_model, model_cpu
 from perfros_bag.tune.tunefile import read_tune
+from tests.conftest import communicate_or_stacks
 from tests.test_casestudy_e2e import BAG_RATES, ROS_PY, _cgroups_work
 from tests.test_sweep_e2e import BIN, _nothing_left, _running, _tags_and_ports, _wait, ros_package
 

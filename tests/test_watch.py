@@ -27,7 +27,6 @@ from xmlrpc.server import SimpleXMLRPCServer
 
 import pytest
 import yaml
-from conftest import communicate_or_stacks
 
 from perfros_bag.characterisation.csvfile import Row, read_characterisation, write_characterisation
 from perfros_bag.errors import InputError, PerfrosWarning
@@ -39,6 +38,7 @@ from perfros_bag.watch.counters import WRAP, TopicCounters, parse_bus_stats, win
 from perfros_bag.watch.loop import check_window, watch
 from perfros_bag.watch.observe import Reading
 from perfros_bag.watch.window import evaluate, window_cpu, window_document, window_stats
+from tests.conftest import communicate_or_stacks, fake_control_run
 
 # --------------------------------------------------------------------------- counters
 
@@ -824,7 +824,6 @@ def test_a_re_plan_without_a_running_node_is_refused_and_the_old_plan_runs_on(tm
     from perfros_bag.sweep.control import Control, write_control
     from perfros_bag.sweep.deploy import plan_run
     from perfros_bag.sweep.space import load_space
-    from tests.conftest import fake_control_run
 
     root = Path(__file__).resolve().parents[1]
     space = load_space(root / "fixtures" / "app" / "space.yaml")
