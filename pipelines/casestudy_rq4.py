@@ -55,9 +55,12 @@ GOAL_DETECT_WINDOWS = 2
 GOAL_RECOVER_S = 30.0
 GOAL_DEVIATION = 2.5
 GOAL_COST = 5.0  # % of one core
-#: chains' p95 are reported but raise no alarm in RQ4 (``--no-latency-alarms``): the latency
-#: model's p95 error on capped, linked deployments was 59 % (docs/casestudy-real.md, issue 29's
-#: open work), so a latency alarm would answer that model, not the world change
+#: a chain's p95 alarms past 1.75 times its prediction (``--latency-tolerance 75``). On the
+#: steady plan of the 12:14 and 13:25 runs of 2026-11-28 every window but the first read at most
+#: 1.26 times the prediction; the first window after the link change read 2.2-2.8 times, and
+#: the rates fell a window later (detection 11.8-12.4 s on rates alone, 6.7-7.3 on latency,
+#: replayed offline on those windows). A queue grows before a rate falls.
+LATENCY_TOLERANCE = 75.0
 SCENARIOS = ("link", "hog", "camera")
 #: RQ4's own instance (number 7, beside casestudy-real's six): two robots and a server with
 #: room for a detector, so the plan sends one robot's images over its link (the link drop
@@ -106,7 +109,7 @@ def wait_live(dep: Path, deploy: subprocess.Popen[str], timeout: float = 180.0) 
 
 def start_watch(plan: Path, dep: Path, out: Path, adapt: bool, app: Path, robots: int) -> subprocess.Popen[str]:
     args = [str(cr.BIN), "watch", str(plan), "--deployment", str(dep), "--window", f"{WINDOW_S:g}", "--json",
-            "--no-latency-alarms", "--out", str(out)]
+            "--latency-tolerance", f"{LATENCY_TOLERANCE:g}", "--out", str(out)]
     if adapt:
         args += ["--adapt", "--launch", str(app / f"app{robots}.launch"), "--space", str(app / f"space{robots}.yaml")]
     cr.COMMANDS.append(" ".join(cr.rel(a) for a in args))

@@ -33,7 +33,7 @@ from perfros_bag.errors import InputError, PerfrosWarning
 from perfros_bag.system.plan import Plan, PlannedComputer, PlannedNode, PlannedTopic
 from perfros_bag.system.planfile import load_plan, save_plan
 from perfros_bag.watch.adapt import Adapter, changes
-from perfros_bag.watch.alarms import Drift, Persistence, rate_drifts
+from perfros_bag.watch.alarms import Drift, Persistence, foreign_present, rate_drifts
 from perfros_bag.watch.counters import WRAP, TopicCounters, parse_bus_stats, window_counts
 from perfros_bag.watch.loop import check_window, watch
 from perfros_bag.watch.observe import Reading
@@ -209,6 +209,39 @@ def test_other_processes_taking_more_than_the_plan_left_free_drift_and_persist()
     assert (out["node"], out["computer"], out["quantity"], out["measured"], out["windows"]) == (
         "people", "robot2", "foreign_cpu", 17.7, 2)
     assert out["line"].startswith("alarm: computer robot2: other processes take 17.7 CPU units")
+
+
+def test_the_window_other_processes_appear_in_counts_as_the_first_of_their_drift() -> None:
+    """RQ4's hog (13:25, --adapt): robot1 left 9.3 units free; the hog began 3 s into a window,
+    which read 5.58 units (a part of the window), the next 13.93. That first window is the
+    hog's own onset, not noise (a steady cgroup reads 0-0.2): the alarm comes with the second
+    window, not the third. A load there from the first window, or one that stays within the
+    floor, or one that was there before and only now outgrows the room, gets no head start."""
+    def window(foreign: float | None) -> dict[str, Any]:
+        return {"seconds": 5.0,
+                "nodes": {"people": {"expected_hz": 5.0, "measured_hz": 5.0, "computer": "robot1",
+                                     "cpu_expected": 12.0},
+                          "smooth": {"expected_hz": 5.0, "measured_hz": 5.0, "computer": "robot1",
+                                     "cpu_expected": 3.7}},
+                "computers": {"robot1": {"capacity": 25.0, "cpu_expected": 15.7, "foreign": foreign}}}
+
+    def alarms(readings: list[float | None]) -> list[int]:
+        p = Persistence(2)
+        out = []
+        for i, f in enumerate(readings, 1):
+            w = window(f)
+            out += [i for a in p.update(rate_drifts(w, 5.0), foreign_present(w)) if a.new]
+        return out
+
+    assert [d.key for d in foreign_present(window(5.58))] == [d.key for d in rate_drifts(window(13.93), 5.0)]
+    assert foreign_present(window(0.9)) == [] and foreign_present(window(None)) == []
+    assert alarms([0.0, 0.1, 5.58, 13.93, 13.0]) == [4]  # the onset window, then the first over the room
+    assert alarms([0.0, 0.2, 0.0, 13.93, 13.0]) == [5]  # appeared over the room at once: persist as before
+    assert alarms([5.58, 13.93, 13.0]) == [3]  # the first window has no window before it to tell
+    assert alarms([None, 5.58, 13.93]) == [3]  # no reading before: appeared, the same as 0
+    assert alarms([0.0, 3.0, 3.1, 13.93, 13.0]) == [5]  # there before the window it outgrew the room in
+    assert alarms([0.0, 0.5, 0.9, 13.93, 13.0]) == [5]  # within the floor: not other processes
+    assert alarms([0.0, 5.58, 0.1, 13.93, 13.0]) == [5]  # gone again in between: the run starts anew
 
 
 def test_a_window_that_mixes_two_settings_characterises_neither_and_rows_carry_the_running_value() -> None:

@@ -24,7 +24,12 @@ with ``watch --deployment``) drift when they take more than the CPU the plan lef
 (capacity less the planned nodes' CPU, at least :data:`FOREIGN_FLOOR` units): the plan's
 nodes no longer have their CPU, whether or not their rates have fallen yet. Its alarm
 (``quantity: foreign_cpu``, ``planned`` the CPU left free, ``measured`` the other processes')
-names the computer's node with the most planned CPU and carries ``computer``.
+names the computer's node with the most planned CPU and carries ``computer``. The window in
+which other processes appeared there (more than :data:`FOREIGN_FLOOR` after a window with
+less), if still within what the plan left free, counts as the first of the drift's windows in
+a row: a hog that starts late in one window reads as a fraction of itself there, though the
+reading is not noise (a steady cgroup reads 0-0.2), so with ``persist`` 2 the window after it
+raises the alarm.
 """
 
 from __future__ import annotations
@@ -87,13 +92,25 @@ def foreign_drifts(window: dict[str, Any]) -> list[Drift]:
     """Per computer of one window's JSON object (its ``computers`` with ``foreign``,
     ``capacity`` and ``cpu_expected``, and its ``nodes``), a drift when other processes take
     more CPU than the plan left free there (and more than :data:`FOREIGN_FLOOR`)."""
+    return _foreign(window, within_free=False)
+
+
+def foreign_present(window: dict[str, Any]) -> list[Drift]:
+    """Per computer of one window, where other processes take more than
+    :data:`FOREIGN_FLOOR` units, whether or not the plan left room for them: the drift
+    :func:`foreign_drifts` would give there (same key). :meth:`Persistence.update` tells from
+    them the window other processes appeared in."""
+    return _foreign(window, within_free=True)
+
+
+def _foreign(window: dict[str, Any], within_free: bool) -> list[Drift]:
     out: list[Drift] = []
     for computer, c in (window.get("computers") or {}).items():
         foreign, cap, planned = c.get("foreign"), c.get("capacity"), c.get("cpu_expected")
         if foreign is None or cap is None or planned is None:
             continue
         free = max(0.0, float(cap) - float(planned))
-        if float(foreign) <= max(free, FOREIGN_FLOOR):
+        if float(foreign) <= (FOREIGN_FLOOR if within_free else max(free, FOREIGN_FLOOR)):
             continue
         mine = [(float(n.get("cpu_expected") or 0.0), name) for name, n in window["nodes"].items()
                 if n.get("computer") == computer]
@@ -144,15 +161,23 @@ class Persistence:
         if persist < 1:
             raise ValueError("persist must be >= 1")
         self.persist = persist
+        self.updates = 0
+        self.present: set[tuple[str, str, str, int]] = set()  # the last window's foreign_present keys
         self.count: dict[tuple[str, str, str, int], int] = {}
         self.raised: set[tuple[str, str, str, int]] = set()
         self.computer_count: dict[tuple[str, int], int] = {}  # (computer, direction) -> windows in a row
         self.computer_raised: set[tuple[str, int]] = set()
 
-    def update(self, drifts: list[Drift]) -> list[Alarm]:
-        """The alarms of this window, given its drifts."""
+    def update(self, drifts: list[Drift], present: list[Drift] | None = None) -> list[Alarm]:
+        """The alarms of this window, given its drifts and (:func:`foreign_present`) the
+        computers where other processes take CPU: where they appeared in this window (not in
+        the one before, nor in the first window, which has none before it to tell), a window
+        within what the plan left free counts as the first of their drift's run."""
         now = {d.key: d for d in drifts}
-        self.count = {k: (self.count.get(k, 0) + 1) for k in now}
+        seen = {d.key for d in present or []}
+        appeared = seen - self.present if self.updates else set()
+        self.present, self.updates = seen, self.updates + 1
+        self.count = {k: (self.count.get(k, 0) + 1) for k in now} | {k: 1 for k in appeared if k not in now}
         self.raised &= set(now)
         alarms = []
         for k, d in now.items():

@@ -314,7 +314,7 @@ def _windows(observer: Observer, plan: Plan, system: System | None, live: Any, u
              master_uri: str, listeners: dict[str, StampListener], stop: threading.Event) -> None:
     from perfros_bag.characterisation.csvfile import columns_for, rows_csv, write_characterisation
     from perfros_bag.fileio import append_lines, atomic_write_text, json_text
-    from perfros_bag.watch.alarms import rate_drifts, value_drifts
+    from perfros_bag.watch.alarms import foreign_present, rate_drifts, value_drifts
     from perfros_bag.watch.window import (
         cgroup_cpu_s,
         evaluate,
@@ -391,7 +391,8 @@ def _windows(observer: Observer, plan: Plan, system: System | None, live: Any, u
             # a transition window, half the old plan and the restarts, is reported but raises no alarm
             alarms = [] if transition else persistence.update(
                 rate_drifts(doc, tolerance, latency_tolerance)
-                + value_drifts(doc.get("pinned"), {n: pn.value for n, pn in plan.nodes.items()}))
+                + value_drifts(doc.get("pinned"), {n: pn.value for n, pn in plan.nodes.items()}),
+                foreign_present(doc))
             doc["alarms"] = [a.to_dict() for a in alarms]
             new = [a.to_dict() for a in alarms if a.new]
             result.alarms += new
