@@ -79,6 +79,20 @@ def test_rq3_forced_plans_exceed_their_computer_and_are_marked(tmp_path: Path) -
         parse_plan(unmarked, str(path))
 
 
+def test_rq3_leaves_out_an_instance_without_a_problem_1_optimum(tmp_path: Path,
+                                                                monkeypatch: pytest.MonkeyPatch) -> None:
+    """The 14:34 run of 2026-11-28: instance 4 had no Problem 1 plan at headroom auto (robot1
+    would need 20.11 of 20 units), and RQ3 stopped the pipeline on a KeyError after 21 minutes.
+    Now RQ3 records the failure, forces nothing from the missing plan and deploys nothing."""
+    deployed: list[Any] = []
+    monkeypatch.setattr(cs, "deploy", lambda *a, **k: deployed.append(a))
+    monkeypatch.setattr(cs, "FAILED", [])
+    rows = cs.rq3(tmp_path, tmp_path / "app", {2: {}, 4: {"p1-greedy": tmp_path / "g.json"}}, None, None)
+    assert rows == [] and deployed == []
+    assert [(f["instance"], f["plan"]) for f in cs.FAILED] == [(2, "rq3"), (4, "rq3")]
+    assert not list((tmp_path / "rq3").iterdir())  # no forced plan written
+
+
 DRIVEN_SYSTEM = {
     "computers": [{"name": "robot1", "kind": "robot", "capacity": 20}, {"name": "server", "kind": "server",
                                                                           "capacity": 40}],

@@ -7,6 +7,7 @@ import json
 import math
 import re
 from pathlib import Path
+from typing import Any
 
 import pytest
 import yaml
@@ -274,8 +275,9 @@ def test_a_hop_never_measured_is_a_warning_naming_the_chain() -> None:
     assert "chain 'vision': no measured latency for its hop node(s) detector" in fit.warnings[0]
 
 
-@pytest.mark.parametrize("p95_s", [0.12, 0.14])
-def test_tune_refits_scale_and_p95_ratio_from_a_deployment(p95_s: float, tmp_path: Path) -> None:
+@pytest.mark.parametrize(("p95_s", "planned_cpu"), [(0.12, None), (0.14, None), (0.12, 40.0), (0.14, 65.0)])
+def test_tune_refits_scale_and_p95_ratio_from_a_deployment(p95_s: float, planned_cpu: float | None,
+                                                           tmp_path: Path) -> None:
     from perfros_bag.tune.loop import _recalibrate_latency
 
     data = yaml.safe_load(SYSTEM)
@@ -285,7 +287,10 @@ def test_tune_refits_scale_and_p95_ratio_from_a_deployment(p95_s: float, tmp_pat
     hop = {"from": "/camera/image_raw", "node": "detector", "to": "/detector/found", "computer": "server",
            "predicted_ms": {"p50": 140.0, "p95": 200.0}, "service_ms": 50.0, "wait_ms": 8.0, "transfer_ms": 80.0,
            "wait_p95_ms": 30.0, "transfer_p95_ms": 80.0}
-    (tmp_path / "round-1" / "plan.json").write_text(json.dumps({"chains": [{"name": "vision", "hops": [hop]}]}))
+    plan: dict[str, Any] = {"chains": [{"name": "vision", "hops": [hop]}]}
+    if planned_cpu is not None:  # the round's plan gave the detector this CPU at threshold 1, 10 Hz in
+        plan["nodes"] = {"detector": {"computer": "server", "value": 1, "cpu": planned_cpu, "input_hz": 10.0}}
+    (tmp_path / "round-1" / "plan.json").write_text(json.dumps(plan))
     measured = {"name": "vision", "p50_s": 0.1, "hops": [{"from": "/camera/image_raw", "to": "/detector/found",
                                                           "p50_s": 0.1, "p95_s": p95_s}]}
     (tmp_path / "round-1" / "validation.json").write_text(json.dumps({"chains": [measured]}))
@@ -298,14 +303,17 @@ def test_tune_refits_scale_and_p95_ratio_from_a_deployment(p95_s: float, tmp_pat
                                 "computers": {}, "nodes": {}})
     _recalibrate_latency(tmp_path, doc_system, [done])
     got = doc_system["latency"]
+    # the round's service at scale 1: 50 ms predicted at scale 3; restated at the refitted
+    # model's CPU (threshold 1 at 10 Hz: 2 + 5 x 10 = 52 units) over the plan's
+    service = 50.0 / 3.0 * (1.0 if planned_cpu is None else 52.0 / planned_cpu)
     # p50: 100 ms measured - 2 ms overhead - 80 ms transfer - 8 ms wait (a share of the input
-    # period: it does not grow with the scale) = 10 ms of service, predicted 50 ms at scale 3
-    scale = 3.0 * 10 / 50
+    # period: it does not grow with the scale) = 10 ms of the node's own; the new fit's scale
+    # (2.5) counts once beside it: their geometric mean
+    scale = math.sqrt(2.5 * 10.0 / service)
     assert got["service_scale"]["detector"] == pytest.approx(scale, rel=1e-6)
     # p95: what the measured p95 leaves after overhead, transfer and the p95 wait, over the rescaled service
-    service = 50 * scale / 3
     left = 1000 * p95_s - 2 - 80 - 30
-    assert got["node_p95_ratio"]["detector"] == pytest.approx(max(1.0, left / service), rel=1e-6)
+    assert got["node_p95_ratio"]["detector"] == pytest.approx(max(1.0, left / (service * scale)), rel=1e-6)
     assert got["queue_factor"] == pytest.approx(0.7)  # only the links' wait uses it: kept
     assert got["source"] == "tune"
 

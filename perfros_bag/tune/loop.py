@@ -434,13 +434,22 @@ def _recalibrate_latency(outdir: Path, doc_system: dict[str, Any], done: Sequenc
     """The latency model refitted from the deployments (validation.json's chains beside the
     round's plan.json and model), with the new fit's overhead:
 
-    - each hop node's service scale: the mean over the rounds of the scale that round's model
-      used times what its measured p50 left after overhead, transfer and the predicted wait
-      over its predicted service (the service grows with the scale; the wait of a periodic
-      input does not: it is 0 below utilisation 1 and a share of the input period above);
+    - each hop node's service in a round is restated at the refitted model's CPU: the
+      round's predicted service, at scale 1, times the new model's CPU at that round's value
+      (and input rate) over the CPU the round's plan gave it. The CPU refit has already
+      learnt what the deployment's CPU said (:func:`calibrate`); a scale learnt against the
+      old CPU would count it twice;
+    - the scale a round implies is what its measured p50 left after overhead, transfer and
+      the predicted wait over that service (the wait of a periodic input does not grow with
+      the scale: it is 0 below utilisation 1 and a share of the input period above);
+    - the node's new ``service_scale`` is the geometric mean of the new fit's own scale (the
+      sweep's, 1 when it has none), counted once, and each round's: one 12-15 s deployment
+      also carries how fast the host ran in it (record-cpu's speed reading moved 0.40-0.79
+      within one case-study run), which a scale learnt from it alone carries into every
+      later plan;
     - its p95 ratio: what its measured p95 leaves after overhead, transfer and the p95 wait
-      over the rescaled service (at least 1). ``queue_factor`` (now only the wait behind other
-      traffic on a link) is kept.
+      over the rescaled service (at least 1), the mean over the rounds. ``queue_factor``
+      (now only the wait behind other traffic on a link) is kept.
     """
     from perfros_bag.fileio import read_json
     from perfros_bag.fitting.latency import params_json
@@ -450,42 +459,50 @@ def _recalibrate_latency(outdir: Path, doc_system: dict[str, Any], done: Sequenc
         warnings.simplefilter("ignore", PerfrosWarning)
         system = parse_system(doc_system, "model")
     over = system.latency.overhead_ms
-    # node, the scale and queue factor its round used, the measured hop, the planned hop
-    seen: list[tuple[str, float, float, dict[str, Any], dict[str, Any]]] = []
+    # node, the measured hop, the planned hop, its service (ms) at scale 1 and the refitted CPU
+    seen: list[tuple[str, dict[str, Any], dict[str, Any], float]] = []
     for r in done:
         path = outdir / r.dir / "validation.json"
         if not path.is_file() or r.model is None or not (outdir / r.model).is_file():
             continue
         used = ((read_json(outdir / r.model).get("system") or {}).get("latency") or {})
-        plan_chains = {c.get("name"): c for c in (read_json(outdir / r.dir / "plan.json").get("chains") or [])}
+        plan_doc = read_json(outdir / r.dir / "plan.json")
+        plan_chains = {c.get("name"): c for c in (plan_doc.get("chains") or [])}
+        planned = plan_doc.get("nodes") or {}
         for chain in read_json(path).get("chains") or []:
             hops = {(h.get("from"), h.get("to")): h for h in plan_chains.get(chain.get("name"), {}).get("hops") or []}
             for h in chain.get("hops") or []:
                 ph = hops.get((h.get("from"), h.get("to")))
-                if ph is not None and h.get("p50_s") is not None:
-                    seen.append((ph["node"], float((used.get("service_scale") or {}).get(ph["node"], 1.0)),
-                                 float(used.get("queue_factor", 1.0)), h, ph))
-    scales: dict[str, list[float]] = {}
-    for node, used_scale, _, h, ph in seen:
-        service = ph.get("service_ms") or 0.0
+                if ph is None or h.get("p50_s") is None or not ph.get("service_ms"):
+                    continue
+                node = ph["node"]
+                service = float(ph["service_ms"]) / float((used.get("service_scale") or {}).get(node, 1.0))
+                pn = planned.get(node) or {}
+                now = model_cpu(system, node, pn.get("value"), pn.get("input_hz"))
+                if pn.get("cpu") and now is not None and math.isfinite(now) and now > 0:
+                    service *= now / float(pn["cpu"])
+                seen.append((node, h, ph, service))
+    logs: dict[str, list[float]] = {}
+    for node, h, ph, service in seen:
         left = 1000.0 * h["p50_s"] - over - (ph.get("transfer_ms") or 0.0) - (ph.get("wait_ms") or 0.0)
-        if service > 0 and left > 0:
-            scales.setdefault(node, []).append(used_scale * left / service)
-    if not scales:
+        if left > 0:
+            logs.setdefault(node, []).append(math.log(left / service))
+    if not logs:
         return
-    fitted = {n: sum(v) / len(v) for n, v in scales.items()}
+    prior = system.latency.service_scale
+    fitted = {n: math.exp((math.log(prior.get(n, 1.0)) + sum(v)) / (len(v) + 1)) for n, v in logs.items()}
     ratios: dict[str, list[float]] = {}
-    for node, used_scale, _, h, ph in seen:
-        if node not in fitted or h.get("p95_s") is None or not ph.get("service_ms"):
+    for node, h, ph, service in seen:
+        if node not in fitted or h.get("p95_s") is None:
             continue
-        service = ph["service_ms"] * fitted[node] / used_scale
         left95 = 1000.0 * h["p95_s"] - over - (ph.get("transfer_p95_ms") or 0.0) - (ph.get("wait_p95_ms") or 0.0)
-        ratios.setdefault(node, []).append(max(1.0, left95 / service))
+        ratios.setdefault(node, []).append(max(1.0, left95 / (service * fitted[node])))
     params = dataclasses.replace(
-        system.latency, service_scale={**system.latency.service_scale, **fitted},
+        system.latency, service_scale={**prior, **fitted},
         node_p95_ratio={**system.latency.node_p95_ratio, **{n: sum(v) / len(v) for n, v in ratios.items()}},
         source="tune")
     doc_system["latency"] = params_json(params)
+
 
 def load_model(model_path: Path) -> System:
     """model.json's system (its fits' notes are in the file, not repeated as warnings)."""
