@@ -732,6 +732,7 @@ def test_adapt_refits_with_the_live_windows_resolves_and_writes_without_restarti
     assert listed == (changes(plan, mine) or ["no change"])
     [logged] = [json.loads(line) for line in (out / "adapt.jsonl").read_text().splitlines()]
     assert logged["plan"] == str(folder / "plan.json") and logged["applied"].startswith("written")
+    assert logged["sent"] is False and logged["held_back"] is None  # no deploy to send it to, nothing held back
     # nothing was restarted: the fake nodes still answer
     assert set(fake.servers) == {"/camera", "/detector", "master"}
     # the report's timeline: every new alarm and the re-plan, one row each, and the picture
@@ -1287,11 +1288,13 @@ def test_a_re_plan_refitted_from_a_plan_no_longer_in_force_is_not_sent(fake: Fak
     assert replans.take() is None and not (dep / "control.json").exists()
     [logged] = [json.loads(line) for line in (out / "adapt.jsonl").read_text().splitlines()]
     assert logged["applied"].startswith("not sent") and "operator.json" in logged["applied"]
+    assert logged["sent"] is False and "operator.json" in logged["held_back"]
     # the next one starts under the operator's plan, and nothing changes meanwhile: it goes
     replans.ask(load_plan(plan_path), [], [{"line": "alarm"}], 3, {})
     replans.poll()
     taken = replans.take()
     assert taken is not None and taken["window"] == 3 and taken["applied"].startswith("sent")
+    assert taken["sent"] is True and taken["held_back"] is None
     assert json.loads((dep / "control.json").read_text())["plan"] == str(tmp_path / "new-3.json")
 
 
@@ -1330,6 +1333,7 @@ def test_a_re_plan_predicting_less_than_the_running_plan_measured_is_not_sent(fa
     assert replans.take() is None and not (dep / "control.json").exists()
     [logged] = [json.loads(line) for line in (out / "adapt.jsonl").read_text().splitlines()]
     assert logged["applied"].startswith("not sent") and logged["running"] == {"measured": 80.0, "windows": [1, 2]}
+    assert logged["sent"] is False and logged["held_back"].startswith("it predicts Σ w·P 79")
     replans.ask(load_plan(plan_path), [], [{"line": "alarm"}], 3, {}, {"measured": 80.0, "windows": [2, 3]})
     replans.poll()
     taken = replans.take()
@@ -1348,6 +1352,48 @@ def test_the_running_measure_is_the_mean_of_the_alarm_s_windows_or_nothing() -> 
     assert worse_than_running({"predicted_after": 72.0, "running": {"measured": 72.0, "windows": [4, 5]}}) is None
     assert worse_than_running({"predicted_after": 10.0}) is None  # nothing measured to compare with
     assert worse_than_running({"running": {"measured": 72.0, "windows": [5]}}) is None  # an older refit's entry
+
+
+def test_under_an_operator_s_values_the_running_plan_is_the_deploy_s_plan_in_force(tmp_path: Path) -> None:
+    """Issue 30's guard under an operator's pins (RQ4's camera raised to 7.5 Hz by a
+    control.json): the running plan's measure is eq 10 against live.json's plan_in_force when
+    it holds every pinned value, not against the plan watched (which would read the camera at
+    0.75 of its planned 10 Hz); nothing when no plan in force holds them."""
+    from types import SimpleNamespace
+
+    from perfros_bag.watch.loop import PlanInForce
+
+    watched, operator = _plan(cam_hz=10.0), _plan(cam_hz=7.5)
+    save_plan(operator, tmp_path / "operator.json")
+    now = SimpleNamespace(plan_in_force=str(tmp_path / "operator.json"))
+    got = PlanInForce().get(now, watched, {"camera": 7.5})
+    assert got is not None and got.nodes["camera"].value == 7.5
+    assert PlanInForce().get(now, watched, {"camera": 6.0}) is None  # the plan in force does not run 6
+    assert PlanInForce().get(SimpleNamespace(plan_in_force=None), watched, {"camera": 7.5}) is None
+    assert PlanInForce().get(None, watched, {"camera": 7.5}) is None  # no deploy
+    (tmp_path / "bad.json").write_text("{")
+    assert PlanInForce().get(SimpleNamespace(plan_in_force=str(tmp_path / "bad.json")), watched,
+                             {"camera": 7.5}) is None
+    other = _plan(cam_hz=7.5)
+    del other.nodes["detector"]
+    save_plan(other, tmp_path / "other.json")
+    assert PlanInForce().get(SimpleNamespace(plan_in_force=str(tmp_path / "other.json")), watched,
+                             {"camera": 7.5}) is None  # not the watched plan's nodes
+    # a window of the camera at 7.5 Hz, the detector as planned: full marks against the plan in
+    # force, the camera at 0.75 of its rate against the one watched
+    before = Reading(1000.0, {("/camera/image", "/camera"): TopicCounters({1: (0, 0)}),
+                              ("/detector/found", "/detector"): TopicCounters({4: (0, 0)}),
+                              ("/detector/debug", "/detector"): TopicCounters({5: (0, 0)})},
+                     cpu_s={"camera": 0.0, "detector": 0.0})
+    after = Reading(1004.0, {("/camera/image", "/camera"): TopicCounters({1: (30, 3000)}),
+                             ("/detector/found", "/detector"): TopicCounters({4: (20, 200)}),
+                             ("/detector/debug", "/detector"): TopicCounters({5: (20, 200)})},
+                    cpu_s={"camera": 1.2, "detector": 0.8})
+    stats = window_stats(before, after, {"/camera/image": "sensor_msgs/Image"})
+    cpu = window_cpu(before, after, watched, units_per_core=100.0)
+    in_force = evaluate(stats, got, None, cpu, 5.0)
+    assert in_force.overall_measured == pytest.approx(in_force.overall_expected)
+    assert evaluate(stats, watched, None, cpu, 5.0).overall_measured < in_force.overall_measured
 
 
 def test_a_chain_s_last_topic_is_subscribed_to_only_while_its_messages_are_small() -> None:

@@ -448,8 +448,10 @@ def _recalibrate_latency(outdir: Path, doc_system: dict[str, Any], done: Sequenc
       within one case-study run), which a scale learnt from it alone carries into every
       later plan;
     - its p95 ratio: what its measured p95 leaves after overhead, transfer and the p95 wait
-      over the rescaled service (at least 1), the mean over the rounds. ``queue_factor``
-      (now only the wait behind other traffic on a link) is kept.
+      over what its p50 left (the round's own service: at least 1), the mean over the rounds.
+      Taken over the new scale instead, the ratio would carry all of a slow round's p95 into
+      the next plans, whatever the scale's mean kept of it. ``queue_factor`` (now only the
+      wait behind other traffic on a link) is kept.
     """
     from perfros_bag.fileio import read_json
     from perfros_bag.fitting.latency import params_json
@@ -492,11 +494,14 @@ def _recalibrate_latency(outdir: Path, doc_system: dict[str, Any], done: Sequenc
     prior = system.latency.service_scale
     fitted = {n: math.exp((math.log(prior.get(n, 1.0)) + sum(v)) / (len(v) + 1)) for n, v in logs.items()}
     ratios: dict[str, list[float]] = {}
-    for node, h, ph, service in seen:
-        if node not in fitted or h.get("p95_s") is None:
+    for node, h, ph, _service in seen:
+        left = 1000.0 * h["p50_s"] - over - (ph.get("transfer_ms") or 0.0) - (ph.get("wait_ms") or 0.0)
+        if node not in fitted or h.get("p95_s") is None or left <= 0:
             continue
         left95 = 1000.0 * h["p95_s"] - over - (ph.get("transfer_p95_ms") or 0.0) - (ph.get("wait_p95_ms") or 0.0)
-        ratios.setdefault(node, []).append(max(1.0, left95 / (service * fitted[node])))
+        # the spread of the node's own part in that round: its p95 over its p50 (the round's
+        # implied scale times the service), so a slow round's p95 is weighed as its p50 is
+        ratios.setdefault(node, []).append(max(1.0, left95 / left))
     params = dataclasses.replace(
         system.latency, service_scale={**prior, **fitted},
         node_p95_ratio={**system.latency.node_p95_ratio, **{n: sum(v) / len(v) for n, v in ratios.items()}},

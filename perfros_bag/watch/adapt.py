@@ -96,7 +96,7 @@ def worse_than_running(entry: dict[str, Any]) -> str | None:
     alarms (``running``: ``measured``, ``windows``). Adapting never makes things worse
     (issue 30): the running plan is kept, the windows go on judging it. None when the
     re-plan may go, or when there is nothing to compare (no measure: a window blind on a
-    node, or running an operator's values, which the watched plan does not predict)."""
+    node, or running an operator's values that no plan in force holds)."""
     running, after = entry.get("running"), entry.get("predicted_after")
     if not isinstance(running, dict) or running.get("measured") is None or after is None:
         return None
@@ -207,6 +207,7 @@ class Adapter:
         if stale is None:
             stale = worse_than_running(entry)
         applied = "written (nothing restarted)" if stale is None else f"not sent: {stale}"
+        sent = False
         if self.deployment is not None and entry["changes"] and stale is None:
             from perfros_bag.errors import InputError
             from perfros_bag.sweep.control import control_seq, write_control
@@ -219,9 +220,12 @@ class Adapter:
             else:
                 self.sent = max(self.sent, control_seq(self.deployment)) + 1  # after an operator's own entries
                 write_control(self.deployment, self.sent, entry["plan"], list(entry["why"]))
+                sent = True
                 applied = (f"sent to the deploy ({self.deployment / 'control.json'} seq {self.sent}): it restarts "
                            "the nodes whose value, computer or standalone mark changed")
-        done = {**entry, "t": time.time(), "applied": applied}
+        # ``applied`` says it for a reader; ``sent`` (control.json written) and ``held_back``
+        # (why it was not sent, or None) say it for a program
+        done = {**entry, "t": time.time(), "applied": applied, "sent": sent, "held_back": stale}
         log = self.out / ADAPT_LOG
         previous = log.read_text(encoding="utf-8") if log.exists() else ""
         atomic_write_text(log, previous + json_text(done, indent=None) + "\n")

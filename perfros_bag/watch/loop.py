@@ -337,6 +337,7 @@ def _windows(observer: Observer, plan: Plan, system: System | None, live: Any, u
         listener.take()  # what came before the first window's start is not in it
     k = 0
     pins = OperatorPins()
+    in_force = PlanInForce()
     # (window, measured Σ w·P) of the last windows, as many as an alarm takes to be raised
     measured: deque[tuple[int, float] | None] = deque(maxlen=persistence.persist)
     try:
@@ -359,7 +360,7 @@ def _windows(observer: Observer, plan: Plan, system: System | None, live: Any, u
                 persistence = type(persistence)(persistence.persist)  # the new plan's drifts count afresh
                 measured.clear()
                 result.replans.append(replan)
-                if replan["applied"].startswith("sent"):  # the deploy runs it now: watch it against that
+                if replan.get("sent"):  # the deploy runs it now: watch it against that
                     from perfros_bag.system.planfile import load_plan
 
                     plan = load_plan(replan["plan"])
@@ -406,8 +407,14 @@ def _windows(observer: Observer, plan: Plan, system: System | None, live: Any, u
             added = [] if transition or unsettled or (outdir is None and not new) else window_rows(
                 k, doc, plan, observer.types)
             # the running plan's Σ w·P as measured (None where a window cannot say it: blind on a
-            # node, or running an operator's values, which the watched plan does not predict)
-            measured.append(None if transition or blind or world.get("pinned") else (k, doc["overall"]["measured"]))
+            # node, or running an operator's values that no plan in force holds). Under an
+            # operator's values it is eq 10 against the plan the deploy runs (live.json
+            # plan_in_force), as a re-plan that keeps those values predicts it
+            running = doc["overall"]["measured"]
+            if world.get("pinned"):
+                held = in_force.get(now, plan, world["pinned"])
+                running = None if held is None else evaluate(stats, held, system, cpu, tolerance).overall_measured
+            measured.append(None if transition or blind or running is None else (k, running))
             if new:  # a re-plan still being made takes these alarms' windows in its successor, if they last
                 replans.ask(plan, rows + added, new, k, pins.world(world),
                             running_measure(measured))
@@ -492,12 +499,12 @@ class _Replans:
             stale = self._stale()
             entry = self.pending.finish(stale)
             self.pending = None
-            if entry is not None and entry["applied"].startswith("not sent"):  # stale, or worse than running
+            if entry is not None and entry.get("held_back"):  # stale, or worse than running
                 warnings.warn(f"--adapt: window {entry['window']}: re-plan {entry['applied']}", PerfrosWarning,
                               stacklevel=2)
             elif entry is not None:
                 self.done.append(entry)
-                if entry["applied"].startswith("sent") and self.live is not None:
+                if entry.get("sent") and self.live is not None:
                     grace = self.live.restart_timeout_s or RESTART_GRACE_S
                     self.awaiting = (Path(entry["plan"]).resolve(), time.time() + grace + 5.0)
         if self.awaiting is None:
@@ -555,6 +562,34 @@ class _Replans:
         if self.standby is not None:
             end(self.standby)
             self.standby = None
+
+
+@dataclass
+class PlanInForce:
+    """The plan a deploy runs under an operator's values (live.json ``plan_in_force``), read
+    once per path: the one eq 10 judges the running plan against while values are pinned."""
+
+    read: dict[str, Plan | None] = field(default_factory=dict)
+
+    def get(self, now: Any, watched: Plan, pinned: dict[str, Any]) -> Plan | None:
+        """That plan when it runs the watched plan's nodes and holds every ``pinned`` value;
+        None without one (no deploy, the plan watched itself, unreadable, or another plan)."""
+        path = getattr(now, "plan_in_force", None)
+        if not path:
+            return None
+        if path not in self.read:
+            from perfros_bag.system.planfile import load_plan
+
+            try:
+                self.read[path] = load_plan(path)
+            except (PerfrosError, OSError):
+                self.read[path] = None
+        got = self.read[path]
+        if got is None or set(got.nodes) != set(watched.nodes):
+            return None
+        holds = all(got.nodes[n].value is not None and isinstance(v, int | float)
+                    and _runs_as(float(got.nodes[n].value or 0.0), v) for n, v in pinned.items())
+        return got if holds else None
 
 
 def running_measure(measured: Iterable[tuple[int, float] | None]) -> dict[str, Any] | None:
