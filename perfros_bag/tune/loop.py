@@ -461,7 +461,7 @@ def _recalibrate_latency(outdir: Path, doc_system: dict[str, Any], done: Sequenc
         warnings.simplefilter("ignore", PerfrosWarning)
         system = parse_system(doc_system, "model")
     over = system.latency.overhead_ms
-    # node, the measured hop, the planned hop, its service (ms) at scale 1 and the refitted CPU
+    # node, the measured hop, the planned hop, and its service (ms) at scale 1 at the refitted CPU
     seen: list[tuple[str, dict[str, Any], dict[str, Any], float]] = []
     for r in done:
         path = outdir / r.dir / "validation.json"
