@@ -381,7 +381,10 @@ def _one_line_then_consistent(out: Path, first: list[str]) -> None:
 def test_ctrl_c_mid_run_keeps_finished_runs_and_leaves_nothing(tmp_path: Path) -> None:
     _require_ros()
     out = tmp_path / "rec"
-    space = _space(tmp_path / "space.yaml", duration_s=3, settle_s=0,
+    # 8 s runs: the Ctrl-C must land inside the second run even when a loaded machine takes
+    # seconds between seeing its nodes and sending it (CI dry run 2026-11-28 17:07: with 3 s
+    # runs the sweep had finished all three before the signal came)
+    space = _space(tmp_path / "space.yaml", duration_s=8, settle_s=0,
                    vary=[{"node": "camera", "parameter": {"name": "publish_rate"}, "arg": "camera_rate",
                           "values": [5, 10, 20]}])
     proc = subprocess.Popen([str(BIN), "sweep", str(APP), "--space", str(space), "--out", str(out)],
