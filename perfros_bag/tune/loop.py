@@ -461,8 +461,9 @@ def _recalibrate_latency(outdir: Path, doc_system: dict[str, Any], done: Sequenc
         warnings.simplefilter("ignore", PerfrosWarning)
         system = parse_system(doc_system, "model")
     over = system.latency.overhead_ms
-    # node, the measured hop, the planned hop, and its service (ms) at scale 1 at the refitted CPU
-    seen: list[tuple[str, dict[str, Any], dict[str, Any], float]] = []
+    # node, the measured hop, the planned hop, its service (ms) at scale 1 at the refitted CPU,
+    # and what its measured p50 left for the node (ms)
+    seen: list[tuple[str, dict[str, Any], dict[str, Any], float, float]] = []
     for r in done:
         path = outdir / r.dir / "validation.json"
         if not path.is_file() or r.model is None or not (outdir / r.model).is_file():
@@ -483,20 +484,19 @@ def _recalibrate_latency(outdir: Path, doc_system: dict[str, Any], done: Sequenc
                 now = model_cpu(system, node, pn.get("value"), pn.get("input_hz"))
                 if pn.get("cpu") and now is not None and math.isfinite(now) and now > 0:
                     service *= now / float(pn["cpu"])
-                seen.append((node, h, ph, service))
+                left = 1000.0 * h["p50_s"] - over - (ph.get("transfer_ms") or 0.0) - (ph.get("wait_ms") or 0.0)
+                if left > 0:
+                    seen.append((node, h, ph, service, left))
     logs: dict[str, list[float]] = {}
-    for node, h, ph, service in seen:
-        left = 1000.0 * h["p50_s"] - over - (ph.get("transfer_ms") or 0.0) - (ph.get("wait_ms") or 0.0)
-        if left > 0:
-            logs.setdefault(node, []).append(math.log(left / service))
+    for node, _h, _ph, service, left in seen:
+        logs.setdefault(node, []).append(math.log(left / service))
     if not logs:
         return
     prior = system.latency.service_scale
     fitted = {n: math.exp((math.log(prior.get(n, 1.0)) + sum(v)) / (len(v) + 1)) for n, v in logs.items()}
     ratios: dict[str, list[float]] = {}
-    for node, h, ph, _service in seen:
-        left = 1000.0 * h["p50_s"] - over - (ph.get("transfer_ms") or 0.0) - (ph.get("wait_ms") or 0.0)
-        if node not in fitted or h.get("p95_s") is None or left <= 0:
+    for node, h, ph, _service, left in seen:
+        if h.get("p95_s") is None:
             continue
         left95 = 1000.0 * h["p95_s"] - over - (ph.get("transfer_p95_ms") or 0.0) - (ph.get("wait_p95_ms") or 0.0)
         # the spread of the node's own part in that round: its p95 over its p50 (the round's
